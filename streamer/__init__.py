@@ -1,0 +1,1 @@
+"""Real-time streamer: audio sources in, gesture frames out over WebSocket, VMC/OSC and BVH."""
