@@ -1,0 +1,215 @@
+"""Mamba-2 mixer in pure PyTorch that continues any window from a carried state.
+
+Notation (Dao & Gu 2024, "Transformers are SSMs", eq. for the SSD recurrence):
+    h_t = exp(dt_t * A) * h_{t-1} + dt_t * B_t x_t^T        (per head: h is (headdim, d_state))
+    y_t = h_t C_t + D * x_t
+with A = -exp(A_log) a scalar per head, dt_t = softplus(dt_raw_t + dt_bias), and B_t, C_t shared by the
+heads of a group. The parameter names and the packed `in_proj` layout follow the reference implementation
+(state-spaces/mamba `Mamba2Simple`/`Mamba2`, and the transformers `Mamba2Mixer`), so their state_dicts load.
+
+`ssd_chunked` is the fast path (the chunked state-space-duality scan); `ssd_naive` is the per-step
+recurrence the tests compare it against. On CUDA, the fused `mamba_ssm` kernel is used when importable.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+try:  # optional fused kernel, CUDA only
+    from mamba_ssm.ops.triton.ssd_combined import mamba_chunk_scan_combined
+except Exception:  # pragma: no cover - absent on CPU machines
+    mamba_chunk_scan_combined = None
+
+
+@dataclass(frozen=True)
+class Mamba2State:
+    """Everything a Mamba-2 layer needs to continue a sequence: a value, never mutated in place."""
+
+    conv: torch.Tensor  # (B, conv_dim, d_conv - 1): the last inputs of the causal depthwise conv
+    ssm: torch.Tensor  # (B, nheads, headdim, d_state): h after the last processed step
+
+    def nbytes(self) -> int:
+        return self.conv.numel() * self.conv.element_size() + self.ssm.numel() * self.ssm.element_size()
+
+    def detach(self) -> "Mamba2State":
+        return Mamba2State(self.conv.detach(), self.ssm.detach())
+
+
+def segsum(x: torch.Tensor) -> torch.Tensor:
+    """Stable segment sums: out[..., i, j] = sum(x[..., j+1 : i+1]) for j <= i, -inf above the diagonal."""
+    T = x.size(-1)
+    x = x[..., None].expand(*x.shape, T)  # (..., T, T): x[..., k, j] = x_k
+    below = torch.tril(torch.ones(T, T, dtype=torch.bool, device=x.device), diagonal=-1)
+    x = x.masked_fill(~below, 0)
+    out = torch.cumsum(x, dim=-2)
+    keep = torch.tril(torch.ones(T, T, dtype=torch.bool, device=x.device), diagonal=0)
+    return out.masked_fill(~keep, -torch.inf)
+
+
+def ssd_chunked(x, dt, A, B, C, chunk_size, initial_state=None):
+    """Chunked SSD scan for any length L (padded internally to a multiple of the chunk).
+
+    x: (b, L, h, p), dt: (b, L, h) (already softplus'ed), A: (h,), B, C: (b, L, h, n),
+    initial_state: (b, h, p, n) or None. Returns y: (b, L, h, p) without the D skip, final state (b, h, p, n).
+    """
+    b, L, h, p = x.shape
+    n = B.shape[-1]
+    Q = min(chunk_size, L)
+    pad = (-L) % Q
+    if pad:  # dt = 0 on padded steps: decay 1 and no input, so the final state is unchanged
+        x, dt, B, C = (F.pad(t, (0, 0) * (t.dim() - 2) + (0, pad)) for t in (x, dt, B, C))
+    c = x.shape[1] // Q
+    X = (x * dt[..., None]).reshape(b, c, Q, h, p)  # discretised input dt * x
+    Adt = (A * dt).reshape(b, c, Q, h).permute(0, 3, 1, 2)  # (b, h, c, Q)
+    B = B.reshape(b, c, Q, h, n)
+    C = C.reshape(b, c, Q, h, n)
+    A_cum = torch.cumsum(Adt, dim=-1)  # (b, h, c, Q)
+
+    # 1. within each chunk: the quadratic (attention-like) form
+    Lmat = torch.exp(segsum(Adt))  # (b, h, c, Q, Q)
+    y_diag = torch.einsum("bclhn,bcshn,bhcls,bcshp->bclhp", C, B, Lmat, X)
+    # 2. the state each chunk leaves behind, from its own inputs
+    decay_states = torch.exp(A_cum[..., -1:] - A_cum)  # (b, h, c, Q)
+    states = torch.einsum("bclhn,bhcl,bclhp->bchpn", B, decay_states, X)
+    # 3. carry states across chunks (a short recurrence over c + 1 chunk boundaries)
+    if initial_state is None:
+        initial_state = torch.zeros(b, h, p, n, dtype=x.dtype, device=x.device)
+    states = torch.cat([initial_state[:, None].to(states.dtype), states], dim=1)  # (b, c+1, h, p, n)
+    decay_chunk = torch.exp(segsum(F.pad(A_cum[..., -1], (1, 0))))  # (b, h, c+1, c+1)
+    new_states = torch.einsum("bhzc,bchpn->bzhpn", decay_chunk, states)
+    states, final_state = new_states[:, :-1], new_states[:, -1]
+    # 4. contribution of the carried-in state to each position
+    y_off = torch.einsum("bclhn,bchpn,bhcl->bclhp", C, states, torch.exp(A_cum))
+    y = (y_diag + y_off).reshape(b, c * Q, h, p)[:, :L]
+    return y, final_state
+
+
+def ssd_naive(x, dt, A, B, C, initial_state=None):
+    """The per-step recurrence h_t = exp(dt A) h_{t-1} + dt x_t B_t^T, y_t = h_t C_t. Same shapes as ssd_chunked."""
+    b, L, h, p = x.shape
+    n = B.shape[-1]
+    state = initial_state if initial_state is not None else x.new_zeros(b, h, p, n)
+    ys = []
+    for t in range(L):
+        dA = torch.exp(dt[:, t] * A)  # (b, h)
+        dBx = torch.einsum("bh,bhn,bhp->bhpn", dt[:, t], B[:, t], x[:, t])
+        state = state * dA[..., None, None] + dBx
+        ys.append(torch.einsum("bhpn,bhn->bhp", state, C[:, t]))
+    return torch.stack(ys, dim=1), state
+
+
+class RMSNormGated(nn.Module):
+    """RMSNorm(y * silu(z)) * weight, normalised per group of `group_size` channels (reference `RMSNormGated`)."""
+
+    def __init__(self, d: int, eps: float = 1e-5, group_size: int | None = None, norm_before_gate: bool = False,
+                 device=None, dtype=None):
+        super().__init__()
+        self.eps = eps
+        self.group_size = group_size or d
+        self.norm_before_gate = norm_before_gate
+        self.weight = nn.Parameter(torch.ones(d, device=device, dtype=dtype))
+
+    def forward(self, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        if not self.norm_before_gate:
+            y = y * F.silu(z)
+        shape = y.shape
+        g = y.reshape(*shape[:-1], -1, self.group_size)
+        g = g * torch.rsqrt(g.pow(2).mean(-1, keepdim=True) + self.eps)
+        y = g.reshape(shape) * self.weight
+        if self.norm_before_gate:
+            y = y * F.silu(z)
+        return y
+
+
+class Mamba2(nn.Module):
+    """Mamba-2 mixer: `forward(x, state) -> (y, state)` for any length, window by window equal to the whole."""
+
+    def __init__(self, d_model: int, d_state: int = 128, d_conv: int = 4, expand: int = 2, headdim: int = 64,
+                 ngroups: int = 1, chunk_size: int = 64, rmsnorm: bool = True, norm_before_gate: bool = False,
+                 bias: bool = False, conv_bias: bool = True, dt_min: float = 0.001, dt_max: float = 0.1,
+                 dt_init_floor: float = 1e-4, dt_limit: tuple[float, float] = (0.0, float("inf")),
+                 A_init_range: tuple[float, float] = (1.0, 16.0), D_has_hdim: bool = False,
+                 layer_idx: int | None = None, device=None, dtype=None):
+        super().__init__()
+        kw = {"device": device, "dtype": dtype}
+        self.d_model, self.d_state, self.d_conv, self.expand = d_model, d_state, d_conv, expand
+        self.d_inner = expand * d_model
+        if self.d_inner % headdim:
+            raise ValueError(f"expand * d_model = {self.d_inner} is not a multiple of headdim = {headdim}")
+        self.headdim, self.ngroups, self.chunk_size = headdim, ngroups, chunk_size
+        self.nheads = self.d_inner // headdim
+        if self.nheads % ngroups:
+            raise ValueError(f"nheads = {self.nheads} is not a multiple of ngroups = {ngroups}")
+        self.dt_limit, self.layer_idx, self.rmsnorm = tuple(dt_limit), layer_idx, rmsnorm
+        self.conv_dim = self.d_inner + 2 * ngroups * d_state
+
+        # in_proj packs [z (d_inner), xBC (d_inner + 2 * ngroups * d_state), dt (nheads)] in this order.
+        self.in_proj = nn.Linear(d_model, 2 * self.d_inner + 2 * ngroups * d_state + self.nheads, bias=bias, **kw)
+        self.conv1d = nn.Conv1d(self.conv_dim, self.conv_dim, d_conv, groups=self.conv_dim, padding=d_conv - 1,
+                                bias=conv_bias, **kw)
+        # dt initialised log-uniformly in [dt_min, dt_max]; dt_bias is its softplus inverse.
+        dt = torch.exp(torch.rand(self.nheads, **kw) * (math.log(dt_max) - math.log(dt_min)) + math.log(dt_min))
+        dt = dt.clamp(min=dt_init_floor)
+        self.dt_bias = nn.Parameter(dt + torch.log(-torch.expm1(-dt)))
+        self.A_log = nn.Parameter(torch.log(torch.empty(self.nheads, **kw).uniform_(*A_init_range)))
+        self.D = nn.Parameter(torch.ones(self.d_inner if D_has_hdim else self.nheads, **kw))
+        if rmsnorm:
+            self.norm = RMSNormGated(self.d_inner, eps=1e-5, group_size=self.d_inner // ngroups,
+                                     norm_before_gate=norm_before_gate, **kw)
+        self.out_proj = nn.Linear(self.d_inner, d_model, bias=bias, **kw)
+
+    def zero_state(self, batch: int, device=None, dtype=None) -> Mamba2State:
+        device = device if device is not None else self.A_log.device
+        dtype = dtype if dtype is not None else self.in_proj.weight.dtype
+        return Mamba2State(torch.zeros(batch, self.conv_dim, self.d_conv - 1, device=device, dtype=dtype),
+                           torch.zeros(batch, self.nheads, self.headdim, self.d_state, device=device, dtype=dtype))
+
+    def state_nbytes(self, batch: int = 1, bytes_per_value: int = 4) -> int:
+        return batch * bytes_per_value * (self.conv_dim * (self.d_conv - 1) + self.nheads * self.headdim * self.d_state)
+
+    def forward(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
+        return self._run(x, state, reference=False)
+
+    def step_reference(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
+        """Same as forward, but with the naive per-step recurrence: the reference the tests compare against."""
+        return self._run(x, state, reference=True)
+
+    def _run(self, u, state, reference):
+        b, L, _ = u.shape
+        if state is None:
+            state = self.zero_state(b, u.device, u.dtype)
+        z, xBC, dt = torch.split(self.in_proj(u), [self.d_inner, self.conv_dim, self.nheads], dim=-1)
+
+        # causal depthwise conv, continued from the carried tail of the previous window
+        xBC_t = torch.cat([state.conv, xBC.transpose(1, 2)], dim=2)  # (b, conv_dim, d_conv - 1 + L)
+        new_conv = xBC_t[:, :, xBC_t.shape[2] - (self.d_conv - 1):]
+        xBC = F.silu(F.conv1d(xBC_t, self.conv1d.weight, self.conv1d.bias, groups=self.conv_dim).transpose(1, 2))
+
+        x, B, C = torch.split(xBC, [self.d_inner, self.ngroups * self.d_state, self.ngroups * self.d_state], dim=-1)
+        x = x.reshape(b, L, self.nheads, self.headdim)
+        dt = F.softplus(dt + self.dt_bias)  # (b, L, h)
+        if self.dt_limit != (0.0, float("inf")):
+            dt = dt.clamp(*self.dt_limit)
+        A = -torch.exp(self.A_log.float())
+        rep = self.nheads // self.ngroups  # heads of one group share B and C
+        B = B.reshape(b, L, self.ngroups, self.d_state).repeat_interleave(rep, dim=2)
+        C = C.reshape(b, L, self.ngroups, self.d_state).repeat_interleave(rep, dim=2)
+
+        if reference:
+            y, ssm = ssd_naive(x, dt, A, B, C, state.ssm)
+        elif u.is_cuda and mamba_chunk_scan_combined is not None:  # pragma: no cover - needs CUDA
+            Bg = B[:, :, ::rep]
+            Cg = C[:, :, ::rep]
+            y, ssm = mamba_chunk_scan_combined(x, dt, A, Bg, Cg, chunk_size=self.chunk_size, D=None,
+                                               initial_states=state.ssm, return_final_states=True)
+        else:
+            y, ssm = ssd_chunked(x, dt, A, B, C, self.chunk_size, state.ssm)
+
+        D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
+        y = (y + x * D).reshape(b, L, self.d_inner)
+        y = self.norm(y, z) if self.rmsnorm else y * F.silu(z)
+        return self.out_proj(y), Mamba2State(new_conv, ssm.to(state.ssm.dtype))
