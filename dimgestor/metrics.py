@@ -1,0 +1,304 @@
+"""Gesture quality metrics: Fréchet gesture distance (raw and learned feature space), BeatAlign, jerk.
+
+Notation: motion features are (T, D) arrays at `fps`; joint world positions are (T, J, 3) arrays (from
+forward kinematics); audio is float32 mono at `sr`. Times are in seconds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from scipy.signal import argrelextrema
+
+# --------------------------------------------------------------------------------------------------
+# Fréchet distance
+# --------------------------------------------------------------------------------------------------
+
+
+def gaussian_stats(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (D,) and covariance (D, D) of samples x (N, D)."""
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] < 2:
+        raise ValueError(f"need samples of shape (N >= 2, D), got {x.shape}")
+    return x.mean(axis=0), np.cov(x, rowvar=False).reshape(x.shape[1], x.shape[1])
+
+
+def _sqrtm_product(sigma1: np.ndarray, sigma2: np.ndarray, eps: float) -> np.ndarray:
+    """sqrt(sigma1 @ sigma2), retried with eps * I added to both when the product is near singular."""
+    covmean = scipy.linalg.sqrtm(sigma1 @ sigma2)
+    if not np.isfinite(covmean).all():
+        offset = np.eye(sigma1.shape[0]) * eps
+        covmean = scipy.linalg.sqrtm((sigma1 + offset) @ (sigma2 + offset))
+    if np.iscomplexobj(covmean):
+        # Round-off gives tiny imaginary parts on a PSD product; large ones mean the input is broken.
+        if np.abs(covmean.imag).max() > 1e-3 * max(1.0, np.abs(covmean.real).max()):
+            raise ValueError(f"matrix square root has a large imaginary part ({np.abs(covmean.imag).max():.3g})")
+        covmean = covmean.real
+    return covmean
+
+
+def frechet_distance(mu1, sigma1, mu2, sigma2, eps: float = 1e-6) -> float:
+    """||mu1 - mu2||^2 + Tr(sigma1 + sigma2 - 2 sqrt(sigma1 sigma2)) between two Gaussians."""
+    mu1, mu2 = np.atleast_1d(mu1).astype(np.float64), np.atleast_1d(mu2).astype(np.float64)
+    sigma1, sigma2 = np.atleast_2d(sigma1).astype(np.float64), np.atleast_2d(sigma2).astype(np.float64)
+    if mu1.shape != mu2.shape or sigma1.shape != sigma2.shape or sigma1.shape != (mu1.size, mu1.size):
+        raise ValueError(f"shape mismatch: mu {mu1.shape} vs {mu2.shape}, sigma {sigma1.shape} vs {sigma2.shape}")
+    covmean = _sqrtm_product(sigma1, sigma2, eps)
+    diff = mu1 - mu2
+    value = diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * np.trace(covmean)
+    return float(max(value, 0.0))  # a true distance; round-off can give -1e-12
+
+
+def fgd(real: np.ndarray, generated: np.ndarray) -> float:
+    """Fréchet distance between the Gaussians fitted to two sample sets (N, D) and (M, D)."""
+    return frechet_distance(*gaussian_stats(real), *gaussian_stats(generated))
+
+
+# --------------------------------------------------------------------------------------------------
+# Learned feature space (GENEA numerical evaluations: conv autoencoder on fixed-length chunks)
+# --------------------------------------------------------------------------------------------------
+
+
+def motion_chunks(motion: np.ndarray, chunk: int = 34, stride: int | None = None) -> np.ndarray:
+    """Cut (T, D) motion into (n, chunk, D) windows, `stride` apart (default chunk // 2)."""
+    stride = stride or max(1, chunk // 2)
+    motion = np.asarray(motion, dtype=np.float32)
+    if motion.shape[0] < chunk:
+        return np.zeros((0, chunk, motion.shape[1]), dtype=np.float32)
+    starts = range(0, motion.shape[0] - chunk + 1, stride)
+    return np.stack([motion[s : s + chunk] for s in starts])
+
+
+class MotionAutoencoder(nn.Module):
+    """1D-conv encoder of a (chunk, D) motion window to a `latent` vector, with a conv decoder to train it."""
+
+    def __init__(self, dim: int, chunk: int = 34, latent: int = 32, width: int = 64):
+        super().__init__()
+        self.dim, self.chunk, self.latent, self.width = dim, chunk, latent, width
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+        self.encoder = nn.Sequential(
+            nn.Conv1d(dim, width, 3, padding=1), nn.LeakyReLU(0.2),
+            nn.Conv1d(width, width, 4, stride=2, padding=1), nn.LeakyReLU(0.2),  # chunk -> chunk // 2
+            nn.Conv1d(width, width, 4, stride=2, padding=1), nn.LeakyReLU(0.2),  # -> chunk // 4
+        )
+        self.n_low = chunk // 4
+        if self.n_low < 1:
+            raise ValueError(f"chunk must be at least 4 frames, got {chunk}")
+        self.to_latent = nn.Linear(width * self.n_low, latent)
+        self.from_latent = nn.Linear(latent, width * self.n_low)
+        self.decoder = nn.Sequential(
+            nn.Conv1d(width, width, 3, padding=1), nn.LeakyReLU(0.2),
+            nn.Conv1d(width, width, 3, padding=1), nn.LeakyReLU(0.2),
+            nn.Conv1d(width, dim, 3, padding=1),
+        )
+
+    def normalize(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.mean) / self.std
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Raw chunks (B, chunk, D) -> latent (B, latent)."""
+        h = self.encoder(self.normalize(x).transpose(1, 2))  # (B, width, chunk // 4)
+        return self.to_latent(h.flatten(1))
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """Latent (B, latent) -> normalized chunks (B, chunk, D)."""
+        h = self.from_latent(z).view(-1, self.width, self.n_low)
+        h = F.interpolate(h, size=self.chunk, mode="linear", align_corners=False)
+        return self.decoder(h).transpose(1, 2)
+
+    def loss(self, x: torch.Tensor) -> torch.Tensor:
+        """L1 reconstruction + L1 of frame-to-frame velocity, in normalized units."""
+        target = self.normalize(x)
+        recon = self.decode(self.encode(x))
+        velocity = F.l1_loss(recon.diff(dim=1), target.diff(dim=1))
+        return F.l1_loss(recon, target) + velocity
+
+    @torch.no_grad()
+    def embed(self, chunks: np.ndarray, batch: int = 256) -> np.ndarray:
+        """Latent features (n, latent) of raw chunks (n, chunk, D)."""
+        self.eval()
+        x = torch.as_tensor(np.asarray(chunks, dtype=np.float32))
+        if x.ndim != 3 or x.shape[1:] != (self.chunk, self.dim):
+            raise ValueError(f"expected chunks (n, {self.chunk}, {self.dim}), got {tuple(x.shape)}")
+        return torch.cat([self.encode(x[i : i + batch]) for i in range(0, len(x), batch)]).numpy()
+
+    def save(self, folder: str | Path) -> None:
+        from safetensors.torch import save_file
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        save_file({k: v.contiguous() for k, v in self.state_dict().items()}, folder / "fgd_autoencoder.safetensors")
+        hparams = dict(dim=self.dim, chunk=self.chunk, latent=self.latent, width=self.width)
+        (folder / "fgd_autoencoder.json").write_text(json.dumps(hparams, indent=2))
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "MotionAutoencoder":
+        from safetensors.torch import load_file
+
+        folder = Path(folder)
+        ae = cls(**json.loads((folder / "fgd_autoencoder.json").read_text()))
+        ae.load_state_dict(load_file(folder / "fgd_autoencoder.safetensors"))
+        return ae.eval()
+
+
+def train_motion_autoencoder(
+    chunks: np.ndarray, latent: int = 32, width: int = 64, steps: int = 1500, batch: int = 64,
+    lr: float = 1e-3, seed: int = 0, log_every: int = 0,
+) -> MotionAutoencoder:
+    """Fit a MotionAutoencoder on raw chunks (n, chunk, D); normalization statistics come from the chunks."""
+    chunks = np.asarray(chunks, dtype=np.float32)
+    if chunks.ndim != 3 or len(chunks) < 2:
+        raise ValueError(f"need at least 2 chunks of shape (chunk, D), got {chunks.shape}")
+    torch.manual_seed(seed)
+    ae = MotionAutoencoder(chunks.shape[2], chunks.shape[1], latent, width)
+    flat = chunks.reshape(-1, chunks.shape[2])
+    ae.mean.copy_(torch.from_numpy(flat.mean(0)))
+    ae.std.copy_(torch.from_numpy(flat.std(0)).clamp_min(1e-4))  # constant channels stay finite
+    data = torch.from_numpy(chunks)
+    opt = torch.optim.AdamW(ae.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    gen = torch.Generator().manual_seed(seed)
+    ae.train()
+    for step in range(steps):
+        idx = torch.randint(len(data), (min(batch, len(data)),), generator=gen)
+        loss = ae.loss(data[idx])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        if log_every and (step % log_every == 0 or step == steps - 1):
+            print(f"fgd autoencoder step {step}: loss {loss.item():.4f}")
+    return ae.eval()
+
+
+def feature_fgd(ae: MotionAutoencoder, real_chunks: np.ndarray, generated_chunks: np.ndarray) -> float:
+    """FGD between real and generated chunks in the autoencoder's latent space."""
+    return fgd(ae.embed(real_chunks), ae.embed(generated_chunks))
+
+
+# --------------------------------------------------------------------------------------------------
+# BeatAlign (speech version used with BEAT)
+# --------------------------------------------------------------------------------------------------
+
+
+def _mel_filterbank(sr: int, n_fft: int, n_mels: int) -> np.ndarray:
+    """Triangular HTK-mel filters (n_mels, n_fft // 2 + 1)."""
+    mel = lambda f: 2595.0 * np.log10(1.0 + f / 700.0)  # noqa: E731
+    hz = lambda m: 700.0 * (10.0 ** (m / 2595.0) - 1.0)  # noqa: E731
+    edges = hz(np.linspace(mel(0.0), mel(sr / 2), n_mels + 2))
+    freqs = np.linspace(0.0, sr / 2, n_fft // 2 + 1)
+    lower, centre, upper = edges[:-2, None], edges[1:-1, None], edges[2:, None]
+    up = (freqs - lower) / np.maximum(centre - lower, 1e-9)
+    down = (upper - freqs) / np.maximum(upper - centre, 1e-9)
+    return np.maximum(0.0, np.minimum(up, down))
+
+
+def onset_strength(audio: np.ndarray, sr: int = 16000, hop: int = 160, n_fft: int = 1024, n_mels: int = 64):
+    """Spectral flux of the log-mel spectrogram -> (envelope (F,), frames per second); frame f is at f * hop / sr."""
+    y = np.asarray(audio, dtype=np.float64).reshape(-1)
+    y = np.pad(y, n_fft // 2, mode="constant")  # centred frames, as librosa
+    n_frames = 1 + (len(y) - n_fft) // hop
+    if n_frames < 2:
+        raise ValueError(f"audio too short for onset detection: {len(audio)} samples")
+    frames = np.lib.stride_tricks.sliding_window_view(y, n_fft)[::hop][:n_frames] * np.hanning(n_fft)
+    power = np.abs(np.fft.rfft(frames, axis=1)) ** 2  # (F, n_fft // 2 + 1)
+    log_mel = 10.0 * np.log10(np.maximum(power @ _mel_filterbank(sr, n_fft, n_mels).T, 1e-10))
+    log_mel = np.maximum(log_mel, log_mel.max() - 80.0)  # 80 dB floor so silence does not make flux
+    flux = np.maximum(0.0, np.diff(log_mel, axis=0)).mean(axis=1)
+    return np.concatenate([[0.0], flux]), sr / hop
+
+
+def peak_pick(x: np.ndarray, pre_max: int, post_max: int, pre_avg: int, post_avg: int, delta: float, wait: int):
+    """Indices n with x[n] the max of x[n-pre_max : n+post_max+1], above its local mean + delta, >= wait apart."""
+    peaks, last = [], -np.inf
+    for n in range(len(x)):
+        lo_m, hi_m = max(0, n - pre_max), min(len(x), n + post_max + 1)
+        lo_a, hi_a = max(0, n - pre_avg), min(len(x), n + post_avg + 1)
+        if x[n] == x[lo_m:hi_m].max() and x[n] >= x[lo_a:hi_a].mean() + delta and n - last > wait:
+            peaks.append(n)
+            last = n
+    return np.asarray(peaks, dtype=np.int64)
+
+
+def audio_onsets(audio: np.ndarray, sr: int = 16000, delta: float = 0.07) -> np.ndarray:
+    """Onset times (s): peaks of the normalized onset-strength envelope (librosa's default peak picking)."""
+    env, rate = onset_strength(audio, sr)
+    env = env - env.min()
+    if env.max() <= 0:
+        return np.zeros(0)
+    env = env / env.max()
+    s = lambda seconds: int(round(seconds * rate))  # noqa: E731
+    peaks = peak_pick(env, s(0.03), 0, s(0.10), s(0.10), delta, s(0.03))
+    return peaks / rate
+
+
+def joint_speed(positions: np.ndarray, fps: float) -> np.ndarray:
+    """Speed (T, J) of joint positions (T, J, 3), central differences inside, one-sided at the ends."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3 or p.shape[0] < 2:
+        raise ValueError(f"expected positions (T >= 2, J, 3), got {p.shape}")
+    return np.linalg.norm(np.gradient(p, 1.0 / fps, axis=0), axis=2)
+
+
+def motion_beats(positions: np.ndarray, fps: float, threshold: float = 0.1, min_gap_s: float = 0.1) -> np.ndarray:
+    """Beat times (s): local minima of the joints' mean speed, normalized by its clip mean, above `threshold`.
+
+    Normalizing by the clip mean makes the threshold unit-free (cm or m); it drops the near-zero minima
+    of a body at rest, which are jitter rather than beats (as BEAT's velocity mask does).
+    """
+    speed = joint_speed(positions, fps).mean(axis=1)
+    if speed.mean() <= 1e-12:
+        return np.zeros(0)  # a still body has no beats
+    speed = speed / speed.mean()
+    order = max(1, int(round(min_gap_s * fps)))
+    minima = argrelextrema(speed, np.less, order=order)[0]
+    return minima[speed[minima] > threshold] / fps
+
+
+def beat_align(onsets_s: np.ndarray, beats_s: np.ndarray, sigma: float = 0.3) -> float:
+    """Mean over audio onsets of exp(-d^2 / (2 sigma^2)), d = distance to the nearest motion beat."""
+    onsets_s, beats_s = np.asarray(onsets_s, dtype=np.float64), np.sort(np.asarray(beats_s, dtype=np.float64))
+    if onsets_s.size == 0:
+        return float("nan")  # undefined without audio onsets
+    if beats_s.size == 0:
+        return 0.0
+    d = np.abs(onsets_s[:, None] - beats_s[None, :]).min(axis=1)
+    return float(np.exp(-(d**2) / (2.0 * sigma**2)).mean())
+
+
+def beat_align_score(audio: np.ndarray, sr: int, positions: np.ndarray, fps: float, sigma: float = 0.3) -> float:
+    """BeatAlign of joint positions (T, J, 3) against the audio they were made for."""
+    return beat_align(audio_onsets(audio, sr), motion_beats(positions, fps), sigma)
+
+
+# --------------------------------------------------------------------------------------------------
+# Smoothness
+# --------------------------------------------------------------------------------------------------
+
+
+def jerk_magnitude(positions: np.ndarray, fps: float) -> np.ndarray:
+    """|d^3 p / dt^3| (T - 3, J) by third finite differences (exact for cubic motion)."""
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 3 or p.shape[0] < 4:
+        raise ValueError(f"expected positions (T >= 4, J, 3), got {p.shape}")
+    return np.linalg.norm(np.diff(p, n=3, axis=0) * fps**3, axis=2)
+
+
+def jerk(positions: np.ndarray, fps: float) -> float:
+    """Mean jerk magnitude over frames and joints, in position units / s^3."""
+    return float(jerk_magnitude(positions, fps).mean())
+
+
+def upper_body_joints(names: list[str]) -> list[int]:
+    """Indices of spine, neck, head, shoulders, arms and wrists (no fingers, legs or end sites)."""
+    keep = ("spine", "neck", "head", "shoulder", "arm", "hand")
+    drop = ("thumb", "index", "middle", "ring", "pinky", "end", "leg", "foot", "toe", "upleg")
+    picked = [i for i, n in enumerate(names) if any(k in n.lower() for k in keep) and not any(d in n.lower() for d in drop)]
+    return picked or list(range(len(names)))
