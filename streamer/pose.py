@@ -1,0 +1,137 @@
+"""Skeleton pose -> Unity humanoid pose: the retarget map and the BVH -> Unity frame conversion.
+
+BVH space is right-handed, Y up, file units (cm for ZEGGS). Unity is left-handed, Y up, metres.
+Mirroring the X axis maps one to the other: a position (x, y, z) becomes (-x, y, z), and a rotation
+(w, x, y, z) becomes (w, x, -y, -z): M R M with M = diag(-1, 1, 1) turns a rotation by angle a about
+axis u into one by a about -M u (an axis is a pseudo-vector), i.e. (ux, -uy, -uz).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dimgestor.rotations import quat_mul, quat_rotate
+
+MAPS_DIR = Path(__file__).resolve().parent / "maps"
+DEFAULT_MAP = MAPS_DIR / "zeggs.json"
+
+# UnityEngine.HumanBodyBones, in enum order (LastBone excluded: it is a count, not a bone).
+HUMAN_BODY_BONES: tuple[str, ...] = (
+    "Hips", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot", "RightFoot",
+    "Spine", "Chest", "Neck", "Head", "LeftShoulder", "RightShoulder", "LeftUpperArm", "RightUpperArm",
+    "LeftLowerArm", "RightLowerArm", "LeftHand", "RightHand", "LeftToes", "RightToes", "LeftEye",
+    "RightEye", "Jaw",
+    "LeftThumbProximal", "LeftThumbIntermediate", "LeftThumbDistal",
+    "LeftIndexProximal", "LeftIndexIntermediate", "LeftIndexDistal",
+    "LeftMiddleProximal", "LeftMiddleIntermediate", "LeftMiddleDistal",
+    "LeftRingProximal", "LeftRingIntermediate", "LeftRingDistal",
+    "LeftLittleProximal", "LeftLittleIntermediate", "LeftLittleDistal",
+    "RightThumbProximal", "RightThumbIntermediate", "RightThumbDistal",
+    "RightIndexProximal", "RightIndexIntermediate", "RightIndexDistal",
+    "RightMiddleProximal", "RightMiddleIntermediate", "RightMiddleDistal",
+    "RightRingProximal", "RightRingIntermediate", "RightRingDistal",
+    "RightLittleProximal", "RightLittleIntermediate", "RightLittleDistal",
+    "UpperChest",
+)
+
+
+class HumanoidMapError(ValueError):
+    pass
+
+
+def load_humanoid_map(path: str | Path | None = None) -> dict[str, str]:
+    """Read a {HumanBodyBones name: joint name} JSON map (the shipped ZEGGS/BEAT map by default)."""
+    path = Path(path) if path is not None else DEFAULT_MAP
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HumanoidMapError(f"{path}: humanoid map not found") from None
+    except json.JSONDecodeError as e:
+        raise HumanoidMapError(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
+    if not isinstance(data, dict):
+        raise HumanoidMapError(f"{path}: expected a JSON object {{HumanBodyBones name: joint name}}")
+    for bone, joint in data.items():
+        if bone not in HUMAN_BODY_BONES:
+            raise HumanoidMapError(f"{path}: {bone!r} is not a Unity HumanBodyBones name")
+        if not isinstance(joint, str) or not joint:
+            raise HumanoidMapError(f"{path}: {bone!r} must map to a joint name (string), got {joint!r}")
+    joints = list(data.values())
+    dupes = sorted({j for j in joints if joints.count(j) > 1})
+    if dupes:
+        raise HumanoidMapError(f"{path}: joints mapped to several bones: {dupes}")
+    return dict(data)
+
+
+# ---- BVH -> Unity ------------------------------------------------------------------------------
+
+
+def to_unity_position(p: np.ndarray, scale: float = 0.01) -> np.ndarray:
+    """(..., 3) right-handed BVH positions -> left-handed Unity positions, times scale (cm -> m)."""
+    return p * np.array([-scale, scale, scale])
+
+
+def to_unity_quat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) wxyz BVH rotations -> wxyz Unity rotations (mirror of the X axis)."""
+    return q * np.array([1.0, 1.0, -1.0, -1.0])
+
+
+# ---- retargeting to humanoid bones ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HumanoidRig:
+    """The mapped bones of one skeleton, each with the joint path from its humanoid parent.
+
+    Where training joints are left out of the map (ZEGGS Spine1, Neck1), a bone's local rotation is
+    the product of the local rotations along that path, so the posed humanoid matches the skeleton.
+    """
+
+    bones: tuple[str, ...]          # HumanBodyBones names, parents before children
+    joints: tuple[int, ...]         # skeleton joint index of each bone
+    parents: tuple[int, ...]        # index into `bones` of the humanoid parent, -1 for the top bone
+    paths: tuple[tuple[int, ...], ...]  # joints after the humanoid parent's joint, up to the bone's joint
+    offsets: np.ndarray             # (J, 3) skeleton offsets, BVH space
+    root_joint: int                 # skeleton root joint index
+
+    @classmethod
+    def build(cls, names, parents, offsets, humanoid: dict[str, str]) -> "HumanoidRig":
+        index = {n: i for i, n in enumerate(names)}
+        joint_to_bone = {index[j]: b for b, j in humanoid.items() if j in index}
+        bones, joints, bparents, paths = [], [], [], []
+        for j in range(len(names)):  # skeleton order puts parents first, so bones come out that way too
+            if j not in joint_to_bone:
+                continue
+            path, a = [j], parents[j]
+            while a != -1 and a not in joint_to_bone:
+                path.append(a)
+                a = parents[a]
+            bones.append(joint_to_bone[j])
+            joints.append(j)
+            bparents.append(joints.index(a) if a != -1 else -1)
+            paths.append(tuple(reversed(path)))
+        return cls(tuple(bones), tuple(joints), tuple(bparents), tuple(paths),
+                   np.asarray(offsets, dtype=np.float64), parents.index(-1))
+
+    def mapping(self, names) -> dict[str, str]:
+        """{HumanBodyBones name: joint name} for the bones this skeleton has (the hello's `humanoid`)."""
+        return {b: names[j] for b, j in zip(self.bones, self.joints)}
+
+    def local_pose(self, root_pos: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """root_pos (n, 3), rotations (n, J, 4) wxyz -> bone local positions (n, B, 3), rotations (n, B, 4), BVH space."""
+        n = rotations.shape[0]
+        pos = np.zeros((n, len(self.bones), 3))
+        rot = np.zeros((n, len(self.bones), 4))
+        for b, path in enumerate(self.paths):
+            # Walk the path from the humanoid parent down: p = o1 + R1 (o2 + R2 (... + o_k)).
+            q = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), (n, 4))
+            p = np.zeros((n, 3))
+            for k in path:
+                o = root_pos if k == self.root_joint else np.broadcast_to(self.offsets[k], (n, 3))
+                p = p + quat_rotate(q, o)
+                q = quat_mul(q, rotations[:, k])
+            pos[:, b], rot[:, b] = p, q
+        return pos, rot
