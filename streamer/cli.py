@@ -1,0 +1,108 @@
+"""`streamer` command line: `streamer serve` (audio in, gestures out) and `streamer devices`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+
+from streamer.sources import DEMO_WAV, SourceError
+
+EXIT_USAGE = 2
+
+
+def _hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = default_host, text
+    try:
+        p = int(port)
+        if not 0 <= p <= 65535:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT or PORT, got {text!r}") from None
+    return host.strip("[]") or default_host, p
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="streamer", description="Real-time co-speech gesture streamer (DiM-Gestor).")
+    sub = ap.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("serve", help="turn live or file audio into gestures; send them over WebSocket/OSC/BVH",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+                       description="Audio in (microphone, WAV file, or WebSocket clients' own audio), gesture "
+                                   "frames out to WebSocket clients (protocol: docs/protocol.md), a VMC/OSC "
+                                   "receiver and/or a BVH file. Ctrl-C stops cleanly and finishes the recording.")
+    s.add_argument("--source", default="demo",
+                   help=f"audio source: 'mic' (see --device), 'demo' (the bundled clip {DEMO_WAV.name}), "
+                        "a WAV file path, or 'ws' (no server audio: only clients' own audio)")
+    s.add_argument("--device", default=None,
+                   help="input device index or name substring for --source mic (list them: streamer devices)")
+    s.add_argument("--ws", type=_hostport, default=("127.0.0.1", 8765), metavar="HOST:PORT",
+                   help="WebSocket address; 127.0.0.1 keeps it local, 0.0.0.0 opens it to the network; port 0 = any free")
+    s.add_argument("--no-ws", action="store_true", help="do not run the WebSocket server")
+    s.add_argument("--osc", type=_hostport, default=None, metavar="HOST:PORT",
+                   help="send VMC protocol (OSC/UDP) to a Marionette at HOST:PORT (usual port 39539)")
+    s.add_argument("--record", default=None, metavar="OUT.bvh",
+                   help="write the generated motion of the server's source to this BVH file when it ends or on Ctrl-C")
+    s.add_argument("--checkpoint", default=None, metavar="PATH",
+                   help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
+    s.add_argument("--steps", type=int, default=8, help="DDIM denoising steps K (fewer is faster)")
+    s.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
+    s.add_argument("--window-ms", type=int, default=200,
+                   help="audio gathered per inference call (10..5000 ms): smaller = lower latency, more overhead")
+    s.add_argument("--fast", action="store_true",
+                   help="read a file source as fast as inference allows instead of in real time")
+    s.add_argument("--loop", action="store_true", help="repeat a file source forever instead of exiting at its end")
+    s.add_argument("--token", default=None,
+                   help="require clients to connect to ws://HOST:PORT/?token=TOKEN (others get HTTP 401)")
+    s.add_argument("--http", type=_hostport, default=None, metavar="[HOST:]PORT",
+                   help="also serve the web viewer (clients/web) over HTTP on this port (host: the --ws host)")
+    s.add_argument("--humanoid-map", default=None, metavar="FILE.json",
+                   help="{HumanBodyBones name: joint name} map for OSC and the hello; default streamer/maps/zeggs.json")
+    s.add_argument("--status-every", type=float, default=2.0, metavar="S",
+                   help="seconds between status lines on stderr (0 = none)")
+    s.add_argument("--max-seconds", type=float, default=None, metavar="S",
+                   help="stop (cleanly, as on Ctrl-C) after S seconds of running")
+    s.add_argument("--no-client-audio", action="store_true", help="refuse audio sent by WebSocket clients")
+    s.add_argument("-v", "--verbose", action="store_true", help="log debug information")
+    sub.add_parser("devices", help="list audio input devices (for --source mic --device N)")
+    return ap
+
+
+def _devices() -> int:
+    from streamer.sources import list_input_devices
+
+    try:
+        devices = list_input_devices()
+    except SourceError as e:
+        print(f"streamer: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    if not devices:
+        print("No input devices found.", file=sys.stderr)
+        return 0
+    for d in devices:
+        mark = "*" if d["default"] else " "
+        print(f"{mark} {d['index']:3d}  {d['name']}  ({d['channels']} ch, {d['rate']:.0f} Hz)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "devices":
+        return _devices()
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    from streamer.server import ServeError, serve
+
+    try:
+        return asyncio.run(serve(args))
+    except (ServeError, SourceError) as e:
+        print(f"streamer: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

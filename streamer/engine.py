@@ -1,0 +1,165 @@
+"""Session: one audio source -> gesture frames, window by window, inference off the event loop.
+
+A session owns one `GestureStream` (the model's streaming state) and one `PoseDecoder` (the root
+integration). Audio is gathered until a window (`window_ms`) is full; if inference fell behind, the
+next window takes everything that queued up meanwhile, so latency recovers instead of growing. Each
+frame is stamped with pts = index / fps on the audio clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import AsyncIterable, Callable
+
+import numpy as np
+
+from streamer.sources import RATE, AudioChunk
+
+
+@dataclass(frozen=True)
+class Frame:
+    index: int
+    pts: float              # seconds on the audio clock
+    root_pos: np.ndarray    # (3,) BVH space, file units
+    rotations: np.ndarray   # (J, 4) local, wxyz
+    features: np.ndarray    # (D,) denormalized motion features (what --record writes)
+
+
+@dataclass
+class Stats:
+    """Running measurements of one session; averages are exponential over recent windows."""
+
+    windows: int = 0
+    frames: int = 0
+    audio_s: float = 0.0
+    infer_s: float = 0.0
+    latency_ms: float = 0.0  # last sample of a window in -> its frames out
+    rtf: float = 0.0         # inference time / audio time
+    ended: bool = False
+
+    def update(self, audio_s: float, infer_s: float, latency_s: float, frames: int, alpha: float = 0.2) -> None:
+        a = 1.0 if self.windows == 0 else alpha
+        self.windows += 1
+        self.frames += frames
+        self.audio_s += audio_s
+        self.infer_s += infer_s
+        self.latency_ms += a * (1000 * latency_s - self.latency_ms)
+        if audio_s > 0:
+            self.rtf += a * (infer_s / audio_s - self.rtf)
+
+
+class _Window:
+    """Bounded audio buffer between the source reader and the inference loop (back pressure when full)."""
+
+    def __init__(self, max_samples: int):
+        self.chunks: deque[AudioChunk] = deque()
+        self.samples = 0
+        self.max_samples = max_samples
+        self.closed = False
+        self.error: BaseException | None = None
+        self.changed = asyncio.Event()
+
+    async def put(self, chunk: AudioChunk) -> None:
+        while self.samples >= self.max_samples:
+            self.changed.clear()
+            await self.changed.wait()
+        self.chunks.append(chunk)
+        self.samples += len(chunk.samples)
+        self.changed.set()
+
+    def close(self, error: BaseException | None = None) -> None:
+        self.closed, self.error = True, error
+        self.changed.set()
+
+    async def take(self, min_samples: int) -> list[AudioChunk]:
+        """Everything buffered once at least min_samples are there (or the source ended)."""
+        while self.samples < min_samples and not self.closed:
+            self.changed.clear()
+            await self.changed.wait()
+        if self.error is not None:
+            raise self.error
+        chunks, self.chunks, self.samples = list(self.chunks), deque(), 0
+        self.changed.set()
+        return chunks
+
+
+class Session:
+    """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`."""
+
+    def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
+                 window_ms: int = 200, executor: Executor | None = None, name: str = "session"):
+        if not 10 <= window_ms <= 5000:
+            raise ValueError(f"window_ms must be in 10..5000, got {window_ms}")
+        self.stream, self.decoder, self.denormalize = stream, decoder, denormalize
+        self.fps, self.window = fps, RATE * window_ms // 1000
+        self.executor, self.name = executor, name
+        self.stats = Stats()
+
+    @classmethod
+    def from_bundle(cls, bundle, steps: int = 8, seed: int = 0, **kw) -> "Session":
+        from dimgestor.features import PoseDecoder
+
+        return cls(bundle.stream(steps=steps, seed=seed), PoseDecoder(bundle.skeleton, bundle.feature_spec),
+                   bundle.denormalize, bundle.feature_spec.fps, **kw)
+
+    @property
+    def lookahead_s(self) -> float:
+        return float(self.stream.lookahead_s)
+
+    def _frames(self, normalized: np.ndarray) -> list[Frame]:
+        """Normalized features (n, D) of the next n frames -> Frames (the stream counted them already)."""
+        n = len(normalized)
+        if n == 0:
+            return []
+        first = self.stream.frames_out - n
+        feats = np.asarray(self.denormalize(normalized), dtype=np.float64)
+        pose = self.decoder.decode(feats)
+        return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
+                      np.asarray(pose.rotations[i]), feats[i]) for i in range(n)]
+
+    def _push(self, samples: np.ndarray) -> list[Frame]:  # worker thread
+        return self._frames(self.stream.push(samples))
+
+    def _finish(self) -> list[Frame]:  # worker thread
+        return self._frames(self.stream.finish())
+
+    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], None],
+                  max_buffer_s: float = 2.0) -> int:
+        """Stream `source` to the end, calling emit(frames) per window; returns the frame count."""
+        loop = asyncio.get_running_loop()
+        window = _Window(max(self.window, int(max_buffer_s * RATE)))
+
+        async def read() -> None:
+            try:
+                async for chunk in source:
+                    await window.put(chunk)
+                window.close()
+            except BaseException as e:  # surfaces in the inference loop, cancellation included
+                window.close(e if not isinstance(e, asyncio.CancelledError) else None)
+                raise
+
+        reader = asyncio.create_task(read(), name=f"{self.name}-reader")
+        try:
+            while True:
+                chunks = await window.take(self.window)
+                if not chunks:
+                    break
+                samples = np.concatenate([c.samples for c in chunks])
+                t0 = time.perf_counter()
+                frames = await loop.run_in_executor(self.executor, self._push, samples)
+                infer_s = time.perf_counter() - t0
+                emit(frames)
+                self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, len(frames))
+            frames = await loop.run_in_executor(self.executor, self._finish)
+            emit(frames)
+            self.stats.frames += len(frames)
+            self.stats.ended = True
+            return self.stream.frames_out
+        finally:
+            if not reader.done():
+                reader.cancel()
+            await asyncio.gather(reader, return_exceptions=True)

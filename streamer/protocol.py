@@ -1,0 +1,164 @@
+"""Protocol v1 messages (docs/protocol.md) as pure functions: build, encode, parse and validate; no sockets."""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from dimgestor import __version__
+from streamer.engine import Frame
+
+PROTOCOL = 1
+SERVER = f"dimgestor/{__version__}"
+AUDIO_FORMATS = ("pcm16", "float32")
+MAX_TEXT_BYTES = 64 * 1024
+MAX_BINARY_BYTES = 1024 * 1024
+HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
+FRAME_MAGIC = b"DGF1"
+FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
+
+
+class ProtocolError(ValueError):
+    """A client message the server rejects; `code` is the error code sent back."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class SkeletonInfo:
+    names: list[str]
+    parents: list[int]
+    offsets: np.ndarray  # (J, 3)
+    units: str = "cm"
+
+    @classmethod
+    def from_skeleton(cls, skeleton, units: str = "cm") -> "SkeletonInfo":
+        return cls(list(skeleton.names), [int(p) for p in skeleton.parents],
+                   np.asarray(skeleton.offsets, dtype=np.float64), units)
+
+
+@dataclass(frozen=True)
+class AudioFormat:
+    rate: int = 16000
+    format: str = "pcm16"
+    channels: int = 1
+
+
+def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_s: float,
+          accepts_audio: bool, **optional) -> dict:
+    """The server's hello; `optional` adds the optional fields (window_ms, source, ...)."""
+    j = len(skeleton.names)
+    return {
+        "type": "hello", "protocol": PROTOCOL, "server": SERVER, "fps": fps, "encoding": "json",
+        "skeleton": {
+            "joints": skeleton.names, "parents": skeleton.parents,
+            "offsets": np.round(skeleton.offsets, 6).tolist(),
+            "rest_rotations": [[1.0, 0.0, 0.0, 0.0]] * j,
+            "units": skeleton.units, "handedness": "right", "up": "y",
+        },
+        "humanoid": humanoid,
+        "audio": {"accepts": accepts_audio, "rate": 16000, "formats": list(AUDIO_FORMATS)},
+        "lookahead_s": round(float(lookahead_s), 6),
+        "max_message_bytes": MAX_BINARY_BYTES,
+        "binary_frame_bytes": FRAME_HEADER.size + 16 * j,
+        **optional,
+    }
+
+
+def frame_json(frame: Frame) -> str:
+    return json.dumps({
+        "type": "frame", "index": frame.index, "pts": round(frame.pts, 6),
+        "root": np.round(frame.root_pos, 5).tolist(), "rotations": np.round(frame.rotations, 6).tolist(),
+    }, separators=(",", ":"))
+
+
+def frame_binary(frame: Frame) -> bytes:
+    head = FRAME_HEADER.pack(FRAME_MAGIC, frame.index, frame.pts, *map(float, frame.root_pos))
+    return head + np.ascontiguousarray(frame.rotations, dtype="<f4").tobytes()
+
+
+def parse_frame_binary(buf: bytes) -> dict:
+    """Inverse of frame_binary (for clients and tests): {index, pts, root, rotations (J, 4)}."""
+    magic, index, pts, *root = FRAME_HEADER.unpack_from(buf)
+    if magic != FRAME_MAGIC or (len(buf) - FRAME_HEADER.size) % 16:
+        raise ValueError(f"not a DGF1 frame ({len(buf)} bytes, magic {magic!r})")
+    rot = np.frombuffer(buf, "<f4", offset=FRAME_HEADER.size).reshape(-1, 4)
+    return {"index": index, "pts": pts, "root": np.array(root), "rotations": rot}
+
+
+def status(latency_ms: float, rtf: float, frames_sent: int, dropped: int, clients: int, **optional) -> str:
+    return json.dumps({"type": "status", "latency_ms": round(latency_ms, 2), "rtf": round(rtf, 4),
+                       "frames_sent": frames_sent, "dropped": dropped, "clients": clients, **optional})
+
+
+def error(code: str, message: str) -> str:
+    return json.dumps({"type": "error", "code": code, "message": message})
+
+
+def end(frames: int) -> str:
+    return json.dumps({"type": "end", "frames": frames})
+
+
+def parse_text(text: str) -> dict:
+    """A client text message -> a validated dict; raises ProtocolError("bad_message"/...)."""
+    if len(text.encode("utf-8", "surrogatepass")) > MAX_TEXT_BYTES:
+        raise ProtocolError("too_large", f"text messages are limited to {MAX_TEXT_BYTES} bytes")
+    try:
+        msg = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ProtocolError("bad_message", f"not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
+        raise ProtocolError("bad_message", 'expected a JSON object with a "type" field')
+    kind = msg["type"]
+    if kind == "hello":
+        return {"type": "hello", **_parse_hello(msg)}
+    if kind in ("ping", "audio_end"):
+        return msg
+    raise ProtocolError("bad_message", f"unknown message type {kind!r} (expected hello, ping or audio_end)")
+
+
+def _parse_hello(msg: dict) -> dict:
+    out = {}
+    if "protocol" in msg and msg["protocol"] != PROTOCOL:
+        raise ProtocolError("unsupported_protocol", f"this server speaks protocol {PROTOCOL}, not {msg['protocol']!r}")
+    if "encoding" in msg:
+        if msg["encoding"] not in ("json", "binary"):
+            raise ProtocolError("bad_message", f'encoding must be "json" or "binary", got {msg["encoding"]!r}')
+        out["encoding"] = msg["encoding"]
+    if "audio" in msg:
+        a = msg["audio"]
+        if not isinstance(a, dict):
+            raise ProtocolError("bad_message", "audio must be an object {rate, format, channels}")
+        rate, fmt, ch = a.get("rate", 16000), a.get("format", "pcm16"), a.get("channels", 1)
+        if not isinstance(rate, int) or isinstance(rate, bool) or not 8000 <= rate <= 192000:
+            raise ProtocolError("bad_audio", f"audio.rate must be an integer in 8000..192000 Hz, got {rate!r}")
+        if fmt not in AUDIO_FORMATS:
+            raise ProtocolError("bad_audio", f"audio.format must be one of {list(AUDIO_FORMATS)}, got {fmt!r}")
+        if ch not in (1, 2) or isinstance(ch, bool):
+            raise ProtocolError("bad_audio", f"audio.channels must be 1 or 2, got {ch!r}")
+        out["audio"] = AudioFormat(rate, fmt, ch)
+    return out
+
+
+def decode_audio(data: bytes, fmt: AudioFormat) -> np.ndarray:
+    """A binary audio message -> float32 mono at fmt.rate; raises ProtocolError("bad_audio"/"too_large")."""
+    if len(data) > MAX_BINARY_BYTES:
+        raise ProtocolError("too_large", f"binary messages are limited to {MAX_BINARY_BYTES} bytes, got {len(data)}")
+    width = 2 if fmt.format == "pcm16" else 4
+    if len(data) % (width * fmt.channels):
+        raise ProtocolError("bad_audio", f"{len(data)} bytes is not a whole number of {fmt.format} "
+                                         f"sample frames ({width * fmt.channels} bytes each)")
+    if fmt.format == "pcm16":
+        x = np.frombuffer(data, "<i2").astype(np.float32) / 32768.0
+    else:
+        x = np.frombuffer(data, "<f4").astype(np.float32)
+        if not np.isfinite(x).all():
+            raise ProtocolError("bad_audio", "float32 audio contains NaN or infinity")
+    if fmt.channels == 2:
+        x = x.reshape(-1, 2).mean(axis=1)
+    return x

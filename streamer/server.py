@@ -1,0 +1,197 @@
+"""`streamer serve`: wire a source, the model and the sinks together, report status, shut down cleanly."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import AsyncIterator
+
+from streamer.engine import Frame, Session
+from streamer.sources import AudioChunk, MicSource, open_source
+
+
+class ServeError(RuntimeError):
+    """A configuration problem found before serving (bad checkpoint, map, record path...)."""
+
+
+async def until(source, stop: asyncio.Event) -> AsyncIterator[AudioChunk]:
+    """The source's chunks until `stop` is set (Ctrl-C): the session then flushes like at a file's end."""
+    it = source.__aiter__()
+    stopper = asyncio.create_task(stop.wait())
+    try:
+        while True:
+            nxt = asyncio.ensure_future(it.__anext__())
+            await asyncio.wait({nxt, stopper}, return_when=asyncio.FIRST_COMPLETED)
+            if not nxt.done():
+                nxt.cancel()
+                await asyncio.gather(nxt, return_exceptions=True)
+                return
+            try:
+                yield nxt.result()
+            except StopAsyncIteration:
+                return
+    finally:
+        stopper.cancel()
+        if hasattr(it, "aclose"):
+            await it.aclose()
+
+
+def _load(args):
+    from dimgestor.checkpoint import load_checkpoint
+
+    try:
+        return load_checkpoint(args.checkpoint)
+    except FileNotFoundError as e:
+        where = args.checkpoint or "the embedded default model"
+        raise ServeError(f"cannot load {where}: {e}") from None
+
+
+def _status_line(session: Session | None, ws, vmc, source, t0: float) -> str:
+    parts = [f"[streamer {time.monotonic() - t0:6.1f}s]"]
+    if session is not None:
+        st = session.stats
+        parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",
+                  f"rtf {st.rtf:.2f}"]
+    if ws is not None:
+        parts += [f"clients {len(ws.clients)}", f"dropped {sum(c.dropped for c in ws.clients)}",
+                  f"own sessions {sum(1 for c in ws.clients if c.session is not None)}"]
+    if vmc is not None:
+        parts.append(f"osc sent {vmc.sent}")
+    if isinstance(source, MicSource):
+        parts.append(f"mic dropped {source.dropped_s:.1f}s")
+    return " | ".join(parts)
+
+
+async def serve(args) -> int:
+    from streamer import protocol as P
+    from streamer.pose import HumanoidMapError, HumanoidRig, load_humanoid_map
+
+    t0 = time.monotonic()
+    if args.window_ms < 10 or args.window_ms > 5000:
+        raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
+    if args.steps < 1:
+        raise ServeError(f"--steps must be >= 1, got {args.steps}")
+    if args.no_ws and args.source == "ws":
+        raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
+    if args.record and not Path(args.record).resolve().parent.is_dir():
+        raise ServeError(f"--record {args.record}: folder {Path(args.record).resolve().parent} does not exist")
+    device = int(args.device) if args.device is not None and str(args.device).isdigit() else args.device
+    source = open_source(args.source, device=device, realtime=not args.fast, loop=args.loop)  # fail early
+    try:
+        humanoid = load_humanoid_map(args.humanoid_map)
+    except HumanoidMapError as e:
+        raise ServeError(str(e)) from None
+
+    bundle = _load(args)
+    sk = bundle.skeleton
+    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
+    fps = bundle.feature_spec.fps
+    fps = int(fps) if float(fps).is_integer() else fps
+    executor = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+
+    def make_session(name: str = "client") -> Session:
+        return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, window_ms=args.window_ms,
+                                   executor=executor, name=name)
+
+    main_session = make_session("source") if source is not None else None
+    lookahead = (main_session or make_session()).lookahead_s
+
+    ws = vmc = recorder = viewer = None
+    if not args.no_ws:
+        from streamer.ws import WsServer
+
+        hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
+                        accepts_audio=not args.no_client_audio, window_ms=args.window_ms,
+                        source="ws" if source is None else "mic" if args.source == "mic" else "file")
+        ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
+                      token=args.token, broadcast_stats=main_session.stats if main_session else None)
+        try:
+            await ws.start()
+        except OSError as e:
+            raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
+    if args.osc is not None:
+        from streamer.vmc import VmcSink
+
+        vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast)
+        vmc.start()
+    if args.record and main_session is not None:
+        from streamer.record import BvhRecorder
+
+        recorder = BvhRecorder(args.record, sk, bundle.feature_spec)
+    if args.http is not None:
+        from streamer.http import ViewerServer
+
+        host = args.ws[0] if args.http[0] == "127.0.0.1" else args.http[0]
+        try:
+            viewer = ViewerServer(host, args.http[1], ws.port if ws else None, args.token is not None)
+        except OSError as e:
+            raise ServeError(f"cannot serve HTTP on {host}:{args.http[1]}: {e.strerror or e}") from None
+        viewer.start()
+
+    what = {"mic": f"microphone {getattr(source, 'name', '')!r}", "ws": "WebSocket clients' audio only",
+            "demo": f"demo clip {Path(getattr(source, 'path', '')).name}"}.get(args.source, f"file {args.source}")
+    print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, "
+          f"{fps} fps, window {args.window_ms} ms, lookahead {lookahead * 1000:.0f} ms; source: {what}", file=sys.stderr)
+    if ws:
+        print(f"streamer: WebSocket  {ws.url}{'?token=...' if args.token else ''}  (protocol v1, docs/protocol.md)",
+              file=sys.stderr)
+    if viewer:
+        print(f"streamer: web viewer {viewer.url}", file=sys.stderr)
+    if vmc:
+        print(f"streamer: VMC/OSC -> {vmc.host}:{vmc.port}", file=sys.stderr)
+    if recorder:
+        print(f"streamer: recording  {recorder.path}", file=sys.stderr)
+    sys.stderr.flush()
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if args.max_seconds is not None:
+        loop.call_later(args.max_seconds, stop.set)
+
+    async def status_loop() -> None:
+        while args.status_every > 0:
+            await asyncio.sleep(args.status_every)
+            print(_status_line(main_session, ws, vmc, source, t0), file=sys.stderr, flush=True)
+
+    status = asyncio.create_task(status_loop())
+
+    def emit(frames: list[Frame]) -> None:
+        if ws:
+            ws.broadcast(frames)
+        if vmc:
+            vmc.on_frames(frames)
+        if recorder:
+            recorder.on_frames(frames)
+
+    try:
+        if main_session is not None:
+            n = await main_session.run(until(source, stop), emit)
+            if ws:
+                ws.broadcast_end(n)
+            print(f"streamer: source ended after {n} frames", file=sys.stderr)
+        else:
+            await stop.wait()
+    finally:
+        status.cancel()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        if recorder:
+            path = recorder.close()
+            if path:
+                print(f"streamer: wrote {recorder.frames} frames to {path}", file=sys.stderr)
+        if vmc:
+            await vmc.close()
+        if ws:
+            await ws.close()
+        if viewer:
+            viewer.close()
+        executor.shutdown(wait=False, cancel_futures=True)
+        print(_status_line(main_session, ws, vmc, source, t0), file=sys.stderr, flush=True)
+    return 0

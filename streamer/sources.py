@@ -1,0 +1,199 @@
+"""Audio sources: async iterators of timestamped 16 kHz mono chunks (microphone, WAV file, pushed audio).
+
+Every chunk carries `t_start`, its position on the source's audio clock (samples / 16000), and
+`arrival`, the monotonic time its last sample reached the server (what latency is measured from).
+Live sources drop the oldest audio when the consumer falls behind, and count it; file and pushed
+sources apply back pressure instead, so nothing is lost.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import AsyncIterator
+
+import numpy as np
+
+RATE = 16000
+ASSETS = Path(__file__).resolve().parents[1] / "dimgestor" / "assets"
+DEMO_WAV = ASSETS / "demo_en.wav"
+
+
+class SourceError(RuntimeError):
+    """A source cannot start (no device, no PortAudio, unreadable file); the message says why."""
+
+
+@dataclass(frozen=True)
+class AudioChunk:
+    samples: np.ndarray  # (n,) float32 mono 16 kHz
+    t_start: float       # seconds on the audio clock
+    arrival: float       # time.monotonic() when the chunk's last sample arrived
+
+    @property
+    def t_end(self) -> float:
+        return self.t_start + len(self.samples) / RATE
+
+
+def make_resampler(rate: int):
+    """A stateful rate converter to 16 kHz: `fn(x) -> y` carrying its filter state across calls."""
+    from dimgestor.audio import StreamingResampler
+
+    return StreamingResampler(rate, RATE)
+
+
+class WavSource:
+    """A WAV file, paced in real time (or as fast as the consumer takes it), optionally looped."""
+
+    def __init__(self, path: str | Path, realtime: bool = True, loop: bool = False, chunk_ms: int = 20):
+        from dimgestor.audio import load_wav
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise SourceError(f"{self.path}: audio file not found")
+        self.audio = np.ascontiguousarray(load_wav(self.path), dtype=np.float32)  # 16 kHz mono
+        if len(self.audio) == 0:
+            raise SourceError(f"{self.path}: no audio samples")
+        self.realtime, self.loop = realtime, loop
+        self.chunk = RATE * chunk_ms // 1000
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.audio) / RATE
+
+    async def __aiter__(self) -> AsyncIterator[AudioChunk]:
+        t0 = time.monotonic()
+        sent = 0  # samples on the audio clock, across loops
+        while True:
+            for i in range(0, len(self.audio), self.chunk):
+                x = self.audio[i : i + self.chunk]
+                t_start = sent / RATE
+                sent += len(x)
+                if self.realtime:  # release each chunk when its last sample would have been spoken
+                    await asyncio.sleep(max(0.0, t0 + sent / RATE - time.monotonic()))
+                else:
+                    await asyncio.sleep(0)
+                yield AudioChunk(x, t_start, time.monotonic())
+            if not self.loop:
+                return
+
+
+class PushSource:
+    """Audio pushed by someone else (a WebSocket client): `await put(x)` blocks while the queue is full."""
+
+    def __init__(self, rate: int = RATE, max_chunks: int = 64):
+        self.queue: asyncio.Queue = asyncio.Queue(max_chunks)
+        self.resampler = make_resampler(rate) if rate != RATE else None
+        self.samples_in = 0  # 16 kHz samples so far (the audio clock)
+
+    async def put(self, x: np.ndarray) -> None:
+        x = np.asarray(x, dtype=np.float32)
+        if self.resampler is not None:
+            x = np.asarray(self.resampler.process(x), dtype=np.float32)
+        if len(x):
+            chunk = AudioChunk(x, self.samples_in / RATE, time.monotonic())
+            self.samples_in += len(x)
+            await self.queue.put(chunk)
+
+    async def close(self) -> None:
+        if self.resampler is not None:
+            tail = np.asarray(self.resampler.flush(), dtype=np.float32)
+            if len(tail):
+                await self.queue.put(AudioChunk(tail, self.samples_in / RATE, time.monotonic()))
+                self.samples_in += len(tail)
+        await self.queue.put(None)
+
+    async def __aiter__(self) -> AsyncIterator[AudioChunk]:
+        while (chunk := await self.queue.get()) is not None:
+            yield chunk
+
+
+def _sounddevice():
+    try:
+        import sounddevice
+    except OSError as e:  # the module imports, but the PortAudio shared library is missing
+        raise SourceError(f"PortAudio library not found ({e}); install it, e.g. `apt install libportaudio2`") from None
+    return sounddevice
+
+
+def list_input_devices() -> list[dict]:
+    """[{index, name, channels, rate, default}] for every input device PortAudio sees."""
+    sd = _sounddevice()
+    try:
+        default_in = sd.default.device[0]
+        return [
+            {"index": i, "name": d["name"], "channels": d["max_input_channels"],
+             "rate": d["default_samplerate"], "default": i == default_in}
+            for i, d in enumerate(sd.query_devices()) if d["max_input_channels"] > 0
+        ]
+    except sd.PortAudioError as e:
+        raise SourceError(f"cannot list audio devices: {e}") from None
+
+
+class MicSource:
+    """A microphone through PortAudio at the device's own rate, resampled to 16 kHz as it streams.
+
+    The audio callback runs on PortAudio's thread and hands blocks to the event loop; when the
+    consumer falls more than `max_buffer_s` behind, the oldest blocks are dropped (`dropped_s`).
+    """
+
+    def __init__(self, device: int | str | None = None, block_ms: int = 20, max_buffer_s: float = 5.0):
+        sd = self.sd = _sounddevice()
+        try:
+            info = sd.query_devices(device, kind="input")
+        except (sd.PortAudioError, ValueError) as e:
+            hint = "see `streamer devices`" if device is not None else "no default input device"
+            raise SourceError(f"No input device ({hint}): {e}") from None
+        if info["max_input_channels"] < 1:
+            raise SourceError(f"No input device: {info['name']!r} has no input channels")
+        self.device, self.name = device, info["name"]
+        self.rate = int(info["default_samplerate"])
+        self.block = max(1, self.rate * block_ms // 1000)
+        self.blocks: deque[tuple[np.ndarray, float]] = deque()
+        self.max_blocks = max(1, int(max_buffer_s * 1000 / block_ms))
+        self.dropped_s = 0.0
+
+    async def __aiter__(self) -> AsyncIterator[AudioChunk]:
+        loop = asyncio.get_running_loop()
+        ready = asyncio.Event()
+        resampler = make_resampler(self.rate) if self.rate != RATE else None
+
+        def on_block(block: np.ndarray) -> None:  # on the event loop
+            self.blocks.append((block, time.monotonic()))
+            while len(self.blocks) > self.max_blocks:
+                old, _ = self.blocks.popleft()
+                self.dropped_s += len(old) / self.rate
+            ready.set()
+
+        def callback(indata, frames, t, status) -> None:  # on PortAudio's thread
+            loop.call_soon_threadsafe(on_block, indata[:, 0].astype(np.float32, copy=True))
+
+        try:
+            stream = self.sd.InputStream(device=self.device, channels=1, samplerate=self.rate,
+                                         blocksize=self.block, dtype="float32", callback=callback)
+        except self.sd.PortAudioError as e:
+            raise SourceError(f"No input device: cannot open {self.name!r}: {e}") from None
+        samples = 0
+        with stream:
+            while True:
+                await ready.wait()
+                ready.clear()
+                while self.blocks:
+                    block, arrival = self.blocks.popleft()
+                    x = block if resampler is None else np.asarray(resampler.process(block), dtype=np.float32)
+                    if len(x):
+                        yield AudioChunk(x, samples / RATE, arrival)
+                        samples += len(x)
+
+
+def open_source(spec: str, device=None, realtime: bool = True, loop: bool = False):
+    """`mic`, `demo` or a WAV path -> a source; `ws` (client audio only) -> None."""
+    if spec == "ws":
+        return None
+    if spec == "mic":
+        return MicSource(device)
+    if spec == "demo":
+        return WavSource(DEMO_WAV, realtime=realtime, loop=loop)
+    return WavSource(spec, realtime=realtime, loop=loop)

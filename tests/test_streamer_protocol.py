@@ -1,0 +1,78 @@
+"""Protocol v1 messages (docs/protocol.md) without sockets: encodings, validation, audio decoding."""
+
+import json
+
+import numpy as np
+import pytest
+
+from dimgestor.synthetic import synthetic_skeleton
+from streamer import protocol as P
+from streamer.engine import Frame
+
+
+def frame(J=13, index=7):
+    rng = np.random.default_rng(index)
+    q = rng.normal(size=(J, 4))
+    return Frame(index, index / 20, rng.normal(size=3) * 50, q / np.linalg.norm(q, axis=-1, keepdims=True), np.zeros(5))
+
+
+def test_hello_carries_the_skeleton_and_the_contract_fields():
+    sk = synthetic_skeleton()
+    h = P.hello(P.SkeletonInfo.from_skeleton(sk), {"Hips": sk.names[0]}, 20, 0.25, True, window_ms=200)
+    h = json.loads(json.dumps(h))  # JSON-safe
+    assert h["type"] == "hello" and h["protocol"] == 1 and h["fps"] == 20 and h["encoding"] == "json"
+    s = h["skeleton"]
+    assert s["joints"] == sk.names and s["parents"] == sk.parents and s["parents"][0] == -1
+    assert np.allclose(s["offsets"], sk.offsets) and len(s["rest_rotations"]) == len(sk.names)
+    assert (s["units"], s["handedness"], s["up"]) == ("cm", "right", "y")
+    assert h["audio"] == {"accepts": True, "rate": 16000, "formats": ["pcm16", "float32"]}
+    assert h["lookahead_s"] == 0.25 and h["window_ms"] == 200
+    assert h["binary_frame_bytes"] == 28 + 16 * len(sk.names)
+
+
+def test_frame_json_and_binary_round_trip():
+    f = frame()
+    j = json.loads(P.frame_json(f))
+    assert j["type"] == "frame" and j["index"] == 7 and j["pts"] == pytest.approx(0.35)
+    assert np.allclose(j["root"], f.root_pos, atol=1e-5) and np.allclose(j["rotations"], f.rotations, atol=1e-6)
+    b = P.frame_binary(f)
+    assert b[:4] == b"DGF1" and len(b) == 28 + 16 * 13
+    d = P.parse_frame_binary(b)
+    assert d["index"] == 7 and d["pts"] == f.pts
+    assert np.allclose(d["root"], f.root_pos, atol=1e-4) and np.allclose(d["rotations"], f.rotations, atol=1e-6)
+
+
+@pytest.mark.parametrize("text, code", [
+    ("not json", "bad_message"), ("[1, 2]", "bad_message"), ('{"no_type": 1}', "bad_message"),
+    ('{"type": "dance"}', "bad_message"), ('{"type": "hello", "protocol": 2}', "unsupported_protocol"),
+    ('{"type": "hello", "encoding": "xml"}', "bad_message"),
+    ('{"type": "hello", "audio": {"rate": 1000}}', "bad_audio"),
+    ('{"type": "hello", "audio": {"format": "mp3"}}', "bad_audio"),
+    ('{"type": "hello", "audio": {"channels": 6}}', "bad_audio"),
+    ('{"type": "ping", "pad": "' + "x" * 70000 + '"}', "too_large"),
+])
+def test_bad_client_messages_get_the_documented_code(text, code):
+    with pytest.raises(P.ProtocolError) as e:
+        P.parse_text(text)
+    assert e.value.code == code and str(e.value)
+
+
+def test_client_hello_is_parsed_into_a_format():
+    m = P.parse_text('{"type": "hello", "protocol": 1, "encoding": "binary", '
+                     '"audio": {"rate": 48000, "format": "float32", "channels": 2}}')
+    assert m["encoding"] == "binary" and m["audio"] == P.AudioFormat(48000, "float32", 2)
+    assert P.parse_text('{"type": "ping", "t": 3}') == {"type": "ping", "t": 3}
+
+
+def test_audio_decoding():
+    x = np.array([0.5, -0.25, 0.0, 1.0], np.float32)
+    pcm = (x * 32767).astype("<i2").tobytes()
+    assert np.allclose(P.decode_audio(pcm, P.AudioFormat()), x, atol=1e-4)
+    stereo = np.stack([x, -x], 1).astype("<f4").tobytes()
+    assert np.allclose(P.decode_audio(stereo, P.AudioFormat(48000, "float32", 2)), 0)
+    for data, fmt, code in [(pcm[:-1], P.AudioFormat(), "bad_audio"),
+                            (np.array([np.nan], "<f4").tobytes(), P.AudioFormat(format="float32"), "bad_audio"),
+                            (bytes(P.MAX_BINARY_BYTES + 2), P.AudioFormat(), "too_large")]:
+        with pytest.raises(P.ProtocolError) as e:
+            P.decode_audio(data, fmt)
+        assert e.value.code == code
