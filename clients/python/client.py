@@ -1,0 +1,206 @@
+#!/usr/bin/env python3
+"""Example dimgestor client (protocol v1, docs/protocol.md): print frames, optionally send a WAV or the mic.
+
+    python clients/python/client.py                                # watch the server's source
+    python clients/python/client.py --wav speech.wav --binary      # own session from a WAV file
+    python clients/python/client.py --mic                          # own session from the microphone (Ctrl-C ends)
+    python clients/python/client.py --save DIR --frames 50         # keep every message verbatim (NNNNNN.json/.bin)
+
+Needs `websockets` and `numpy`; `--mic` also needs `sounddevice`.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import signal
+import struct
+import sys
+import wave
+from pathlib import Path
+from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
+
+import numpy as np
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+BINARY_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then J*4 float32 wxyz
+CHUNK_S = 0.02  # audio message length: small enough for latency, large enough for little overhead
+
+
+def decode_binary_frame(buf: bytes) -> dict:
+    """Decode a DGF1 binary frame into the same dict a JSON frame parses to."""
+    if len(buf) < BINARY_HEADER.size or (len(buf) - BINARY_HEADER.size) % 16:
+        raise ValueError(f"binary frame of {len(buf)} bytes is not 28 + 16*J")
+    magic, index, pts, *root = BINARY_HEADER.unpack_from(buf)
+    if magic != b"DGF1":
+        raise ValueError(f"binary frame magic {magic!r}, expected b'DGF1'")
+    rotations = np.frombuffer(buf, "<f4", offset=BINARY_HEADER.size).reshape(-1, 4)
+    return {"type": "frame", "index": index, "pts": pts, "root": root, "rotations": rotations.tolist()}
+
+
+def read_wav(path: str) -> tuple[np.ndarray, int]:
+    """Integer-PCM WAV -> (float32 samples (n, channels) in -1..1, rate). Errors name the file."""
+    try:
+        with wave.open(path, "rb") as w:
+            width, channels, rate = w.getsampwidth(), w.getnchannels(), w.getframerate()
+            raw = w.readframes(w.getnframes())
+    except (wave.Error, EOFError) as e:
+        raise SystemExit(f"{path}: not a PCM WAV file ({e}); convert it, e.g. `sox {path} -b 16 out.wav`")
+    if width == 3:  # 24-bit: widen to int32 by putting the bytes in the top three
+        b = np.frombuffer(raw, np.uint8).reshape(-1, 3)
+        raw = (np.pad(b, ((0, 0), (1, 0))).view("<i4")).tobytes()
+        width = 4
+    dtype = {1: np.uint8, 2: "<i2", 4: "<i4"}[width]
+    x = np.frombuffer(raw, dtype).astype(np.float32)
+    x = (x - 128.0) / 128.0 if width == 1 else x / float(2 ** (8 * width - 1))
+    return x.reshape(-1, channels), rate
+
+
+def with_token(url: str, token: str | None) -> str:
+    if not token:
+        return url
+    parts = urlsplit(url)
+    query = dict(parse_qsl(parts.query), token=token)
+    return urlunsplit(parts._replace(query=urlencode(query)))
+
+
+class Printer:
+    """Prints messages (and saves them verbatim with --save); counts frames."""
+
+    def __init__(self, args):
+        self.args, self.frames, self.count, self.skeleton = args, 0, 0, None
+        self.save = Path(args.save) if args.save else None
+        if self.save:
+            self.save.mkdir(parents=True, exist_ok=True)
+
+    def handle(self, message: str | bytes) -> dict:
+        if self.save:
+            name = f"{self.count:06d}." + ("bin" if isinstance(message, bytes) else "json")
+            mode = "wb" if isinstance(message, bytes) else "w"
+            with open(self.save / name, mode) as f:
+                f.write(message)
+        self.count += 1
+        msg = decode_binary_frame(message) if isinstance(message, bytes) else json.loads(message)
+        kind = msg.get("type")
+        if kind == "frame":
+            self.frames += 1
+            if not self.args.quiet:
+                root = ", ".join(f"{v:7.2f}" for v in msg["root"])
+                name = self.skeleton[1] if self.skeleton and len(self.skeleton) > 1 else "joint 1"
+                q = ", ".join(f"{v:+.3f}" for v in msg["rotations"][min(1, len(msg["rotations"]) - 1)])
+                print(f"frame {msg['index']:5d}  pts {msg['pts']:7.3f}  root [{root}]  {name} [{q}]")
+        elif kind == "hello":
+            self.skeleton = msg["skeleton"]["joints"]
+            print(f"hello: {msg.get('server')} protocol {msg.get('protocol')}, {len(self.skeleton)} joints "
+                  f"({msg['skeleton'].get('units')}), {msg.get('fps')} fps, lookahead {msg.get('lookahead_s')} s, "
+                  f"audio {msg.get('audio')}")
+        elif kind == "status" and not self.args.quiet:
+            print(f"status: latency {msg.get('latency_ms')} ms, rtf {msg.get('rtf')}, sent {msg.get('frames_sent')}, "
+                  f"dropped {msg.get('dropped')}, clients {msg.get('clients')}")
+        elif kind in ("error", "end"):
+            print(f"{kind}: {json.dumps({k: v for k, v in msg.items() if k != 'type'})}")
+        return msg
+
+
+async def send_wav(ws, path: str, pace: bool) -> None:
+    audio, rate = read_wav(path)
+    await ws.send(json.dumps({"type": "hello", "protocol": 1, "audio": {"rate": rate, "format": "float32",
+                                                                          "channels": audio.shape[1]}}))
+    step = max(1, int(rate * CHUNK_S))
+    for i in range(0, len(audio), step):
+        await ws.send(audio[i:i + step].astype("<f4").tobytes())
+        if pace:  # like a live talker; the server back-pressures anyway when it falls behind
+            await asyncio.sleep(CHUNK_S)
+    await ws.send(json.dumps({"type": "audio_end"}))
+
+
+async def send_mic(ws, rate: int | None, device) -> None:
+    import sounddevice as sd  # only needed here
+
+    rate = int(rate or sd.query_devices(device, "input")["default_samplerate"])
+    loop = asyncio.get_running_loop()
+    chunks: asyncio.Queue[bytes] = asyncio.Queue(maxsize=100)  # ~2 s; a stalled socket drops the oldest
+
+    def on_audio(indata, frames, time, status):
+        data = indata[:, 0].astype("<f4").tobytes()
+        def put():
+            if chunks.full():
+                chunks.get_nowait()
+            chunks.put_nowait(data)
+        loop.call_soon_threadsafe(put)
+
+    await ws.send(json.dumps({"type": "hello", "protocol": 1, "audio": {"rate": rate, "format": "float32",
+                                                                          "channels": 1}}))
+    print(f"microphone: {rate} Hz; Ctrl-C to stop", file=sys.stderr)
+    with sd.InputStream(samplerate=rate, channels=1, dtype="float32", blocksize=int(rate * CHUNK_S),
+                        device=device, callback=on_audio):
+        try:
+            while True:
+                await ws.send(await chunks.get())
+        except asyncio.CancelledError:
+            pass
+    await ws.send(json.dumps({"type": "audio_end"}))
+
+
+async def run(args) -> int:
+    printer = Printer(args)
+    async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
+        if args.binary:
+            await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
+        sender = None
+        if args.wav:
+            sender = asyncio.create_task(send_wav(ws, args.wav, not args.fast))
+        elif args.mic:
+            sender = asyncio.create_task(send_mic(ws, args.rate, args.device))
+            loop = asyncio.get_running_loop()
+
+            def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
+                loop.remove_signal_handler(signal.SIGINT)
+                sender.cancel()
+            loop.add_signal_handler(signal.SIGINT, stop_talking)
+        try:
+            async for message in ws:
+                msg = printer.handle(message)
+                if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if sender and not sender.done():
+                sender.cancel()
+    print(f"received {printer.frames} frames", file=sys.stderr)
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--url", default="ws://127.0.0.1:8765/", help="server WebSocket URL")
+    p.add_argument("--token", help="access token, when the server was started with --token")
+    p.add_argument("--binary", action="store_true", help="ask for DGF1 binary frames instead of JSON")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--wav", help="send this WAV as our own audio session, then audio_end")
+    src.add_argument("--mic", action="store_true", help="send the microphone (sounddevice) until Ctrl-C")
+    p.add_argument("--fast", action="store_true", help="with --wav: send as fast as the server reads")
+    p.add_argument("--rate", type=int, help="with --mic: capture rate (default: the device's)")
+    p.add_argument("--device", default=None, help="with --mic: sounddevice input device name or index")
+    p.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: until end)")
+    p.add_argument("--save", help="write every received message verbatim into this folder")
+    p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
+    args = p.parse_args(argv)
+    try:
+        return asyncio.run(run(args))
+    except KeyboardInterrupt:
+        return 0
+    except InvalidStatus as e:
+        code = e.response.status_code
+        hint = " (wrong or missing --token)" if code == 401 else ""
+        print(f"{args.url} refused the connection: HTTP {code}{hint}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        print(f"cannot connect to {args.url}: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+// Unity client for dimgestor (protocol v1): receives gesture frames over a WebSocket and drives a Humanoid
+// avatar through Animator.GetBoneTransform. No third-party package: System.Net.WebSockets.ClientWebSocket.
+//
+// Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
+// be copied. For each mapped bone we take the source joint's global rotation relative to the source rest
+// pose (delta = G_frame * G_rest^-1, converted to Unity space) and apply it on top of the avatar's own
+// rest: bone.rotation = avatarRoot.rotation * delta * boneRestRelativeToRoot. Both rests must be the same
+// pose (a T-pose for ZEGGS/BEAT skeletons and for Unity humanoids in their bind pose).
+using System;
+using System.Collections.Generic;
+using System.Net.WebSockets;
+using System.Text;
+using System.Threading;
+using System.Threading.Tasks;
+using UnityEngine;
+
+namespace Dimgestor
+{
+    public class DimgestorClient : MonoBehaviour
+    {
+        [Tooltip("Server WebSocket URL, e.g. ws://127.0.0.1:8765/")]
+        public string url = "ws://127.0.0.1:8765/";
+        [Tooltip("Access token when the server runs with --token (added as ?token=)")]
+        public string token = "";
+        [Tooltip("Receive DGF1 binary frames (smaller, faster to decode) instead of JSON")]
+        public bool binaryFrames = true;
+        [Tooltip("Humanoid avatar to drive; defaults to the Animator on this GameObject")]
+        public Animator animator;
+        [Tooltip("Move the hips with the source root (scaled to the avatar's hip height)")]
+        public bool applyRootPosition = true;
+
+        [Header("Read only")]
+        public string connectionState = "idle";
+        public long framesReceived;
+        public float latencyMs;
+        public long droppedFrames;
+        public string lastError = "";
+
+        class Binding { public Transform bone; public int joint; public Quaternion rest; }
+
+        readonly object gate = new object();      // guards the fields the socket thread hands over
+        Hello pendingHello;
+        Frame pendingFrame;
+        Hello hello;
+        Quat[] sourceRestGlobal;
+        readonly List<Binding> bindings = new List<Binding>();
+        Transform hips;
+        Vector3 hipsRest;
+        Vec3? rootReference;                      // first root of a stream: root motion is relative to it
+        long lastIndex = -1;
+        float hipsScale = 1f;
+
+        CancellationTokenSource cts;
+        ClientWebSocket socket;
+        readonly SemaphoreSlim sendLock = new SemaphoreSlim(1, 1);  // ClientWebSocket allows one send at a time
+        int audioFormatKey;                       // rate * 16 + channels declared in our last hello (0: none yet)
+
+        void OnEnable()
+        {
+            if (animator == null) animator = GetComponent<Animator>();
+            cts = new CancellationTokenSource();
+            var ct = cts.Token;
+            Task.Run(() => RunAsync(ct));
+        }
+
+        void OnDisable()
+        {
+            if (cts != null) cts.Cancel();
+            var s = socket;
+            if (s != null) s.Abort();
+        }
+
+        async Task RunAsync(CancellationToken ct)
+        {
+            var uri = new Uri(string.IsNullOrEmpty(token) ? url : url + (url.Contains("?") ? "&" : "?") + "token=" + Uri.EscapeDataString(token));
+            while (!ct.IsCancellationRequested)
+            {
+                try
+                {
+                    using (var ws = new ClientWebSocket())
+                    {
+                        connectionState = "connecting";
+                        await ws.ConnectAsync(uri, ct).ConfigureAwait(false);
+                        socket = ws;
+                        audioFormatKey = 0;
+                        connectionState = "open";
+                        await SendText(Protocol.ClientHello(binaryFrames), ct).ConfigureAwait(false);
+                        await ReceiveLoop(ws, ct).ConfigureAwait(false);
+                    }
+                }
+                catch (OperationCanceledException) { break; }
+                catch (Exception e) { lastError = e.Message; }  // refused (e.g. 401: wrong token), dropped, bad data
+                socket = null;
+                connectionState = "closed, retrying";
+                try { await Task.Delay(2000, ct).ConfigureAwait(false); } catch (OperationCanceledException) { break; }
+            }
+            connectionState = "stopped";
+        }
+
+        async Task ReceiveLoop(ClientWebSocket ws, CancellationToken ct)
+        {
+            var buffer = new byte[64 * 1024];
+            var message = new System.IO.MemoryStream();
+            while (ws.State == WebSocketState.Open && !ct.IsCancellationRequested)
+            {
+                var r = await ws.ReceiveAsync(new ArraySegment<byte>(buffer), ct).ConfigureAwait(false);
+                if (r.MessageType == WebSocketMessageType.Close) return;
+                message.Write(buffer, 0, r.Count);
+                if (!r.EndOfMessage) continue;
+                var data = message.ToArray();
+                message.SetLength(0);
+                try
+                {
+                    if (r.MessageType == WebSocketMessageType.Binary) Handle(Protocol.DecodeBinaryFrame(data, 0, data.Length));
+                    else Handle(Protocol.Parse(Encoding.UTF8.GetString(data)));
+                }
+                catch (ProtocolException e) { lastError = e.Message; }  // one bad message does not end the stream
+            }
+        }
+
+        void Handle(Message m)
+        {
+            var f = m as Frame;
+            if (f != null) { lock (gate) pendingFrame = f; framesReceived++; return; }  // only the newest frame matters
+            var h = m as Hello;
+            if (h != null) { lock (gate) { pendingHello = h; pendingFrame = null; } return; }
+            var s = m as Status;
+            if (s != null) { latencyMs = (float)s.LatencyMs; droppedFrames = s.Dropped; return; }
+            var e = m as ErrorMessage;
+            if (e != null) lastError = e.Code + ": " + e.Text;
+        }
+
+        // After the Animator, so an Animator Controller (if any) does not overwrite the gestures.
+        void LateUpdate()
+        {
+            Hello h; Frame f;
+            lock (gate) { h = pendingHello; f = pendingFrame; pendingHello = null; pendingFrame = null; }
+            if (h != null) Bind(h);
+            if (f != null && hello != null) Apply(f);
+        }
+
+        void Bind(Hello h)
+        {
+            if (animator == null || !animator.isHuman) { lastError = "needs a Humanoid Animator"; return; }
+            if (hello != null) RestoreRest();  // a reconnect: measure the avatar's rest, not the last pose
+            bindings.Clear();
+            hello = h;
+            sourceRestGlobal = Protocol.GlobalRotations(h.Skeleton, h.Skeleton.RestRotations);
+            Quaternion rootInv = Quaternion.Inverse(animator.transform.rotation);
+            foreach (var kv in h.Humanoid)
+            {
+                HumanBodyBones id;
+                if (!Enum.TryParse(kv.Key, out id) || id == HumanBodyBones.LastBone) continue;
+                Transform bone = animator.GetBoneTransform(id);  // null where the avatar lacks the bone
+                int joint = h.Skeleton.IndexOf(kv.Value);
+                if (bone == null || joint < 0) continue;
+                bindings.Add(new Binding { bone = bone, joint = joint, rest = rootInv * bone.rotation });
+            }
+            bindings.Sort((a, b) => a.joint.CompareTo(b.joint));  // parents before children
+            hips = animator.GetBoneTransform(HumanBodyBones.Hips);
+            if (hips != null) hipsRest = hips.localPosition;
+            rootReference = null;
+            lastIndex = -1;
+        }
+
+        void RestoreRest()
+        {
+            Quaternion root = animator.transform.rotation;
+            foreach (var b in bindings) b.bone.rotation = root * b.rest;
+            if (hips != null) hips.localPosition = hipsRest;
+        }
+
+        void Apply(Frame f)
+        {
+            var sk = hello.Skeleton;
+            if (f.Rotations.Length != sk.Joints.Length) { lastError = "frame has " + f.Rotations.Length + " rotations for " + sk.Joints.Length + " joints"; return; }
+            Quat[] g = Protocol.GlobalRotations(sk, f.Rotations);
+            Quaternion root = animator.transform.rotation;
+            foreach (var b in bindings)
+            {
+                Quat d = Protocol.ToUnityRotation(g[b.joint] * sourceRestGlobal[b.joint].Conjugate());
+                b.bone.rotation = root * new Quaternion((float)d.X, (float)d.Y, (float)d.Z, (float)d.W) * b.rest;
+            }
+            if (f.Index < lastIndex) rootReference = null;  // a new stream (own audio session, --loop)
+            lastIndex = f.Index;
+            if (applyRootPosition && hips != null)
+            {
+                if (rootReference == null)
+                {
+                    rootReference = f.Root;
+                    double sourceHeight = Protocol.ToUnityPosition(f.Root, sk.UnitToMeters).Y;
+                    float avatarHeight = (animator.transform.InverseTransformPoint(hips.position)).y;
+                    hipsScale = sourceHeight > 0.1 && avatarHeight > 0.1f ? avatarHeight / (float)sourceHeight : 1f;
+                }
+                Vec3 d = Protocol.ToUnityPosition(f.Root - rootReference.Value, sk.UnitToMeters) * hipsScale;
+                Vector3 local = hipsRest + (hips.parent != null
+                    ? hips.parent.InverseTransformVector(animator.transform.TransformVector(new Vector3((float)d.X, (float)d.Y, (float)d.Z)))
+                    : new Vector3((float)d.X, (float)d.Y, (float)d.Z));
+                hips.localPosition = local;
+            }
+        }
+
+        // ---- optional: send your own audio (e.g. from Microphone or OnAudioFilterRead) for an own session
+
+        /// <summary>Send float samples (interleaved if channels == 2). Thread-safe; returns false when not connected.</summary>
+        public async Task<bool> SendAudio(float[] samples, int sampleRate, int channels = 1)
+        {
+            var ws = socket;
+            if (ws == null || ws.State != WebSocketState.Open || cts == null) return false;
+            var ct = cts.Token;
+            if (sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
+            {
+                await SendText(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels), ct).ConfigureAwait(false);
+                audioFormatKey = sampleRate * 16 + channels;
+            }
+            var bytes = Protocol.EncodeFloat32(samples, 0, samples.Length);
+            await sendLock.WaitAsync(ct).ConfigureAwait(false);
+            try { await ws.SendAsync(new ArraySegment<byte>(bytes), WebSocketMessageType.Binary, true, ct).ConfigureAwait(false); }
+            finally { sendLock.Release(); }
+            return true;
+        }
+
+        /// <summary>No more audio: the server finishes the session and sends "end".</summary>
+        public Task EndAudio() { return SendText("{\"type\":\"audio_end\"}", cts != null ? cts.Token : CancellationToken.None); }
+
+        async Task SendText(string text, CancellationToken ct)
+        {
+            var ws = socket;
+            if (ws == null || ws.State != WebSocketState.Open) return;
+            var bytes = Encoding.UTF8.GetBytes(text);
+            await sendLock.WaitAsync(ct).ConfigureAwait(false);
+            try { await ws.SendAsync(new ArraySegment<byte>(bytes), WebSocketMessageType.Text, true, ct).ConfigureAwait(false); }
+            finally { sendLock.Release(); }
+        }
+    }
+}

@@ -1,0 +1,285 @@
+// dimgestor protocol v1 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
+// and is tested outside Unity (clients/unity/tests/). The Unity glue is DimgestorClient.cs.
+//
+// Spaces: the wire is BVH space (right-handed, Y up, file units). Unity is left-handed, Y up, metres:
+//   position (x, y, z) -> (-x, y, z) * unitToMeters;  rotation (w, x, y, z) -> (w, x, -y, -z).
+using System;
+using System.Collections.Generic;
+using System.Globalization;
+using System.Text;
+
+namespace Dimgestor
+{
+    public struct Vec3
+    {
+        public double X, Y, Z;
+        public Vec3(double x, double y, double z) { X = x; Y = y; Z = z; }
+        public static Vec3 operator +(Vec3 a, Vec3 b) { return new Vec3(a.X + b.X, a.Y + b.Y, a.Z + b.Z); }
+        public static Vec3 operator -(Vec3 a, Vec3 b) { return new Vec3(a.X - b.X, a.Y - b.Y, a.Z - b.Z); }
+        public static Vec3 operator *(Vec3 a, double s) { return new Vec3(a.X * s, a.Y * s, a.Z * s); }
+    }
+
+    /// <summary>Quaternion in (w, x, y, z) order, as on the wire.</summary>
+    public struct Quat
+    {
+        public double W, X, Y, Z;
+        public Quat(double w, double x, double y, double z) { W = w; X = x; Y = y; Z = z; }
+        public static readonly Quat Identity = new Quat(1, 0, 0, 0);
+
+        public static Quat operator *(Quat a, Quat b)
+        {
+            return new Quat(
+                a.W * b.W - a.X * b.X - a.Y * b.Y - a.Z * b.Z,
+                a.W * b.X + a.X * b.W + a.Y * b.Z - a.Z * b.Y,
+                a.W * b.Y - a.X * b.Z + a.Y * b.W + a.Z * b.X,
+                a.W * b.Z + a.X * b.Y - a.Y * b.X + a.Z * b.W);
+        }
+
+        public Quat Conjugate() { return new Quat(W, -X, -Y, -Z); }
+
+        public Vec3 Rotate(Vec3 v)
+        {
+            Quat r = this * new Quat(0, v.X, v.Y, v.Z) * Conjugate();
+            return new Vec3(r.X, r.Y, r.Z);
+        }
+    }
+
+    public class Skeleton
+    {
+        public string[] Joints;
+        public int[] Parents;          // -1 for the root; parents come before children
+        public Vec3[] Offsets;         // rest offset from the parent, BVH space, file units
+        public Quat[] RestRotations;   // rest local rotations (identity for BVH skeletons)
+        public string Units = "cm";
+        public double UnitToMeters = 0.01;
+
+        public int IndexOf(string joint) { return Array.IndexOf(Joints, joint); }
+    }
+
+    public abstract class Message { public string Type; }
+
+    public class Hello : Message
+    {
+        public int Protocol;
+        public string Server;
+        public double Fps;
+        public string Encoding;
+        public Skeleton Skeleton;
+        public Dictionary<string, string> Humanoid = new Dictionary<string, string>();  // HumanBodyBones name -> joint
+        public bool AudioAccepts;
+        public int AudioRate;
+        public string[] AudioFormats = new string[0];
+        public double LookaheadS;
+    }
+
+    public class Frame : Message
+    {
+        public long Index;
+        public double Pts;
+        public Vec3 Root;              // root joint position, BVH space, file units
+        public Quat[] Rotations;       // local rotations, skeleton order
+    }
+
+    public class Status : Message
+    {
+        public double LatencyMs, Rtf;
+        public long FramesSent, Dropped, Clients;
+    }
+
+    public class ErrorMessage : Message { public string Code, Text; }
+    public class End : Message { public long Frames; }
+    public class Pong : Message { }
+    /// <summary>A type this client does not know; the protocol says to ignore it.</summary>
+    public class UnknownMessage : Message { }
+
+    public class ProtocolException : Exception
+    {
+        public ProtocolException(string message) : base(message) { }
+    }
+
+    public static class Protocol
+    {
+        public const int Version = 1;
+        public const int BinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
+
+        /// <summary>Parse one text message. Throws ProtocolException (with the position) on bad input.</summary>
+        public static Message Parse(string text)
+        {
+            object root = Json.Parse(text);
+            var o = root as Dictionary<string, object>;
+            if (o == null) throw new ProtocolException("message is not a JSON object");
+            string type = Json.Str(o, "type", null);
+            switch (type)
+            {
+                case "hello": return ParseHello(o);
+                case "frame": return ParseFrame(o);
+                case "status":
+                    return new Status
+                    {
+                        Type = type, LatencyMs = Json.Num(o, "latency_ms", 0), Rtf = Json.Num(o, "rtf", 0),
+                        FramesSent = (long)Json.Num(o, "frames_sent", 0), Dropped = (long)Json.Num(o, "dropped", 0),
+                        Clients = (long)Json.Num(o, "clients", 0),
+                    };
+                case "error": return new ErrorMessage { Type = type, Code = Json.Str(o, "code", ""), Text = Json.Str(o, "message", "") };
+                case "end": return new End { Type = type, Frames = (long)Json.Num(o, "frames", 0) };
+                case "pong": return new Pong { Type = type };
+                case null: throw new ProtocolException("message has no \"type\" field");
+                default: return new UnknownMessage { Type = type };
+            }
+        }
+
+        static Hello ParseHello(Dictionary<string, object> o)
+        {
+            var h = new Hello
+            {
+                Type = "hello", Protocol = (int)Json.Num(o, "protocol", 0), Server = Json.Str(o, "server", ""),
+                Fps = Json.Num(o, "fps", 0), Encoding = Json.Str(o, "encoding", "json"),
+                LookaheadS = Json.Num(o, "lookahead_s", 0),
+            };
+            if (h.Protocol != Version)
+                throw new ProtocolException("server speaks protocol " + h.Protocol + ", this client " + Version);
+            var sk = Json.Obj(o, "skeleton");
+            var s = new Skeleton();
+            var joints = Json.Arr(sk, "joints");
+            var parents = Json.Arr(sk, "parents");
+            var offsets = Json.Arr(sk, "offsets");
+            var rest = sk.ContainsKey("rest_rotations") ? Json.Arr(sk, "rest_rotations") : null;
+            int n = joints.Count;
+            if (parents.Count != n || offsets.Count != n || (rest != null && rest.Count != n))
+                throw new ProtocolException("hello.skeleton: " + n + " joints but " + parents.Count + " parents, "
+                    + offsets.Count + " offsets" + (rest != null ? ", " + rest.Count + " rest_rotations" : ""));
+            s.Joints = new string[n]; s.Parents = new int[n]; s.Offsets = new Vec3[n]; s.RestRotations = new Quat[n];
+            for (int j = 0; j < n; j++)
+            {
+                s.Joints[j] = joints[j] as string;
+                if (s.Joints[j] == null) throw new ProtocolException("hello.skeleton.joints[" + j + "] is not a string");
+                s.Parents[j] = (int)Json.ToNum(parents[j], "hello.skeleton.parents[" + j + "]");
+                if (s.Parents[j] >= j || s.Parents[j] < -1) throw new ProtocolException("hello.skeleton.parents[" + j + "] = " + s.Parents[j] + ": parents must come before children");
+                s.Offsets[j] = Vec(offsets[j], "hello.skeleton.offsets[" + j + "]");
+                s.RestRotations[j] = rest != null ? Rot(rest[j], "hello.skeleton.rest_rotations[" + j + "]") : Quat.Identity;
+            }
+            s.Units = Json.Str(sk, "units", "cm");
+            s.UnitToMeters = s.Units == "m" ? 1.0 : s.Units == "mm" ? 0.001 : 0.01;
+            h.Skeleton = s;
+            if (o.ContainsKey("humanoid"))
+                foreach (var kv in Json.Obj(o, "humanoid"))
+                    if (kv.Value is string) h.Humanoid[kv.Key] = (string)kv.Value;
+            if (o.ContainsKey("audio"))
+            {
+                var a = Json.Obj(o, "audio");
+                h.AudioAccepts = a.ContainsKey("accepts") && a["accepts"] is bool && (bool)a["accepts"];
+                h.AudioRate = (int)Json.Num(a, "rate", 16000);
+                if (a.ContainsKey("formats"))
+                {
+                    var f = Json.Arr(a, "formats");
+                    h.AudioFormats = new string[f.Count];
+                    for (int i = 0; i < f.Count; i++) h.AudioFormats[i] = f[i] as string;
+                }
+            }
+            return h;
+        }
+
+        static Frame ParseFrame(Dictionary<string, object> o)
+        {
+            var rots = Json.Arr(o, "rotations");
+            var f = new Frame
+            {
+                Type = "frame", Index = (long)Json.Num(o, "index", -1), Pts = Json.Num(o, "pts", 0),
+                Root = Vec(o.ContainsKey("root") ? o["root"] : null, "frame.root"), Rotations = new Quat[rots.Count],
+            };
+            for (int j = 0; j < rots.Count; j++) f.Rotations[j] = Rot(rots[j], "frame.rotations[" + j + "]");
+            return f;
+        }
+
+        static Vec3 Vec(object v, string what)
+        {
+            var a = v as List<object>;
+            if (a == null || a.Count != 3) throw new ProtocolException(what + " is not [x, y, z]");
+            return new Vec3(Json.ToNum(a[0], what), Json.ToNum(a[1], what), Json.ToNum(a[2], what));
+        }
+
+        static Quat Rot(object v, string what)
+        {
+            var a = v as List<object>;
+            if (a == null || a.Count != 4) throw new ProtocolException(what + " is not [w, x, y, z]");
+            return new Quat(Json.ToNum(a[0], what), Json.ToNum(a[1], what), Json.ToNum(a[2], what), Json.ToNum(a[3], what));
+        }
+
+        /// <summary>Decode a binary (DGF1) frame; count = message length in bytes.</summary>
+        public static Frame DecodeBinaryFrame(byte[] data, int offset, int count)
+        {
+            if (count < BinaryHeaderBytes || (count - BinaryHeaderBytes) % 16 != 0)
+                throw new ProtocolException("binary frame of " + count + " bytes is not 28 + 16*J");
+            if (data[offset] != 'D' || data[offset + 1] != 'G' || data[offset + 2] != 'F' || data[offset + 3] != '1')
+                throw new ProtocolException("binary frame does not start with DGF1");
+            int n = (count - BinaryHeaderBytes) / 16;
+            var f = new Frame
+            {
+                Type = "frame", Index = ReadU32(data, offset + 4), Pts = ReadF64(data, offset + 8),
+                Root = new Vec3(ReadF32(data, offset + 16), ReadF32(data, offset + 20), ReadF32(data, offset + 24)),
+                Rotations = new Quat[n],
+            };
+            for (int j = 0, p = offset + BinaryHeaderBytes; j < n; j++, p += 16)
+                f.Rotations[j] = new Quat(ReadF32(data, p), ReadF32(data, p + 4), ReadF32(data, p + 8), ReadF32(data, p + 12));
+            return f;
+        }
+
+        // The wire is little-endian whatever the CPU is.
+        static byte[] LE(byte[] d, int p, int n)
+        {
+            var b = new byte[n];
+            Array.Copy(d, p, b, 0, n);
+            if (!BitConverter.IsLittleEndian) Array.Reverse(b);
+            return b;
+        }
+        static long ReadU32(byte[] d, int p) { return BitConverter.ToUInt32(LE(d, p, 4), 0); }
+        static double ReadF32(byte[] d, int p) { return BitConverter.ToSingle(LE(d, p, 4), 0); }
+        static double ReadF64(byte[] d, int p) { return BitConverter.ToDouble(LE(d, p, 8), 0); }
+
+        /// <summary>The client hello: frame encoding and, when audio will be sent, its format.</summary>
+        public static string ClientHello(bool binaryFrames, int audioRate = 0, string audioFormat = "float32", int channels = 1)
+        {
+            var sb = new StringBuilder("{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"");
+            sb.Append(binaryFrames ? "binary" : "json").Append('"');
+            if (audioRate > 0)
+                sb.Append(",\"audio\":{\"rate\":").Append(audioRate.ToString(CultureInfo.InvariantCulture))
+                  .Append(",\"format\":\"").Append(audioFormat).Append("\",\"channels\":")
+                  .Append(channels.ToString(CultureInfo.InvariantCulture)).Append('}');
+            return sb.Append('}').ToString();
+        }
+
+        /// <summary>Float samples (-1..1) to the float32 little-endian wire format.</summary>
+        public static byte[] EncodeFloat32(float[] samples, int start, int count)
+        {
+            var b = new byte[count * 4];
+            for (int i = 0; i < count; i++)
+            {
+                var s = BitConverter.GetBytes(samples[start + i]);
+                if (!BitConverter.IsLittleEndian) Array.Reverse(s);
+                Array.Copy(s, 0, b, i * 4, 4);
+            }
+            return b;
+        }
+
+        // ---- spaces
+
+        public static Vec3 ToUnityPosition(Vec3 p, double unitToMeters)
+        {
+            return new Vec3(-p.X * unitToMeters, p.Y * unitToMeters, p.Z * unitToMeters);
+        }
+
+        /// <summary>Mirror X: (w, x, y, z) -> (w, x, -y, -z). Unity's Quaternion(x, y, z, w) takes (X, Y, Z, W) of the result.</summary>
+        public static Quat ToUnityRotation(Quat q) { return new Quat(q.W, q.X, -q.Y, -q.Z); }
+
+        /// <summary>Global (model-space) rotation of every joint from local rotations: G[j] = G[parent] * L[j].</summary>
+        public static Quat[] GlobalRotations(Skeleton s, Quat[] local)
+        {
+            if (local.Length != s.Joints.Length)
+                throw new ProtocolException("frame has " + local.Length + " rotations for " + s.Joints.Length + " joints");
+            var g = new Quat[local.Length];
+            for (int j = 0; j < local.Length; j++)
+                g[j] = s.Parents[j] < 0 ? local[j] : g[s.Parents[j]] * local[j];
+            return g;
+        }
+    }
+}
