@@ -186,25 +186,29 @@ def quat_continuity(q: np.ndarray, axis: int = 0) -> np.ndarray:
 
 
 def expmap_continuity(v: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Choose, per frame, the rotation vector of the same rotation closest to the previous frame.
+    """Choose, per frame, the rotation vector of the same rotation closest to the previous choice.
 
-    All rotation vectors of one rotation are u * (angle + 2 pi k) for its unit axis u, so we make
-    the axis sign-continuous (flipping u negates the angle) and then unwrap the signed angle.
+    All rotation vectors of one rotation are u * s with s = angle + 2 pi k for its unit axis u;
+    |u s - p| is smallest for s nearest to u . p, which fixes k in closed form. The choice depends
+    on the previous frame's choice, so this is a recurrence over time (vectorised over the rest).
     """
     v = np.moveaxis(np.asarray(v, dtype=np.float64), axis, 0)
     angle = np.linalg.norm(v, axis=-1)
     u = v / np.maximum(angle, _EPS)[..., None]
-    # Near identity the axis is noise: carry the last well-defined axis forward instead, so an
-    # unwrapped angle of 2 pi k (a full turn, identity) keeps pointing along the spin.
-    valid = angle > 1e-6
-    idx = np.where(valid, np.arange(len(v)).reshape((-1,) + (1,) * (angle.ndim - 1)), 0)
-    idx = np.maximum.accumulate(idx, axis=0)
-    u = np.take_along_axis(u, idx[..., None], axis=0)
-    dots = np.sum(u[1:] * u[:-1], axis=-1)
-    flips = np.concatenate([np.ones((1,) + dots.shape[1:]), np.where(dots < 0, -1.0, 1.0)])
-    signs = np.cumprod(flips, axis=0)
-    signed = np.unwrap(angle * signs, axis=0)
-    return np.moveaxis(u * (signs * signed)[..., None], 0, axis)
+    two_pi = 2.0 * np.pi
+    out = np.empty_like(v)
+    prev = v[0]
+    out[0] = prev
+    for t in range(1, len(v)):
+        # At (numerically) identity the axis is noise: keep the previous axis, so a full turn
+        # continues as 2 pi along the spin instead of jumping to an arbitrary direction.
+        prev_norm = np.linalg.norm(prev, axis=-1, keepdims=True)
+        keep = (angle[t] < 1e-6)[..., None] & (prev_norm > 1e-6)
+        ut = np.where(keep, prev / np.maximum(prev_norm, _EPS), u[t])
+        k = np.round((np.sum(ut * prev, axis=-1) - angle[t]) / two_pi)
+        prev = ut * (angle[t] + two_pi * k)[..., None]
+        out[t] = prev
+    return np.moveaxis(out, 0, axis)
 
 
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -113,6 +113,19 @@ def test_continuity_removes_sign_flips_and_2pi_jumps():
     np.testing.assert_allclose(cont, angle[:, None] * axis, atol=1e-9)  # the unwrapped rotation vector
 
 
+def test_expmap_continuity_picks_the_representation_closest_to_the_previous_frame():
+    rng = np.random.default_rng(4)
+    q = R.quat_continuity(R.quat_normalize(np.cumsum(rng.normal(scale=0.3, size=(300, 4)), axis=0)))
+    v = R.expmap_continuity(R.quat_to_expmap(q))
+    assert np.abs(np.abs(np.sum(R.expmap_to_quat(v) * q, -1)) - 1).max() < 1e-9  # same rotations
+    angle = np.linalg.norm(v, axis=-1, keepdims=True)
+    u = v / angle
+    chosen = np.linalg.norm(v[1:] - v[:-1], axis=-1)
+    for turn in (-2 * np.pi, 2 * np.pi):  # the same rotation one turn either way is never closer
+        assert np.all(chosen <= np.linalg.norm(v[1:] + turn * u[1:] - v[:-1], axis=-1) + 1e-12)
+    assert angle.max() > np.pi  # the walk wandered past pi, so the choice was exercised
+
+
 def test_slerp_is_constant_speed_on_the_short_arc():
     q0 = R.euler_to_quat(np.array([0.0, 0.0, 0.0]), "XYZ")
     q1 = -R.euler_to_quat(np.array([0.0, 1.0, 0.0]), "XYZ")  # negated: slerp must take the short way

@@ -1,0 +1,251 @@
+"""Motion features as in Alexanderson et al. (PyMO processing), used by DiM-Gestor, and their inverse.
+
+One row per frame at `spec.fps` (20 by default), float32, columns in this order:
+
+  root_dx, root_dz   ground-plane displacement of the root from the previous frame to this one,
+                     in file units PER FRAME, expressed in the previous frame's heading frame
+                     (rotated by -heading[t-1] about Y); 0 on the first frame
+  root_dyaw          heading change from the previous frame, radians PER FRAME; 0 on the first frame
+  root_y             root height, file units
+  root_tilt_x, _z    the root rotation with its heading removed (q_root = yaw(heading) * tilt),
+                     as an exponential map; its Y component is 0 by construction, so it is dropped
+  <joint>_rx/_ry/_rz for every kept non-root joint, its local rotation as an exponential map,
+                     kept continuous over time (no sign flips, no 2 pi jumps)
+
+Heading is the twist of the root rotation about +Y. Velocities are per frame (not per second), so
+integrating is a cumulative sum and decoding in chunks equals decoding everything at once.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from dimgestor import rotations as R
+from dimgestor.bvh import BvhMotion, Skeleton
+
+ROOT_COLUMNS = ("root_dx", "root_dz", "root_dyaw", "root_y", "root_tilt_x", "root_tilt_z")
+AXIS_SUFFIXES = ("_rx", "_ry", "_rz")
+
+
+class FeatureSpec(BaseModel):
+    """What the feature rows contain; saved in checkpoints so generation decodes the same layout."""
+
+    model_config = ConfigDict(frozen=True)
+
+    fps: float = Field(20.0, gt=0, description="feature frame rate; the paper uses 20 fps")
+    joints: tuple[str, ...] | None = Field(
+        None, description="non-root joints whose rotations are features; None = every joint with rotation channels"
+    )
+
+    @classmethod
+    def for_skeleton(cls, skeleton: Skeleton, fps: float = 20.0, joints=None, exclude=()) -> "FeatureSpec":
+        """A resolved spec: `joints` (default all) minus names in `exclude`, in skeleton order."""
+        return cls(fps=fps, joints=joints).resolve(skeleton, exclude=exclude)
+
+    def resolve(self, skeleton: Skeleton, exclude=()) -> "FeatureSpec":
+        """This spec with `joints` listed explicitly (skeleton order), checked against the skeleton."""
+        rotating = [n for j, n in enumerate(skeleton.names) if j > 0 and skeleton.rotation_order(j)]
+        if self.joints is None:
+            wanted = set(rotating)
+        else:
+            unknown = [n for n in self.joints if n not in skeleton.names]
+            if unknown:
+                raise ValueError(f"FeatureSpec joints not in the skeleton: {unknown}")
+            static = [n for n in self.joints if n not in rotating]
+            if static:
+                raise ValueError(f"FeatureSpec joints without rotation channels (or the root): {static}")
+            wanted = set(self.joints)
+        wanted -= set(exclude)
+        return self.model_copy(update={"joints": tuple(n for n in rotating if n in wanted)})
+
+    def _resolved(self) -> tuple[str, ...]:
+        if self.joints is None:
+            raise ValueError("FeatureSpec.joints is unresolved; call spec.resolve(skeleton) first")
+        return self.joints
+
+    @property
+    def columns(self) -> list[str]:
+        return list(ROOT_COLUMNS) + [n + s for n in self._resolved() for s in AXIS_SUFFIXES]
+
+    @property
+    def dim(self) -> int:
+        return len(ROOT_COLUMNS) + 3 * len(self._resolved())
+
+    def joint_indices(self, skeleton: Skeleton) -> list[int]:
+        return [skeleton.index(n) for n in self._resolved()]
+
+    def to_dict(self) -> dict:
+        return self.model_dump(mode="json")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FeatureSpec":
+        return cls.model_validate(d)
+
+
+# ---- resampling ----------------------------------------------------------------------------------
+
+
+def resample_pose(rotations: np.ndarray, positions: np.ndarray, frame_time: float, fps: float):
+    """Resample local rotations (T, J, 4) by slerp and positions (T, ..., 3) linearly to `fps`.
+
+    The output covers the same duration: floor(T * frame_time * fps) frames (at least 1), frame k
+    at time k / fps. A source already at `fps` is returned unchanged.
+    """
+    T = rotations.shape[0]
+    n_out = max(1, int(np.floor(T * frame_time * fps + 1e-6)))
+    if abs(frame_time * fps - 1.0) < 1e-9:
+        return rotations[:n_out].copy(), positions[:n_out].copy()
+    u = np.arange(n_out) / (fps * frame_time)  # fractional source frame of each output frame
+    i0 = np.minimum(np.floor(u + 1e-9).astype(int), T - 1)
+    i1 = np.minimum(i0 + 1, T - 1)
+    a = np.clip(u - i0, 0.0, 1.0)
+    rot = R.quat_slerp(rotations[i0], rotations[i1], np.broadcast_to(a[:, None], (n_out, rotations.shape[1])))
+    a_pos = a.reshape((-1,) + (1,) * (positions.ndim - 1))
+    pos = (1.0 - a_pos) * positions[i0] + a_pos * positions[i1]
+    return rot, pos
+
+
+# ---- forward: motion -> features -----------------------------------------------------------------
+
+
+def motion_to_features(motion: BvhMotion, spec: FeatureSpec | None = None) -> np.ndarray:
+    """BVH motion at any frame rate -> features (T_fps, spec.dim) float32, the layout above."""
+    skeleton = motion.skeleton
+    spec = (spec or FeatureSpec()).resolve(skeleton)
+    if skeleton.parents[0] != -1:
+        raise ValueError("the root must be the first joint")
+    kept = spec.joint_indices(skeleton)
+    cols = [0] + kept
+    rot, root_pos = resample_pose(motion.rotations()[:, cols], motion.translations()[:, 0], motion.frame_time, spec.fps)
+
+    heading, tilt = R.split_heading(rot[:, 0])
+    heading = np.unwrap(heading)
+    h_prev = np.concatenate([heading[:1], heading[:-1]])
+    step = np.diff(root_pos[:, [0, 2]], axis=0, prepend=root_pos[:1, [0, 2]])  # (T, 2) x, z
+    c, s = np.cos(h_prev), np.sin(h_prev)
+    dx = c * step[:, 0] - s * step[:, 1]  # rotate by -h_prev about Y
+    dz = s * step[:, 0] + c * step[:, 1]
+    tilt_v = R.expmap_continuity(R.quat_to_expmap(tilt))
+    root = np.stack([dx, dz, np.diff(heading, prepend=heading[:1]), root_pos[:, 1], tilt_v[:, 0], tilt_v[:, 2]], -1)
+    joints = R.expmap_continuity(R.quat_to_expmap(rot[:, 1:]), axis=0).reshape(len(rot), -1)
+    return np.concatenate([root, joints], axis=1).astype(np.float32)
+
+
+# ---- inverse: features -> pose / motion ----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RootState:
+    """Root ground position and heading of the frame before the next one to decode."""
+
+    x: float = 0.0
+    z: float = 0.0
+    heading: float = 0.0
+
+
+@dataclass(frozen=True)
+class Pose:
+    root_pos: np.ndarray  # (n, 3) file units
+    rotations: np.ndarray  # (n, J, 4) local quaternions wxyz for every skeleton joint
+
+
+def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
+                    state: RootState = RootState()) -> tuple[Pose, RootState]:
+    """Features (n, D) -> poses, integrating the root from `state`; returns the state after frame n-1."""
+    spec = spec.resolve(skeleton)
+    f = np.asarray(features, dtype=np.float64)
+    if f.ndim != 2 or f.shape[1] != spec.dim:
+        raise ValueError(f"features must be (n, {spec.dim}) for this spec, got {f.shape}")
+    n = f.shape[0]
+    heading = state.heading + np.cumsum(f[:, 2])
+    h_prev = np.concatenate([[state.heading], heading[:-1]])
+    c, s = np.cos(h_prev), np.sin(h_prev)
+    x = state.x + np.cumsum(c * f[:, 0] + s * f[:, 1])  # rotate by +h_prev about Y
+    z = state.z + np.cumsum(-s * f[:, 0] + c * f[:, 1])
+    tilt = np.stack([f[:, 4], np.zeros(n), f[:, 5]], -1)
+    rot = R.quat_identity((n, skeleton.num_joints))
+    rot[:, 0] = R.quat_mul(R.yaw_quat(heading), R.expmap_to_quat(tilt))
+    kept = spec.joint_indices(skeleton)
+    rot[:, kept] = R.expmap_to_quat(f[:, len(ROOT_COLUMNS):].reshape(n, len(kept), 3))
+    pose = Pose(root_pos=np.stack([x, f[:, 3], z], -1), rotations=rot)
+    if n == 0:
+        return pose, state
+    return pose, RootState(float(x[-1]), float(z[-1]), float(heading[-1]))
+
+
+class PoseDecoder:
+    """Streaming inverse: decode feature chunks in order, carrying the root integration."""
+
+    def __init__(self, skeleton: Skeleton, spec: FeatureSpec, start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0):
+        self.skeleton = skeleton
+        self.spec = spec.resolve(skeleton)
+        self.state = RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading))
+
+    def decode(self, features: np.ndarray) -> Pose:
+        pose, self.state = decode_features(features, self.skeleton, self.spec, self.state)
+        return pose
+
+
+def features_to_motion(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
+                       start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0) -> BvhMotion:
+    """Features -> BvhMotion at spec.fps on `skeleton`; joints not kept get their rest rotation.
+
+    start_pos is (x, ignored, z): the height comes from the features. Non-root position channels
+    are written as the joint's OFFSET.
+    """
+    pose, _ = decode_features(features, skeleton, spec, RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading)))
+    n = pose.rotations.shape[0]
+    translations = np.broadcast_to(skeleton.offsets, (n, skeleton.num_joints, 3)).copy()
+    translations[:, 0] = pose.root_pos
+    return BvhMotion.from_pose(skeleton, 1.0 / spec.fps, pose.rotations, translations)
+
+
+# ---- left/right mirroring ------------------------------------------------------------------------
+
+def mirror_name(name: str) -> str:
+    """The name of the joint on the other side (Left<->Right, L/R prefixes and suffixes), or the name."""
+    swaps = {"Left": "Right", "Right": "Left", "left": "right", "right": "left", "LEFT": "RIGHT", "RIGHT": "LEFT"}
+    out = re.sub(r"Left|Right|left|right|LEFT|RIGHT", lambda m: swaps[m.group()], name)
+    if out != name:
+        return out
+    out = re.sub(r"(?:^|(?<=[:_.]))([LR])(?=[A-Z_.0-9])", lambda m: "R" if m.group(1) == "L" else "L", name)
+    if out != name:
+        return out
+    return re.sub(r"(?<=[_.])([LlRr])$", lambda m: {"L": "R", "R": "L", "l": "r", "r": "l"}[m.group(1)], name)
+
+
+def mirror_pairs(names: list[str]) -> list[int]:
+    """For each name, the index of its mirror partner in `names` (itself when unpaired)."""
+    index = {n: i for i, n in enumerate(names)}
+    return [index.get(mirror_name(n), i) for i, n in enumerate(names)]
+
+
+def mirror_features(features: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+    """Reflect features across the YZ plane (x -> -x) and swap left/right joints.
+
+    A reflection maps a rotation vector (x, y, z) to (x, -y, -z). Exact for skeletons whose rest
+    pose is left/right symmetric about x = 0 (the usual mocap T-pose facing +Z).
+    """
+    joints = list(spec._resolved())
+    partner = mirror_pairs(joints)
+    for i, p in enumerate(partner):
+        if p == i and mirror_name(joints[i]) != joints[i]:
+            raise ValueError(f"cannot mirror: {joints[i]!r} is kept but {mirror_name(joints[i])!r} is not")
+    f = np.asarray(features)
+    root = f[:, : len(ROOT_COLUMNS)] * np.array([-1, 1, -1, 1, 1, -1], dtype=f.dtype)
+    j = f[:, len(ROOT_COLUMNS):].reshape(len(f), len(joints), 3)[:, partner] * np.array([1, -1, -1], dtype=f.dtype)
+    return np.concatenate([root, j.reshape(len(f), -1)], axis=1)
+
+
+def mirror_motion(motion: BvhMotion) -> BvhMotion:
+    """The same motion reflected across x = 0 with left/right joints swapped, on the same skeleton."""
+    sk = motion.skeleton
+    partner = mirror_pairs(sk.names)
+    rot = motion.rotations()[:, partner] * np.array([1, 1, -1, -1])
+    trans = motion.translations()[:, partner] * np.array([-1, 1, 1])
+    # Joints without position channels keep their own OFFSET (from_pose ignores their translations).
+    return BvhMotion.from_pose(sk, motion.frame_time, rot, trans)

@@ -1,0 +1,171 @@
+"""PyMO-style motion features: layout, inverse, resampling, streaming decode, continuity, mirroring."""
+
+import bvh as pypi_bvh
+import numpy as np
+import pytest
+
+from dimgestor import rotations as R
+from dimgestor.bvh import BvhMotion, forward_kinematics, read_bvh, write_bvh
+from dimgestor.features import (
+    FeatureSpec, PoseDecoder, features_to_motion, mirror_features, mirror_motion, mirror_name,
+    motion_to_features, resample_pose,
+)
+from dimgestor.synthetic import synthetic_motion, synthetic_skeleton
+
+
+def start_of(motion):
+    """Root ground position and heading of the first frame, to decode back in place."""
+    heading, _ = R.split_heading(motion.rotations()[0, 0])
+    return motion.translations()[0, 0], float(heading)
+
+
+def decode(features, motion, spec):
+    pos, heading = start_of(motion)
+    return features_to_motion(features, motion.skeleton, spec, start_pos=pos, start_heading=heading)
+
+
+def reference_fk(motion, fps=20.0):
+    rot, trans = resample_pose(motion.rotations(), motion.translations(), motion.frame_time, fps)
+    return forward_kinematics(motion.skeleton, rot, trans)
+
+
+def test_spec_layout_and_dict_round_trip():
+    sk = synthetic_skeleton()
+    spec = FeatureSpec().resolve(sk)
+    assert spec.joints == tuple(sk.names[1:])  # every non-root joint, in skeleton order
+    assert spec.dim == 6 + 3 * 12 == len(spec.columns)
+    assert spec.columns[:7] == ["root_dx", "root_dz", "root_dyaw", "root_y", "root_tilt_x", "root_tilt_z", "Spine_rx"]
+    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    with pytest.raises(ValueError, match="not in the skeleton"):
+        FeatureSpec(joints=("Tail",)).resolve(sk)
+    with pytest.raises(ValueError, match="unresolved"):
+        FeatureSpec().dim
+
+
+def test_features_inverse_features_is_identity():
+    motion = synthetic_motion(seconds=6.0, fps=20.0, seed=3)
+    spec = FeatureSpec()
+    f = motion_to_features(motion, spec)
+    f2 = motion_to_features(features_to_motion(f, motion.skeleton, spec), spec)
+    np.testing.assert_allclose(f2, f, atol=1e-4)
+
+
+def test_bvh_to_features_to_bvh_reproduces_joint_positions(tmp_path):
+    motion = synthetic_motion(seconds=6.0, fps=20.0, seed=4)
+    spec = FeatureSpec().resolve(motion.skeleton)
+    out = tmp_path / "back.bvh"
+    write_bvh(out, decode(motion_to_features(motion, spec), motion, spec))
+    back = read_bvh(out)
+    assert back.num_frames == motion.num_frames and back.frame_time == pytest.approx(0.05)
+    assert np.abs(forward_kinematics(back) - forward_kinematics(motion)).max() < 1e-2
+    other = pypi_bvh.Bvh(out.read_text())  # an independent parser reads what we wrote
+    assert other.get_joints_names() == motion.skeleton.names
+    assert other.nframes == motion.num_frames and other.frame_time == pytest.approx(0.05)
+
+
+def test_velocities_are_per_frame_in_the_root_heading_frame():
+    sk = synthetic_skeleton()
+    T = 40
+    values = np.zeros((T, sk.num_channels))
+    values[:, 0] = 1.5 * np.arange(T)  # +X, 1.5 cm per frame at 20 fps
+    values[:, 1] = 95.0
+    values[:, 5] = 90.0  # Yrotation of the ZXY root: heading 90 deg turns +Z (forward) into +X
+    f = motion_to_features(BvhMotion(sk, 0.05, values))
+    np.testing.assert_allclose(f[1:, 0], 0.0, atol=1e-6)  # no sideways motion
+    np.testing.assert_allclose(f[1:, 1], 1.5, atol=1e-5)  # forward, per frame
+    np.testing.assert_allclose(f[:, [2, 4, 5]], 0.0, atol=1e-6)  # no turning, no tilt
+    np.testing.assert_allclose(f[:, 3], 95.0)
+    np.testing.assert_allclose(f[0, :2], 0.0)
+
+
+@pytest.mark.parametrize("src_fps", [30.0, 60.0, 100.0, 120.0, 24.0, 59.94])
+def test_resampling_matches_the_motion_sampled_at_20fps(src_fps):
+    seconds = 4.0
+    src = synthetic_motion(seconds, src_fps, seed=5)  # the same analytic motion at another rate
+    direct = synthetic_motion(seconds, 20.0, seed=5)
+    f = motion_to_features(src)
+    assert len(f) == int(src.duration * 20 + 1e-6)  # the same duration, at 20 fps
+    n = min(len(f), direct.num_frames)
+    positions = forward_kinematics(decode(f, src, FeatureSpec()))[:n]
+    err = np.abs(positions - forward_kinematics(direct)[:n]).max()
+    assert err < 0.5, f"interpolation error {err:.4f} cm"
+    assert np.abs(positions - reference_fk(src)[: len(positions)]).max() < 1e-2
+
+
+def test_frames_that_coincide_with_source_frames_are_exact():
+    src = synthetic_motion(4.0, 60.0, seed=6)
+    every_third = BvhMotion(src.skeleton, 0.05, src.values[::3])
+    np.testing.assert_allclose(motion_to_features(src), motion_to_features(every_third), atol=1e-5)
+
+
+def test_pose_decoder_in_chunks_equals_all_at_once_and_features_to_motion():
+    motion = synthetic_motion(5.0, 20.0, seed=7)
+    spec = FeatureSpec().resolve(motion.skeleton)
+    f = motion_to_features(motion, spec)
+    whole = PoseDecoder(motion.skeleton, spec, start_pos=(3.0, 0.0, -2.0), start_heading=0.4).decode(f)
+    dec = PoseDecoder(motion.skeleton, spec, start_pos=(3.0, 0.0, -2.0), start_heading=0.4)
+    parts = [dec.decode(f[a:b]) for a, b in [(0, 1), (1, 8), (8, 8), (8, 21), (21, len(f))]]
+    np.testing.assert_allclose(np.concatenate([p.root_pos for p in parts]), whole.root_pos, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([p.rotations for p in parts]), whole.rotations, atol=1e-12)
+    assert whole.rotations.shape == (len(f), motion.skeleton.num_joints, 4)
+    m = features_to_motion(f, motion.skeleton, spec, start_pos=(3.0, 0.0, -2.0), start_heading=0.4)
+    np.testing.assert_allclose(m.translations()[:, 0], whole.root_pos, atol=1e-5)
+    assert np.abs(np.abs(np.sum(m.rotations() * whole.rotations, -1)) - 1).max() < 1e-9
+
+
+def test_spinning_motion_gives_continuous_features():
+    motion = synthetic_motion(6.0, 30.0, seed=8)
+    t = np.arange(motion.num_frames) / 30.0
+    sk = motion.skeleton
+    motion.values[:, 5] = 400.0 * t  # root yaw: more than six full turns
+    hand = sk.channel_starts[sk.index("LeftHand")]
+    motion.values[:, hand:hand + 3] = 0.0
+    motion.values[:, hand] = 300.0 * t  # the hand spins about one axis, five turns
+    f = motion_to_features(motion)
+    jumps = np.abs(np.diff(f[:, 4:], axis=0)).max()  # tilt and joint exp maps
+    assert jumps < 0.5, f"exp-map jump of {jumps:.2f} rad between frames"
+    np.testing.assert_allclose(f[1:, 2], np.radians(400.0) / 20, atol=2e-3)  # steady heading rate
+    assert np.abs(forward_kinematics(decode(f, motion, FeatureSpec())) - reference_fk(motion)).max() < 1e-2
+
+
+def test_joint_subset_and_rest_pose_for_the_others():
+    motion = synthetic_motion(3.0, 20.0, seed=9)
+    spec = FeatureSpec(joints=("Spine", "LeftArm", "RightArm")).resolve(motion.skeleton)
+    f = motion_to_features(motion, spec)
+    assert f.shape == (60, 6 + 9)
+    back = features_to_motion(f, motion.skeleton, spec)
+    head = back.skeleton.channel_starts[back.skeleton.index("Head")]
+    np.testing.assert_allclose(back.values[:, head:head + 3], 0.0, atol=1e-9)
+    np.testing.assert_allclose(motion_to_features(back, spec), f, atol=1e-4)
+
+
+def test_mirroring_swaps_sides_and_reflects():
+    assert [mirror_name(n) for n in ["LeftArm", "RightHandThumb1", "L_Hand", "mixamorig:LHand", "hand.r", "Spine", "Lumbar"]] == [
+        "RightArm", "LeftHandThumb1", "R_Hand", "mixamorig:RHand", "hand.l", "Spine", "Lumbar"]
+    motion = synthetic_motion(4.0, 20.0, seed=10)
+    sk = motion.skeleton
+    spec = FeatureSpec().resolve(sk)
+    mirrored = mirror_motion(motion)
+    p, pm = forward_kinematics(motion), forward_kinematics(mirrored)
+    left, right = sk.index("LeftHand"), sk.index("RightHand")
+    np.testing.assert_allclose(pm[:, left], p[:, right] * [-1, 1, 1], atol=1e-6)
+    f = motion_to_features(motion, spec)
+    np.testing.assert_allclose(mirror_features(f, spec), motion_to_features(mirrored, spec), atol=1e-4)
+    np.testing.assert_array_equal(mirror_features(mirror_features(f, spec), spec), f)
+    assert np.abs(mirror_features(f, spec) - f).max() > 0.1
+
+
+def test_zeggs_round_trip_after_resampling(zeggs_dir):
+    motion = read_bvh(zeggs_dir / "067_Speech_2_x_1_0.bvh")
+    spec = FeatureSpec().resolve(motion.skeleton)
+    assert len(spec.joints) == 74  # full body, fingers included
+    f = motion_to_features(motion, spec)
+    assert f.shape == (1376, spec.dim) and f.dtype == np.float32
+    # Exp maps stay continuous on real data: wherever the rotation itself moves less than 5 degrees
+    # between frames, so does its exp map (this sample also has a few genuine flips of ~170 degrees).
+    q = R.expmap_to_quat(f[:, 6:].reshape(len(f), -1, 3).astype(np.float64))
+    step = 2 * np.arccos(np.clip(np.abs(np.sum(q[1:] * q[:-1], -1)), 0, 1))
+    jump = np.linalg.norm(np.diff(f[:, 6:].reshape(len(f), -1, 3), axis=0), axis=-1)
+    assert jump[step < np.radians(5)].max() < 0.5
+    err = np.abs(forward_kinematics(decode(f, motion, spec)) - reference_fk(motion)).max()
+    assert err < 1e-2, f"FK error {err:.5f} cm"
