@@ -1,0 +1,125 @@
+"""I/O-free streaming generation, and the offline path it must equal.
+
+`GestureStream.push(samples)` takes audio in chunks of any size and returns the motion frames whose
+condition became complete, each denoised through all sampler steps at once (batched over the new
+frames). For every step it carries the denoiser's state (encoder tail + each block's Mamba-2 state);
+the front end and the feature extractor carry theirs. Noise is `frame_noise(seed, frame, step)`, so
+the frames equal those of `generate_offline` on the whole recording.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .diffusion import Diffusion, frame_noise
+from .model import DenoiserState, DiMGestor
+
+__all__ = ["GestureStream", "generate_offline", "sample_frames"]
+
+
+def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
+                  states: list[DenoiserState | None], pairs: list[tuple[int, int]], seed: int,
+                  sampler: str, eta: float) -> tuple[torch.Tensor, list[DenoiserState]]:
+    """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step."""
+    n, D, dev = cond.shape[1], model.config.motion_dim, cond.device
+    x = frame_noise(seed, frame_start, n, 0, D, dev)[None]  # x_T, (1, n, D)
+    new_states = []
+    for i, ((t, t_prev), state) in enumerate(zip(pairs, states)):
+        out, state = model(x, t, cond, state)
+        new_states.append(state)
+        eps, x0 = diffusion.split(out, x, t)
+        noisy = sampler == "ddpm" and t > 0 or sampler == "ddim" and eta > 0 and t_prev >= 0
+        noise = frame_noise(seed, frame_start, n, i + 1, D, dev)[None] if noisy else None
+        if sampler == "ddpm":
+            x = diffusion.ddpm_step(x, x0, t, noise)
+        else:
+            x, _ = diffusion.ddim_step(x, eps, t, t_prev, eta, noise, x0=x0)
+    return x[0], new_states
+
+
+def _check_audio(audio) -> np.ndarray:
+    a = np.asarray(audio)
+    if a.ndim != 1:
+        raise ValueError(f"audio must be mono 1-D samples, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"audio must be float samples in [-1, 1], got dtype {a.dtype}")
+    return a.astype(np.float32, copy=False)
+
+
+def _device(model: torch.nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+class GestureStream:
+    """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
+
+    def __init__(self, model: DiMGestor, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0):
+        self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
+        self.diffusion = Diffusion(model.config)
+        self.pairs = self.diffusion.sampling_pairs(sampler, steps)
+        dev = _device(model)
+        self._fe = model.frontend.init_state(1, dev)
+        self._ex = model.extractor.init_state(1, dev)
+        self._steps: list[DenoiserState | None] = [None] * len(self.pairs)
+        self.samples_in = 0  # audio samples received (the audio clock)
+        self.frames_out = 0  # frames returned; frame i is presented at i / fps on the audio clock
+        self.finished = False
+
+    @property
+    def lookahead_s(self) -> float:
+        """Algorithmic latency: audio needed after a frame's start before that frame is final."""
+        return self.model.lookahead_s
+
+    def _run(self, samples: np.ndarray) -> np.ndarray:
+        m, dev = self.model, _device(self.model)
+        with torch.inference_mode():
+            x = torch.from_numpy(np.ascontiguousarray(samples)).to(dev)[None]
+            feats, self._fe = m.frontend(x, self._fe)
+            cond, self._ex = m.condition(feats, self._ex)
+            if cond.shape[1] == 0:
+                return np.zeros((0, m.config.motion_dim), np.float32)
+            frames, self._steps = sample_frames(m, self.diffusion, cond, self.frames_out, self._steps,
+                                                self.pairs, self.seed, self.sampler, self.eta)
+        self.frames_out += frames.shape[0]
+        return frames.float().cpu().numpy()
+
+    def push(self, samples) -> np.ndarray:
+        """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
+        if self.finished:
+            raise RuntimeError("push() after finish(): start a new GestureStream")
+        samples = _check_audio(samples)
+        self.samples_in += len(samples)
+        return self._run(samples)
+
+    def finish(self) -> np.ndarray:
+        """Pad with silence exactly as `generate_offline` does and return the remaining frames."""
+        if self.finished:
+            return np.zeros((0, self.model.config.motion_dim), np.float32)
+        self.finished = True
+        c = self.model.config
+        T = self.samples_in * c.fps // c.sample_rate
+        pad = max(self.model.samples_needed(T) - self.samples_in, 0)
+        before = self.frames_out
+        out = self._run(np.zeros(pad, np.float32))[: max(T - before, 0)]
+        self.frames_out = before + len(out)
+        return out
+
+
+def generate_offline(model: DiMGestor, audio, steps: int = 8, seed: int = 0, sampler: str = "ddim",
+                     eta: float = 0.0) -> np.ndarray:
+    """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000."""
+    audio = _check_audio(audio)
+    c = model.config
+    T = len(audio) * c.fps // c.sample_rate
+    diffusion = Diffusion(c)
+    pairs = diffusion.sampling_pairs(sampler, steps)
+    if T == 0:
+        return np.zeros((0, c.motion_dim), np.float32)
+    pad = max(model.samples_needed(T) - len(audio), 0)  # the same silence GestureStream.finish appends
+    dev = _device(model)
+    with torch.inference_mode():
+        x = torch.from_numpy(np.concatenate([audio, np.zeros(pad, np.float32)])).to(dev)[None]
+        feats, _ = model.frontend(x, model.frontend.init_state(1, dev))
+        cond, _ = model.condition(feats)
+        frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta)
+    return frames.float().cpu().numpy()

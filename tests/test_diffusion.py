@@ -1,0 +1,94 @@
+import math
+
+import pytest
+import torch
+
+from dimgestor.config import get_preset
+from dimgestor.diffusion import Diffusion, ddim_pairs, frame_noise
+
+
+def test_ddim_pairs_are_exact():
+    assert ddim_pairs(8, 1000) == [(999, 874), (874, 749), (749, 624), (624, 499), (499, 374), (374, 249),
+                                   (249, 124), (124, -1)]
+    assert ddim_pairs(1, 1000) == [(999, -1)]
+    assert ddim_pairs(4, 4) == [(3, 2), (2, 1), (1, 0), (0, -1)]
+    for K in (3, 7, 50, 999):
+        pairs = ddim_pairs(K, 1000)
+        assert len(pairs) == K and pairs[0][0] == 999 and pairs[-1][1] == -1
+        assert all(t > tp for t, tp in pairs) and all(a[1] == b[0] for a, b in zip(pairs, pairs[1:]))
+    with pytest.raises(ValueError):
+        ddim_pairs(0, 1000)
+    with pytest.raises(ValueError):
+        ddim_pairs(1001, 1000)
+
+
+def test_schedules():
+    lin = Diffusion(get_preset("tiny", schedule="linear"))
+    assert lin.betas[0].item() == pytest.approx(1e-4) and lin.betas[-1].item() == pytest.approx(8e-2)
+    sq = Diffusion(get_preset("tiny", schedule="sqrt_linear"))
+    assert sq.betas[0].item() == pytest.approx(1e-4) and sq.betas[-1].item() == pytest.approx(8e-2)
+    assert sq.betas[500] < lin.betas[500]  # linear in sqrt(beta) is convex in beta
+    assert lin.a(-1) == 1.0 and 0 < lin.a(999) < lin.a(0) < 1
+
+
+@pytest.mark.parametrize("prediction", ["eps", "v"])
+def test_split_inverts_the_training_target(prediction):
+    d = Diffusion(get_preset("tiny", prediction=prediction))
+    x0, eps = torch.randn(2, 5, 3, dtype=torch.float64), torch.randn(2, 5, 3, dtype=torch.float64)
+    for t in (0, 10, 300):
+        tt = torch.full((2,), t)
+        xt = d.q_sample(x0, tt, eps)
+        e, x = d.split(d.target(x0, tt, eps), xt, t)
+        assert torch.allclose(e, eps) and torch.allclose(x, x0)
+
+
+def test_ddim_step_with_true_noise_recovers_the_forward_process():
+    d = Diffusion(get_preset("tiny"))
+    x0, eps = torch.randn(1, 4, 3, dtype=torch.float64), torch.randn(1, 4, 3, dtype=torch.float64)
+    xt = d.q_sample(x0, torch.tensor([400]), eps)
+    x_prev, x0_pred = d.ddim_step(xt, eps, 400, 200)  # eta = 0: deterministic, eq. 12
+    assert torch.allclose(x0_pred, x0)
+    assert torch.allclose(x_prev, d.q_sample(x0, torch.tensor([200]), eps))
+    x_last, _ = d.ddim_step(xt, eps, 400, -1)
+    assert torch.allclose(x_last, x0)
+
+
+def test_ddpm_step_matches_eta_one_ddim_over_one_step():
+    # DDIM with eta = 1 between consecutive steps is the DDPM ancestral step (Song et al., sec. 4.1)
+    d = Diffusion(get_preset("tiny"))
+    x0, eps, z = (torch.randn(1, 4, 3, dtype=torch.float64) for _ in range(3))
+    xt = d.q_sample(x0, torch.tensor([50]), eps)
+    a, _ = d.ddim_step(xt, eps, 50, 49, eta=1.0, noise=z, x0=x0)
+    b = d.ddpm_step(xt, x0, 50, z)
+    assert torch.allclose(a, b)
+
+
+def test_frame_noise_is_a_function_of_frame_and_step_only():
+    whole = frame_noise(7, 0, 100, 3, 16)
+    parts = torch.cat([frame_noise(7, 0, 1, 3, 16), frame_noise(7, 1, 38, 3, 16), frame_noise(7, 39, 61, 3, 16)])
+    assert torch.equal(whole, parts)
+    assert not torch.equal(whole, frame_noise(8, 0, 100, 3, 16))
+    assert not torch.equal(whole, frame_noise(7, 0, 100, 4, 16))
+    assert torch.equal(frame_noise(7, 2**33 + 5, 3, 0, 4), frame_noise(7, 2**33 + 5, 3, 0, 4))
+
+
+def test_frame_noise_is_standard_normal():
+    z = frame_noise(0, 0, 2000, 0, 64).double()
+    assert abs(z.mean().item()) < 0.01 and abs(z.std().item() - 1) < 0.01
+    assert abs((z ** 4).mean().item() - 3) < 0.1  # normal kurtosis
+    c = torch.corrcoef(torch.stack([z[:-1].flatten(), z[1:].flatten()]))[0, 1]
+    assert abs(c.item()) < 0.01  # neighbouring frames independent
+    assert abs(torch.corrcoef(torch.stack([z[:, 0], z[:, 1]]))[0, 1].item()) < 0.06
+
+
+def test_training_loss_is_mse_on_the_target():
+    from dimgestor.model import DiMGestor
+    torch.manual_seed(0)
+    m = DiMGestor(get_preset("tiny"))
+    d = Diffusion(m.config)
+    x0, noise = torch.randn(2, 6, 12), torch.randn(2, 6, 12)
+    feats = torch.randn(2, 6 * 5 + 3, 20)
+    t = torch.tensor([3, 900])
+    loss = d.training_loss(m, x0, feats, t, noise)
+    # at init the decoder is zero, so the loss is the mean square of the target
+    assert math.isclose(loss.item(), d.target(x0, t, noise).pow(2).mean().item(), rel_tol=1e-5)

@@ -1,0 +1,123 @@
+import numpy as np
+import pytest
+import torch
+
+from dimgestor.config import get_preset
+from dimgestor.diffusion import Diffusion
+from dimgestor.model import DiMGestor
+from dimgestor.stream import GestureStream, generate_offline
+
+
+def _model(**overrides):
+    model = DiMGestor(get_preset("tiny", **overrides))
+    torch.manual_seed(1)
+    with torch.no_grad():  # break the zero init so the frames depend on everything
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    return model
+
+
+def _audio(seconds, seed=0):
+    rng = np.random.default_rng(seed)
+    n = int(seconds * 16000)
+    env = 0.5 + 0.5 * np.sin(np.arange(n) / 1600)
+    return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
+
+
+def _stream(model, audio, sizes, **kw):
+    s = GestureStream(model, **kw)
+    out, i = [], 0
+    for n in sizes:
+        out.append(s.push(audio[i:i + n]))
+        i += n
+    assert i == len(audio)
+    out.append(s.finish())
+    frames = np.concatenate(out)
+    assert s.frames_out == len(frames)
+    return frames
+
+
+@pytest.fixture(scope="module")
+def model():
+    return _model()
+
+
+@pytest.mark.parametrize("chunk", [160, 1000, 3333])
+def test_streaming_equals_offline(model, chunk):
+    audio = _audio(2.0 + 123 / 16000)
+    offline = generate_offline(model, audio, steps=8, seed=5)
+    assert offline.shape == (40, 12) and np.abs(offline).max() > 0.1
+    sizes = [chunk] * (len(audio) // chunk) + [len(audio) % chunk]
+    streamed = _stream(model, audio, sizes, steps=8, seed=5)
+    assert np.abs(streamed - offline).max() < 1e-4
+
+
+def test_streaming_with_odd_splits_and_eta(model):
+    audio = _audio(1.3)
+    rng = np.random.default_rng(3)
+    sizes = []
+    while sum(sizes) < len(audio):
+        sizes.append(int(rng.choice([1, 2, 799, 801, 1601])))
+    sizes[-1] -= sum(sizes) - len(audio)
+    offline = generate_offline(model, audio, steps=5, seed=9, eta=0.7)
+    assert np.abs(_stream(model, audio, sizes, steps=5, seed=9, eta=0.7) - offline).max() < 1e-4
+    assert not np.allclose(offline, generate_offline(model, audio, steps=5, seed=9, eta=0.0))
+
+
+def test_ddpm_streaming_equals_offline():
+    model = _model(n_steps=40)
+    audio = _audio(0.8)
+    offline = generate_offline(model, audio, sampler="ddpm", seed=2)
+    assert offline.shape == (16, 12)
+    assert np.abs(_stream(model, audio, [1000] * 12 + [800], sampler="ddpm", seed=2) - offline).max() < 1e-4
+
+
+def test_seed_changes_the_frames_and_frames_follow_the_audio(model):
+    a = _audio(1.0)
+    assert not np.allclose(generate_offline(model, a, seed=0), generate_offline(model, a, seed=1))
+    b = a.copy()
+    b[8000:] = 0  # silence after 0.5 s: the first frames (before 0.5 s - lookahead) are unchanged
+    fa, fb = generate_offline(model, a), generate_offline(model, b)
+    assert np.allclose(fa[:9], fb[:9], atol=1e-6) and not np.allclose(fa[10:], fb[10:])
+
+
+def test_length_latency_and_edges(model):
+    s = GestureStream(model)
+    assert s.lookahead_s == pytest.approx(0.08)
+    assert len(s.push(np.zeros(1279, np.float32))) == 0  # frame 0 needs 800 + 480 samples
+    assert len(s.push(np.zeros(1, np.float32))) == 1
+    assert len(s.finish()) == 0 and s.frames_out == 1  # 1280 samples -> T = 1
+    with pytest.raises(RuntimeError):
+        s.push(np.zeros(10, np.float32))
+    assert generate_offline(model, np.zeros(799, np.float32)).shape == (0, 12)
+    with pytest.raises(ValueError, match="mono"):
+        generate_offline(model, np.zeros((2, 800), np.float32))
+    with pytest.raises(ValueError, match="float"):
+        GestureStream(model).push(np.zeros(800, np.int16))
+
+
+def test_loss_goes_down_on_synthetic_data():
+    """A tiny model learns a loudness -> motion link: the loss on fixed held-out noise falls clearly."""
+    torch.manual_seed(0)
+    model = DiMGestor(get_preset("tiny"))
+    diffusion = Diffusion(model.config)
+    B, T = 8, 24
+    audio = torch.stack([torch.from_numpy(_audio(T / 20 + 0.03, seed=s)) for s in range(B)])
+    feats, _ = model.frontend(audio, model.frontend.init_state(B))
+    loud = feats.mean(-1)[:, : T * 5].reshape(B, T, 5).mean(-1)  # (B, T)
+    x0 = torch.stack([torch.sin(torch.cumsum(loud, 1) * (k + 1)) for k in range(12)], -1)  # motion from loudness
+    g = torch.Generator().manual_seed(0)
+    t_eval, n_eval = torch.randint(0, 1000, (B,), generator=g), torch.randn(x0.shape, generator=g)
+
+    def eval_loss():
+        with torch.no_grad():
+            return diffusion.training_loss(model, x0, feats, t_eval, n_eval).item()
+
+    before = eval_loss()
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    for _ in range(150):
+        loss = diffusion.training_loss(model, x0, feats, torch.randint(0, 1000, (B,)), torch.randn_like(x0))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert eval_loss() < 0.5 * before
