@@ -1,0 +1,210 @@
+"""WAV loading and saving, anti-aliased rational resampling (one-shot and streaming), alignment.
+
+The resampler is a polyphase FIR, the same filter and output alignment as
+scipy.signal.resample_poly (Kaiser-windowed sinc, beta 5, 10 zero crossings per side at the
+lower rate), written out so that a streaming resampler with an explicit input history gives
+exactly the one-shot output for any chunking.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import warnings
+import wave
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import firwin
+
+SAMPLE_RATE = 16000  # what the model consumes
+
+_PCM, _FLOAT, _EXTENSIBLE = 1, 3, 0xFFFE
+
+
+class AudioError(ValueError):
+    """A file that is not readable audio; the message names the file."""
+
+
+# ---- reading -------------------------------------------------------------------------------------
+
+
+def read_wav(path: str | Path) -> tuple[np.ndarray, int]:
+    """Samples (n, channels) float32 in [-1, 1] and the sample rate, at the file's own rate.
+
+    Parses the RIFF chunks directly: PCM 8/16/24/32-bit, IEEE float 32/64-bit, and
+    WAVE_FORMAT_EXTENSIBLE wrapping either.
+    """
+    path = str(path)
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise AudioError(f"{path}: cannot read: {e.strerror or e}") from None
+    if len(raw) < 12 or raw[:4] != b"RIFF" or raw[8:12] != b"WAVE":
+        raise AudioError(f"{path}: not a WAV file (no RIFF/WAVE header)")
+    fmt = data = None
+    pos = 12
+    while pos + 8 <= len(raw):
+        cid, size = raw[pos:pos + 4], struct.unpack("<I", raw[pos + 4:pos + 8])[0]
+        body = raw[pos + 8:pos + 8 + size]
+        if cid == b"data":
+            if len(body) < size and size not in (0, 0xFFFFFFFF):  # 0 / -1: size unknown to a streaming writer
+                raise AudioError(f"{path}: truncated: the data chunk declares {size} bytes but {len(body)} are present")
+            data = body if size not in (0, 0xFFFFFFFF) else raw[pos + 8:]
+        elif cid == b"fmt ":
+            if len(body) < 16:
+                raise AudioError(f"{path}: truncated or malformed 'fmt ' chunk ({len(body)} bytes)")
+            fmt = body
+        pos += 8 + size + (size & 1)  # chunks are word aligned
+    if fmt is None or data is None:
+        raise AudioError(f"{path}: not a usable WAV file: missing the {'fmt ' if fmt is None else 'data'} chunk (truncated?)")
+    tag, channels, rate, _, block_align, bits = struct.unpack("<HHIIHH", fmt[:16])
+    if tag == _EXTENSIBLE:
+        if len(fmt) < 26:
+            raise AudioError(f"{path}: WAVE_FORMAT_EXTENSIBLE header too short")
+        tag = struct.unpack("<H", fmt[24:26])[0]  # first two bytes of the SubFormat GUID
+    if channels < 1 or rate < 1 or block_align < 1:
+        raise AudioError(f"{path}: invalid format: {channels} channels, {rate} Hz, block align {block_align}")
+    width = block_align // channels
+    usable = len(data) - len(data) % block_align
+    frames = np.frombuffer(data[:usable], dtype=np.uint8).reshape(-1, channels, width)
+    return _decode(path, tag, bits, frames), rate
+
+
+def _decode(path: str, tag: int, bits: int, frames: np.ndarray) -> np.ndarray:
+    """(n, channels, width) bytes -> (n, channels) float32."""
+    n, ch, width = frames.shape
+    flat = np.ascontiguousarray(frames).reshape(-1)
+    if tag == _FLOAT and width in (4, 8):
+        x = flat.view("<f4" if width == 4 else "<f8").astype(np.float32)
+    elif tag == _PCM and width == 1:
+        x = (flat.astype(np.float32) - 128.0) / 128.0
+    elif tag == _PCM and width == 2:
+        x = flat.view("<i2").astype(np.float32) / 32768.0
+    elif tag == _PCM and width == 3:
+        b = flat.reshape(-1, 3).astype(np.int32)
+        v = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)
+        x = (np.where(v >= 1 << 23, v - (1 << 24), v) / float(1 << 23)).astype(np.float32)
+    elif tag == _PCM and width == 4:
+        x = (flat.view("<i4").astype(np.float64) / 2.0**31).astype(np.float32)
+    else:
+        raise AudioError(f"{path}: unsupported WAV encoding (format tag {tag}, {bits} bits)")
+    return x.reshape(n, ch)
+
+
+def load_wav(path: str | Path, target_rate: int | None = SAMPLE_RATE) -> np.ndarray:
+    """Mono float32 samples (channels averaged), resampled to target_rate (None keeps the file rate)."""
+    x, rate = read_wav(path)
+    mono = x.mean(axis=1, dtype=np.float64) if x.shape[1] > 1 else x[:, 0].astype(np.float64)
+    if target_rate is not None and rate != target_rate:
+        mono = resample(mono, rate, target_rate)
+    return mono.astype(np.float32)
+
+
+def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:
+    """Write PCM16: x is (n,) mono or (n, channels), float in [-1, 1] (clipped)."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[:, None] if x.ndim == 1 else x
+    pcm = np.round(np.clip(x, -1.0, 1.0) * 32767.0).astype("<i2")
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(x.shape[1])
+        w.setsampwidth(2)
+        w.setframerate(int(rate))
+        w.writeframes(pcm.tobytes())
+
+
+# ---- resampling ----------------------------------------------------------------------------------
+
+
+class StreamingResampler:
+    """Rational-ratio resampler fed in chunks; the concatenated output equals resample() exactly.
+
+    Output sample m is y[m] = sum_n x[n] h[m*down + D - n*up] (D = filter centre); it is emitted as
+    soon as every input it needs has arrived. flush() ends the stream with zeros, as one-shot does.
+    """
+
+    def __init__(self, src_rate: int, dst_rate: int, block: int = 4096):
+        if int(src_rate) != src_rate or int(dst_rate) != dst_rate or src_rate <= 0 or dst_rate <= 0:
+            raise ValueError(f"sample rates must be positive integers, got {src_rate} -> {dst_rate}")
+        g = math.gcd(int(src_rate), int(dst_rate))
+        self.up, self.down = int(dst_rate) // g, int(src_rate) // g
+        self.block = block
+        if self.up == self.down:
+            self.delay, self.taps = 0, 1
+            self.hpoly = np.ones((1, 1))
+        else:
+            half_len = 10 * max(self.up, self.down)
+            h = firwin(2 * half_len + 1, 1.0 / max(self.up, self.down), window=("kaiser", 5.0)) * self.up
+            self.delay = half_len
+            self.taps = (len(h) - 1) // self.up + 1
+            h = np.concatenate([h, np.zeros(self.taps * self.up - len(h))])
+            self.hpoly = h.reshape(self.taps, self.up).T  # (up, taps): phase p uses h[p + j*up]
+        self.reset()
+
+    def reset(self) -> None:
+        self._buf = np.zeros(0)
+        self._buf_start = 0  # absolute index of _buf[0]
+        self._n_in = 0
+        self._m_out = 0
+
+    def _input_index(self, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = m * self.down + self.delay
+        return t // self.up, t % self.up  # newest input used, filter phase
+
+    def _outputs(self, m0: int, m1: int) -> np.ndarray:
+        out = []
+        padded = np.concatenate([self._buf, [0.0]])  # the extra zero stands for every index outside
+        for a in range(m0, m1, self.block):
+            m = np.arange(a, min(a + self.block, m1))
+            n_hi, phase = self._input_index(m)
+            idx = n_hi[:, None] - np.arange(self.taps)[None, :] - self._buf_start
+            # Indices outside the buffer are before the signal start or after its end: zeros.
+            xs = padded[np.where((idx >= 0) & (idx < len(self._buf)), idx, len(self._buf))]
+            out.append(np.sum(self.hpoly[phase] * xs, axis=1))
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def process(self, chunk: np.ndarray) -> np.ndarray:
+        chunk = np.asarray(chunk, dtype=np.float64).reshape(-1)
+        self._buf = np.concatenate([self._buf, chunk])
+        self._n_in += len(chunk)
+        m_end = max(self._m_out, -((self.delay - self._n_in * self.up) // self.down))  # ceil((n_in*up - D)/down)
+        y = self._outputs(self._m_out, m_end)
+        self._m_out = m_end
+        keep_from = self._input_index(np.array(self._m_out))[0] - (self.taps - 1)
+        drop = int(min(max(keep_from - self._buf_start, 0), len(self._buf)))
+        self._buf, self._buf_start = self._buf[drop:], self._buf_start + drop
+        return y.astype(np.float32)
+
+    def flush(self) -> np.ndarray:
+        """The remaining outputs (input padded with zeros); total length ceil(n_in * up / down)."""
+        total = -((-self._n_in * self.up) // self.down)
+        y = self._outputs(self._m_out, total)
+        self.reset()
+        return y.astype(np.float32)
+
+
+def resample(x: np.ndarray, src_rate: int, dst_rate: int) -> np.ndarray:
+    """Anti-aliased resampling of a 1-D signal; output length ceil(len(x) * dst / src)."""
+    if src_rate == dst_rate:
+        return np.asarray(x, dtype=np.float32).copy()
+    r = StreamingResampler(src_rate, dst_rate, block=8192)
+    return np.concatenate([r.process(x), r.flush()])
+
+
+# ---- alignment -----------------------------------------------------------------------------------
+
+
+def align(motion_seconds: float, audio: np.ndarray, rate: int = SAMPLE_RATE, name: str = "",
+          tolerance_s: float = 0.5) -> tuple[float, np.ndarray]:
+    """Trim motion and audio to the shorter of the two; warn when they differ by more than tolerance_s.
+
+    Returns (seconds kept, audio trimmed to that length).
+    """
+    audio_seconds = len(audio) / rate
+    if abs(audio_seconds - motion_seconds) > tolerance_s:
+        warnings.warn(
+            f"{name or 'pair'}: motion is {motion_seconds:.2f} s but audio is {audio_seconds:.2f} s; "
+            "trimming both to the shorter", stacklevel=2,
+        )
+    seconds = min(motion_seconds, audio_seconds)
+    return seconds, audio[: int(round(seconds * rate))]
