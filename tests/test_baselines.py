@@ -1,0 +1,86 @@
+"""The AdaLN-Transformer baseline: same condition path as DiM-Gestor, attention over the whole sequence."""
+
+import numpy as np
+import pytest
+import torch
+
+from dimgestor.baselines import AdaLNAttentionBlock, AdaLNTransformer, SelfAttention, denoiser_params, rotary
+from dimgestor.config import get_preset
+from dimgestor.model import DiMGestor, FuzzyFeatureExtractor
+from dimgestor.stream import generate_offline
+
+
+def _randomize(model: torch.nn.Module, seed: int = 0) -> None:
+    """Give zero-initialised (adaLN-Zero) weights random values so the blocks do something."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=g))
+
+
+def test_same_condition_path_and_width_only_blocks_differ():
+    cfg = get_preset("tiny")
+    mamba, transformer = DiMGestor(cfg), AdaLNTransformer(cfg, n_blocks=3)
+    assert isinstance(transformer.extractor, FuzzyFeatureExtractor)
+    assert len(transformer.blocks) == 3 and all(isinstance(b, AdaLNAttentionBlock) for b in transformer.blocks)
+    counts_m, counts_t = mamba.param_counts(), transformer.param_counts()
+    for part in ("frontend", "style_extractor", "downsampler", "step_embedder", "encoder_decoder"):
+        assert counts_m[part] == counts_t[part], part
+    assert denoiser_params(transformer) == sum(counts_t[k] for k in ("step_embedder", "denoiser_blocks", "encoder_decoder"))
+
+
+def test_blocks_are_the_identity_at_init_adaln_zero():
+    cfg = get_preset("tiny")
+    block = AdaLNTransformer(cfg, n_blocks=1).blocks[0]
+    x, c = torch.randn(2, 9, cfg.hidden), torch.randn(2, 9, cfg.hidden)
+    y, state = block(x, c)
+    torch.testing.assert_close(y, x)
+    assert state is None
+
+
+def test_attention_sees_the_whole_sequence():
+    # Unlike the causal Mamba-2 denoiser, a change in the last frame moves the first frame's output.
+    cfg = get_preset("tiny")
+    model = AdaLNTransformer(cfg, n_blocks=2).eval()
+    _randomize(model)
+    x, cond = torch.randn(1, 12, cfg.motion_dim), torch.randn(1, 12, cfg.hidden)
+    x2 = x.clone()
+    x2[:, -1] += 1.0
+    with torch.no_grad():
+        y1, _ = model(x, 500, cond)
+        y2, _ = model(x2, 500, cond)
+    assert (y1[:, 0] - y2[:, 0]).abs().max() > 1e-5
+
+
+def test_sdpa_and_naive_attention_agree():
+    torch.manual_seed(0)
+    sdpa = SelfAttention(64, 4, "sdpa")
+    naive = SelfAttention(64, 4, "naive")
+    naive.load_state_dict(sdpa.state_dict())
+    x = torch.randn(2, 37, 64)
+    torch.testing.assert_close(sdpa(x), naive(x), atol=1e-5, rtol=1e-5)
+
+
+def test_rotary_scores_depend_only_on_relative_position():
+    torch.manual_seed(1)
+    q, k = torch.randn(1, 1, 1, 16), torch.randn(1, 1, 1, 16)
+    seq_q, seq_k = q.expand(1, 1, 20, 16), k.expand(1, 1, 20, 16)
+    scores = rotary(seq_q) @ rotary(seq_k).transpose(-2, -1)  # (1, 1, 20, 20)
+    torch.testing.assert_close(scores[0, 0, 3, 1], scores[0, 0, 15, 13])
+    torch.testing.assert_close(scores[0, 0, 0, 0], (q @ k.transpose(-2, -1))[0, 0, 0, 0])
+
+
+def test_generate_offline_samples_from_the_baseline():
+    cfg = get_preset("tiny")
+    model = AdaLNTransformer(cfg, n_blocks=2).eval()
+    _randomize(model)
+    audio = np.random.default_rng(0).normal(scale=0.1, size=16000).astype(np.float32)
+    frames = generate_offline(model, audio, steps=2)
+    assert frames.shape == (cfg.fps, cfg.motion_dim) and np.isfinite(frames).all()
+
+
+def test_refuses_to_continue_from_a_state():
+    cfg = get_preset("tiny")
+    model = AdaLNTransformer(cfg, n_blocks=1)
+    with pytest.raises(ValueError, match="whole sequence"):
+        model(torch.zeros(1, 3, cfg.motion_dim), 0, torch.zeros(1, 3, cfg.hidden), state=object())
