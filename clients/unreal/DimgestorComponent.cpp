@@ -1,0 +1,303 @@
+// Retargeting: the server skeleton and the mesh have different bone axes, so local rotations cannot be
+// copied. For each bound bone we take the source joint's global rotation relative to the source rest
+// (delta = G_frame * G_rest^-1, converted to Unreal axes, then into component space by SourceToComponent)
+// and put it on top of the bone's own rest: R_component = delta * R_rest_component. Both rests must be the
+// same pose (a T-pose for ZEGGS/BEAT skeletons; set the mesh's reference pose or an A-pose offset accordingly).
+#include "DimgestorComponent.h"
+
+#include "Components/PoseableMeshComponent.h"
+#include "Dom/JsonObject.h"
+#include "IWebSocket.h"
+#include "Modules/ModuleManager.h"
+#include "Serialization/JsonSerializer.h"
+#include "Serialization/JsonWriter.h"
+#include "WebSocketsModule.h"
+
+namespace
+{
+// Unity HumanBodyBones name -> UE5 Mannequin (SK_Mannequin / Manny, Quinn) bone.
+const TCHAR* const GMannequinBones[][2] = {
+	{TEXT("Hips"), TEXT("pelvis")}, {TEXT("Spine"), TEXT("spine_01")}, {TEXT("Chest"), TEXT("spine_03")},
+	{TEXT("UpperChest"), TEXT("spine_05")}, {TEXT("Neck"), TEXT("neck_01")}, {TEXT("Head"), TEXT("head")},
+	{TEXT("LeftShoulder"), TEXT("clavicle_l")}, {TEXT("LeftUpperArm"), TEXT("upperarm_l")},
+	{TEXT("LeftLowerArm"), TEXT("lowerarm_l")}, {TEXT("LeftHand"), TEXT("hand_l")},
+	{TEXT("RightShoulder"), TEXT("clavicle_r")}, {TEXT("RightUpperArm"), TEXT("upperarm_r")},
+	{TEXT("RightLowerArm"), TEXT("lowerarm_r")}, {TEXT("RightHand"), TEXT("hand_r")},
+	{TEXT("LeftUpperLeg"), TEXT("thigh_l")}, {TEXT("LeftLowerLeg"), TEXT("calf_l")}, {TEXT("LeftFoot"), TEXT("foot_l")},
+	{TEXT("LeftToes"), TEXT("ball_l")}, {TEXT("RightUpperLeg"), TEXT("thigh_r")}, {TEXT("RightLowerLeg"), TEXT("calf_r")},
+	{TEXT("RightFoot"), TEXT("foot_r")}, {TEXT("RightToes"), TEXT("ball_r")},
+	{TEXT("LeftThumbProximal"), TEXT("thumb_01_l")}, {TEXT("LeftThumbIntermediate"), TEXT("thumb_02_l")},
+	{TEXT("LeftThumbDistal"), TEXT("thumb_03_l")}, {TEXT("LeftIndexProximal"), TEXT("index_01_l")},
+	{TEXT("LeftIndexIntermediate"), TEXT("index_02_l")}, {TEXT("LeftIndexDistal"), TEXT("index_03_l")},
+	{TEXT("LeftMiddleProximal"), TEXT("middle_01_l")}, {TEXT("LeftMiddleIntermediate"), TEXT("middle_02_l")},
+	{TEXT("LeftMiddleDistal"), TEXT("middle_03_l")}, {TEXT("LeftRingProximal"), TEXT("ring_01_l")},
+	{TEXT("LeftRingIntermediate"), TEXT("ring_02_l")}, {TEXT("LeftRingDistal"), TEXT("ring_03_l")},
+	{TEXT("LeftLittleProximal"), TEXT("pinky_01_l")}, {TEXT("LeftLittleIntermediate"), TEXT("pinky_02_l")},
+	{TEXT("LeftLittleDistal"), TEXT("pinky_03_l")},
+	{TEXT("RightThumbProximal"), TEXT("thumb_01_r")}, {TEXT("RightThumbIntermediate"), TEXT("thumb_02_r")},
+	{TEXT("RightThumbDistal"), TEXT("thumb_03_r")}, {TEXT("RightIndexProximal"), TEXT("index_01_r")},
+	{TEXT("RightIndexIntermediate"), TEXT("index_02_r")}, {TEXT("RightIndexDistal"), TEXT("index_03_r")},
+	{TEXT("RightMiddleProximal"), TEXT("middle_01_r")}, {TEXT("RightMiddleIntermediate"), TEXT("middle_02_r")},
+	{TEXT("RightMiddleDistal"), TEXT("middle_03_r")}, {TEXT("RightRingProximal"), TEXT("ring_01_r")},
+	{TEXT("RightRingIntermediate"), TEXT("ring_02_r")}, {TEXT("RightRingDistal"), TEXT("ring_03_r")},
+	{TEXT("RightLittleProximal"), TEXT("pinky_01_r")}, {TEXT("RightLittleIntermediate"), TEXT("pinky_02_r")},
+	{TEXT("RightLittleDistal"), TEXT("pinky_03_r")},
+};
+
+FQuat ToFQuat(const dimgestor::Quat& Q) { return FQuat(Q.x, Q.y, Q.z, Q.w); }  // FQuat takes (X, Y, Z, W)
+
+// Percent-encode a token for the query string (RFC 3986 unreserved characters pass through).
+FString QueryEscape(const FString& In)
+{
+	FString Out;
+	FTCHARToUTF8 Utf8(*In);
+	for (int32 i = 0; i < Utf8.Length(); ++i)
+	{
+		const uint8 c = uint8(Utf8.Get()[i]);
+		if ((c < 128 && FChar::IsAlnum(TCHAR(c))) || c == '-' || c == '_' || c == '.' || c == '~') Out.AppendChar(TCHAR(c));
+		else Out += FString::Printf(TEXT("%%%02X"), c);
+	}
+	return Out;
+}
+
+FString Condensed(const TSharedRef<FJsonObject>& Object)
+{
+	FString Out;
+	TSharedRef<TJsonWriter<TCHAR, TCondensedJsonPrintPolicy<TCHAR>>> Writer =
+		TJsonWriterFactory<TCHAR, TCondensedJsonPrintPolicy<TCHAR>>::Create(&Out);
+	FJsonSerializer::Serialize(Object, Writer);
+	return Out;
+}
+}  // namespace
+
+UDimgestorComponent::UDimgestorComponent()
+{
+	PrimaryComponentTick.bCanEverTick = true;
+	// After animation has run, so our pose is the one rendered.
+	PrimaryComponentTick.TickGroup = TG_PostUpdateWork;
+	for (const auto& Pair : GMannequinBones) HumanoidToBone.Add(Pair[0], FName(Pair[1]));
+}
+
+void UDimgestorComponent::BeginPlay()
+{
+	Super::BeginPlay();
+	if (!TargetMesh && GetOwner()) TargetMesh = GetOwner()->FindComponentByClass<UPoseableMeshComponent>();
+	if (!TargetMesh) { LastError = TEXT("no PoseableMeshComponent on the owner: set TargetMesh"); return; }
+	for (int32 i = 0; i < TargetMesh->GetNumBones(); ++i)
+	{
+		const FName Bone = TargetMesh->GetBoneName(i);
+		RestPose.Add(Bone, TargetMesh->GetBoneTransformByName(Bone, EBoneSpaces::ComponentSpace));
+	}
+	FModuleManager::Get().LoadModuleChecked<FWebSocketsModule>(TEXT("WebSockets"));
+	Connect();
+}
+
+void UDimgestorComponent::EndPlay(const EEndPlayReason::Type Reason)
+{
+	if (Socket)
+	{
+		Socket->OnConnected().RemoveAll(this);
+		Socket->OnConnectionError().RemoveAll(this);
+		Socket->OnClosed().RemoveAll(this);
+		Socket->OnMessage().RemoveAll(this);
+		Socket->OnBinaryMessage().RemoveAll(this);
+		Socket->Close();
+		Socket.Reset();
+	}
+	Super::EndPlay(Reason);
+}
+
+void UDimgestorComponent::Connect()
+{
+	FString FullUrl = Url;
+	if (!Token.IsEmpty()) FullUrl += (Url.Contains(TEXT("?")) ? TEXT("&token=") : TEXT("?token=")) + QueryEscape(Token);
+	Socket = FWebSocketsModule::Get().CreateWebSocket(FullUrl, TEXT("ws"));
+	// WebSocket events arrive on the game thread.
+	Socket->OnConnected().AddUObject(this, &UDimgestorComponent::HandleConnected);
+	Socket->OnConnectionError().AddUObject(this, &UDimgestorComponent::HandleConnectionError);
+	Socket->OnClosed().AddUObject(this, &UDimgestorComponent::HandleClosed);
+	Socket->OnMessage().AddUObject(this, &UDimgestorComponent::HandleText);
+	Socket->OnBinaryMessage().AddUObject(this, &UDimgestorComponent::HandleBinary);
+	ConnectionState = TEXT("connecting");
+	Socket->Connect();
+}
+
+void UDimgestorComponent::HandleConnected()
+{
+	ConnectionState = TEXT("open");
+	AudioFormatKey = 0;
+	TSharedRef<FJsonObject> Hello = MakeShared<FJsonObject>();
+	Hello->SetStringField(TEXT("type"), TEXT("hello"));
+	Hello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
+	Hello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
+	SendText(Condensed(Hello));
+}
+
+void UDimgestorComponent::HandleConnectionError(const FString& Error)
+{
+	// A wrong token shows up here as a failed handshake (HTTP 401).
+	LastError = Error;
+	ConnectionState = TEXT("closed, retrying");
+	ReconnectIn = 2.f;
+}
+
+void UDimgestorComponent::HandleClosed(int32 StatusCode, const FString& Reason, bool bWasClean)
+{
+	ConnectionState = FString::Printf(TEXT("closed (%d %s), retrying"), StatusCode, *Reason);
+	ReconnectIn = 2.f;
+}
+
+void UDimgestorComponent::HandleText(const FString& Text)
+{
+	FTCHARToUTF8 Utf8(*Text);
+	dimgestor::Message Message;
+	std::string Error;
+	if (dimgestor::ParseMessage(std::string(Utf8.Get(), Utf8.Length()), Message, Error)) Handle(Message);
+	else LastError = UTF8_TO_TCHAR(Error.c_str());  // one bad message does not end the stream
+}
+
+void UDimgestorComponent::HandleBinary(const void* Data, SIZE_T Size, bool bIsLastFragment)
+{
+	BinaryBuffer.Append(static_cast<const uint8*>(Data), Size);
+	if (!bIsLastFragment) return;
+	dimgestor::Message Message;
+	Message.type = dimgestor::MessageType::Frame;
+	std::string Error;
+	if (dimgestor::DecodeBinaryFrame(BinaryBuffer.GetData(), BinaryBuffer.Num(), Message.frame, Error)) Handle(Message);
+	else LastError = UTF8_TO_TCHAR(Error.c_str());
+	BinaryBuffer.Reset();
+}
+
+void UDimgestorComponent::Handle(const dimgestor::Message& Message)
+{
+	switch (Message.type)
+	{
+	case dimgestor::MessageType::Frame:
+		Latest = Message.frame;
+		bHaveFrame = true;
+		++FramesReceived;
+		break;
+	case dimgestor::MessageType::Hello:
+		Hello = Message.hello;
+		bHaveHello = true;
+		bNeedBind = true;
+		bHaveFrame = false;
+		break;
+	case dimgestor::MessageType::Status:
+		LatencyMs = float(Message.status.latency_ms);
+		DroppedFrames = Message.status.dropped;
+		break;
+	case dimgestor::MessageType::Error:
+		LastError = FString(UTF8_TO_TCHAR(Message.error_code.c_str())) + TEXT(": ") + UTF8_TO_TCHAR(Message.error_message.c_str());
+		break;
+	default:
+		break;  // end, pong and unknown types need nothing here
+	}
+}
+
+void UDimgestorComponent::TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction)
+{
+	Super::TickComponent(DeltaTime, TickType, ThisTickFunction);
+	if (ReconnectIn > 0.f && (ReconnectIn -= DeltaTime) <= 0.f) Connect();
+	if (!TargetMesh || !bHaveHello) return;
+	if (bNeedBind) Bind();
+	if (bHaveFrame) { Apply(Latest); bHaveFrame = false; }
+}
+
+void UDimgestorComponent::Bind()
+{
+	bNeedBind = false;
+	Bindings.Reset();
+	SourceRestGlobal = dimgestor::GlobalRotations(Hello.skeleton, Hello.skeleton.rest_rotations);
+	auto AddBinding = [this](FName Bone, int32 Joint) {
+		const FTransform* Rest = RestPose.Find(Bone);
+		if (Rest && Joint >= 0) Bindings.Add(FBinding{Bone, Joint, Rest->GetRotation()});
+	};
+	if (bMatchJointNames)
+	{
+		for (int32 j = 0; j < int32(Hello.skeleton.joints.size()); ++j)
+			AddBinding(FName(UTF8_TO_TCHAR(Hello.skeleton.joints[j].c_str())), j);
+	}
+	else
+	{
+		for (const auto& Pair : Hello.humanoid)
+		{
+			const FName* Bone = HumanoidToBone.Find(UTF8_TO_TCHAR(Pair.first.c_str()));
+			if (Bone) AddBinding(*Bone, Hello.skeleton.IndexOf(Pair.second));
+		}
+	}
+	Bindings.Sort([](const FBinding& A, const FBinding& B) { return A.Joint < B.Joint; });  // parents first
+	RootBone = NAME_None;
+	for (const FBinding& B : Bindings)
+		if (Hello.skeleton.parents[B.Joint] < 0) RootBone = B.Bone;
+	if (RootBone != NAME_None) RootRestLocation = RestPose[RootBone].GetLocation();
+	bHaveRootReference = false;
+	LastIndex = -1;
+	if (Bindings.Num() == 0) LastError = TEXT("no mesh bone matched: check HumanoidToBone / bMatchJointNames");
+}
+
+void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
+{
+	const std::vector<dimgestor::Quat> Global = dimgestor::GlobalRotations(Hello.skeleton, Frame.rotations);
+	if (Global.empty()) { LastError = TEXT("frame does not match the hello skeleton"); return; }
+	const FQuat C = SourceToComponent.Quaternion();
+	for (const FBinding& B : Bindings)
+	{
+		const FQuat Delta = ToFQuat(dimgestor::ToUnrealRotation(Global[B.Joint] * dimgestor::Conjugate(SourceRestGlobal[B.Joint])));
+		FTransform T = TargetMesh->GetBoneTransformByName(B.Bone, EBoneSpaces::ComponentSpace);
+		T.SetRotation((C * Delta * C.Inverse() * B.RestComponent).GetNormalized());
+		TargetMesh->SetBoneTransformByName(B.Bone, T, EBoneSpaces::ComponentSpace);
+	}
+	if (Frame.index < LastIndex) bHaveRootReference = false;  // a new stream (own audio session, --loop)
+	LastIndex = Frame.index;
+	if (bApplyRootPosition && RootBone != NAME_None)
+	{
+		const double UnitToCm = Hello.skeleton.unit_to_m * 100.0;
+		if (!bHaveRootReference)
+		{
+			RootReference = Frame.root;
+			const double SourceHeight = dimgestor::ToUnrealPosition(Frame.root, UnitToCm).z;
+			RootScale = SourceHeight > 10.0 && RootRestLocation.Z > 10.0 ? float(RootRestLocation.Z / SourceHeight) : 1.f;
+			bHaveRootReference = true;
+		}
+		const dimgestor::Vec3 Rel{Frame.root.x - RootReference.x, Frame.root.y - RootReference.y, Frame.root.z - RootReference.z};
+		const dimgestor::Vec3 D = dimgestor::ToUnrealPosition(Rel, UnitToCm);
+		FTransform T = TargetMesh->GetBoneTransformByName(RootBone, EBoneSpaces::ComponentSpace);
+		T.SetLocation(RootRestLocation + C.RotateVector(FVector(D.x, D.y, D.z)) * RootScale);
+		TargetMesh->SetBoneTransformByName(RootBone, T, EBoneSpaces::ComponentSpace);
+	}
+}
+
+bool UDimgestorComponent::SendAudio(const TArray<float>& Samples, int32 SampleRate, int32 Channels)
+{
+	if (!Socket || !Socket->IsConnected()) return false;
+	if (SampleRate * 16 + Channels != AudioFormatKey)  // declare the format before the first chunk
+	{
+		TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();
+		Audio->SetNumberField(TEXT("rate"), SampleRate);
+		Audio->SetStringField(TEXT("format"), TEXT("float32"));
+		Audio->SetNumberField(TEXT("channels"), Channels);
+		TSharedRef<FJsonObject> Hello = MakeShared<FJsonObject>();
+		Hello->SetStringField(TEXT("type"), TEXT("hello"));
+		Hello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
+		Hello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
+		Hello->SetObjectField(TEXT("audio"), Audio);
+		SendText(Condensed(Hello));
+		AudioFormatKey = SampleRate * 16 + Channels;
+	}
+	// float32 little-endian on the wire; every platform Unreal ships on is little-endian.
+	Socket->Send(Samples.GetData(), Samples.Num() * sizeof(float), true);
+	return true;
+}
+
+void UDimgestorComponent::EndAudio()
+{
+	TSharedRef<FJsonObject> End = MakeShared<FJsonObject>();
+	End->SetStringField(TEXT("type"), TEXT("audio_end"));
+	SendText(Condensed(End));
+}
+
+void UDimgestorComponent::SendText(const FString& Text)
+{
+	if (Socket && Socket->IsConnected()) Socket->Send(Text);
+}

@@ -1,0 +1,121 @@
+// Unreal client for dimgestor (protocol v1): receives gesture frames over a WebSocket (WebSockets module)
+// and poses a UPoseableMeshComponent by bone name. Decoding is in the engine-independent DimgestorProtocol.
+#pragma once
+
+#include "CoreMinimal.h"
+#include "Components/ActorComponent.h"
+#include "DimgestorProtocol.h"
+#include "DimgestorComponent.generated.h"
+
+class IWebSocket;
+class UPoseableMeshComponent;
+
+UCLASS(ClassGroup = (Animation), meta = (BlueprintSpawnableComponent))
+class UDimgestorComponent : public UActorComponent
+{
+	GENERATED_BODY()
+
+public:
+	UDimgestorComponent();
+
+	/** Server WebSocket URL (streamer serve --ws HOST:PORT). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	FString Url = TEXT("ws://127.0.0.1:8765/");
+
+	/** Access token when the server runs with --token (sent as ?token=). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	FString Token;
+
+	/** Receive DGF1 binary frames (smaller, faster to decode) instead of JSON. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	bool bBinaryFrames = true;
+
+	/** Mesh to pose; when empty, the first PoseableMeshComponent on the owner. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	TObjectPtr<UPoseableMeshComponent> TargetMesh;
+
+	/** Unity HumanBodyBones name (as in the server's "humanoid" map) -> bone of your mesh.
+	 *  Defaults to the UE5 Mannequin (pelvis, spine_01, upperarm_l, ...). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	TMap<FString, FName> HumanoidToBone;
+
+	/** Ignore HumanoidToBone and drive every mesh bone named like a server skeleton joint
+	 *  (for a mesh imported from the training skeleton's BVH/FBX). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	bool bMatchJointNames = false;
+
+	/** Rotation from the server's forward (+X after conversion) to the mesh's component space.
+	 *  UE Mannequin and MetaHuman meshes face +Y: yaw 90. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	FRotator SourceToComponent = FRotator(0.f, 90.f, 0.f);
+
+	/** Move the root bone with the source root (scaled to the mesh's hip height). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	bool bApplyRootPosition = true;
+
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	FString ConnectionState = TEXT("idle");
+
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	int64 FramesReceived = 0;
+
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	float LatencyMs = 0.f;
+
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	int64 DroppedFrames = 0;
+
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	FString LastError;
+
+	/** Send your own audio (mono or interleaved float samples) for an own session; declares the format first. */
+	UFUNCTION(BlueprintCallable, Category = "Dimgestor")
+	bool SendAudio(const TArray<float>& Samples, int32 SampleRate, int32 Channels = 1);
+
+	/** No more audio: the server finishes the session and sends "end". */
+	UFUNCTION(BlueprintCallable, Category = "Dimgestor")
+	void EndAudio();
+
+	virtual void BeginPlay() override;
+	virtual void EndPlay(const EEndPlayReason::Type Reason) override;
+	virtual void TickComponent(float DeltaTime, ELevelTick TickType, FActorComponentTickFunction* ThisTickFunction) override;
+
+private:
+	struct FBinding
+	{
+		FName Bone;
+		int32 Joint = INDEX_NONE;
+		FQuat RestComponent;  // the bone's component-space rotation in the mesh's rest pose
+	};
+
+	void Connect();
+	void HandleConnected();
+	void HandleConnectionError(const FString& Error);
+	void HandleClosed(int32 StatusCode, const FString& Reason, bool bWasClean);
+	void HandleText(const FString& Text);
+	void HandleBinary(const void* Data, SIZE_T Size, bool bIsLastFragment);
+	void Handle(const dimgestor::Message& Message);
+	void Bind();
+	void Apply(const dimgestor::Frame& Frame);
+	void SendText(const FString& Text);
+
+	TSharedPtr<IWebSocket> Socket;
+	TArray<uint8> BinaryBuffer;  // fragments of the binary message being received
+	float ReconnectIn = 0.f;
+	int32 AudioFormatKey = 0;    // SampleRate * 16 + Channels declared in our last hello
+
+	bool bHaveHello = false;
+	bool bNeedBind = false;
+	bool bHaveFrame = false;
+	dimgestor::Hello Hello;
+	dimgestor::Frame Latest;     // only the newest frame is applied each tick
+	std::vector<dimgestor::Quat> SourceRestGlobal;
+	TArray<FBinding> Bindings;
+	TMap<FName, FTransform> RestPose;  // component-space bone transforms captured at BeginPlay
+	FName RootBone;
+	FVector RootRestLocation = FVector::ZeroVector;
+	bool bHaveRootReference = false;
+	dimgestor::Vec3 RootReference;
+	float RootScale = 1.f;
+	int64 LastIndex = -1;
+};

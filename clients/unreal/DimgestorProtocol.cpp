@@ -1,0 +1,458 @@
+// dimgestor protocol v1 decoding; see DimgestorProtocol.h. Standard library only, no exceptions.
+#include "DimgestorProtocol.h"
+
+#include <algorithm>
+#include <cstring>
+#include <locale>
+#include <sstream>
+#if defined(__has_include)
+#if __has_include(<charconv>)
+#include <charconv>
+#endif
+#endif
+
+namespace dimgestor {
+
+// ------------------------------------------------------------------ a small strict JSON reader
+
+namespace {
+
+struct JsonValue {
+  enum Kind { Null, Bool, Number, String, Array, Object } kind = Null;
+  bool b = false;
+  double n = 0;
+  std::string s;
+  std::vector<JsonValue> items;       // Array elements, or Object values
+  std::vector<std::string> keys;      // Object keys, parallel to items
+
+  const JsonValue* Get(const std::string& key) const {
+    for (size_t i = keys.size(); i-- > 0;)  // last wins for repeated keys
+      if (keys[i] == key) return &items[i];
+    return nullptr;
+  }
+};
+
+class JsonReader {
+ public:
+  explicit JsonReader(const std::string& text) : s_(text) {}
+
+  bool Parse(JsonValue& out, std::string& error) {
+    SkipWs();
+    if (!Value(out, 0)) { error = error_; return false; }
+    SkipWs();
+    if (pos_ != s_.size()) { Fail("end of input"); error = error_; return false; }
+    return true;
+  }
+
+ private:
+  static constexpr int kMaxDepth = 64;  // the protocol nests 4 deep; this only stops hostile input
+  const std::string& s_;
+  size_t pos_ = 0;
+  std::string error_;
+
+  bool Fail(const char* expected) {
+    size_t line = 1, col = 1;
+    for (size_t i = 0; i < pos_ && i < s_.size(); ++i) {
+      if (s_[i] == '\n') { ++line; col = 1; } else { ++col; }
+    }
+    std::string found = pos_ < s_.size() ? std::string("'") + s_[pos_] + "'" : "end of input";
+    error_ = "JSON line " + std::to_string(line) + " column " + std::to_string(col) + ": expected " + expected +
+             ", found " + found;
+    return false;
+  }
+  bool At(char c) const { return pos_ < s_.size() && s_[pos_] == c; }
+  void SkipWs() {
+    while (pos_ < s_.size() && (s_[pos_] == ' ' || s_[pos_] == '\t' || s_[pos_] == '\n' || s_[pos_] == '\r')) ++pos_;
+  }
+  bool Word(const char* w) {
+    size_t n = std::strlen(w);
+    if (s_.compare(pos_, n, w) != 0) return false;
+    pos_ += n;
+    return true;
+  }
+
+  bool Value(JsonValue& v, int depth) {
+    if (depth > kMaxDepth) return Fail("less nesting");
+    if (pos_ >= s_.size()) return Fail("a value");
+    char c = s_[pos_];
+    if (c == '{') return ObjectValue(v, depth);
+    if (c == '[') return ArrayValue(v, depth);
+    if (c == '"') { v.kind = JsonValue::String; return StringValue(v.s); }
+    if (c == '-' || (c >= '0' && c <= '9')) { v.kind = JsonValue::Number; return NumberValue(v.n); }
+    if (Word("true")) { v.kind = JsonValue::Bool; v.b = true; return true; }
+    if (Word("false")) { v.kind = JsonValue::Bool; v.b = false; return true; }
+    if (Word("null")) { v.kind = JsonValue::Null; return true; }
+    return Fail("a value");
+  }
+
+  bool ObjectValue(JsonValue& v, int depth) {
+    v.kind = JsonValue::Object;
+    ++pos_;
+    SkipWs();
+    if (At('}')) { ++pos_; return true; }
+    for (;;) {
+      SkipWs();
+      if (!At('"')) return Fail("a string key");
+      v.keys.emplace_back();
+      if (!StringValue(v.keys.back())) return false;
+      SkipWs();
+      if (!At(':')) return Fail("':'");
+      ++pos_;
+      SkipWs();
+      v.items.emplace_back();
+      if (!Value(v.items.back(), depth + 1)) return false;
+      SkipWs();
+      if (At(',')) { ++pos_; continue; }
+      if (At('}')) { ++pos_; return true; }
+      return Fail("',' or '}'");
+    }
+  }
+
+  bool ArrayValue(JsonValue& v, int depth) {
+    v.kind = JsonValue::Array;
+    ++pos_;
+    SkipWs();
+    if (At(']')) { ++pos_; return true; }
+    for (;;) {
+      SkipWs();
+      v.items.emplace_back();
+      if (!Value(v.items.back(), depth + 1)) return false;
+      SkipWs();
+      if (At(',')) { ++pos_; continue; }
+      if (At(']')) { ++pos_; return true; }
+      return Fail("',' or ']'");
+    }
+  }
+
+  static void AppendUtf8(std::string& out, uint32_t cp) {
+    if (cp < 0x80) { out += char(cp); }
+    else if (cp < 0x800) { out += char(0xC0 | (cp >> 6)); out += char(0x80 | (cp & 0x3F)); }
+    else if (cp < 0x10000) {
+      out += char(0xE0 | (cp >> 12)); out += char(0x80 | ((cp >> 6) & 0x3F)); out += char(0x80 | (cp & 0x3F));
+    } else {
+      out += char(0xF0 | (cp >> 18)); out += char(0x80 | ((cp >> 12) & 0x3F));
+      out += char(0x80 | ((cp >> 6) & 0x3F)); out += char(0x80 | (cp & 0x3F));
+    }
+  }
+
+  bool Hex4(uint32_t& cp) {
+    if (pos_ + 4 > s_.size()) return Fail("4 hex digits");
+    cp = 0;
+    for (int i = 0; i < 4; ++i) {
+      char c = s_[pos_ + i];
+      int d = (c >= '0' && c <= '9') ? c - '0' : (c >= 'a' && c <= 'f') ? c - 'a' + 10 : (c >= 'A' && c <= 'F') ? c - 'A' + 10 : -1;
+      if (d < 0) return Fail("4 hex digits");
+      cp = cp * 16 + uint32_t(d);
+    }
+    pos_ += 4;
+    return true;
+  }
+
+  bool StringValue(std::string& out) {
+    ++pos_;  // opening quote
+    for (;;) {
+      if (pos_ >= s_.size()) return Fail("'\"' closing the string");
+      char c = s_[pos_++];
+      if (c == '"') return true;
+      if (static_cast<unsigned char>(c) < 0x20) { --pos_; return Fail("an escaped control character"); }
+      if (c != '\\') { out += c; continue; }  // UTF-8 bytes pass through unchanged
+      if (pos_ >= s_.size()) return Fail("an escape");
+      char e = s_[pos_++];
+      switch (e) {
+        case '"': out += '"'; break;
+        case '\\': out += '\\'; break;
+        case '/': out += '/'; break;
+        case 'b': out += '\b'; break;
+        case 'f': out += '\f'; break;
+        case 'n': out += '\n'; break;
+        case 'r': out += '\r'; break;
+        case 't': out += '\t'; break;
+        case 'u': {
+          uint32_t cp = 0;
+          if (!Hex4(cp)) return false;
+          if (cp >= 0xD800 && cp < 0xDC00 && s_.compare(pos_, 2, "\\u") == 0) {  // surrogate pair
+            pos_ += 2;
+            uint32_t lo = 0;
+            if (!Hex4(lo)) return false;
+            if (lo >= 0xDC00 && lo < 0xE000) cp = 0x10000 + ((cp - 0xD800) << 10) + (lo - 0xDC00);
+            else { AppendUtf8(out, cp); cp = lo; }  // unpaired: keep both code units
+          }
+          AppendUtf8(out, cp);
+          break;
+        }
+        default: --pos_; return Fail("a valid escape");
+      }
+    }
+  }
+
+  bool Digits() {
+    size_t start = pos_;
+    while (pos_ < s_.size() && s_[pos_] >= '0' && s_[pos_] <= '9') ++pos_;
+    return pos_ > start;
+  }
+
+  bool NumberValue(double& out) {
+    size_t start = pos_;
+    if (At('-')) ++pos_;
+    if (At('0')) ++pos_;
+    else if (!Digits()) return Fail("a digit");
+    if (At('.')) { ++pos_; if (!Digits()) return Fail("a digit after '.'"); }
+    if (At('e') || At('E')) {
+      ++pos_;
+      if (At('+') || At('-')) ++pos_;
+      if (!Digits()) return Fail("an exponent");
+    }
+    // Locale-independent and correctly rounded: strtod would read "0.5" wrongly under a German locale.
+#if defined(__cpp_lib_to_chars) && __cpp_lib_to_chars >= 201611L
+    auto r = std::from_chars(s_.data() + start, s_.data() + pos_, out);
+    if (r.ec != std::errc() && r.ec != std::errc::result_out_of_range) { pos_ = start; return Fail("a number"); }
+#else
+    std::istringstream in(s_.substr(start, pos_ - start));
+    in.imbue(std::locale::classic());
+    in >> out;
+    if (in.fail()) { pos_ = start; return Fail("a number"); }
+#endif
+    return true;
+  }
+};
+
+// ------------------------------------------------------------------ typed access
+
+struct Fields {
+  std::string& error;
+  bool Num(const JsonValue& o, const char* key, double dflt, double& out) {
+    const JsonValue* v = o.Get(key);
+    if (!v || v->kind == JsonValue::Null) { out = dflt; return true; }
+    if (v->kind != JsonValue::Number) { error = std::string("\"") + key + "\" is not a number"; return false; }
+    out = v->n;
+    return true;
+  }
+  bool Str(const JsonValue& o, const char* key, const char* dflt, std::string& out) {
+    const JsonValue* v = o.Get(key);
+    if (!v || v->kind == JsonValue::Null) { out = dflt; return true; }
+    if (v->kind != JsonValue::String) { error = std::string("\"") + key + "\" is not a string"; return false; }
+    out = v->s;
+    return true;
+  }
+  const JsonValue* Kind(const JsonValue& o, const char* key, JsonValue::Kind kind, const char* what) {
+    const JsonValue* v = o.Get(key);
+    if (!v || v->kind != kind) { error = std::string("\"") + key + "\" is missing or not " + what; return nullptr; }
+    return v;
+  }
+  bool Numbers(const JsonValue& v, size_t n, double* out, const std::string& what) {
+    if (v.kind != JsonValue::Array || v.items.size() != n) {
+      error = what + (n == 3 ? " is not [x, y, z]" : " is not [w, x, y, z]");
+      return false;
+    }
+    for (size_t i = 0; i < n; ++i) {
+      if (v.items[i].kind != JsonValue::Number) { error = what + " has a non-number"; return false; }
+      out[i] = v.items[i].n;
+    }
+    return true;
+  }
+  bool ToVec(const JsonValue& v, Vec3& out, const std::string& what) {
+    double a[3];
+    if (!Numbers(v, 3, a, what)) return false;
+    out = Vec3{a[0], a[1], a[2]};
+    return true;
+  }
+  bool ToQuat(const JsonValue& v, Quat& out, const std::string& what) {
+    double a[4];
+    if (!Numbers(v, 4, a, what)) return false;
+    out = Quat{a[0], a[1], a[2], a[3]};
+    return true;
+  }
+};
+
+bool ParseHello(const JsonValue& o, Hello& h, std::string& error) {
+  Fields f{error};
+  double protocol, fps, lookahead;
+  if (!f.Num(o, "protocol", 0, protocol) || !f.Str(o, "server", "", h.server) || !f.Num(o, "fps", 0, fps) ||
+      !f.Str(o, "encoding", "json", h.encoding) || !f.Num(o, "lookahead_s", 0, lookahead))
+    return false;
+  h.protocol = int(protocol);
+  h.fps = fps;
+  h.lookahead_s = lookahead;
+  if (h.protocol != kProtocolVersion) {
+    error = "server speaks protocol " + std::to_string(h.protocol) + ", this client " + std::to_string(kProtocolVersion);
+    return false;
+  }
+  const JsonValue* sk = f.Kind(o, "skeleton", JsonValue::Object, "an object");
+  if (!sk) return false;
+  const JsonValue* joints = f.Kind(*sk, "joints", JsonValue::Array, "an array");
+  const JsonValue* parents = joints ? f.Kind(*sk, "parents", JsonValue::Array, "an array") : nullptr;
+  const JsonValue* offsets = parents ? f.Kind(*sk, "offsets", JsonValue::Array, "an array") : nullptr;
+  if (!offsets) return false;
+  const JsonValue* rest = sk->Get("rest_rotations");
+  size_t n = joints->items.size();
+  if (parents->items.size() != n || offsets->items.size() != n ||
+      (rest && (rest->kind != JsonValue::Array || rest->items.size() != n))) {
+    error = "hello.skeleton: " + std::to_string(n) + " joints but " + std::to_string(parents->items.size()) +
+            " parents, " + std::to_string(offsets->items.size()) + " offsets" + (rest ? " or bad rest_rotations" : "");
+    return false;
+  }
+  Skeleton& s = h.skeleton;
+  s.joints.resize(n); s.parents.resize(n); s.offsets.resize(n); s.rest_rotations.assign(n, Quat{});
+  for (size_t j = 0; j < n; ++j) {
+    std::string at = "[" + std::to_string(j) + "]";
+    if (joints->items[j].kind != JsonValue::String) { error = "hello.skeleton.joints" + at + " is not a string"; return false; }
+    s.joints[j] = joints->items[j].s;
+    const JsonValue& p = parents->items[j];
+    if (p.kind != JsonValue::Number || p.n < -1 || p.n >= double(j)) {
+      error = "hello.skeleton.parents" + at + ": parents must be -1 or an earlier joint";
+      return false;
+    }
+    s.parents[j] = int(p.n);
+    if (!f.ToVec(offsets->items[j], s.offsets[j], "hello.skeleton.offsets" + at)) return false;
+    if (rest && !f.ToQuat(rest->items[j], s.rest_rotations[j], "hello.skeleton.rest_rotations" + at)) return false;
+  }
+  if (!f.Str(*sk, "units", "cm", s.units)) return false;
+  s.unit_to_m = s.units == "m" ? 1.0 : s.units == "mm" ? 0.001 : 0.01;
+  if (const JsonValue* hm = o.Get("humanoid")) {
+    if (hm->kind == JsonValue::Object)
+      for (size_t i = 0; i < hm->keys.size(); ++i)
+        if (hm->items[i].kind == JsonValue::String) h.humanoid[hm->keys[i]] = hm->items[i].s;
+  }
+  if (const JsonValue* a = o.Get("audio")) {
+    if (a->kind == JsonValue::Object) {
+      const JsonValue* acc = a->Get("accepts");
+      h.audio_accepts = acc && acc->kind == JsonValue::Bool && acc->b;
+      double rate;
+      if (!f.Num(*a, "rate", 16000, rate)) return false;
+      h.audio_rate = int(rate);
+      if (const JsonValue* fm = a->Get("formats"))
+        if (fm->kind == JsonValue::Array)
+          for (const JsonValue& x : fm->items)
+            if (x.kind == JsonValue::String) h.audio_formats.push_back(x.s);
+    }
+  }
+  return true;
+}
+
+bool ParseFrame(const JsonValue& o, Frame& fr, std::string& error) {
+  Fields f{error};
+  double index;
+  if (!f.Num(o, "index", -1, index) || !f.Num(o, "pts", 0, fr.pts)) return false;
+  fr.index = int64_t(index);
+  const JsonValue* root = o.Get("root");
+  if (!root || !f.ToVec(*root, fr.root, "frame.root")) {
+    if (!root) error = "frame.root is missing";
+    return false;
+  }
+  const JsonValue* rots = f.Kind(o, "rotations", JsonValue::Array, "an array");
+  if (!rots) return false;
+  fr.rotations.resize(rots->items.size());
+  for (size_t j = 0; j < rots->items.size(); ++j)
+    if (!f.ToQuat(rots->items[j], fr.rotations[j], "frame.rotations[" + std::to_string(j) + "]")) return false;
+  return true;
+}
+
+// The wire is little-endian whatever the CPU is.
+template <typename T>
+T ReadLE(const uint8_t* p) {
+  uint8_t b[sizeof(T)];
+  const uint16_t probe = 1;
+  const bool little = *reinterpret_cast<const uint8_t*>(&probe) == 1;
+  for (size_t i = 0; i < sizeof(T); ++i) b[i] = little ? p[i] : p[sizeof(T) - 1 - i];
+  T v;
+  std::memcpy(&v, b, sizeof(T));
+  return v;
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------ public API
+
+Quat operator*(const Quat& a, const Quat& b) {
+  return Quat{a.w * b.w - a.x * b.x - a.y * b.y - a.z * b.z, a.w * b.x + a.x * b.w + a.y * b.z - a.z * b.y,
+              a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x, a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w};
+}
+
+Quat Conjugate(const Quat& q) { return Quat{q.w, -q.x, -q.y, -q.z}; }
+
+int Skeleton::IndexOf(const std::string& joint) const {
+  auto it = std::find(joints.begin(), joints.end(), joint);
+  return it == joints.end() ? -1 : int(it - joints.begin());
+}
+
+bool ParseMessage(const std::string& text, Message& out, std::string& error) {
+  JsonValue v;
+  JsonReader reader(text);
+  if (!reader.Parse(v, error)) return false;
+  if (v.kind != JsonValue::Object) { error = "message is not a JSON object"; return false; }
+  Fields f{error};
+  const JsonValue* type = v.Get("type");
+  if (!type || type->kind != JsonValue::String) { error = "message has no \"type\" string"; return false; }
+  out = Message();
+  out.type_name = type->s;
+  const std::string& t = type->s;
+  if (t == "hello") { out.type = MessageType::Hello; return ParseHello(v, out.hello, error); }
+  if (t == "frame") { out.type = MessageType::Frame; return ParseFrame(v, out.frame, error); }
+  if (t == "status") {
+    out.type = MessageType::Status;
+    double sent, dropped, clients;
+    if (!f.Num(v, "latency_ms", 0, out.status.latency_ms) || !f.Num(v, "rtf", 0, out.status.rtf) ||
+        !f.Num(v, "frames_sent", 0, sent) || !f.Num(v, "dropped", 0, dropped) || !f.Num(v, "clients", 0, clients))
+      return false;
+    out.status.frames_sent = int64_t(sent);
+    out.status.dropped = int64_t(dropped);
+    out.status.clients = int64_t(clients);
+    return true;
+  }
+  if (t == "error") {
+    out.type = MessageType::Error;
+    return f.Str(v, "code", "", out.error_code) && f.Str(v, "message", "", out.error_message);
+  }
+  if (t == "end") {
+    out.type = MessageType::End;
+    double frames;
+    if (!f.Num(v, "frames", 0, frames)) return false;
+    out.end_frames = int64_t(frames);
+    return true;
+  }
+  out.type = t == "pong" ? MessageType::Pong : MessageType::Unknown;
+  return true;
+}
+
+bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error) {
+  if (size < kBinaryHeaderBytes || (size - kBinaryHeaderBytes) % 16 != 0) {
+    error = "binary frame of " + std::to_string(size) + " bytes is not 28 + 16*J";
+    return false;
+  }
+  if (std::memcmp(data, "DGF1", 4) != 0) { error = "binary frame does not start with DGF1"; return false; }
+  out.index = ReadLE<uint32_t>(data + 4);
+  out.pts = ReadLE<double>(data + 8);
+  out.root = Vec3{ReadLE<float>(data + 16), ReadLE<float>(data + 20), ReadLE<float>(data + 24)};
+  size_t n = (size - kBinaryHeaderBytes) / 16;
+  out.rotations.resize(n);
+  for (size_t j = 0; j < n; ++j) {
+    const uint8_t* p = data + kBinaryHeaderBytes + 16 * j;
+    out.rotations[j] = Quat{ReadLE<float>(p), ReadLE<float>(p + 4), ReadLE<float>(p + 8), ReadLE<float>(p + 12)};
+  }
+  return true;
+}
+
+std::string ClientHello(bool binary_frames, int audio_rate, const std::string& audio_format, int channels) {
+  std::string s = "{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"";
+  s += binary_frames ? "binary\"" : "json\"";
+  if (audio_rate > 0)
+    s += ",\"audio\":{\"rate\":" + std::to_string(audio_rate) + ",\"format\":\"" + audio_format +
+         "\",\"channels\":" + std::to_string(channels) + "}";
+  return s + "}";
+}
+
+std::vector<Quat> GlobalRotations(const Skeleton& skeleton, const std::vector<Quat>& local) {
+  std::vector<Quat> g;
+  if (local.size() != skeleton.joints.size()) return g;
+  g.resize(local.size());
+  for (size_t j = 0; j < local.size(); ++j)
+    g[j] = skeleton.parents[j] < 0 ? local[j] : g[size_t(skeleton.parents[j])] * local[j];
+  return g;
+}
+
+Vec3 ToUnrealPosition(const Vec3& p, double unit_to_cm) { return Vec3{p.z * unit_to_cm, -p.x * unit_to_cm, p.y * unit_to_cm}; }
+Quat ToUnrealRotation(const Quat& q) { return Quat{q.w, -q.z, q.x, -q.y}; }
+Vec3 ToUnityPosition(const Vec3& p, double unit_to_m) { return Vec3{-p.x * unit_to_m, p.y * unit_to_m, p.z * unit_to_m}; }
+Quat ToUnityRotation(const Quat& q) { return Quat{q.w, q.x, -q.y, -q.z}; }
+
+}  // namespace dimgestor

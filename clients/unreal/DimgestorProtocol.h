@@ -1,0 +1,102 @@
+// dimgestor protocol v1 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
+// no exceptions (Unreal builds without them), so it compiles and is tested outside the engine.
+//
+// The wire is BVH space: right-handed, Y up, file units (cm for ZEGGS). Conversions provided:
+//   Unreal (left-handed, Z up, X forward, cm): position (x, y, z) -> (z, -x, y) * unit_to_cm
+//                                               rotation (w, x, y, z) -> (w, -z, x, -y)
+//   Unity  (left-handed, Y up, metres):       position (x, y, z) -> (-x, y, z) * unit_to_m
+//                                               rotation (w, x, y, z) -> (w, x, -y, -z)
+// (A change of axes M with det(M) = -1 maps a quaternion's vector part v to -M v.)
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <string>
+#include <vector>
+
+namespace dimgestor {
+
+struct Vec3 {
+  double x = 0, y = 0, z = 0;
+};
+
+// Quaternion in (w, x, y, z) order, as on the wire.
+struct Quat {
+  double w = 1, x = 0, y = 0, z = 0;
+};
+
+Quat operator*(const Quat& a, const Quat& b);
+Quat Conjugate(const Quat& q);
+
+struct Skeleton {
+  std::vector<std::string> joints;
+  std::vector<int> parents;         // -1 for the root; parents come before children
+  std::vector<Vec3> offsets;        // rest offset from the parent, BVH space, file units
+  std::vector<Quat> rest_rotations; // rest local rotations (identity for BVH skeletons)
+  std::string units = "cm";
+  double unit_to_m = 0.01;
+
+  int IndexOf(const std::string& joint) const;  // -1 when absent
+};
+
+struct Hello {
+  int protocol = 0;
+  std::string server;
+  double fps = 0;
+  std::string encoding = "json";
+  Skeleton skeleton;
+  std::map<std::string, std::string> humanoid;  // Unity HumanBodyBones name -> joint name
+  bool audio_accepts = false;
+  int audio_rate = 16000;
+  std::vector<std::string> audio_formats;
+  double lookahead_s = 0;
+};
+
+struct Frame {
+  int64_t index = -1;
+  double pts = 0;
+  Vec3 root;                  // root joint position, BVH space, file units
+  std::vector<Quat> rotations;  // local rotations, skeleton order
+};
+
+struct Status {
+  double latency_ms = 0, rtf = 0;
+  int64_t frames_sent = 0, dropped = 0, clients = 0;
+};
+
+enum class MessageType { Hello, Frame, Status, Error, End, Pong, Unknown };
+
+// One decoded server message; only the member named by `type` is filled.
+struct Message {
+  MessageType type = MessageType::Unknown;
+  std::string type_name;        // the wire "type" (kept for Unknown ones, which the protocol says to ignore)
+  Hello hello;
+  Frame frame;
+  Status status;
+  std::string error_code, error_message;
+  int64_t end_frames = 0;
+};
+
+constexpr int kProtocolVersion = 1;
+constexpr size_t kBinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
+
+// Parse one text message. On bad input returns false and says what and where in `error`.
+bool ParseMessage(const std::string& text, Message& out, std::string& error);
+
+// Decode one binary (DGF1) frame message of `size` bytes.
+bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error);
+
+// The client's hello; with audio_rate > 0 it also declares the audio format that will be sent.
+std::string ClientHello(bool binary_frames, int audio_rate = 0, const std::string& audio_format = "float32",
+                        int channels = 1);
+
+// Global (model-space) rotations from local ones: G[j] = G[parent] * L[j]. Empty if the count is wrong.
+std::vector<Quat> GlobalRotations(const Skeleton& skeleton, const std::vector<Quat>& local);
+
+Vec3 ToUnrealPosition(const Vec3& p, double unit_to_cm);
+Quat ToUnrealRotation(const Quat& q);
+Vec3 ToUnityPosition(const Vec3& p, double unit_to_m);
+Quat ToUnityRotation(const Quat& q);
+
+}  // namespace dimgestor
