@@ -1,0 +1,286 @@
+"""Folders of NAME.bvh + NAME.wav pairs -> cached features and audio -> overlapping training windows.
+
+Each pair is preprocessed once (BVH -> features at spec.fps, WAV -> 16 kHz mono, trimmed to the
+shorter) into a cache entry keyed by the files' paths, sizes and mtimes and by the feature spec, so
+a second run memory-maps the arrays instead of parsing again. Motion frame i is aligned with audio
+samples [i * S, (i + 1) * S), S = 16000 / fps (800 at 20 fps).
+
+Validation data: a split file (split.json / split.csv / split.txt in the folder, or `split_file`)
+naming whole clips as train or valid; without one, the last `valid_fraction` of every clip (or its
+last `valid_seconds`) is held out, e.g. the final ~10 s of a 69 s ZEGGS take.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from dimgestor.audio import SAMPLE_RATE, align, load_wav
+from dimgestor.bvh import Skeleton, read_bvh
+from dimgestor.features import FeatureSpec, mirror_features, motion_to_features
+
+CACHE_VERSION = 1
+SPLIT_FILES = ("split.json", "split.csv", "split.txt")
+
+
+class DatasetError(ValueError):
+    """A data folder that cannot be used; the message names the folder or file."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    name: str  # path relative to the data folder, without extension, "/"-separated
+    bvh: Path
+    wav: Path
+
+
+def find_pairs(data_dir: str | Path) -> list[Pair]:
+    """All NAME.bvh with a NAME.wav beside it, in sub-folders too, sorted by name."""
+    root = Path(data_dir)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: data folder not found")
+    files = [p for p in root.rglob("*") if p.is_file() and not any(part.startswith(".") for part in p.relative_to(root).parts)]
+    bvhs = {p.with_suffix(""): p for p in files if p.suffix.lower() == ".bvh"}
+    wavs = {p.with_suffix(""): p for p in files if p.suffix.lower() == ".wav"}
+    pairs = [Pair(stem.relative_to(root).as_posix(), bvhs[stem], wavs[stem]) for stem in sorted(bvhs.keys() & wavs.keys())]
+    if not pairs:
+        raise DatasetError(
+            f"{root}: no NAME.bvh + NAME.wav pairs found ({len(bvhs)} .bvh and {len(wavs)} .wav files; "
+            "a pair is a BVH and a WAV with the same name in the same folder)"
+        )
+    lonely = sorted(str(p.relative_to(root)) for stem, p in {**bvhs, **wavs}.items() if stem not in bvhs or stem not in wavs)
+    if lonely:
+        warnings.warn(f"{root}: {len(lonely)} files without a partner are ignored: {', '.join(lonely[:5])}"
+                      + (" ..." if len(lonely) > 5 else ""), stacklevel=2)
+    return pairs
+
+
+def read_split(path: str | Path, names: list[str]) -> dict[str, str]:
+    """A split file -> {pair name: "train" | "valid"}; clips it does not name are train.
+
+    JSON: {"train": [...], "valid": [...]}. CSV / TXT: one clip per line, `NAME,valid` or
+    `NAME valid` (a `name,split` header and # comments are skipped). Names may omit sub-folders.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read split file: {e.strerror or e}") from None
+    entries: list[tuple[str, str, int]] = []
+    if path.suffix.lower() == ".json":
+        try:
+            d = json.loads(text)
+            entries = [(str(n), s, 0) for s in ("train", "valid") for n in d.get(s, [])]
+        except (json.JSONDecodeError, AttributeError, TypeError) as e:
+            raise DatasetError(f"{path}: not a split JSON of the form {{\"train\": [...], \"valid\": [...]}}: {e}") from None
+    else:
+        for lineno, line in enumerate(text.splitlines(), 1):
+            row = next(csv.reader([line.split("#")[0]]), []) if "," in line else line.split("#")[0].split()
+            row = [c.strip() for c in row if c.strip()]
+            if not row or [c.lower() for c in row] == ["name", "split"]:
+                continue
+            if len(row) != 2:
+                raise DatasetError(f"{path}:{lineno}: expected 'NAME,train' or 'NAME valid', got {line!r}")
+            entries.append((row[0], row[1].lower(), lineno))
+    split: dict[str, str] = {}
+    for name, which, lineno in entries:
+        which = {"validation": "valid", "val": "valid", "test": "valid"}.get(which, which)
+        if which not in ("train", "valid"):
+            raise DatasetError(f"{path}:{lineno}: split must be train or valid, got {which!r}")
+        match = [n for n in names if n == name or n.rsplit("/", 1)[-1] == name]
+        if not match:
+            raise DatasetError(f"{path}:{lineno}: {name!r} is not one of the pairs in the data folder")
+        for n in match:
+            split[n] = which
+    return {n: split.get(n, "train") for n in names}
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("DIMGESTOR_CACHE") or os.path.join(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"), "dimgestor")
+    return Path(base) / "datasets"
+
+
+@dataclass
+class Clip:
+    name: str
+    features: np.ndarray  # (T, D) float32, raw (not normalized)
+    audio: np.ndarray  # (T * samples_per_frame,) float32, 16 kHz
+    skeleton: Skeleton
+
+
+def _cache_key(pair: Pair, spec: FeatureSpec) -> str:
+    stats = {str(p.resolve()): [p.stat().st_size, p.stat().st_mtime_ns] for p in (pair.bvh, pair.wav)}
+    blob = json.dumps({"v": CACHE_VERSION, "files": stats, "spec": spec.to_dict(), "rate": SAMPLE_RATE}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def preprocess_pair(pair: Pair, spec: FeatureSpec) -> Clip:
+    """Read, featurize and align one pair (no cache)."""
+    motion = read_bvh(pair.bvh)
+    features = motion_to_features(motion, spec)
+    audio = load_wav(pair.wav, SAMPLE_RATE)
+    spf = samples_per_frame(spec)
+    _, audio = align(len(features) / spec.fps, audio, SAMPLE_RATE, name=pair.name)
+    T = min(len(features), len(audio) // spf)
+    return Clip(pair.name, features[:T], audio[: T * spf], motion.skeleton)
+
+
+def load_clip(pair: Pair, spec: FeatureSpec, cache_dir: Path | None) -> Clip:
+    """preprocess_pair through the cache: arrays are memory-mapped when the entry exists."""
+    if cache_dir is None:
+        return preprocess_pair(pair, spec)
+    entry = cache_dir / f"{pair.name.replace('/', '__')}-{_cache_key(pair, spec)}"
+    if (entry / "meta.json").is_file():
+        try:
+            meta = json.loads((entry / "meta.json").read_text())
+            return Clip(pair.name, np.load(entry / "features.npy", mmap_mode="r"), np.load(entry / "audio.npy", mmap_mode="r"),
+                        Skeleton.from_dict(meta["skeleton"]))
+        except (OSError, ValueError, KeyError):
+            shutil.rmtree(entry, ignore_errors=True)  # a damaged entry is rebuilt below
+    clip = preprocess_pair(pair, spec)
+    tmp = entry.with_name(entry.name + f".tmp{os.getpid()}")
+    tmp.mkdir(parents=True, exist_ok=True)
+    np.save(tmp / "features.npy", clip.features)
+    np.save(tmp / "audio.npy", clip.audio)
+    (tmp / "meta.json").write_text(json.dumps({"skeleton": clip.skeleton.to_dict(), "bvh": str(pair.bvh), "wav": str(pair.wav)}))
+    try:
+        os.replace(tmp, entry)
+    except OSError:  # another process wrote the same entry first: theirs is as good
+        shutil.rmtree(tmp, ignore_errors=True)
+    return clip
+
+
+def samples_per_frame(spec: FeatureSpec) -> int:
+    spf = SAMPLE_RATE / spec.fps
+    if abs(spf - round(spf)) > 1e-9:
+        raise ValueError(f"fps {spec.fps} does not divide {SAMPLE_RATE} Hz into whole samples per frame")
+    return int(round(spf))
+
+
+class GestureDataset:
+    """Windows of `window_s` seconds (hop `hop_s`, default half a window) over one split of a folder.
+
+    Items: {"motion": (W, D) float32 raw features, "audio": (W * 800,) float32, "name", "start_frame",
+    "mirrored"} (+ "audio_features" when audio_feature_fn is given). A stretch shorter than one
+    window yields one shorter item; `collate_windows` crops a batch to its shortest item.
+    cache_dir defaults to $DIMGESTOR_CACHE or ~/.cache/dimgestor/datasets; use_cache=False skips it.
+    """
+
+    def __init__(self, data_dir: str | Path, spec: FeatureSpec | None = None, window_s: float = 20.0,
+                 hop_s: float | None = None, split: str = "train", cache_dir: str | Path | None = None,
+                 use_cache: bool = True, mirror: bool = False, audio_feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+                 valid_fraction: float = 0.15, valid_seconds: float | None = None, split_file: str | Path | None = None):
+        if split not in ("train", "valid"):
+            raise ValueError(f"split must be 'train' or 'valid', got {split!r}")
+        self.data_dir = Path(data_dir)
+        self.pairs = find_pairs(self.data_dir)
+        spec = spec or FeatureSpec()
+        cache = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) if use_cache else None
+        self.clips = [load_clip(p, spec, cache) for p in self.pairs]
+        self.skeleton = self._common_skeleton()
+        self.spec = spec.resolve(self.skeleton)
+        self.fps = self.spec.fps
+        self.spf = samples_per_frame(self.spec)
+        self.split, self.mirror, self.audio_feature_fn = split, mirror, audio_feature_fn
+        if split_file is None:
+            split_file = next((self.data_dir / f for f in SPLIT_FILES if (self.data_dir / f).is_file()), None)
+        names = [p.name for p in self.pairs]
+        by_clip = read_split(split_file, names) if split_file else None
+        # segments: (clip index, first frame, end frame) of this split
+        self.segments: list[tuple[int, int, int]] = []
+        for c, clip in enumerate(self.clips):
+            T = len(clip.features)
+            if by_clip is not None:
+                if by_clip[clip.name] == split:
+                    self.segments.append((c, 0, T))
+                continue
+            n_valid = int(round(valid_seconds * self.fps)) if valid_seconds is not None else int(round(valid_fraction * T))
+            cut = max(0, T - n_valid)
+            seg = (c, 0, cut) if split == "train" else (c, cut, T)
+            if seg[2] > seg[1]:
+                self.segments.append(seg)
+        self.window = max(1, int(round(window_s * self.fps)))
+        self.hop = max(1, int(round((hop_s if hop_s is not None else window_s / 2) * self.fps)))
+        self.windows = [(c, s, e - s, m) for c, a, b in self.segments for s, e in self._starts(a, b)
+                        for m in ((False, True) if mirror else (False,))]
+        if not self.windows:
+            raise DatasetError(f"{self.data_dir}: the {split!r} split is empty "
+                               f"({len(self.clips)} clips; check the split file or valid_fraction)")
+
+    def _common_skeleton(self) -> Skeleton:
+        first = self.clips[0].skeleton
+        for pair, clip in zip(self.pairs[1:], self.clips[1:]):
+            if not clip.skeleton.same_topology(first):
+                raise DatasetError(f"{pair.bvh}: its skeleton (joints, hierarchy or channels) differs from "
+                                   f"{self.pairs[0].bvh}; all BVH files of a dataset must share one skeleton")
+            if not np.allclose(clip.skeleton.offsets, first.offsets, atol=1e-3):
+                warnings.warn(f"{pair.bvh}: bone offsets differ from {self.pairs[0].bvh}; features are "
+                              "rotations, so training works, but generated motion uses the first file's bones", stacklevel=3)
+        return first
+
+    def _starts(self, a: int, b: int) -> list[tuple[int, int]]:
+        if b - a <= self.window:
+            return [(a, b)]
+        starts = list(range(a, b - self.window + 1, self.hop))
+        if starts[-1] != b - self.window:  # cover the tail too
+            starts.append(b - self.window)
+        return [(s, s + self.window) for s in starts]
+
+    @property
+    def motion_dim(self) -> int:
+        return self.spec.dim
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, i: int) -> dict:
+        c, start, n, mirrored = self.windows[i]
+        clip = self.clips[c]
+        motion = np.array(clip.features[start:start + n], dtype=np.float32)
+        if mirrored:
+            motion = mirror_features(motion, self.spec).astype(np.float32)
+        audio = np.array(clip.audio[start * self.spf:(start + n) * self.spf], dtype=np.float32)
+        item = {"motion": motion, "audio": audio, "name": clip.name, "start_frame": start, "mirrored": mirrored}
+        if self.audio_feature_fn is not None:
+            item["audio_features"] = self.audio_feature_fn(audio)
+        return item
+
+    def frames(self) -> np.ndarray:
+        """Every frame of this split once (mirrored copies too when mirroring), (N, D) float32."""
+        parts = [np.asarray(self.clips[c].features[a:b]) for c, a, b in self.segments]
+        if self.mirror:
+            parts += [mirror_features(p, self.spec) for p in parts]
+        return np.concatenate(parts).astype(np.float32)
+
+    def summary(self) -> str:
+        seconds = sum(b - a for _, a, b in self.segments) / self.fps
+        return (f"{self.split}: {len(self.clips)} clips, {seconds:.1f} s, {len(self)} windows of "
+                f"{self.window / self.fps:g} s, {self.motion_dim} features at {self.fps:g} fps"
+                + (", mirrored" if self.mirror else ""))
+
+
+def compute_stats(dataset: GestureDataset, min_std: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column mean and std over the split's frames; std floored so constant columns stay finite."""
+    frames = dataset.frames().astype(np.float64)
+    return frames.mean(0).astype(np.float32), np.maximum(frames.std(0), min_std).astype(np.float32)
+
+
+def collate_windows(items: list[dict]) -> dict:
+    """Stack items into a batch, cropping every window to the shortest one (frames and samples alike)."""
+    n = min(len(it["motion"]) for it in items)
+    spf = len(items[0]["audio"]) // max(len(items[0]["motion"]), 1)
+    batch = {"motion": np.stack([it["motion"][:n] for it in items]),
+             "audio": np.stack([it["audio"][: n * spf] for it in items]),
+             "name": [it["name"] for it in items], "start_frame": [it["start_frame"] for it in items]}
+    if "audio_features" in items[0]:
+        batch["audio_features"] = [it["audio_features"] for it in items]
+    return batch
