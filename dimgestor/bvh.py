@@ -25,7 +25,7 @@ class BvhError(ValueError):
     """A malformed BVH file; the message names the file and line."""
 
 
-@dataclass
+@dataclass(eq=False)
 class Skeleton:
     names: list[str]
     parents: list[int]  # -1 for the root; parents come before their children
@@ -73,6 +73,14 @@ class Skeleton:
     def same_topology(self, other: "Skeleton") -> bool:
         return self.names == other.names and self.parents == other.parents and self.channels == other.channels
 
+    def __eq__(self, other: object) -> bool:
+        """Same topology, channels, offsets and End Sites (to 1e-6 file units)."""
+        if not isinstance(other, Skeleton):
+            return NotImplemented
+        return (self.same_topology(other) and np.allclose(self.offsets, other.offsets, rtol=0, atol=1e-6)
+                and self.end_sites.keys() == other.end_sites.keys()
+                and all(np.allclose(o, other.end_sites[j], rtol=0, atol=1e-6) for j, o in self.end_sites.items()))
+
     def to_dict(self) -> dict:
         return {
             "names": list(self.names),
@@ -93,7 +101,7 @@ class Skeleton:
         )
 
 
-@dataclass
+@dataclass(eq=False)
 class BvhMotion:
     skeleton: Skeleton
     frame_time: float  # seconds per frame

@@ -79,11 +79,20 @@ class FeatureSpec(BaseModel):
         return [skeleton.index(n) for n in self._resolved()]
 
     def to_dict(self) -> dict:
-        return self.model_dump(mode="json")
+        """JSON-safe; a resolved spec also lists its column names (for people reading config.json)."""
+        d = self.model_dump(mode="json")
+        if self.joints is not None:
+            d["columns"] = self.columns
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureSpec":
-        return cls.model_validate(d)
+        d = dict(d)
+        columns = d.pop("columns", None)
+        spec = cls.model_validate(d)
+        if columns is not None and spec.joints is not None and list(columns) != spec.columns:
+            raise ValueError("FeatureSpec dict: 'columns' do not match the listed joints")
+        return spec
 
 
 # ---- resampling ----------------------------------------------------------------------------------

@@ -195,6 +195,9 @@ def test_skeleton_dict_is_json_safe(mixed_file):
     assert back.same_topology(sk)
     np.testing.assert_array_equal(back.offsets, sk.offsets)
     assert back.end_sites.keys() == sk.end_sites.keys()
+    assert back == sk
+    back.offsets[2, 1] += 0.01
+    assert back != sk  # a different bone length is a different skeleton
 
 
 @pytest.mark.parametrize(

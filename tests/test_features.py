@@ -1,5 +1,7 @@
 """PyMO-style motion features: layout, inverse, resampling, streaming decode, continuity, mirroring."""
 
+import json
+
 import bvh as pypi_bvh
 import numpy as np
 import pytest
@@ -35,7 +37,9 @@ def test_spec_layout_and_dict_round_trip():
     assert spec.joints == tuple(sk.names[1:])  # every non-root joint, in skeleton order
     assert spec.dim == 6 + 3 * 12 == len(spec.columns)
     assert spec.columns[:7] == ["root_dx", "root_dz", "root_dyaw", "root_y", "root_tilt_x", "root_tilt_z", "Spine_rx"]
-    assert FeatureSpec.from_dict(spec.to_dict()) == spec
+    assert FeatureSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
+    assert spec.to_dict()["columns"] == spec.columns
+    assert FeatureSpec.from_dict(FeatureSpec().to_dict()) == FeatureSpec()  # unresolved: "all joints"
     with pytest.raises(ValueError, match="not in the skeleton"):
         FeatureSpec(joints=("Tail",)).resolve(sk)
     with pytest.raises(ValueError, match="unresolved"):
