@@ -268,7 +268,7 @@ def read_bvh(path: str | Path) -> BvhMotion:
     except OSError as e:
         raise BvhError(f"{path}: cannot read: {e.strerror or e}") from None
     lines = text.splitlines()  # handles CRLF and CR
-    motion_at = next((n for n, line in enumerate(lines) if line.strip().upper().startswith("MOTION")), None)
+    motion_at = next((n for n, line in enumerate(lines) if line.split()[:1] == ["MOTION"]), None)
     toks = _Tokens(path, lines[:motion_at] if motion_at is not None else lines)
     if not toks.items or toks.items[0][0] != "HIERARCHY":
         raise toks.error("not a BVH file: it does not start with HIERARCHY", toks.items[0][1] if toks.items else 1)
