@@ -1,0 +1,73 @@
+"""Helpers shared by the benchmarks: the device description, memory readings, result files."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def describe_device(device: str) -> str:
+    """One line naming the hardware a number was measured on."""
+    if device.startswith("cuda"):
+        return f"{torch.cuda.get_device_name(device)} (CUDA {torch.version.cuda}), torch {torch.__version__}"
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return (f"CPU {cpu}, {os.cpu_count()} cores visible, torch {torch.__version__} "
+            f"({torch.get_num_threads()} intra-op threads)")
+
+
+def rss_mb() -> float:
+    """Current resident set size of this process (MB), from /proc (Linux)."""
+    with open("/proc/self/statm") as f:
+        resident_pages = int(f.read().split()[1])
+    return resident_pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def peak_rss_mb() -> float:
+    """High-water mark of this process's resident set size (MB); ru_maxrss is in kB on Linux."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def load_average() -> list[float]:
+    """1, 5 and 15 minute load averages: how busy the (shared) machine was."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def percentile_ms(seconds: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(seconds) * 1000.0, q)) if seconds else float("nan")
+
+
+def write_json(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+    print(f"wrote {path}")
+
+
+def utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def test_audio(seconds: float, sr: int = 16000, seed: int = 0, start_s: float = 0.0) -> np.ndarray:
+    """Speech-like synthetic audio: a voiced tone with syllable-rate loudness and noise (deterministic).
+
+    The benchmarks time the network, which does not look at what the audio says; a chunk of any span of
+    this signal can be made on demand, so an hour of it is never held in memory.
+    """
+    t = start_s + np.arange(int(round(seconds * sr))) / sr
+    rng = np.random.default_rng(seed + int(start_s * 1000))
+    envelope = 0.5 * (1 + np.sin(2 * np.pi * 4.0 * t)) * (0.6 + 0.4 * np.sin(2 * np.pi * 0.3 * t))
+    voiced = np.sin(2 * np.pi * (140 + 30 * np.sin(2 * np.pi * 0.5 * t)) * t)
+    return (0.3 * envelope * voiced + 0.01 * rng.standard_normal(t.size)).astype(np.float32)

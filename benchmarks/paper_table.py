@@ -1,0 +1,216 @@
+"""Paper Table 4 side by side: AdaLN Mamba-2 denoiser vs AdaLN-Transformer (6 and 12 blocks), same width.
+
+For 20/40/60/80/100 s sequences at 20 fps: parameter count, inference time, peak memory. Each
+(model, length) is measured in a fresh subprocess, so a peak-memory reading cannot be inflated by an
+earlier measurement and CPU memory is read from the OS (peak RSS), which sees all of torch's
+allocations (tracemalloc does not). On CUDA the reading is torch.cuda.max_memory_allocated.
+
+    python benchmarks/paper_table.py                                   # small CPU default, a few minutes
+    python benchmarks/paper_table.py --preset paper --hidden 0 --device cuda --mode sample --steps 50
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common import RESULTS, describe_device, load_average, peak_rss_mb, rss_mb, test_audio, utc_now, write_json
+
+MODELS = ("mamba2_6", "transformer_6", "transformer_12")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default="paper", help="model preset whose structure is used (default: paper)")
+    p.add_argument("--hidden", type=int, default=256,
+                   help="override the width (default 256 so the CPU run takes minutes; 0 keeps the preset's)")
+    p.add_argument("--d-state", type=int, default=0, help="override the Mamba-2 state size (0 keeps the preset's)")
+    p.add_argument("--motion-dim", type=int, default=0, help="override motion feature columns (0 keeps the preset's)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--lengths", type=float, nargs="+", default=[20, 40, 60, 80, 100], help="sequence lengths (s)")
+    p.add_argument("--mode", choices=["denoiser", "sample"], default="denoiser",
+                   help="time one denoiser forward over the whole sequence (default), or a whole K-step sampling "
+                        "(front end + condition + K denoiser passes)")
+    p.add_argument("--steps", type=int, default=8, help="DDIM steps for --mode sample")
+    p.add_argument("--attention", choices=["sdpa", "naive"], default="sdpa",
+                   help="Transformer attention kernel: torch's fused sdpa, or the plain materialized softmax")
+    p.add_argument("--repeats", type=int, default=3,
+                   help="timed runs per measurement; the fastest is reported (least disturbed by other processes)")
+    p.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    p.add_argument("--out", type=Path, default=RESULTS / "paper_table.json")
+    p.add_argument("--plot", type=Path, default=None, help="plot path (default: beside --out, .png)")
+    p.add_argument("--note", default="", help="free text stored in the JSON (e.g. 'shared machine')")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: measure one (model, length)
+    return p.parse_args(argv)
+
+
+def model_config(args):
+    from dimgestor.config import get_preset
+
+    overrides = {k: v for k, v in (("hidden", args.hidden), ("d_state", args.d_state),
+                                   ("motion_dim", args.motion_dim)) if v}
+    return get_preset(args.preset, **overrides)
+
+
+def build(name: str, config, attention: str):
+    from dimgestor.baselines import AdaLNTransformer
+    from dimgestor.model import DiMGestor
+
+    kind, n_blocks = name.rsplit("_", 1)
+    if kind == "mamba2":
+        return DiMGestor(config.model_copy(update={"n_blocks": int(n_blocks)}))
+    return AdaLNTransformer(config, n_blocks=int(n_blocks), impl=attention)
+
+
+def measure(args, name: str, length_s: float) -> dict:
+    """In a fresh process: build one model, run it on a `length_s` sequence, report time and peak memory."""
+    import torch
+
+    from dimgestor.baselines import denoiser_params
+    from dimgestor.stream import generate_offline
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    rss_before = rss_mb()
+    torch.manual_seed(0)
+    model = build(name, model_config(args), args.attention).to(device).eval()
+    with torch.no_grad():  # random, non-zero weights: adaLN-Zero init would skip nothing, but be safe
+        for p in model.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    cfg = model.config
+    T = int(round(length_s * cfg.fps))
+    audio = test_audio(length_s, cfg.sample_rate)
+
+    if args.mode == "denoiser":
+        with torch.inference_mode():
+            feats, _ = model.frontend(torch.from_numpy(audio).to(device)[None], model.frontend.init_state(1, device))
+            cond, _ = model.condition(feats)
+            cond = torch.nn.functional.pad(cond, (0, 0, 0, max(0, T - cond.shape[1])))[:, :T]  # (1, T, H)
+            x = torch.randn(1, T, cfg.motion_dim, device=device)
+
+        def run():
+            with torch.inference_mode():
+                model(x, cfg.n_steps // 2, cond)
+    else:
+        def run():
+            generate_offline(model, audio, steps=args.steps)
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    run()  # warm-up (allocator, kernels)
+    sync()
+    times = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        run()
+        sync()
+        times.append(time.perf_counter() - t0)
+    if device.type == "cuda":
+        peak = torch.cuda.max_memory_allocated(device) / 2**20
+    else:
+        peak = peak_rss_mb() - rss_before  # weights + inputs + activations + allocator slack
+    return {"model": name, "length_s": length_s, "frames": T, "params": sum(p.numel() for p in model.parameters()),
+            "denoiser_params": denoiser_params(model), "time_s": min(times), "time_s_median": float(np.median(times)),
+            "peak_mem_mb": peak, "peak_rss_mb_total": peak_rss_mb()}
+
+
+def run_child(args, name: str, length_s: float) -> dict:
+    argv = [a for a in sys.argv[1:]]
+    cmd = [sys.executable, str(Path(__file__).resolve()), *argv, "--child", json.dumps([name, length_s])]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"measurement {name} @ {length_s}s failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def loglog_slope(lengths, values) -> float:
+    """Exponent p of value ~ length^p (1: linear, 2: quadratic)."""
+    return float(np.polyfit(np.log(lengths), np.log(values), 1)[0])
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))
+    for name, m in result["models"].items():
+        ax_t.plot(result["lengths_s"], m["time_s"], "o-", label=f"{name} ({m['params'] / 1e6:.1f} M params)")
+        ax_m.plot(result["lengths_s"], m["peak_mem_mb"], "o-", label=name)
+    ax_t.set(xlabel="sequence length (s)", ylabel="time (s)", title=f"inference time: {result['timing']}")
+    ax_m.set(xlabel="sequence length (s)", ylabel="peak memory (MB)", title=result["memory"])
+    for ax in (ax_t, ax_m):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(result["device"], fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    if args.child:
+        name, length_s = json.loads(args.child)
+        print(json.dumps(measure(args, name, length_s)))
+        return
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = model_config(args)
+    load_before, started = load_average(), time.time()
+    rows = {name: [] for name in MODELS}
+    for length_s in args.lengths:
+        for name in MODELS:
+            r = run_child(args, name, length_s)
+            rows[name].append(r)
+            print(f"{name:15s} {length_s:6.0f} s: {r['time_s'] * 1000:9.1f} ms  {r['peak_mem_mb']:8.1f} MB")
+    timing = ("fastest of --repeats runs of " if args.repeats > 1 else "") + (
+              "one denoiser forward over the whole sequence (B=1, condition precomputed)" if args.mode == "denoiser"
+              else f"whole {args.steps}-step DDIM sampling incl. front end and condition (B=1)")
+    memory = ("torch.cuda.max_memory_allocated" if args.device.startswith("cuda")
+              else "peak RSS of a fresh process minus its RSS before the model was built")
+    result = {
+        "device": describe_device(args.device),
+        "lengths_s": [float(x) for x in args.lengths],
+        "models": {name: {"params": r[0]["params"], "denoiser_params": r[0]["denoiser_params"],
+                          "time_s": [x["time_s"] for x in r], "peak_mem_mb": [x["peak_mem_mb"] for x in r],
+                          "time_s_median": [x["time_s_median"] for x in r]}
+                   for name, r in rows.items()},
+        "timing": timing, "memory": memory, "fps": cfg.fps,
+        "config": {"preset": args.preset, "hidden": cfg.hidden, "d_state": cfg.d_state, "motion_dim": cfg.motion_dim,
+                   "attention": args.attention, "repeats": args.repeats, "dtype": "float32"},
+        "shared_machine": {"note": args.note, "load_avg_before": load_before, "load_avg_after": load_average()},
+        "measured_at": utc_now(), "wall_s": round(time.time() - started, 1),
+    }
+    base = result["models"]["mamba2_6"]
+    result["ratios_vs_mamba2_6"] = {
+        name: {"time": [a / b for a, b in zip(m["time_s"], base["time_s"])],
+               "peak_mem": [a / b for a, b in zip(m["peak_mem_mb"], base["peak_mem_mb"])]}
+        for name, m in result["models"].items() if name != "mamba2_6"}
+    if len(args.lengths) > 1:
+        result["time_growth_exponent"] = {n: loglog_slope(args.lengths, m["time_s"]) for n, m in result["models"].items()}
+    write_json(args.out, result)
+    plot(result, args.plot or args.out.with_suffix(".png"))
+    print(f"\n{result['device']}\ntiming: {timing}\nmemory: {memory}")
+    for name, ratio in result["ratios_vs_mamba2_6"].items():
+        t = ", ".join(f"{x:.2f}" for x in ratio["time"])
+        m = ", ".join(f"{x:.2f}" for x in ratio["peak_mem"])
+        print(f"{name} / mamba2_6 at {args.lengths} s: time x[{t}], memory x[{m}]")
+    if "time_growth_exponent" in result:
+        print("time ~ length^p, p =", {k: round(v, 2) for k, v in result["time_growth_exponent"].items()})
+
+
+if __name__ == "__main__":
+    main()
