@@ -87,3 +87,37 @@ def test_register_adds_the_eval_subcommand():
                               "--plot", "x.png"])
     assert (args.command, args.checkpoint, args.data, args.steps, args.out, args.plot) == ("eval", "ck", "d", 4, "x.json", "x.png")
     assert args.func is ev.main_from_args
+
+
+def test_eval_command_end_to_end(data, tmp_path, capsys):
+    from dimgestor.checkpoint import save_checkpoint
+
+    root, _, train = data
+    b = _bundle(train)
+    save_checkpoint(tmp_path / "ck", b.model, b.feature_spec, b.skeleton, b.mean, b.std)
+    parser = argparse.ArgumentParser()
+    ev.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--data", str(root), "--steps", "1",
+                              "--window-s", "2", "--valid-fraction", "0.25", "--max-windows", "2",
+                              "--fgd-model", str(tmp_path / "ae"), "--fgd-steps", "20",
+                              "--out", str(tmp_path / "res.json"), "--plot", str(tmp_path / "res.png")])
+    assert args.func(args) == 0
+    result = json.loads((tmp_path / "res.json").read_text())
+    assert result["n_windows"] == 2 and result["steps"] == 1 and set(result["systems"]) == set(ev.SYSTEMS)
+    assert result["systems"]["ground_truth"]["fgd_raw"] == pytest.approx(0.0, abs=1e-6)
+    assert (tmp_path / "res.png").is_file()
+    assert "model_other_audio" in capsys.readouterr().out  # the table is printed
+
+
+def test_eval_refuses_data_of_another_skeleton(data, tmp_path):
+    from dimgestor.checkpoint import save_checkpoint
+
+    root, _, train = data
+    b = _bundle(train)
+    small = DiMGestor(get_preset("tiny", motion_dim=12))
+    save_checkpoint(tmp_path / "ck", small, b.feature_spec, b.skeleton, b.mean[:12], b.std[:12])
+    parser = argparse.ArgumentParser()
+    ev.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--data", str(root)])
+    with pytest.raises(ValueError, match="feature columns"):
+        ev.run(args)
