@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "a WAV file path, or 'ws' (no server audio: only clients' own audio)")
     s.add_argument("--device", default=None,
                    help="input device index or name substring for --source mic (list them: streamer devices)")
-    s.add_argument("--ws", type=_hostport, default=("127.0.0.1", 8765), metavar="HOST:PORT",
+    s.add_argument("--ws", type=_hostport, default="127.0.0.1:8765", metavar="HOST:PORT",
                    help="WebSocket address; 127.0.0.1 keeps it local, 0.0.0.0 opens it to the network; port 0 = any free")
     s.add_argument("--no-ws", action="store_true", help="do not run the WebSocket server")
     s.add_argument("--osc", type=_hostport, default=None, metavar="HOST:PORT",
@@ -64,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds between status lines on stderr (0 = none)")
     s.add_argument("--max-seconds", type=float, default=None, metavar="S",
                    help="stop (cleanly, as on Ctrl-C) after S seconds of running")
+    s.add_argument("--wait-client", action="store_true",
+                   help="start the server's source only once a first WebSocket client is connected")
     s.add_argument("--no-client-audio", action="store_true", help="refuse audio sent by WebSocket clients")
     s.add_argument("-v", "--verbose", action="store_true", help="log debug information")
     sub.add_parser("devices", help="list audio input devices (for --source mic --device N)")

@@ -42,11 +42,11 @@ async def until(source, stop: asyncio.Event) -> AsyncIterator[AudioChunk]:
 
 
 def _load(args):
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.checkpoint import CheckpointError, load_checkpoint
 
     try:
         return load_checkpoint(args.checkpoint)
-    except FileNotFoundError as e:
+    except (CheckpointError, OSError, ValueError) as e:
         where = args.checkpoint or "the embedded default model"
         raise ServeError(f"cannot load {where}: {e}") from None
 
@@ -171,6 +171,10 @@ async def serve(args) -> int:
             recorder.on_frames(frames)
 
     try:
+        if args.wait_client and ws is not None and main_session is not None:
+            print("streamer: waiting for a WebSocket client before starting the source", file=sys.stderr, flush=True)
+            while not ws.clients and not stop.is_set():
+                await asyncio.sleep(0.02)
         if main_session is not None:
             n = await main_session.run(until(source, stop), emit)
             if ws:

@@ -48,12 +48,15 @@ class WavSource:
     """A WAV file, paced in real time (or as fast as the consumer takes it), optionally looped."""
 
     def __init__(self, path: str | Path, realtime: bool = True, loop: bool = False, chunk_ms: int = 20):
-        from dimgestor.audio import load_wav
+        from dimgestor.audio import AudioError, load_wav
 
         self.path = Path(path)
         if not self.path.is_file():
             raise SourceError(f"{self.path}: audio file not found")
-        self.audio = np.ascontiguousarray(load_wav(self.path), dtype=np.float32)  # 16 kHz mono
+        try:
+            self.audio = np.ascontiguousarray(load_wav(self.path), dtype=np.float32)  # 16 kHz mono
+        except AudioError as e:
+            raise SourceError(str(e)) from None
         if len(self.audio) == 0:
             raise SourceError(f"{self.path}: no audio samples")
         self.realtime, self.loop = realtime, loop

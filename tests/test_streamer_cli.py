@@ -1,0 +1,202 @@
+"""`streamer serve` as a user runs it: a subprocess, real websockets/python-osc clients, loopback only."""
+
+import asyncio
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+
+from dimgestor.audio import save_wav
+from dimgestor.bvh import read_bvh
+from dimgestor.synthetic import synthetic_speech
+from streamer.pose import HUMAN_BODY_BONES
+from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from test_streamer_vmc import bundles, check_vmc_bundle, osc_server
+
+pytestmark = pytest.mark.timeout(180)
+REPO = Path(__file__).resolve().parents[1]
+SECONDS = 3.0
+
+
+@pytest.fixture(scope="module")
+def wav(tmp_path_factory):
+    path = tmp_path_factory.mktemp("audio") / "speech.wav"
+    save_wav(path, synthetic_speech(SECONDS, seed=4), 16000)
+    return path
+
+
+class Serve:
+    """A running `streamer serve`; reads its stderr in a thread to find the addresses it prints."""
+
+    def __init__(self, *args: str):
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "serve", *args], cwd=REPO, env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    def wait_for(self, pattern: str, timeout: float = 60.0) -> re.Match:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in list(self.lines):
+                if m := re.search(pattern, line):
+                    return m
+            if self.proc.poll() is not None and not self.thread.is_alive():
+                break
+            time.sleep(0.02)
+        raise AssertionError(f"{pattern!r} never printed; output:\n{self.output}")
+
+    @property
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def finish(self, timeout: float = 60.0) -> int:
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+            self.thread.join(5)
+
+
+def serve(checkpoint, *args):
+    return Serve("--checkpoint", str(checkpoint), "--ws", "127.0.0.1:0", "--steps", "2", "--status-every", "0.5", *args)
+
+
+async def follow(url: str, hello_extra: dict | None = None):
+    """Connect, read hello then everything until `end` and the server's close."""
+    msgs = []
+    async with connect(url) as c:
+        hello = json.loads(await asyncio.wait_for(c.recv(), 30))
+        if hello_extra:
+            await c.send(json.dumps({"type": "hello", "protocol": 1, **hello_extra}))
+        async for m in c:
+            msgs.append(m if isinstance(m, bytes) else json.loads(m))
+    return hello, msgs
+
+
+def test_wav_file_to_websocket_client_and_vmc(tiny_checkpoint, wav, tmp_path):
+    server, rec = osc_server()
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--wait-client",
+              "--osc", f"127.0.0.1:{server.server_address[1]}")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    hello, msgs = asyncio.run(follow(url))
+    assert s.finish() == 0, s.output
+    server.shutdown()
+
+    assert hello["type"] == "hello" and hello["protocol"] == 1 and hello["fps"] == 20
+    J = len(hello["skeleton"]["joints"])
+    assert set(hello["humanoid"]) <= set(HUMAN_BODY_BONES) and hello["humanoid"]
+    frames = [m for m in msgs if m["type"] == "frame"]
+    end = [m for m in msgs if m["type"] == "end"]
+    assert len(frames) == int(SECONDS * 20) and end == [{"type": "end", "frames": len(frames)}]
+    assert msgs[-1]["type"] == "end"  # nothing after the end
+    assert [f["index"] for f in frames] == list(range(len(frames)))
+    pts = np.array([f["pts"] for f in frames])
+    assert np.all(np.diff(pts) > 0) and np.allclose(np.diff(pts), 1 / 20)
+    rot = np.array([f["rotations"] for f in frames])
+    assert rot.shape == (len(frames), J, 4) and np.allclose(np.linalg.norm(rot, axis=-1), 1, atol=1e-5)
+    assert np.array([f["root"] for f in frames]).shape == (len(frames), 3)
+
+    got = bundles(rec.packets)
+    assert len(got) == len(frames)
+    for msgs in got:
+        check_vmc_bundle(msgs, bones_expected=hello["humanoid"])
+    assert re.search(r"latency\s+\d+ms \| rtf \d", s.output)
+
+
+def test_binary_frames_match_the_json_layout(tiny_checkpoint, wav):
+    from streamer.protocol import parse_frame_binary
+
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--wait-client")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    hello, msgs = asyncio.run(follow(url, {"encoding": "binary"}))
+    assert s.finish() == 0, s.output
+    frames = [parse_frame_binary(m) for m in msgs if isinstance(m, bytes)]
+    # The hello switch races the first window: every binary frame is in order and the total is right.
+    n_json = sum(1 for m in msgs if isinstance(m, dict) and m["type"] == "frame")
+    assert frames and n_json + len(frames) == int(SECONDS * 20)
+    assert [f["index"] for f in frames] == list(range(n_json, n_json + len(frames)))
+    assert all(f["rotations"].shape == (len(hello["skeleton"]["joints"]), 4) for f in frames)
+
+
+def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path):
+    """Streaming (--record, window 150 ms) == `dimgestor generate` on the same file, seed and steps."""
+    out_stream, out_offline = tmp_path / "stream.bvh", tmp_path / "offline.bvh"
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--no-ws", "--seed", "7", "--steps", "3",
+              "--window-ms", "150", "--record", str(out_stream))
+    assert s.finish() == 0, s.output
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
+                        "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    a, b = read_bvh(out_stream), read_bvh(out_offline)
+    assert a.values.shape == b.values.shape and a.num_frames == int(SECONDS * 20)
+    assert a.frame_time == pytest.approx(b.frame_time)
+    assert np.abs(a.values - b.values).max() < 1e-3
+
+
+def test_ctrl_c_stops_cleanly_and_finishes_the_recording(tiny_checkpoint, wav, tmp_path):
+    out = tmp_path / "partial.bvh"
+    s = serve(tiny_checkpoint, "--source", str(wav), "--loop", "--record", str(out))  # real time, forever
+    s.wait_for(r"\[streamer .*frames [1-9]")
+    s.proc.send_signal(signal.SIGINT)
+    assert s.finish(30) == 0, s.output
+    assert "wrote" in s.output
+    motion = read_bvh(out)
+    assert motion.num_frames > 0 and np.isfinite(motion.values).all()
+
+
+def test_http_serves_the_viewer_and_its_config(tiny_checkpoint):
+    s = serve(tiny_checkpoint, "--source", "ws", "--http", "0", "--token", "t0k", "--max-seconds", "20")
+    ws_url = s.wait_for(r"WebSocket\s+(ws://\S+?)\?").group(1)
+    http_url = s.wait_for(r"web viewer (http://\S+)").group(1)
+    cfg = json.loads(urllib.request.urlopen(http_url + "config.json", timeout=10).read())
+    assert cfg == {"ws_url": ws_url, "token_required": True}
+    page = urllib.request.urlopen(http_url, timeout=10).read().decode()
+    assert "<html" in page.lower()
+    s.proc.send_signal(signal.SIGTERM)
+    assert s.finish(30) == 0, s.output
+
+
+def test_mic_without_an_input_device_exits_with_a_clear_message():
+    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", "mic", "--no-ws"],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    try:
+        import sounddevice as sd
+
+        sd.query_devices(kind="input")
+        pytest.skip("this machine has an input device")
+    except Exception:
+        pass
+    assert r.returncode == 2
+    assert re.search(r"No input device|PortAudio library not found", r.stderr), r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--checkpoint", "/nonexistent/ckpt"], "cannot load"),
+    (["--source", "/nonexistent.wav"], "audio file not found"),
+    (["--window-ms", "3"], "window-ms"),
+    (["--record", "/nonexistent/dir/out.bvh"], "does not exist"),
+])
+def test_bad_arguments_exit_2_with_a_message(args, message):
+    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--no-ws", *args],
+                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr

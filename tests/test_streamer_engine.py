@@ -1,0 +1,85 @@
+"""Session (windowed streaming inference) equals offline generation; the recording equals `generate`."""
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from dimgestor.audio import save_wav
+from dimgestor.bvh import read_bvh, write_bvh
+import torch
+
+from dimgestor.checkpoint import load_checkpoint, save_checkpoint
+from dimgestor.config import get_preset
+from dimgestor.features import FeatureSpec, features_to_motion
+from dimgestor.model import DiMGestor
+from dimgestor.stream import generate_offline
+from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
+from streamer.engine import Session
+from streamer.record import BvhRecorder
+from streamer.sources import WavSource
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """A random-init `tiny` model on the synthetic skeleton, saved like a trained one (fast, exact)."""
+    sk = synthetic_skeleton()
+    spec = FeatureSpec.for_skeleton(sk)
+    torch.manual_seed(0)
+    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
+    rng = np.random.default_rng(0)
+    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
+
+
+@pytest.fixture(scope="module")
+def bundle(tiny_checkpoint):
+    return load_checkpoint(tiny_checkpoint)
+
+
+@pytest.mark.parametrize("window_ms", [10, 130, 1000])
+def test_windowed_session_equals_offline_generation(bundle, tmp_path, window_ms):
+    audio = synthetic_speech(2.37, seed=5)  # not a whole number of frames or windows
+    wav = tmp_path / "a.wav"
+    save_wav(wav, audio, 16000)
+    src = WavSource(wav, realtime=False, chunk_ms=7)
+    session = Session.from_bundle(bundle, steps=3, seed=11, window_ms=window_ms)
+    recorder = BvhRecorder(tmp_path / "stream.bvh", bundle.skeleton, bundle.feature_spec)
+    frames = []
+
+    def emit(fs):
+        frames.extend(fs)
+        recorder.on_frames(fs)
+
+    n = asyncio.run(session.run(src, emit))
+    recorder.close()
+
+    offline = bundle.denormalize(generate_offline(bundle.model, src.audio, steps=3, seed=11))
+    assert n == len(frames) == len(offline) == len(src.audio) * 20 // 16000
+    assert [f.index for f in frames] == list(range(n))
+    assert np.allclose([f.pts for f in frames], np.arange(n) / 20)
+    assert np.allclose(np.stack([f.features for f in frames]), offline, atol=1e-4)
+    rot = np.stack([f.rotations for f in frames])
+    assert np.allclose(np.linalg.norm(rot, axis=-1), 1.0, atol=1e-6)
+
+    write_bvh(tmp_path / "offline.bvh", features_to_motion(offline, bundle.skeleton, bundle.feature_spec))
+    a, b = read_bvh(tmp_path / "stream.bvh"), read_bvh(tmp_path / "offline.bvh")
+    assert a.values.shape == b.values.shape and np.abs(a.values - b.values).max() < 1e-3
+
+    st = session.stats
+    assert st.ended and st.frames == n and st.audio_s == pytest.approx(len(src.audio) / 16000)
+    assert st.rtf > 0 and st.latency_ms > 0
+
+
+def test_a_failing_source_surfaces_its_error(bundle):
+    async def broken():
+        from streamer.sources import AudioChunk
+
+        yield AudioChunk(np.zeros(3200, np.float32), 0.0, 0.0)
+        raise OSError("device unplugged")
+
+    session = Session.from_bundle(bundle, steps=2, window_ms=100)
+    with pytest.raises(OSError, match="unplugged"):
+        asyncio.run(session.run(broken(), lambda fs: None))

@@ -1,0 +1,166 @@
+"""The WebSocket server over loopback with real `websockets` clients and a real (tiny) model."""
+
+import asyncio
+import json
+import socket
+import time
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+from dimgestor.checkpoint import load_checkpoint
+from dimgestor.stream import generate_offline
+from dimgestor.synthetic import synthetic_speech
+from streamer import protocol as P
+from streamer.engine import Frame, Session
+from streamer.pose import HumanoidRig, load_humanoid_map
+from streamer.ws import WsServer
+from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="module")
+def bundle(tiny_checkpoint):
+    return load_checkpoint(tiny_checkpoint)
+
+
+def make_server(bundle, **kw) -> WsServer:
+    sk = bundle.skeleton
+    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
+    hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True)
+    return WsServer("127.0.0.1", 0, hello, lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100), **kw)
+
+
+async def recv_json(c, timeout=10.0):
+    while True:
+        m = await asyncio.wait_for(c.recv(), timeout)
+        if isinstance(m, str):
+            d = json.loads(m)
+            if d["type"] != "status":
+                return d
+
+
+def test_garbage_gets_an_error_and_the_connection_keeps_being_served(bundle):
+    async def run():
+        ws = make_server(bundle)
+        await ws.start()
+        async with connect(ws.url) as c:
+            assert (await recv_json(c))["type"] == "hello"
+            for bad, code in [("{oops", "bad_message"), ('{"type": "jump"}', "bad_message"),
+                              (b"\x01", "bad_audio"), ('{"type": "hello", "protocol": 1, "audio": {"rate": 5}}', "bad_audio")]:
+                await c.send(bad)
+                err = await recv_json(c)
+                assert err["type"] == "error" and err["code"] == code and err["message"]
+            await c.send(json.dumps({"type": "ping", "t": 1.5}))
+            assert await recv_json(c) == {"type": "pong", "t": 1.5}
+        await ws.close()
+
+    asyncio.run(run())
+
+
+def test_wrong_or_missing_token_is_refused_with_401(bundle):
+    async def run():
+        ws = make_server(bundle, token="s3cret")
+        await ws.start()
+        for url in (ws.url, ws.url + "?token=wrong"):
+            with pytest.raises(InvalidStatus) as e:
+                async with connect(url):
+                    pass
+            assert e.value.response.status_code == 401
+        async with connect(ws.url + "?token=s3cret") as c:
+            assert (await recv_json(c))["type"] == "hello"
+        await ws.close()
+
+    asyncio.run(run())
+
+
+def test_client_audio_at_48khz_comes_back_as_its_own_gestures(bundle):
+    """PCM16 48 kHz stereo in odd-sized chunks -> this client's own frames, as many as the audio lasts."""
+    seconds = 3.0
+    audio = synthetic_speech(seconds, rate=48000, seed=1)
+    pcm = np.round(np.stack([audio, audio], 1) * 32767 * 0.8).astype("<i2").tobytes()
+
+    async def run():
+        ws = make_server(bundle)
+        await ws.start()
+        async with connect(ws.url) as c:
+            hello = await recv_json(c)
+            await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary",
+                                     "audio": {"rate": 48000, "format": "pcm16", "channels": 2}}))
+            step = 4 * 1234  # whole stereo sample frames, not aligned to anything
+            for i in range(0, len(pcm), step):
+                await c.send(pcm[i : i + step])
+            await c.send(json.dumps({"type": "audio_end"}))
+            frames, end = [], None
+            while end is None:
+                m = await asyncio.wait_for(c.recv(), 30)
+                if isinstance(m, bytes):
+                    frames.append(P.parse_frame_binary(m))
+                elif json.loads(m)["type"] == "end":
+                    end = json.loads(m)
+        await ws.close()
+        return hello, frames, end
+
+    hello, frames, end = asyncio.run(run())
+    J = len(hello["skeleton"]["joints"])
+    assert end["frames"] == len(frames) == int(seconds * 20)
+    assert [f["index"] for f in frames] == list(range(len(frames)))
+    assert np.allclose([f["pts"] for f in frames], np.arange(len(frames)) / 20)
+    rot = np.stack([f["rotations"] for f in frames])
+    assert rot.shape == (len(frames), J, 4) and np.allclose(np.linalg.norm(rot, axis=-1), 1, atol=1e-5)
+    assert np.ptp(rot, axis=0).max() > 1e-3  # it moves
+
+
+def test_a_client_that_never_reads_does_not_delay_another(bundle):
+    """A stalled reader loses frames (counted); a reading client gets every frame promptly."""
+    J = 400  # big frames (6.4 KB) so the stalled client's socket buffers fill up quickly
+    rng = np.random.default_rng(0)
+    rot = rng.normal(size=(J, 4))
+    rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
+    n_frames, burst = 600, 6
+
+    async def run():
+        ws = make_server(bundle, max_queue=32)
+        await ws.start()
+        # The stalled client: a tiny receive buffer and a library queue of 1, and it never calls recv().
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect(("127.0.0.1", ws.port))
+        stalled = await connect(ws.url, sock=s, max_queue=1)
+        binary = json.dumps({"type": "hello", "encoding": "binary"})  # cheap to encode: the test measures waiting
+        await stalled.send(binary)
+        async with connect(ws.url) as fast:
+            assert (await recv_json(fast))["type"] == "hello"
+            await fast.send(binary)
+            while len(ws.clients) < 2 or any(c.encoding != "binary" for c in ws.clients):
+                await asyncio.sleep(0.01)
+            sent_at, delays = {}, []
+
+            async def reader():
+                while len(delays) < n_frames:
+                    m = await asyncio.wait_for(fast.recv(), 10)
+                    if isinstance(m, bytes):
+                        delays.append(time.monotonic() - sent_at[P.parse_frame_binary(m)["index"]])
+
+            task = asyncio.create_task(reader())
+            for i in range(0, n_frames, burst):  # bursts, as inference windows make them
+                frames = [Frame(k, k / 20, np.zeros(3), rot, np.zeros(1)) for k in range(i, i + burst)]
+                for f in frames:
+                    sent_at[f.index] = time.monotonic()
+                ws.broadcast(frames)
+                await asyncio.sleep(0.01)
+            await asyncio.wait_for(task, 20)
+            slow = next(c for c in ws.clients if c.ws.remote_address[1] == s.getsockname()[1])
+            fast_c = next(c for c in ws.clients if c is not slow)
+            result = delays, slow.dropped, fast_c.dropped
+        stalled.transport.abort()  # it cannot do a closing handshake: it never reads
+        await ws.close(drain_s=0.1)
+        return result
+
+    delays, slow_dropped, fast_dropped = asyncio.run(run())
+    assert len(delays) == n_frames and fast_dropped == 0
+    assert max(delays) < 0.5, f"the reading client waited {max(delays):.3f} s for a frame"
+    assert slow_dropped > 0, "the stalled client should have lost frames"
