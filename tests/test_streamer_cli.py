@@ -200,3 +200,32 @@ def test_bad_arguments_exit_2_with_a_message(args, message):
     r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--no-ws", *args],
                        cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_zeggs_skeleton_maps_every_humanoid_bone(zeggs_dir, wav, tmp_path):
+    """On the real training skeleton (random tiny weights) the hello and VMC carry all 52 mapped bones."""
+    import torch
+
+    from dimgestor.checkpoint import save_checkpoint
+    from dimgestor.config import get_preset
+    from dimgestor.features import FeatureSpec
+    from dimgestor.model import DiMGestor
+
+    sk = read_bvh(next(zeggs_dir.glob("*.bvh"))).skeleton
+    spec = FeatureSpec.for_skeleton(sk)
+    torch.manual_seed(0)
+    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
+    ckpt = save_checkpoint(tmp_path / "zeggs_tiny", model, spec, sk, np.zeros(spec.dim), np.full(spec.dim, 0.1))
+
+    server, rec = osc_server()
+    s = serve(ckpt, "--source", str(wav), "--fast", "--wait-client", "--osc", f"127.0.0.1:{server.server_address[1]}")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    hello, msgs = asyncio.run(follow(url))
+    assert s.finish() == 0, s.output
+    server.shutdown()
+    assert hello["skeleton"]["joints"] == sk.names and len(hello["humanoid"]) == 52
+    assert hello["humanoid"]["LeftUpperArm"] == "LeftArm" and hello["humanoid"]["LeftLittleProximal"] == "LeftHandPinky1"
+    got = bundles(rec.packets)
+    assert len(got) == int(SECONDS * 20)
+    for b in got:
+        check_vmc_bundle(b, bones_expected=hello["humanoid"])
