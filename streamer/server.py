@@ -109,7 +109,8 @@ async def serve(args) -> int:
                         accepts_audio=not args.no_client_audio, window_ms=args.window_ms,
                         source="ws" if source is None else "mic" if args.source == "mic" else "file")
         ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
-                      token=args.token, broadcast_stats=main_session.stats if main_session else None)
+                      token=args.token, broadcast_stats=main_session.stats if main_session else None,
+                      source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None)
         try:
             await ws.start()
         except OSError as e:

@@ -75,10 +75,13 @@ class WavSource:
                 t_start = sent / RATE
                 sent += len(x)
                 if self.realtime:  # release each chunk when its last sample would have been spoken
-                    await asyncio.sleep(max(0.0, t0 + sent / RATE - time.monotonic()))
+                    due = t0 + sent / RATE
+                    await asyncio.sleep(max(0.0, due - time.monotonic()))
+                    arrival = due  # like a live input: if the consumer is late, that lateness is latency
                 else:
                     await asyncio.sleep(0)
-                yield AudioChunk(x, t_start, time.monotonic())
+                    arrival = time.monotonic()
+                yield AudioChunk(x, t_start, arrival)
             if not self.loop:
                 return
 

@@ -78,7 +78,7 @@ class WsServer:
 
     def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
                  token: str | None = None, max_queue: int = 64, max_sessions: int = 8,
-                 status_every: float = 1.0, broadcast_stats=None):
+                 status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None):
         self.host, self.port = host, port
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
@@ -86,6 +86,7 @@ class WsServer:
         self.max_queue, self.max_sessions = max_queue, max_sessions
         self.status_every = status_every
         self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
+        self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
         self.clients: set[Client] = set()
         self._server = None
         self._status_task: asyncio.Task | None = None
@@ -232,5 +233,7 @@ class WsServer:
             for c in list(self.clients):
                 stats = c.session.stats if c.session is not None else self.broadcast_stats
                 lat, rtf = (stats.latency_ms, stats.rtf) if stats is not None else (0.0, 0.0)
-                c.put(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients),
-                               session="own" if c.own else "broadcast"), "status")
+                extra = {"session": "own" if c.own else "broadcast"}
+                if not c.own and self.source_dropped_s is not None:
+                    extra["audio_dropped_s"] = round(self.source_dropped_s(), 3)
+                c.put(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients), **extra), "status")

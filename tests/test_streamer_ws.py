@@ -164,3 +164,20 @@ def test_a_client_that_never_reads_does_not_delay_another(bundle):
     assert len(delays) == n_frames and fast_dropped == 0
     assert max(delays) < 0.5, f"the reading client waited {max(delays):.3f} s for a frame"
     assert slow_dropped > 0, "the stalled client should have lost frames"
+
+
+def test_status_arrives_about_once_a_second_with_the_documented_fields(bundle):
+    async def run():
+        ws = make_server(bundle, status_every=0.3)
+        await ws.start()
+        async with connect(ws.url) as c:
+            await c.recv()  # hello
+            st = json.loads(await asyncio.wait_for(c.recv(), 5))
+        await ws.close()
+        return st
+
+    st = asyncio.run(run())
+    assert st["type"] == "status" and st["session"] == "broadcast"
+    assert {k: type(st[k]) for k in ("latency_ms", "rtf", "frames_sent", "dropped", "clients")} == {
+        "latency_ms": float, "rtf": float, "frames_sent": int, "dropped": int, "clients": int}
+    assert st["clients"] == 1 and st["dropped"] == 0
