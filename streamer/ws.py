@@ -7,6 +7,7 @@ drops the oldest queued frame and counts it, so broadcasting never awaits a slow
 from __future__ import annotations
 
 import asyncio
+import hmac
 import json
 import logging
 from collections import deque
@@ -116,7 +117,7 @@ class WsServer:
         if self.token is None:
             return None
         given = parse_qs(urlsplit(request.path).query).get("token", [None])[0]
-        if given != self.token:
+        if given is None or not hmac.compare_digest(given.encode(), self.token.encode()):
             log.info("refused a connection with a missing or wrong token")
             return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong token (use ?token=...)\n")
         return None

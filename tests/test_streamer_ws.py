@@ -181,3 +181,22 @@ def test_status_arrives_about_once_a_second_with_the_documented_fields(bundle):
     assert {k: type(st[k]) for k in ("latency_ms", "rtf", "frames_sent", "dropped", "clients")} == {
         "latency_ms": float, "rtf": float, "frames_sent": int, "dropped": int, "clients": int}
     assert st["clients"] == 1 and st["dropped"] == 0
+
+
+def test_other_protocol_versions_and_refused_audio(bundle):
+    async def run():
+        ws = make_server(bundle)
+        ws.make_session = None  # as with --no-client-audio
+        await ws.start()
+        async with connect(ws.url) as c:
+            await recv_json(c)
+            await c.send(np.zeros(160, "<i2").tobytes())
+            assert (await recv_json(c))["code"] == "audio_disabled"
+            await c.send(json.dumps({"type": "hello", "protocol": 2}))
+            assert (await recv_json(c))["code"] == "unsupported_protocol"
+            await asyncio.wait_for(c.wait_closed(), 5)
+            code = c.close_code
+        await ws.close()
+        return code
+
+    assert asyncio.run(run()) == 1002
