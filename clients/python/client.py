@@ -103,10 +103,17 @@ class Printer:
         return msg
 
 
-async def send_wav(ws, path: str, pace: bool) -> None:
+def client_hello(binary: bool, audio: dict | None = None) -> str:
+    """Our hello; every hello states the encoding, since a later hello replaces the earlier one."""
+    hello = {"type": "hello", "protocol": 1, "encoding": "binary" if binary else "json"}
+    if audio:
+        hello["audio"] = audio
+    return json.dumps(hello)
+
+
+async def send_wav(ws, path: str, pace: bool, binary: bool) -> None:
     audio, rate = read_wav(path)
-    await ws.send(json.dumps({"type": "hello", "protocol": 1, "audio": {"rate": rate, "format": "float32",
-                                                                          "channels": audio.shape[1]}}))
+    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": audio.shape[1]}))
     step = max(1, int(rate * CHUNK_S))
     for i in range(0, len(audio), step):
         await ws.send(audio[i:i + step].astype("<f4").tobytes())
@@ -115,7 +122,7 @@ async def send_wav(ws, path: str, pace: bool) -> None:
     await ws.send(json.dumps({"type": "audio_end"}))
 
 
-async def send_mic(ws, rate: int | None, device) -> None:
+async def send_mic(ws, rate: int | None, device, binary: bool) -> None:
     import sounddevice as sd  # only needed here
 
     rate = int(rate or sd.query_devices(device, "input")["default_samplerate"])
@@ -130,8 +137,7 @@ async def send_mic(ws, rate: int | None, device) -> None:
             chunks.put_nowait(data)
         loop.call_soon_threadsafe(put)
 
-    await ws.send(json.dumps({"type": "hello", "protocol": 1, "audio": {"rate": rate, "format": "float32",
-                                                                          "channels": 1}}))
+    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}))
     print(f"microphone: {rate} Hz; Ctrl-C to stop", file=sys.stderr)
     with sd.InputStream(samplerate=rate, channels=1, dtype="float32", blocksize=int(rate * CHUNK_S),
                         device=device, callback=on_audio):
@@ -146,26 +152,28 @@ async def send_mic(ws, rate: int | None, device) -> None:
 async def run(args) -> int:
     printer = Printer(args)
     async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
-        if args.binary:
-            await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
         sender = None
         if args.wav:
-            sender = asyncio.create_task(send_wav(ws, args.wav, not args.fast))
+            sender = asyncio.create_task(send_wav(ws, args.wav, not args.fast, args.binary))
         elif args.mic:
-            sender = asyncio.create_task(send_mic(ws, args.rate, args.device))
+            sender = asyncio.create_task(send_mic(ws, args.rate, args.device, args.binary))
+        elif args.binary:
+            await ws.send(client_hello(True))
             loop = asyncio.get_running_loop()
 
             def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
                 loop.remove_signal_handler(signal.SIGINT)
                 sender.cancel()
             loop.add_signal_handler(signal.SIGINT, stop_talking)
-        try:
+        async def receive():
             async for message in ws:
                 msg = printer.handle(message)
                 if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
-                    break
-        except KeyboardInterrupt:
-            pass
+                    return
+        try:
+            await asyncio.wait_for(receive(), args.seconds or None)
+        except asyncio.TimeoutError:
+            pass  # --seconds elapsed
         finally:
             if sender and not sender.done():
                 sender.cancel()
@@ -185,6 +193,7 @@ def main(argv=None) -> int:
     p.add_argument("--rate", type=int, help="with --mic: capture rate (default: the device's)")
     p.add_argument("--device", default=None, help="with --mic: sounddevice input device name or index")
     p.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: until end)")
+    p.add_argument("--seconds", type=float, default=0, help="stop after this many seconds (0: no limit)")
     p.add_argument("--save", help="write every received message verbatim into this folder")
     p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
     args = p.parse_args(argv)

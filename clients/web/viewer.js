@@ -134,9 +134,21 @@ function jointWorldPositions() {
   return joints.map((o) => o.getWorldPosition(v).toArray());
 }
 
+const figureCenter = new THREE.Vector3();
 function render() {
   requestAnimationFrame(render);
   if (!renderer) return;
+  if (joints.length) {
+    // Follow the figure (root motion can walk it out of view): ease the orbit target onto its centre.
+    figure.updateMatrixWorld(true);
+    figureCenter.set(0, 0, 0);
+    const v = new THREE.Vector3();
+    for (const o of joints) figureCenter.add(o.getWorldPosition(v));
+    figureCenter.divideScalar(joints.length);
+    const step = figureCenter.sub(controls.target).multiplyScalar(0.2);
+    controls.target.add(step);
+    camera.position.add(step);
+  }
   controls.update();
   renderer.render(scene, camera);
 }

@@ -1,0 +1,83 @@
+"""The Unity client's decoder (clients/unity/DimgestorProtocol.cs) compiled with mcs, run with mono on
+messages recorded from a live `streamer serve` (JSON and binary), gives back what the server sent; the
+MonoBehaviour compiles against a stub of the UnityEngine types it uses."""
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from test_clients_python import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded, checkpoint,  # noqa: F401
+                                 live_server, record, reference_decode)
+
+UNITY = REPO / "clients" / "unity"
+MCS, MONO = shutil.which("mcs"), shutil.which("mono")
+pytestmark = [pytest.mark.timeout(180),
+              pytest.mark.skipif(not (MCS and MONO), reason="mcs/mono not installed (Debian: apt-get install "
+                                 "mono-mcs; .ci/run installs it)")]
+
+
+def mcs(out, *sources, library=False):
+    cmd = [MCS, "-langversion:7", "-warnaserror", f"-out:{out}", *(["-target:library"] if library else []),
+           *map(str, sources)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, f"mcs failed:\n{r.stdout}\n{r.stderr}"
+
+
+@pytest.fixture(scope="module")
+def decoder(tmp_path_factory):
+    exe = tmp_path_factory.mktemp("unity") / "DecodeRecorded.exe"
+    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "tests" / "DecodeRecorded.cs")
+    return exe
+
+
+def decode(exe, folder):
+    r = subprocess.run([MONO, str(exe), str(folder)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return [json.loads(line) for line in r.stdout.splitlines()]
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory, checkpoint):  # noqa: F811
+    tmp = tmp_path_factory.mktemp("unity_rec")
+    with live_server(tmp, str(SPEECH_WAV), checkpoint, loop=True) as server:
+        return {"json": record(server, tmp / "json", 12, binary=False),
+                "binary": record(server, tmp / "binary", 12, binary=True)}
+
+
+@pytest.mark.parametrize("encoding", ["json", "binary"])
+def test_unity_decoder_gives_back_what_the_server_sent(decoder, recordings, encoding):
+    files = recordings[encoding]
+    assert sum(p.suffix == (".bin" if encoding == "binary" else ".json") for p in files) >= 12
+    check_decoded(files, decode(decoder, files[0].parent))
+
+
+def test_unity_conversion_is_the_same_rotation_in_unity_axes(decoder, recordings):
+    out = [d for d in decode(decoder, recordings["binary"][0].parent) if d["type"] == "frame"]
+    mirror_x = np.diag([-1.0, 1.0, 1.0])  # BVH right-handed Y-up -> Unity left-handed Y-up
+    for d in out[:3]:
+        check_axis_conversion(mirror_x, np.asarray(d["unity_rotations"]), np.asarray(d["rotations"]))
+
+
+def test_unity_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
+    (tmp_path / "000000.json").write_text('{"type": "frame", "index": 1,\n "root": [1, 2, }')
+    (tmp_path / "000001.bin").write_bytes(b"DGF1" + bytes(30))
+    (tmp_path / "000002.json").write_text('{"type": "frame", "index": 1, "pts": 0, "root": [1, 2, 3], "rotations": [[1, 0, 0]]}')
+    (tmp_path / "000003.json").write_text('{"type": "future_thing", "x": [1, {"y": "\\u00e9"}]}')
+    out = decode(decoder, tmp_path)
+    assert "JSON line 2 column 17: expected a value, found '}'" in out[0]["error"]
+    assert "34 bytes is not 28 + 16*J" in out[1]["error"]
+    assert "frame.rotations[0] is not [w, x, y, z]" in out[2]["error"]
+    assert out[3] == {"file": "000003.json", "type": "future_thing"}  # unknown types are ignored, not errors
+
+
+def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
+    mcs(tmp_path / "DimgestorClient.dll", UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs",
+        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", library=True)
+    # The stubs must only declare what Unity really has; the client must use nothing Unity lacks.
+    stub = (UNITY / "tests" / "UnityEngineStubs.cs").read_text()
+    assert "namespace UnityEngine" in stub and "GetBoneTransform(HumanBodyBones" in stub
+    client = (UNITY / "DimgestorClient.cs").read_text()
+    assert "ClientWebSocket" in client and "GetBoneTransform(" in client
