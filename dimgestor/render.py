@@ -113,7 +113,9 @@ def stick_figure(motion: BvhMotion, end_sites: bool = True, face_camera: bool = 
         below_hand[j] = p >= 0 and (p in hands or below_hand[p])
     head = next((j for j, n in enumerate(names) if n.lower() == "head"), None)
     head = head if head is not None else next((j for j, n in enumerate(names) if n.lower().endswith("head")), None)
-    tip = next((k for k, p in enumerate(parents) if p == head), None) if head is not None else None
+    tops = [k for k, p in enumerate(parents) if p == head and head is not None]
+    # the head's longest child (its top, not an eye or jaw) sizes the head circle
+    tip = max(tops, key=lambda k: np.linalg.norm(pos[0, k] - pos[0, head])) if tops else None
     bones = [(p, j) for j, p in enumerate(parents) if p >= 0 and not (p == head and j == tip)]
     if trail_joints is None:
         trails = [j for j in hands if names[j].lower().endswith("hand")] or hands
@@ -154,10 +156,11 @@ def _rgba(color: str, alpha: float) -> tuple:
 class _ViewArtists:
     """The artists of one view on one axes, moved to any frame with update()."""
 
-    def __init__(self, ax, fig: StickFigure, view: str, lines: slice, lw: float):
+    def __init__(self, ax, figure: StickFigure, view: str, lines: slice, lw: float):
         from matplotlib.collections import LineCollection
 
-        self.fig, self.view = fig, view
+        self.figure, self.view = figure, view
+        fig = figure
         pts = project(fig.positions[lines], view)
         lo, hi = pts.reshape(-1, 2).min(0), pts.reshape(-1, 2).max(0)
         if fig.head is not None:  # leave room for the head circle
@@ -190,11 +193,11 @@ class _ViewArtists:
         self.bone_index = np.array(fig.bones, dtype=int).reshape(-1, 2)
 
     def _head_radius(self, positions: np.ndarray) -> np.ndarray:
-        h, t = self.fig.head
+        h, t = self.figure.head
         return 0.75 * np.linalg.norm(positions[:, t] - positions[:, h], axis=-1)
 
     def update(self, frame: int, trail_from: int) -> None:
-        fig = self.fig
+        fig = self.figure
         p = fig.positions[frame]
         ends = p[self.bone_index]  # (B, 2, 3)
         order = np.argsort(nearness(ends.mean(1), self.view), kind="stable")  # far bones first, near ones on top
@@ -226,9 +229,7 @@ def _frame_range(motion: BvhMotion, start_s: float, seconds: float | None) -> tu
 
 
 def _new_figure(size: tuple[int, int]):
-    import matplotlib
-
-    matplotlib.use("Agg")  # no display needed; also keeps a GUI backend from opening windows
+    # A bare Figure on an Agg canvas: no pyplot, so no GUI backend and no global state is touched.
     from matplotlib.figure import Figure
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 

@@ -191,3 +191,11 @@ def test_zeggs_sample_renders_a_standing_speaker(zeggs_dir, tmp_path):
     assert render_motion(short, tmp_path / "zeggs.png", panels=3, size=(480, 400)) == 3
     s = motion_stats(short)
     assert max(s["hand_travel_rel_root"].values()) > 5.0
+
+
+def test_matplotlib_is_imported_only_when_rendering():
+    import subprocess
+    import sys
+
+    code = "import sys, dimgestor.render; assert 'matplotlib' not in sys.modules, 'imported eagerly'"
+    subprocess.run([sys.executable, "-c", code], check=True)
