@@ -11,6 +11,7 @@ figure never jumps; a fading trail of the hands shows the gesture even in a stil
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from dataclasses import dataclass
@@ -411,8 +412,11 @@ def main_from_args(args: argparse.Namespace) -> int:
         n = render_motion(motion, args.out, fps=args.fps, start_s=args.start, seconds=args.seconds, size=size,
                           views=views, title=args.title if args.title is not None else Path(args.bvh).name,
                           panels=args.panels, face_camera=not args.no_face_camera)
-    except (BvhError, ValueError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (BvhError, ValueError, OSError) as e:  # as dimgestor.cli does, so the command also works on its own
+        if os.environ.get("DIMGESTOR_DEBUG"):
+            raise
+        msg = f"{e.filename}: {e.strerror or e}" if isinstance(e, OSError) and e.filename else str(e)
+        print(f"error: {msg}", file=sys.stderr)
         return 2
     what = "frames" if Path(args.out).suffix.lower() == ".gif" else "poses"
     print(f"wrote {args.out} ({n} {what})")

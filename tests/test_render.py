@@ -199,3 +199,12 @@ def test_matplotlib_is_imported_only_when_rendering():
 
     code = "import sys, dimgestor.render; assert 'matplotlib' not in sys.modules, 'imported eagerly'"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_cli_unwritable_output_names_the_path(tmp_path, capsys):
+    bvh = tmp_path / "take.bvh"
+    write_bvh(bvh, synthetic_motion(seconds=0.5))
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert run_cli(["render", str(bvh), "--out", str(blocker / "x.png")]) == 2
+    assert f"error: {blocker}" in capsys.readouterr().err
