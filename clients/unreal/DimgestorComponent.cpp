@@ -126,11 +126,11 @@ void UDimgestorComponent::HandleConnected()
 {
 	ConnectionState = TEXT("open");
 	AudioFormatKey = 0;
-	TSharedRef<FJsonObject> Hello = MakeShared<FJsonObject>();
-	Hello->SetStringField(TEXT("type"), TEXT("hello"));
-	Hello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
-	Hello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
-	SendText(Condensed(Hello));
+	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
+	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
+	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
+	ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
+	SendText(Condensed(ClientHello));
 }
 
 void UDimgestorComponent::HandleConnectionError(const FString& Error)
@@ -152,7 +152,8 @@ void UDimgestorComponent::HandleText(const FString& Text)
 	FTCHARToUTF8 Utf8(*Text);
 	dimgestor::Message Message;
 	std::string Error;
-	if (dimgestor::ParseMessage(std::string(Utf8.Get(), Utf8.Length()), Message, Error)) Handle(Message);
+	if (dimgestor::ParseMessage(std::string(reinterpret_cast<const char*>(Utf8.Get()), Utf8.Length()), Message, Error))
+		Handle(Message);
 	else LastError = UTF8_TO_TCHAR(Error.c_str());  // one bad message does not end the stream
 }
 
@@ -277,12 +278,12 @@ bool UDimgestorComponent::SendAudio(const TArray<float>& Samples, int32 SampleRa
 		Audio->SetNumberField(TEXT("rate"), SampleRate);
 		Audio->SetStringField(TEXT("format"), TEXT("float32"));
 		Audio->SetNumberField(TEXT("channels"), Channels);
-		TSharedRef<FJsonObject> Hello = MakeShared<FJsonObject>();
-		Hello->SetStringField(TEXT("type"), TEXT("hello"));
-		Hello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
-		Hello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
-		Hello->SetObjectField(TEXT("audio"), Audio);
-		SendText(Condensed(Hello));
+		TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
+		ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
+		ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
+		ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
+		ClientHello->SetObjectField(TEXT("audio"), Audio);
+		SendText(Condensed(ClientHello));
 		AudioFormatKey = SampleRate * 16 + Channels;
 	}
 	// float32 little-endian on the wire; every platform Unreal ships on is little-endian.
