@@ -135,8 +135,8 @@ PRESETS: dict[str, dict] = {
     # Live use: ~200 ms algorithmic latency (50 ms frame + 150 ms lookahead); sized for RTF < 0.25
     # with K=8 DDIM steps on 2 CPU cores. v-prediction: with this schedule alpha_bar(999) ~ e^-42, where
     # an eps-model's x0 estimate is ill-conditioned and few-step DDIM amplifies its error.
-    "realtime": dict(hidden=192, n_blocks=4, d_state=32, d_conv=4, expand=2, headdim=32, chunk_size=64,
-                     style_width=64, style_d_state=32, style_headdim=32, down_kernel=31, lookahead_ms=150,
+    "realtime": dict(hidden=128, n_blocks=4, d_state=32, d_conv=4, expand=2, headdim=32, chunk_size=64,
+                     style_width=64, style_d_state=16, style_headdim=32, down_kernel=31, lookahead_ms=150,
                      n_mels=64, prediction="v"),
     # Unit tests: small, odd-sized chunks so chunk boundaries are exercised.
     "tiny": dict(hidden=32, n_blocks=2, d_state=16, d_conv=4, expand=2, headdim=16, chunk_size=16,

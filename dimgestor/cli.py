@@ -1,0 +1,107 @@
+"""The `dimgestor` command: info, train, generate (and eval when installed).
+
+Subcommands live in their modules and join through `register(subparsers)`. Errors a user can fix
+(bad files, bad options) print one `error: ...` line and exit 2; DIMGESTOR_DEBUG=1 shows the traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from . import __version__
+
+__all__ = ["main", "model_info"]
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from .audio import AudioError
+    from .bvh import BvhError
+    from .checkpoint import CheckpointError
+    from .config import ConfigError
+    from .dataset import DatasetError
+    return (ConfigError, CheckpointError, BvhError, AudioError, DatasetError, FileNotFoundError,
+            NotADirectoryError, IsADirectoryError, PermissionError, ValueError)
+
+
+def model_info(config, steps: int = 8) -> dict:
+    """Parameter counts per component and streaming state per stream for a config."""
+    from .model import DiMGestor
+    model = DiMGestor(config)
+    counts = model.param_counts()
+    return {"config": config.model_dump(mode="json"), "parameters": {**counts, "total": sum(counts.values())},
+            "stream_state_bytes": {"steps": steps, **model.stream_state_nbytes(steps)},
+            "lookahead_s": model.lookahead_s}
+
+
+def _info(args) -> int:
+    from .checkpoint import load_checkpoint
+    from .config import get_preset
+    if args.checkpoint:
+        config = load_checkpoint(args.checkpoint).config
+        source = args.checkpoint
+    else:
+        overrides = {"motion_dim": args.motion_dim} if args.motion_dim else {}
+        config = get_preset(args.preset, **overrides)
+        source = f"preset {args.preset}"
+    info = model_info(config, args.steps)
+    if args.json:
+        print(json.dumps({"source": source, **info}, indent=1))
+        return 0
+    c = config
+    print(f"{source}: hidden {c.hidden}, {c.n_blocks} blocks, d_state {c.d_state}, headdim {c.headdim}, "
+          f"front end {c.frontend} ({c.n_mels} mels), kernel {c.down_kernel}, motion_dim {c.motion_dim}, "
+          f"prediction {c.prediction}, {c.schedule} betas {c.beta_start:g}..{c.beta_end:g} over {c.n_steps}")
+    print(f"algorithmic latency: {info['lookahead_s'] * 1000:.0f} ms (one frame + {c.lookahead_feats * 1000 // c.feature_rate} ms audio lookahead)")
+    print("parameters:")
+    for k, v in info["parameters"].items():
+        print(f"  {k:<18}{v:>12,}")
+    s = info["stream_state_bytes"]
+    print(f"streaming state per stream (K={s['steps']} steps):")
+    for k in ("frontend", "extractor", "denoiser_per_step", "denoiser_all_steps", "total"):
+        print(f"  {k:<18}{s[k]:>12,} bytes")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dimgestor", description="DiM-Gestor co-speech gesture engine")
+    parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = sub.add_parser("info", help="parameter counts and streaming state size of a preset or checkpoint")
+    p.add_argument("--preset", default="realtime", help="paper, realtime or tiny")
+    p.add_argument("--checkpoint", default=None, help="describe a checkpoint instead of a preset")
+    p.add_argument("--motion-dim", type=int, default=None, help="feature columns (default: the preset's)")
+    p.add_argument("--steps", type=int, default=8, help="DDIM steps the stream carries state for")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_info)
+
+    from . import generate, train
+    train.register(sub)
+    generate.register(sub)
+    try:
+        from . import eval as evaluation
+    except ImportError:
+        evaluation = None
+    if evaluation is not None:
+        evaluation.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except _user_errors() as e:
+        if os.environ.get("DIMGESTOR_DEBUG"):
+            raise
+        msg = str(e) if not isinstance(e, OSError) or not e.filename else f"{e.filename}: {e.strerror or e}"
+        print(f"error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,60 @@
+"""`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .audio import SAMPLE_RATE, load_wav
+from .bvh import BvhMotion, write_bvh
+from .checkpoint import Bundle, load_checkpoint
+from .features import features_to_motion
+
+__all__ = ["generate_motion", "register"]
+
+
+def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int = 8, seed: int = 0, sampler: str = "ddim",
+                    eta: float = 0.0) -> BvhMotion:
+    """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
+    features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta)
+    return features_to_motion(features, bundle.skeleton, bundle.feature_spec)
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("generate", help="generate a BVH for a WAV file (offline, whole file)",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint folder, a file in it, or a run folder (its latest); default: the embedded model")
+    p.add_argument("--audio", required=True, help="speech WAV (any rate, mono or stereo)")
+    p.add_argument("--out", required=True, help="output .bvh")
+    p.add_argument("--steps", type=int, default=8, help="DDIM steps K (ignored by ddpm, which uses all N)")
+    p.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda, ...")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    if args.eta < 0:
+        raise ValueError(f"--eta must be >= 0, got {args.eta}")
+    out = Path(args.out)
+    if out.suffix.lower() != ".bvh":
+        raise ValueError(f"--out {out}: expected a .bvh path")
+    if not out.parent.exists():
+        raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
+    bundle = load_checkpoint(args.checkpoint, device=args.device)
+    if args.steps > bundle.config.n_steps:
+        raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
+    audio = load_wav(args.audio, SAMPLE_RATE)
+    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta)
+    write_bvh(out, motion)
+    print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
+          f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")
+    return 0

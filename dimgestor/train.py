@@ -1,0 +1,332 @@
+"""`dimgestor train`: BVH+WAV folder -> checkpoints (EMA weights), resumable, CPU/CUDA/DDP.
+
+The front end has no trained weights, so its features are computed once per window before training
+(that and the dataset's own cache keep CPU training fast). A step's batch, diffusion steps and noise
+are a pure function of (seed, step) and the saved generator state, so `--resume` continues the run
+from its latest checkpoint as if it had not stopped.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.utils.data import DistributedSampler
+
+from .checkpoint import latest_checkpoint, read_meta, save_checkpoint
+from .config import ModelConfig, get_preset
+from .dataset import GestureDataset, compute_stats
+from .diffusion import Diffusion
+from .features import FeatureSpec
+from .model import DiMGestor
+
+__all__ = ["TrainOptions", "train", "register", "Objective"]
+
+
+@dataclass
+class TrainOptions:
+    data: str
+    out: str
+    preset: str = "realtime"
+    overrides: dict | None = None  # ModelConfig fields replacing the preset's
+    max_steps: int = 20000
+    batch_size: int = 8
+    lr: float = 5e-4
+    warmup: int = 200  # linear LR warm-up steps (Adam on a fresh model)
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    ema: float = 0.999  # EMA decay of the saved weights
+    window_s: float = 10.0
+    hop_s: float | None = None  # default: a quarter window (overlapping windows are cheap data)
+    mirror: bool = False  # left/right mirrored copies of every window
+    valid_fraction: float = 0.15
+    ckpt_every: int = 1000
+    valid_every: int = 250
+    keep: int = 3  # checkpoints kept in the run folder (oldest removed)
+    seed: int = 0
+    device: str = "auto"
+    resume: bool = False
+    cache_dir: str | None = None
+    progress: bool = True
+
+
+class Objective(nn.Module):
+    """The training loss as a module, so DDP sees one forward that uses every trained parameter."""
+
+    def __init__(self, model: DiMGestor, diffusion: Diffusion):
+        super().__init__()
+        self.model, self.diffusion = model, diffusion
+
+    def forward(self, x0, feats, t, noise):
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise)
+
+
+class WindowBank:
+    """Normalized motion and front-end features of every window, computed once."""
+
+    def __init__(self, ds: GestureDataset, model: DiMGestor, mean, std, device):
+        self.motion, self.feats = [], []
+        fe, c = model.frontend, model.config
+        mean, std = torch.from_numpy(mean), torch.from_numpy(std)
+        with torch.no_grad():
+            for i in range(len(ds)):
+                item = ds[i]
+                T = len(item["motion"])
+                audio = np.zeros(max(model.samples_needed(T), len(item["audio"])), np.float32)
+                audio[: len(item["audio"])] = item["audio"]  # silence beyond the window, as at a stream's end
+                f, _ = fe(torch.from_numpy(audio)[None].to(device), fe.init_state(1, device))
+                self.feats.append(f[0, : T * c.feats_per_frame + c.lookahead_feats].cpu())
+                self.motion.append((torch.from_numpy(item["motion"]) - mean) / std)
+
+    def __len__(self):
+        return len(self.motion)
+
+    def batch(self, idx: list[int], frames_extra: int, fpf: int):
+        T = min(len(self.motion[i]) for i in idx)  # crop to the shortest window
+        x0 = torch.stack([self.motion[i][:T] for i in idx])
+        feats = torch.stack([self.feats[i][: T * fpf + frames_extra] for i in idx])
+        return x0, feats
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine")
+    return torch.device(name)
+
+
+def _batch_indices(sampler: DistributedSampler, step: int, B: int) -> list[int]:
+    """This rank's batch for `step`: epochs of the (distributed) shuffled order, wrapped when short."""
+    n = len(sampler)
+    per_epoch = max(1, n // B)
+    epoch, pos = divmod(step, per_epoch)
+    sampler.set_epoch(epoch)
+    order = list(sampler)
+    order = order * math.ceil(B / n) if n < B else order
+    return order[pos * B: pos * B + B]
+
+
+def _lr(opts: TrainOptions, step: int) -> float:
+    return opts.lr * min(1.0, (step + 1) / max(opts.warmup, 1))
+
+
+@torch.no_grad()
+def validation_loss(model: DiMGestor, diffusion: Diffusion, bank: WindowBank, seed: int, device,
+                    n_t: int = 8) -> float:
+    """Mean loss over held-out windows at n_t fixed diffusion steps with fixed noise (low variance)."""
+    g = torch.Generator().manual_seed(seed + 7919)
+    c, total, count = model.config, 0.0, 0
+    ts = torch.linspace(0, diffusion.N - 1, n_t).round().long()
+    for i in range(len(bank)):
+        x0, feats = bank.batch([i] * n_t, c.lookahead_feats, c.feats_per_frame)
+        noise = torch.randn(x0.shape, generator=g)
+        loss = diffusion.training_loss(model, x0.to(device), feats.to(device), ts.to(device), noise.to(device))
+        total, count = total + loss.item(), count + 1
+    return total / count
+
+
+def train(opts: TrainOptions) -> Path:
+    """Run (or resume) training; returns the last checkpoint folder."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    device = _device(opts.device)
+    if world > 1:  # launched by torchrun
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        if device.type == "cuda":
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(device)
+    main = rank == 0
+    out = Path(opts.out)
+    resume_from = latest_checkpoint(out) if opts.resume else None
+    if opts.resume and resume_from is None:
+        raise ValueError(f"--resume: no checkpoint found in {out}")
+    if not opts.resume and latest_checkpoint(out) is not None:
+        raise ValueError(f"{out} already holds checkpoints: pass --resume to continue, or choose a new --out")
+
+    # ---- config: the checkpoint's when resuming, else the preset with the data's feature width ----
+    if resume_from is not None:
+        config = ModelConfig(**read_meta(resume_from)["model"])
+    else:
+        config = get_preset(opts.preset, **(opts.overrides or {}))
+    spec = FeatureSpec(fps=config.fps)
+    ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
+                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction)
+    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, **ds_kw)
+    valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
+    if resume_from is None:
+        config = get_preset(opts.preset, **{**(opts.overrides or {}), "motion_dim": train_ds.motion_dim})
+        mean, std = compute_stats(train_ds)
+    elif config.motion_dim != train_ds.motion_dim:
+        raise ValueError(f"{resume_from}: trained on {config.motion_dim} features, the data has {train_ds.motion_dim}")
+
+    torch.manual_seed(opts.seed)
+    random.seed(opts.seed)
+    np.random.seed(opts.seed)
+    model = DiMGestor(config).to(device)
+    ema = DiMGestor(config).to(device).requires_grad_(False)
+    diffusion = Diffusion(config)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=opts.lr,
+                            weight_decay=opts.weight_decay)
+    g = torch.Generator().manual_seed(opts.seed * 1000 + rank)  # t and noise; batches come from the sampler
+    step, history = 0, []
+    if resume_from is not None:
+        ts = torch.load(resume_from / "train_state.pt", map_location="cpu", weights_only=False)
+        model.load_state_dict(ts["model"])
+        ema.load_state_dict(ts["ema"])
+        opt.load_state_dict(ts["optimizer"])
+        g.set_state(ts["generators"][rank] if rank < len(ts["generators"]) else ts["generators"][0])
+        torch.set_rng_state(ts["torch_rng"])
+        step, history, mean, std = ts["step"], ts["history"], ts["mean"], ts["std"]
+    else:
+        ema.load_state_dict(model.state_dict())
+    ema.eval()
+
+    train_bank = WindowBank(train_ds, model, mean, std, device)
+    valid_bank = WindowBank(valid_ds, model, mean, std, device)
+    sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
+                                 seed=opts.seed, drop_last=False)
+    objective = Objective(model, diffusion)
+    if world > 1:
+        objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device] if device.type == "cuda" else None)
+    if main:
+        out.mkdir(parents=True, exist_ok=True)
+        print(f"{train_ds.summary()}\n{valid_ds.summary()}\n"
+              f"model {opts.preset if resume_from is None else '(from checkpoint)'}: "
+              f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, device {device}, world {world}"
+              + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
+
+    def checkpoint(step: int) -> Path:
+        gens = [g.get_state()]
+        if world > 1:
+            gens = [None] * world
+            dist.all_gather_object(gens, g.get_state())
+        if not main:
+            return out
+        info = {"step": step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:]}
+        state = {"step": step, "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
+                 "generators": gens, "torch_rng": torch.get_rng_state(), "history": history,
+                 "mean": mean, "std": std, "options": vars(opts)}
+        path = save_checkpoint(out / f"ckpt_{step:07d}", ema, train_ds.spec, train_ds.skeleton, mean, std,
+                               info=info, train_state=state)
+        if opts.keep > 0:
+            kept = sorted(p for p in out.glob("ckpt_*") if p.is_dir() and "." not in p.name)
+            for old in kept[: -opts.keep]:
+                shutil.rmtree(old, ignore_errors=True)
+        return path
+
+    def log(record: dict):
+        history.append(record)
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    if main and step == 0:
+        log({"step": 0, "valid_loss": validation_loss(ema, diffusion, valid_bank, opts.seed, device)})
+    from tqdm import tqdm
+    bar = tqdm(total=opts.max_steps, initial=step, disable=not (main and opts.progress), dynamic_ncols=True,
+               desc="train")
+    smooth, last = None, resume_from or out
+    B = max(1, opts.batch_size // world)
+    t0 = time.time()
+    model.train()
+    while step < opts.max_steps:
+        idx = _batch_indices(sampler, step, B)
+        x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame)
+        t = torch.randint(0, diffusion.N, (len(idx),), generator=g)
+        noise = torch.randn(x0.shape, generator=g)
+        for group in opt.param_groups:
+            group["lr"] = _lr(opts, step)
+        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if opts.grad_clip > 0:
+            nn.utils.clip_grad_norm_(model.parameters(), opts.grad_clip)
+        opt.step()
+        step += 1
+        decay = min(opts.ema, (1 + step) / (10 + step))  # short memory early, when the weights move fast
+        with torch.no_grad():
+            for pe, pm in zip(ema.parameters(), model.parameters()):
+                pe.lerp_(pm, 1 - decay)
+        smooth = loss.item() if smooth is None else 0.98 * smooth + 0.02 * loss.item()
+        bar.update(1)
+        bar.set_postfix(loss=f"{smooth:.4f}", refresh=False)
+        is_valid = step % opts.valid_every == 0 or step == opts.max_steps
+        if is_valid and main:
+            vl = validation_loss(ema, diffusion, valid_bank, opts.seed, device)
+            log({"step": step, "train_loss": smooth, "valid_loss": vl, "elapsed_s": round(time.time() - t0, 1)})
+            bar.set_postfix(loss=f"{smooth:.4f}", valid=f"{vl:.4f}")
+        if step % opts.ckpt_every == 0 or step == opts.max_steps:
+            last = checkpoint(step)
+        if world > 1 and is_valid:
+            dist.barrier()
+    bar.close()
+    if world > 1:
+        dist.destroy_process_group()
+    return last
+
+
+# ---------------- CLI ----------------
+def _parse_set(items: list[str]) -> dict:
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value  # a bare string such as sqrt_linear
+    return out
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    d = TrainOptions(data="", out="")
+    p.add_argument("--data", required=True, help="folder of BVH+WAV pairs (sub-folders allowed)")
+    p.add_argument("--out", required=True, help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
+    p.add_argument("--preset", default=d.preset, help="model preset: paper, realtime or tiny")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model config field, repeatable")
+    p.add_argument("--max-steps", type=int, default=d.max_steps)
+    p.add_argument("--batch-size", type=int, default=d.batch_size, help="global batch (split over DDP ranks)")
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--window-s", type=float, default=d.window_s, help="training window length in seconds")
+    p.add_argument("--hop-s", type=float, default=None, help="window hop (default: a quarter window)")
+    p.add_argument("--mirror", action="store_true", help="add left/right mirrored windows")
+    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every)
+    p.add_argument("--valid-every", type=int, default=d.valid_every)
+    p.add_argument("--keep", type=int, default=d.keep, help="checkpoints to keep (0 = all)")
+    p.add_argument("--ema", type=float, default=d.ema)
+    p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
+    p.add_argument("--cache-dir", default=None, help="dataset cache (default $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to log.jsonl)")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    for name in ("max_steps", "batch_size", "ckpt_every", "valid_every"):
+        if getattr(args, name) <= 0:
+            raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
+    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1:
+        raise ValueError("--lr and --window-s must be positive and --ema in [0, 1)")
+    opts = TrainOptions(data=args.data, out=args.out, preset=args.preset, overrides=_parse_set(args.set),
+                        max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr, window_s=args.window_s,
+                        hop_s=args.hop_s, mirror=args.mirror, ckpt_every=args.ckpt_every,
+                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, resume=args.resume,
+                        seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
+    last = train(opts)
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(f"checkpoint: {last}")
+    return 0
