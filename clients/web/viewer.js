@@ -21,7 +21,7 @@ const ui = { state: $('state'), frames: $('frames'), fps: $('fps'), latency: $('
 // Everything a test or the console may want to read.
 const api = window.dimgestor = {
   state: 'connecting', url: null, hello: null, status: null, ended: null, errors: [],
-  framesReceived: 0, lastFrame: null, gaps: 0, fps: 0, rttMs: null,
+  framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, gaps: 0, fps: 0, rttMs: null,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -229,7 +229,7 @@ function connect(audio = null) {
 
 function onMessage(data) {
   if (typeof data !== 'string') {
-    try { onFrame(decodeBinaryFrame(data)); } catch (e) { fail(e.message); }
+    try { onFrame(decodeBinaryFrame(data)); api.binaryFramesReceived++; } catch (e) { fail(e.message); }
     return;
   }
   let msg;
