@@ -70,3 +70,16 @@ def test_unreal_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
     assert "34 bytes is not 28 + 16*J" in out[1]["error"]
     assert "server speaks protocol 2, this client 1" in out[2]["error"]
     assert out[3] == {"file": "000003.json", "type": "future_thing"}
+
+
+def test_unreal_component_compiles_against_engine_stubs():
+    """The component type-checks against stand-ins of the engine types it uses (tests/stubs), with
+    shadowing as an error like Unreal's own builds; a real engine build is still the final word."""
+    cmd = [GXX, "-std=c++17", "-fsyntax-only", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions",
+           f"-I{UNREAL / 'tests' / 'stubs'}", f"-I{UNREAL}", str(UNREAL / "DimgestorComponent.cpp")]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    component = (UNREAL / "DimgestorComponent.cpp").read_text()
+    for api in ("FWebSocketsModule::Get().CreateWebSocket", "OnBinaryMessage", "FJsonSerializer::Serialize",
+                "SetBoneTransformByName", "EBoneSpaces::ComponentSpace"):
+        assert api in component
