@@ -24,17 +24,18 @@ async def until(source, stop: asyncio.Event) -> AsyncIterator[AudioChunk]:
     it = source.__aiter__()
     stopper = asyncio.create_task(stop.wait())
     try:
-        while True:
+        while not stop.is_set():
             nxt = asyncio.ensure_future(it.__anext__())
             await asyncio.wait({nxt, stopper}, return_when=asyncio.FIRST_COMPLETED)
-            if not nxt.done():
+            if stop.is_set():  # checked first: a source that always has data must not outrun Ctrl-C
                 nxt.cancel()
                 await asyncio.gather(nxt, return_exceptions=True)
                 return
             try:
-                yield nxt.result()
+                chunk = nxt.result()
             except StopAsyncIteration:
                 return
+            yield chunk
     finally:
         stopper.cancel()
         if hasattr(it, "aclose"):

@@ -174,7 +174,8 @@ class MicSource:
             ready.set()
 
         def callback(indata, frames, t, status) -> None:  # on PortAudio's thread
-            loop.call_soon_threadsafe(on_block, indata[:, 0].astype(np.float32, copy=True))
+            block = np.nan_to_num(indata[:, 0].astype(np.float32, copy=True), nan=0.0, posinf=0.0, neginf=0.0)
+            loop.call_soon_threadsafe(on_block, block)  # a bad driver sample must not poison the model state
 
         try:
             stream = self.sd.InputStream(device=self.device, channels=1, samplerate=self.rate,
