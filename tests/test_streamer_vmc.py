@@ -95,8 +95,8 @@ def test_vmc_sink_sends_spec_typed_bundles(zeggs_dir):
         return sink
 
     sink = asyncio.run(run())
-    for _ in range(50):  # UDP on loopback: give the server thread a moment
-        if len(bundles(rec.packets)) >= 5:
+    for _ in range(100):  # UDP on loopback: give the server thread a moment (5 bundles + OK + T)
+        if len(rec.packets) >= 7:
             break
         threading.Event().wait(0.02)
     server.shutdown()
