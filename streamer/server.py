@@ -119,7 +119,10 @@ async def serve(args) -> int:
     if args.osc is not None:
         from streamer.vmc import VmcSink
 
-        vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast)
+        try:
+            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast)
+        except OSError as e:
+            raise ServeError(f"--osc {args.osc[0]}:{args.osc[1]}: {e.strerror or e}") from None
         vmc.start()
     if args.record and main_session is not None:
         from streamer.record import BvhRecorder
