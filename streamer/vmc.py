@@ -102,7 +102,8 @@ class VmcSink:
                 continue
             f = self.queue[0]
             if self.pace and not self.closing:
-                if self.anchor is None or f.index == 0:
+                late = self.anchor is not None and self.anchor + f.pts < time.monotonic() - self.jitter_s
+                if self.anchor is None or f.index == 0 or late:  # (re)start the clock a jitter buffer ahead
                     self.anchor = time.monotonic() + self.jitter_s - f.pts
                 delay = self.anchor + f.pts - time.monotonic()
                 if delay > 0:
