@@ -22,7 +22,8 @@ pytestmark = [pytest.mark.timeout(180),
 def decoder(tmp_path_factory):
     exe = tmp_path_factory.mktemp("unreal") / "decode_recorded"
     cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Wextra", "-Werror", "-fno-exceptions", "-o", str(exe),
-           str(UNREAL / "DimgestorProtocol.cpp"), str(UNREAL / "tests" / "decode_recorded.cpp")]
+           str(UNREAL / "DimgestorProtocol.cpp"), str(UNREAL / "DimgestorJson.cpp"),
+           str(UNREAL / "tests" / "decode_recorded.cpp")]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
     return exe
