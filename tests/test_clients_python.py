@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import struct
 import subprocess
@@ -248,3 +249,77 @@ def test_python_client_reports_a_refused_token(tmp_path, checkpoint):
         ok = run_client("--url", server.ws_url, "--token", "s3cret", "--seconds", "1")
     assert r.returncode == 1 and "HTTP 401" in r.stderr and "--token" in r.stderr
     assert ok.stdout.startswith("hello: dimgestor/")
+
+
+FAKE_SOUNDDEVICE = '''
+"""Stand-in for the sounddevice package: a "microphone" that plays FAKE_MIC_WAV in real time."""
+import os, threading, time, wave
+import numpy as np
+
+def _wav():
+    with wave.open(os.environ["FAKE_MIC_WAV"]) as w:
+        rate, x = w.getframerate(), np.frombuffer(w.readframes(w.getnframes()), "<i2")
+    return rate, x.astype(np.float32) / 32768.0
+
+def query_devices(device=None, kind=None):
+    return {"name": "fake mic", "default_samplerate": float(_wav()[0])}
+
+class InputStream:
+    def __init__(self, samplerate, channels, dtype, blocksize, device, callback):
+        self.rate, self.block, self.callback = samplerate, blocksize, callback
+        self.stop = threading.Event()
+
+    def _run(self):
+        _, x = _wav()
+        i = 0
+        while not self.stop.is_set():
+            block = np.take(x, range(i, i + self.block), mode="wrap")
+            self.callback(block[:, None], self.block, None, None)
+            i += self.block
+            time.sleep(self.block / self.rate)
+
+    def __enter__(self):
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join()
+'''
+
+
+def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, checkpoint):
+    fake = tmp_path / "fake_sd"
+    fake.mkdir()
+    (fake / "sounddevice.py").write_text(FAKE_SOUNDDEVICE)
+    env = dict(os.environ, PYTHONPATH=str(fake), FAKE_MIC_WAV=str(SPEECH_WAV))
+    with live_server(tmp_path, "ws", checkpoint) as server:
+        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", server.ws_url, "--mic"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+        try:
+            frames = 0
+            deadline = time.monotonic() + 60
+            while frames < 10 and time.monotonic() < deadline:  # gestures come back while we talk
+                line = proc.stdout.readline()
+                assert line, f"client ended early: {proc.stderr.read()}"
+                frames += line.startswith("frame")
+            assert frames >= 10
+            proc.send_signal(signal.SIGINT)  # first Ctrl-C: audio_end, then wait for the last frames
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err
+    assert "microphone: 16000 Hz" in err and "end:" in out
+    total = frames + sum(line.startswith("frame") for line in out.splitlines())
+    assert f"received {total} frames" in err
+
+
+def test_python_client_names_a_bad_wav_before_connecting(tmp_path):
+    bad = tmp_path / "notes.wav"
+    bad.write_text("not audio")
+    for path, says in [(bad, "not a PCM WAV file"), (tmp_path / "missing.wav", "no such file")]:
+        r = subprocess.run([sys.executable, str(CLIENT), "--url", "ws://127.0.0.1:9/", "--wav", str(path)],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 1 and str(path) in r.stderr and says in r.stderr, r.stderr

@@ -45,6 +45,8 @@ def read_wav(path: str) -> tuple[np.ndarray, int]:
         with wave.open(path, "rb") as w:
             width, channels, rate = w.getsampwidth(), w.getnchannels(), w.getframerate()
             raw = w.readframes(w.getnframes())
+    except FileNotFoundError:
+        raise SystemExit(f"{path}: no such file")
     except (wave.Error, EOFError) as e:
         raise SystemExit(f"{path}: not a PCM WAV file ({e}); convert it, e.g. `sox {path} -b 16 out.wav`")
     if width == 3:  # 24-bit: widen to int32 by putting the bytes in the top three
@@ -111,8 +113,7 @@ def client_hello(binary: bool, audio: dict | None = None) -> str:
     return json.dumps(hello)
 
 
-async def send_wav(ws, path: str, pace: bool, binary: bool) -> None:
-    audio, rate = read_wav(path)
+async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool) -> None:
     await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": audio.shape[1]}))
     step = max(1, int(rate * CHUNK_S))
     for i in range(0, len(audio), step):
@@ -151,20 +152,22 @@ async def send_mic(ws, rate: int | None, device, binary: bool) -> None:
 
 async def run(args) -> int:
     printer = Printer(args)
+    wav = read_wav(args.wav) if args.wav else None  # a bad file fails before we connect
     async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
         sender = None
         if args.wav:
-            sender = asyncio.create_task(send_wav(ws, args.wav, not args.fast, args.binary))
+            sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary))
         elif args.mic:
             sender = asyncio.create_task(send_mic(ws, args.rate, args.device, args.binary))
-        elif args.binary:
-            await ws.send(client_hello(True))
             loop = asyncio.get_running_loop()
 
             def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
                 loop.remove_signal_handler(signal.SIGINT)
                 sender.cancel()
             loop.add_signal_handler(signal.SIGINT, stop_talking)
+        elif args.binary:
+            await ws.send(client_hello(True))
+
         async def receive():
             async for message in ws:
                 msg = printer.handle(message)
@@ -177,6 +180,9 @@ async def run(args) -> int:
         finally:
             if sender and not sender.done():
                 sender.cancel()
+    if sender and sender.done() and not sender.cancelled() and sender.exception():
+        print(f"sending audio failed: {sender.exception()!r}", file=sys.stderr)
+        return 1
     print(f"received {printer.frames} frames", file=sys.stderr)
     return 0
 
