@@ -175,8 +175,11 @@ def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast
 
 
 def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, checkpoint):  # noqa: F811
-    with live_server(tmp_path, "ws", checkpoint, http=True) as server:
-        browser = Browser(tmp_path, server.http_url, (
+    # With a token: the page learns from /config.json that one is needed and takes it from ?token=.
+    with live_server(tmp_path, "ws", checkpoint, http=True, extra=("--token", "t0k3n")) as server:
+        config = json.load(urllib.request.urlopen(server.http_url + "config.json", timeout=10))
+        assert config["ws_url"] == server.ws_url and config["token_required"] is True
+        browser = Browser(tmp_path, server.http_url + "?token=t0k3n", (
             "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
             f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
         try:
