@@ -84,3 +84,65 @@ def test_refuses_to_continue_from_a_state():
     model = AdaLNTransformer(cfg, n_blocks=1)
     with pytest.raises(ValueError, match="whole sequence"):
         model(torch.zeros(1, 3, cfg.motion_dim), 0, torch.zeros(1, 3, cfg.hidden), state=object())
+
+
+# ---------------------------------------------------------------- the benchmarks that use the baseline
+
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def test_seam_ratio_sees_a_jump_at_window_boundaries():
+    sys.path.insert(0, str(BENCH))
+    from seams import seam_ratio
+
+    t = np.arange(200) / 20.0
+    smooth = np.stack([np.sin(2 * t), np.cos(3 * t)], axis=1)
+    boundaries = list(range(10, 200, 10))
+    assert seam_ratio(smooth, boundaries, 20.0)["ratio"] == pytest.approx(1.0, abs=0.1)
+    jumpy = smooth.copy()
+    for b in boundaries:  # every window shifted a little: a seam at each boundary
+        jumpy[b:] += 0.05
+    assert seam_ratio(jumpy, boundaries, 20.0)["ratio"] > 5
+
+
+@pytest.mark.slow
+def test_paper_table_runs_and_writes_the_issue_schema(tmp_path):
+    out = tmp_path / "pt.json"
+    cmd = [sys.executable, str(BENCH / "paper_table.py"), "--preset", "tiny", "--hidden", "0", "--lengths", "2",
+           "--repeats", "1", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    assert result["lengths_s"] == [2.0] and isinstance(result["device"], str)
+    assert set(result["models"]) == {"mamba2_6", "transformer_6", "transformer_12"}
+    for m in result["models"].values():
+        assert m["params"] > 0 and len(m["time_s"]) == 1 and len(m["peak_mem_mb"]) == 1
+        assert all(x > 0 for x in m["time_s"])
+    assert result["models"]["transformer_12"]["params"] > result["models"]["transformer_6"]["params"]
+    assert out.with_suffix(".png").is_file()
+    assert "transformer_6 / mamba2_6" in proc.stdout
+
+
+@pytest.mark.slow
+def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
+    out = tmp_path / "st.json"
+    cmd = [sys.executable, str(BENCH / "streaming.py"), "--sections", "sweep", "hour", "streams", "--presets", "tiny",
+           "--steps", "1", "--windows-ms", "500", "--audio-s", "1", "--hour-preset", "tiny", "--hour-steps", "1",
+           "--hour-s", "20", "--streams-steps", "1", "--streams-window-ms", "500", "--streams-s", "1",
+           "--streams-max", "1", "--out", str(out)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    keys = {"preset", "steps", "window_ms", "lookahead_ms", "rtf", "latency_ms_p50", "latency_ms_p95",
+            "e2e_latency_ms", "rss_mb_start", "rss_mb_after_1h"}
+    (row,) = result["results"]
+    assert keys <= set(row) and row["preset"] == "tiny" and row["rtf"] > 0
+    assert row["e2e_latency_ms"] >= row["lookahead_ms"]  # a frame cannot be ready before its audio exists
+    assert result["hour_run"]["audio_s"] == 20 and len(result["hour_run"]["rss_trace_mb"]) == 0
+    assert result["max_realtime_streams"]["tiny"]["max_realtime_streams"] in (0, 1)
+    assert out.with_suffix(".png").is_file()
