@@ -245,7 +245,15 @@ function onMessage(data) {
     case 'frame': onFrame(msg); break;
     case 'status': api.status = msg; break;
     case 'pong': if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; } break;
-    case 'error': api.errors.push(msg); say(`server error ${msg.code}: ${msg.message}`); break;
+    case 'error':
+      api.errors.push(msg);
+      say(`server error ${msg.code}: ${msg.message}`);
+      // The server will not take (more of) our audio: stop the microphone and watch again.
+      if (mode === 'talk' && ['busy', 'audio_disabled', 'internal'].includes(msg.code)) {
+        stopMic();
+        reconnectTimer = setTimeout(() => connect(null), 1000);
+      }
+      break;
     case 'end':
       api.ended = msg;
       say(`source ended after ${msg.frames} frames`);
@@ -279,6 +287,7 @@ async function startTalk() {
     const stream = await navigator.mediaDevices.getUserMedia(
       { audio: { channelCount: 1, echoCancellation: true, noiseSuppression: true, autoGainControl: true } });
     const ctx = new AudioContext();
+    mic = { stream, ctx, node: null };  // set now, so a failure below still releases the microphone
     await ctx.resume();
     const src = ctx.createMediaStreamSource(stream);
     const chunkSamples = Math.round(ctx.sampleRate * 0.02);
@@ -293,7 +302,7 @@ async function startTalk() {
     }
     src.connect(node);
     node.connect(ctx.destination);  // keeps the node pulled; its output is silence
-    mic = { stream, ctx, node };
+    mic.node = node;
     api.talking = true;
     api.audioRate = ctx.sampleRate;
     // Our own session: a fresh connection whose hello declares the audio we will send.
@@ -311,15 +320,19 @@ async function startTalk() {
 
 function stopTalk() {
   if (!api.talking) return;
-  if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({ type: 'audio_end' }));
   stopMic();
-  say('audio ended; waiting for the last gestures');
+  if (ws && ws.readyState === WebSocket.OPEN) {
+    ws.send(JSON.stringify({ type: 'audio_end' }));
+    say('audio ended; waiting for the last gestures');
+  } else {
+    connect(null);  // the talk connection never opened: nothing to wait for
+  }
 }
 
 function stopMic() {
   if (mic) {
     mic.stream.getTracks().forEach((t) => t.stop());
-    mic.node.disconnect();
+    if (mic.node) mic.node.disconnect();
     mic.ctx.close();
     mic = null;
   }
