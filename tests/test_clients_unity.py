@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from test_clients_python import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded, checkpoint,  # noqa: F401
-                                 live_server, record, reference_decode)
+                                 global_rotations, live_server, quat_matrix, record, reference_decode)
 
 UNITY = REPO / "clients" / "unity"
 MCS, MONO = shutil.which("mcs"), shutil.which("mono")
@@ -71,6 +71,51 @@ def test_unity_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
     assert "34 bytes is not 28 + 16*J" in out[1]["error"]
     assert "frame.rotations[0] is not [w, x, y, z]" in out[2]["error"]
     assert out[3] == {"file": "000003.json", "type": "future_thing"}  # unknown types are ignored, not errors
+
+
+@pytest.mark.parametrize("yaw", [0.0, 37.0])
+def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, recordings, yaw):
+    """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
+    the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
+    exe = tmp_path / "RetargetCheck.exe"
+    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorClient.cs",
+        UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "RetargetCheck.cs")
+    folder = recordings["binary"][0].parent
+    r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    msgs = [reference_decode(p) for p in recordings["binary"]]
+    hello = next(m for m in msgs if m["type"] == "hello")
+    frames = [m for m in msgs if m["type"] == "frame"]
+    assert [o["index"] for o in out] == [f["index"] for f in frames]
+    sk, to_unity = hello["skeleton"], np.array([-0.01, 0.01, 0.01])
+    parents, offsets = sk["parents"], np.asarray(sk["offsets"], np.float64)
+    joint_of = {bone: sk["joints"].index(j) for bone, j in hello["humanoid"].items() if bone in out[0]["bones"]}
+    bone_of = {j: bone for bone, j in joint_of.items()}
+    direct = [(b, bone_of[parents[j]]) for b, j in joint_of.items() if parents[j] in bone_of]
+    assert len(direct) >= 5, "too few bones with a mapped parent to check"
+
+    def fk(frame):
+        g = global_rotations(parents, np.asarray(frame["rotations"], np.float64))
+        pos = np.zeros((len(parents), 3))
+        for j, p in enumerate(parents):
+            pos[j] = frame["root"] if p < 0 else pos[p] + quat_matrix(g[p]) @ offsets[j]
+        return pos * to_unity
+
+    hips = bone_of[0]
+    root0 = np.asarray(frames[0]["root"]) * to_unity
+    avatar_height, source_height = offsets[0][1] * 0.01, root0[1]
+    scale = avatar_height / source_height if avatar_height > 0.1 and source_height > 0.1 else 1.0
+    for frame, got in zip(frames, out):
+        pos = fk(frame)
+        bones = {b: np.asarray(v) for b, v in got["bones"].items()}
+        for b, p in direct:  # the bone segment points where the server skeleton's does
+            np.testing.assert_allclose(bones[b] - bones[p], pos[joint_of[b]] - pos[joint_of[p]], atol=2e-4,
+                                       err_msg=f"frame {frame['index']} {p}->{b}")
+        np.testing.assert_allclose(bones[hips] - np.asarray(out[0]["bones"][hips]),
+                                   (pos[0] - root0) * scale, atol=2e-4, err_msg=f"hips, frame {frame['index']}")
+    moved = max(np.abs(np.asarray(out[-1]["bones"][b]) - np.asarray(out[0]["bones"][b])).max() for b in joint_of)
+    assert moved > 1e-3, "the avatar did not move"
 
 
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
