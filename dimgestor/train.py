@@ -310,6 +310,8 @@ def register(subparsers) -> None:
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for torch (default: torch's choice; 1 is much faster on a busy shared machine)")
     p.add_argument("--cache-dir", default=None, help="dataset cache (default $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to log.jsonl)")
     p.set_defaults(func=_run)
@@ -321,6 +323,10 @@ def _run(args) -> int:
             raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
     if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1:
         raise ValueError("--lr and --window-s must be positive and --ema in [0, 1)")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     opts = TrainOptions(data=args.data, out=args.out, preset=args.preset, overrides=_parse_set(args.set),
                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr, window_s=args.window_s,
                         hop_s=args.hop_s, mirror=args.mirror, ckpt_every=args.ckpt_every,

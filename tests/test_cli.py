@@ -1,0 +1,86 @@
+"""The `dimgestor` command: info, train -> generate -> a BVH as long as the audio, clear errors (exit 2)."""
+import json
+import subprocess
+import sys
+
+import bvh as pypi_bvh
+import numpy as np
+import pytest
+
+from dimgestor.audio import save_wav
+from dimgestor.bvh import read_bvh
+from dimgestor.cli import main
+from dimgestor.synthetic import make_synthetic_pair
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A tiny model trained for a few steps through the CLI."""
+    root = tmp_path_factory.mktemp("cli")
+    make_synthetic_pair(root / "data", "a", seconds=12.0, seed=0)
+    rc = main(["train", "--data", str(root / "data"), "--preset", "tiny", "--out", str(root / "run"),
+               "--max-steps", "6", "--batch-size", "2", "--window-s", "2", "--ckpt-every", "3", "--valid-every", "3",
+               "--cache-dir", str(root / "cache"), "--no-progress", "--set", "hidden=48", "--set", "schedule=sqrt_linear"])
+    assert rc == 0
+    return root
+
+
+def test_info_json(capsys):
+    assert main(["info", "--preset", "tiny", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    p = info["parameters"]
+    assert p["total"] == sum(v for k, v in p.items() if k != "total") and p["denoiser_blocks"] > 0
+    assert info["stream_state_bytes"]["total"] > 0 and info["lookahead_s"] == pytest.approx(0.08)
+    assert main(["info", "--preset", "paper"]) == 0
+    assert "denoiser_blocks" in capsys.readouterr().out
+
+
+def test_train_then_generate_writes_a_bvh_as_long_as_the_audio(run, tmp_path, capsys):
+    ckpt = run / "run" / "ckpt_0000006"
+    assert (ckpt / "model.safetensors").is_file() and (run / "run" / "ckpt_0000003" / "train_state.pt").is_file()
+    cfg = json.loads((ckpt / "config.json").read_text())["model"]
+    assert cfg["hidden"] == 48 and cfg["schedule"] == "sqrt_linear"
+    audio = np.random.default_rng(0).standard_normal(44100 * 2 + 1234) * 0.1  # 2.03 s at 44.1 kHz, resampled
+    save_wav(tmp_path / "speech.wav", audio.astype(np.float32), 44100)
+    out = tmp_path / "out.bvh"
+    assert main(["generate", "--checkpoint", str(run / "run"), "--audio", str(tmp_path / "speech.wav"),
+                 "--out", str(out), "--steps", "3", "--seed", "1"]) == 0
+    motion = read_bvh(out)
+    n16 = len(audio) * 16000 // 44100
+    assert motion.values.shape[0] == n16 * 20 // 16000 == 40
+    assert motion.frame_time == pytest.approx(0.05)
+    with open(out) as f:  # an independent parser agrees
+        other = pypi_bvh.Bvh(f.read())
+    assert other.nframes == 40 and other.get_joints_names()[0] == motion.skeleton.names[0]
+    assert main(["info", "--checkpoint", str(run / "run")]) == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["generate", "--checkpoint", "/no/such/ckpt", "--audio", "x.wav", "--out", "o.bvh"], "checkpoint not found"),
+    (["generate", "--checkpoint", "{run}/run", "--audio", "{tmp}/not_audio.wav", "--out", "{tmp}/o.bvh"], "not_audio.wav"),
+    (["generate", "--checkpoint", "{run}/run", "--audio", "{tmp}/missing.wav", "--out", "{tmp}/o.bvh"], "missing.wav"),
+    (["generate", "--checkpoint", "{run}/run", "--audio", "{tmp}/not_audio.wav", "--out", "{tmp}/o.txt"], "expected a .bvh"),
+    (["generate", "--checkpoint", "{run}/run", "--audio", "x.wav", "--out", "o.bvh", "--steps", "0"], "--steps"),
+    (["train", "--data", "{tmp}/empty", "--out", "{tmp}/r"], "no NAME.bvh + NAME.wav pairs"),
+    (["train", "--data", "{tmp}/broken", "--out", "{tmp}/r", "--cache-dir", "{tmp}/c"], "broken.bvh:"),
+    (["train", "--data", "{run}/data", "--out", "{tmp}/r", "--preset", "huge"], "unknown preset"),
+    (["train", "--data", "{run}/data", "--out", "{tmp}/r", "--preset", "tiny", "--set", "headdim=5"], "headdim"),
+    (["train", "--data", "{run}/data", "--out", "{run}/run", "--preset", "tiny", "--cache-dir", "{run}/cache"],
+     "already holds checkpoints"),
+])
+def test_bad_inputs_print_one_error_line_and_exit_2(run, tmp_path, capsys, args, message):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "not_audio.wav").write_text("this is not a RIFF file")
+    bvh_path, _ = make_synthetic_pair(tmp_path / "broken", "broken", seconds=3.0, seed=0)
+    text = bvh_path.read_text()
+    bvh_path.write_text(text[: len(text) // 2])  # truncated mid-frames
+    args = [a.format(run=run, tmp=tmp_path) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and "Traceback" not in err, err
+
+
+def test_console_script_exit_code(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tmp_path),
+                        "--audio", "a.wav", "--out", "o.bvh"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
