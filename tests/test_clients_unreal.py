@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from test_clients_python import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded, checkpoint,  # noqa: F401
-                                 live_server, record)
+                                 global_rotations, live_server, quat_matrix, record, reference_decode)
 
 UNREAL = REPO / "clients" / "unreal"
 GXX = shutil.which("g++")
@@ -59,6 +59,54 @@ def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordin
     for d in out[:3]:
         check_axis_conversion(to_unreal, np.asarray(d["unreal_rotations"]), np.asarray(d["rotations"]))
         np.testing.assert_allclose(d["unreal_root"], to_unreal @ np.asarray(d["root"]), atol=1e-9)
+
+
+@pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])
+def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(tmp_path, recordings, encoding, yaw):
+    """UDimgestorComponent (on engine stand-ins) fed the recorded messages through its WebSocket events poses a
+    Mannequin-named mesh whose bones have other axes so that every bone lands where the server skeleton's
+    forward kinematics puts its joint, in Unreal axes (cm), turned by SourceToComponent."""
+    exe = tmp_path / "retarget_check"
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
+           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "retarget_check.cpp"),
+           *(str(UNREAL / f) for f in ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp"))]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    files = recordings[encoding]
+    r = subprocess.run([str(exe), str(files[0].parent), str(yaw)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line)["bones"] for line in r.stdout.splitlines()]
+    msgs = [reference_decode(p) for p in files]
+    hello = next(m for m in msgs if m["type"] == "hello")
+    frames = [m for m in msgs if m["type"] == "frame"]
+    assert len(out) == len(frames) and f"frames received {len(frames)}, sent 1 text message" in r.stderr
+    sk = hello["skeleton"]
+    parents, offsets = sk["parents"], np.asarray(sk["offsets"], np.float64)
+    c, s_ = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+    to_component = np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]) @ np.array([[0, 0, 1], [-1, 0, 0], [0, 1, 0]])
+    joint_of = {bone: sk["joints"].index(j) for bone, j in hello["humanoid"].items() if bone in out[0]}
+    bone_of = {j: bone for bone, j in joint_of.items()}
+    direct = [(b, bone_of[parents[j]]) for b, j in joint_of.items() if parents[j] in bone_of]
+    assert len(direct) >= 5, "too few bones with a mapped parent to check"
+
+    def fk(frame):  # BVH space, file units (cm)
+        g = global_rotations(parents, np.asarray(frame["rotations"], np.float64))
+        pos = np.zeros((len(parents), 3))
+        for j, p in enumerate(parents):
+            pos[j] = frame["root"] if p < 0 else pos[p] + quat_matrix(g[p]) @ offsets[j]
+        return pos @ to_component.T
+
+    hips = bone_of[0]
+    root0 = to_component @ np.asarray(frames[0]["root"])
+    scale = offsets[0][1] / root0[2] if offsets[0][1] > 10 and root0[2] > 10 else 1.0
+    for frame, bones in zip(frames, out):
+        pos = fk(frame)
+        for b, p in direct:
+            np.testing.assert_allclose(np.subtract(bones[b], bones[p]), pos[joint_of[b]] - pos[joint_of[p]], atol=1e-3,
+                                       err_msg=f"frame {frame['index']} {p}->{b}")
+        np.testing.assert_allclose(np.subtract(bones[hips], out[0][hips]), (pos[0] - root0) * scale, atol=1e-3)
+    moved = max(np.abs(np.subtract(out[-1][b], out[0][b])).max() for b in joint_of)
+    assert moved > 1e-2, "the mesh did not move"
 
 
 def test_unreal_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):

@@ -1,9 +1,11 @@
-// Compile-only stand-ins for the few Unreal Engine types DimgestorComponent uses, with the engine's
-// names and call shapes, so g++ can type-check the component outside the engine
-// (tests/test_clients_unreal.py). Never part of a game build; behaviour here is not the engine's.
+// Stand-ins for the few Unreal Engine types DimgestorComponent uses, with the engine's names and call
+// shapes, so g++ can type-check the component outside the engine, plus just enough behaviour (quaternion
+// and rotator maths, a bone hierarchy, WebSocket events the test can fire) for the retarget test
+// (retarget_check.cpp). Members named Stub* exist only here. Never part of a game build.
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <cwctype>
@@ -117,6 +119,7 @@ struct FVector {
   FVector(double x, double y, double z) : X(x), Y(y), Z(z) {}
   static const FVector ZeroVector;
   FVector operator+(const FVector& o) const { return {X + o.X, Y + o.Y, Z + o.Z}; }
+  FVector operator-(const FVector& o) const { return {X - o.X, Y - o.Y, Z - o.Z}; }
   FVector operator*(float s) const { return {X * s, Y * s, Z * s}; }
 };
 inline const FVector FVector::ZeroVector{};
@@ -125,23 +128,37 @@ struct FQuat {
   double X = 0, Y = 0, Z = 0, W = 1;
   FQuat() = default;
   FQuat(double x, double y, double z, double w) : X(x), Y(y), Z(z), W(w) {}
-  FQuat operator*(const FQuat& b) const {
+  FQuat operator*(const FQuat& b) const {  // apply b first, then this (as in the engine)
     return {W * b.X + X * b.W + Y * b.Z - Z * b.Y, W * b.Y - X * b.Z + Y * b.W + Z * b.X,
             W * b.Z + X * b.Y - Y * b.X + Z * b.W, W * b.W - X * b.X - Y * b.Y - Z * b.Z};
   }
   FQuat Inverse() const { return {-X, -Y, -Z, W}; }
-  FQuat GetNormalized() const { return *this; }
-  FVector RotateVector(const FVector& v) const { return v; }
+  FQuat GetNormalized() const {
+    double n = std::sqrt(X * X + Y * Y + Z * Z + W * W);
+    return {X / n, Y / n, Z / n, W / n};
+  }
+  FVector RotateVector(const FVector& v) const {
+    FQuat r = *this * FQuat(v.X, v.Y, v.Z, 0) * Inverse();
+    return {r.X, r.Y, r.Z};
+  }
 };
 
 struct FRotator {
   double Pitch = 0, Yaw = 0, Roll = 0;
   FRotator() = default;
   FRotator(double p, double y, double r) : Pitch(p), Yaw(y), Roll(r) {}
-  FQuat Quaternion() const { return FQuat(); }
+  FQuat Quaternion() const {  // the engine's FRotator -> FQuat formula (degrees)
+    const double d = 3.14159265358979323846 / 360.0;
+    const double SP = std::sin(Pitch * d), CP = std::cos(Pitch * d), SY = std::sin(Yaw * d), CY = std::cos(Yaw * d);
+    const double SR = std::sin(Roll * d), CR = std::cos(Roll * d);
+    return {CR * SP * SY - SR * CP * CY, -CR * SP * CY - SR * CP * SY, CR * CP * SY - SR * SP * CY,
+            CR * CP * CY + SR * SP * SY};
+  }
 };
 
 struct FTransform {
+  FTransform() = default;
+  FTransform(const FQuat& r, const FVector& t) : R(r), T(t) {}
   FQuat GetRotation() const { return R; }
   void SetRotation(const FQuat& q) { R = q; }
   FVector GetLocation() const { return T; }

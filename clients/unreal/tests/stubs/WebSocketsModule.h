@@ -4,6 +4,12 @@ class FWebSocketsModule {
  public:
   static FWebSocketsModule& Get() { static FWebSocketsModule m; return m; }
   TSharedRef<IWebSocket> CreateWebSocket(const FString& Url, const FString& Protocol = FString()) {
-    return MakeShared<IWebSocket>();
+    StubUrl = Url;
+    (void)Protocol;
+    TSharedRef<IWebSocket> Socket = MakeShared<IWebSocket>();
+    StubLast = Socket;
+    return Socket;
   }
+  FString StubUrl;
+  TSharedPtr<IWebSocket> StubLast;  // the socket the component made, for the test to drive
 };
