@@ -61,19 +61,25 @@ def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordin
         np.testing.assert_allclose(d["unreal_root"], to_unreal @ np.asarray(d["root"]), atol=1e-9)
 
 
-@pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])
-def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(tmp_path, recordings, encoding, yaw):
-    """UDimgestorComponent (on engine stand-ins) fed the recorded messages through its WebSocket events poses a
-    Mannequin-named mesh whose bones have other axes so that every bone lands where the server skeleton's
-    forward kinematics puts its joint, in Unreal axes (cm), turned by SourceToComponent."""
-    exe = tmp_path / "retarget_check"
+@pytest.fixture(scope="module")
+def retarget_check(tmp_path_factory):
+    exe = tmp_path_factory.mktemp("unreal_component") / "retarget_check"
     cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
            f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "retarget_check.cpp"),
            *(str(UNREAL / f) for f in ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp"))]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    return exe
+
+
+@pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])
+def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(retarget_check, recordings, encoding, yaw):
+    """UDimgestorComponent (on engine stand-ins) fed the recorded messages through its WebSocket events poses a
+    Mannequin-named mesh whose bones have other axes so that every bone lands where the server skeleton's
+    forward kinematics puts its joint, in Unreal axes (cm), turned by SourceToComponent."""
     files = recordings[encoding]
-    r = subprocess.run([str(exe), str(files[0].parent), str(yaw)], capture_output=True, text=True, timeout=60)
+    r = subprocess.run([str(retarget_check), str(files[0].parent), str(yaw)], capture_output=True, text=True,
+                       timeout=60)
     assert r.returncode == 0, r.stderr
     out = [json.loads(line)["bones"] for line in r.stdout.splitlines()]
     msgs = [reference_decode(p) for p in files]
@@ -120,15 +126,3 @@ def test_unreal_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
     assert "server speaks protocol 2, this client 1" in out[2]["error"]
     assert out[3] == {"file": "000003.json", "type": "future_thing"}
 
-
-def test_unreal_component_compiles_against_engine_stubs():
-    """The component type-checks against stand-ins of the engine types it uses (tests/stubs), with
-    shadowing as an error like Unreal's own builds; a real engine build is still the final word."""
-    cmd = [GXX, "-std=c++17", "-fsyntax-only", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions",
-           f"-I{UNREAL / 'tests' / 'stubs'}", f"-I{UNREAL}", str(UNREAL / "DimgestorComponent.cpp")]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
-    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
-    component = (UNREAL / "DimgestorComponent.cpp").read_text()
-    for api in ("FWebSocketsModule::Get().CreateWebSocket", "OnBinaryMessage", "FJsonSerializer::Serialize",
-                "SetBoneTransformByName", "EBoneSpaces::ComponentSpace"):
-        assert api in component
