@@ -1,6 +1,7 @@
 """The Unreal client's engine-independent decoder (clients/unreal/DimgestorProtocol.cpp) compiled with g++
 (C++17, no exceptions, like an Unreal module), run on messages recorded from a live `streamer serve`
-(JSON and binary), gives back what the server sent, in BVH, Unity and Unreal axes."""
+(JSON and binary), gives back what the server sent, in BVH, Unity and Unreal axes; the ActorComponent, built
+against engine stand-ins (clients/unreal/tests/stubs), poses a mesh from those messages like the server's FK."""
 
 import json
 import shutil
