@@ -12,9 +12,11 @@ allocations (tracemalloc does not). On CUDA the reading is torch.cuda.max_memory
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import subprocess
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -40,12 +42,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=8, help="DDIM steps for --mode sample")
     p.add_argument("--attention", choices=["sdpa", "naive"], default="sdpa",
                    help="Transformer attention kernel: torch's fused sdpa, or the plain materialized softmax")
-    p.add_argument("--repeats", type=int, default=3,
+    p.add_argument("--repeats", type=int, default=5,
                    help="timed runs per measurement; the fastest is reported (least disturbed by other processes)")
-    p.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch intra-op threads (default 1: on a shared machine more threads spin against other processes)")
     p.add_argument("--out", type=Path, default=RESULTS / "paper_table.json")
     p.add_argument("--plot", type=Path, default=None, help="plot path (default: beside --out, .png)")
-    p.add_argument("--note", default="", help="free text stored in the JSON (e.g. 'shared machine')")
+    p.add_argument("--note", default="measured on a shared machine: other processes were running",
+                   help="free text stored in the JSON")
+    p.add_argument("--plot-only", action="store_true", help="redraw the plot from an existing --out JSON")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: measure one (model, length)
     return p.parse_args(argv)
 
@@ -87,13 +92,18 @@ def measure(args, name: str, length_s: float) -> dict:
     cfg = model.config
     T = int(round(length_s * cfg.fps))
     audio = test_audio(length_s, cfg.sample_rate)
+    params = sum(p.numel() for p in model.parameters())
 
     if args.mode == "denoiser":
-        with torch.inference_mode():
-            feats, _ = model.frontend(torch.from_numpy(audio).to(device)[None], model.frontend.init_state(1, device))
-            cond, _ = model.condition(feats)
-            cond = torch.nn.functional.pad(cond, (0, 0, 0, max(0, T - cond.shape[1])))[:, :T]  # (1, T, H)
-            x = torch.randn(1, T, cfg.motion_dim, device=device)
+        # The condition path is the same module in every model and its values do not change the cost of
+        # a denoiser forward: drop it, so neither its weights nor its work enter the denoiser's memory.
+        del model.frontend, model.extractor
+        gc.collect()
+        cond = torch.randn(1, T, cfg.hidden, device=device)  # (1, T, H)
+        x = torch.randn(1, T, cfg.motion_dim, device=device)
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats(device)
 
         def run():
             with torch.inference_mode():
@@ -118,7 +128,7 @@ def measure(args, name: str, length_s: float) -> dict:
         peak = torch.cuda.max_memory_allocated(device) / 2**20
     else:
         peak = peak_rss_mb() - rss_before  # weights + inputs + activations + allocator slack
-    return {"model": name, "length_s": length_s, "frames": T, "params": sum(p.numel() for p in model.parameters()),
+    return {"model": name, "length_s": length_s, "frames": T, "params": params,
             "denoiser_params": denoiser_params(model), "time_s": min(times), "time_s_median": float(np.median(times)),
             "peak_mem_mb": peak, "peak_rss_mb_total": peak_rss_mb()}
 
@@ -145,21 +155,27 @@ def plot(result: dict, path: Path) -> None:
 
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))
     for name, m in result["models"].items():
-        ax_t.plot(result["lengths_s"], m["time_s"], "o-", label=f"{name} ({m['params'] / 1e6:.1f} M params)")
+        ax_t.plot(result["lengths_s"], m["time_s"], "o-", label=f"{name} ({m['denoiser_params'] / 1e6:.1f} M denoiser params)")
         ax_m.plot(result["lengths_s"], m["peak_mem_mb"], "o-", label=name)
-    ax_t.set(xlabel="sequence length (s)", ylabel="time (s)", title=f"inference time: {result['timing']}")
-    ax_m.set(xlabel="sequence length (s)", ylabel="peak memory (MB)", title=result["memory"])
+    attention = result.get("config", {}).get("attention", "sdpa")
+    ax_t.set(xlabel="sequence length (s)", ylabel="time (s)", title="inference time")
+    ax_m.set(xlabel="sequence length (s)", ylabel="peak memory (MB)", title=f"peak memory (attention: {attention})")
     for ax in (ax_t, ax_m):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(result["device"], fontsize=8)
-    fig.tight_layout()
+    caption = textwrap.fill(f"time: {result['timing']}. memory: {result['memory']}.", 150)
+    fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=7)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=120)
     print(f"wrote {path}")
 
 
 def main(argv=None) -> None:
     args = parse_args(argv)
+    if args.plot_only:
+        plot(json.loads(args.out.read_text()), args.plot or args.out.with_suffix(".png"))
+        return
     if args.child:
         name, length_s = json.loads(args.child)
         print(json.dumps(measure(args, name, length_s)))
@@ -176,11 +192,12 @@ def main(argv=None) -> None:
             r = run_child(args, name, length_s)
             rows[name].append(r)
             print(f"{name:15s} {length_s:6.0f} s: {r['time_s'] * 1000:9.1f} ms  {r['peak_mem_mb']:8.1f} MB")
-    timing = ("fastest of --repeats runs of " if args.repeats > 1 else "") + (
-              "one denoiser forward over the whole sequence (B=1, condition precomputed)" if args.mode == "denoiser"
+    timing = (f"fastest of {args.repeats} runs of " if args.repeats > 1 else "") + (
+              "one denoiser forward over the whole sequence (B=1, given condition)" if args.mode == "denoiser"
               else f"whole {args.steps}-step DDIM sampling incl. front end and condition (B=1)")
     memory = ("torch.cuda.max_memory_allocated" if args.device.startswith("cuda")
-              else "peak RSS of a fresh process minus its RSS before the model was built")
+              else "peak RSS of a fresh process minus its RSS before the model was built") + (
+              " (denoiser weights, inputs, activations)" if args.mode == "denoiser" else " (whole model and sampling)")
     result = {
         "device": describe_device(args.device),
         "lengths_s": [float(x) for x in args.lengths],
