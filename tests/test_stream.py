@@ -121,3 +121,18 @@ def test_loss_goes_down_on_synthetic_data():
         loss.backward()
         opt.step()
     assert eval_loss() < 0.5 * before
+
+
+def test_pretrained_front_end_streams_like_offline(tmp_path):
+    transformers = pytest.importorskip("transformers", reason="optional extra `pretrained` not installed")
+    torch.manual_seed(0)
+    w2v = transformers.Wav2Vec2Config(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
+                                      conv_dim=(8,) * 7, num_conv_pos_embeddings=16, num_conv_pos_embedding_groups=2)
+    transformers.Wav2Vec2Model(w2v).save_pretrained(tmp_path)
+    model = _model(frontend="pretrained", pretrained_path=str(tmp_path), pretrained_block_ms=200,
+                   pretrained_left_ms=200, pretrained_right_ms=100)
+    assert model.lookahead_s == pytest.approx(0.3)  # frame 0 needs the first 200 ms block + 100 ms right context
+    audio = _audio(1.5)
+    offline = generate_offline(model, audio, steps=3, seed=1)
+    assert offline.shape == (30, 12)
+    assert np.abs(_stream(model, audio, [1111] * 21 + [669], steps=3, seed=1) - offline).max() < 1e-4
