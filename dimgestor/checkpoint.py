@@ -31,7 +31,7 @@ from .model import DiMGestor
 from .stream import GestureStream, generate_offline
 
 __all__ = ["Bundle", "CheckpointError", "save_checkpoint", "load_checkpoint", "resolve_checkpoint",
-           "latest_checkpoint", "DEFAULT_MODEL_DIR", "FORMAT"]
+           "latest_checkpoint", "export_checkpoint", "DEFAULT_MODEL_DIR", "FORMAT"]
 
 FORMAT = 1
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "default_model"
@@ -175,3 +175,10 @@ def load_checkpoint(path: str | Path | None = None, device: str | torch.device =
         raise CheckpointError(f"{folder / 'norm.safetensors'}: stats of shape {tuple(mean.shape)}, "
                               f"expected ({config.motion_dim},)")
     return Bundle(model.to(device).eval(), config, spec, skeleton, mean, std, meta.get("info", {}), folder)
+
+
+def export_checkpoint(src: str | Path | None, dst: str | Path) -> Path:
+    """Copy a checkpoint's inference files (no train_state.pt) to `dst`, e.g. dimgestor/default_model/."""
+    bundle = load_checkpoint(src)  # validates before anything is written
+    return save_checkpoint(dst, bundle.model, bundle.feature_spec, bundle.skeleton, bundle.mean, bundle.std,
+                           info={**bundle.info, "exported_from": str(bundle.path)})

@@ -64,6 +64,12 @@ def _info(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    from .checkpoint import export_checkpoint
+    print(f"exported {export_checkpoint(args.checkpoint, args.out)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dimgestor", description="DiM-Gestor co-speech gesture engine")
     parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
@@ -75,6 +81,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=8, help="DDIM steps the stream carries state for")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_info)
+
+    p = sub.add_parser("export", help="copy a checkpoint's inference files (no optimizer state), e.g. to "
+                                      "dimgestor/default_model/")
+    p.add_argument("--checkpoint", required=True, help="checkpoint folder or run folder (its latest)")
+    p.add_argument("--out", required=True, help="destination folder (replaced)")
+    p.set_defaults(func=_export)
 
     from . import generate, train
     train.register(sub)

@@ -54,6 +54,14 @@ def test_train_then_generate_writes_a_bvh_as_long_as_the_audio(run, tmp_path, ca
     assert other.nframes == 40 and other.get_joints_names()[0] == motion.skeleton.names[0]
     assert main(["info", "--checkpoint", str(run / "run")]) == 0
 
+    exported = tmp_path / "default_model"
+    assert main(["export", "--checkpoint", str(run / "run"), "--out", str(exported)]) == 0
+    assert sorted(p.name for p in exported.iterdir()) == ["config.json", "model.safetensors", "norm.safetensors"]
+    again = tmp_path / "again.bvh"
+    assert main(["generate", "--checkpoint", str(exported), "--audio", str(tmp_path / "speech.wav"),
+                 "--out", str(again), "--steps", "3", "--seed", "1"]) == 0
+    assert again.read_text() == out.read_text()  # same weights, same seed: the same motion
+
 
 @pytest.mark.parametrize("args, message", [
     (["generate", "--checkpoint", "/no/such/ckpt", "--audio", "x.wav", "--out", "o.bvh"], "checkpoint not found"),
