@@ -7,8 +7,8 @@ with A = -exp(A_log) a scalar per head, dt_t = softplus(dt_raw_t + dt_bias), and
 heads of a group. The parameter names and the packed `in_proj` layout follow the reference implementation
 (state-spaces/mamba `Mamba2Simple`/`Mamba2`, and the transformers `Mamba2Mixer`), so their state_dicts load.
 
-`ssd_chunked` is the fast path (the chunked state-space-duality scan); `ssd_naive` is the per-step
-recurrence the tests compare it against. On CUDA, the fused `mamba_ssm` kernel is used when importable.
+`ssd_chunked` is the fast path (the chunked state-space-duality scan), `ssd_one_chunk` its form for
+windows that fit one chunk (streaming), and `ssd_naive` the per-step recurrence the tests compare both against. On CUDA, the fused `mamba_ssm` kernel is used when importable.
 """
 from __future__ import annotations
 
@@ -86,6 +86,33 @@ def ssd_chunked(x, dt, A, B, C, chunk_size, initial_state=None):
     y_off = torch.einsum("bclhn,bchpn,bhcl->bclhp", C, states, torch.exp(A_cum))
     y = (y_diag + y_off).reshape(b, c * Q, h, p)[:, :L]
     return y, final_state
+
+
+def ssd_one_chunk(x, dt, A, B, C, initial_state):
+    """The SSD scan of a sequence that fits in one chunk, with B and C per group (b, L, g, n).
+
+    The same algebra as one chunk of `ssd_chunked`, written as a few batched matmuls instead of einsums:
+    streaming windows are a handful of frames, where the cost of each op, not its arithmetic, dominates.
+    Returns y (b, L, h, p) without the D skip and the final state (b, h, p, n).
+    """
+    b, L, h, p = x.shape
+    g, n = B.shape[2], B.shape[3]
+    r = h // g  # heads per group
+    A_cum = torch.cumsum(dt * A, dim=1).transpose(1, 2)  # (b, h, L)
+    seg = A_cum[:, :, :, None] - A_cum[:, :, None, :]  # (b, h, L, L): log decay from step s to step l
+    causal = torch.ones(L, L, dtype=torch.bool, device=x.device).tril()
+    decay = torch.exp(seg.masked_fill(~causal, -torch.inf))
+    Cg, Bg = C.transpose(1, 2), B.transpose(1, 2)  # (b, g, L, n)
+    scores = (Cg @ Bg.transpose(2, 3))[:, :, None] * decay.view(b, g, r, L, L)  # (b, g, r, L, L)
+    Xdt = (x * dt[..., None]).permute(0, 2, 1, 3)  # (b, h, L, p)
+    y = scores.view(b, h, L, L) @ Xdt  # within the window
+    h0 = initial_state.reshape(b, g, r * p, n)
+    y_off = (Cg @ h0.transpose(2, 3)).view(b, g, L, r, p).permute(0, 1, 3, 2, 4).reshape(b, h, L, p)
+    y = y + y_off * torch.exp(A_cum)[..., None]  # the carried-in state, decayed to each step
+    w = torch.exp(A_cum[:, :, -1:] - A_cum)  # (b, h, L): decay from each step to the end
+    Xw = (Xdt * w[..., None]).reshape(b, g, r, L, p).permute(0, 1, 2, 4, 3).reshape(b, g, r * p, L)
+    final = initial_state * torch.exp(A_cum[:, :, -1])[..., None, None] + (Xw @ Bg).reshape(b, h, p, n)
+    return y.transpose(1, 2), final
 
 
 def ssd_naive(x, dt, A, B, C, initial_state=None):
@@ -205,18 +232,19 @@ class Mamba2(nn.Module):
             dt = dt.clamp(*self.dt_limit)
         A = -torch.exp(self.A_log.float())
         rep = self.nheads // self.ngroups  # heads of one group share B and C
-        B = B.reshape(b, L, self.ngroups, self.d_state).repeat_interleave(rep, dim=2)
-        C = C.reshape(b, L, self.ngroups, self.d_state).repeat_interleave(rep, dim=2)
+        Bg = B.reshape(b, L, self.ngroups, self.d_state)
+        Cg = C.reshape(b, L, self.ngroups, self.d_state)
 
         if reference:
-            y, ssm = ssd_naive(x, dt, A, B, C, state.ssm)
+            y, ssm = ssd_naive(x, dt, A, Bg.repeat_interleave(rep, 2), Cg.repeat_interleave(rep, 2), state.ssm)
         elif u.is_cuda and mamba_chunk_scan_combined is not None:  # pragma: no cover - needs CUDA
-            Bg = B[:, :, ::rep]
-            Cg = C[:, :, ::rep]
             y, ssm = mamba_chunk_scan_combined(x, dt, A, Bg, Cg, chunk_size=self.chunk_size, D=None,
                                                initial_states=state.ssm, return_final_states=True)
+        elif L <= self.chunk_size:  # a streaming window: one chunk, fewest ops
+            y, ssm = ssd_one_chunk(x, dt, A, Bg, Cg, state.ssm)
         else:
-            y, ssm = ssd_chunked(x, dt, A, B, C, self.chunk_size, state.ssm)
+            y, ssm = ssd_chunked(x, dt, A, Bg.repeat_interleave(rep, 2), Cg.repeat_interleave(rep, 2),
+                                 self.chunk_size, state.ssm)
 
         D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
         y = (y + x * D).reshape(b, L, self.d_inner)

@@ -112,7 +112,8 @@ class FinalLayer(nn.Module):
     def forward(self, x, c):
         shift, scale = self.adaLN_modulation(c).chunk(2, dim=-1)
         x = modulate(self.norm(x), shift, scale)
-        return self.decoder(x.transpose(1, 2)).transpose(1, 2)  # (B, T, motion_dim)
+        # the k=1 Conv1D as the matmul it is (CPU conv kernels cost ~0.4 ms a call on streaming windows)
+        return F.linear(x, self.decoder.weight[:, :, 0], self.decoder.bias)  # (B, T, motion_dim)
 
 
 class GestureEncoder(nn.Module):
@@ -129,7 +130,10 @@ class GestureEncoder(nn.Module):
     def forward(self, x: torch.Tensor, tail: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         xs = torch.cat([tail, x.transpose(1, 2)], dim=2)  # (B, D, k-1 + T)
         new_tail = xs[:, :, xs.shape[2] - tail.shape[2]:]
-        return self.conv(xs).transpose(1, 2), new_tail  # (B, T, H)
+        # the conv as one matmul over unfolded windows: same weights and numbers, far fewer ops per call
+        windows = xs.unfold(2, self.conv.kernel_size[0], 1).transpose(1, 2).flatten(2)  # (B, T, D * k)
+        w = self.conv.weight.flatten(1)  # (H, D * k), matching the unfolded (D, k) order
+        return F.linear(windows, w, self.conv.bias), new_tail  # (B, T, H)
 
 
 class FuzzyFeatureExtractor(nn.Module):

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from dimgestor.mamba2 import Mamba2, Mamba2State, ssd_chunked, ssd_naive
+from dimgestor.mamba2 import Mamba2, Mamba2State, ssd_chunked, ssd_naive, ssd_one_chunk
 
 
 
@@ -35,6 +35,18 @@ def test_chunked_scan_equals_recurrence(L, chunk):
         y, s = ssd_chunked(x, dt, A, B, C, chunk, init)
         torch.testing.assert_close(y, y_ref, rtol=1e-9, atol=1e-9)
         torch.testing.assert_close(s, s_ref, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("L", [1, 2, 7, 33])
+@pytest.mark.parametrize("groups", [1, 3])
+def test_one_chunk_scan_equals_recurrence(L, groups):
+    x, dt, A, B, C, h0 = random_ssd_inputs(2, L, 6, 4, 5, seed=L + 10 * groups)
+    Bg, Cg = B[:, :, :groups], C[:, :, :groups]  # one B and C per group of 6 / groups heads
+    rep = 6 // groups
+    y_ref, s_ref = ssd_naive(x, dt, A, Bg.repeat_interleave(rep, 2), Cg.repeat_interleave(rep, 2), h0)
+    y, s = ssd_one_chunk(x, dt, A, Bg, Cg, h0)
+    torch.testing.assert_close(y, y_ref, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(s, s_ref, rtol=1e-9, atol=1e-9)
 
 
 def make_mixer(seed=0, **kw):
