@@ -163,12 +163,14 @@ def hour(args) -> dict:
     return r
 
 
-def paced_trial(model, n: int, steps: int, window_ms: int, seconds: float) -> dict:
+def paced_trial(model, n: int, steps: int, window_ms: int, seconds: float, threads: int = 1) -> dict:
     """n streams in n threads, each pushing a window when its audio would have arrived in real time.
 
     Lag of window k = time its push finished - time its last sample arrived. The streams keep up
     when the 95th percentile lag stays under one window and the last windows are not late.
     """
+    import torch
+
     from dimgestor.stream import GestureStream
 
     cfg = model.config
@@ -180,6 +182,7 @@ def paced_trial(model, n: int, steps: int, window_ms: int, seconds: float) -> di
     barrier = threading.Barrier(n)
 
     def run(j: int):
+        torch.set_num_threads(threads)  # OpenMP's thread count is per calling thread: set it in each worker
         stream = GestureStream(model, steps=steps, seed=j)
         stream.push(audio[:window])  # warm-up
         stream = GestureStream(model, steps=steps, seed=j)
@@ -190,11 +193,11 @@ def paced_trial(model, n: int, steps: int, window_ms: int, seconds: float) -> di
             stream.push(audio[k * window : (k + 1) * window])
             lags[j].append(time.perf_counter() - arrival)
 
-    threads = [threading.Thread(target=run, args=(j,)) for j in range(n)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    workers = [threading.Thread(target=run, args=(j,)) for j in range(n)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
     all_lags = [x for lag in lags for x in lag]
     p95 = percentile_ms(all_lags, 95)
     last = max(lag[-1] for lag in lags) * 1000
@@ -206,7 +209,7 @@ def max_streams(args, preset: str) -> dict:
     model, label = build_model(preset, args)
     trials, good, bad, n = [], 0, None, 1
     while n <= args.streams_max:
-        r = paced_trial(model, n, args.streams_steps, args.streams_window_ms, args.streams_s)
+        r = paced_trial(model, n, args.streams_steps, args.streams_window_ms, args.streams_s, args.threads)
         trials.append(r)
         print(f"{label:9s} {n:3d} streams: lag p95 {r['lag_ms_p95']:.0f} ms, last {r['last_lag_ms']:.0f} ms "
               f"-> {'ok' if r['ok'] else 'falls behind'}", flush=True)
@@ -216,7 +219,7 @@ def max_streams(args, preset: str) -> dict:
         good, n = n, n * 2
     while bad is not None and bad - good > 1:
         mid = (good + bad) // 2
-        r = paced_trial(model, mid, args.streams_steps, args.streams_window_ms, args.streams_s)
+        r = paced_trial(model, mid, args.streams_steps, args.streams_window_ms, args.streams_s, args.threads)
         trials.append(r)
         print(f"{label:9s} {mid:3d} streams: lag p95 {r['lag_ms_p95']:.0f} ms -> {'ok' if r['ok'] else 'falls behind'}",
               flush=True)
