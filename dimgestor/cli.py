@@ -88,15 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="destination folder (replaced)")
     p.set_defaults(func=_export)
 
-    from . import generate, train
-    train.register(sub)
-    generate.register(sub)
-    try:
-        from . import eval as evaluation
-    except ImportError:
-        evaluation = None
-    if evaluation is not None:
-        evaluation.register(sub)
+    from . import eval as evaluation
+    from . import generate, render, train
+    for module in (train, generate, evaluation, render):
+        module.register(sub)
     return parser
 
 

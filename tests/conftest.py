@@ -3,8 +3,9 @@ from pathlib import Path
 
 import pytest
 
-# Two cores on CI: keep torch from oversubscribing when tests spawn subprocesses.
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+# Two cores on CI and tiny tensors in tests: one torch thread per process avoids oversubscription
+# (the servers that tests spawn run their own inference thread beside the test process).
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 REPO = Path(__file__).resolve().parents[1]
 ZEGGS_DIR = REPO.parent / "shared" / "data" / "zeggs_sample"
