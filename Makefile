@@ -11,7 +11,7 @@ $(BIN)/.installed: pyproject.toml
 	$(BIN)/pip install -q -e '.[test]'
 	touch $@
 
-.PHONY: setup test demo
+.PHONY: setup test demo default-model
 setup: $(BIN)/.installed
 
 test: $(BIN)/.installed
@@ -19,3 +19,11 @@ test: $(BIN)/.installed
 
 demo: $(BIN)/.installed
 	$(BIN)/streamer serve --source demo --ws 127.0.0.1:8765 --osc 127.0.0.1:39539 --http 8080
+
+# Retrain the embedded default model (see MODEL_CARD.md): the realtime preset on the ZEGGS sample clip,
+# one CPU thread (deterministic; ~35 min on 2 cores), then copy its inference files into the package.
+ZEGGS ?= ../shared/data/zeggs_sample
+default-model: $(BIN)/.installed
+	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --out runs/default \
+		--max-steps 2000 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 250 --valid-every 250 --seed 0
+	$(BIN)/dimgestor export --checkpoint runs/default --out dimgestor/default_model
