@@ -78,8 +78,8 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
     """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
     the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
     exe = tmp_path / "RetargetCheck.exe"
-    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorClient.cs",
-        UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "RetargetCheck.cs")
+    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorPlayout.cs",
+        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "RetargetCheck.cs")
     folder = recordings["binary"][0].parent
     r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -120,7 +120,8 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
 
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
     mcs(tmp_path / "DimgestorClient.dll", UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs",
-        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", library=True)
+        UNITY / "DimgestorPlayout.cs", UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs",
+        library=True)
     # The stubs must only declare what Unity really has; the client must use nothing Unity lacks.
     stub = (UNITY / "tests" / "UnityEngineStubs.cs").read_text()
     assert "namespace UnityEngine" in stub and "GetBoneTransform(HumanBodyBones" in stub

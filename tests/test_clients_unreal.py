@@ -67,7 +67,7 @@ def retarget_check(tmp_path_factory):
     exe = tmp_path_factory.mktemp("unreal_component") / "retarget_check"
     cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
            f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "retarget_check.cpp"),
-           *(str(UNREAL / f) for f in ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp"))]
+           *(str(UNREAL / f) for f in ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp"))]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
     return exe

@@ -157,7 +157,7 @@ def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast
         assert browser.eval("window.dimgestor.jointNames().length") == n_joints
         assert moving_joints(browser) > 1e-3, "joints did not move between two moments"
         # The figure is where the protocol puts it: forward kinematics of the frame it shows, in metres.
-        shown = browser.eval("({frame: window.dimgestor.lastFrame, pos: window.dimgestor.jointWorldPositions()})")
+        shown = browser.eval("({frame: window.dimgestor.shownFrame, pos: window.dimgestor.jointWorldPositions()})")
         np.testing.assert_allclose(shown["pos"], forward_kinematics(hello["skeleton"], shown["frame"]) * 0.01,
                                    atol=1e-5)
         binary = browser.eval("window.dimgestor.binaryFramesReceived")

@@ -40,7 +40,9 @@ namespace Dimgestor
 
         readonly object gate = new object();      // guards the fields the socket thread hands over
         Hello pendingHello;
-        Frame pendingFrame;
+        readonly FramePlayout playout = new FramePlayout();  // frames come in bursts: show each at its pts
+        readonly System.Diagnostics.Stopwatch clock = System.Diagnostics.Stopwatch.StartNew();
+        Frame shown;
         Hello hello;
         Quat[] sourceRestGlobal;
         readonly List<Binding> bindings = new List<Binding>();
@@ -121,9 +123,19 @@ namespace Dimgestor
         void Handle(Message m)
         {
             var f = m as Frame;
-            if (f != null) { lock (gate) pendingFrame = f; framesReceived++; return; }  // only the newest frame matters
+            if (f != null) { lock (gate) playout.Push(f, clock.Elapsed.TotalSeconds); framesReceived++; return; }
             var h = m as Hello;
-            if (h != null) { lock (gate) { pendingHello = h; pendingFrame = null; } return; }
+            if (h != null)
+            {
+                lock (gate)
+                {
+                    pendingHello = h;
+                    playout.Reset();
+                    // Buffer one inference window (the burst length) plus some network jitter.
+                    playout.DelayS = (h.WindowMs > 0 ? h.WindowMs / 1000.0 : 0.25) + 0.06;
+                }
+                return;
+            }
             var s = m as Status;
             if (s != null) { latencyMs = (float)s.LatencyMs; droppedFrames = s.Dropped; return; }
             var e = m as ErrorMessage;
@@ -134,9 +146,9 @@ namespace Dimgestor
         void LateUpdate()
         {
             Hello h; Frame f;
-            lock (gate) { h = pendingHello; f = pendingFrame; pendingHello = null; pendingFrame = null; }
+            lock (gate) { h = pendingHello; pendingHello = null; f = playout.Sample(clock.Elapsed.TotalSeconds); }
             if (h != null) Bind(h);
-            if (f != null && hello != null) Apply(f);
+            if (f != null && f != shown && hello != null) { Apply(f); shown = f; }
         }
 
         void Bind(Hello h)

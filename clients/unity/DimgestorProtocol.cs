@@ -70,6 +70,7 @@ namespace Dimgestor
         public int AudioRate;
         public string[] AudioFormats = new string[0];
         public double LookaheadS;
+        public double WindowMs;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
     }
 
     public class Frame : Message
@@ -134,7 +135,7 @@ namespace Dimgestor
             {
                 Type = "hello", Protocol = (int)Json.Num(o, "protocol", 0), Server = Json.Str(o, "server", ""),
                 Fps = Json.Num(o, "fps", 0), Encoding = Json.Str(o, "encoding", "json"),
-                LookaheadS = Json.Num(o, "lookahead_s", 0),
+                LookaheadS = Json.Num(o, "lookahead_s", 0), WindowMs = Json.Num(o, "window_ms", 0),
             };
             if (h.Protocol != Version)
                 throw new ProtocolException("server speaks protocol " + h.Protocol + ", this client " + Version);

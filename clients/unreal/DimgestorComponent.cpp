@@ -174,15 +174,16 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 	switch (Message.type)
 	{
 	case dimgestor::MessageType::Frame:
-		Latest = Message.frame;
-		bHaveFrame = true;
+		Playout.Push(Message.frame, FPlatformTime::Seconds());
 		++FramesReceived;
 		break;
 	case dimgestor::MessageType::Hello:
 		Hello = Message.hello;
 		bHaveHello = true;
 		bNeedBind = true;
-		bHaveFrame = false;
+		Playout.Reset();
+		// Buffer one inference window (the burst length) plus some network jitter.
+		Playout.delay_s = (Hello.window_ms > 0 ? Hello.window_ms / 1000.0 : 0.25) + 0.06;
 		break;
 	case dimgestor::MessageType::Status:
 		LatencyMs = float(Message.status.latency_ms);
@@ -202,7 +203,7 @@ void UDimgestorComponent::TickComponent(float DeltaTime, ELevelTick TickType, FA
 	if (ReconnectIn > 0.f && (ReconnectIn -= DeltaTime) <= 0.f) Connect();
 	if (!TargetMesh || !bHaveHello) return;
 	if (bNeedBind) Bind();
-	if (bHaveFrame) { Apply(Latest); bHaveFrame = false; }
+	if (Playout.Sample(FPlatformTime::Seconds(), Shown)) Apply(Shown);
 }
 
 void UDimgestorComponent::Bind()

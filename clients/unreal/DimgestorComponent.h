@@ -4,6 +4,7 @@
 
 #include "CoreMinimal.h"
 #include "Components/ActorComponent.h"
+#include "DimgestorPlayout.h"
 #include "DimgestorProtocol.h"
 #include "DimgestorComponent.generated.h"
 
@@ -106,9 +107,9 @@ private:
 
 	bool bHaveHello = false;
 	bool bNeedBind = false;
-	bool bHaveFrame = false;
 	dimgestor::Hello Hello;
-	dimgestor::Frame Latest;     // only the newest frame is applied each tick
+	dimgestor::FramePlayout Playout;  // frames come in bursts: each is shown at its presentation time
+	dimgestor::Frame Shown;
 	std::vector<dimgestor::Quat> SourceRestGlobal;
 	TArray<FBinding> Bindings;
 	TMap<FName, FTransform> RestPose;  // component-space bone transforms captured at BeginPlay

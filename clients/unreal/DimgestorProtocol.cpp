@@ -62,7 +62,8 @@ bool ParseHello(const JsonValue& o, Hello& h, std::string& error) {
   Fields f{error};
   double protocol, fps, lookahead;
   if (!f.Num(o, "protocol", 0, protocol) || !f.Str(o, "server", "", h.server) || !f.Num(o, "fps", 0, fps) ||
-      !f.Str(o, "encoding", "json", h.encoding) || !f.Num(o, "lookahead_s", 0, lookahead))
+      !f.Str(o, "encoding", "json", h.encoding) || !f.Num(o, "lookahead_s", 0, lookahead) ||
+      !f.Num(o, "window_ms", 0, h.window_ms))
     return false;
   h.protocol = int(protocol);
   h.fps = fps;

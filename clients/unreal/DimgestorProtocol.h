@@ -51,6 +51,7 @@ struct Hello {
   int audio_rate = 16000;
   std::vector<std::string> audio_formats;
   double lookahead_s = 0;
+  double window_ms = 0;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
 };
 
 struct Frame {

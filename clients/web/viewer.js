@@ -6,6 +6,8 @@
 //                  ?audio=float32       (microphone wire format; default pcm16)
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/OrbitControls.js';
+import { FramePlayout } from './playout.js';
+import { decodeBinaryFrame } from './protocol.js';
 
 const params = new URLSearchParams(location.search);
 const ENCODING = params.get('encoding') === 'binary' ? 'binary' : 'json';
@@ -15,13 +17,14 @@ const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunk
 
 const $ = (id) => document.getElementById(id);
 const ui = { state: $('state'), frames: $('frames'), fps: $('fps'), latency: $('latency'), rtt: $('rtt'),
-             rtf: $('rtf'), dropped: $('dropped'), clients: $('clients'), talk: $('talk'),
+             rtf: $('rtf'), buffer: $('buffer'), dropped: $('dropped'), clients: $('clients'), talk: $('talk'),
              message: $('message'), url: $('url') };
 
 // Everything a test or the console may want to read.
 const api = window.dimgestor = {
   state: 'connecting', url: null, hello: null, status: null, ended: null, errors: [],
-  framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, gaps: 0, fps: 0, rttMs: null,
+  framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
+  gaps: 0, fps: 0, rttMs: null,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -127,6 +130,20 @@ function applyFrame(f) {
   }
 }
 
+// Frames are shown at their presentation time, not on arrival (they come in bursts): see playout.js.
+const playout = new FramePlayout();
+
+function showPose() {
+  const now = performance.now() / 1000;
+  const pose = playout.sample(now);
+  if (!pose || pose === api.shownFrame || !joints.length) return;
+  applyFrame(pose);
+  api.shownFrame = pose;
+  const newest = playout.queue[playout.queue.length - 1];
+  api.bufferMs = (newest.pts - (now - playout.offset)) * 1000;
+}
+setInterval(showPose, 50);  // keeps the pose current when the tab is hidden and rAF stops
+
 /** World positions of every joint in metres (three.js = BVH space), skeleton order. */
 function jointWorldPositions() {
   figure.updateMatrixWorld(true);
@@ -137,6 +154,7 @@ function jointWorldPositions() {
 const figureCenter = new THREE.Vector3();
 function render() {
   requestAnimationFrame(render);
+  showPose();
   if (!renderer) return;
   if (joints.length) {
     // Follow the figure (root motion can walk it out of view): ease the orbit target onto its centre.
@@ -155,21 +173,6 @@ function render() {
 render();
 
 // ---------------------------------------------------------------- protocol
-/** Decode a DGF1 binary frame: "DGF1" | u32 index | f64 pts | f32[3] root | f32[J*4] wxyz, little-endian. */
-function decodeBinaryFrame(buf) {
-  const dv = new DataView(buf);
-  const magic = String.fromCharCode(...new Uint8Array(buf, 0, Math.min(4, buf.byteLength)));
-  if (magic !== 'DGF1' || buf.byteLength < 28 || (buf.byteLength - 28) % 16 !== 0)
-    throw new Error(`bad binary frame (${buf.byteLength} bytes, magic ${JSON.stringify(magic)})`);
-  const n = (buf.byteLength - 28) / 16;
-  const rotations = new Array(n);
-  for (let j = 0, o = 28; j < n; j++, o += 16)
-    rotations[j] = [dv.getFloat32(o, true), dv.getFloat32(o + 4, true), dv.getFloat32(o + 8, true),
-                    dv.getFloat32(o + 12, true)];
-  return { type: 'frame', index: dv.getUint32(4, true), pts: dv.getFloat64(8, true),
-           root: [dv.getFloat32(16, true), dv.getFloat32(20, true), dv.getFloat32(24, true)], rotations };
-}
-
 let ws = null;
 let mode = 'view';                 // 'view': watch the server's source; 'talk': own session fed by the mic
 let reconnectTimer = null;
@@ -202,6 +205,7 @@ function connect(audio = null) {
   if (ws) { const old = ws; ws = null; old.close(1000, 'reconnect'); }
   mode = audio ? 'talk' : 'view';
   lastIndex = -1;
+  playout.offset = null;  // whatever this connection sends starts a new playout clock
   pingSentAt = null;
   const sock = new WebSocket(api.url);
   sock.binaryType = 'arraybuffer';
@@ -239,6 +243,8 @@ function onMessage(data) {
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
       api.hello = msg;
       try { buildSkeleton(msg.skeleton); } catch (e) { fail(e.message); return; }
+      // Buffer one inference window (frames come in bursts of that length) plus some network jitter.
+      playout.delayS = (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
       break;
@@ -273,7 +279,7 @@ function onFrame(f) {
   const now = performance.now();
   arrivals.push(now);
   while (arrivals.length && arrivals[0] < now - 1000) arrivals.shift();
-  applyFrame(f);
+  playout.push(f, now / 1000);
 }
 
 // ---------------------------------------------------------------- microphone
@@ -377,6 +383,7 @@ setInterval(() => {
   ui.fps.textContent = `${api.fps}` + (api.hello ? ` / ${api.hello.fps}` : '');
   ui.latency.textContent = s.latency_ms !== undefined ? `${fmt(s.latency_ms, 0)} ms` : '-';
   ui.rtt.textContent = api.rttMs !== null ? `${fmt(api.rttMs, 0)} ms` : '-';
+  ui.buffer.textContent = api.bufferMs !== null ? `${fmt(api.bufferMs, 0)} ms` : '-';
   ui.rtf.textContent = fmt(s.rtf, 2);
   ui.dropped.textContent = `${s.dropped ?? '-'} / ${api.gaps}`;
   ui.clients.textContent = s.clients ?? '-';

@@ -1,9 +1,10 @@
 // Test driver: runs UDimgestorComponent (built against tests/stubs) through its public life cycle on frames
 // recorded from a live server: BeginPlay captures the rest pose of a stand-in Mannequin-named mesh whose
 // bones have other axes than the server skeleton (a random rotation per bone, plus an extra "root" bone);
-// the server's messages are fired through the WebSocket events (binary ones in two fragments); each
-// TickComponent poses the mesh. Prints, per frame, each bound bone's component-space location (cm);
+// the server's messages are fired through the WebSocket events (binary ones in two fragments) on a
+// real-time clock, and TickComponent poses the mesh one playout delay after each frame arrived. Prints, per frame, each bound bone's component-space location (cm);
 // tests/test_clients_unreal.py compares them with the server skeleton's forward kinematics.
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -87,19 +88,39 @@ int main(int argc, char** argv) {
   TSharedPtr<IWebSocket> socket = FWebSocketsModule::Get().StubLast;
   socket->StubConnected = true;
   socket->OnConnected().StubBroadcast();
-  for (const auto& pm : messages) {
-    const std::string& bytes = pm.second;
-    if (pm.first.extension() == ".bin") {  // two fragments: the component must join them
-      const size_t half = bytes.size() / 2;
-      socket->OnBinaryMessage().StubBroadcast(bytes.data(), half, false);
-      socket->OnBinaryMessage().StubBroadcast(bytes.data() + half, bytes.size() - half, true);
-    } else {
-      socket->OnMessage().StubBroadcast(Wide(bytes));
-    }
+
+  // A real-time timeline: each frame arrives at its pts and is looked at one playout delay later, when
+  // the component must show exactly that frame (the same delay rule as the component's).
+  const double delay = (hello.window_ms > 0 ? hello.window_ms / 1000.0 : 0.25) + 0.06;
+  struct Event { double time; int kind; size_t message; };  // kind 0: arrival, 1: tick
+  std::vector<Event> events;
+  for (size_t i = 0; i < messages.size(); ++i) {
+    const std::string& bytes = messages[i].second;
     Message m;
     std::string error;
-    const bool is_frame = pm.first.extension() == ".bin" || (ParseMessage(bytes, m, error) && m.type == MessageType::Frame);
-    if (!is_frame) continue;
+    bool ok = messages[i].first.extension() == ".bin"
+                  ? DecodeBinaryFrame(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), m.frame, error)
+                  : (ParseMessage(bytes, m, error) && m.type == MessageType::Frame);
+    if (!ok) { events.push_back({-1.0, 0, i}); continue; }  // hello, status...: before any frame
+    events.push_back({m.frame.pts, 0, i});
+    events.push_back({m.frame.pts + delay, 1, i});
+  }
+  std::stable_sort(events.begin(), events.end(), [](const Event& a, const Event& b) {
+    return a.time < b.time || (a.time == b.time && a.kind < b.kind);
+  });
+  for (const Event& e : events) {
+    FPlatformTime::StubNow() = e.time;
+    const std::string& bytes = messages[e.message].second;
+    if (e.kind == 0) {
+      if (messages[e.message].first.extension() == ".bin") {  // two fragments: the component must join them
+        const size_t half = bytes.size() / 2;
+        socket->OnBinaryMessage().StubBroadcast(bytes.data(), half, false);
+        socket->OnBinaryMessage().StubBroadcast(bytes.data() + half, bytes.size() - half, true);
+      } else {
+        socket->OnMessage().StubBroadcast(Wide(bytes));
+      }
+      continue;
+    }
     component.TickComponent(1.f / 60.f, LEVELTICK_All, nullptr);
     std::string line = "{\"bones\":{";
     bool first = true;

@@ -62,6 +62,11 @@ class FName {
 };
 static const FName NAME_None;
 
+struct FPlatformTime {
+  static double& StubNow() { static double now = 0; return now; }  // the test sets the clock
+  static double Seconds() { return StubNow(); }
+};
+
 struct FChar { static bool IsAlnum(TCHAR c) { return std::iswalnum(c) != 0; } };
 
 class FTCHARToUTF8 {

@@ -1,0 +1,165 @@
+"""The clients' playout buffers (web playout.js, Unity DimgestorPlayout.cs, Unreal DimgestorPlayout.cpp) on
+frames recorded from a live `streamer serve`, arriving in bursts as the server sends them: all three show
+the same poses (parity), the shown time advances smoothly at the display rate instead of jumping a burst at
+a time, and in-between poses are the slerp/lerp of their neighbours."""
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from test_clients_python import REPO, SPEECH_WAV, checkpoint, live_server, record, reference_decode  # noqa: F401
+
+NODE, MCS, MONO, GXX = (shutil.which(x) for x in ("node", "mcs", "mono", "g++"))
+pytestmark = pytest.mark.timeout(180)
+
+DISPLAY_HZ = 60.0
+DELAY_S = 0.26  # what the clients pick for the server's 200 ms window: window + 60 ms
+
+
+@pytest.fixture(scope="module")
+def frames_dir(tmp_path_factory, checkpoint):  # noqa: F811
+    tmp = tmp_path_factory.mktemp("playout_rec")
+    with live_server(tmp, str(SPEECH_WAV), checkpoint, loop=True) as server:
+        files = record(server, tmp / "rec", 48, binary=True)
+    return files[0].parent
+
+
+@pytest.fixture(scope="module")
+def schedule(frames_dir, tmp_path_factory):
+    """Bursts of 4 frames every 200 ms with a little jitter, one 0.5 s stall, and 60 Hz samples."""
+    frames = [m for m in map(reference_decode, sorted(frames_dir.iterdir())) if m["type"] == "frame"]
+    rng = np.random.default_rng(3)
+    lines, events = [f"delay {DELAY_S}"], []
+    jitter = rng.uniform(0, 0.015, size=len(frames) // 4 + 1)
+    for k, f in enumerate(frames):  # a burst's frames arrive together, in order (one TCP stream)
+        burst = k // 4
+        arrival = float(10.0 + 0.2 * (burst + 1) + jitter[burst] + 1e-4 * (k % 4) + (0.5 if burst >= 6 else 0.0))
+        events.append((arrival, 0, f"push {k} {arrival!r}"))
+    t, end = 10.0, events[-1][0] + 0.6
+    while t < end:
+        events.append((t, 1, f"sample {t!r}"))
+        t += 1 / DISPLAY_HZ
+    lines += [e[2] for e in sorted(events)]
+    path = tmp_path_factory.mktemp("playout") / "schedule.txt"
+    path.write_text("\n".join(lines) + "\n")
+    return path, frames
+
+
+def run_js(folder, sched, tmp):
+    if not NODE:
+        pytest.skip("node not installed (Debian: apt-get install nodejs)")
+    return subprocess.run([NODE, str(REPO / "clients/web/tests/playout_check.mjs"), str(folder), str(sched)],
+                          capture_output=True, text=True, timeout=60)
+
+
+_built: dict[str, str] = {}  # compile each driver once per session
+
+
+def run_cs(folder, sched, tmp):
+    if not (MCS and MONO):
+        pytest.skip("mcs/mono not installed (Debian: apt-get install mono-mcs; .ci/run installs it)")
+    if "cs" in _built:
+        return subprocess.run([MONO, _built["cs"], str(folder), str(sched)], capture_output=True, text=True, timeout=60)
+    unity = REPO / "clients/unity"
+    exe = tmp / "PlayoutCheck.exe"
+    r = subprocess.run([MCS, "-langversion:7", "-warnaserror", f"-out:{exe}", *map(str, (
+        unity / "DimgestorProtocol.cs", unity / "DimgestorJson.cs", unity / "DimgestorPlayout.cs",
+        unity / "tests/PlayoutCheck.cs"))], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    _built["cs"] = str(exe)
+    return run_cs(folder, sched, tmp)
+
+
+def run_cpp(folder, sched, tmp):
+    if not GXX:
+        pytest.skip("g++ not installed (Debian: apt-get install g++)")
+    if "cpp" in _built:
+        return subprocess.run([_built["cpp"], str(folder), str(sched)], capture_output=True, text=True, timeout=60)
+    unreal = REPO / "clients/unreal"
+    exe = tmp / "playout_check"
+    r = subprocess.run([GXX, "-std=c++17", "-O1", "-Wall", "-Wextra", "-Werror", "-Wshadow", "-fno-exceptions", "-o",
+                        str(exe), *map(str, (unreal / "tests/playout_check.cpp", unreal / "DimgestorPlayout.cpp",
+                                             unreal / "DimgestorProtocol.cpp", unreal / "DimgestorJson.cpp"))],
+                       capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr
+    _built["cpp"] = str(exe)
+    return run_cpp(folder, sched, tmp)
+
+
+def slerp(a, b, u):
+    a, b = np.asarray(a), np.asarray(b)
+    if a @ b < 0:
+        b = -b
+    th = np.arccos(np.clip(a @ b, -1, 1))
+    r = (1 - u) * a + u * b if th < 1e-3 else (np.sin((1 - u) * th) * a + np.sin(u * th) * b) / np.sin(th)
+    return r / np.linalg.norm(r)
+
+
+@pytest.mark.parametrize("client", ["web", "unity", "unreal"])
+def test_playout_shows_frames_smoothly_at_their_presentation_time(frames_dir, schedule, tmp_path, client):
+    sched, frames = schedule
+    r = {"web": run_js, "unity": run_cs, "unreal": run_cpp}[client](frames_dir, sched, tmp_path)
+    assert r.returncode == 0, r.stderr
+    shown = [json.loads(line) for line in r.stdout.splitlines()]
+    samples = [float(line.split()[1]) for line in sched.read_text().splitlines() if line.startswith("sample")]
+    assert len(shown) == len(samples)
+    first = next(i for i, s in enumerate(shown) if s is not None)
+    assert all(s is not None for s in shown[first:])
+    pts = np.array([s["pts"] for s in shown[first:]])
+    # Shown time never runs backwards, not even when the clock re-anchors after the stall.
+    steps = np.diff(pts)
+    assert (steps >= -1e-9).all(), f"shown time ran backwards: {steps[steps < 0]}"
+    assert int(r.stderr.split("reanchors")[1].split()[0]) >= 1, "the 0.5 s stall should move the playout clock"
+    # Smooth: before the stall, each display refresh moves the pose on by one refresh interval, not by a
+    # 200 ms burst (without the buffer 3 of 4 refreshes would repeat a pose, then jump).
+    p0 = frames[0]["pts"]
+    before_stall = steps[(pts[:-1] > p0) & (pts[1:] < p0 + 1.1)]
+    assert len(before_stall) > 50
+    near_refresh = np.abs(before_stall - 1 / DISPLAY_HZ) < 0.25 / DISPLAY_HZ
+    assert near_refresh.mean() > 0.95, np.round(before_stall * DISPLAY_HZ, 2)
+    # Latency: the first frame is held from its arrival and the motion starts DELAY_S after it arrived.
+    first_arrival = min(float(l.split()[2]) for l in sched.read_text().splitlines() if l.startswith("push"))
+    assert abs(samples[first] - first_arrival) <= 1 / DISPLAY_HZ
+    starts = first + 1 + int(np.argmax(pts[1:] > p0 + 1e-9))
+    assert abs(samples[starts] - (first_arrival + DELAY_S)) <= 1 / DISPLAY_HZ + 1e-9
+    # In-between poses are the slerp / lerp of their neighbours.
+    by_index = {f["index"]: f for f in frames}
+    fps = 1 / (frames[1]["pts"] - frames[0]["pts"])
+    checked = 0
+    for s in shown[first:]:
+        a = by_index[s["index"]]
+        b = by_index.get(s["index"] + 1)
+        u = (s["pts"] - a["pts"]) * fps
+        if b is None or not 0.05 < u < 0.95:
+            continue
+        np.testing.assert_allclose(s["root"], np.asarray(a["root"]) + u * np.subtract(b["root"], a["root"]), atol=1e-6)
+        for j in (0, len(a["rotations"]) // 2, len(a["rotations"]) - 1):
+            np.testing.assert_allclose(s["rotations"][j], slerp(a["rotations"][j], b["rotations"][j], u), atol=1e-6)
+        checked += 1
+    assert checked > 20
+
+
+def test_playout_is_the_same_in_every_client(frames_dir, schedule, tmp_path):
+    sched, _ = schedule
+    outs = {}
+    for name, run in (("web", run_js), ("unity", run_cs), ("unreal", run_cpp)):
+        try:
+            r = run(frames_dir, sched, tmp_path)
+        except pytest.skip.Exception:
+            continue
+        assert r.returncode == 0, r.stderr
+        outs[name] = [json.loads(line) for line in r.stdout.splitlines()]
+    if len(outs) < 2:
+        pytest.skip(f"needs two of node, mcs/mono, g++ (have: {sorted(outs)})")
+    names = sorted(outs)
+    for other in names[1:]:
+        for x, y in zip(outs[names[0]], outs[other]):
+            assert (x is None) == (y is None)
+            if x is not None:
+                assert x["index"] == y["index"]
+                np.testing.assert_allclose(x["pts"], y["pts"], atol=1e-9)
+                np.testing.assert_allclose(x["root"], y["root"], atol=1e-9)
+                np.testing.assert_allclose(x["rotations"], y["rotations"], atol=1e-9)
