@@ -294,7 +294,9 @@ def main(argv=None) -> None:
             if (r["preset"], r["steps"], r["window_ms"]) == (h["preset"], h["steps"], h["window_ms"]):
                 r["rss_mb_after_1h"] = h["rss_mb_after_1h"] if h["audio_s"] >= 3600 else None
     if "streams" in args.sections:
-        result["max_realtime_streams"] = {p: max_streams(args, p) for p in presets}
+        trials = {p: max_streams(args, p) for p in presets}
+        result["max_realtime_streams"] = {p: t["max_realtime_streams"] for p, t in trials.items()}
+        result["streams_trials"] = trials
     if "seams" in args.sections:
         result["seams"] = seams(args)
     result.update({
