@@ -89,6 +89,7 @@ class WsServer:
         self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
         self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
         self.clients: set[Client] = set()
+        self.broadcast_ended = False
         self._server = None
         self._status_task: asyncio.Task | None = None
 
@@ -138,6 +139,7 @@ class WsServer:
                 c.put(m, "frame")
 
     def broadcast_end(self, frames: int) -> None:
+        self.broadcast_ended = True  # `end` is the last message its followers get
         for c in self.clients:
             if not c.own:
                 c.put(P.end(frames))
@@ -232,6 +234,8 @@ class WsServer:
         while True:
             await asyncio.sleep(self.status_every)
             for c in list(self.clients):
+                if self.broadcast_ended and not c.own:
+                    continue
                 stats = c.session.stats if c.session is not None else self.broadcast_stats
                 lat, rtf = (stats.latency_ms, stats.rtf) if stats is not None else (0.0, 0.0)
                 extra = {"session": "own" if c.own else "broadcast"}
