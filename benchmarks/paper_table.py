@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, describe_device, load_average, peak_rss_mb, rss_mb, test_audio, utc_now, write_json
+from common import (RESULTS, code_version, describe_device, load_average, peak_rss_mb, rss_mb, test_audio, utc_now,
+                    write_json)
 
 MODELS = ("mamba2_6", "transformer_6", "transformer_12")
 
@@ -210,6 +211,7 @@ def main(argv=None) -> None:
                    "attention": args.attention, "repeats": args.repeats, "dtype": "float32"},
         "shared_machine": {"note": args.note, "load_avg_before": load_before, "load_avg_after": load_average()},
         "measured_at": utc_now(), "wall_s": round(time.time() - started, 1),
+        "code_version": code_version(),
     }
     base = result["models"]["mamba2_6"]
     result["ratios_vs_mamba2_6"] = {

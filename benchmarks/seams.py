@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, describe_device, test_audio, utc_now, write_json
+from common import RESULTS, code_version, describe_device, test_audio, utc_now, write_json
 
 
 def load_model(checkpoint: str | None, preset: str):
@@ -127,7 +127,8 @@ def main(argv=None) -> dict:
         print(f"window {r['window_ms']:4d} ms: jerk at boundaries / inside = {r['ratio']:.3f} "
               f"(streamed vs offline max |diff| {r['max_abs_diff_streamed_vs_offline']:.2e})")
     result = {"device": describe_device("cpu"), "model": source, "audio": args.audio or "synthetic",
-              "rows": rows, "measured_at": utc_now(), "wall_s": round(time.time() - started, 1)}
+              "rows": rows, "measured_at": utc_now(), "code_version": code_version(),
+              "wall_s": round(time.time() - started, 1)}
     write_json(args.out, result)
     return result
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import (RESULTS, describe_device, load_average, percentile_ms, rss_mb, test_audio, utc_now,
+from common import (RESULTS, code_version, describe_device, load_average, percentile_ms, rss_mb, test_audio, utc_now,
                     write_json)
 
 SECTIONS = ("sweep", "hour", "streams", "seams")
@@ -302,6 +302,7 @@ def main(argv=None) -> None:
     result.update({
         "device": describe_device(args.device), "threads": args.threads, "note": args.note,
         "load_avg_before": load_before, "load_avg_after": load_average(), "measured_at": utc_now(),
+        "code_version": code_version(),
         "wall_s_last_run": round(time.time() - started, 1), "sections_last_run": args.sections,
         "definitions": {
             "rtf": "compute time / audio time, audio pushed as fast as possible",
