@@ -306,7 +306,9 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, chec
                 frames += line.startswith("frame")
             assert frames >= 10
             proc.send_signal(signal.SIGINT)  # first Ctrl-C: audio_end, then wait for the last frames
-            out, err = proc.communicate(timeout=60)
+            # Keep reading through the same buffered pipe (communicate() would skip what readline buffered).
+            out, err = proc.stdout.read(), proc.stderr.read()
+            proc.wait(60)
         finally:
             if proc.poll() is None:
                 proc.kill()
