@@ -64,8 +64,8 @@ const figure = new THREE.Group();  // holds the skeleton in file units, scaled t
 scene.add(figure);
 let joints = [];                   // one Object3D per joint, in skeleton order
 let roots = [];                    // indices of joints whose parent is -1
-const boneMaterial = new THREE.MeshStandardMaterial({ color: 0xd9b38c, roughness: 0.6 });
-const jointMaterial = new THREE.MeshStandardMaterial({ color: 0x5b8def, roughness: 0.4 });
+const boneMaterial = new THREE.MeshLambertMaterial({ color: 0xd9b38c });
+const jointMaterial = new THREE.MeshLambertMaterial({ color: 0x5b8def });
 
 function buildSkeleton(sk) {
   const { joints: names, parents, offsets } = sk;
@@ -132,6 +132,7 @@ function applyFrame(f) {
 
 // Frames are shown at their presentation time, not on arrival (they come in bursts): see playout.js.
 const playout = new FramePlayout();
+api.playout = playout;
 
 function showPose() {
   const now = performance.now() / 1000;
