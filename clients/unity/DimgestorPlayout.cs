@@ -58,7 +58,7 @@ namespace Dimgestor
             double t = now - Offset.Value;
             while (queue.Count > 1 && queue[1].Pts <= t) queue.RemoveAt(0);  // keep the last frame at or before t
             Frame a = queue[0];
-            if (queue.Count == 1 || t <= a.Pts) return a;
+            if (queue.Count == 1 || t <= a.Pts || queue[1].Rotations.Length != a.Rotations.Length) return a;
             Frame b = queue[1];
             double u = (t - a.Pts) / (b.Pts - a.Pts);
             var r = new Frame { Type = "frame", Index = a.Index, Pts = t, Root = a.Root + (b.Root - a.Root) * u,

@@ -37,7 +37,7 @@ bool FramePlayout::Sample(double now, Frame& out) {
   const double t = now - offset;
   while (queue_.size() > 1 && queue_[1].pts <= t) queue_.pop_front();  // keep the last frame at or before t
   const Frame& a = queue_[0];
-  if (queue_.size() == 1 || t <= a.pts) { out = a; return true; }
+  if (queue_.size() == 1 || t <= a.pts || queue_[1].rotations.size() != a.rotations.size()) { out = a; return true; }
   const Frame& b = queue_[1];
   const double u = (t - a.pts) / (b.pts - a.pts);
   out.index = a.index;
@@ -45,7 +45,7 @@ bool FramePlayout::Sample(double now, Frame& out) {
   out.root = Vec3{a.root.x + (b.root.x - a.root.x) * u, a.root.y + (b.root.y - a.root.y) * u,
                   a.root.z + (b.root.z - a.root.z) * u};
   out.rotations.resize(a.rotations.size());
-  for (size_t j = 0; j < a.rotations.size() && j < b.rotations.size(); ++j)
+  for (size_t j = 0; j < a.rotations.size(); ++j)
     out.rotations[j] = Slerp(a.rotations[j], b.rotations[j], u);
   return true;
 }

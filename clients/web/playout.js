@@ -41,8 +41,10 @@ export class FramePlayout {
     const t = now - this.offset;
     while (q.length > 1 && q[1].pts <= t) q.shift();  // keep the last frame at or before t
     const a = q[0];
-    if (q.length === 1 || t <= a.pts) return { pts: a.pts, index: a.index, root: a.root, rotations: a.rotations };
     const b = q[1];
+    if (!b || t <= a.pts || b.rotations.length !== a.rotations.length) {
+      return { pts: a.pts, index: a.index, root: a.root, rotations: a.rotations };  // hold
+    }
     const u = (t - a.pts) / (b.pts - a.pts);
     return {
       pts: t, index: a.index,
