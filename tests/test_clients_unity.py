@@ -1,6 +1,7 @@
 """The Unity client's decoder (clients/unity/DimgestorProtocol.cs) compiled with mcs, run with mono on
 messages recorded from a live `streamer serve` (JSON and binary), gives back what the server sent; the
-MonoBehaviour compiles against a stub of the UnityEngine types it uses."""
+MonoBehaviour, built against stand-ins of the UnityEngine types it uses, retargets onto an avatar with other
+bone axes like the server's FK, and really connects to a live server, talks and gestures."""
 
 import json
 import shutil
@@ -79,7 +80,8 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
     the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
     exe = tmp_path / "RetargetCheck.exe"
     mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorPlayout.cs",
-        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "RetargetCheck.cs")
+        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "StubAvatar.cs",
+        UNITY / "tests" / "RetargetCheck.cs")
     folder = recordings["binary"][0].parent
     r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -116,6 +118,25 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
                                    (pos[0] - root0) * scale, atol=2e-4, err_msg=f"hips, frame {frame['index']}")
     moved = max(np.abs(np.asarray(out[-1]["bones"][b]) - np.asarray(out[0]["bones"][b])).max() for b in joint_of)
     assert moved > 1e-3, "the avatar did not move"
+
+
+def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint):  # noqa: F811
+    """DimgestorClient run as Unity runs it (OnEnable, LateUpdate at 60 Hz, SendAudio/EndAudio from another
+    thread) with Mono's ClientWebSocket against a live server: its own audio comes back as gestures, shown
+    smoothly (pose changes on most display ticks, not once per 200 ms burst)."""
+    exe = tmp_path / "LiveCheck.exe"
+    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
+                                   "DimgestorClient.cs", "tests/UnityEngineStubs.cs", "tests/StubAvatar.cs",
+                                   "tests/LiveCheck.cs")))
+    seconds = 4
+    with live_server(tmp_path, "ws", checkpoint) as server:
+        r = subprocess.run([MONO, str(exe), server.ws_url, str(SPEECH_WAV), str(seconds)], capture_output=True,
+                           text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["state"] == "open" and out["sent"] and out["error"] == "", out
+    assert out["frames"] >= seconds * 20 - 2, out
+    assert out["moved"] > 1e-3 and out["changed"] > 1.5 * out["frames"], out
 
 
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
