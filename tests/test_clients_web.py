@@ -174,12 +174,13 @@ def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast
         browser.close()
 
 
-def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, checkpoint):  # noqa: F811
+@pytest.mark.parametrize("audio", ["pcm16", "float32"])
+def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, checkpoint, audio):  # noqa: F811
     # With a token: the page learns from /config.json that one is needed and takes it from ?token=.
     with live_server(tmp_path, "ws", checkpoint, http=True, extra=("--token", "t0k3n")) as server:
         config = json.load(urllib.request.urlopen(server.http_url + "config.json", timeout=10))
         assert config["ws_url"] == server.ws_url and config["token_required"] is True
-        browser = Browser(tmp_path, server.http_url + "?token=t0k3n", (
+        browser = Browser(tmp_path, server.http_url + f"?token=t0k3n&audio={audio}", (
             "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
             f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
         try:
@@ -193,7 +194,8 @@ def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, che
             assert moving_joints(browser) > 1e-3, "the avatar did not gesture while we talked"
             rate = browser.eval("window.dimgestor.audioRate")
             assert 8000 <= rate <= 192000
-            assert_figure_drawn(browser.screenshot(tmp_path / "web_talk.png"))
+            assert browser.eval("document.getElementById('message').textContent") == f"talking: {rate} Hz {audio}"
+            assert_figure_drawn(browser.screenshot(tmp_path / f"web_talk_{audio}.png"))
             frames = browser.eval("window.dimgestor.framesReceived")
             browser.eval("document.getElementById('talk').click()", user_gesture=True)  # Stop -> audio_end
             ended = browser.wait_for("window.dimgestor.ended", 60, "end of our session")
