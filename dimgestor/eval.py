@@ -170,6 +170,9 @@ def run(args: argparse.Namespace) -> dict:
     if valid.spec.dim != bundle.model.config.motion_dim:
         raise ValueError(f"{data}: the data has {valid.spec.dim} feature columns, the checkpoint's model "
                          f"{bundle.model.config.motion_dim}; evaluate on data with the checkpoint's skeleton")
+    if valid.window < 34:
+        raise ValueError(f"--window-s {args.window_s} gives {valid.window} frames; feature-space FGD needs "
+                         f"windows of at least 34 frames ({34 / valid.fps:g} s)")
     print(valid.summary())
     ae_path = Path(args.fgd_model) if args.fgd_model else default_ae_path(data, valid.spec)
     ae = fgd_autoencoder(train, ae_path, args.fgd_steps)
