@@ -86,6 +86,8 @@ class AdaLNAttentionBlock(nn.Module):
 class AdaLNTransformer(DiMGestor):
     """DiM-Gestor with its AdaLN Mamba-2 blocks replaced by `n_blocks` AdaLN attention blocks."""
 
+    streams = False  # attention over the whole sequence: offline generation only
+
     def __init__(self, config: ModelConfig, n_blocks: int = 6, n_heads: int | None = None, impl: str = "sdpa"):
         config = config.model_copy(update={"n_blocks": n_blocks})
         super().__init__(config)

@@ -164,7 +164,8 @@ def run(args: argparse.Namespace) -> dict:
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
     data = Path(args.data)
-    common = dict(spec=bundle.feature_spec, window_s=args.window_s, valid_fraction=args.valid_fraction)
+    common = dict(spec=bundle.feature_spec, window_s=args.window_s, valid_fraction=args.valid_fraction,
+                  valid_seconds=getattr(args, "valid_seconds", None))
     valid = GestureDataset(data, split="valid", **common)
     train = GestureDataset(data, split="train", **common)
     if valid.spec.dim != bundle.model.config.motion_dim:
@@ -219,6 +220,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--window-s", type=float, default=4.0, help="length of the scored windows (s)")
     p.add_argument("--valid-fraction", type=float, default=0.15,
                    help="held-out tail of each clip when the folder has no split file")
+    p.add_argument("--valid-seconds", type=float, default=None,
+                   help="held-out tail of each clip in seconds (overrides --valid-fraction)")
     p.add_argument("--max-windows", type=int, default=None, help="score at most this many valid windows")
     p.add_argument("--fgd-model", default=None,
                    help="folder of the FGD autoencoder: loaded if present, else trained on the train split and saved "

@@ -54,6 +54,9 @@ class GestureStream:
     """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
 
     def __init__(self, model: DiMGestor, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0):
+        if not getattr(model, "streams", True):
+            raise ValueError(f"{type(model).__name__} cannot stream: it carries no state between windows "
+                             "(use generate_offline on the whole recording)")
         self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps)

@@ -45,11 +45,13 @@ class TrainOptions:
     warmup: int = 200  # linear LR warm-up steps (Adam on a fresh model)
     weight_decay: float = 0.0
     grad_clip: float = 1.0
+    vel_weight: float = 0.0  # weight of the x0 velocity loss (0 = the paper's noise MSE only)
     ema: float = 0.999  # EMA decay of the saved weights
     window_s: float = 10.0
     hop_s: float | None = None  # default: a quarter window (overlapping windows are cheap data)
     mirror: bool = False  # left/right mirrored copies of every window
     valid_fraction: float = 0.15
+    valid_seconds: float | None = None  # hold out the last S seconds of every clip instead of a fraction
     ckpt_every: int = 1000
     valid_every: int = 250
     keep: int = 3  # checkpoints kept in the run folder (oldest removed)
@@ -63,12 +65,12 @@ class TrainOptions:
 class Objective(nn.Module):
     """The training loss as a module, so DDP sees one forward that uses every trained parameter."""
 
-    def __init__(self, model: DiMGestor, diffusion: Diffusion):
+    def __init__(self, model: DiMGestor, diffusion: Diffusion, vel_weight: float = 0.0):
         super().__init__()
-        self.model, self.diffusion = model, diffusion
+        self.model, self.diffusion, self.vel_weight = model, diffusion, vel_weight
 
     def forward(self, x0, feats, t, noise):
-        return self.diffusion.training_loss(self.model, x0, feats, t, noise)
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise, self.vel_weight)
 
 
 class WindowBank:
@@ -161,7 +163,8 @@ def train(opts: TrainOptions) -> Path:
         config = get_preset(opts.preset, **(opts.overrides or {}))
     spec = FeatureSpec(fps=config.fps)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
-                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction)
+                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction,
+                 valid_seconds=opts.valid_seconds)
     train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, **ds_kw)
     valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
     if resume_from is None:
@@ -196,7 +199,7 @@ def train(opts: TrainOptions) -> Path:
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
                                  seed=opts.seed, drop_last=False)
-    objective = Objective(model, diffusion)
+    objective = Objective(model, diffusion, opts.vel_weight)
     if world > 1:
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device] if device.type == "cuda" else None)
     if main:
@@ -302,11 +305,17 @@ def register(subparsers) -> None:
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--window-s", type=float, default=d.window_s, help="training window length in seconds")
     p.add_argument("--hop-s", type=float, default=None, help="window hop (default: a quarter window)")
+    p.add_argument("--valid-fraction", type=float, default=d.valid_fraction,
+                   help="held-out tail of every clip, as a fraction (without a split file)")
+    p.add_argument("--valid-seconds", type=float, default=None,
+                   help="held-out tail of every clip in seconds (overrides --valid-fraction)")
     p.add_argument("--mirror", action="store_true", help="add left/right mirrored windows")
     p.add_argument("--ckpt-every", type=int, default=d.ckpt_every)
     p.add_argument("--valid-every", type=int, default=d.valid_every)
     p.add_argument("--keep", type=int, default=d.keep, help="checkpoints to keep (0 = all)")
     p.add_argument("--ema", type=float, default=d.ema)
+    p.add_argument("--vel-weight", type=float, default=d.vel_weight,
+                   help="weight of a velocity loss on the predicted x0 (0 = the paper's loss; >0 damps jitter)")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
@@ -321,16 +330,17 @@ def _run(args) -> int:
     for name in ("max_steps", "batch_size", "ckpt_every", "valid_every"):
         if getattr(args, name) <= 0:
             raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
-    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1:
-        raise ValueError("--lr and --window-s must be positive and --ema in [0, 1)")
+    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or args.vel_weight < 0:
+        raise ValueError("--lr and --window-s must be positive, --ema in [0, 1) and --vel-weight >= 0")
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     opts = TrainOptions(data=args.data, out=args.out, preset=args.preset, overrides=_parse_set(args.set),
                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr, window_s=args.window_s,
-                        hop_s=args.hop_s, mirror=args.mirror, ckpt_every=args.ckpt_every,
-                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, resume=args.resume,
+                        hop_s=args.hop_s, valid_fraction=args.valid_fraction,
+                        valid_seconds=args.valid_seconds, mirror=args.mirror, ckpt_every=args.ckpt_every,
+                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight, resume=args.resume,
                         seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
     last = train(opts)
     if int(os.environ.get("RANK", "0")) == 0:

@@ -146,3 +146,10 @@ def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
     assert result["hour_run"]["audio_s"] == 20 and len(result["hour_run"]["rss_trace_mb"]) == 0
     assert result["max_realtime_streams"]["tiny"] in (0, 1) and result["streams_trials"]["tiny"]["trials"]
     assert out.with_suffix(".png").is_file()
+
+
+def test_the_transformer_baseline_refuses_to_stream():
+    # it carries no state, so a stream would silently restart every window
+    from dimgestor.stream import GestureStream
+    with pytest.raises(ValueError, match="cannot stream"):
+        GestureStream(AdaLNTransformer(get_preset("tiny"), n_blocks=1))

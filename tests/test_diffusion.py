@@ -92,3 +92,36 @@ def test_training_loss_is_mse_on_the_target():
     loss = d.training_loss(m, x0, feats, t, noise)
     # at init the decoder is zero, so the loss is the mean square of the target
     assert math.isclose(loss.item(), d.target(x0, t, noise).pow(2).mean().item(), rel_tol=1e-5)
+
+
+class _Oracle:
+    """Stands in for the network: outputs the exact training target plus a chosen error."""
+
+    def __init__(self, target, error):
+        self.target, self.error = target, error
+
+    def condition(self, feats):
+        return torch.zeros(feats.shape[0], 64, 4), None
+
+    def __call__(self, x_t, t, cond):
+        return self.target + self.error, None
+
+
+@pytest.mark.parametrize("prediction", ["eps", "v"])
+def test_velocity_loss_penalises_jitter_not_offsets(prediction):
+    d = Diffusion(get_preset("tiny", prediction=prediction))
+    g = torch.Generator().manual_seed(0)
+    x0, noise = torch.randn(3, 10, 5, generator=g), torch.randn(3, 10, 5, generator=g)
+    t, feats = torch.tensor([5, 100, 300]), torch.zeros(3, 1, 1)
+    target, c, w = d.target(x0, t, noise), 0.1, 2.0
+    exact = d.training_loss(_Oracle(target, 0.0), x0, feats, t, noise, vel_weight=w)
+    assert exact.item() == pytest.approx(0.0, abs=1e-10)
+    offset = d.training_loss(_Oracle(target, c), x0, feats, t, noise, vel_weight=w)
+    assert offset.item() == pytest.approx(c * c, rel=1e-5)  # a constant error moves no frame against the next
+    sign = (-1.0) ** torch.arange(10)[None, :, None]
+    jitter = d.training_loss(_Oracle(target, c * sign), x0, feats, t, noise, vel_weight=w)
+    a = d.alphas_cumprod[t].float()
+    # error e on the output is an x0 error of -sqrt(1-a) e (v) or -sqrt((1-a)/a) e (eps, whose term is weighted by a)
+    per_sample = 4 * c * c * (1 - a)
+    assert jitter.item() == pytest.approx(c * c + w * per_sample.mean().item(), rel=1e-4)
+    assert d.training_loss(_Oracle(target, c * sign), x0, feats, t, noise).item() == pytest.approx(c * c, rel=1e-5)
