@@ -66,13 +66,14 @@ class Bundle:
     def denormalize(self, f: np.ndarray) -> np.ndarray:
         return (f * self.std + self.mean).astype(np.float32)
 
-    def stream(self, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0) -> GestureStream:
-        return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta)
+    def stream(self, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
+               smoothing="config") -> GestureStream:
+        return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
 
     def generate(self, audio: np.ndarray, steps: int = 8, seed: int = 0, sampler: str = "ddim",
-                 eta: float = 0.0) -> np.ndarray:
+                 eta: float = 0.0, smoothing="config") -> np.ndarray:
         """Offline generation: 16 kHz mono audio -> (T, D) denormalized motion features."""
-        return self.denormalize(generate_offline(self.model, audio, steps, seed, sampler, eta))
+        return self.denormalize(generate_offline(self.model, audio, steps, seed, sampler, eta, smoothing))
 
 
 def save_checkpoint(folder: str | Path, model: DiMGestor, feature_spec: FeatureSpec, skeleton: Skeleton,
@@ -177,8 +178,16 @@ def load_checkpoint(path: str | Path | None = None, device: str | torch.device =
     return Bundle(model.to(device).eval(), config, spec, skeleton, mean, std, meta.get("info", {}), folder)
 
 
-def export_checkpoint(src: str | Path | None, dst: str | Path) -> Path:
-    """Copy a checkpoint's inference files (no train_state.pt) to `dst`, e.g. dimgestor/default_model/."""
+def export_checkpoint(src: str | Path | None, dst: str | Path, **inference) -> Path:
+    """Copy a checkpoint's inference files (no train_state.pt) to `dst`, e.g. dimgestor/default_model/.
+
+    `inference` sets inference-only config fields (smooth_hz, smooth_beta) in the exported config.
+    """
+    allowed = {"smooth_hz", "smooth_beta"}
+    if set(inference) - allowed:
+        raise ValueError(f"export can only set {sorted(allowed)}, got {sorted(set(inference) - allowed)}")
     bundle = load_checkpoint(src)  # validates before anything is written
+    if inference:
+        bundle.model.config = bundle.model.config.model_copy(update=inference)
     return save_checkpoint(dst, bundle.model, bundle.feature_spec, bundle.skeleton, bundle.mean, bundle.std,
                            info={**bundle.info, "exported_from": str(bundle.path)})

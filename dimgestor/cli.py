@@ -66,7 +66,12 @@ def _info(args) -> int:
 
 def _export(args) -> int:
     from .checkpoint import export_checkpoint
-    print(f"exported {export_checkpoint(args.checkpoint, args.out)}")
+    inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta)) if v is not None}
+    if inference.get("smooth_hz", 1) < 0 or inference.get("smooth_beta", 0) < 0:
+        raise ValueError("--smooth and --smooth-beta must be >= 0")
+    if inference.get("smooth_hz") == 0:
+        inference["smooth_hz"] = None
+    print(f"exported {export_checkpoint(args.checkpoint, args.out, **inference)}")
     return 0
 
 
@@ -86,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
                                       "dimgestor/default_model/")
     p.add_argument("--checkpoint", required=True, help="checkpoint folder or run folder (its latest)")
     p.add_argument("--out", required=True, help="destination folder (replaced)")
+    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                   help="set the output filter's cutoff that generate/serve use by default (0 = off)")
+    p.add_argument("--smooth-beta", type=float, default=None, help="set the output filter's speed coefficient")
     p.set_defaults(func=_export)
 
     from . import eval as evaluation

@@ -16,9 +16,9 @@ __all__ = ["generate_motion", "register"]
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int = 8, seed: int = 0, sampler: str = "ddim",
-                    eta: float = 0.0) -> BvhMotion:
+                    eta: float = 0.0, smoothing="config") -> BvhMotion:
     """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
-    features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta)
+    features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec)
 
 
@@ -33,6 +33,8 @@ def register(subparsers) -> None:
     p.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
+    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                   help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     p.add_argument("--device", default="cpu", help="cpu, cuda, ...")
     p.set_defaults(func=_run)
 
@@ -42,6 +44,8 @@ def _run(args) -> int:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.eta < 0:
         raise ValueError(f"--eta must be >= 0, got {args.eta}")
+    if args.smooth is not None and args.smooth < 0:
+        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {args.smooth}")
     out = Path(args.out)
     if out.suffix.lower() != ".bvh":
         raise ValueError(f"--out {out}: expected a .bvh path")
@@ -53,7 +57,8 @@ def _run(args) -> int:
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)
-    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta)
+    smoothing = "config" if args.smooth is None else (args.smooth or None)
+    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing)
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
           f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")

@@ -13,8 +13,9 @@ import torch
 
 from .diffusion import Diffusion, frame_noise
 from .model import DenoiserState, DiMGestor
+from .smoothing import OneEuroFilter
 
-__all__ = ["GestureStream", "generate_offline", "sample_frames"]
+__all__ = ["GestureStream", "generate_offline", "make_smoother", "sample_frames"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -37,6 +38,23 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
     return x[0], new_states
 
 
+def make_smoother(model: DiMGestor, smoothing="config") -> OneEuroFilter | None:
+    """The output filter: "config" (the model config's smooth_hz/smooth_beta), None or 0 (off), a cutoff
+    in Hz (with the config's beta), or a (cutoff_hz, beta) pair."""
+    c = model.config
+    if isinstance(smoothing, str):
+        if smoothing != "config":
+            raise ValueError(f"smoothing must be 'config', None, a cutoff in Hz or (cutoff_hz, beta), got {smoothing!r}")
+        hz, beta = c.smooth_hz, c.smooth_beta
+    elif smoothing is None:
+        return None
+    elif isinstance(smoothing, (tuple, list)):
+        hz, beta = smoothing
+    else:
+        hz, beta = float(smoothing), c.smooth_beta
+    return OneEuroFilter(c.fps, hz, beta) if hz else None
+
+
 def _check_audio(audio) -> np.ndarray:
     a = np.asarray(audio)
     if a.ndim != 1:
@@ -53,13 +71,15 @@ def _device(model: torch.nn.Module) -> torch.device:
 class GestureStream:
     """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
 
-    def __init__(self, model: DiMGestor, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0):
+    def __init__(self, model: DiMGestor, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
+                 smoothing="config"):
         if not getattr(model, "streams", True):
             raise ValueError(f"{type(model).__name__} cannot stream: it carries no state between windows "
                              "(use generate_offline on the whole recording)")
         self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps)
+        self.smoother = make_smoother(model, smoothing)
         dev = _device(model)
         self._fe = model.frontend.init_state(1, dev)
         self._ex = model.extractor.init_state(1, dev)
@@ -84,7 +104,8 @@ class GestureStream:
             frames, self._steps = sample_frames(m, self.diffusion, cond, self.frames_out, self._steps,
                                                 self.pairs, self.seed, self.sampler, self.eta)
         self.frames_out += frames.shape[0]
-        return frames.float().cpu().numpy()
+        out = frames.float().cpu().numpy()
+        return self.smoother(out) if self.smoother is not None else out
 
     def push(self, samples) -> np.ndarray:
         """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
@@ -109,7 +130,7 @@ class GestureStream:
 
 
 def generate_offline(model: DiMGestor, audio, steps: int = 8, seed: int = 0, sampler: str = "ddim",
-                     eta: float = 0.0) -> np.ndarray:
+                     eta: float = 0.0, smoothing="config") -> np.ndarray:
     """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000."""
     audio = _check_audio(audio)
     c = model.config
@@ -125,4 +146,6 @@ def generate_offline(model: DiMGestor, audio, steps: int = 8, seed: int = 0, sam
         feats, _ = model.frontend(x, model.frontend.init_state(1, dev))
         cond, _ = model.condition(feats)
         frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta)
-    return frames.float().cpu().numpy()
+    out = frames.float().cpu().numpy()
+    smoother = make_smoother(model, smoothing)
+    return smoother(out) if smoother is not None else out

@@ -49,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
     s.add_argument("--steps", type=int, default=8, help="DDIM denoising steps K (fewer is faster)")
     s.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
+    s.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                   help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     s.add_argument("--window-ms", type=int, default=200,
                    help="audio gathered per inference call (10..5000 ms): smaller = lower latency, more overhead")
     s.add_argument("--fast", action="store_true",

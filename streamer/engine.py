@@ -100,10 +100,10 @@ class Session:
         self.stats = Stats()
 
     @classmethod
-    def from_bundle(cls, bundle, steps: int = 8, seed: int = 0, **kw) -> "Session":
+    def from_bundle(cls, bundle, steps: int = 8, seed: int = 0, smoothing="config", **kw) -> "Session":
         from dimgestor.features import PoseDecoder
 
-        return cls(bundle.stream(steps=steps, seed=seed), PoseDecoder(bundle.skeleton, bundle.feature_spec),
+        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing), PoseDecoder(bundle.skeleton, bundle.feature_spec),
                    bundle.denormalize, bundle.feature_spec.fps, **kw)
 
     @property

@@ -77,6 +77,10 @@ async def serve(args) -> int:
         raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
     if args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
+    smooth = getattr(args, "smooth", None)
+    if smooth is not None and smooth < 0:
+        raise ServeError(f"--smooth must be >= 0 Hz (0 = off), got {smooth}")
+    smoothing = "config" if smooth is None else (smooth or None)
     if args.no_ws and args.source == "ws":
         raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
     if args.record and not Path(args.record).resolve().parent.is_dir():
@@ -96,8 +100,8 @@ async def serve(args) -> int:
     executor = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
 
     def make_session(name: str = "client") -> Session:
-        return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, window_ms=args.window_ms,
-                                   executor=executor, name=name)
+        return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing,
+                                   window_ms=args.window_ms, executor=executor, name=name)
 
     main_session = make_session("source") if source is not None else None
     lookahead = (main_session or make_session()).lookahead_s
@@ -140,7 +144,9 @@ async def serve(args) -> int:
 
     what = {"mic": f"microphone {getattr(source, 'name', '')!r}", "ws": "WebSocket clients' audio only",
             "demo": f"demo clip {Path(getattr(source, 'path', '')).name}"}.get(args.source, f"file {args.source}")
-    print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, "
+    smoother = (main_session or make_session()).stream.smoother
+    smooth_txt = f"smoothing {smoother.min_cutoff_hz:g} Hz" if smoother else "no smoothing"
+    print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, {smooth_txt}, "
           f"{fps} fps, window {args.window_ms} ms, lookahead {lookahead * 1000:.0f} ms; source: {what}", file=sys.stderr)
     if ws:
         print(f"streamer: WebSocket  {ws.url}{'?token=...' if args.token else ''}  (protocol v1, docs/protocol.md)",

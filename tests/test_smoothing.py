@@ -1,0 +1,77 @@
+"""The One Euro output filter: known responses, state carried across calls, streaming still equals offline."""
+import math
+
+import numpy as np
+import pytest
+
+from dimgestor.smoothing import OneEuroFilter
+from dimgestor.stream import GestureStream, generate_offline
+from test_stream import _audio, _model, _stream
+
+
+def test_constant_signal_passes_unchanged_and_first_frame_is_kept():
+    x = np.tile(np.array([[1.5, -2.0, 0.0]], np.float32), (30, 1))
+    assert np.array_equal(OneEuroFilter(20, 3.0, 0.5)(x), x)
+
+
+def test_beta_zero_is_the_first_order_low_pass_with_the_documented_time_constant():
+    fps, fc = 20.0, 2.0
+    f = OneEuroFilter(fps, fc)
+    step = np.ones((200, 1))
+    step[0] = 0.0
+    y = f(step)[:, 0]
+    alpha = 1 / (1 + fps / (2 * math.pi * fc))
+    expected = 1 - (1 - alpha) ** np.arange(200)  # y_n = y_{n-1} + alpha (1 - y_{n-1}), y_0 = 0
+    assert np.allclose(y, expected, atol=1e-12)
+    # ~63 % of a step after about one time constant (discretisation makes it slightly later)
+    n63 = int(np.argmax(y >= 1 - math.exp(-1)))
+    assert abs(n63 / fps - f.delay_s) <= 1.5 / fps
+
+
+def test_beta_lets_fast_motion_through_with_less_lag():
+    t = np.arange(100) / 20.0
+    ramp = (t * 5.0)[:, None]  # fast, steady motion
+    slow, adaptive = OneEuroFilter(20, 1.0, 0.0)(ramp), OneEuroFilter(20, 1.0, 1.0)(ramp)
+    lag = lambda y: (ramp - y)[-20:].mean()
+    assert lag(adaptive) < 0.5 * lag(slow)
+
+
+def test_jitter_is_damped():
+    rng = np.random.default_rng(0)
+    smooth = np.sin(np.arange(400) / 20.0 * 2 * math.pi * 0.5)[:, None]
+    noisy = smooth + 0.2 * rng.standard_normal((400, 1))
+    y = OneEuroFilter(20, 3.0)(noisy)
+    jerk = lambda s: np.abs(np.diff(s, 3, axis=0)).mean()
+    assert jerk(y) < 0.5 * jerk(noisy)
+    assert np.abs(y - smooth)[40:].mean() < np.abs(noisy - smooth)[40:].mean()
+
+
+def test_calls_in_pieces_equal_one_call():
+    x = np.random.default_rng(1).standard_normal((57, 4)).astype(np.float32)
+    whole = OneEuroFilter(20, 2.5, 0.3)(x)
+    f = OneEuroFilter(20, 2.5, 0.3)
+    parts = np.concatenate([f(x[:1]), f(x[1:1]), f(x[1:20]), f(x[20:])])
+    assert np.array_equal(parts, whole)
+
+
+def test_bad_settings_are_clear_errors():
+    with pytest.raises(ValueError, match="min_cutoff_hz"):
+        OneEuroFilter(20, 0.0)
+    with pytest.raises(ValueError, match=r"\(n, D\)"):
+        OneEuroFilter(20, 1.0)(np.zeros(5))
+
+
+def test_streaming_with_smoothing_equals_offline_and_the_config_default_applies():
+    model = _model(smooth_hz=3.0, smooth_beta=0.2)
+    audio = _audio(2.0)
+    smoothed = generate_offline(model, audio, steps=4, seed=1)
+    raw = generate_offline(model, audio, steps=4, seed=1, smoothing=None)
+    assert not np.allclose(smoothed, raw)
+    assert np.allclose(smoothed, OneEuroFilter(20, 3.0, 0.2)(raw), atol=1e-6)
+    assert np.abs(_stream(model, audio, [777] * (len(audio) // 777) + [len(audio) % 777], steps=4, seed=1)
+                  - smoothed).max() < 1e-4
+    assert np.allclose(generate_offline(model, audio, steps=4, seed=1, smoothing=(1.0, 0.0)),
+                       OneEuroFilter(20, 1.0)(raw), atol=1e-6)
+    assert GestureStream(model, smoothing=0).smoother is None
+    with pytest.raises(ValueError, match="smoothing must be"):
+        GestureStream(model, smoothing="heavy")
