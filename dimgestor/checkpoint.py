@@ -181,9 +181,9 @@ def load_checkpoint(path: str | Path | None = None, device: str | torch.device =
 def export_checkpoint(src: str | Path | None, dst: str | Path, **inference) -> Path:
     """Copy a checkpoint's inference files (no train_state.pt) to `dst`, e.g. dimgestor/default_model/.
 
-    `inference` sets inference-only config fields (smooth_hz, smooth_beta) in the exported config.
+    `inference` sets inference-only config fields (sample_steps, smooth_hz, smooth_beta) in the exported config.
     """
-    allowed = {"smooth_hz", "smooth_beta"}
+    allowed = {"smooth_hz", "smooth_beta", "sample_steps"}
     if set(inference) - allowed:
         raise ValueError(f"export can only set {sorted(allowed)}, got {sorted(set(inference) - allowed)}")
     bundle = load_checkpoint(src)  # validates before anything is written

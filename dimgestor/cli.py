@@ -66,7 +66,10 @@ def _info(args) -> int:
 
 def _export(args) -> int:
     from .checkpoint import export_checkpoint
-    inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta)) if v is not None}
+    inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta),
+                                   ("sample_steps", args.sample_steps)) if v is not None}
+    if inference.get("sample_steps", 1) < 1:
+        raise ValueError("--sample-steps must be >= 1")
     if inference.get("smooth_hz", 1) < 0 or inference.get("smooth_beta", 0) < 0:
         raise ValueError("--smooth and --smooth-beta must be >= 0")
     if inference.get("smooth_hz") == 0:
@@ -94,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="set the output filter's cutoff that generate/serve use by default (0 = off)")
     p.add_argument("--smooth-beta", type=float, default=None, help="set the output filter's speed coefficient")
+    p.add_argument("--sample-steps", type=int, default=None, help="set the DDIM steps K generate/serve use by default")
     p.set_defaults(func=_export)
 
     from . import eval as evaluation

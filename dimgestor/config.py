@@ -68,6 +68,9 @@ class ModelConfig(BaseModel):
     schedule: Literal["linear", "sqrt_linear"] = "linear"  # sqrt_linear: the authors' earlier code
     prediction: Literal["eps", "v"] = "eps"  # the network predicts the noise (paper) or v
 
+    # --- inference defaults (what generate/serve/eval use when not told) ---
+    sample_steps: int = 8  # DDIM steps K
+
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off
     smooth_beta: float = 0.0  # its speed coefficient (cutoff rises by beta per normalized unit/s)

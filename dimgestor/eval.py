@@ -163,6 +163,8 @@ def run(args: argparse.Namespace) -> dict:
 
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
+    if args.steps is None:
+        args.steps = bundle.config.sample_steps
     data = Path(args.data)
     common = dict(spec=bundle.feature_spec, window_s=args.window_s, valid_fraction=args.valid_fraction,
                   valid_seconds=getattr(args, "valid_seconds", None))
@@ -181,7 +183,7 @@ def run(args: argparse.Namespace) -> dict:
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
-        "steps": args.steps, "seed": args.seed, "fgd_autoencoder": str(ae_path),
+        "steps": args.steps, "seed": args.seed, "smooth_hz": bundle.config.smooth_hz, "fgd_autoencoder": str(ae_path),
         "systems": score(gen["windows"], gen["audio"], bundle.skeleton, valid.spec, ae),
         "notes": {"fgd_reference": "the valid split's real motion (so ground_truth has FGD 0)",
                   "fgd_raw": "Fréchet distance of per-frame motion features",
@@ -215,7 +217,7 @@ def main_from_args(args: argparse.Namespace) -> int:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
     p.add_argument("--data", required=True, help="folder of NAME.bvh + NAME.wav pairs (its valid split is scored)")
-    p.add_argument("--steps", type=int, default=8, help="DDIM steps K")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: the checkpoint's sample_steps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--window-s", type=float, default=4.0, help="length of the scored windows (s)")
     p.add_argument("--valid-fraction", type=float, default=0.15,

@@ -29,7 +29,8 @@ def register(subparsers) -> None:
                    help="checkpoint folder, a file in it, or a run folder (its latest); default: the embedded model")
     p.add_argument("--audio", required=True, help="speech WAV (any rate, mono or stereo)")
     p.add_argument("--out", required=True, help="output .bvh")
-    p.add_argument("--steps", type=int, default=8, help="DDIM steps K (ignored by ddpm, which uses all N)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="DDIM steps K (ignored by ddpm, which uses all N); default: the checkpoint's sample_steps")
     p.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
@@ -40,7 +41,7 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    if args.steps < 1:
+    if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.eta < 0:
         raise ValueError(f"--eta must be >= 0, got {args.eta}")
@@ -54,6 +55,8 @@ def _run(args) -> int:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
     bundle = load_checkpoint(args.checkpoint, device=args.device)
+    if args.steps is None:
+        args.steps = bundle.config.sample_steps
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)

@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the generated motion of the server's source to this BVH file when it ends or on Ctrl-C")
     s.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
-    s.add_argument("--steps", type=int, default=8, help="DDIM denoising steps K (fewer is faster)")
+    s.add_argument("--steps", type=int, default=None,
+                   help="DDIM denoising steps K, fewer is faster (default: the checkpoint's sample_steps)")
     s.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
     s.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")

@@ -75,7 +75,7 @@ async def serve(args) -> int:
     t0 = time.monotonic()
     if args.window_ms < 10 or args.window_ms > 5000:
         raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
-    if args.steps < 1:
+    if args.steps is not None and args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
     smooth = getattr(args, "smooth", None)
     if smooth is not None and smooth < 0:
@@ -93,6 +93,8 @@ async def serve(args) -> int:
         raise ServeError(str(e)) from None
 
     bundle = _load(args)
+    if args.steps is None:
+        args.steps = bundle.config.sample_steps
     sk = bundle.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
     fps = bundle.feature_spec.fps
