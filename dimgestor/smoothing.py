@@ -41,6 +41,9 @@ class OneEuroFilter:
         frames = np.asarray(frames)
         if frames.ndim != 2:
             raise ValueError(f"OneEuroFilter filters (n, D) frames, got shape {frames.shape}")
+        dtype = frames.dtype if np.issubdtype(frames.dtype, np.floating) else np.float32
+        if self.beta == 0.0 and len(frames):
+            return self._fixed(frames.astype(np.float64)).astype(dtype)
         out = np.empty(frames.shape, np.float64)
         a_d = self._alpha(self.d_cutoff_hz)
         for i, x in enumerate(frames.astype(np.float64)):
@@ -51,4 +54,21 @@ class OneEuroFilter:
                 a = self._alpha(self.min_cutoff_hz + self.beta * np.abs(self._dx))
                 self._x = self._x + a * (x - self._x)
             out[i] = self._x
-        return out.astype(frames.dtype if np.issubdtype(frames.dtype, np.floating) else np.float32)
+        return out.astype(dtype)
+
+    def _fixed(self, x: np.ndarray) -> np.ndarray:
+        """beta = 0: a fixed first-order low-pass, y_n = y_{n-1} + a (x_n - y_{n-1}), as one lfilter call."""
+        from scipy.signal import lfilter
+
+        if self._x is None:  # the first frame passes unchanged
+            self._x, self._dx = x[0].copy(), np.zeros_like(x[0])
+            x = x[1:]
+            head = self._x[None]
+        else:
+            head = x[:0]
+        if len(x):
+            a = self._alpha(self.min_cutoff_hz)
+            y, _ = lfilter([a], [1.0, a - 1.0], x, axis=0, zi=((1.0 - a) * self._x)[None])
+            self._x = y[-1].copy()
+            return np.concatenate([head, y])
+        return head

@@ -46,12 +46,21 @@ def test_jitter_is_damped():
     assert np.abs(y - smooth)[40:].mean() < np.abs(noisy - smooth)[40:].mean()
 
 
-def test_calls_in_pieces_equal_one_call():
+@pytest.mark.parametrize("beta", [0.0, 0.3])
+def test_calls_in_pieces_equal_one_call(beta):
     x = np.random.default_rng(1).standard_normal((57, 4)).astype(np.float32)
-    whole = OneEuroFilter(20, 2.5, 0.3)(x)
-    f = OneEuroFilter(20, 2.5, 0.3)
+    whole = OneEuroFilter(20, 2.5, beta)(x)
+    f = OneEuroFilter(20, 2.5, beta)
     parts = np.concatenate([f(x[:1]), f(x[1:1]), f(x[1:20]), f(x[20:])])
-    assert np.array_equal(parts, whole)
+    assert np.allclose(parts, whole, atol=1e-6)
+    assert OneEuroFilter(20, 2.5, beta)(x[:0]).shape == (0, 4)
+
+
+def test_fixed_cutoff_fast_path_equals_the_per_frame_recursion():
+    x = np.random.default_rng(2).standard_normal((40, 3))
+    fast = OneEuroFilter(20, 2.0, 0.0)(x)
+    slow = OneEuroFilter(20, 2.0, 1e-300)(x)  # beta > 0 takes the per-frame loop; 1e-300 changes nothing
+    assert np.allclose(fast, slow, atol=1e-12)
 
 
 def test_bad_settings_are_clear_errors():
