@@ -189,5 +189,10 @@ def export_checkpoint(src: str | Path | None, dst: str | Path, **inference) -> P
     bundle = load_checkpoint(src)  # validates before anything is written
     if inference:
         bundle.model.config = bundle.model.config.model_copy(update=inference)
+    info = {**bundle.info, "exported_from": str(bundle.path)}
+    ts = bundle.path / "train_state.pt" if bundle.path is not None else None
+    if "options" not in info and ts is not None and ts.is_file():  # checkpoints older than info["options"]
+        opts = torch.load(ts, map_location="cpu", weights_only=False).get("options", {})
+        info["options"] = {k: v for k, v in opts.items() if k not in ("progress", "resume", "cache_dir")}
     return save_checkpoint(dst, bundle.model, bundle.feature_spec, bundle.skeleton, bundle.mean, bundle.std,
-                           info={**bundle.info, "exported_from": str(bundle.path)})
+                           info=info)

@@ -216,7 +216,9 @@ def train(opts: TrainOptions) -> Path:
             dist.all_gather_object(gens, g.get_state())
         if not main:
             return out
-        info = {"step": step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:]}
+        info = {"step": step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:],
+                "options": {k: v for k, v in vars(opts).items() if k not in ("progress", "resume", "cache_dir")},
+                "train_wall_s": history[-1].get("elapsed_s") if history else None}
         state = {"step": step, "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
                  "generators": gens, "torch_rng": torch.get_rng_state(), "history": history,
                  "mean": mean, "std": std, "options": vars(opts)}
