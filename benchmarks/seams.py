@@ -3,7 +3,8 @@
 A stream returns the frames of each pushed window; if carrying state across windows were wrong, the
 motion would jump at window boundaries. The jerk (third difference) of frames whose stencil spans a
 boundary is compared with the jerk elsewhere: a seam shows as a ratio well above 1. The streamed
-frames are also compared with whole-recording generation, which they must equal.
+frames are also compared with whole-recording generation, which they must equal. The output filter
+(`--smooth`) is off here: it would smooth a seam away.
 
     python benchmarks/seams.py                       # the embedded default model if present
     python benchmarks/seams.py --checkpoint runs/x --window-ms 100 --steps 8
@@ -48,7 +49,7 @@ def stream_in_windows(model, audio: np.ndarray, window: int, steps: int, seed: i
     """Frames from pushing `audio` in `window`-sample pieces, and the frame index where each push's output began."""
     from dimgestor.stream import GestureStream
 
-    stream = GestureStream(model, steps=steps, seed=seed)
+    stream = GestureStream(model, steps=steps, seed=seed, smoothing=None)  # a filter would hide a seam
     parts, starts = [], []
     for i in range(0, len(audio), window):
         starts.append(stream.frames_out)
@@ -85,8 +86,8 @@ def seam_check(model, bundle, window_ms: int, steps: int, audio_s: float, audio:
     audio = test_audio(audio_s, cfg.sample_rate, seed=3) if audio is None else audio
     window = int(cfg.sample_rate * window_ms / 1000)
     streamed, boundaries = stream_in_windows(model, audio, window, steps)
-    offline = generate_offline(model, audio, steps=steps)
-    result = {"window_ms": window_ms, "steps": steps, "audio_s": len(audio) / cfg.sample_rate,
+    offline = generate_offline(model, audio, steps=steps, smoothing=None)
+    result = {"window_ms": window_ms, "steps": steps, "smoothing": "off", "audio_s": len(audio) / cfg.sample_rate,
               "frames": len(streamed), "boundaries": len(boundaries),
               "max_abs_diff_streamed_vs_offline": float(np.abs(streamed - offline).max())}
     if bundle is not None:  # jerk of joint positions, as the metrics measure it

@@ -58,7 +58,7 @@ def paired_train_windows(valid, train, n: int) -> list[int]:
 
 
 def generate_systems(bundle, valid, train, steps: int, seed: int, max_windows: int | None = None,
-                     log=print) -> dict:
+                     log=print, smoothing="config") -> dict:
     """{system: list of raw feature windows (W, D)} and the valid audio per window."""
     from .stream import generate_offline
 
@@ -73,9 +73,9 @@ def generate_systems(bundle, valid, train, steps: int, seed: int, max_windows: i
     for i, (item, other) in enumerate(zip(items, partners)):
         W = len(item["motion"])
         out["ground_truth"].append(item["motion"])
-        gen = generate_offline(bundle.model, item["audio"], steps=steps, seed=seed + i)
+        gen = generate_offline(bundle.model, item["audio"], steps=steps, seed=seed + i, smoothing=smoothing)
         out["model"].append(np.asarray(bundle.denormalize(gen), dtype=np.float32)[:W])
-        gen = generate_offline(bundle.model, other["audio"], steps=steps, seed=seed + i)
+        gen = generate_offline(bundle.model, other["audio"], steps=steps, seed=seed + i, smoothing=smoothing)
         out["model_other_audio"].append(np.asarray(bundle.denormalize(gen), dtype=np.float32)[:W])
         out["other_real_motion"].append(other["motion"][:W])
         out["mean_pose"].append(np.broadcast_to(mean_pose, (W, mean_pose.size)).copy())
@@ -152,7 +152,8 @@ def plot(result: dict, path: Path) -> None:
         ax.set_title(m + (" (lower is better)" if m.startswith("fgd") else ""), fontsize=9)
         ax.grid(axis="y", alpha=0.3)
     fig.suptitle(f"{result['checkpoint']} on {result['data']} ({result['split']}, {result['n_windows']} windows, "
-                 f"K={result['steps']})", fontsize=8)
+                 f"K={result['steps']}, smoothing {result.get('smooth_hz') or 'off'}"
+                 f"{' Hz' if result.get('smooth_hz') else ''})", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
@@ -179,11 +180,15 @@ def run(args: argparse.Namespace) -> dict:
     print(valid.summary())
     ae_path = Path(args.fgd_model) if args.fgd_model else default_ae_path(data, valid.spec)
     ae = fgd_autoencoder(train, ae_path, args.fgd_steps)
-    gen = generate_systems(bundle, valid, train, args.steps, args.seed, args.max_windows)
+    smooth = getattr(args, "smooth", None)
+    if smooth is not None and smooth < 0:
+        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {smooth}")
+    smoothing = "config" if smooth is None else (smooth or None)
+    gen = generate_systems(bundle, valid, train, args.steps, args.seed, args.max_windows, smoothing=smoothing)
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
-        "steps": args.steps, "seed": args.seed, "smooth_hz": bundle.config.smooth_hz, "fgd_autoencoder": str(ae_path),
+        "steps": args.steps, "seed": args.seed, "smooth_hz": bundle.config.smooth_hz if smoothing == "config" else smoothing, "fgd_autoencoder": str(ae_path),
         "systems": score(gen["windows"], gen["audio"], bundle.skeleton, valid.spec, ae),
         "notes": {"fgd_reference": "the valid split's real motion (so ground_truth has FGD 0)",
                   "fgd_raw": "Fréchet distance of per-frame motion features",
@@ -218,6 +223,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
     p.add_argument("--data", required=True, help="folder of NAME.bvh + NAME.wav pairs (its valid split is scored)")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: the checkpoint's sample_steps)")
+    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                   help="output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--window-s", type=float, default=4.0, help="length of the scored windows (s)")
     p.add_argument("--valid-fraction", type=float, default=0.15,
