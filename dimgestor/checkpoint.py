@@ -66,13 +66,14 @@ class Bundle:
     def denormalize(self, f: np.ndarray) -> np.ndarray:
         return (f * self.std + self.mean).astype(np.float32)
 
-    def stream(self, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
+    def stream(self, steps: int | None = None, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
                smoothing="config") -> GestureStream:
+        """A live stream; steps None and smoothing "config" take the checkpoint's defaults."""
         return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
 
-    def generate(self, audio: np.ndarray, steps: int = 8, seed: int = 0, sampler: str = "ddim",
+    def generate(self, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                  eta: float = 0.0, smoothing="config") -> np.ndarray:
-        """Offline generation: 16 kHz mono audio -> (T, D) denormalized motion features."""
+        """Offline generation: 16 kHz mono audio -> (T, D) denormalized motion features (defaults as stream)."""
         return self.denormalize(generate_offline(self.model, audio, steps, seed, sampler, eta, smoothing))
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 __all__ = ["ModelConfig", "PRESETS", "get_preset", "exact_div", "ConfigError"]
 
@@ -69,7 +69,7 @@ class ModelConfig(BaseModel):
     prediction: Literal["eps", "v"] = "eps"  # the network predicts the noise (paper) or v
 
     # --- inference defaults (what generate/serve/eval use when not told) ---
-    sample_steps: int = 8  # DDIM steps K
+    sample_steps: int = Field(8, ge=1)  # DDIM steps K
 
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off

@@ -180,10 +180,8 @@ def run(args: argparse.Namespace) -> dict:
     print(valid.summary())
     ae_path = Path(args.fgd_model) if args.fgd_model else default_ae_path(data, valid.spec)
     ae = fgd_autoencoder(train, ae_path, args.fgd_steps)
-    smooth = getattr(args, "smooth", None)
-    if smooth is not None and smooth < 0:
-        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {smooth}")
-    smoothing = "config" if smooth is None else (smooth or None)
+    from .stream import smoothing_from_flag
+    smoothing = smoothing_from_flag(getattr(args, "smooth", None))
     gen = generate_systems(bundle, valid, train, args.steps, args.seed, args.max_windows, smoothing=smoothing)
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",

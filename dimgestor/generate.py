@@ -11,11 +11,12 @@ from .audio import SAMPLE_RATE, load_wav
 from .bvh import BvhMotion, write_bvh
 from .checkpoint import Bundle, load_checkpoint
 from .features import features_to_motion
+from .stream import smoothing_from_flag
 
 __all__ = ["generate_motion", "register"]
 
 
-def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int = 8, seed: int = 0, sampler: str = "ddim",
+def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                     eta: float = 0.0, smoothing="config") -> BvhMotion:
     """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
     features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
@@ -45,8 +46,6 @@ def _run(args) -> int:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.eta < 0:
         raise ValueError(f"--eta must be >= 0, got {args.eta}")
-    if args.smooth is not None and args.smooth < 0:
-        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {args.smooth}")
     out = Path(args.out)
     if out.suffix.lower() != ".bvh":
         raise ValueError(f"--out {out}: expected a .bvh path")
@@ -60,7 +59,7 @@ def _run(args) -> int:
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)
-    smoothing = "config" if args.smooth is None else (args.smooth or None)
+    smoothing = smoothing_from_flag(args.smooth)
     motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing)
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "

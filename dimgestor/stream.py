@@ -15,7 +15,7 @@ from .diffusion import Diffusion, frame_noise
 from .model import DenoiserState, DiMGestor
 from .smoothing import OneEuroFilter
 
-__all__ = ["GestureStream", "generate_offline", "make_smoother", "sample_frames"]
+__all__ = ["GestureStream", "generate_offline", "make_smoother", "sample_frames", "smoothing_from_flag"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -36,6 +36,15 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
         else:
             x, _ = diffusion.ddim_step(x, eps, t, t_prev, eta, noise, x0=x0)
     return x[0], new_states
+
+
+def smoothing_from_flag(hz: float | None):
+    """A command line's --smooth HZ as a `smoothing` argument: None -> "config", 0 -> off, else the cutoff."""
+    if hz is None:
+        return "config"
+    if hz < 0:
+        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {hz}")
+    return hz or None
 
 
 def make_smoother(model: DiMGestor, smoothing="config") -> OneEuroFilter | None:
@@ -71,14 +80,14 @@ def _device(model: torch.nn.Module) -> torch.device:
 class GestureStream:
     """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
 
-    def __init__(self, model: DiMGestor, steps: int = 8, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
-                 smoothing="config"):
+    def __init__(self, model: DiMGestor, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
+                 eta: float = 0.0, smoothing="config"):
         if not getattr(model, "streams", True):
             raise ValueError(f"{type(model).__name__} cannot stream: it carries no state between windows "
                              "(use generate_offline on the whole recording)")
         self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
         self.diffusion = Diffusion(model.config)
-        self.pairs = self.diffusion.sampling_pairs(sampler, steps)
+        self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
         self.smoother = make_smoother(model, smoothing)
         dev = _device(model)
         self._fe = model.frontend.init_state(1, dev)
@@ -129,14 +138,17 @@ class GestureStream:
         return out
 
 
-def generate_offline(model: DiMGestor, audio, steps: int = 8, seed: int = 0, sampler: str = "ddim",
+def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                      eta: float = 0.0, smoothing="config") -> np.ndarray:
-    """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000."""
+    """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000.
+
+    steps None: the config's sample_steps; smoothing: see make_smoother.
+    """
     audio = _check_audio(audio)
     c = model.config
     T = len(audio) * c.fps // c.sample_rate
     diffusion = Diffusion(c)
-    pairs = diffusion.sampling_pairs(sampler, steps)
+    pairs = diffusion.sampling_pairs(sampler, steps or c.sample_steps)
     if T == 0:
         return np.zeros((0, c.motion_dim), np.float32)
     pad = max(model.samples_needed(T) - len(audio), 0)  # the same silence GestureStream.finish appends

@@ -100,7 +100,7 @@ class Session:
         self.stats = Stats()
 
     @classmethod
-    def from_bundle(cls, bundle, steps: int = 8, seed: int = 0, smoothing="config", **kw) -> "Session":
+    def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", **kw) -> "Session":
         from dimgestor.features import PoseDecoder
 
         return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing), PoseDecoder(bundle.skeleton, bundle.feature_spec),

@@ -77,10 +77,11 @@ async def serve(args) -> int:
         raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
     if args.steps is not None and args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
-    smooth = getattr(args, "smooth", None)
-    if smooth is not None and smooth < 0:
-        raise ServeError(f"--smooth must be >= 0 Hz (0 = off), got {smooth}")
-    smoothing = "config" if smooth is None else (smooth or None)
+    from dimgestor.stream import smoothing_from_flag
+    try:
+        smoothing = smoothing_from_flag(getattr(args, "smooth", None))
+    except ValueError as e:
+        raise ServeError(str(e)) from None
     if args.no_ws and args.source == "ws":
         raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
     if args.record and not Path(args.record).resolve().parent.is_dir():

@@ -84,3 +84,15 @@ def test_streaming_with_smoothing_equals_offline_and_the_config_default_applies(
     assert GestureStream(model, smoothing=0).smoother is None
     with pytest.raises(ValueError, match="smoothing must be"):
         GestureStream(model, smoothing="heavy")
+
+
+def test_the_checkpoint_defaults_drive_steps_and_smoothing():
+    from dimgestor.stream import smoothing_from_flag
+    model = _model(sample_steps=2, smooth_hz=2.0)
+    audio = _audio(1.0)
+    assert np.array_equal(generate_offline(model, audio), generate_offline(model, audio, steps=2, smoothing=2.0))
+    assert not np.allclose(generate_offline(model, audio), generate_offline(model, audio, steps=8))
+    assert len(GestureStream(model).pairs) == 2
+    assert smoothing_from_flag(None) == "config" and smoothing_from_flag(0) is None and smoothing_from_flag(4) == 4
+    with pytest.raises(ValueError, match="--smooth"):
+        smoothing_from_flag(-1)
