@@ -18,6 +18,7 @@ integrating is a cumulative sum and decoding in chunks equals decoding everythin
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 
@@ -162,19 +163,48 @@ class Pose:
     rotations: np.ndarray  # (n, J, 4) local quaternions wxyz for every skeleton joint
 
 
+ROOT_MODES = ("free", "tether", "lock")
+
+
+def _leaky_cumsum(u: np.ndarray, prev: float, lam: float) -> np.ndarray:
+    """y_n = lam * y_{n-1} + u_n from y_{-1} = prev (lam = 1: a plain running sum)."""
+    if lam == 1.0:
+        return prev + np.cumsum(u)
+    from scipy.signal import lfilter
+
+    return lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0]
+
+
 def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
-                    state: RootState = RootState()) -> tuple[Pose, RootState]:
-    """Features (n, D) -> poses, integrating the root from `state`; returns the state after frame n-1."""
+                    state: RootState = RootState(), root: str = "free", tether_s: float = 5.0,
+                    anchor: RootState = RootState()) -> tuple[Pose, RootState]:
+    """Features (n, D) -> poses, integrating the root from `state`; returns the state after frame n-1.
+
+    root: how the ground-plane position and heading evolve. "free" integrates the velocities as the
+    model made them (a BVH of the motion). "tether" integrates them with a leak of time constant
+    `tether_s` towards `anchor`, so a live avatar gestures and shifts its weight but never wanders off
+    over a long session. "lock" keeps position and heading at `anchor`. Height and tilt always come
+    from the features.
+    """
+    if root not in ROOT_MODES:
+        raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
+    if root == "tether" and not tether_s > 0:
+        raise ValueError(f"tether_s must be > 0, got {tether_s}")
     spec = spec.resolve(skeleton)
     f = np.asarray(features, dtype=np.float64)
     if f.ndim != 2 or f.shape[1] != spec.dim:
         raise ValueError(f"features must be (n, {spec.dim}) for this spec, got {f.shape}")
     n = f.shape[0]
-    heading = state.heading + np.cumsum(f[:, 2])
-    h_prev = np.concatenate([[state.heading], heading[:-1]])
-    c, s = np.cos(h_prev), np.sin(h_prev)
-    x = state.x + np.cumsum(c * f[:, 0] + s * f[:, 1])  # rotate by +h_prev about Y
-    z = state.z + np.cumsum(-s * f[:, 0] + c * f[:, 1])
+    if root == "lock":
+        heading, x, z = (np.full(n, v) for v in (anchor.heading, anchor.x, anchor.z))
+    else:
+        lam = 1.0 if root == "free" else math.exp(-1.0 / (spec.fps * tether_s))
+        a = anchor if root == "tether" else RootState()
+        heading = a.heading + _leaky_cumsum(f[:, 2], state.heading - a.heading, lam)
+        h_prev = np.concatenate([[state.heading], heading[:-1]])
+        c, s = np.cos(h_prev), np.sin(h_prev)
+        x = a.x + _leaky_cumsum(c * f[:, 0] + s * f[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
+        z = a.z + _leaky_cumsum(-s * f[:, 0] + c * f[:, 1], state.z - a.z, lam)
     tilt = np.stack([f[:, 4], np.zeros(n), f[:, 5]], -1)
     rot = R.quat_identity((n, skeleton.num_joints))
     rot[:, 0] = R.quat_mul(R.yaw_quat(heading), R.expmap_to_quat(tilt))
@@ -187,26 +217,34 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
 
 
 class PoseDecoder:
-    """Streaming inverse: decode feature chunks in order, carrying the root integration."""
+    """Streaming inverse: decode feature chunks in order, carrying the root integration (see decode_features
+    for `root`; the start position and heading are the anchor of "tether" and "lock")."""
 
-    def __init__(self, skeleton: Skeleton, spec: FeatureSpec, start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0):
+    def __init__(self, skeleton: Skeleton, spec: FeatureSpec, start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0,
+                 root: str = "free", tether_s: float = 5.0):
+        if root not in ROOT_MODES:
+            raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
         self.skeleton = skeleton
         self.spec = spec.resolve(skeleton)
-        self.state = RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading))
+        self.anchor = self.state = RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading))
+        self.root, self.tether_s = root, float(tether_s)
 
     def decode(self, features: np.ndarray) -> Pose:
-        pose, self.state = decode_features(features, self.skeleton, self.spec, self.state)
+        pose, self.state = decode_features(features, self.skeleton, self.spec, self.state, self.root, self.tether_s,
+                                           self.anchor)
         return pose
 
 
 def features_to_motion(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
-                       start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0) -> BvhMotion:
+                       start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0, root: str = "free",
+                       tether_s: float = 5.0) -> BvhMotion:
     """Features -> BvhMotion at spec.fps on `skeleton`; joints not kept get their rest rotation.
 
     start_pos is (x, ignored, z): the height comes from the features. Non-root position channels
-    are written as the joint's OFFSET.
+    are written as the joint's OFFSET. root/tether_s: see decode_features.
     """
-    pose, _ = decode_features(features, skeleton, spec, RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading)))
+    start = RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading))
+    pose, _ = decode_features(features, skeleton, spec, start, root, tether_s, start)
     n = pose.rotations.shape[0]
     translations = np.broadcast_to(skeleton.offsets, (n, skeleton.num_joints, 3)).copy()
     translations[:, 0] = pose.root_pos

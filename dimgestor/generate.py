@@ -17,10 +17,10 @@ __all__ = ["generate_motion", "register"]
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                    eta: float = 0.0, smoothing="config") -> BvhMotion:
+                    eta: float = 0.0, smoothing="config", root: str = "free", tether_s: float = 5.0) -> BvhMotion:
     """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
     features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
-    return features_to_motion(features, bundle.skeleton, bundle.feature_spec)
+    return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
 
 
 def register(subparsers) -> None:
@@ -37,6 +37,10 @@ def register(subparsers) -> None:
     p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
     p.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
+    p.add_argument("--root", choices=("free", "tether", "lock"), default="free",
+                   help="root ground motion: as generated, pulled back to the start, or locked "
+                        "(as `streamer serve --root`)")
+    p.add_argument("--tether-s", type=float, default=5.0, help="time constant of --root tether, seconds")
     p.add_argument("--device", default="cpu", help="cpu, cuda, ...")
     p.set_defaults(func=_run)
 
@@ -60,7 +64,10 @@ def _run(args) -> int:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)
     smoothing = smoothing_from_flag(args.smooth)
-    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing)
+    if not args.tether_s > 0:
+        raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
+    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
+                             args.tether_s)
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
           f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")

@@ -100,10 +100,12 @@ class Session:
         self.stats = Stats()
 
     @classmethod
-    def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", **kw) -> "Session":
+    def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
+                    tether_s: float = 5.0, **kw) -> "Session":
         from dimgestor.features import PoseDecoder
 
-        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing), PoseDecoder(bundle.skeleton, bundle.feature_spec),
+        decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
+        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing), decoder,
                    bundle.denormalize, bundle.feature_spec.fps, **kw)
 
     @property

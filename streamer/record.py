@@ -18,8 +18,9 @@ log = logging.getLogger("streamer.record")
 
 
 class BvhRecorder:
-    def __init__(self, path: str | Path, skeleton, feature_spec):
+    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0):
         self.path = Path(path)
+        self.root, self.tether_s = root, tether_s  # the root mode the live sinks use, so the file shows what they showed
         if not self.path.parent.is_dir():
             raise FileNotFoundError(f"{self.path}: folder {self.path.parent} does not exist")
         self.skeleton, self.spec = skeleton, feature_spec
@@ -43,7 +44,8 @@ class BvhRecorder:
         from dimgestor.bvh import write_bvh
         from dimgestor.features import features_to_motion
 
-        motion = features_to_motion(np.concatenate(self.parts), self.skeleton, self.spec)
+        motion = features_to_motion(np.concatenate(self.parts), self.skeleton, self.spec, root=self.root,
+                                    tether_s=self.tether_s)
         tmp = self.path.with_name(self.path.name + ".part")
         write_bvh(tmp, motion)
         os.replace(tmp, self.path)

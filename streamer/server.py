@@ -77,6 +77,9 @@ async def serve(args) -> int:
         raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
     if args.steps is not None and args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
+    if not getattr(args, "tether_s", 5.0) > 0:
+        raise ServeError(f"--tether-s must be > 0, got {args.tether_s}")
+    root = dict(root=getattr(args, "root", "free"), tether_s=getattr(args, "tether_s", 5.0))
     from dimgestor.stream import smoothing_from_flag
     try:
         smoothing = smoothing_from_flag(getattr(args, "smooth", None))
@@ -103,7 +106,7 @@ async def serve(args) -> int:
     executor = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
 
     def make_session(name: str = "client") -> Session:
-        return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing,
+        return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing, **root,
                                    window_ms=args.window_ms, executor=executor, name=name)
 
     main_session = make_session("source") if source is not None else None
@@ -134,7 +137,7 @@ async def serve(args) -> int:
     if args.record and main_session is not None:
         from streamer.record import BvhRecorder
 
-        recorder = BvhRecorder(args.record, sk, bundle.feature_spec)
+        recorder = BvhRecorder(args.record, sk, bundle.feature_spec, **root)
     if args.http is not None:
         from streamer.http import ViewerServer
 
@@ -149,6 +152,7 @@ async def serve(args) -> int:
             "demo": f"demo clip {Path(getattr(source, 'path', '')).name}"}.get(args.source, f"file {args.source}")
     smoother = (main_session or make_session()).stream.smoother
     smooth_txt = f"smoothing {smoother.min_cutoff_hz:g} Hz" if smoother else "no smoothing"
+    smooth_txt += f", root {root['root']}" + (f" ({root['tether_s']:g} s)" if root["root"] == "tether" else "")
     print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, {smooth_txt}, "
           f"{fps} fps, window {args.window_ms} ms, lookahead {lookahead * 1000:.0f} ms; source: {what}", file=sys.stderr)
     if ws:

@@ -117,6 +117,44 @@ def test_pose_decoder_in_chunks_equals_all_at_once_and_features_to_motion():
     assert np.abs(np.abs(np.sum(m.rotations() * whole.rotations, -1)) - 1).max() < 1e-9
 
 
+@pytest.mark.parametrize("root", ["tether", "lock"])
+def test_root_modes_decode_in_chunks_like_all_at_once(root):
+    motion = synthetic_motion(5.0, 20.0, seed=7)
+    spec = FeatureSpec().resolve(motion.skeleton)
+    f = motion_to_features(motion, spec)
+    kw = dict(start_pos=(3.0, 0.0, -2.0), start_heading=0.4, root=root, tether_s=0.5)
+    whole = PoseDecoder(motion.skeleton, spec, **kw).decode(f)
+    dec = PoseDecoder(motion.skeleton, spec, **kw)
+    parts = [dec.decode(f[a:b]) for a, b in [(0, 1), (1, 8), (8, 8), (8, 21), (21, len(f))]]
+    np.testing.assert_allclose(np.concatenate([p.root_pos for p in parts]), whole.root_pos, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([p.rotations for p in parts]), whole.rotations, atol=1e-12)
+    m = features_to_motion(f, motion.skeleton, spec, **kw)
+    np.testing.assert_allclose(m.translations()[:, 0], whole.root_pos, atol=1e-4)
+    free = PoseDecoder(motion.skeleton, spec, start_pos=(3.0, 0.0, -2.0), start_heading=0.4).decode(f)
+    np.testing.assert_allclose(whole.root_pos[:, 1], free.root_pos[:, 1])  # height always from the features
+    # the joints below the root keep their rotations
+    np.testing.assert_allclose(whole.rotations[:, 1:], free.rotations[:, 1:], atol=1e-12)
+
+
+def test_tether_bounds_a_steady_walk_and_lock_stands_still():
+    sk = synthetic_motion(1.0, 20.0, seed=1).skeleton
+    spec = FeatureSpec().resolve(sk)
+    f = np.zeros((20 * 60, spec.dim))  # one minute walking forward at 1 unit/s, turning at 0.1 rad/s
+    f[:, 1], f[:, 2], f[:, 3] = 1.0 / 20, 0.1 / 20, 90.0
+    free = PoseDecoder(sk, spec).decode(f)
+    tether = PoseDecoder(sk, spec, root="tether", tether_s=2.0).decode(f)
+    lock = PoseDecoder(sk, spec, start_pos=(1.0, 0.0, 2.0), start_heading=0.3, root="lock").decode(f)
+    ground = lambda p: np.linalg.norm(p.root_pos[:, [0, 2]], axis=1)
+    assert ground(free).max() > 15  # walked away (a circle of radius 10)
+    # a leaky integrator settles at speed x time constant: 2 units from the anchor, never more
+    assert ground(tether).max() < 2.05 and ground(tether)[-200:].min() > 1.8
+    np.testing.assert_allclose(lock.root_pos[:, [0, 2]], np.tile([1.0, 2.0], (len(f), 1)))
+    heading = [R.split_heading(q)[0] for q in lock.rotations[[0, -1], 0]]
+    np.testing.assert_allclose(heading, 0.3, atol=1e-9)
+    with pytest.raises(ValueError, match="root must be one of"):
+        PoseDecoder(sk, spec, root="glued")
+
+
 def test_spinning_motion_gives_continuous_features():
     motion = synthetic_motion(6.0, 30.0, seed=8)
     t = np.arange(motion.num_frames) / 30.0

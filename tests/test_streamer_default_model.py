@@ -74,8 +74,9 @@ def test_default_model_streams_the_demo_like_offline_generate(tmp_path):
     for b in got:
         check_vmc_bundle(b, bones_expected=hello["humanoid"])
 
+    # serve tethers the root by default: generate does the same when asked
     r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(clip), "--out",
-                        str(off_path), "--steps", "4", "--seed", "2"], cwd=REPO,
+                        str(off_path), "--steps", "4", "--seed", "2", "--root", "tether"], cwd=REPO,
                        env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(rec_path), read_bvh(off_path)
