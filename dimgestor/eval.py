@@ -161,7 +161,9 @@ def plot(result: dict, path: Path) -> None:
 def run(args: argparse.Namespace) -> dict:
     from .checkpoint import load_checkpoint
     from .dataset import GestureDataset
+    from .stream import smoothing_from_flag
 
+    smoothing = smoothing_from_flag(getattr(args, "smooth", None))  # before anything slow
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
     if args.steps is None:
@@ -180,8 +182,6 @@ def run(args: argparse.Namespace) -> dict:
     print(valid.summary())
     ae_path = Path(args.fgd_model) if args.fgd_model else default_ae_path(data, valid.spec)
     ae = fgd_autoencoder(train, ae_path, args.fgd_steps)
-    from .stream import smoothing_from_flag
-    smoothing = smoothing_from_flag(getattr(args, "smooth", None))
     gen = generate_systems(bundle, valid, train, args.steps, args.seed, args.max_windows, smoothing=smoothing)
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",

@@ -50,6 +50,9 @@ def _run(args) -> int:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.eta < 0:
         raise ValueError(f"--eta must be >= 0, got {args.eta}")
+    smoothing = smoothing_from_flag(args.smooth)
+    if not args.tether_s > 0:
+        raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
     out = Path(args.out)
     if out.suffix.lower() != ".bvh":
         raise ValueError(f"--out {out}: expected a .bvh path")
@@ -63,9 +66,6 @@ def _run(args) -> int:
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)
-    smoothing = smoothing_from_flag(args.smooth)
-    if not args.tether_s > 0:
-        raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
     motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
                              args.tether_s)
     write_bvh(out, motion)

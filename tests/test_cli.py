@@ -62,6 +62,19 @@ def test_train_then_generate_writes_a_bvh_as_long_as_the_audio(run, tmp_path, ca
                  "--out", str(again), "--steps", "3", "--seed", "1"]) == 0
     assert again.read_text() == out.read_text()  # same weights, same seed: the same motion
 
+    # export can set the sampling defaults that generate then uses when not told
+    tuned = tmp_path / "tuned"
+    assert main(["export", "--checkpoint", str(run / "run"), "--out", str(tuned), "--sample-steps", "3",
+                 "--smooth", "4"]) == 0
+    config = json.loads((tuned / "config.json").read_text())["model"]
+    assert config["sample_steps"] == 3 and config["smooth_hz"] == 4.0
+    assert main(["generate", "--checkpoint", str(tuned), "--audio", str(tmp_path / "speech.wav"),
+                 "--out", str(again), "--seed", "1", "--smooth", "0"]) == 0
+    assert again.read_text() == out.read_text()  # K = 3 from the checkpoint, filter turned off
+    assert main(["generate", "--checkpoint", str(tuned), "--audio", str(tmp_path / "speech.wav"),
+                 "--out", str(again), "--seed", "1"]) == 0
+    assert again.read_text() != out.read_text()  # the checkpoint's 4 Hz filter
+
 
 @pytest.mark.parametrize("args, message", [
     (["generate", "--checkpoint", "/no/such/ckpt", "--audio", "x.wav", "--out", "o.bvh"], "checkpoint not found"),
@@ -69,6 +82,8 @@ def test_train_then_generate_writes_a_bvh_as_long_as_the_audio(run, tmp_path, ca
     (["generate", "--checkpoint", "{run}/run", "--audio", "{tmp}/missing.wav", "--out", "{tmp}/o.bvh"], "missing.wav"),
     (["generate", "--checkpoint", "{run}/run", "--audio", "{tmp}/not_audio.wav", "--out", "{tmp}/o.txt"], "expected a .bvh"),
     (["generate", "--checkpoint", "{run}/run", "--audio", "x.wav", "--out", "o.bvh", "--steps", "0"], "--steps"),
+    (["generate", "--checkpoint", "{run}/run", "--audio", "x.wav", "--out", "o.bvh", "--smooth", "-1"], "--smooth"),
+    (["export", "--checkpoint", "{run}/run", "--out", "{tmp}/e", "--sample-steps", "0"], "--sample-steps"),
     (["train", "--data", "{tmp}/empty", "--out", "{tmp}/r"], "no NAME.bvh + NAME.wav pairs"),
     (["train", "--data", "{tmp}/broken", "--out", "{tmp}/r", "--cache-dir", "{tmp}/c"], "broken.bvh:"),
     (["train", "--data", "{run}/data", "--out", "{tmp}/r", "--preset", "huge"], "unknown preset"),
