@@ -1,6 +1,7 @@
 """VMC over OSC: a python-osc server receives one bundle per frame with the spec's argument types."""
 
 import asyncio
+import socket
 import threading
 
 import numpy as np
@@ -51,6 +52,14 @@ def osc_server():
     rec = Recorder()
     rec.set_default_handler(lambda address, *args: None)
     server = ThreadingOSCUDPServer(("127.0.0.1", 0), rec)
+    # `--fast` sends a whole clip's bundles (~5 KB each with 52 bones) in bursts; the default 208 KiB
+    # receive buffer overflows while the Python thread catches up, and UDP drops what does not fit
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):  # FORCE passes rmem_max as root
+        try:
+            server.socket.setsockopt(socket.SOL_SOCKET, opt, 16 << 20)
+            break
+        except (OSError, TypeError):
+            continue
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server, rec
 
