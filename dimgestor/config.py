@@ -65,11 +65,17 @@ class ModelConfig(BaseModel):
     n_steps: int = 1000  # N diffusion steps, as in the paper
     beta_start: float = 1e-4  # paper schedule
     beta_end: float = 8e-2  # paper schedule
-    schedule: Literal["linear", "sqrt_linear"] = "linear"  # sqrt_linear: the authors' earlier code
-    prediction: Literal["eps", "v"] = "eps"  # the network predicts the noise (paper) or v
+    # sqrt_linear: the authors' earlier code; cosine: Nichol & Dhariwal's alpha_bar (betas unused), for short chains
+    schedule: Literal["linear", "sqrt_linear", "cosine"] = "linear"
+    prediction: Literal["eps", "v", "x0"] = "eps"  # the network predicts the noise (paper), v, or the clean motion
+    # Temporal correlation of the diffusion noise: each frame's noise is a causal Hann-weighted sum of this
+    # many white per-frame draws (unit variance). 1 = white noise (the paper). Longer kernels push what a
+    # causal denoiser cannot remove below a few Hz, where it reads as motion rather than jitter.
+    noise_taps: int = Field(1, ge=1, le=64)
 
     # --- inference defaults (what generate/serve/eval use when not told) ---
     sample_steps: int = Field(8, ge=1)  # DDIM steps K
+    ddim_spacing: Literal["trailing", "linspace"] = "trailing"  # where the K steps sit (diffusion.ddim_pairs)
 
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off
@@ -126,6 +132,8 @@ class ModelConfig(BaseModel):
             raise ValueError(
                 f"down_kernel {self.down_kernel} cannot see {la} feature frames of lookahead plus the frame's own "
                 f"{self.feats_per_frame}: lower lookahead_ms or raise down_kernel to >= {la + self.feats_per_frame}")
+        if self.sample_steps > self.n_steps:
+            raise ValueError(f"sample_steps {self.sample_steps} exceeds the {self.n_steps} diffusion steps")
         if not 0 < self.beta_start < self.beta_end < 1:
             raise ValueError(f"need 0 < beta_start < beta_end < 1, got {self.beta_start}, {self.beta_end}")
         if self.frontend == "pretrained" and not self.pretrained_path:

@@ -26,7 +26,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE, align, load_wav
 from dimgestor.bvh import Skeleton, read_bvh
-from dimgestor.features import FeatureSpec, mirror_features, motion_to_features
+from dimgestor.features import ROOT_COLUMNS, FeatureSpec, mirror_features, motion_to_features
 
 CACHE_VERSION = 1
 SPLIT_FILES = ("split.json", "split.csv", "split.txt")
@@ -117,6 +117,28 @@ class Clip:
     skeleton: Skeleton
 
 
+def speed_perturb(clip: Clip, rate: float, fps: float, spf: int) -> Clip:
+    """The clip played `rate` times faster, audio and motion together (pitch moves with the tempo, as in
+    Ko et al.'s speed perturbation for speech): rotations and height are interpolated in time, per-frame
+    root displacements and turns scaled by `rate`."""
+    from fractions import Fraction
+
+    from scipy.signal import resample_poly
+
+    f = np.asarray(clip.features, dtype=np.float64)
+    T = int(len(f) / rate)
+    src = np.arange(T) * rate  # source frame of each new frame
+    i0 = np.minimum(src.astype(int), len(f) - 1)
+    i1 = np.minimum(i0 + 1, len(f) - 1)
+    w = (src - i0)[:, None]
+    out = (1 - w) * f[i0] + w * f[i1]
+    out[:, [ROOT_COLUMNS.index(c) for c in ("root_dx", "root_dz", "root_dyaw")]] *= rate
+    q = Fraction(rate).limit_denominator(100)
+    audio = resample_poly(np.asarray(clip.audio, dtype=np.float64), q.denominator, q.numerator)
+    audio = np.pad(audio, (0, max(0, T * spf - len(audio))))[: T * spf]
+    return Clip(f"{clip.name}@{rate:g}x", out.astype(np.float32), audio.astype(np.float32), clip.skeleton)
+
+
 def _cache_key(pair: Pair, spec: FeatureSpec) -> str:
     stats = {str(p.resolve()): [p.stat().st_size, p.stat().st_mtime_ns] for p in (pair.bvh, pair.wav)}
     blob = json.dumps({"v": CACHE_VERSION, "files": stats, "spec": spec.to_dict(), "rate": SAMPLE_RATE}, sort_keys=True)
@@ -178,7 +200,8 @@ class GestureDataset:
     def __init__(self, data_dir: str | Path, spec: FeatureSpec | None = None, window_s: float = 20.0,
                  hop_s: float | None = None, split: str = "train", cache_dir: str | Path | None = None,
                  use_cache: bool = True, mirror: bool = False, audio_feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-                 valid_fraction: float = 0.15, valid_seconds: float | None = None, split_file: str | Path | None = None):
+                 valid_fraction: float = 0.15, valid_seconds: float | None = None, split_file: str | Path | None = None,
+                 speeds: tuple[float, ...] = ()):
         if split not in ("train", "valid"):
             raise ValueError(f"split must be 'train' or 'valid', got {split!r}")
         self.data_dir = Path(data_dir)
@@ -208,6 +231,17 @@ class GestureDataset:
             seg = (c, 0, cut) if split == "train" else (c, cut, T)
             if seg[2] > seg[1]:
                 self.segments.append(seg)
+        if split == "train":  # speed-perturbed copies of the training part only: nothing held out leaks in
+            for c, a, b in list(self.segments):
+                for rate in speeds:
+                    if rate <= 0:
+                        raise ValueError(f"speed factors must be positive, got {rate}")
+                    if rate == 1.0:
+                        continue
+                    part = Clip(self.clips[c].name, self.clips[c].features[a:b],
+                                self.clips[c].audio[a * self.spf:b * self.spf], self.clips[c].skeleton)
+                    self.clips.append(speed_perturb(part, rate, self.fps, self.spf))
+                    self.segments.append((len(self.clips) - 1, 0, len(self.clips[-1].features)))
         self.window = max(1, int(round(window_s * self.fps)))
         self.hop = max(1, int(round((hop_s if hop_s is not None else window_s / 2) * self.fps)))
         self.windows = [(c, s, e - s, m) for c, a, b in self.segments for s, e in self._starts(a, b)
@@ -261,11 +295,16 @@ class GestureDataset:
             parts += [mirror_features(p, self.spec) for p in parts]
         return np.concatenate(parts).astype(np.float32)
 
+    def seconds(self) -> float:
+        """Length of this split (speed-perturbed copies included) in seconds."""
+        return sum(b - a for _, a, b in self.segments) / self.fps
+
     def summary(self) -> str:
-        seconds = sum(b - a for _, a, b in self.segments) / self.fps
+        seconds = self.seconds()
         return (f"{self.split}: {len(self.clips)} clips, {seconds:.1f} s, {len(self)} windows of "
                 f"{self.window / self.fps:g} s, {self.motion_dim} features at {self.fps:g} fps"
-                + (", mirrored" if self.mirror else ""))
+                + (", mirrored" if self.mirror else "")
+                + (", with speed-perturbed copies" if len(self.clips) > len(self.pairs) else ""))
 
 
 def compute_stats(dataset: GestureDataset, min_std: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:

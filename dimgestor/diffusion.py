@@ -13,14 +13,24 @@ import torch.nn.functional as F
 
 from .config import ModelConfig
 
-__all__ = ["Diffusion", "ddim_pairs", "frame_noise", "hash32"]
+__all__ = ["Diffusion", "ddim_pairs", "frame_noise", "motion_noise", "noise_kernel", "correlate", "hash32"]
 
 
-def ddim_pairs(K: int, N: int) -> list[tuple[int, int]]:
-    """K evenly spaced ("trailing") steps over N: starts at t = N-1, ends with t_prev = -1."""
+def ddim_pairs(K: int, N: int, spacing: str = "trailing") -> list[tuple[int, int]]:
+    """K evenly spaced steps over N, from t = N-1 to t_prev = -1 (clean).
+
+    "trailing" spaces them N/K apart from the top (its last step starts at t = N/K - 1); "linspace" puts
+    the first at N-1 and the last at t = 0, so every K >= 2 ends with the least-noisy trained level (a
+    short chain's finest step is where a causal denoiser's residual noise is smallest).
+    """
     if not 1 <= K <= N:
         raise ValueError(f"number of sampling steps must be in 1..{N}, got {K}")
-    ts = [N * (K - i) // K - 1 for i in range(K)]  # exact integers, strictly decreasing
+    if spacing == "trailing":
+        ts = [N * (K - i) // K - 1 for i in range(K)]  # exact integers, strictly decreasing
+    elif spacing == "linspace":
+        ts = [N - 1] if K == 1 else [((N - 1) * (K - 1 - i) * 2 + (K - 1)) // (2 * (K - 1)) for i in range(K)]
+    else:
+        raise ValueError(f"unknown DDIM spacing {spacing!r}; choose 'trailing' or 'linspace'")
     return list(zip(ts, ts[1:] + [-1]))
 
 
@@ -28,11 +38,16 @@ class Diffusion:
     """The N-step noise schedule of a config, with its loss and single sampler steps."""
 
     def __init__(self, config: ModelConfig):
-        self.N, self.prediction = config.n_steps, config.prediction
+        self.N, self.prediction, self.spacing = config.n_steps, config.prediction, config.ddim_spacing
+        self.noise_taps = config.noise_taps
         if config.schedule == "linear":
             betas = torch.linspace(config.beta_start, config.beta_end, self.N, dtype=torch.float64)
-        else:  # "sqrt_linear": linear in sqrt(beta), as in the authors' earlier (DiffuseStyleGesture-era) code
+        elif config.schedule == "sqrt_linear":  # linear in sqrt(beta), as in the authors' earlier code
             betas = torch.linspace(config.beta_start ** 0.5, config.beta_end ** 0.5, self.N, dtype=torch.float64) ** 2
+        else:  # "cosine" (Nichol & Dhariwal 2021, eq. 17, s = 0.008): alpha_bar spread evenly in log-SNR
+            s = 0.008
+            f = torch.cos((torch.arange(self.N + 1, dtype=torch.float64) / self.N + s) / (1 + s) * math.pi / 2) ** 2
+            betas = (1 - f[1:] / f[:-1]).clamp(max=0.999)
         self.betas = betas  # float64: the coefficients below are taken as Python floats
         self.alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)
 
@@ -47,33 +62,52 @@ class Diffusion:
         return a.sqrt() * x0 + (1 - a).sqrt() * noise
 
     def target(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """What the network learns to output: eps, or v = sqrt(a) eps - sqrt(1 - a) x0 (Salimans & Ho)."""
+        """What the network learns to output: eps, x0, or v = sqrt(a) eps - sqrt(1 - a) x0 (Salimans & Ho)."""
         if self.prediction == "eps":
             return noise
+        if self.prediction == "x0":
+            return x0
         a = self.alphas_cumprod.to(x0.device)[t].to(x0.dtype)[:, None, None]
         return a.sqrt() * noise - (1 - a).sqrt() * x0
 
+    def noise_like(self, x0: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Training noise for x0 (B, T, D): white, or correlated over frames as `motion_noise` makes it."""
+        L = self.noise_taps
+        white = torch.randn((x0.shape[0], x0.shape[1] + L - 1, x0.shape[2]), generator=generator)
+        return correlate(white, L).to(x0.device, x0.dtype)
+
     def training_loss(self, model, x0: torch.Tensor, feats: torch.Tensor, t: torch.Tensor,
-                      noise: torch.Tensor, vel_weight: float = 0.0) -> torch.Tensor:
+                      noise: torch.Tensor, vel_weight: float = 0.0, acc_weight: float = 0.0,
+                      root_weight: float = 0.0) -> torch.Tensor:
         """MSE between the network output on x_t and the target; feats: (B, n, F) audio features.
 
-        vel_weight > 0 adds an MSE between the frame-to-frame differences of the predicted x0 and of the
-        real x0 (the velocity loss of MDM, Tevet et al. 2023): a penalty on jitter that the paper's loss
-        alone learns slowly from little data. 0 is the paper's objective.
+        vel_weight / acc_weight > 0 add MSEs between the first / second frame differences of the predicted
+        x0 and of the real x0 (the geometric losses of MDM, Tevet et al. 2023): penalties on the jitter a
+        causal denoiser passes through from the noise it cannot tell from motion. root_weight > 0 adds an MSE
+        between the integrated root velocities (ground travel and turning, the first three feature columns)
+        of the predicted and the real x0, per frame of the window: a small bias in a velocity is a spin or
+        a walk once integrated, and the per-frame losses barely see it. 0 is the paper's objective.
         """
         cond, _ = model.condition(feats)
         cond = cond[:, : x0.shape[1]]
         x_t = self.q_sample(x0, t, noise)
         out, _ = model(x_t, t, cond)
         loss = F.mse_loss(out, self.target(x0, t, noise))
-        if vel_weight > 0 and x0.shape[1] > 1:
+        if (vel_weight > 0 or acc_weight > 0 or root_weight > 0) and x0.shape[1] > 2:
             a = self.alphas_cumprod.to(x0.device)[t].to(x0.dtype)[:, None, None]
             if self.prediction == "eps":  # x0 = (x_t - sqrt(1-a) eps) / sqrt(a); weighted by a so t -> N stays finite
                 x0_pred, w = (x_t - (1 - a).sqrt() * out) / a.sqrt().clamp_min(1e-4), a
-            else:
+            elif self.prediction == "v":
                 x0_pred, w = a.sqrt() * x_t - (1 - a).sqrt() * out, torch.ones_like(a)
-            d = (x0_pred.diff(dim=1) - x0.diff(dim=1)) ** 2
-            loss = loss + vel_weight * (w * d).mean()
+            else:
+                x0_pred, w = out, torch.ones_like(a)
+            for order, weight in ((1, vel_weight), (2, acc_weight)):
+                if weight > 0:
+                    d = (x0_pred.diff(n=order, dim=1) - x0.diff(n=order, dim=1)) ** 2
+                    loss = loss + weight * (w * d).mean()
+            if root_weight > 0:  # root_dx, root_dz, root_dyaw (features.ROOT_COLUMNS) integrated over the window
+                drift = (x0_pred[..., :3] - x0[..., :3]).cumsum(dim=1) ** 2
+                loss = loss + root_weight * (w * drift).mean() / x0.shape[1]
         return loss
 
     # ---- sampling ----
@@ -82,6 +116,8 @@ class Diffusion:
         a = self.a(t)
         if self.prediction == "eps":
             return out, (x_t - math.sqrt(1 - a) * out) / math.sqrt(a)
+        if self.prediction == "x0":
+            return (x_t - math.sqrt(a) * out) / math.sqrt(1 - a), out
         return math.sqrt(a) * out + math.sqrt(1 - a) * x_t, math.sqrt(a) * x_t - math.sqrt(1 - a) * out
 
     def ddim_step(self, x_t: torch.Tensor, eps: torch.Tensor, t: int, t_prev: int, eta: float = 0.0,
@@ -111,7 +147,7 @@ class Diffusion:
 
     def sampling_pairs(self, sampler: str, steps: int) -> list[tuple[int, int]]:
         if sampler == "ddim":
-            return ddim_pairs(steps, self.N)
+            return ddim_pairs(steps, self.N, self.spacing)
         if sampler == "ddpm":
             return ddim_pairs(self.N, self.N)  # every step: (N-1, N-2), ..., (0, -1)
         raise ValueError(f"unknown sampler {sampler!r}; choose 'ddim' or 'ddpm'")
@@ -155,3 +191,27 @@ def frame_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int,
     u2 = (hash32(h ^ 0xB5297A4D).double() + 0.5) / 2.0 ** 32
     z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)
     return z.float()
+
+
+def noise_kernel(taps: int) -> torch.Tensor:
+    """(taps,) causal weights, newest first: a Hann bump scaled to unit L2 norm (so unit variance out)."""
+    if taps == 1:
+        return torch.ones(1, dtype=torch.float64)
+    w = torch.sin(math.pi * (torch.arange(taps, dtype=torch.float64) + 1) / (taps + 1)) ** 2
+    return w / w.norm()
+
+
+def correlate(white: torch.Tensor, taps: int) -> torch.Tensor:
+    """(..., n + taps - 1, D) white draws, oldest first -> (..., n, D): each frame a weighted sum of its last `taps`."""
+    if taps == 1:
+        return white
+    k = noise_kernel(taps).to(white.dtype).flip(0)  # oldest first, to match unfold's order
+    return (white.unfold(-2, taps, 1) * k).sum(-1)  # unfold -> (..., n, D, taps)
+
+
+def motion_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int, taps: int = 1,
+                 device=None) -> torch.Tensor:
+    """(n_frames, dim) diffusion noise for frames [frame_start, frame_start + n): `frame_noise` correlated over
+    `taps` frames. A pure function of (seed, frame index, step), so every window draws the same numbers."""
+    white = frame_noise(seed, frame_start - taps + 1, n_frames + taps - 1, step, dim, device).double()
+    return correlate(white, taps).float()

@@ -307,3 +307,56 @@ def upper_body_joints(names: list[str]) -> list[int]:
     drop = ("thumb", "index", "middle", "ring", "pinky", "end", "leg", "foot", "toe", "upleg")
     picked = [i for i, n in enumerate(names) if any(k in n.lower() for k in keep) and not any(d in n.lower() for d in drop)]
     return picked or list(range(len(names)))
+
+
+def area_under_jerk(positions: np.ndarray, fps: float) -> float:
+    """Area under the peak-jerk curve (the largest joint jerk of each frame, as FlowMDM's PJ/AUJ), per second
+    of motion so that clips of any length compare: units / s^3."""
+    return float(jerk_magnitude(positions, fps).max(axis=1).mean())
+
+
+def hand_joints(names: list[str]) -> list[int]:
+    """Indices of the two wrists (LeftHand/RightHand, Hand_L, ...): no fingers, no end sites."""
+    drop = ("thumb", "index", "middle", "ring", "pinky", "finger", "end")
+    picked = [i for i, n in enumerate(names) if "hand" in n.lower() and not any(d in n.lower() for d in drop)]
+    return picked or upper_body_joints(names)
+
+
+# --------------------------------------------------------------------------------------------------
+# Speech-driven: does the body move more while the person speaks?
+# --------------------------------------------------------------------------------------------------
+
+
+def speech_mask(audio: np.ndarray, sr: int, fps: float, n_frames: int, rel_db: float = -30.0) -> np.ndarray:
+    """(n_frames,) +1 speech, -1 silence, 0 in between (within 0.75 s of speech): a loudness gate.
+
+    A frame is speech when its 100 ms RMS is within `rel_db` of the clip's 95th-percentile RMS; silence
+    starts 0.75 s after speech ends (a gesture's retraction) and ends 0.75 s before it resumes (preparation).
+    """
+    a = np.asarray(audio, dtype=np.float64)
+    hop = sr / fps
+    centre = (np.arange(n_frames) + 0.5) * hop
+    cum = np.concatenate([[0.0], np.cumsum(a * a)])
+    lo = np.clip((centre - hop).astype(int), 0, len(a))
+    hi = np.clip((centre + hop).astype(int), 0, len(a))
+    rms = np.sqrt((cum[hi] - cum[lo]) / np.maximum(hi - lo, 1))
+    ref = np.percentile(rms, 95) if n_frames else 0.0
+    if ref <= 1e-6:
+        return -np.ones(n_frames, dtype=int)
+    speech = rms > ref * 10 ** (rel_db / 20)
+    guard = int(round(0.75 * fps))
+    near = np.convolve(speech.astype(float), np.ones(2 * guard + 1), mode="same") > 0
+    return np.where(speech, 1, np.where(near, 0, -1))
+
+
+def speech_contrast(speed: np.ndarray, mask: np.ndarray) -> float:
+    """Mean speed in speech frames over mean speed in silence frames (nan without either; see speech_mask)."""
+    speech, silence = speed[mask[: len(speed)] == 1], speed[mask[: len(speed)] == -1]
+    if len(speech) == 0 or len(silence) == 0:
+        return float("nan")
+    return float(speech.mean() / max(silence.mean(), 1e-9))
+
+
+def net_yaw_deg(dyaw: np.ndarray) -> float:
+    """Net turn in degrees of a clip whose per-frame heading changes are `dyaw` (radians)."""
+    return float(np.degrees(np.sum(dyaw)))

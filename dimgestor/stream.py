@@ -3,7 +3,7 @@
 `GestureStream.push(samples)` takes audio in chunks of any size and returns the motion frames whose
 condition became complete, each denoised through all sampler steps at once (batched over the new
 frames). For every step it carries the denoiser's state (encoder tail + each block's Mamba-2 state);
-the front end and the feature extractor carry theirs. Noise is `frame_noise(seed, frame, step)`, so
+the front end and the feature extractor carry theirs. Noise is `motion_noise(seed, frame, step)`, so
 the frames equal those of `generate_offline` on the whole recording.
 """
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .diffusion import Diffusion, frame_noise
+from .diffusion import Diffusion, motion_noise
 from .model import DenoiserState, DiMGestor
 from .smoothing import OneEuroFilter
 
@@ -23,14 +23,15 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
                   sampler: str, eta: float) -> tuple[torch.Tensor, list[DenoiserState]]:
     """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step."""
     n, D, dev = cond.shape[1], model.config.motion_dim, cond.device
-    x = frame_noise(seed, frame_start, n, 0, D, dev)[None]  # x_T, (1, n, D)
+    L = model.config.noise_taps
+    x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
     new_states = []
     for i, ((t, t_prev), state) in enumerate(zip(pairs, states)):
         out, state = model(x, t, cond, state)
         new_states.append(state)
         eps, x0 = diffusion.split(out, x, t)
         noisy = sampler == "ddpm" and t > 0 or sampler == "ddim" and eta > 0 and t_prev >= 0
-        noise = frame_noise(seed, frame_start, n, i + 1, D, dev)[None] if noisy else None
+        noise = motion_noise(seed, frame_start, n, i + 1, D, L, dev)[None] if noisy else None
         if sampler == "ddpm":
             x = diffusion.ddpm_step(x, x0, t, noise)
         else:

@@ -134,3 +134,132 @@ def make_synthetic_pair(out_dir, name: str = "synth", seconds: float = 10.0, see
     write_bvh(bvh_path, motion)
     save_wav(wav_path, audio, rate)
     return bvh_path, wav_path
+
+
+# ---------------- speech and gestures with a known rule, at any length ----------------
+#
+# The rule a model must learn (and that tests and benchmarks can check):
+#   * speech comes in phrases of syllables; some syllables are stressed (louder, higher, a consonant burst);
+#   * while a phrase is spoken the arms come up into gesture space, and in pauses they return to rest;
+#   * every stressed syllable launches a beat stroke of one or both hands: a minimum-jerk pulse that peaks
+#     ~0.2 s after the syllable's onset, its size following the syllable's loudness;
+#   * the spine, neck and head sway slowly all the time (idle motion), and the head nods on strokes.
+# Every trajectory is a sum of smooth pulses and critically damped transitions, so speed and jerk are of the
+# order of real capture's, not of a sine generator's.
+
+
+def _min_jerk_pulse(u: np.ndarray) -> np.ndarray:
+    """0 -> 1 -> 0 over u in [0, 1] with zero velocity and acceleration at both ends (64 u^3 (1-u)^3)."""
+    v = np.clip(u, 0.0, 1.0)
+    return 64.0 * v ** 3 * (1.0 - v) ** 3
+
+
+def _critically_damped(target: np.ndarray, fps: float, tau: float) -> np.ndarray:
+    """A critically damped second-order follower of `target` (time constant tau s): smooth, no overshoot."""
+    from scipy.signal import lfilter
+
+    a = np.exp(-1.0 / (fps * tau))  # two cascaded one-pole low-passes = a critically damped system
+    y = lfilter([1 - a], [1, -a], target, zi=[a * target[0]])[0]
+    return lfilter([1 - a], [1, -a], y, zi=[a * y[0]])[0]
+
+
+def speech_and_gestures(seconds: float, seed: int = 0, rate: int = 16000, fps: float = 30.0
+                        ) -> tuple[np.ndarray, BvhMotion, dict]:
+    """(audio, motion, events) following the rule above; events: phrases [(start, end)], stresses [(t, size)]."""
+    rng = np.random.default_rng(seed)
+    n_audio = int(round(seconds * rate))
+    audio = np.zeros(n_audio)
+    f0_speaker = rng.uniform(100, 220)
+    phrases, stresses = [], []
+    pos = rng.uniform(0.3, 1.2)
+    while pos < seconds - 0.5:
+        start, t = pos, pos
+        for k in range(int(rng.integers(3, 12))):
+            dur = rng.uniform(0.12, 0.26)
+            if t + dur > seconds:
+                break
+            stressed = rng.random() < 0.35 or k == 0
+            loud = rng.uniform(0.7, 1.0) if stressed else rng.uniform(0.25, 0.45)
+            i0, i1 = int(t * rate), int((t + dur) * rate)
+            ts = np.arange(i1 - i0) / rate
+            f0 = f0_speaker * (1.15 if stressed else 1.0) * (1 - 0.1 * (t - start) / 3.0) * (1 + 0.05 * np.sin(9 * ts))
+            phase = 2 * np.pi * np.cumsum(f0) / rate
+            voice = sum(np.sin(h * phase) * np.exp(-((h * f0 - 700) / 900) ** 2) for h in range(1, 14))
+            env = np.minimum(1.0, ts / 0.015) * np.minimum(1.0, (ts[-1] - ts) / 0.04) * np.exp(-ts / (dur * 1.5))
+            seg = loud * env * voice / 3.0
+            if stressed:  # a consonant burst makes the onset sharp
+                burst = min(len(ts), int(0.025 * rate))
+                seg[:burst] += loud * 0.6 * rng.standard_normal(burst) * np.linspace(1, 0, burst)
+                stresses.append((t, loud))
+            audio[i0:i1] += seg
+            t += dur + rng.uniform(0.02, 0.09)
+        phrases.append((start, t))
+        pos = t + rng.uniform(0.4, 3.0)
+    audio += 0.002 * rng.standard_normal(n_audio)  # room noise
+    audio = (0.6 * audio / max(np.abs(audio).max(), 1e-9)).astype(np.float32)
+
+    n = int(round(seconds * fps))
+    time = np.arange(n) / fps
+    speaking = np.zeros(n)
+    for a, b in phrases:
+        speaking[(time >= a - 0.15) & (time < b + 0.1)] = 1.0
+    engage = _critically_damped(speaking, fps, 0.12)  # arms up into gesture space while speaking
+    stroke = {"Left": np.zeros(n), "Right": np.zeros(n)}
+    nod = np.zeros(n)
+    for t, loud in stresses:
+        pulse = loud * _min_jerk_pulse((time - t + 0.05) / rng.uniform(0.4, 0.6))
+        which = rng.choice(["Left", "Right", "both"], p=[0.35, 0.35, 0.3])
+        for side in ("Left", "Right"):
+            if which in (side, "both"):
+                stroke[side] += pulse
+        nod += 0.5 * pulse
+    sk = synthetic_skeleton()
+    ph = rng.uniform(0, 2 * np.pi, 12)
+    sway = lambda f, p: np.sin(2 * np.pi * f * time + p)  # noqa: E731
+    zero = 0 * time
+    angles = {  # degrees, per joint in that joint's own channel order
+        "Hips": (2 * sway(0.11, ph[0]), 1.5 * sway(0.17, ph[1]), 4 * sway(0.05, ph[2])),
+        "Spine": (1.5 * sway(0.23, ph[3]) + 2 * engage, 2 * sway(0.13, ph[4]), 1.0 * sway(0.19, ph[5])),
+        "Spine1": (1.0 * sway(0.29, ph[6]) + 1.5 * engage, 1.5 * sway(0.21, ph[7]), zero),
+        "Neck": (zero, 3 * sway(0.15, ph[8]), 2 * sway(0.09, ph[9])),
+        "Head": (1.5 * sway(0.31, ph[10]), 4 * nod + 2 * sway(0.27, ph[11]), 3 * sway(0.12, ph[0]) + 2 * engage),
+    }
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        s, e = stroke[side], engage
+        euler = {  # axis -> degrees: at rest the arms hang ~75 deg down; in gesture space the forearms come up
+            f"{side}Shoulder": {"X": zero, "Y": -sign * 3 * e, "Z": sign * (4 * e + 3 * s)},
+            f"{side}Arm": {"X": 6 * s, "Y": -sign * (8 + 22 * e + 18 * s), "Z": -sign * (75 - 20 * e - 12 * s)},
+            f"{side}ForeArm": {"X": 4 * s, "Y": -sign * (10 + 55 * e + 30 * s), "Z": sign * 5 * e},
+            f"{side}Hand": {"X": 12 * s, "Y": -sign * 6 * e, "Z": 8 * s},
+        }
+        for name, by_axis in euler.items():
+            order = sk.rotation_order(sk.index(name))
+            angles[name] = tuple(by_axis[a] for a in order)
+    root_pos = np.stack([1.5 * sway(0.07, ph[1]), 95 + 0.5 * sway(0.2, ph[2]), 1.0 * sway(0.05, ph[3])], -1)
+    cols = []
+    for j, name in enumerate(sk.names):
+        if j == 0:
+            cols += [root_pos[:, 0], root_pos[:, 1], root_pos[:, 2]]
+        cols += list(angles[name])
+    return audio, BvhMotion(sk, 1.0 / fps, np.stack(cols, -1)), {"phrases": phrases, "stresses": stresses}
+
+
+def make_gesture_corpus(out_dir, minutes: float, clip_s: float = 60.0, seed: int = 0, fps: float = 30.0,
+                        rate: int = 16000) -> list[tuple[Path, Path]]:
+    """Write `minutes` of speech_and_gestures as clip_NNN.bvh/.wav pairs of `clip_s` seconds (the last shorter)."""
+    from dimgestor.audio import save_wav
+    from dimgestor.bvh import write_bvh
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    total, paths, i = minutes * 60.0, [], 0
+    while total > 1e-6:
+        length = min(clip_s, total)
+        audio, motion, _ = speech_and_gestures(length, seed=seed * 100003 + i, rate=rate, fps=fps)
+        bvh, wav = out_dir / f"clip_{i:03d}.bvh", out_dir / f"clip_{i:03d}.wav"
+        write_bvh(bvh, motion)
+        save_wav(wav, audio, rate)
+        paths.append((bvh, wav))
+        total -= length
+        i += 1
+    return paths

@@ -30,7 +30,23 @@ from .diffusion import Diffusion
 from .features import FeatureSpec
 from .model import DiMGestor
 
-__all__ = ["TrainOptions", "train", "register", "Objective"]
+__all__ = ["TrainOptions", "train", "register", "Objective", "RECIPES"]
+
+SMALL_DATA_MIN = 30.0  # below this many minutes of training data, mirroring and speed perturbation default on
+SMALL_DATA_SPEEDS = (0.9, 1.1)
+
+# Named training recipes: model-config overrides for the diffusion process plus the loss weights.
+# "paper" is Zhang et al.'s (N = 1000 linear betas, noise MSE); "streaming" is this engine's default, chosen
+# by measurement (benchmarks/recipes.py, results in benchmarks/results/recipes.json): a short cosine chain
+# whose every level is trained, x0 prediction with velocity and acceleration losses, and noise correlated
+# over a few frames, so that what a causal denoiser passes through is slow sway, not jitter.
+RECIPES: dict[str, dict] = {
+    "paper": dict(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
+                              noise_taps=1), vel_weight=0.0, acc_weight=0.0),
+    "streaming": dict(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
+                                  ddim_spacing="linspace"),
+                      vel_weight=4.0, acc_weight=4.0, root_weight=1.0),
+}
 
 
 @dataclass
@@ -38,14 +54,18 @@ class TrainOptions:
     data: str
     out: str
     preset: str = "realtime"
-    overrides: dict | None = None  # ModelConfig fields replacing the preset's
+    overrides: dict | None = None  # ModelConfig fields replacing the preset's (and the recipe's)
+    recipe: str | None = "streaming"  # a RECIPES name: its config and loss weights (explicit weights below win)
     max_steps: int = 20000
     batch_size: int = 8
     lr: float = 5e-4
     warmup: int = 200  # linear LR warm-up steps (Adam on a fresh model)
     weight_decay: float = 0.0
     grad_clip: float = 1.0
-    vel_weight: float = 0.0  # weight of the x0 velocity loss (0 = the paper's noise MSE only)
+    vel_weight: float | None = None  # weight of the x0 velocity loss (None: the recipe's; 0 = none)
+    acc_weight: float | None = None  # weight of the x0 acceleration loss (None: the recipe's; 0 = none)
+    root_weight: float | None = None  # weight of the integrated-root (drift) loss (None: the recipe's; 0 = none)
+    speeds: tuple[float, ...] = ()  # speed perturbation factors for extra training copies, e.g. (0.9, 1.1)
     ema: float = 0.999  # EMA decay of the saved weights
     window_s: float = 10.0
     hop_s: float | None = None  # default: a quarter window (overlapping windows are cheap data)
@@ -65,12 +85,24 @@ class TrainOptions:
 class Objective(nn.Module):
     """The training loss as a module, so DDP sees one forward that uses every trained parameter."""
 
-    def __init__(self, model: DiMGestor, diffusion: Diffusion, vel_weight: float = 0.0):
+    def __init__(self, model: DiMGestor, diffusion: Diffusion, weights: dict[str, float]):
         super().__init__()
-        self.model, self.diffusion, self.vel_weight = model, diffusion, vel_weight
+        self.model, self.diffusion, self.weights = model, diffusion, weights
 
     def forward(self, x0, feats, t, noise):
-        return self.diffusion.training_loss(self.model, x0, feats, t, noise, self.vel_weight)
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise, **self.weights)
+
+
+LOSS_WEIGHTS = ("vel_weight", "acc_weight", "root_weight")
+
+
+def resolve_recipe(opts: "TrainOptions") -> tuple[dict, dict[str, float]]:
+    """(config overrides, {loss weight name: value}) of the options' recipe and explicit settings."""
+    if opts.recipe is not None and opts.recipe not in RECIPES:
+        raise ValueError(f"unknown recipe {opts.recipe!r}; choose one of {', '.join(RECIPES)}")
+    r = RECIPES[opts.recipe] if opts.recipe else {"config": {}}
+    weights = {k: float(r.get(k, 0.0) if getattr(opts, k) is None else getattr(opts, k)) for k in LOSS_WEIGHTS}
+    return {**r["config"], **(opts.overrides or {})}, weights
 
 
 class WindowBank:
@@ -132,7 +164,7 @@ def validation_loss(model: DiMGestor, diffusion: Diffusion, bank: WindowBank, se
     ts = torch.linspace(0, diffusion.N - 1, n_t).round().long()
     for i in range(len(bank)):
         x0, feats = bank.batch([i] * n_t, c.lookahead_feats, c.feats_per_frame)
-        noise = torch.randn(x0.shape, generator=g)
+        noise = diffusion.noise_like(x0, g)
         loss = diffusion.training_loss(model, x0.to(device), feats.to(device), ts.to(device), noise.to(device))
         total, count = total + loss.item(), count + 1
     return total / count
@@ -157,18 +189,19 @@ def train(opts: TrainOptions) -> Path:
         raise ValueError(f"{out} already holds checkpoints: pass --resume to continue, or choose a new --out")
 
     # ---- config: the checkpoint's when resuming, else the preset with the data's feature width ----
+    overrides, weights = resolve_recipe(opts)
     if resume_from is not None:
         config = ModelConfig(**read_meta(resume_from)["model"])
     else:
-        config = get_preset(opts.preset, **(opts.overrides or {}))
+        config = get_preset(opts.preset, **overrides)
     spec = FeatureSpec(fps=config.fps)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
                  cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction,
                  valid_seconds=opts.valid_seconds)
-    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, **ds_kw)
+    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=tuple(opts.speeds), **ds_kw)
     valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
     if resume_from is None:
-        config = get_preset(opts.preset, **{**(opts.overrides or {}), "motion_dim": train_ds.motion_dim})
+        config = get_preset(opts.preset, **{**overrides, "motion_dim": train_ds.motion_dim})
         mean, std = compute_stats(train_ds)
     elif config.motion_dim != train_ds.motion_dim:
         raise ValueError(f"{resume_from}: trained on {config.motion_dim} features, the data has {train_ds.motion_dim}")
@@ -199,14 +232,17 @@ def train(opts: TrainOptions) -> Path:
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
                                  seed=opts.seed, drop_last=False)
-    objective = Objective(model, diffusion, opts.vel_weight)
+    objective = Objective(model, diffusion, weights)
     if world > 1:
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device] if device.type == "cuda" else None)
     if main:
         out.mkdir(parents=True, exist_ok=True)
         print(f"{train_ds.summary()}\n{valid_ds.summary()}\n"
               f"model {opts.preset if resume_from is None else '(from checkpoint)'}: "
-              f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, device {device}, world {world}"
+              f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, device {device}, world {world}, "
+              f"recipe {opts.recipe or '(none)'}: {config.n_steps} {config.schedule} steps, predicts {config.prediction}, "
+              f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
+              f"{weights['vel_weight']:g}/{weights['acc_weight']:g}/{weights['root_weight']:g}"
               + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
 
     def checkpoint(step: int) -> Path:
@@ -248,7 +284,7 @@ def train(opts: TrainOptions) -> Path:
         idx = _batch_indices(sampler, step, B)
         x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame)
         t = torch.randint(0, diffusion.N, (len(idx),), generator=g)
-        noise = torch.randn(x0.shape, generator=g)
+        noise = diffusion.noise_like(x0, g)
         for group in opt.param_groups:
             group["lr"] = _lr(opts, step)
         loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device))
@@ -301,6 +337,9 @@ def register(subparsers) -> None:
     p.add_argument("--data", required=True, help="folder of BVH+WAV pairs (sub-folders allowed)")
     p.add_argument("--out", required=True, help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
     p.add_argument("--preset", default=d.preset, help="model preset: paper, realtime or tiny")
+    p.add_argument("--recipe", default="streaming", choices=list(RECIPES),
+                   help="diffusion training recipe: 'streaming' (short cosine chain, x0 + derivative losses; smooth "
+                        "at any K) or 'paper' (Zhang et al.: 1000 linear steps, noise MSE)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model config field, repeatable")
     p.add_argument("--max-steps", type=int, default=d.max_steps)
     p.add_argument("--batch-size", type=int, default=d.batch_size, help="global batch (split over DDP ranks)")
@@ -311,13 +350,22 @@ def register(subparsers) -> None:
                    help="held-out tail of every clip, as a fraction (without a split file)")
     p.add_argument("--valid-seconds", type=float, default=None,
                    help="held-out tail of every clip in seconds (overrides --valid-fraction)")
-    p.add_argument("--mirror", action="store_true", help="add left/right mirrored windows")
+    p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
+                   help="add left/right mirrored windows (default: on when the training split is under 30 min)")
+    p.add_argument("--speeds", default=None, metavar="R,R",
+                   help="speed-perturbed copies of the training audio+motion, e.g. 0.9,1.1 ('' = none; "
+                        "default: 0.9,1.1 when the training split is under 30 min)")
     p.add_argument("--ckpt-every", type=int, default=d.ckpt_every)
     p.add_argument("--valid-every", type=int, default=d.valid_every)
     p.add_argument("--keep", type=int, default=d.keep, help="checkpoints to keep (0 = all)")
     p.add_argument("--ema", type=float, default=d.ema)
-    p.add_argument("--vel-weight", type=float, default=d.vel_weight,
-                   help="weight of a velocity loss on the predicted x0 (0 = the paper's loss; >0 damps jitter)")
+    p.add_argument("--vel-weight", type=float, default=None,
+                   help="weight of a velocity loss on the predicted x0 (default: the recipe's; 0 = none)")
+    p.add_argument("--acc-weight", type=float, default=None,
+                   help="weight of an acceleration loss on the predicted x0 (default: the recipe's; 0 = none)")
+    p.add_argument("--root-weight", type=float, default=None,
+                   help="weight of a loss on the integrated root travel and turning of the predicted x0, against "
+                        "spin and drift (default: the recipe's; 0 = none)")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
@@ -332,8 +380,15 @@ def _run(args) -> int:
     for name in ("max_steps", "batch_size", "ckpt_every", "valid_every"):
         if getattr(args, name) <= 0:
             raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
-    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or args.vel_weight < 0:
-        raise ValueError("--lr and --window-s must be positive, --ema in [0, 1) and --vel-weight >= 0")
+    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or \
+            any((getattr(args, k) or 0) < 0 for k in LOSS_WEIGHTS):
+        raise ValueError("--lr and --window-s must be positive, --ema in [0, 1), the loss weights >= 0")
+    try:
+        speeds = None if args.speeds is None else tuple(float(r) for r in args.speeds.split(",") if r.strip())
+    except ValueError:
+        raise ValueError(f"--speeds expects comma-separated factors such as 0.9,1.1, got {args.speeds!r}") from None
+    if speeds is not None and any(r <= 0 for r in speeds):
+        raise ValueError(f"--speeds factors must be positive, got {args.speeds!r}")
     if args.threads is not None:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
@@ -341,9 +396,18 @@ def _run(args) -> int:
     opts = TrainOptions(data=args.data, out=args.out, preset=args.preset, overrides=_parse_set(args.set),
                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr, window_s=args.window_s,
                         hop_s=args.hop_s, valid_fraction=args.valid_fraction,
-                        valid_seconds=args.valid_seconds, mirror=args.mirror, ckpt_every=args.ckpt_every,
-                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight, resume=args.resume,
+                        valid_seconds=args.valid_seconds, ckpt_every=args.ckpt_every, recipe=args.recipe,
+                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight,
+                        acc_weight=args.acc_weight, root_weight=args.root_weight, resume=args.resume,
                         seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
+    few = False
+    if args.mirror is None or speeds is None:  # augmentation defaults depend on how much training data there is
+        minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
+                                 valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
+                                 window_s=args.window_s).seconds() / 60
+        few = minutes < SMALL_DATA_MIN
+    opts.mirror = few if args.mirror is None else args.mirror
+    opts.speeds = (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds
     last = train(opts)
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"checkpoint: {last}")

@@ -186,3 +186,32 @@ def test_zeggs_sample_windows(zeggs_dir, tmp_path):
     item = train[0]
     assert item["motion"].shape == (400, 228) and item["audio"].shape == (320000,)
     assert [w[1] for w in train.windows] == [0, 200, 400, 600, 770]
+
+
+def test_speed_perturbation_adds_faster_and_slower_copies_of_the_training_part_only(tmp_path):
+    from dimgestor.dataset import speed_perturb
+
+    data = tmp_path / "d"
+    make_synthetic_pair(data, "a", seconds=10.0, seed=2)
+    plain = GestureDataset(data, window_s=2.0, cache_dir=tmp_path / "cache", valid_seconds=2.0)
+    fast = GestureDataset(data, window_s=2.0, cache_dir=tmp_path / "cache", valid_seconds=2.0, speeds=(0.9, 1.1))
+    valid = GestureDataset(data, window_s=2.0, cache_dir=tmp_path / "cache", valid_seconds=2.0, split="valid",
+                           speeds=(0.9, 1.1))
+    assert len(valid.clips) == 1 and len(valid.segments) == 1  # nothing added to the held-out split
+    assert [c.name for c in fast.clips] == ["a", "a@0.9x", "a@1.1x"]
+    train_frames = plain.segments[0][2]  # 8 s at 20 fps
+    assert [len(fast.clips[i].features) for i in (1, 2)] == [int(train_frames / 0.9), int(train_frames / 1.1)]
+    for clip in fast.clips[1:]:
+        assert len(clip.audio) == len(clip.features) * fast.spf  # audio and motion stay aligned
+    assert fast.seconds() == pytest.approx(plain.seconds() * (1 + 1 / 0.9 + 1 / 1.1), rel=0.02)
+
+    # the copies are the same motion at another tempo: per-frame root steps scale, poses are resampled
+    clip = plain.clips[0]
+    twice = speed_perturb(clip, 2.0, 20.0, 800)
+    f, g = np.asarray(clip.features), twice.features
+    assert len(g) == len(f) // 2
+    np.testing.assert_allclose(g[:, 6:], f[: 2 * len(g):2, 6:], atol=1e-5)  # every other frame's joint angles
+    np.testing.assert_allclose(g[:, :3], 2 * f[: 2 * len(g):2, :3], atol=1e-5)  # root velocities per frame double
+    assert np.sum(g[:, 2]) == pytest.approx(np.sum(f[: 2 * len(g), 2]), abs=0.05)  # about the same total turn
+    with pytest.raises(ValueError, match="positive"):
+        GestureDataset(data, window_s=2.0, cache_dir=tmp_path / "cache", speeds=(0.0,))

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from dimgestor.config import get_preset
-from dimgestor.diffusion import Diffusion, ddim_pairs, frame_noise
+from dimgestor.diffusion import Diffusion, correlate, ddim_pairs, frame_noise, motion_noise, noise_kernel
 
 
 def test_ddim_pairs_are_exact():
@@ -31,11 +31,22 @@ def test_schedules():
     assert lin.a(-1) == 1.0 and 0 < lin.a(999) < lin.a(0) < 1
 
 
-@pytest.mark.parametrize("prediction", ["eps", "v"])
-def test_split_inverts_the_training_target(prediction):
-    d = Diffusion(get_preset("tiny", prediction=prediction))
+def test_cosine_short_chain_spreads_the_noise_levels():
+    d = Diffusion(get_preset("tiny", n_steps=8, schedule="cosine"))
+    a = [d.a(t) for t in range(8)]
+    assert all(x > y for x, y in zip(a, a[1:]))  # noisier at every step
+    assert 0.9 < a[0] < 1 and a[-1] < 1e-3  # the first level is nearly clean, the last is nearly pure noise
+    snr = [x / (1 - x) for x in a[:-1]]
+    ratios = [s1 / s2 for s1, s2 in zip(snr, snr[1:])]
+    assert max(ratios) < 12  # no level is wasted: every step cuts the signal-to-noise ratio by a bounded factor
+
+
+@pytest.mark.parametrize("prediction,schedule,n", [("eps", "linear", 1000), ("v", "linear", 1000),
+                                                   ("x0", "linear", 1000), ("x0", "cosine", 8)])
+def test_split_inverts_the_training_target(prediction, schedule, n):
+    d = Diffusion(get_preset("tiny", prediction=prediction, schedule=schedule, n_steps=n))
     x0, eps = torch.randn(2, 5, 3, dtype=torch.float64), torch.randn(2, 5, 3, dtype=torch.float64)
-    for t in (0, 10, 300):
+    for t in sorted({0, min(3, n - 1), min(300, n - 2)}):
         tt = torch.full((2,), t)
         xt = d.q_sample(x0, tt, eps)
         e, x = d.split(d.target(x0, tt, eps), xt, t)
@@ -125,3 +136,37 @@ def test_velocity_loss_penalises_jitter_not_offsets(prediction):
     per_sample = 4 * c * c * (1 - a)
     assert jitter.item() == pytest.approx(c * c + w * per_sample.mean().item(), rel=1e-4)
     assert d.training_loss(_Oracle(target, c * sign), x0, feats, t, noise).item() == pytest.approx(c * c, rel=1e-5)
+
+
+def test_correlated_noise_is_exact_per_frame_unit_variance_and_smooth():
+    for taps in (1, 3, 5):
+        whole = motion_noise(11, -4, 90, 2, 6, taps)
+        parts = torch.cat([motion_noise(11, -4, 1, 2, 6, taps), motion_noise(11, -3, 37, 2, 6, taps),
+                           motion_noise(11, 34, 52, 2, 6, taps)])
+        assert torch.equal(whole, parts)  # any window draws the same numbers: streaming stays exact
+        z = motion_noise(0, 0, 20000, 0, 8, taps).double()
+        assert abs(z.var().item() - 1) < 0.05 and abs(z.mean().item()) < 0.03
+        lag1 = (z[1:] * z[:-1]).mean().item()
+        k = noise_kernel(taps)
+        assert lag1 == pytest.approx(float((k[1:] * k[:-1]).sum()), abs=0.03)  # correlated as the kernel says
+    assert torch.equal(motion_noise(5, 0, 10, 1, 3, 1), frame_noise(5, 0, 10, 1, 3))  # taps 1: the paper's noise
+    white = torch.randn(2, 10 + 4, 3, dtype=torch.float64)
+    assert correlate(white, 5).shape == (2, 10, 3)
+    d = Diffusion(get_preset("tiny", noise_taps=5))
+    assert d.noise_like(torch.zeros(3, 40, 2)).shape == (3, 40, 2)
+
+
+@pytest.mark.parametrize("order_weights", [(1.0, 0.0), (0.0, 1.0)])
+def test_derivative_losses_penalise_jitter_not_offsets_for_x0(order_weights):
+    d = Diffusion(get_preset("tiny", prediction="x0", schedule="cosine", n_steps=8))
+    torch.manual_seed(0)
+    x0 = torch.randn(2, 16, 12).cumsum(1) * 0.1
+    feats, t, noise = torch.randn(2, 16 * 5 + 10, 20), torch.tensor([1, 5]), torch.randn(2, 16, 12)
+    vel, acc = order_weights
+    plain = d.training_loss(_Oracle(x0, 0.0), x0, feats, t, noise)
+    sign = torch.tensor([1.0, -1.0]).repeat(8)[None, :, None]
+    offset = d.training_loss(_Oracle(x0, 0.1), x0, feats, t, noise, vel_weight=vel, acc_weight=acc)
+    jitter = d.training_loss(_Oracle(x0, 0.1 * sign), x0, feats, t, noise, vel_weight=vel, acc_weight=acc)
+    assert plain == pytest.approx(0.0, abs=1e-12)
+    assert offset == pytest.approx(0.01, rel=1e-4)  # a constant offset has no velocity or acceleration error
+    assert jitter > 3 * offset  # an alternating error of the same size is penalised far more

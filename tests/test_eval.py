@@ -121,3 +121,65 @@ def test_eval_refuses_data_of_another_skeleton(data, tmp_path):
     args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--data", str(root)])
     with pytest.raises(ValueError, match="feature columns"):
         ev.run(args)
+
+
+def test_per_k_report_has_every_metric_and_real_motion_scores_as_real(data, tmp_path):
+    _, valid, train = data
+    bundle = _bundle(train)
+    ae = ev.fgd_autoencoder(train, tmp_path / "ae", steps=30, log=lambda *_: None)
+    clips = ev.valid_clips(valid)
+    assert len(clips) == 2 and all(len(a) == len(r) * 800 for a, r in clips)
+    rep = ev.k_report(bundle, clips, [1, 2], seeds=2, seed=0, ae=ae, log=lambda *_: None)
+    assert list(rep["per_k"]) == ["1", "2"] and set(rep["per_k"]["2"]) == set(ev.KMETRICS)
+    for row in rep["per_k"].values():
+        assert all(np.isfinite(row[m]) for m in ev.KMETRICS if m != "contrast")
+        assert row["jerk_ratio"] > 0 and row["diversity"] >= 0
+    # the reference's own numbers: a real clip's jerk ratio would be 1, its contrast follows the synthetic rule
+    ref = rep["reference"]
+    assert ref["hand_jerk"] > 0 and ref["net_yaw_deg"] >= 0 and 0 < ref["beat_align"] <= 1
+
+    stats = ev.clip_stats(clips[0][1], clips[0][0], valid.skeleton, valid.spec)
+    turned = clips[0][1].copy()
+    turned[:, valid.spec.columns.index("root_dyaw")] += np.radians(90) / len(turned)  # a quarter turn in total
+    assert ev.clip_stats(turned, clips[0][0], valid.skeleton, valid.spec)["net_yaw_deg"] == pytest.approx(
+        stats["net_yaw_deg"] + 90, abs=1e-6)
+
+
+def test_speech_mask_and_contrast():
+    sr, fps = 16000, 20
+    t = np.arange(10 * sr) / sr
+    audio = (np.sin(2 * np.pi * 200 * t) * 0.3 * ((t > 2) & (t < 5))).astype(np.float32)
+    mask = metrics.speech_mask(audio, sr, fps, 200)
+    assert (mask[45:95] == 1).all() and (mask[:23] == -1).all() and (mask[117:] == -1).all()
+    assert (mask[30:38] == 0).all()  # preparation before speech is neither
+    speed = np.where(mask == 1, 3.0, 1.0)
+    assert metrics.speech_contrast(speed, mask) == pytest.approx(3.0)
+    assert np.isnan(metrics.speech_contrast(speed, np.ones(200, int)))  # no silence: undefined
+
+
+def test_eval_on_speech_without_motion_and_per_k(data, tmp_path):
+    from dimgestor.audio import save_wav
+    from dimgestor.checkpoint import save_checkpoint
+
+    root, _, train = data
+    b = _bundle(train)
+    save_checkpoint(tmp_path / "ck", b.model, b.feature_spec, b.skeleton, b.mean, b.std)
+    wavs = tmp_path / "wavs"
+    wavs.mkdir()
+    rng = np.random.default_rng(0)
+    save_wav(wavs / "one.wav", (0.1 * rng.standard_normal(3 * 16000)).astype(np.float32), 16000)
+    save_wav(wavs / "two.wav", (0.1 * rng.standard_normal(2 * 44100)).astype(np.float32), 44100)  # resampled
+    parser = argparse.ArgumentParser()
+    ev.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--wavs", str(wavs), "--ks", "1,3,2000",
+                              "--seeds", "2", "--out", str(tmp_path / "w.json"), "--plot", str(tmp_path / "w.png")])
+    assert args.func(args) == 0
+    res = json.loads((tmp_path / "w.json").read_text())
+    assert res["files"] == ["one.wav", "two.wav"] and res["ks"] == [1, 3]  # 2000 > the chain's 1000 steps: dropped
+    assert res["reference"] is None and "systems" not in res
+    assert np.isnan(res["per_k"]["3"]["jerk_ratio"]) and res["per_k"]["3"]["hand_jerk"] > 0
+    assert (tmp_path / "w.png").stat().st_size > 1000
+    with pytest.raises(ValueError, match="--data .* or --wavs"):
+        ev.run(parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck")]))
+    with pytest.raises(ValueError, match="--ks"):
+        ev.parse_ks("1,x", 8, 4)

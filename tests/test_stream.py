@@ -136,3 +136,25 @@ def test_pretrained_front_end_streams_like_offline(tmp_path):
     offline = generate_offline(model, audio, steps=3, seed=1)
     assert offline.shape == (30, 12)
     assert np.abs(_stream(model, audio, [1111] * 21 + [669], steps=3, seed=1) - offline).max() < 1e-4
+
+
+@pytest.mark.parametrize("taps", [1, 5])
+def test_streaming_recipe_streams_exactly(taps):
+    """The default training recipe (short cosine chain, x0, correlated noise) streams like any other."""
+    model = _model(n_steps=8, schedule="cosine", prediction="x0", noise_taps=taps)
+    audio = _audio(2.1 + 77 / 16000, seed=4)
+    for K in (2, 8):
+        offline = generate_offline(model, audio, steps=K, seed=3)
+        assert offline.shape == (42, 12) and np.isfinite(offline).all()
+        for sizes in ([1, 2, 799, 801] * 12 + [len(audio)], [3333] * 11):
+            sizes = list(sizes)
+            total = 0
+            for i, n in enumerate(sizes):
+                if total + n >= len(audio):
+                    sizes = sizes[:i] + [len(audio) - total]
+                    break
+                total += n
+            else:
+                sizes.append(len(audio) - total)
+            assert np.abs(_stream(model, audio, sizes, steps=K, seed=3) - offline).max() < 1e-4
+    assert not np.allclose(generate_offline(model, audio, steps=8, seed=3), generate_offline(model, audio, steps=8, seed=4))

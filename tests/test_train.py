@@ -81,3 +81,34 @@ def test_no_embedded_default_model_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(ckpt, "DEFAULT_MODEL_DIR", tmp_path / "default_model")
     with pytest.raises(CheckpointError, match="no embedded default model"):
         load_checkpoint(None)
+
+
+def test_recipes_set_the_diffusion_and_the_losses():
+    from dimgestor.train import RECIPES, resolve_recipe
+
+    cfg, w = resolve_recipe(TrainOptions(data="", out="", recipe="paper"))
+    assert (cfg["n_steps"], cfg["schedule"], cfg["prediction"]) == (1000, "linear", "eps")
+    assert w == {"vel_weight": 0.0, "acc_weight": 0.0, "root_weight": 0.0}  # the paper's plain noise MSE
+    cfg, w = resolve_recipe(TrainOptions(data="", out=""))  # the default recipe
+    assert cfg == RECIPES["streaming"]["config"] and cfg["prediction"] == "x0" and cfg["n_steps"] <= 16
+    assert w["vel_weight"] > 0 and w["acc_weight"] > 0 and w["root_weight"] > 0
+    cfg, w = resolve_recipe(TrainOptions(data="", out="", overrides={"noise_taps": 3}, vel_weight=0.0))
+    assert cfg["noise_taps"] == 3 and w["vel_weight"] == 0.0  # explicit settings win over the recipe
+    with pytest.raises(ValueError, match="unknown recipe"):
+        resolve_recipe(TrainOptions(data="", out="", recipe="nope"))
+
+
+def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, capsys):
+    import dimgestor.train as train_module
+    from dimgestor.cli import main
+
+    seen = {}
+    monkeypatch.setattr(train_module, "train", lambda opts: seen.setdefault("opts", opts) and tmp_path)
+    common = ["train", "--data", str(data), "--out", str(tmp_path / "r"), "--cache-dir", str(tmp_path / "c")]
+    assert main(common) == 0
+    assert seen["opts"].mirror is True and seen["opts"].speeds == (0.9, 1.1) and seen["opts"].recipe == "streaming"
+    seen.clear()
+    assert main(common + ["--no-mirror", "--speeds", "", "--recipe", "paper"]) == 0
+    assert seen["opts"].mirror is False and seen["opts"].speeds == () and seen["opts"].recipe == "paper"
+    assert main(common + ["--speeds", "fast"]) == 2
+    assert "--speeds expects" in capsys.readouterr().err
