@@ -25,8 +25,28 @@ def _hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
     return host.strip("[]") or default_host, p
 
 
+def _root_pose(text: str) -> tuple[float, float, float, float]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) not in (3, 4):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z or X,Y,Z,YAW_DEG, got {text!r}")
+    return (*v, 0.0)[:4] if len(v) == 3 else tuple(v)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dimgestor")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="streamer", description="Real-time co-speech gesture streamer (DiM-Gestor).")
+    ap.add_argument("--version", action="version", version=f"streamer (dimgestor) {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
     s = sub.add_parser("serve", help="turn live or file audio into gestures; send them over WebSocket/OSC/BVH",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -43,6 +63,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-ws", action="store_true", help="do not run the WebSocket server")
     s.add_argument("--osc", type=_hostport, default=None, metavar="HOST:PORT",
                    help="send VMC protocol (OSC/UDP) to a Marionette at HOST:PORT (usual port 39539)")
+    s.add_argument("--vmc-positions", choices=("hips", "all"), default="hips",
+                   help="bone positions in the VMC stream: 'hips' moves only the Hips by position (every other bone "
+                        "carries its fixed rest offset, so a receiver keeps to rotations); 'all' sends every bone's "
+                        "posed position (this skeleton's proportions)")
+    s.add_argument("--vmc-hips-height", type=float, default=None, metavar="M",
+                   help="scale VMC positions so the standing Hips are M metres high (your avatar's; default: the "
+                        "model skeleton's own size)")
+    s.add_argument("--vmc-root", type=_root_pose, default=(0.0, 0.0, 0.0, 0.0), metavar="X,Y,Z[,YAW]",
+                   help="the /VMC/Ext/Root/Pos sent each frame: position in metres (Unity axes) and yaw in degrees")
+    s.add_argument("--vmc-bones", choices=("all", "upper"), default="all",
+                   help="'upper': spine, chest, shoulders, arms, hands and fingers only (no hips, legs, neck or head), "
+                        "to mix with face tracking")
+    s.add_argument("--vmc-max-bytes", type=int, default=0, metavar="N",
+                   help="split each frame's VMC bundle into bundles of at most N bytes (e.g. 1400 for a LAN); 0 = one bundle")
+    s.add_argument("--vmc-jitter-ms", type=float, default=250, metavar="MS",
+                   help="VMC jitter buffer: frames are sent this long after the earliest they could be")
     s.add_argument("--record", default=None, metavar="OUT.bvh",
                    help="write the generated motion of the server's source to this BVH file when it ends or on Ctrl-C")
     s.add_argument("--checkpoint", default=None, metavar="PATH",

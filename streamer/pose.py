@@ -96,6 +96,21 @@ class HumanoidRig:
     paths: tuple[tuple[int, ...], ...]  # joints after the humanoid parent's joint, up to the bone's joint
     offsets: np.ndarray             # (J, 3) skeleton offsets, BVH space
     root_joint: int                 # skeleton root joint index
+    skeleton_parents: tuple[int, ...] = ()  # parent of each skeleton joint (-1: root), for the rest pose
+
+    def __post_init__(self):
+        # The padded path tables of `local_pose`: joint index (L, B) (J = identity), offset (L, B, 3), is-root (L, B).
+        J, B = len(self.offsets), len(self.bones)
+        L = max((len(p) for p in self.paths), default=0)
+        idx, offs, is_root = np.full((L, B), J), np.zeros((L, B, 3)), np.zeros((L, B))
+        for b, path in enumerate(self.paths):
+            for d, k in enumerate(path):
+                idx[d, b] = k
+                if k == self.root_joint:
+                    is_root[d, b] = 1.0
+                else:
+                    offs[d, b] = self.offsets[k]
+        object.__setattr__(self, "_chains", (idx, offs, is_root))
 
     @classmethod
     def build(cls, names, parents, offsets, humanoid: dict[str, str]) -> "HumanoidRig":
@@ -114,14 +129,33 @@ class HumanoidRig:
             bparents.append(joints.index(a) if a != -1 else -1)
             paths.append(tuple(reversed(path)))
         return cls(tuple(bones), tuple(joints), tuple(bparents), tuple(paths),
-                   np.asarray(offsets, dtype=np.float64), parents.index(-1))
+                   np.asarray(offsets, dtype=np.float64), list(parents).index(-1), tuple(parents))
 
     def mapping(self, names) -> dict[str, str]:
         """{HumanBodyBones name: joint name} for the bones this skeleton has (the hello's `humanoid`)."""
         return {b: names[j] for b, j in zip(self.bones, self.joints)}
 
     def local_pose(self, root_pos: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """root_pos (n, 3), rotations (n, J, 4) wxyz -> bone local positions (n, B, 3), rotations (n, B, 4), BVH space."""
+        """root_pos (n, 3), rotations (n, J, 4) wxyz -> bone local positions (n, B, 3), rotations (n, B, 4), BVH space.
+
+        All bones at once: step d of every bone's path is one batched rotate and one batched quaternion
+        product over (n, B); paths are padded with the identity (`_chains`). `local_pose_reference` is
+        the per-bone walk this must equal.
+        """
+        idx, offs, is_root = self._chains
+        n = rotations.shape[0]
+        rot = np.concatenate([rotations, np.broadcast_to([1.0, 0.0, 0.0, 0.0], (n, 1, 4))], axis=1)  # J = identity pad
+        root = np.asarray(root_pos, dtype=np.float64)[:, None, :]
+        q = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), (n, len(self.bones), 4))
+        p = np.zeros((n, len(self.bones), 3))
+        for d in range(idx.shape[0]):  # p = o1 + R1 (o2 + R2 (... + o_k)), all bones in step
+            o = offs[d] + is_root[d][:, None] * root
+            p = p + quat_rotate(q, o)
+            q = quat_mul(q, rot[:, idx[d]])
+        return p, q
+
+    def local_pose_reference(self, root_pos: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The per-bone, per-joint walk that `local_pose` vectorises (kept for the parity test and the benchmark)."""
         n = rotations.shape[0]
         pos = np.zeros((n, len(self.bones), 3))
         rot = np.zeros((n, len(self.bones), 4))
@@ -135,3 +169,11 @@ class HumanoidRig:
                 q = quat_mul(q, rotations[:, k])
             pos[:, b], rot[:, b] = p, q
         return pos, rot
+
+    def rest_hips_height(self) -> float:
+        """Standing height of the top bone (Hips) in the rest pose, file units: its rest height above the
+        ground (y = 0), or above the lowest joint where the rest pose reaches below the ground."""
+        world = np.zeros_like(self.offsets)
+        for j, a in enumerate(self.skeleton_parents):  # parents come first in skeleton order
+            world[j] = self.offsets[j] + (world[a] if a >= 0 else 0.0)
+        return float(world[self.joints[0], 1] - min(0.0, world[:, 1].min()))

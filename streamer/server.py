@@ -62,7 +62,7 @@ def _status_line(session: Session | None, ws, vmc, source, t0: float) -> str:
         parts += [f"clients {len(ws.clients)}", f"dropped {sum(c.dropped for c in ws.clients)}",
                   f"own sessions {sum(1 for c in ws.clients if c.session is not None)}"]
     if vmc is not None:
-        parts.append(f"osc sent {vmc.sent}")
+        parts.append(f"osc sent {vmc.sent} dropped {vmc.dropped}")
     if isinstance(source, MicSource):
         parts.append(f"mic dropped {source.dropped_s:.1f}s")
     return " | ".join(parts)
@@ -127,10 +127,18 @@ async def serve(args) -> int:
         except OSError as e:
             raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
     if args.osc is not None:
-        from streamer.vmc import VmcSink
+        from streamer.vmc import VmcOptions, VmcSink
 
         try:
-            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast)
+            opt = lambda name, default: getattr(args, f"vmc_{name}", default)  # noqa: E731
+            if not 0 <= opt("jitter_ms", 250) <= 5000:
+                raise ValueError(f"--vmc-jitter-ms must be in 0..5000, got {opt('jitter_ms', 250)}")
+            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast, jitter_s=opt("jitter_ms", 250) / 1000,
+                          options=VmcOptions(opt("positions", "hips"), opt("hips_height", None),
+                                             tuple(opt("root", (0.0, 0.0, 0.0, 0.0))), opt("bones", "all"),
+                                             opt("max_bytes", 0)))
+        except ValueError as e:
+            raise ServeError(f"--osc: {e}") from None
         except OSError as e:
             raise ServeError(f"--osc {args.osc[0]}:{args.osc[1]}: {e.strerror or e}") from None
         vmc.start()
@@ -174,9 +182,14 @@ async def serve(args) -> int:
         loop.call_later(args.max_seconds, stop.set)
 
     async def status_loop() -> None:
+        vmc_dropped = 0
         while args.status_every > 0:
             await asyncio.sleep(args.status_every)
-            print(_status_line(main_session, ws, vmc, source, t0), file=sys.stderr, flush=True)
+            line = _status_line(main_session, ws, vmc, source, t0)
+            if vmc is not None and vmc.dropped > vmc_dropped:  # a stall (CPU busy, process paused): say so
+                line += f" | WARNING: VMC dropped {vmc.dropped - vmc_dropped} late frames (stall; caught up)"
+                vmc_dropped = vmc.dropped
+            print(line, file=sys.stderr, flush=True)
 
     status = asyncio.create_task(status_loop())
 
@@ -209,7 +222,7 @@ async def serve(args) -> int:
             if path:
                 print(f"streamer: wrote {recorder.frames} frames to {path}", file=sys.stderr)
         if vmc:
-            await vmc.close()
+            await vmc.close(drain_s=0 if stop.is_set() else 2.0)  # Ctrl-C: stop now; source end: play out the tail
         if ws:
             await ws.close()
         if viewer:

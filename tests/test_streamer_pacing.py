@@ -1,0 +1,112 @@
+"""The Pacer: a playout clock that drops late items, never bursts, and recovers from any stall within resync_s."""
+
+import pytest
+
+from streamer.pacing import Pacer
+
+FPS = 20
+
+
+def simulate(pacer, arrivals, until):
+    """Run a paced sink on a virtual clock: arrivals [(t, pts)] -> sent [(t_sent, pts)]."""
+    queue, sent, now, i = [], [], 0.0, 0
+    arrivals = sorted(arrivals)
+    while now < until:
+        while i < len(arrivals) and arrivals[i][0] <= now:
+            pacer.arrived(arrivals[i][1], arrivals[i][0])
+            queue.append(arrivals[i][1])
+            i += 1
+        while queue:
+            d = pacer.wait(queue[0], now)
+            if d is None:
+                queue.pop(0)
+            elif d == 0:
+                sent.append((now, queue.pop(0)))
+            else:
+                break
+        now += 0.005
+    return sent
+
+
+def windows(t_start, t_end, latency=0.1, window=0.2, stalls=()):
+    """A producer making 4 frames per 0.2 s window, `latency` after the window; during a stall (a, b) nothing
+    comes out, and at b the backlog comes out at once (a file source catching up)."""
+    out = []
+    k = 0
+    while True:
+        t_done = (k + 1) * window + latency
+        if t_done > t_end:
+            return out
+        for a, b in stalls:
+            if a <= t_done < b:
+                t_done = b
+        out += [(t_done, (k * 4 + j) / FPS) for j in range(4)]
+        k += 1
+
+
+def rate_after(sent, t0, t1):
+    return sum(1 for t, _ in sent if t0 <= t < t1) / (t1 - t0)
+
+
+def test_steady_stream_is_sent_at_pts_plus_a_constant_lag():
+    p = Pacer(buffer_s=0.25)
+    sent = simulate(p, windows(0, 10), 10)
+    lags = [t - pts for t, pts in sent]
+    assert max(lags) - min(lags) < 0.011  # the virtual clock's step
+    assert p.stats.dropped_late == 0 and p.stats.resyncs == 0
+    assert rate_after(sent, 2, 9) == pytest.approx(FPS, abs=0.5)
+
+
+def test_a_stall_with_catch_up_drops_the_backlog_and_keeps_the_clock():
+    p = Pacer(buffer_s=0.25)
+    stalls = [(3 + 4 * i, 5.5 + 4 * i) for i in range(6)]  # 6 x 2.5 s pauses
+    sent = simulate(p, windows(0, 30, stalls=stalls), 30)
+    last = stalls[-1][1]
+    assert rate_after(sent, last + 1.0, 30) >= 19
+    base = sent[0][0] - sent[0][1]
+    after = [t - pts - base for t, pts in sent if t > last + 1.0]
+    assert max(after) <= 0.25 and min(after) > -0.02  # lag after the stalls: no more than before
+    assert p.stats.dropped_late > 0
+    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
+    assert min(gaps) >= 1 / FPS - 0.011  # no burst: never faster than the frame rate
+
+
+def test_a_producer_that_falls_behind_for_good_is_followed_within_resync_s():
+    """A live source that lost 3 s of audio: every later frame arrives 3 s later than before."""
+    p = Pacer(buffer_s=0.25, resync_s=1.0)
+    before = windows(0, 5)
+    after = [(t + 3.0, pts) for t, pts in windows(5, 20) if t > 5]
+    sent = simulate(p, before + after, 23)
+    assert p.stats.resyncs == 1
+    assert rate_after(sent, 8 + 1.2, 23) >= 19
+    best = min(t - pts for t, pts in after)
+    lag = [t - pts - best for t, pts in sent if t > 10]
+    assert max(lag) <= 0.25 + 0.011  # follows the producer: at most a jitter buffer behind its best
+
+
+def test_a_producer_that_gets_faster_pulls_the_clock_in():
+    p = Pacer(buffer_s=0.25, resync_s=1.0)
+    slow = [(t + 1.0, pts) for t, pts in windows(0, 3)]  # a slow first second (warm-up), then fast
+    fast = [(t, pts) for t, pts in windows(0, 15) if t > 4]
+    sent = simulate(p, slow + fast, 15)
+    assert p.stats.resyncs == 1
+    lag = [t - pts for t, pts in sent if t > 7]
+    best = min(t - pts for t, pts in fast)
+    assert max(lag) - best <= 0.25 + 0.06
+
+
+def test_reset_starts_a_new_stream():
+    p = Pacer(buffer_s=0.1)
+    p.arrived(0.0, 10.0)
+    assert p.wait(0.0, 10.0) == pytest.approx(0.1)
+    p.reset()
+    p.arrived(0.0, 50.0)
+    assert p.wait(0.0, 50.0) == pytest.approx(0.1)
+    assert p.wait(0.0, 50.5) is None and p.stats.dropped_late == 1
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ValueError):
+        Pacer(buffer_s=-1)
+    with pytest.raises(ValueError):
+        Pacer(resync_s=0)
