@@ -155,6 +155,10 @@ class RootState:
     x: float = 0.0
     z: float = 0.0
     heading: float = 0.0
+    # "tether" only: the running mean of (dx, dz, dyaw) per frame (the model's steady drift) and how
+    # many frames it has seen.
+    drift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    frames: int = 0
 
 
 @dataclass(frozen=True)
@@ -175,16 +179,30 @@ def _leaky_cumsum(u: np.ndarray, prev: float, lam: float) -> np.ndarray:
     return lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0]
 
 
+def _remove_drift(u: np.ndarray, drift, frames: int, n_avg: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """u (n, 3) per-frame (dx, dz, dyaw) minus their running mean (an average of all frames so far
+    for the first n_avg frames, then exponential over n_avg): any steady walk or spin is removed
+    whatever its rate, while a turn or step shorter than n_avg frames passes."""
+    out, m = np.empty_like(u), np.array(drift, dtype=np.float64)
+    for t in range(len(u)):
+        frames += 1
+        m += (u[t] - m) / min(frames, n_avg)
+        out[t] = u[t] - m
+    return out, m, frames
+
+
 def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
                     state: RootState = RootState(), root: str = "free", tether_s: float = 5.0,
                     anchor: RootState = RootState()) -> tuple[Pose, RootState]:
     """Features (n, D) -> poses, integrating the root from `state`; returns the state after frame n-1.
 
     root: how the ground-plane position and heading evolve. "free" integrates the velocities as the
-    model made them (a BVH of the motion). "tether" integrates them with a leak of time constant
-    `tether_s` towards `anchor`, so a live avatar gestures and shifts its weight but never wanders off
-    over a long session. "lock" keeps position and heading at `anchor`. Height and tilt always come
-    from the features.
+    model made them (a BVH of the motion). "tether" (the live default) first removes the velocities'
+    running mean over `tether_s` (a model that keeps spinning or walking one way then stays put), then
+    integrates the rest with a leak of time constant `tether_s` towards `anchor`: a live avatar
+    turns and shifts its weight as generated but faces and stands at its start on average, whatever
+    the model's drift. "lock" keeps position and heading at `anchor`. Height and tilt always come from
+    the features.
     """
     if root not in ROOT_MODES:
         raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
@@ -195,16 +213,21 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
     if f.ndim != 2 or f.shape[1] != spec.dim:
         raise ValueError(f"features must be (n, {spec.dim}) for this spec, got {f.shape}")
     n = f.shape[0]
+    drift, frames = state.drift, state.frames
     if root == "lock":
         heading, x, z = (np.full(n, v) for v in (anchor.heading, anchor.x, anchor.z))
     else:
         lam = 1.0 if root == "free" else math.exp(-1.0 / (spec.fps * tether_s))
         a = anchor if root == "tether" else RootState()
-        heading = a.heading + _leaky_cumsum(f[:, 2], state.heading - a.heading, lam)
+        u = f[:, :3]
+        if root == "tether":
+            u, drift, frames = _remove_drift(u, drift, frames, spec.fps * tether_s)
+            drift = tuple(float(v) for v in drift)
+        heading = a.heading + _leaky_cumsum(u[:, 2], state.heading - a.heading, lam)
         h_prev = np.concatenate([[state.heading], heading[:-1]])
         c, s = np.cos(h_prev), np.sin(h_prev)
-        x = a.x + _leaky_cumsum(c * f[:, 0] + s * f[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
-        z = a.z + _leaky_cumsum(-s * f[:, 0] + c * f[:, 1], state.z - a.z, lam)
+        x = a.x + _leaky_cumsum(c * u[:, 0] + s * u[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
+        z = a.z + _leaky_cumsum(-s * u[:, 0] + c * u[:, 1], state.z - a.z, lam)
     tilt = np.stack([f[:, 4], np.zeros(n), f[:, 5]], -1)
     rot = R.quat_identity((n, skeleton.num_joints))
     rot[:, 0] = R.quat_mul(R.yaw_quat(heading), R.expmap_to_quat(tilt))
@@ -213,7 +236,7 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
     pose = Pose(root_pos=np.stack([x, f[:, 3], z], -1), rotations=rot)
     if n == 0:
         return pose, state
-    return pose, RootState(float(x[-1]), float(z[-1]), float(heading[-1]))
+    return pose, RootState(float(x[-1]), float(z[-1]), float(heading[-1]), drift, frames)
 
 
 class PoseDecoder:

@@ -87,9 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="DDIM denoising steps K, fewer is faster (default: the checkpoint's sample_steps)")
     s.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
     s.add_argument("--root", choices=("tether", "free", "lock"), default="tether",
-                   help="root ground motion: 'tether' follows the model's weight shifts and turns but drifts back "
-                        "to the start (time constant --tether-s), 'free' integrates it as generated (what "
-                        "`dimgestor generate` writes), 'lock' keeps the avatar in place")
+                   help="root ground motion: 'tether' follows the model's steps and turns but removes any steady "
+                        "walk or spin and drifts back to the start position and heading (time constant "
+                        "--tether-s), so the avatar faces its start on average; 'free' integrates it as "
+                        "generated (what `dimgestor generate` writes); 'lock' keeps position and heading fixed")
     s.add_argument("--tether-s", type=float, default=5.0, help="time constant of --root tether, seconds")
     s.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
