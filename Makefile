@@ -6,19 +6,30 @@ BIN := $(VENV)/bin
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q --disable-pip-version-check --upgrade pip
+	$(BIN)/pip install -q --disable-pip-version-check torch==2.13.0
+	$(BIN)/pip install -q --disable-pip-version-check -e '.[test]'
 	touch $@
+
+# Test tooling from npm (an independent OSC parser for the VMC checks), pinned by tests/node/package-lock.json.
+# Without npm the tests that need it skip and say so.
+VMC_CHECK := tests/node
+$(VMC_CHECK)/node_modules/.package-lock.json: $(VMC_CHECK)/package.json $(VMC_CHECK)/package-lock.json
+	@if command -v npm >/dev/null; then cd $(VMC_CHECK) && npm ci --omit=optional --no-audit --no-fund --loglevel=error; \
+	else echo "npm not found: the VMC receiver check in $(VMC_CHECK) will be skipped (Debian: apt install npm)" >&2; fi
 
 .PHONY: setup test demo default-model
 setup: $(BIN)/.installed
 
-test: $(BIN)/.installed
+test: $(BIN)/.installed $(VMC_CHECK)/node_modules/.package-lock.json
 	$(BIN)/python -m pytest -q -rs
 
+# Ports of `make demo`, e.g. `make demo WS_PORT=9000 HTTP_PORT=9001 OSC_PORT=39540`.
+WS_PORT ?= 8765
+HTTP_PORT ?= 8080
+OSC_PORT ?= 39539
 demo: $(BIN)/.installed
-	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:8765 --osc 127.0.0.1:39539 --http 8080
+	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT) --http $(HTTP_PORT)
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset on the ZEGGS sample clip
 # (last 15 s held out), one CPU thread (deterministic; ~12 min), then copy its inference files into the

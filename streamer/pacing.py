@@ -10,8 +10,9 @@ buffer (`buffer_s`) behind the earliest the producer delivers:
   (its offset, arrival - pts). Only when every item for `resync_s` came later than the clock (the
   producer now runs behind, e.g. a live source that lost audio) or every item waited more than a jitter
   buffer (the producer got faster) does the clock move, to the best offset of that period plus the
-  buffer. So after any stall the output is back to full rate within `resync_s`, and the lag it keeps
-  is at most the jitter buffer.
+  buffer: later at once (those items are lost anyway), earlier by playing `pull_rate` faster until it
+  is there (nothing dropped, no burst). So after any stall the output is back to full rate within
+  `resync_s`, and the lag it keeps is at most the jitter buffer.
 
 The pacer does no I/O and reads no clock: callers pass `now`, so it is tested without sleeping.
 """
@@ -30,48 +31,56 @@ class PacerStats:
 class Pacer:
     """One playout clock: `arrived()` when an item is queued, `wait()` for the item at the head."""
 
-    def __init__(self, buffer_s: float = 0.25, tolerance_s: float = 0.05, resync_s: float = 1.0):
-        if buffer_s < 0 or tolerance_s < 0 or resync_s <= 0:
-            raise ValueError(f"need buffer_s >= 0, tolerance_s >= 0, resync_s > 0; got {buffer_s}, {tolerance_s}, {resync_s}")
-        self.buffer_s, self.tolerance_s, self.resync_s = buffer_s, tolerance_s, resync_s
+    def __init__(self, buffer_s: float = 0.25, tolerance_s: float = 0.1, resync_s: float = 1.0,
+                 pull_rate: float = 0.2):
+        if buffer_s < 0 or tolerance_s < 0 or resync_s <= 0 or not 0 < pull_rate < 1:
+            raise ValueError(f"need buffer_s >= 0, tolerance_s >= 0, resync_s > 0, 0 < pull_rate < 1; got "
+                             f"{buffer_s}, {tolerance_s}, {resync_s}, {pull_rate}")
+        self.buffer_s, self.tolerance_s, self.resync_s, self.pull_rate = buffer_s, tolerance_s, resync_s, pull_rate
         self.stats = PacerStats()
         self.reset()
 
     def reset(self) -> None:
         """A new stream (pts restart at 0): the next item starts the clock afresh."""
         self.anchor: float | None = None  # monotonic time at which pts 0 is shown
-        self._late_since: float | None = None   # first arrival of the current run of late arrivals
-        self._late_best = 0.0                   # smallest offset in that run
-        self._early_since: float | None = None  # first arrival of the current run of over-buffered arrivals
-        self._early_best = 0.0
+        self._run: list[tuple[float, float]] = []  # (arrival, offset) of the current run of late or early items
+        self._run_late = False
+        self._target: float | None = None  # where an earlier clock is being pulled to
+        self._last_wait: float | None = None
 
     def arrived(self, pts: float, now: float) -> None:
-        """An item with presentation time pts was queued at `now`: start or adjust the clock."""
+        """An item with presentation time pts was queued at `now`: start or adjust the clock.
+
+        The clock is set so the latest-arriving item of a burst (the first of an inference window) is
+        shown a jitter buffer after it arrived; the others wait longer, by up to a window.
+        """
         offset = now - pts
         if self.anchor is None:
             self.anchor = offset + self.buffer_s
             return
-        if offset > self.anchor + self.tolerance_s:  # came too late to be shown
-            self._early_since = None
-            if self._late_since is None:
-                self._late_since, self._late_best = now, offset
-            self._late_best = min(self._late_best, offset)
-            if now - self._late_since >= self.resync_s:
-                self._move(self._late_best + self.buffer_s)
-        elif offset < self.anchor - self.buffer_s - self.tolerance_s:  # waits longer than a jitter buffer
-            self._late_since = None
-            if self._early_since is None:
-                self._early_since, self._early_best = now, offset
-            self._early_best = min(self._early_best, offset)
-            if now - self._early_since >= self.resync_s:
-                self._move(self._early_best + self.buffer_s)
-        else:
-            self._late_since = self._early_since = None
+        clock = self._target if self._target is not None else self.anchor
+        late = offset > self.anchor + self.tolerance_s               # came too late to be shown
+        early = offset < clock - self.buffer_s - self.tolerance_s    # waits more than a jitter buffer
+        if not (late or early):
+            self._run = []
+            return
+        if not self._run or self._run_late != late:
+            self._run, self._run_late = [], late
+        self._run.append((now, offset))
+        if now - self._run[0][0] < self.resync_s:
+            return
+        # A whole resync_s of it: follow the producer. Late: from the recent half of the run (after the
+        # backlog of a stall has gone through); early: from all of it.
+        recent = [o for t, o in self._run if t >= now - self.resync_s / 2] if late else [o for _, o in self._run]
+        self._move(max(recent) + self.buffer_s)
 
     def _move(self, anchor: float) -> None:
-        self.anchor = anchor
+        if anchor > self.anchor:
+            self.anchor, self._target = anchor, None
+        else:
+            self._target = anchor
         self.stats.resyncs += 1
-        self._late_since = self._early_since = None
+        self._run = []
 
     def due(self, pts: float) -> float:
         """The monotonic time at which the item with this pts is shown (the clock must be started)."""
@@ -82,6 +91,11 @@ class Pacer:
         """Seconds to wait before sending the head item (0: send now), or None: drop it, it is late."""
         if self.anchor is None:
             self.arrived(pts, now)
+        if self._target is not None and self._last_wait is not None:  # play a little faster until there
+            self.anchor = max(self._target, self.anchor - self.pull_rate * max(0.0, now - self._last_wait))
+            if self.anchor == self._target:
+                self._target = None
+        self._last_wait = now
         delay = self.due(pts) - now
         if delay < -self.tolerance_s:
             self.stats.dropped_late += 1

@@ -18,6 +18,7 @@ Bundles are packed with `struct` from per-bone headers built once (`VmcEncoder.p
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import socket
 import struct
@@ -31,6 +32,7 @@ from streamer.engine import Frame
 from streamer.pacing import Pacer
 from streamer.pose import HumanoidRig, to_unity_position, to_unity_quat
 
+log = logging.getLogger("streamer.vmc")
 DEFAULT_PORT = 39539
 POSITION_MODES = ("hips", "all")
 BONE_SETS = ("all", "upper")
@@ -234,6 +236,9 @@ class VmcSink:
 
     def on_frames(self, frames: list[Frame]) -> None:
         now = time.monotonic()
+        if frames and self.pace and self.pacer.anchor is not None:
+            log.debug("frames %d..%d in, due in %.3f..%.3f s", frames[0].index, frames[-1].index,
+                      self.pacer.due(frames[0].pts) - now, self.pacer.due(frames[-1].pts) - now)
         for f in frames:
             if f.index == 0:
                 self.pacer.reset()  # a new stream: pts start again at 0
@@ -263,8 +268,10 @@ class VmcSink:
                 continue
             f = self.queue.popleft()  # the frame sent is the frame paced, whatever arrives meanwhile
             if self.pace:
-                delay = self.pacer.wait(f.pts, time.monotonic())
+                now = time.monotonic()
+                delay = self.pacer.wait(f.pts, now)
                 if delay is None:
+                    log.debug("frame %d dropped: %.3f s late", f.index, now - self.pacer.due(f.pts))
                     continue
                 if delay > 0:
                     await asyncio.sleep(delay)

@@ -1,5 +1,6 @@
 """The Pacer: a playout clock that drops late items, never bursts, and recovers from any stall within resync_s."""
 
+import numpy as np
 import pytest
 
 from streamer.pacing import Pacer
@@ -67,8 +68,9 @@ def test_a_stall_with_catch_up_drops_the_backlog_and_keeps_the_clock():
     after = [t - pts - base for t, pts in sent if t > last + 1.0]
     assert max(after) <= 0.25 and min(after) > -0.02  # lag after the stalls: no more than before
     assert p.stats.dropped_late > 0
-    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
-    assert min(gaps) >= 1 / FPS - 0.011  # no burst: never faster than the frame rate
+    t = np.array([t for t, _ in sent])
+    in_half_s = np.searchsorted(t, t + 0.5) - np.arange(len(t))
+    assert in_half_s.max() <= 0.5 * FPS + 0.1 * FPS + 1  # no burst: the rate plus what the tolerance lets through
 
 
 def test_a_producer_that_falls_behind_for_good_is_followed_within_resync_s():
@@ -79,20 +81,22 @@ def test_a_producer_that_falls_behind_for_good_is_followed_within_resync_s():
     sent = simulate(p, before + after, 23)
     assert p.stats.resyncs == 1
     assert rate_after(sent, 8 + 1.2, 23) >= 19
-    best = min(t - pts for t, pts in after)
-    lag = [t - pts - best for t, pts in sent if t > 10]
-    assert max(lag) <= 0.25 + 0.011  # follows the producer: at most a jitter buffer behind its best
+    worst = max(t - pts for t, pts in after)  # the last of each window
+    lag = [t - pts - worst for t, pts in sent if t > 10]
+    assert max(lag) <= 0.25 + 0.011  # follows the producer: a jitter buffer after its latest arrivals
 
 
 def test_a_producer_that_gets_faster_pulls_the_clock_in():
     p = Pacer(buffer_s=0.25, resync_s=1.0)
     slow = [(t + 1.0, pts) for t, pts in windows(0, 3)]  # a slow first second (warm-up), then fast
     fast = [(t, pts) for t, pts in windows(0, 15) if t > 4]
-    sent = simulate(p, slow + fast, 15)
-    assert p.stats.resyncs == 1
-    lag = [t - pts for t, pts in sent if t > 7]
-    best = min(t - pts for t, pts in fast)
-    assert max(lag) - best <= 0.25 + 0.06
+    sent = simulate(p, slow + fast, 20)
+    assert p.stats.resyncs >= 1 and p.stats.dropped_late == 0  # pulled in by playing faster, nothing lost
+    lag = [t - pts for t, pts in sent if t > 12]
+    worst = max(t - pts for t, pts in fast)
+    assert max(lag) - worst <= 0.25 + 0.011
+    gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
+    assert min(gaps) >= 0.8 / FPS - 0.011  # at most 1.2x speed while catching up
 
 
 def test_reset_starts_a_new_stream():
