@@ -211,7 +211,7 @@ class VmcSink:
         self.pacer = Pacer(buffer_s=jitter_s)
         self.queue: deque[Frame] = deque()
         self.max_queue = max_queue
-        self.dropped_full = 0  # frames pushed out of a full queue
+        self.dropped_full = 0  # frames pushed out of a full queue, or still queued at a Ctrl-C
         self.send_errors = 0
         self.sent = 0
         self.last_t = 0.0
@@ -274,7 +274,11 @@ class VmcSink:
                     log.debug("frame %d dropped: %.3f s late", f.index, now - self.pacer.due(f.pts))
                     continue
                 if delay > 0:
-                    await asyncio.sleep(delay)
+                    try:
+                        await asyncio.sleep(delay)
+                    except asyncio.CancelledError:  # closing: the frame in hand is not sent either
+                        self.dropped_full += 1
+                        raise
             self._send(self.encoder.packets(f))
             self.last_t = f.pts
             self.sent += 1

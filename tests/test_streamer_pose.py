@@ -108,3 +108,24 @@ def test_override_map_on_synthetic_skeleton(tmp_path):
     path.write_text(json.dumps({"Hips": sk.names[0], "Head": "NotThere"}))
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map(path))
     assert rig.bones == ("Hips",) and rig.mapping(sk.names) == {"Hips": sk.names[0]}
+
+
+def test_vectorised_local_pose_equals_the_per_bone_walk(zeggs_dir):
+    """The fast path (all bones per step) == the reference walk, for every frame count incl. 1."""
+    sk = read_bvh(next(zeggs_dir.glob("*.bvh"))).skeleton
+    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
+    assert max(len(p) for p in rig.paths) >= 2  # ZEGGS leaves joints out of the map: chains longer than 1
+    for n in (1, 7):
+        root, rot = random_pose(n, len(sk.names), seed=n)
+        fast, ref = rig.local_pose(root, rot), rig.local_pose_reference(root, rot)
+        np.testing.assert_allclose(fast[0], ref[0], atol=1e-12)
+        np.testing.assert_allclose(fast[1], ref[1], atol=1e-12)
+
+
+def test_rest_hips_height_is_the_standing_hips_height(zeggs_dir):
+    sk = read_bvh(next(zeggs_dir.glob("*.bvh"))).skeleton
+    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
+    assert 80 < rig.rest_hips_height() < 95  # ZEGGS: cm
+    sk2 = synthetic_skeleton()
+    rig2 = HumanoidRig.build(sk2.names, sk2.parents, sk2.offsets, {"Hips": sk2.names[0]})
+    assert rig2.rest_hips_height() > 0

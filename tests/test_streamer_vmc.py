@@ -3,6 +3,9 @@
 import asyncio
 import socket
 import threading
+import time
+
+import pytest
 
 import numpy as np
 from pythonosc.dispatcher import Dispatcher
@@ -15,7 +18,7 @@ from dimgestor.rotations import quat_normalize
 from dimgestor.synthetic import synthetic_skeleton
 from streamer.engine import Frame
 from streamer.pose import HUMAN_BODY_BONES, HumanoidRig, load_humanoid_map
-from streamer.vmc import VmcSink
+from streamer.vmc import VmcEncoder, VmcOptions, VmcSink, reference_bundle
 
 # Argument types per address, as the VMC Marionette spec writes them.
 SPEC_TYPES = {
@@ -144,3 +147,75 @@ def test_paced_frames_follow_their_pts():
     server.shutdown()
     first_all = next(t for n, t in times if n == 6)
     assert first_all >= 0.2  # 6 frames at 20 fps span 0.25 s, not one burst
+
+
+def zeggs_rig(zeggs_dir):
+    skel = read_bvh(next(zeggs_dir.glob("*.bvh"))).skeleton
+    return skel, HumanoidRig.build(skel.names, skel.parents, skel.offsets, load_humanoid_map())
+
+
+@pytest.mark.parametrize("options", [
+    VmcOptions(), VmcOptions(positions="all"), VmcOptions(bones="upper"), VmcOptions(hips_height_m=1.1),
+    VmcOptions(root=(0.5, 0.0, -1.0, 135.0)), VmcOptions(max_bytes=1400), VmcOptions(bones="upper", max_bytes=256)])
+def test_struct_packed_bundles_equal_python_osc(zeggs_dir, options):
+    """The fast packer == python-osc's builders on the reference messages, byte for byte; splits stay under the limit."""
+    skel, rig = zeggs_rig(zeggs_dir)
+    enc = VmcEncoder(rig, options)
+    rng = np.random.default_rng(1)
+    f = Frame(7, 0.35, np.array([3.0, 88.0, -4.0]), quat_normalize(rng.normal(size=(len(skel.names), 4))), np.zeros(3))
+    packets = enc.packets(f)
+    assert packets == [reference_bundle(m) for m in enc.messages(f)]
+    if options.max_bytes:
+        assert len(packets) > 1 and all(len(p) <= options.max_bytes for p in packets)
+    msgs = [m for p in packets for m in bundles([p])[0]]
+    check_vmc_bundle(msgs, bones_expected=enc.names)
+    assert msgs[-1][2] == [pytest.approx(0.35)]  # /VMC/Ext/T: the frame's pts
+
+
+def test_receiver_options_change_what_is_sent(zeggs_dir):
+    skel, rig = zeggs_rig(zeggs_dir)
+    rng = np.random.default_rng(2)
+    f = Frame(0, 0.0, np.array([10.0, 80.0, 5.0]), quat_normalize(rng.normal(size=(len(skel.names), 4))), np.zeros(3))
+    by_name = lambda enc: dict(zip(enc.names, enc.bone_values(f)))  # noqa: E731
+    hips_only, every = by_name(VmcEncoder(rig)), by_name(VmcEncoder(rig, VmcOptions(positions="all")))
+    np.testing.assert_allclose(hips_only["Hips"], every["Hips"])  # Hips: its posed position, either way
+    rest = VmcEncoder(rig).rest[rig.bones.index("Chest")]
+    np.testing.assert_allclose(hips_only["Chest"][:3], rest)  # others: their rest offset, whatever the pose
+    assert not np.allclose(every["Chest"][:3], rest)
+    np.testing.assert_allclose(hips_only["Chest"][3:], every["Chest"][3:])  # rotations are the same
+    tall = by_name(VmcEncoder(rig, VmcOptions(hips_height_m=1.8)))
+    ratio = 1.8 / (rig.rest_hips_height() * 0.01)
+    np.testing.assert_allclose(tall["Hips"][:3], hips_only["Hips"][:3] * ratio)
+    upper = VmcEncoder(rig, VmcOptions(bones="upper")).names
+    assert "LeftHand" in upper and "RightIndexProximal" in upper
+    assert not {"Hips", "Head", "Neck", "LeftUpperLeg", "LeftFoot"} & set(upper)
+    with pytest.raises(ValueError, match="max bytes"):
+        VmcOptions(max_bytes=100)
+    with pytest.raises(ValueError, match="hips height"):
+        VmcOptions(hips_height_m=0)
+
+
+def test_a_late_frame_is_dropped_not_burst_and_close_is_quick():
+    """Frames queued during a stall are dropped at their turn (counted), and Ctrl-C (drain 0) returns at once."""
+    rig = HumanoidRig.build(*(lambda s: (s.names, s.parents, s.offsets))(synthetic_skeleton()),
+                            {"Hips": synthetic_skeleton().names[0]})
+    server, rec = osc_server()
+    J = len(synthetic_skeleton().names)
+
+    async def run():
+        sink = VmcSink("127.0.0.1", server.server_address[1], rig, jitter_s=0.05)
+        sink.start()
+        sink.on_frames([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4)])
+        await asyncio.sleep(0.3)
+        time.sleep(1.0)  # the event loop stalls while frames 4.. arrive "in time" for a clock that moved on
+        sink.on_frames([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4, 60)])
+        await asyncio.sleep(1.5)
+        t = time.monotonic()
+        await sink.close(drain_s=0)
+        return sink, time.monotonic() - t
+
+    sink, close_s = asyncio.run(run())
+    server.shutdown()
+    assert sink.pacer.stats.dropped_late > 0 and sink.dropped >= sink.pacer.stats.dropped_late
+    assert sink.sent + sink.dropped == 60
+    assert close_s < 0.5
