@@ -188,7 +188,10 @@ class WsServer:
                 client.audio = msg["audio"]
                 await self._end_session(client)  # later audio starts a session at the new rate
         elif msg["type"] == "audio_end":
-            await self._end_session(client)
+            if client.source is None and (client.session_task is None or client.session_task.done()):
+                client.put(P.end(0))  # no audio since the last end: an empty stream, ended
+            else:
+                await self._end_session(client)
 
     async def _on_audio(self, client: Client, data: bytes) -> None:
         if self.make_session is None:
