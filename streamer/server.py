@@ -68,6 +68,20 @@ def _status_line(session: Session | None, ws, vmc, source, t0: float) -> str:
     return " | ".join(parts)
 
 
+def _vmc_options(args):
+    """The --vmc-* flags -> (VmcOptions, jitter seconds), or a ServeError naming the bad one."""
+    from streamer.vmc import VmcOptions
+
+    opt = lambda name, default: getattr(args, f"vmc_{name}", default)  # noqa: E731 (a Namespace from tests may lack them)
+    if not 0 <= opt("jitter_ms", 250) <= 5000:
+        raise ServeError(f"--vmc-jitter-ms must be in 0..5000, got {opt('jitter_ms', 250)}")
+    try:
+        return VmcOptions(opt("positions", "hips"), opt("hips_height", None), tuple(opt("root", (0.0, 0.0, 0.0, 0.0))),
+                          opt("bones", "all"), opt("max_bytes", 0)), opt("jitter_ms", 250) / 1000
+    except ValueError as e:
+        raise ServeError(f"--osc: {e}") from None
+
+
 async def serve(args) -> int:
     from streamer import protocol as P
     from streamer.pose import HumanoidMapError, HumanoidRig, load_humanoid_map
@@ -96,6 +110,7 @@ async def serve(args) -> int:
     except HumanoidMapError as e:
         raise ServeError(str(e)) from None
 
+    vmc_options, vmc_jitter_s = _vmc_options(args) if args.osc is not None else (None, 0.0)  # before the model loads
     bundle = _load(args)
     if args.steps is None:
         args.steps = bundle.config.sample_steps
@@ -127,18 +142,10 @@ async def serve(args) -> int:
         except OSError as e:
             raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
     if args.osc is not None:
-        from streamer.vmc import VmcOptions, VmcSink
+        from streamer.vmc import VmcSink
 
         try:
-            opt = lambda name, default: getattr(args, f"vmc_{name}", default)  # noqa: E731
-            if not 0 <= opt("jitter_ms", 250) <= 5000:
-                raise ValueError(f"--vmc-jitter-ms must be in 0..5000, got {opt('jitter_ms', 250)}")
-            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast, jitter_s=opt("jitter_ms", 250) / 1000,
-                          options=VmcOptions(opt("positions", "hips"), opt("hips_height", None),
-                                             tuple(opt("root", (0.0, 0.0, 0.0, 0.0))), opt("bones", "all"),
-                                             opt("max_bytes", 0)))
-        except ValueError as e:
-            raise ServeError(f"--osc: {e}") from None
+            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast, jitter_s=vmc_jitter_s, options=vmc_options)
         except OSError as e:
             raise ServeError(f"--osc {args.osc[0]}:{args.osc[1]}: {e.strerror or e}") from None
         vmc.start()
