@@ -79,6 +79,7 @@ def check_recovery(times, name, last_resume, baseline_window, fps=20):
     assert rate >= 18, f"{name}: {rate:.1f} frames/s in the 2 s from 2 s after the last pause"
     extra = lag[after] - base
     assert extra.max() <= JITTER_S + 0.1, f"{name}: {extra.max():.2f} s more lag than before the pauses"
+    print(f"{name}: {rate:.1f} frames/s after the pauses, extra lag max {extra.max() * 1000:.0f} ms, median {np.median(extra) * 1000:.0f} ms")
     return rate, float(extra.max())
 
 
