@@ -194,7 +194,7 @@ async def serve(args) -> int:
             await asyncio.sleep(args.status_every)
             line = _status_line(main_session, ws, vmc, source, t0)
             if vmc is not None and vmc.dropped > vmc_dropped:  # a stall (CPU busy, process paused): say so
-                line += f" | WARNING: VMC dropped {vmc.dropped - vmc_dropped} late frames (stall; caught up)"
+                line += f" | WARNING: VMC dropped {vmc.dropped - vmc_dropped} late frames (a stall: CPU busy or process paused)"
                 vmc_dropped = vmc.dropped
             print(line, file=sys.stderr, flush=True)
 
