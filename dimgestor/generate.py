@@ -60,14 +60,12 @@ def _run(args) -> int:
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
-    audio = load_wav(args.audio, SAMPLE_RATE)  # a bad or empty file fails before the model loads
-    if len(audio) == 0:
-        raise AudioError(f"{args.audio}: no audio samples: nothing to generate")
     bundle = load_checkpoint(args.checkpoint, device=args.device)
     if args.steps is None:
         args.steps = bundle.config.sample_steps
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
+    audio = load_wav(args.audio, SAMPLE_RATE)
     if len(audio) * bundle.feature_spec.fps // SAMPLE_RATE == 0:  # `streamer serve` refuses it too
         raise AudioError(f"{args.audio}: {len(audio)} audio samples, shorter than one motion frame "
                          f"({1000 / bundle.feature_spec.fps:g} ms): nothing to generate")
