@@ -58,6 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "a WAV file path, or 'ws' (no server audio: only clients' own audio)")
     s.add_argument("--device", default=None,
                    help="input device index or name substring for --source mic (list them: streamer devices)")
+    s.add_argument("--rate", type=int, default=None, metavar="HZ",
+                   help="capture rate for --source mic (default: the device's own; resampled to 16 kHz either way)")
+    s.add_argument("--gain", type=float, default=0.0, metavar="DB", help="input gain for --source mic, in dB")
+    s.add_argument("--gate", type=float, default=None, metavar="DBFS",
+                   help="noise gate for --source mic: mute input quieter than this (e.g. -45) so background noise "
+                        "does not make the avatar gesture; the status line shows the mic level to pick it")
     s.add_argument("--ws", type=_hostport, default="127.0.0.1:8765", metavar="HOST:PORT",
                    help="WebSocket address; 127.0.0.1 keeps it local, 0.0.0.0 opens it to the network; port 0 = any free")
     s.add_argument("--no-ws", action="store_true", help="do not run the WebSocket server")
@@ -130,7 +136,9 @@ def _devices() -> int:
         return 0
     for d in devices:
         mark = "*" if d["default"] else " "
-        print(f"{mark} {d['index']:3d}  {d['name']}  ({d['channels']} ch, {d['rate']:.0f} Hz)")
+        print(f"{mark} {d['index']:3d}  {d['name']}  ({d['hostapi']}, {d['channels']} ch, {d['rate']:.0f} Hz)")
+    print("(* = default; pick one with `streamer serve --source mic --device INDEX` or a unique part of its name)",
+          file=sys.stderr)
     return 0
 
 

@@ -64,7 +64,7 @@ def _status_line(session: Session | None, ws, vmc, source, t0: float) -> str:
     if vmc is not None:
         parts.append(f"osc sent {vmc.sent} dropped {vmc.dropped}")
     if isinstance(source, MicSource):
-        parts.append(f"mic dropped {source.dropped_s:.1f}s")
+        parts += [source.meter.describe(), f"mic dropped {source.dropped_s:.1f}s"]
     return " | ".join(parts)
 
 
@@ -104,7 +104,12 @@ async def serve(args) -> int:
     if args.record and not Path(args.record).resolve().parent.is_dir():
         raise ServeError(f"--record {args.record}: folder {Path(args.record).resolve().parent} does not exist")
     device = int(args.device) if args.device is not None and str(args.device).isdigit() else args.device
-    source = open_source(args.source, device=device, realtime=not args.fast, loop=args.loop)  # fail early
+    if getattr(args, "rate", None) is not None and args.rate < 1:
+        raise ServeError(f"--rate must be > 0 Hz, got {args.rate}")
+    mic = dict(rate=getattr(args, "rate", None), gain_db=getattr(args, "gain", 0.0), gate_dbfs=getattr(args, "gate", None))
+    source = open_source(args.source, device=device, realtime=not args.fast, loop=args.loop, **mic)  # fail early
+    if isinstance(source, MicSource):
+        source.warn = lambda text: print(f"streamer: {text}", file=sys.stderr, flush=True)
     try:
         humanoid = load_humanoid_map(args.humanoid_map)
     except HumanoidMapError as e:
@@ -163,7 +168,7 @@ async def serve(args) -> int:
             raise ServeError(f"cannot serve HTTP on {host}:{args.http[1]}: {e.strerror or e}") from None
         viewer.start()
 
-    what = {"mic": f"microphone {getattr(source, 'name', '')!r}", "ws": "WebSocket clients' audio only",
+    what = {"mic": f"microphone {getattr(source, 'name', '')!r} at {getattr(source, 'rate', 0)} Hz", "ws": "WebSocket clients' audio only",
             "demo": f"demo clip {Path(getattr(source, 'path', '')).name}"}.get(args.source, f"file {args.source}")
     smoother = (main_session or make_session()).stream.smoother
     smooth_txt = f"smoothing {smoother.min_cutoff_hz:g} Hz" if smoother else "no smoothing"

@@ -125,12 +125,13 @@ def _sounddevice():
 
 
 def list_input_devices() -> list[dict]:
-    """[{index, name, channels, rate, default}] for every input device PortAudio sees."""
+    """[{index, name, hostapi, channels, rate, default}] for every input device PortAudio sees."""
     sd = _sounddevice()
     try:
         default_in = sd.default.device[0]
+        apis = [a["name"] for a in sd.query_hostapis()]
         return [
-            {"index": i, "name": d["name"], "channels": d["max_input_channels"],
+            {"index": i, "name": d["name"], "hostapi": apis[d["hostapi"]], "channels": d["max_input_channels"],
              "rate": d["default_samplerate"], "default": i == default_in}
             for i, d in enumerate(sd.query_devices()) if d["max_input_channels"] > 0
         ]
@@ -138,28 +139,77 @@ def list_input_devices() -> list[dict]:
         raise SourceError(f"cannot list audio devices: {e}") from None
 
 
+def _one_line(e: Exception) -> str:
+    first, *rest = [line.strip() for line in str(e).splitlines() if line.strip()] or [type(e).__name__]
+    return " ".join([first, "; ".join(rest)]) if rest else first
+
+
+def _input_device(sd, device: int | str | None) -> dict:
+    """PortAudio's info for `device` (index, name substring, or None = the default input), or a SourceError
+    that says what is wrong with it: no default input, no such device, or a device without input channels."""
+    try:
+        info = dict(sd.query_devices(device, kind="input"))
+    except (sd.PortAudioError, ValueError) as e:
+        if device is None:
+            raise SourceError("No input device: PortAudio has no default input; list the inputs with "
+                              "`streamer devices` and pick one with --device") from None
+        try:  # say so when it names an output-only device
+            any_kind = sd.query_devices(device)
+        except (sd.PortAudioError, ValueError):
+            raise SourceError(f"No input device {device!r}: {_one_line(e)} (list the inputs: streamer devices)") from None
+        info = dict(any_kind)
+    if info["max_input_channels"] < 1:
+        raise SourceError(f"No input device: {info['name']!r} has no input channels (an output device?); "
+                          "list the inputs with `streamer devices`")
+    if "index" not in info:
+        info["index"] = device if isinstance(device, int) else sd.default.device[0]
+    return info
+
+
 class MicSource:
-    """A microphone through PortAudio at the device's own rate, resampled to 16 kHz as it streams.
+    """A microphone through PortAudio at the device's own rate (or `rate`), resampled to 16 kHz as it streams.
 
     The audio callback runs on PortAudio's thread and hands blocks to the event loop; when the
     consumer falls more than `max_buffer_s` behind, the oldest blocks are dropped (`dropped_s`).
+    On the loop each block gets `gain_db`, is metered (`meter`: level, "no signal") and, with
+    `gate_dbfs`, noise-gated before it is resampled. `warn(text)`, when set, hears when the input goes
+    dead for `NO_SIGNAL_S` seconds and when it comes back.
     """
 
-    def __init__(self, device: int | str | None = None, block_ms: int = 20, max_buffer_s: float = 5.0):
+    def __init__(self, device: int | str | None = None, rate: int | None = None, gain_db: float = 0.0,
+                 gate_dbfs: float | None = None, block_ms: int = 20, max_buffer_s: float = 5.0):
+        from streamer.level import LevelMeter, NoiseGate
+
         sd = self.sd = _sounddevice()
-        try:
-            info = sd.query_devices(device, kind="input")
+        info = _input_device(sd, device)
+        self.device, self.name = info["index"], info["name"]
+        self.rate = int(rate or info["default_samplerate"])
+        try:  # a rate the device cannot do fails here, before the model loads, not later in a callback
+            sd.check_input_settings(device=self.device, channels=1, samplerate=self.rate, dtype="float32")
         except (sd.PortAudioError, ValueError) as e:
-            hint = "see `streamer devices`" if device is not None else "no default input device"
-            raise SourceError(f"No input device ({hint}): {e}") from None
-        if info["max_input_channels"] < 1:
-            raise SourceError(f"No input device: {info['name']!r} has no input channels")
-        self.device, self.name = device, info["name"]
-        self.rate = int(info["default_samplerate"])
+            raise SourceError(f"Input device {self.name!r} cannot capture at {self.rate} Hz ({_one_line(e)}); "
+                              f"its default rate is {info['default_samplerate']:.0f} Hz (--rate)") from None
+        self.gain = float(10.0 ** (gain_db / 20.0))
+        self.gate = NoiseGate(self.rate, gate_dbfs) if gate_dbfs is not None else None
+        self.meter = LevelMeter(self.rate)
+        self.warn = None
         self.block = max(1, self.rate * block_ms // 1000)
         self.blocks: deque[tuple[np.ndarray, float]] = deque()
         self.max_blocks = max(1, int(max_buffer_s * 1000 / block_ms))
         self.dropped_s = 0.0
+
+    def condition(self, block: np.ndarray) -> np.ndarray:
+        """Gain, meter, gate: what the model hears of one captured block (device rate)."""
+        if self.gain != 1.0:
+            block = np.clip(block * self.gain, -1.0, 1.0)
+        was_dead = self.meter.no_signal
+        self.meter.update(block)
+        if self.warn is not None and was_dead and not self.meter.no_signal:
+            self.warn(f"microphone {self.name!r}: signal again ({self.meter.level_dbfs:.0f} dBFS)")
+        elif self.warn is not None and self.meter.no_signal and not was_dead:
+            self.warn(f"no signal from microphone {self.name!r} for {self.meter.silent_s:.0f} s: is it muted, or the "
+                      "wrong device? (list them: streamer devices; pick one: --device)")
+        return self.gate.process(block) if self.gate is not None else block
 
     async def __aiter__(self) -> AsyncIterator[AudioChunk]:
         loop = asyncio.get_running_loop()
@@ -181,7 +231,7 @@ class MicSource:
             stream = self.sd.InputStream(device=self.device, channels=1, samplerate=self.rate,
                                          blocksize=self.block, dtype="float32", callback=callback)
         except self.sd.PortAudioError as e:
-            raise SourceError(f"No input device: cannot open {self.name!r}: {e}") from None
+            raise SourceError(f"No input device: cannot open {self.name!r} at {self.rate} Hz: {_one_line(e)}") from None
         samples = 0
         with stream:
             while True:
@@ -189,18 +239,19 @@ class MicSource:
                 ready.clear()
                 while self.blocks:
                     block, arrival = self.blocks.popleft()
+                    block = self.condition(block)
                     x = block if resampler is None else np.asarray(resampler.process(block), dtype=np.float32)
                     if len(x):
                         yield AudioChunk(x, samples / RATE, arrival)
                         samples += len(x)
 
 
-def open_source(spec: str, device=None, realtime: bool = True, loop: bool = False):
-    """`mic`, `demo` or a WAV path -> a source; `ws` (client audio only) -> None."""
+def open_source(spec: str, device=None, realtime: bool = True, loop: bool = False, **mic):
+    """`mic`, `demo` or a WAV path -> a source; `ws` (client audio only) -> None. `mic`: MicSource's options."""
     if spec == "ws":
         return None
     if spec == "mic":
-        return MicSource(device)
+        return MicSource(device, **mic)
     if spec == "demo":
         return WavSource(DEMO_WAV, realtime=realtime, loop=loop)
     return WavSource(spec, realtime=realtime, loop=loop)

@@ -251,71 +251,68 @@ def test_python_client_reports_a_refused_token(tmp_path, checkpoint):
     assert ok.stdout.startswith("hello: dimgestor/")
 
 
-FAKE_SOUNDDEVICE = '''
-"""Stand-in for the sounddevice package: a "microphone" that plays FAKE_MIC_WAV in real time."""
-import os, threading, time, wave
-import numpy as np
+@pytest.fixture(scope="module")
+def vmic(tmp_path_factory):
+    from virtual_mic import virtual_mic
 
-def _wav():
-    with wave.open(os.environ["FAKE_MIC_WAV"]) as w:
-        rate, x = w.getframerate(), np.frombuffer(w.readframes(w.getnframes()), "<i2")
-    return rate, x.astype(np.float32) / 32768.0
-
-def query_devices(device=None, kind=None):
-    return {"name": "fake mic", "default_samplerate": float(_wav()[0])}
-
-class InputStream:
-    def __init__(self, samplerate, channels, dtype, blocksize, device, callback):
-        self.rate, self.block, self.callback = samplerate, blocksize, callback
-        self.stop = threading.Event()
-
-    def _run(self):
-        _, x = _wav()
-        i = 0
-        while not self.stop.is_set():
-            block = np.take(x, range(i, i + self.block), mode="wrap")
-            self.callback(block[:, None], self.block, None, None)
-            i += self.block
-            time.sleep(self.block / self.rate)
-
-    def __enter__(self):
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.stop.set()
-        self.thread.join()
-'''
+    with virtual_mic(tmp_path_factory.mktemp("vmic")) as mic:
+        yield mic
 
 
-def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, checkpoint):
-    fake = tmp_path / "fake_sd"
-    fake.mkdir()
-    (fake / "sounddevice.py").write_text(FAKE_SOUNDDEVICE)
-    env = dict(os.environ, PYTHONPATH=str(fake), FAKE_MIC_WAV=str(SPEECH_WAV))
-    with live_server(tmp_path, "ws", checkpoint) as server:
-        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", server.ws_url, "--mic"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic):
+    """`--mic` through real PortAudio at the device's 44.1 kHz: speech played into a virtual sound card comes
+    back as gestures (the embedded default model) that move faster than in the silence played after it;
+    the first Ctrl-C sends audio_end and waits for the session's last frames."""
+    from test_streamer_mic import joint_speed
+    from virtual_mic import speech_then_silence
+
+    talk = speech_then_silence(tmp_path / "talk.wav", 4.0, 4.0)
+    saved = tmp_path / "saved"
+    arrival: dict[int, float] = {}
+    with live_server(tmp_path, "ws", None) as server:
+        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", server.ws_url, "--mic", "--device", "vmic44",
+                                 "--save", str(saved)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=vmic.env, cwd=REPO)
         try:
-            frames = 0
-            deadline = time.monotonic() + 60
-            while frames < 10 and time.monotonic() < deadline:  # gestures come back while we talk
+            t_play = None
+            while t_play is None or time.monotonic() < t_play + 8.5:  # gestures come back while we talk
                 line = proc.stdout.readline()
                 assert line, f"client ended early: {proc.stderr.read()}"
-                frames += line.startswith("frame")
-            assert frames >= 10
+                if line.startswith("frame"):
+                    arrival[int(line.split()[1])] = time.monotonic()
+                    if t_play is None:
+                        vmic.play(talk, "mic44")
+                        t_play = time.monotonic()
             proc.send_signal(signal.SIGINT)  # first Ctrl-C: audio_end, then wait for the last frames
             # Keep reading through the same buffered pipe (communicate() would skip what readline buffered).
             out, err = proc.stdout.read(), proc.stderr.read()
             proc.wait(60)
         finally:
+            vmic.stop_players()
             if proc.poll() is None:
                 proc.kill()
     assert proc.returncode == 0, err
-    assert "microphone: 16000 Hz" in err and "end:" in out
-    total = frames + sum(line.startswith("frame") for line in out.splitlines())
+    assert "microphone: 44100 Hz" in err and "end:" in out
+    total = len(arrival) + sum(line.startswith("frame") for line in out.splitlines())
     assert f"received {total} frames" in err
+
+    msgs = [reference_decode(p) for p in sorted(saved.iterdir())]
+    frames = [m for m in msgs if m["type"] == "frame" and m["index"] in arrival]
+    speed = joint_speed(frames, msgs[0]["fps"])
+    t = np.array([arrival[m["index"]] for m in frames[1:]]) - t_play
+    talking, resting = speed[(t > 1.0) & (t < 4.0)], speed[(t > 6.0) & (t < 8.0)]
+    assert len(talking) > 40 and len(resting) > 25, (len(talking), len(resting))
+    assert np.median(talking) > 2 * np.median(resting), (np.median(talking), np.median(resting))
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--device", "vspeaker"], "no input device 'vspeaker'"),
+    (["--device", "vmic44", "--rate", "1000000"], "input device 'vmic44' cannot capture at 1000000 Hz"),
+])
+def test_python_client_names_an_unusable_mic_before_connecting(vmic, args, says):
+    r = subprocess.run([sys.executable, str(CLIENT), "--url", "ws://127.0.0.1:9/", "--mic", *args],
+                       capture_output=True, text=True, timeout=60, env=vmic.env)
+    assert r.returncode == 1 and r.stderr.strip().splitlines() == [r.stderr.strip()] and says in r.stderr, r.stderr
 
 
 def test_python_client_names_a_bad_wav_before_connecting(tmp_path):

@@ -38,8 +38,8 @@ def wav(tmp_path_factory):
 class Serve:
     """A running `streamer serve`; reads its stderr in a thread to find the addresses it prints."""
 
-    def __init__(self, *args: str):
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    def __init__(self, *args: str, env: dict | None = None):
+        env = {**(env or os.environ), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
         self.proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "serve", *args], cwd=REPO, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []

@@ -123,10 +123,31 @@ async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool) -
     await ws.send(json.dumps({"type": "audio_end"}))
 
 
-async def send_mic(ws, rate: int | None, device, binary: bool) -> None:
-    import sounddevice as sd  # only needed here
+def open_mic(device: str | None, rate: int | None) -> tuple[int | str | None, int]:
+    """--device (index or name part) and --rate checked before we connect: (device, a rate it captures at)."""
+    try:
+        import sounddevice as sd  # only needed here
+    except (ImportError, OSError) as e:
+        raise SystemExit(f"--mic needs the sounddevice package and PortAudio ({e})")
+    dev = int(device) if device is not None and device.isdigit() else device
+    try:
+        info = sd.query_devices(dev, "input")
+    except (sd.PortAudioError, ValueError) as e:
+        why = " ".join(str(e).split())
+        raise SystemExit(f"no input device {device!r}: {why} (list them: python -m sounddevice)" if device is not None
+                         else f"no default input device ({why}); pick one with --device")
+    rate = int(rate or info["default_samplerate"])
+    try:
+        sd.check_input_settings(dev, channels=1, samplerate=rate, dtype="float32")
+    except (sd.PortAudioError, ValueError) as e:
+        raise SystemExit(f"input device {info['name']!r} cannot capture at {rate} Hz ({e}); "
+                         f"its default rate is {info['default_samplerate']:.0f} Hz (--rate)")
+    return dev, rate
 
-    rate = int(rate or sd.query_devices(device, "input")["default_samplerate"])
+
+async def send_mic(ws, rate: int, device, binary: bool) -> None:
+    import sounddevice as sd
+
     loop = asyncio.get_running_loop()
     chunks: asyncio.Queue[bytes] = asyncio.Queue(maxsize=100)  # ~2 s; a stalled socket drops the oldest
 
@@ -152,13 +173,14 @@ async def send_mic(ws, rate: int | None, device, binary: bool) -> None:
 
 async def run(args) -> int:
     printer = Printer(args)
-    wav = read_wav(args.wav) if args.wav else None  # a bad file fails before we connect
+    wav = read_wav(args.wav) if args.wav else None  # a bad file or device fails before we connect
+    mic = open_mic(args.device, args.rate) if args.mic else None
     async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
         sender = None
         if args.wav:
             sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary))
         elif args.mic:
-            sender = asyncio.create_task(send_mic(ws, args.rate, args.device, args.binary))
+            sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary))
             loop = asyncio.get_running_loop()
 
             def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
@@ -197,7 +219,7 @@ def main(argv=None) -> int:
     src.add_argument("--mic", action="store_true", help="send the microphone (sounddevice) until Ctrl-C")
     p.add_argument("--fast", action="store_true", help="with --wav: send as fast as the server reads")
     p.add_argument("--rate", type=int, help="with --mic: capture rate (default: the device's)")
-    p.add_argument("--device", default=None, help="with --mic: sounddevice input device name or index")
+    p.add_argument("--device", default=None, help="with --mic: input device index or name part (python -m sounddevice)")
     p.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: until end)")
     p.add_argument("--seconds", type=float, default=0, help="stop after this many seconds (0: no limit)")
     p.add_argument("--save", help="write every received message verbatim into this folder")
