@@ -32,6 +32,8 @@ def main() -> int:
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--work", default="runs/data_scale", help="data and runs (reused when present)")
     p.add_argument("--out", default=str(RESULTS / "data_scale.json"))
+    p.add_argument("--train-only", action="store_true",
+                   help="make the data and train, no scoring (run one per size in parallel, then again to score)")
     args = p.parse_args()
     import numpy as np
     import torch
@@ -60,19 +62,24 @@ def main() -> int:
                                ckpt_every=args.steps, valid_every=max(args.steps // 4, 1), keep=1, seed=0,
                                mirror=m < 30, speeds=(0.9, 1.1) if m < 30 else (), progress=False))
             print(f"{m:g} min: trained {args.steps} steps in {time.time() - started:.0f} s")
+        if args.train_only:
+            continue
         bundle = load_checkpoint(run)
         bundle.model.eval()
         if valid is None:
             common = dict(spec=bundle.feature_spec, window_s=4.0)
             valid = GestureDataset(valid_dir, split="train", valid_fraction=0.0, **common)
-            ae = fgd_autoencoder(GestureDataset(work / f"train_{max(minutes):g}min", split="train", valid_fraction=0.0,
-                                                **common) if (work / f"train_{max(minutes):g}min").is_dir() else valid,
-                                 None, 1500)
+            # one FGD feature extractor for every size: trained on the largest training set there is
+            largest = max(work.glob("train_*min"), key=lambda d: float(d.name[6:-3]))
+            ae = fgd_autoencoder(GestureDataset(largest, split="train", valid_fraction=0.0, **common),
+                                 work / "fgd_autoencoder", 1500)
         clips = [(np.asarray(valid.clips[c].audio[a * valid.spf:b * valid.spf], np.float32),
                   np.asarray(valid.clips[c].features[a:b], np.float32)) for c, a, b in valid.segments]
         ks = parse_ks(args.ks, bundle.config.n_steps, bundle.config.sample_steps)
         print(f"== {m:g} min")
         results[f"{m:g}"] = k_report(bundle, clips, ks, args.seeds, 0, ae, smoothing=None)
+    if args.train_only:
+        return 0
     write_json(Path(args.out), {
         "benchmark": "data_scale", "created": utc_now(), "code_version": code_version(),
         "device": describe_device("cpu"), "load_average": load_average(),

@@ -26,7 +26,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE, align, load_wav
 from dimgestor.bvh import Skeleton, read_bvh
-from dimgestor.features import ROOT_COLUMNS, FeatureSpec, mirror_features, motion_to_features
+from dimgestor.features import HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, mirror_features, motion_to_features
 
 CACHE_VERSION = 1
 SPLIT_FILES = ("split.json", "split.csv", "split.txt")
@@ -117,10 +117,10 @@ class Clip:
     skeleton: Skeleton
 
 
-def speed_perturb(clip: Clip, rate: float, fps: float, spf: int) -> Clip:
+def speed_perturb(clip: Clip, rate: float, fps: float, spf: int, heading: str = "velocity") -> Clip:
     """The clip played `rate` times faster, audio and motion together (pitch moves with the tempo, as in
-    Ko et al.'s speed perturbation for speech): rotations and height are interpolated in time, per-frame
-    root displacements and turns scaled by `rate`."""
+    Ko et al.'s speed perturbation for speech): rotations, height and a "facing" heading are interpolated in
+    time, per-frame root displacements (and a "velocity" heading's turns) scaled by `rate`."""
     from fractions import Fraction
 
     from scipy.signal import resample_poly
@@ -132,7 +132,7 @@ def speed_perturb(clip: Clip, rate: float, fps: float, spf: int) -> Clip:
     i1 = np.minimum(i0 + 1, len(f) - 1)
     w = (src - i0)[:, None]
     out = (1 - w) * f[i0] + w * f[i1]
-    out[:, [ROOT_COLUMNS.index(c) for c in ("root_dx", "root_dz", "root_dyaw")]] *= rate
+    out[:, list(VELOCITY_COLUMNS) + ([HEADING_COLUMN] if heading == "velocity" else [])] *= rate
     q = Fraction(rate).limit_denominator(100)
     audio = resample_poly(np.asarray(clip.audio, dtype=np.float64), q.denominator, q.numerator)
     audio = np.pad(audio, (0, max(0, T * spf - len(audio))))[: T * spf]
@@ -240,7 +240,7 @@ class GestureDataset:
                         continue
                     part = Clip(self.clips[c].name, self.clips[c].features[a:b],
                                 self.clips[c].audio[a * self.spf:b * self.spf], self.clips[c].skeleton)
-                    self.clips.append(speed_perturb(part, rate, self.fps, self.spf))
+                    self.clips.append(speed_perturb(part, rate, self.fps, self.spf, self.spec.heading))
                     self.segments.append((len(self.clips) - 1, 0, len(self.clips[-1].features)))
         self.window = max(1, int(round(window_s * self.fps)))
         self.hop = max(1, int(round((hop_s if hop_s is not None else window_s / 2) * self.fps)))

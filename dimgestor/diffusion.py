@@ -78,15 +78,15 @@ class Diffusion:
 
     def training_loss(self, model, x0: torch.Tensor, feats: torch.Tensor, t: torch.Tensor,
                       noise: torch.Tensor, vel_weight: float = 0.0, acc_weight: float = 0.0,
-                      root_weight: float = 0.0) -> torch.Tensor:
+                      root_weight: float = 0.0, root_columns: tuple[int, ...] = (0, 1, 2)) -> torch.Tensor:
         """MSE between the network output on x_t and the target; feats: (B, n, F) audio features.
 
         vel_weight / acc_weight > 0 add MSEs between the first / second frame differences of the predicted
         x0 and of the real x0 (the geometric losses of MDM, Tevet et al. 2023): penalties on the jitter a
         causal denoiser passes through from the noise it cannot tell from motion. root_weight > 0 adds an MSE
-        between the integrated root velocities (ground travel and turning, the first three feature columns)
-        of the predicted and the real x0, per frame of the window: a small bias in a velocity is a spin or
-        a walk once integrated, and the per-frame losses barely see it. 0 is the paper's objective.
+        between the integrated root velocities (`root_columns`: ground travel, and turning when the heading is
+        a velocity) of the predicted and the real x0, per frame of the window: a small bias in a velocity is
+        a walk or a spin once integrated, and the per-frame losses barely see it. 0 is the paper's objective.
         """
         cond, _ = model.condition(feats)
         cond = cond[:, : x0.shape[1]]
@@ -105,8 +105,9 @@ class Diffusion:
                 if weight > 0:
                     d = (x0_pred.diff(n=order, dim=1) - x0.diff(n=order, dim=1)) ** 2
                     loss = loss + weight * (w * d).mean()
-            if root_weight > 0:  # root_dx, root_dz, root_dyaw (features.ROOT_COLUMNS) integrated over the window
-                drift = (x0_pred[..., :3] - x0[..., :3]).cumsum(dim=1) ** 2
+            if root_weight > 0:  # the root velocities integrated over the window
+                cols = list(root_columns)
+                drift = (x0_pred[..., cols] - x0[..., cols]).cumsum(dim=1) ** 2
                 loss = loss + root_weight * (w * drift).mean() / x0.shape[1]
         return loss
 

@@ -27,16 +27,16 @@ import numpy as np
 
 from . import metrics
 from .bvh import forward_kinematics
-from .features import decode_features
+from .features import HEADING_COLUMN, VELOCITY_COLUMNS, decode_features, heading_track
 
 SYSTEMS = ("ground_truth", "model", "model_other_audio", "other_real_motion", "mean_pose")
 METRICS = ("fgd_raw", "fgd_feature", "beat_align", "jerk", "mean_speed")
 
 
 def body_frame(features: np.ndarray, spec) -> np.ndarray:
-    """Features with the root's ground velocity and turning zeroed: the pose in the body's own frame."""
+    """Features with the root's ground velocity and heading zeroed: the pose in the body's own frame."""
     f = np.array(features, dtype=np.float64)
-    f[:, [spec.columns.index(c) for c in ("root_dx", "root_dz", "root_dyaw")]] = 0.0
+    f[:, list(VELOCITY_COLUMNS) + [HEADING_COLUMN]] = 0.0
     return f
 
 
@@ -117,7 +117,7 @@ def score(windows: dict, audio: list, skeleton, spec, ae: metrics.MotionAutoenco
 
 
 KMETRICS = ("jerk_ratio", "auj_ratio", "hand_jerk", "contrast", "beat_align", "beat_align_shuffled", "fgd_feature",
-            "diversity", "net_yaw_deg", "yaw_speed_deg_s")
+            "diversity", "net_yaw_deg", "max_yaw_deg", "yaw_speed_deg_s")
 
 
 def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 16000) -> dict:
@@ -128,14 +128,15 @@ def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 160
     onsets = metrics.audio_onsets(audio, sr)
     shifted = (onsets + len(audio) / sr / 2) % (len(audio) / sr)  # the same onsets, half a clip away
     beats = metrics.motion_beats(pos[:, upper], fps)
-    dyaw = np.asarray(raw, dtype=np.float64)[:, spec.columns.index("root_dyaw")]
+    heading = np.degrees(heading_track(raw, spec))
     hand_speed = metrics.joint_speed(pos[:, hands], fps).mean(axis=1)
     return {"hand_jerk": metrics.jerk(pos[:, hands], fps), "auj": metrics.area_under_jerk(pos[:, upper], fps),
             "hand_speed": hand_speed, "mask": metrics.speech_mask(audio, sr, fps, len(raw)),
             "beat_hits": (metrics.beat_align(onsets, beats) * len(onsets)) if len(onsets) else 0.0,
             "beat_hits_shuffled": (metrics.beat_align(shifted, beats) * len(onsets)) if len(onsets) else 0.0,
-            "n_onsets": len(onsets), "net_yaw_deg": metrics.net_yaw_deg(dyaw),
-            "yaw_speed_deg_s": float(np.degrees(np.abs(dyaw).mean()) * fps), "upper": pos[:, upper],
+            "n_onsets": len(onsets), "net_yaw_deg": float(heading[-1]),
+            "yaw_speed_deg_s": float(np.abs(np.diff(heading)).mean() * fps) if len(heading) > 1 else 0.0,
+            "max_yaw_deg": float(np.abs(heading).max()), "upper": pos[:, upper],
             "seconds": len(raw) / fps}
 
 
@@ -150,6 +151,7 @@ def pool_stats(stats: list[dict]) -> dict:
             "beat_align": sum(s["beat_hits"] for s in stats) / onsets if onsets else float("nan"),
             "beat_align_shuffled": sum(s["beat_hits_shuffled"] for s in stats) / onsets if onsets else float("nan"),
             "net_yaw_deg": float(np.mean([abs(s["net_yaw_deg"]) for s in stats])),
+            "max_yaw_deg": float(np.mean([s["max_yaw_deg"] for s in stats])),
             "yaw_speed_deg_s": float(np.average([s["yaw_speed_deg_s"] for s in stats], weights=w))}
 
 
@@ -362,7 +364,8 @@ NOTES = {"fgd_reference": "the valid split's real motion (so ground_truth has FG
          "auj": "area under the peak-jerk curve per second (upper body); auj_ratio = model / real",
          "contrast": "mean wrist speed during speech / during silence (0.75 s away from speech)",
          "diversity": "mean distance of the upper body between seeds at the same moment (file units)",
-         "net_yaw_deg": "mean |net turn| of a whole clip (degrees); yaw_speed_deg_s: mean turning speed",
+         "net_yaw_deg": "mean |net turn| of a whole clip (degrees); max_yaw_deg: its largest |heading| from the start; "
+                        "yaw_speed_deg_s: mean turning speed",
          "mean_speed": "mean speed of the same joints (file units/s)"}
 
 

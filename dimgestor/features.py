@@ -6,6 +6,9 @@ One row per frame at `spec.fps` (20 by default), float32, columns in this order:
                      in file units PER FRAME, expressed in the previous frame's heading frame
                      (rotated by -heading[t-1] about Y); 0 on the first frame
   root_dyaw          heading change from the previous frame, radians PER FRAME; 0 on the first frame
+    or root_yaw      (spec.heading == "facing") heading relative to the clip's mean facing direction,
+                     radians, unwrapped: bounded for a speaker who faces a camera, so a model that
+                     outputs it cannot spin away by accumulating small errors in a turning velocity
   root_y             root height, file units
   root_tilt_x, _z    the root rotation with its heading removed (q_root = yaw(heading) * tilt),
                      as an exponential map; its Y component is 0 by construction, so it is dropped
@@ -13,7 +16,9 @@ One row per frame at `spec.fps` (20 by default), float32, columns in this order:
                      kept continuous over time (no sign flips, no 2 pi jumps)
 
 Heading is the twist of the root rotation about +Y. Velocities are per frame (not per second), so
-integrating is a cumulative sum and decoding in chunks equals decoding everything at once.
+integrating is a cumulative sum and decoding in chunks equals decoding everything at once. "velocity"
+heading is the paper's (PyMO's) choice; "facing" is this engine's default for co-speech gesture (speakers
+face their audience; a generated heading velocity integrates to a spin).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -29,6 +35,8 @@ from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion, Skeleton
 
 ROOT_COLUMNS = ("root_dx", "root_dz", "root_dyaw", "root_y", "root_tilt_x", "root_tilt_z")
+HEADING_COLUMN = 2  # root_dyaw ("velocity" heading) or root_yaw ("facing" heading)
+VELOCITY_COLUMNS = (0, 1)  # root_dx, root_dz: always per-frame velocities
 AXIS_SUFFIXES = ("_rx", "_ry", "_rz")
 
 
@@ -41,6 +49,9 @@ class FeatureSpec(BaseModel):
     joints: tuple[str, ...] | None = Field(
         None, description="non-root joints whose rotations are features; None = every joint with rotation channels"
     )
+    heading: Literal["velocity", "facing"] = Field(
+        "velocity", description="root heading as a per-frame turn (PyMO, the paper) or relative to the clip's "
+                                "mean facing direction (bounded: no spin from integrated errors)")
 
     @classmethod
     def for_skeleton(cls, skeleton: Skeleton, fps: float = 20.0, joints=None, exclude=()) -> "FeatureSpec":
@@ -69,8 +80,15 @@ class FeatureSpec(BaseModel):
         return self.joints
 
     @property
+    def root_columns(self) -> list[str]:
+        cols = list(ROOT_COLUMNS)
+        if self.heading == "facing":
+            cols[HEADING_COLUMN] = "root_yaw"
+        return cols
+
+    @property
     def columns(self) -> list[str]:
-        return list(ROOT_COLUMNS) + [n + s for n in self._resolved() for s in AXIS_SUFFIXES]
+        return self.root_columns + [n + s for n in self._resolved() for s in AXIS_SUFFIXES]
 
     @property
     def dim(self) -> int:
@@ -140,9 +158,29 @@ def motion_to_features(motion: BvhMotion, spec: FeatureSpec | None = None) -> np
     dx = c * step[:, 0] - s * step[:, 1]  # rotate by -h_prev about Y
     dz = s * step[:, 0] + c * step[:, 1]
     tilt_v = R.expmap_continuity(R.quat_to_expmap(tilt))
-    root = np.stack([dx, dz, np.diff(heading, prepend=heading[:1]), root_pos[:, 1], tilt_v[:, 0], tilt_v[:, 2]], -1)
+    if spec.heading == "facing":
+        yaw = heading - facing_direction(heading)
+    else:
+        yaw = np.diff(heading, prepend=heading[:1])
+    root = np.stack([dx, dz, yaw, root_pos[:, 1], tilt_v[:, 0], tilt_v[:, 2]], -1)
     joints = R.expmap_continuity(R.quat_to_expmap(rot[:, 1:]), axis=0).reshape(len(rot), -1)
     return np.concatenate([root, joints], axis=1).astype(np.float32)
+
+
+def facing_direction(heading: np.ndarray) -> float:
+    """The clip's mean facing (circular mean of the unwrapped heading), on the branch nearest its median."""
+    if len(heading) == 0:
+        return 0.0
+    mean = math.atan2(float(np.mean(np.sin(heading))), float(np.mean(np.cos(heading))))
+    return mean + 2 * math.pi * round((float(np.median(heading)) - mean) / (2 * math.pi))
+
+
+def heading_track(features: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+    """(n,) heading in radians relative to the first frame's, whichever way the features hold it."""
+    h = np.asarray(features, dtype=np.float64)[:, HEADING_COLUMN]
+    if len(h) == 0:
+        return h
+    return h - h[0] if spec.heading == "facing" else np.cumsum(h) - h[0]
 
 
 # ---- inverse: features -> pose / motion ----------------------------------------------------------
@@ -219,11 +257,17 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
     else:
         lam = 1.0 if root == "free" else math.exp(-1.0 / (spec.fps * tether_s))
         a = anchor if root == "tether" else RootState()
-        u = f[:, :3]
+        u = f[:, :3].copy()
+        facing = spec.heading == "facing"
+        if facing:  # the heading itself, relative to the start: nothing to integrate, nothing to drift
+            u[:, HEADING_COLUMN] = 0.0
         if root == "tether":
             u, drift, frames = _remove_drift(u, drift, frames, spec.fps * tether_s)
             drift = tuple(float(v) for v in drift)
-        heading = a.heading + _leaky_cumsum(u[:, 2], state.heading - a.heading, lam)
+        if facing:
+            heading = anchor.heading + f[:, HEADING_COLUMN]
+        else:
+            heading = a.heading + _leaky_cumsum(u[:, 2], state.heading - a.heading, lam)
         h_prev = np.concatenate([[state.heading], heading[:-1]])
         c, s = np.cos(h_prev), np.sin(h_prev)
         x = a.x + _leaky_cumsum(c * u[:, 0] + s * u[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y

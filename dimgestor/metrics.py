@@ -356,7 +356,3 @@ def speech_contrast(speed: np.ndarray, mask: np.ndarray) -> float:
         return float("nan")
     return float(speech.mean() / max(silence.mean(), 1e-9))
 
-
-def net_yaw_deg(dyaw: np.ndarray) -> float:
-    """Net turn in degrees of a clip whose per-frame heading changes are `dyaw` (radians)."""
-    return float(np.degrees(np.sum(dyaw)))

@@ -42,10 +42,10 @@ SMALL_DATA_SPEEDS = (0.9, 1.1)
 # over a few frames, so that what a causal denoiser passes through is slow sway, not jitter.
 RECIPES: dict[str, dict] = {
     "paper": dict(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
-                              noise_taps=1), vel_weight=0.0, acc_weight=0.0),
+                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0),
     "streaming": dict(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
-                                  ddim_spacing="linspace"),
-                      vel_weight=4.0, acc_weight=4.0, root_weight=1.0),
+                                  ddim_spacing="linspace"), heading="facing",
+                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1),
 }
 
 
@@ -65,6 +65,7 @@ class TrainOptions:
     vel_weight: float | None = None  # weight of the x0 velocity loss (None: the recipe's; 0 = none)
     acc_weight: float | None = None  # weight of the x0 acceleration loss (None: the recipe's; 0 = none)
     root_weight: float | None = None  # weight of the integrated-root (drift) loss (None: the recipe's; 0 = none)
+    heading: str | None = None  # root heading features: "velocity" or "facing" (None: the recipe's)
     speeds: tuple[float, ...] = ()  # speed perturbation factors for extra training copies, e.g. (0.9, 1.1)
     ema: float = 0.999  # EMA decay of the saved weights
     window_s: float = 10.0
@@ -194,7 +195,11 @@ def train(opts: TrainOptions) -> Path:
         config = ModelConfig(**read_meta(resume_from)["model"])
     else:
         config = get_preset(opts.preset, **overrides)
-    spec = FeatureSpec(fps=config.fps)
+    if resume_from is not None:
+        heading = FeatureSpec.from_dict(read_meta(resume_from)["feature_spec"]).heading
+    else:
+        heading = opts.heading or (RECIPES[opts.recipe].get("heading", "velocity") if opts.recipe else "velocity")
+    spec = FeatureSpec(fps=config.fps, heading=heading)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
                  cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction,
                  valid_seconds=opts.valid_seconds)
@@ -232,7 +237,10 @@ def train(opts: TrainOptions) -> Path:
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
                                  seed=opts.seed, drop_last=False)
-    objective = Objective(model, diffusion, weights)
+    from .features import HEADING_COLUMN, VELOCITY_COLUMNS
+
+    root_columns = tuple(VELOCITY_COLUMNS) + ((HEADING_COLUMN,) if spec.heading == "velocity" else ())
+    objective = Objective(model, diffusion, {**weights, "root_columns": root_columns})
     if world > 1:
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device] if device.type == "cuda" else None)
     if main:
@@ -241,6 +249,7 @@ def train(opts: TrainOptions) -> Path:
               f"model {opts.preset if resume_from is None else '(from checkpoint)'}: "
               f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, device {device}, world {world}, "
               f"recipe {opts.recipe or '(none)'}: {config.n_steps} {config.schedule} steps, predicts {config.prediction}, "
+              f"{spec.heading} heading, "
               f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
               f"{weights['vel_weight']:g}/{weights['acc_weight']:g}/{weights['root_weight']:g}"
               + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
@@ -404,7 +413,7 @@ def _run(args) -> int:
     if args.mirror is None or speeds is None:  # augmentation defaults depend on how much training data there is
         minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
                                  valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
-                                 window_s=args.window_s).seconds() / 60
+                                 window_s=args.window_s).seconds() / 60  # the heading layout does not change it
         few = minutes < SMALL_DATA_MIN
     opts.mirror = few if args.mirror is None else args.mirror
     opts.speeds = (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds

@@ -243,3 +243,36 @@ def test_zeggs_round_trip_after_resampling(zeggs_dir):
     assert jump[step < np.radians(5)].max() < 0.5
     err = np.abs(forward_kinematics(decode(f, motion, spec)) - reference_fk(motion)).max()
     assert err < 1e-2, f"FK error {err:.5f} cm"
+
+
+def test_facing_heading_is_bounded_round_trips_and_decodes_in_chunks():
+    from dimgestor.features import heading_track
+
+    motion = synthetic_motion(seconds=8.0, fps=20.0, seed=5)  # it turns while it gestures
+    vel, fac = FeatureSpec(), FeatureSpec(heading="facing")
+    fv, ff = motion_to_features(motion, vel), motion_to_features(motion, fac)
+    assert fac.resolve(motion.skeleton).columns[2] == "root_yaw"
+    np.testing.assert_allclose(np.delete(ff, 2, axis=1), np.delete(fv, 2, axis=1), atol=1e-6)  # only heading differs
+    np.testing.assert_allclose(heading_track(ff, fac), heading_track(fv, vel), atol=1e-5)  # the same turning
+    assert abs(np.degrees(np.mean(ff[:, 2]))) < 2.0  # relative to the clip's mean facing
+    # features -> motion -> features: the same up to where "forward" is (a constant on the heading column)
+    back = motion_to_features(features_to_motion(ff, motion.skeleton, fac), fac)
+    np.testing.assert_allclose(np.delete(back, 2, axis=1), np.delete(ff, 2, axis=1), atol=1e-4)
+    shift = back[:, 2] - ff[:, 2]
+    assert np.ptp(shift) < 1e-4
+    # a streamed decode equals the whole, and the decoded heading is the start's plus the feature
+    dec = PoseDecoder(motion.skeleton, fac, start_heading=0.4)
+    whole = PoseDecoder(motion.skeleton, fac, start_heading=0.4).decode(ff)
+    parts = [dec.decode(ff[a:b]) for a, b in [(0, 1), (1, 17), (17, 17), (17, len(ff))]]
+    np.testing.assert_allclose(np.concatenate([p.root_pos for p in parts]), whole.root_pos, atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([p.rotations for p in parts]), whole.rotations, atol=1e-12)
+    heading, _ = R.split_heading(whole.rotations[:, 0])
+    np.testing.assert_allclose(np.unwrap(heading), 0.4 + ff[:, 2], atol=1e-5)
+    # a model's error in the heading stays an error: a constant offset is a constant turn, never a spin
+    off = ff.copy()
+    off[:, 2] += 0.1
+    h_off, _ = R.split_heading(PoseDecoder(motion.skeleton, fac).decode(off).rotations[:, 0])
+    h, _ = R.split_heading(PoseDecoder(motion.skeleton, fac).decode(ff).rotations[:, 0])
+    np.testing.assert_allclose(np.unwrap(h_off) - np.unwrap(h), 0.1, atol=1e-6)
+    # mirroring reflects the facing too
+    np.testing.assert_allclose(mirror_features(ff, fac.resolve(motion.skeleton))[:, 2], -ff[:, 2])

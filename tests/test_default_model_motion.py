@@ -1,0 +1,65 @@
+"""The embedded default model's motion, as `dimgestor eval` measures it, with the output filter OFF and the
+model's own default number of DDIM steps: as smooth as real capture, speech-driven, and facing the camera."""
+
+import numpy as np
+import pytest
+
+from dimgestor import metrics
+from dimgestor.audio import load_wav
+from dimgestor.checkpoint import load_checkpoint
+from dimgestor.eval import clip_stats, joint_positions
+from dimgestor.stream import generate_offline
+from streamer.sources import DEMO_WAV
+from test_streamer_default_model import DEFAULT_MODEL  # noqa: F401 (the embedded model's folder)
+
+pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
+
+# Wrist jerk of the real capture the default model learnt from (the ZEGGS sample clip, all 69 s, through the
+# same 20 fps features and `eval.clip_stats`), cm/s^3. test_real_capture_reference re-measures it where the
+# clip is present.
+REAL_HAND_JERK = 11919.0
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    b = load_checkpoint(None)
+    b.model.eval()
+    assert b.config.sample_steps >= 2, "the default model samples with several DDIM steps"
+    assert not b.config.smooth_hz or b.config.smooth_hz >= 6.0, "no output filter below 6 Hz carries the result"
+    return b
+
+
+def _generate(bundle, audio, seed=0):
+    return np.asarray(bundle.denormalize(generate_offline(bundle.model, audio, seed=seed, smoothing=None)))
+
+
+@pytest.mark.parametrize("clip", ["demo_en.wav", "demo_zh.wav"])
+def test_default_model_is_smooth_and_keeps_facing_the_camera(bundle, clip):
+    audio = load_wav(DEMO_WAV.parent / clip)
+    raw = _generate(bundle, audio)
+    s = clip_stats(raw, audio, bundle.skeleton, bundle.feature_spec)
+    assert 0.5 < s["hand_jerk"] / REAL_HAND_JERK < 2.0, s["hand_jerk"]  # within 2x of the real capture's
+    assert abs(s["net_yaw_deg"]) < 45.0, s["net_yaw_deg"]  # no spin away from the camera over the clip
+
+
+def test_default_model_rests_in_silence(bundle):
+    audio = load_wav(DEMO_WAV)
+    cut = 6 * 16000
+    with_pause = np.concatenate([audio[:cut], np.zeros(5 * 16000, np.float32), audio[cut:]])
+    raw = _generate(bundle, with_pause)
+    pos = joint_positions(raw, bundle.skeleton, bundle.feature_spec)[:, metrics.hand_joints(bundle.skeleton.names)]
+    speed = metrics.joint_speed(pos, 20.0).mean(axis=1)
+    pause = speed[6 * 20 + 15: 11 * 20]  # the inserted 5 s, after 0.75 s to finish the last gesture
+    speech = np.concatenate([speed[20: 6 * 20], speed[11 * 20 + 15:]])
+    assert speech.mean() > 1.5 * pause.mean(), (speech.mean(), pause.mean())
+
+
+def test_real_capture_reference(zeggs_dir):
+    from dimgestor.bvh import read_bvh
+    from dimgestor.features import FeatureSpec, motion_to_features
+
+    motion = read_bvh(zeggs_dir / "067_Speech_2_x_1_0.bvh")
+    spec = FeatureSpec().resolve(motion.skeleton)
+    feats = motion_to_features(motion, spec)
+    audio = load_wav(zeggs_dir / "067_Speech_2_x_1_0.wav")[: len(feats) * 800]
+    assert clip_stats(feats, audio, motion.skeleton, spec)["hand_jerk"] == pytest.approx(REAL_HAND_JERK, rel=1e-3)
