@@ -4,9 +4,10 @@ Each candidate is trained on the same data with the same budget (the `realtime` 
 fixed seed), then `dimgestor eval`'s per-K report scores it on the held-out stretch with the output
 filter OFF: hand jerk / real (1 = as smooth as real capture), speech/silence contrast, BeatAlign beside
 its shuffled-audio baseline, FGD, diversity across seeds, net turn. The embedded model of the previous
-release can be scored beside them as "before" (`--before`).
+release can be scored beside them as "before" (`--before CHECKPOINT`). Short chains are sampled with
+"linspace" DDIM spacing (every K ends on the finest level), as the default recipe does.
 
-    python benchmarks/recipes.py --data ../shared/data/zeggs_sample --valid-seconds 15 --steps 1200
+    python benchmarks/recipes.py --data ../shared/data/zeggs_sample --valid-seconds 15 --steps 800
     python benchmarks/recipes.py --data DIR --only streaming --runs-dir runs/recipes   # one candidate
 
 Runs already trained in --runs-dir are reused (delete them to retrain).
@@ -21,47 +22,47 @@ from pathlib import Path
 
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
 
-# name -> (train recipe, model-config overrides, loss weights {vel, acc} or None for the recipe's)
+# name -> TrainOptions fields (everything else as in train_candidate). "streaming" is the default recipe.
 CANDIDATES = {
-    "paper": ("paper", {}, None),
-    "paper_v_vel5": ("paper", {"prediction": "v"}, {"vel": 5.0, "acc": 0.0}),  # the previous default model's
-    "x0_short": ("streaming", {}, {"vel": 0.0, "acc": 0.0}),
-    "streaming": ("streaming", {}, None),
-    "streaming_taps5": ("streaming", {"noise_taps": 5}, None),
-    "streaming_deriv4": ("streaming", {}, {"vel": 4.0, "acc": 4.0}),
+    "x0_vel1_acc1": dict(recipe="streaming", heading="velocity", vel_weight=1.0, acc_weight=1.0, root_weight=0.0),
+    "x0_vel1_acc1_noise5": dict(recipe="streaming", heading="velocity", vel_weight=1.0, acc_weight=1.0,
+                                root_weight=0.0, overrides={"noise_taps": 5}),
+    "x0_vel4_acc4": dict(recipe="streaming", heading="velocity", vel_weight=4.0, acc_weight=4.0, root_weight=0.0),
+    "x0_vel4_acc4_root1": dict(recipe="streaming", heading="velocity", vel_weight=4.0, acc_weight=4.0, root_weight=1.0),
+    "streaming": dict(recipe="streaming"),  # x0, vel/acc 4, facing heading, root 0.1
+    "paper": dict(recipe="paper"),
 }
 
 
 def train_candidate(name: str, args, out: Path) -> Path:
-    from dimgestor.checkpoint import latest_checkpoint
+    """The candidate's checkpoint after args.steps steps (trained here unless the run folder has it)."""
     from dimgestor.train import TrainOptions, train
 
-    if latest_checkpoint(out) is not None:
-        print(f"{name}: reusing {out}")
-        return out
-    recipe, overrides, weights = CANDIDATES[name]
-    opts = TrainOptions(data=args.data, out=str(out), preset="realtime", recipe=recipe, overrides=overrides,
-                        vel_weight=None if weights is None else weights["vel"],
-                        acc_weight=None if weights is None else weights["acc"],
-                        max_steps=args.steps, batch_size=8, window_s=5.0, valid_seconds=args.valid_seconds,
-                        ckpt_every=args.steps, valid_every=max(args.steps // 4, 1), keep=1, seed=0,
-                        mirror=args.mirror, speeds=tuple(args.speeds), progress=False)
+    ckpt = out / f"ckpt_{args.steps:07d}"
+    if (ckpt / "config.json").is_file():
+        print(f"{name}: reusing {ckpt}")
+        return ckpt
+    opts = TrainOptions(data=args.data, out=str(out), preset="realtime", max_steps=args.steps, batch_size=8,
+                        window_s=5.0, valid_seconds=args.valid_seconds, ckpt_every=args.steps,
+                        valid_every=max(args.steps // 4, 1), keep=1, seed=0, mirror=args.mirror,
+                        speeds=tuple(args.speeds), progress=False, **CANDIDATES[name])
     started = time.time()
     train(opts)
     print(f"{name}: trained {args.steps} steps in {time.time() - started:.0f} s")
-    return out
+    return ckpt
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", required=True, help="BVH+WAV folder (its held-out tail is scored)")
     p.add_argument("--valid-seconds", type=float, default=15.0)
-    p.add_argument("--steps", type=int, default=1200, help="training steps per candidate")
+    p.add_argument("--steps", type=int, default=800, help="training steps per candidate")
     p.add_argument("--ks", default="1,2,4,8")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--only", default=None, help="comma-separated candidate names (default: all)")
     p.add_argument("--runs-dir", default="runs/recipes")
-    p.add_argument("--before", action="store_true", help="also score the embedded default model as 'before'")
+    p.add_argument("--before", default=None, metavar="CHECKPOINT",
+                   help="also score this checkpoint as 'before' (e.g. a copy of the previous embedded model)")
     p.add_argument("--no-mirror", dest="mirror", action="store_false")
     p.add_argument("--speeds", default="0.9,1.1", help="speed perturbation factors ('' = none)")
     p.add_argument("--out", default=str(RESULTS / "recipes.json"))
@@ -79,7 +80,7 @@ def main() -> int:
     if unknown:
         p.error(f"unknown candidates {unknown}; choose from {', '.join(CANDIDATES)}")
     results, ae = {}, None
-    systems = [("before", None)] if args.before else []
+    systems = [("before", args.before)] if args.before else []
     systems += [(n, train_candidate(n, args, Path(args.runs_dir) / n)) for n in names]
     for name, ckpt in systems:
         bundle = load_checkpoint(ckpt)
@@ -88,14 +89,16 @@ def main() -> int:
         valid = GestureDataset(args.data, split="valid", **common)
         if ae is None:
             ae = fgd_autoencoder(GestureDataset(args.data, split="train", **common), None, 1500)
-        c = bundle.config
+        if bundle.config.n_steps <= 16:  # short chains end every K on their finest level (the default's spacing)
+            bundle.model.config = bundle.model.config.model_copy(update={"ddim_spacing": "linspace"})
+        c = bundle.config = bundle.model.config
         ks = parse_ks(args.ks, c.n_steps, c.sample_steps)
         print(f"== {name}: {c.n_steps} {c.schedule} steps, predicts {c.prediction}, noise over {c.noise_taps} frames")
         rep = k_report(bundle, valid_clips(valid), ks, args.seeds, 0, ae, smoothing=None)
-        results[name] = {"config": {k: getattr(c, k) for k in ("n_steps", "schedule", "prediction", "noise_taps")},
-                         "training": CANDIDATES.get(name, ("embedded default model of the previous release",))[0],
-                         "loss_weights": (CANDIDATES[name][2] if name in CANDIDATES else None),
-                         **rep}
+        results[name] = {"config": {k: getattr(c, k) for k in ("n_steps", "schedule", "prediction", "noise_taps",
+                                                               "ddim_spacing")},
+                         "heading": bundle.feature_spec.heading,
+                         "training": bundle.info.get("options", {}), **rep}
     write_json(Path(args.out), {
         "benchmark": "recipes", "created": utc_now(), "code_version": code_version(), "device": describe_device("cpu"),
         "load_average": load_average(), "command": " ".join(["python", "benchmarks/recipes.py"] + sys.argv[1:]),

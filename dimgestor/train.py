@@ -359,6 +359,9 @@ def register(subparsers) -> None:
                    help="held-out tail of every clip, as a fraction (without a split file)")
     p.add_argument("--valid-seconds", type=float, default=None,
                    help="held-out tail of every clip in seconds (overrides --valid-fraction)")
+    p.add_argument("--heading", choices=["velocity", "facing"], default=None,
+                   help="root heading features: a per-frame turn (PyMO, the paper) or relative to the clip's mean "
+                        "facing (bounded, no spin) (default: the recipe's)")
     p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="add left/right mirrored windows (default: on when the training split is under 30 min)")
     p.add_argument("--speeds", default=None, metavar="R,R",
@@ -407,7 +410,8 @@ def _run(args) -> int:
                         hop_s=args.hop_s, valid_fraction=args.valid_fraction,
                         valid_seconds=args.valid_seconds, ckpt_every=args.ckpt_every, recipe=args.recipe,
                         valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight,
-                        acc_weight=args.acc_weight, root_weight=args.root_weight, resume=args.resume,
+                        acc_weight=args.acc_weight, root_weight=args.root_weight, heading=args.heading,
+                        resume=args.resume,
                         seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
     few = False
     if args.mirror is None or speeds is None:  # augmentation defaults depend on how much training data there is

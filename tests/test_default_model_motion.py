@@ -14,10 +14,11 @@ from test_streamer_default_model import DEFAULT_MODEL  # noqa: F401 (the embedde
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
-# Wrist jerk of the real capture the default model learnt from (the ZEGGS sample clip, all 69 s, through the
-# same 20 fps features and `eval.clip_stats`), cm/s^3. test_real_capture_reference re-measures it where the
-# clip is present.
-REAL_HAND_JERK = 11919.0
+# Wrist jerk of the real capture, as `dimgestor eval` reports it for the default model's data: the ZEGGS sample
+# clip's held-out last 15 s (the reference row of `dimgestor eval --data ZEGGS --valid-seconds 15`), cm/s^3.
+# The whole 69 s clip, with the actor's still pauses, has 11.9k (see MODEL_CARD.md).
+# test_real_capture_reference re-measures it where the clip is present.
+REAL_HAND_JERK = 21680.0
 
 
 @pytest.fixture(scope="module")
@@ -54,12 +55,12 @@ def test_default_model_rests_in_silence(bundle):
     assert speech.mean() > 1.5 * pause.mean(), (speech.mean(), pause.mean())
 
 
-def test_real_capture_reference(zeggs_dir):
-    from dimgestor.bvh import read_bvh
-    from dimgestor.features import FeatureSpec, motion_to_features
+def test_real_capture_reference(zeggs_dir, tmp_path):
+    from dimgestor.dataset import GestureDataset
+    from dimgestor.eval import k_report, valid_clips
 
-    motion = read_bvh(zeggs_dir / "067_Speech_2_x_1_0.bvh")
-    spec = FeatureSpec().resolve(motion.skeleton)
-    feats = motion_to_features(motion, spec)
-    audio = load_wav(zeggs_dir / "067_Speech_2_x_1_0.wav")[: len(feats) * 800]
-    assert clip_stats(feats, audio, motion.skeleton, spec)["hand_jerk"] == pytest.approx(REAL_HAND_JERK, rel=1e-3)
+    b = load_checkpoint(None)
+    valid = GestureDataset(zeggs_dir, split="valid", spec=b.feature_spec, window_s=4.0, valid_seconds=15.0,
+                           cache_dir=tmp_path)
+    rep = k_report(b, valid_clips(valid), [1], seeds=1, seed=0, ae=None, log=lambda *_: None)
+    assert rep["reference"]["hand_jerk"] == pytest.approx(REAL_HAND_JERK, rel=1e-3)
