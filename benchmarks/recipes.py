@@ -79,7 +79,7 @@ def main() -> int:
     unknown = [n for n in names if n not in CANDIDATES]
     if unknown:
         p.error(f"unknown candidates {unknown}; choose from {', '.join(CANDIDATES)}")
-    results, ae = {}, None
+    results, aes = {}, {}  # one FGD feature extractor per feature layout (velocity or facing heading)
     systems = [("before", args.before)] if args.before else []
     systems += [(n, train_candidate(n, args, Path(args.runs_dir) / n)) for n in names]
     for name, ckpt in systems:
@@ -87,8 +87,10 @@ def main() -> int:
         bundle.model.eval()
         common = dict(spec=bundle.feature_spec, window_s=4.0, valid_seconds=args.valid_seconds)
         valid = GestureDataset(args.data, split="valid", **common)
-        if ae is None:
-            ae = fgd_autoencoder(GestureDataset(args.data, split="train", **common), None, 1500)
+        heading = bundle.feature_spec.heading
+        if heading not in aes:
+            aes[heading] = fgd_autoencoder(GestureDataset(args.data, split="train", **common), None, 1500)
+        ae = aes[heading]
         if bundle.config.n_steps <= 16:  # short chains end every K on their finest level (the default's spacing)
             bundle.model.config = bundle.model.config.model_copy(update={"ddim_spacing": "linspace"})
         c = bundle.config = bundle.model.config
@@ -104,6 +106,7 @@ def main() -> int:
         "load_average": load_average(), "command": " ".join(["python", "benchmarks/recipes.py"] + sys.argv[1:]),
         "data": args.data, "valid_seconds": args.valid_seconds, "train_steps": args.steps,
         "augmentation": {"mirror": args.mirror, "speeds": args.speeds}, "output_filter": "off",
+        "fgd_note": "FGD compares only between candidates of the same heading layout (one feature extractor each)",
         "results": results})
     plot(results, Path(args.out).with_suffix(".png"))
     return 0
