@@ -2,13 +2,16 @@
 
 A session owns one `GestureStream` (the model's streaming state) and one `PoseDecoder` (the root
 integration). Audio is gathered until a window (`window_ms`) is full; if inference fell behind, the
-next window takes everything that queued up meanwhile, so latency recovers instead of growing. Each
+next window takes everything that queued up meanwhile, so latency recovers instead of growing. A large
+take is inferred in pieces of at most `max_call_s` of audio: sessions share the inference workers, and
+each one has at most one call queued, so short calls keep every other session's turn short. Each
 frame is stamped with pts = index / fps on the audio clock.
 """
 
 from __future__ import annotations
 
 import asyncio
+import inspect
 import time
 from collections import deque
 from concurrent.futures import Executor
@@ -129,11 +132,19 @@ class Session:
     def _finish(self) -> list[Frame]:  # worker thread
         return self._frames(self.stream.finish())
 
-    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], None],
-                  max_buffer_s: float = 2.0) -> int:
-        """Stream `source` to the end, calling emit(frames) per window; returns the frame count."""
+    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], object],
+                  max_buffer_s: float = 2.0, max_call_s: float = 1.0) -> int:
+        """Stream `source` to the end, calling emit(frames) per window; returns the frame count.
+
+        emit may return an awaitable (a sink applying back pressure): the session waits for it.
+        """
         loop = asyncio.get_running_loop()
         window = _Window(max(self.window, int(max_buffer_s * RATE)))
+        piece = max(self.window, int(max_call_s * RATE))
+
+        async def out(frames: list[Frame]) -> None:
+            if inspect.isawaitable(r := emit(frames)):
+                await r
 
         async def read() -> None:
             try:
@@ -151,13 +162,16 @@ class Session:
                 if not chunks:
                     break
                 samples = np.concatenate([c.samples for c in chunks])
-                t0 = time.perf_counter()
-                frames = await loop.run_in_executor(self.executor, self._push, samples)
-                infer_s = time.perf_counter() - t0
-                emit(frames)
-                self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, len(frames))
+                infer_s, n = 0.0, 0
+                for a in range(0, len(samples), piece):
+                    t0 = time.perf_counter()
+                    frames = await loop.run_in_executor(self.executor, self._push, samples[a : a + piece])
+                    infer_s += time.perf_counter() - t0
+                    n += len(frames)
+                    await out(frames)
+                self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, n)
             frames = await loop.run_in_executor(self.executor, self._finish)
-            emit(frames)
+            await out(frames)
             self.stats.frames += len(frames)
             self.stats.ended = True
             return self.stream.frames_out
