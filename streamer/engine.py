@@ -11,10 +11,13 @@ frame is stamped with pts = index / fps on the audio clock.
 from __future__ import annotations
 
 import asyncio
+import heapq
 import inspect
+import itertools
+import threading
 import time
 from collections import deque
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import AsyncIterable, Callable
 
@@ -90,6 +93,63 @@ class _Window:
         return chunks
 
 
+class RankedExecutor(Executor):
+    """Worker threads that run the waiting job of lowest rank first (first come, first served among equals).
+
+    Sessions rank their jobs by how far their audio is ahead of real time, so a session fed in real
+    time (a talker, a microphone, a paced file) never waits behind one working through a backlog.
+    """
+
+    def __init__(self, max_workers: int, thread_name_prefix: str = "infer"):
+        self._jobs: list = []
+        self._seq = itertools.count()
+        self._cv = threading.Condition()
+        self._shutdown = False
+        self._threads = [threading.Thread(target=self._work, name=f"{thread_name_prefix}_{i}", daemon=True)
+                         for i in range(max_workers)]
+        for t in self._threads:
+            t.start()
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        return self.submit_ranked(0.0, fn, *args, **kwargs)
+
+    def submit_ranked(self, rank: float, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        with self._cv:
+            if self._shutdown:
+                raise RuntimeError("cannot schedule new jobs after shutdown")
+            heapq.heappush(self._jobs, (rank, next(self._seq), future, fn, args, kwargs))
+            self._cv.notify()
+        return future
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while not self._jobs and not self._shutdown:
+                    self._cv.wait()
+                if not self._jobs:
+                    return
+                _, _, future, fn, args, kwargs = heapq.heappop(self._jobs)
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(fn(*args, **kwargs))
+            except BaseException as e:
+                future.set_exception(e)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        with self._cv:
+            self._shutdown = True
+            if cancel_futures:
+                for job in self._jobs:
+                    job[2].cancel()
+                self._jobs.clear()
+            self._cv.notify_all()
+        if wait:
+            for t in self._threads:
+                t.join()
+
+
 class Session:
     """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`."""
 
@@ -101,6 +161,8 @@ class Session:
         self.fps, self.window = fps, RATE * window_ms // 1000
         self.executor, self.name = executor, name
         self.stats = Stats()
+        self._t0: float | None = None  # when run() started
+        self._pushed_s = 0.0  # audio handed to inference so far
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -126,6 +188,13 @@ class Session:
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i]) for i in range(n)]
 
+    def _job(self, fn, *args) -> asyncio.Future:
+        """Run fn in the executor; a RankedExecutor gets how far this session is ahead of real time."""
+        submit = getattr(self.executor, "submit_ranked", None)
+        if submit is None:
+            return asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        return asyncio.wrap_future(submit(self._pushed_s - (time.monotonic() - self._t0), fn, *args))
+
     def _push(self, samples: np.ndarray) -> list[Frame]:  # worker thread
         return self._frames(self.stream.push(samples))
 
@@ -138,7 +207,7 @@ class Session:
 
         emit may return an awaitable (a sink applying back pressure): the session waits for it.
         """
-        loop = asyncio.get_running_loop()
+        self._t0 = time.monotonic()
         window = _Window(max(self.window, int(max_buffer_s * RATE)))
         piece = max(self.window, int(max_call_s * RATE))
 
@@ -165,12 +234,13 @@ class Session:
                 infer_s, n = 0.0, 0
                 for a in range(0, len(samples), piece):
                     t0 = time.perf_counter()
-                    frames = await loop.run_in_executor(self.executor, self._push, samples[a : a + piece])
+                    frames = await self._job(self._push, samples[a : a + piece])
+                    self._pushed_s += min(piece, len(samples) - a) / RATE
                     infer_s += time.perf_counter() - t0
                     n += len(frames)
                     await out(frames)
                 self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, n)
-            frames = await loop.run_in_executor(self.executor, self._finish)
+            frames = await self._job(self._finish)
             await out(frames)
             self.stats.frames += len(frames)
             self.stats.ended = True

@@ -7,11 +7,10 @@ import os
 import signal
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import AsyncIterator
 
-from streamer.engine import Frame, Session
+from streamer.engine import Frame, RankedExecutor, Session
 from streamer.sources import AudioChunk, MicSource, open_source
 
 
@@ -167,7 +166,7 @@ async def serve(args) -> int:
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
     fps = bundle.feature_spec.fps
     fps = int(fps) if float(fps).is_integer() else fps
-    executor = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    executor = RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
 
     def make_session(name: str = "client") -> Session:
         return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing, **root,

@@ -54,6 +54,22 @@ class ErrorLog:
         self.last, self.unlogged = now, 0
 
 
+class MessageBudget:
+    """Token bucket on a client's messages: `rate` per second, bursts of `burst`; a text message also costs
+    one token per KiB (parsing is the event loop's work). Over budget, the client is read more slowly."""
+
+    def __init__(self, rate: float = 250.0, burst: float = 500.0):
+        self.rate, self.burst = rate, burst
+        self.tokens, self.t = burst, time.monotonic()
+
+    def wait_s(self, message: str | bytes) -> float:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        self.tokens -= 1 + (len(message) / 1024 if isinstance(message, str) else 0)
+        return max(0.0, -self.tokens / self.rate)
+
+
 class Client:
     """One connection: its encoding, its outgoing queue and counters, and its own audio session if any."""
 
@@ -76,6 +92,7 @@ class Client:
         self.slowed = False  # told that its audio arrives faster than it is processed
         peer = ws.remote_address
         self.errors = ErrorLog(f"{peer[0]}:{peer[1]}" if peer else "?")
+        self.budget = MessageBudget()
 
     def put(self, message: str | bytes, kind: str = "ctl") -> None:
         """Queue a message. "ctl" (hello, end) and "own" frames always go in; a droppable one ("frame",
@@ -155,7 +172,8 @@ class WsServer:
 
     async def start(self) -> None:
         self._server = await serve(self._handle, self.host, self.port, process_request=self._check_request,
-                                   max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5)
+                                   max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
+                                   compression=None)  # no deflate: CPU per frame per client, and a bomb risk
         self.port = self._server.sockets[0].getsockname()[1]  # the real port when 0 was asked
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
 
@@ -255,7 +273,7 @@ class WsServer:
                 except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
                     client.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
                     client.note(P.error("internal", f"{type(e).__name__}: {e}"))
-                await asyncio.sleep(0)  # a flood of cheap messages still lets everyone else run
+                await asyncio.sleep(client.budget.wait_s(message))  # a flood is read only as fast as the budget
         except ConnectionClosed:
             pass
         finally:
