@@ -105,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--vmc-jitter-ms", type=float, default=250, metavar="MS",
                    help="VMC jitter buffer: frames are sent this long after the earliest they could be")
     s.add_argument("--record", default=None, metavar="OUT.bvh",
-                   help="write the generated motion of the server's source to this BVH file when it ends or on Ctrl-C")
+                   help="write the generated motion of the server's source to this BVH file as it is generated "
+                        "(a valid BVH at all times: a crash loses at most the last ~0.5 s)")
     s.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
     s.add_argument("--steps", type=int, default=None,
