@@ -93,11 +93,35 @@ class _Window:
         return chunks
 
 
+class AudioClock:
+    """How far a stream's audio is ahead of real time: audio handed to inference minus time elapsed.
+
+    Shared by the successive sessions of one client (so restarting sessions earns no priority); time
+    without audio earns at most `max_credit_s` of catching up.
+    """
+
+    def __init__(self, max_credit_s: float = 2.0):
+        self.t0: float | None = None
+        self.audio_s = 0.0
+        self.max_credit_s = max_credit_s
+
+    def ahead_s(self) -> float:
+        now = time.monotonic()
+        if self.t0 is None:
+            self.t0 = now
+        behind = (now - self.t0) - self.audio_s
+        if behind > self.max_credit_s:
+            self.t0 += behind - self.max_credit_s
+        return -min(behind, self.max_credit_s)
+
+
 class RankedExecutor(Executor):
     """Worker threads that run the waiting job of lowest rank first (first come, first served among equals).
 
-    Sessions rank their jobs by how far their audio is ahead of real time, so a session fed in real
-    time (a talker, a microphone, a paced file) never waits behind one working through a backlog.
+    Sessions rank their jobs by how far their audio is ahead of real time (rank > 0: working through a
+    backlog). A job ahead of real time starts only while no real-time job (rank <= 0) runs, so a session
+    fed in real time (a talker, a microphone, a paced file) neither waits behind a backlog nor shares the
+    CPU and the GIL with one; backlogs get whatever real time leaves.
     """
 
     def __init__(self, max_workers: int, thread_name_prefix: str = "infer"):
@@ -105,6 +129,7 @@ class RankedExecutor(Executor):
         self._seq = itertools.count()
         self._cv = threading.Condition()
         self._shutdown = False
+        self._running_realtime = 0
         self._threads = [threading.Thread(target=self._work, name=f"{thread_name_prefix}_{i}", daemon=True)
                          for i in range(max_workers)]
         for t in self._threads:
@@ -125,17 +150,23 @@ class RankedExecutor(Executor):
     def _work(self) -> None:
         while True:
             with self._cv:
-                while not self._jobs and not self._shutdown:
+                while not (self._jobs and (self._jobs[0][0] <= 0 or not self._running_realtime)):
+                    if self._shutdown and not self._jobs:
+                        return
                     self._cv.wait()
-                if not self._jobs:
-                    return
-                _, _, future, fn, args, kwargs = heapq.heappop(self._jobs)
-            if not future.set_running_or_notify_cancel():
-                continue
+                rank, _, future, fn, args, kwargs = heapq.heappop(self._jobs)
+                realtime = rank <= 0
+                self._running_realtime += realtime
             try:
-                future.set_result(fn(*args, **kwargs))
-            except BaseException as e:
-                future.set_exception(e)
+                if future.set_running_or_notify_cancel():
+                    try:
+                        future.set_result(fn(*args, **kwargs))
+                    except BaseException as e:
+                        future.set_exception(e)
+            finally:
+                with self._cv:
+                    self._running_realtime -= realtime
+                    self._cv.notify_all()
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         with self._cv:
@@ -161,8 +192,7 @@ class Session:
         self.fps, self.window = fps, RATE * window_ms // 1000
         self.executor, self.name = executor, name
         self.stats = Stats()
-        self._t0: float | None = None  # when run() started
-        self._pushed_s = 0.0  # audio handed to inference so far
+        self.clock = AudioClock()  # ranks this session's jobs in a RankedExecutor (a client may share one)
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -193,7 +223,7 @@ class Session:
         submit = getattr(self.executor, "submit_ranked", None)
         if submit is None:
             return asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
-        return asyncio.wrap_future(submit(self._pushed_s - (time.monotonic() - self._t0), fn, *args))
+        return asyncio.wrap_future(submit(self.clock.ahead_s(), fn, *args))
 
     def _push(self, samples: np.ndarray) -> list[Frame]:  # worker thread
         return self._frames(self.stream.push(samples))
@@ -207,7 +237,6 @@ class Session:
 
         emit may return an awaitable (a sink applying back pressure): the session waits for it.
         """
-        self._t0 = time.monotonic()
         window = _Window(max(self.window, int(max_buffer_s * RATE)))
         piece = max(self.window, int(max_call_s * RATE))
 
@@ -235,7 +264,7 @@ class Session:
                 for a in range(0, len(samples), piece):
                     t0 = time.perf_counter()
                     frames = await self._job(self._push, samples[a : a + piece])
-                    self._pushed_s += min(piece, len(samples) - a) / RATE
+                    self.clock.audio_s += min(piece, len(samples) - a) / RATE
                     infer_s += time.perf_counter() - t0
                     n += len(frames)
                     await out(frames)

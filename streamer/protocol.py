@@ -77,8 +77,9 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
 def frame_json(frame: Frame) -> str:
     return json.dumps({
         "type": "frame", "index": frame.index, "pts": round(frame.pts, 6),
-        "root": np.round(frame.root_pos, 5).tolist(), "rotations": np.round(frame.rotations, 6).tolist(),
-    }, separators=(",", ":"))
+        "root": np.round(np.nan_to_num(frame.root_pos), 5).tolist(),
+        "rotations": np.round(np.nan_to_num(frame.rotations), 6).tolist(),
+    }, separators=(",", ":"))  # nan_to_num: a model failure must not make unparseable JSON
 
 
 def frame_binary(frame: Frame) -> bytes:

@@ -27,7 +27,7 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from streamer import protocol as P
-from streamer.engine import Frame, Session
+from streamer.engine import AudioClock, Frame, Session
 from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
@@ -93,6 +93,7 @@ class Client:
         peer = ws.remote_address
         self.errors = ErrorLog(f"{peer[0]}:{peer[1]}" if peer else "?")
         self.budget = MessageBudget()
+        self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
 
     def put(self, message: str | bytes, kind: str = "ctl") -> None:
         """Queue a message. "ctl" (hello, end) and "own" frames always go in; a droppable one ("frame",
@@ -290,6 +291,7 @@ class WsServer:
         elif msg["type"] == "hello":
             client.encoding = msg.get("encoding", client.encoding)
             if "audio" in msg and msg["audio"] != client.audio:
+                client.budget.tokens -= 25  # a new resampler is designed: costs as much as 25 messages
                 await self._end_session(client)  # later audio starts a session at the new rate
                 client.audio = msg["audio"]
         elif msg["type"] == "audio_end":
@@ -341,6 +343,7 @@ class WsServer:
         client.source = source = PushSource(self.max_backlog_s)
         client.resampler = None
         client.session = session = self.make_session()
+        session.clock = client.clock
         client.session_frames = 0
         loop = asyncio.get_running_loop()
 

@@ -21,7 +21,7 @@ from test_streamer_cli import serve, wav  # noqa: F401 (fixture)
 from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.timeout(150)
-PHASE_S = 4.0
+PHASE_S = 3.0
 CHUNK_S = 0.05
 
 
@@ -91,7 +91,7 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
 
     async def run():
         stop = asyncio.Event()
-        watcher, talker = Watcher(), Talker((PHASE_S + 3) * (len(PATTERNS) + 2))
+        watcher, talker = Watcher(), Talker(120.0)  # longer than the test; stopped at its end
         bystanders = [asyncio.create_task(watcher.run(url, stop)), asyncio.create_task(talker.run(url, stop))]
         await asyncio.sleep(1.0)  # settle
         phases = {}
@@ -119,10 +119,10 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
     assert s.finish(10) == 0, s.output
     quiet = talker.median(*phases["quiet"])
     report = {name: (round(watcher.max_gap(*span), 3), round(talker.median(*span), 3)) for name, span in phases.items()}
-    print("max watcher gap s, median talker latency s:", report)
+    print("max watcher gap s, median talker latency s:", report, "\nserver output:\n" + s.output)
     for name in PATTERNS:
         gap, latency = report[name]
         assert gap < 0.5, f"{name}: the watcher waited {gap:.3f} s for a frame ({report})"
         assert latency <= 2 * quiet, f"{name}: talker latency {latency:.3f} s vs {quiet:.3f} s quiet ({report})"
     assert not talker.errors, talker.errors[:3]
-    assert "Traceback" not in s.output
+    assert "Traceback" not in s.output and len(s.output.splitlines()) < 20, s.output[-3000:]  # no log floods

@@ -223,6 +223,7 @@ def test_sigterm_ends_every_stream_within_two_seconds_whatever_clients_do(tiny_c
         return ends, elapsed
 
     ends, elapsed = asyncio.run(run())
+    print(f"SIGTERM to exit: {elapsed:.2f} s")
     assert s.finish() == 0, s.output
     assert len(ends) == 2 and ends[0]["frames"] > 0 and ends[1] == {"type": "end", "frames": 0}
     assert elapsed < 4.0, f"shutdown took {elapsed:.1f} s (the server's part is bounded by 2 s)"
