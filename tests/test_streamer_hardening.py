@@ -22,7 +22,7 @@ from streamer import protocol as P
 from streamer.engine import Frame, Session
 from streamer.http import ViewerServer
 from streamer.record import BvhRecorder
-from streamer.server import viewer_origins
+from streamer.server import ServeError, read_token, viewer_origins
 from test_streamer_cli import REPO, serve, wav  # noqa: F401 (fixture)
 from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
 from test_streamer_ws import bundle, make_server, recv_json  # noqa: F401 (fixture)
@@ -158,6 +158,23 @@ def test_foreign_origins_are_refused_and_native_clients_and_the_viewer_accepted(
         await ws.close()
 
     asyncio.run(run())
+
+
+def test_the_token_comes_from_a_file_the_flag_or_the_environment_and_is_never_empty(tmp_path, monkeypatch):
+    from argparse import Namespace
+
+    monkeypatch.setenv("STREAMER_TOKEN", "from-env")
+    (tmp_path / "t").write_text("from-file\n")
+    (tmp_path / "empty").write_text("\n")
+    assert read_token(Namespace(token_file=str(tmp_path / "t"), token="flag")) == "from-file"
+    assert read_token(Namespace(token_file=None, token="flag")) == "flag"
+    assert read_token(Namespace(token_file=None, token=None)) == "from-env"
+    monkeypatch.delenv("STREAMER_TOKEN")
+    assert read_token(Namespace(token_file=None, token=None)) is None
+    for bad in (Namespace(token_file=str(tmp_path / "empty"), token=None), Namespace(token_file=None, token=""),
+                Namespace(token_file=str(tmp_path / "missing"), token=None), Namespace(token_file=None, token="a b")):
+        with pytest.raises(ServeError):
+            read_token(bad)
 
 
 def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint):
