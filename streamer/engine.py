@@ -130,10 +130,16 @@ class RankedExecutor(Executor):
         self._cv = threading.Condition()
         self._shutdown = False
         self._running_realtime = 0
-        self._threads = [threading.Thread(target=self._work, name=f"{thread_name_prefix}_{i}", daemon=True)
+        # Not daemon threads: a worker inside a torch call when the interpreter exits aborts the process
+        # ("terminate called without an active exception"); they stop at shutdown() or, as in
+        # concurrent.futures, when the interpreter exits.
+        self._threads = [threading.Thread(target=self._work, name=f"{thread_name_prefix}_{i}")
                          for i in range(max_workers)]
         for t in self._threads:
             t.start()
+        register = getattr(threading, "_register_atexit", None)
+        if register is not None:
+            register(lambda: self.shutdown(wait=True, cancel_futures=True))
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
         return self.submit_ranked(0.0, fn, *args, **kwargs)
