@@ -342,9 +342,8 @@ def _fmt(v: np.ndarray) -> str:
     return " ".join(f"{x:.6f}" for x in v)
 
 
-def write_bvh(path: str | Path, motion: BvhMotion) -> None:
-    """Write a BVH file (6 decimals: 1e-6 degrees, well inside the 1e-4 round-trip promise)."""
-    sk = motion.skeleton
+def format_hierarchy(sk: Skeleton) -> str:
+    """The HIERARCHY section of a BVH file for `sk` (joints must be in depth-first file order)."""
     out = io.StringIO()
     out.write("HIERARCHY\n")
 
@@ -369,6 +368,18 @@ def write_bvh(path: str | Path, motion: BvhMotion) -> None:
     joint(roots[0], 0)
     if visited != list(range(sk.num_joints)):
         raise ValueError("skeleton joints must be in depth-first file order to be written as BVH")
-    out.write(f"MOTION\nFrames: {motion.num_frames}\nFrame Time: {motion.frame_time!r}\n")
-    np.savetxt(out, motion.values, fmt="%.6f", delimiter=" ")
-    Path(path).write_text(out.getvalue(), encoding="utf-8")
+    return out.getvalue()
+
+
+def format_frames(values: np.ndarray) -> str:
+    """Frame lines of a BVH MOTION section (6 decimals), one per row of `values`."""
+    out = io.StringIO()
+    np.savetxt(out, values, fmt="%.6f", delimiter=" ")
+    return out.getvalue()
+
+
+def write_bvh(path: str | Path, motion: BvhMotion) -> None:
+    """Write a BVH file (6 decimals: 1e-6 degrees, well inside the 1e-4 round-trip promise)."""
+    text = (format_hierarchy(motion.skeleton) + f"MOTION\nFrames: {motion.num_frames}\nFrame Time: {motion.frame_time!r}\n"
+            + format_frames(motion.values))
+    Path(path).write_text(text, encoding="utf-8")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import re
 import sys
 
 from streamer.sources import DEMO_WAV, SourceError
@@ -42,6 +43,24 @@ def _version() -> str:
         return version("dimgestor")
     except PackageNotFoundError:
         return "unknown"
+
+
+def _http_addr(text: str) -> tuple[str | None, int]:
+    """--http [HOST:]PORT; no host -> None (serve beside the WebSocket)."""
+    host, port = _hostport(text)
+    return (host if ":" in text else None), port
+
+
+class RedactTokens(logging.Filter):
+    """Keeps tokens out of every log line (websockets logs request paths at debug level)."""
+
+    pattern = re.compile(r"(token=)[^&\s'\"]+", re.IGNORECASE)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if "token=" in text.lower():
+            record.msg, record.args = self.pattern.sub(r"\1***", text), None
+        return True
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,7 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--vmc-jitter-ms", type=float, default=250, metavar="MS",
                    help="VMC jitter buffer: frames are sent this long after the earliest they could be")
     s.add_argument("--record", default=None, metavar="OUT.bvh",
-                   help="write the generated motion of the server's source to this BVH file when it ends or on Ctrl-C")
+                   help="write the generated motion of the server's source to this BVH file as it is generated "
+                        "(a valid BVH at all times: a crash loses at most the last ~0.5 s)")
     s.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
     s.add_argument("--steps", type=int, default=None,
@@ -106,9 +126,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read a file source as fast as inference allows instead of in real time")
     s.add_argument("--loop", action="store_true", help="repeat a file source forever instead of exiting at its end")
     s.add_argument("--token", default=None,
-                   help="require clients to connect to ws://HOST:PORT/?token=TOKEN (others get HTTP 401)")
-    s.add_argument("--http", type=_hostport, default=None, metavar="[HOST:]PORT",
-                   help="also serve the web viewer (clients/web) over HTTP on this port (host: the --ws host)")
+                   help="require clients to connect to ws://HOST:PORT/?token=TOKEN (others get HTTP 401); other "
+                        "users of this machine can read a command line: prefer --token-file or $STREAMER_TOKEN")
+    s.add_argument("--token-file", default=None, metavar="FILE",
+                   help="read the token from this file (surrounding whitespace ignored)")
+    s.add_argument("--allow-origin", action="append", default=None, metavar="ORIGIN",
+                   help="also accept browser pages from this origin, e.g. http://myapp.example:3000 (repeatable; "
+                        "'*' = any). By default only the --http viewer's own pages, and clients that send no "
+                        "Origin (Unity, Unreal, Python), may connect")
+    s.add_argument("--http", type=_http_addr, default=None, metavar="[HOST:]PORT",
+                   help="also serve the web viewer (clients/web) over HTTP at HOST:PORT (a bare PORT: on the --ws host)")
     s.add_argument("--humanoid-map", default=None, metavar="FILE.json",
                    help="{HumanBodyBones name: joint name} map for OSC and the hello; default streamer/maps/zeggs.json")
     s.add_argument("--status-every", type=float, default=2.0, metavar="S",
@@ -148,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         return _devices()
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(RedactTokens())
     from streamer.server import ServeError, serve
 
     try:

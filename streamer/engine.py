@@ -2,16 +2,22 @@
 
 A session owns one `GestureStream` (the model's streaming state) and one `PoseDecoder` (the root
 integration). Audio is gathered until a window (`window_ms`) is full; if inference fell behind, the
-next window takes everything that queued up meanwhile, so latency recovers instead of growing. Each
+next window takes everything that queued up meanwhile, so latency recovers instead of growing. A large
+take is inferred in pieces of at most `max_call_s` of audio: sessions share the inference workers, and
+each one has at most one call queued, so short calls keep every other session's turn short. Each
 frame is stamped with pts = index / fps on the audio clock.
 """
 
 from __future__ import annotations
 
 import asyncio
+import heapq
+import inspect
+import itertools
+import threading
 import time
 from collections import deque
-from concurrent.futures import Executor
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import AsyncIterable, Callable
 
@@ -87,6 +93,100 @@ class _Window:
         return chunks
 
 
+class AudioClock:
+    """How far a stream's audio is ahead of real time: audio handed to inference minus time elapsed.
+
+    Shared by the successive sessions of one client (so restarting sessions earns no priority); time
+    without audio earns at most `max_credit_s` of catching up.
+    """
+
+    def __init__(self, max_credit_s: float = 2.0):
+        self.t0: float | None = None
+        self.audio_s = 0.0
+        self.max_credit_s = max_credit_s
+
+    def ahead_s(self) -> float:
+        now = time.monotonic()
+        if self.t0 is None:
+            self.t0 = now
+        behind = (now - self.t0) - self.audio_s
+        if behind > self.max_credit_s:
+            self.t0 += behind - self.max_credit_s
+        return -min(behind, self.max_credit_s)
+
+
+class RankedExecutor(Executor):
+    """Worker threads that run the waiting job of lowest rank first (first come, first served among equals).
+
+    Sessions rank their jobs by how far their audio is ahead of real time (rank > 0: working through a
+    backlog). A job ahead of real time starts only while no real-time job (rank <= 0) runs, so a session
+    fed in real time (a talker, a microphone, a paced file) neither waits behind a backlog nor shares the
+    CPU and the GIL with one; backlogs get whatever real time leaves.
+    """
+
+    def __init__(self, max_workers: int, thread_name_prefix: str = "infer"):
+        self._jobs: list = []
+        self._seq = itertools.count()
+        self._cv = threading.Condition()
+        self._shutdown = False
+        self._running_realtime = 0
+        # Not daemon threads: a worker inside a torch call when the interpreter exits aborts the process
+        # ("terminate called without an active exception"); they stop at shutdown() or, as in
+        # concurrent.futures, when the interpreter exits.
+        self._threads = [threading.Thread(target=self._work, name=f"{thread_name_prefix}_{i}")
+                         for i in range(max_workers)]
+        for t in self._threads:
+            t.start()
+        register = getattr(threading, "_register_atexit", None)
+        if register is not None:
+            register(lambda: self.shutdown(wait=True, cancel_futures=True))
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        return self.submit_ranked(0.0, fn, *args, **kwargs)
+
+    def submit_ranked(self, rank: float, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        with self._cv:
+            if self._shutdown:
+                raise RuntimeError("cannot schedule new jobs after shutdown")
+            heapq.heappush(self._jobs, (rank, next(self._seq), future, fn, args, kwargs))
+            self._cv.notify()
+        return future
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while not (self._jobs and (self._jobs[0][0] <= 0 or not self._running_realtime)):
+                    if self._shutdown and not self._jobs:
+                        return
+                    self._cv.wait()
+                rank, _, future, fn, args, kwargs = heapq.heappop(self._jobs)
+                realtime = rank <= 0
+                self._running_realtime += realtime
+            try:
+                if future.set_running_or_notify_cancel():
+                    try:
+                        future.set_result(fn(*args, **kwargs))
+                    except BaseException as e:
+                        future.set_exception(e)
+            finally:
+                with self._cv:
+                    self._running_realtime -= realtime
+                    self._cv.notify_all()
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        with self._cv:
+            self._shutdown = True
+            if cancel_futures:
+                for job in self._jobs:
+                    job[2].cancel()
+                self._jobs.clear()
+            self._cv.notify_all()
+        if wait:
+            for t in self._threads:
+                t.join()
+
+
 class Session:
     """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`."""
 
@@ -98,6 +198,7 @@ class Session:
         self.fps, self.window = fps, RATE * window_ms // 1000
         self.executor, self.name = executor, name
         self.stats = Stats()
+        self.clock = AudioClock()  # ranks this session's jobs in a RankedExecutor (a client may share one)
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -123,17 +224,31 @@ class Session:
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i]) for i in range(n)]
 
+    def _job(self, fn, *args) -> asyncio.Future:
+        """Run fn in the executor; a RankedExecutor gets how far this session is ahead of real time."""
+        submit = getattr(self.executor, "submit_ranked", None)
+        if submit is None:
+            return asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        return asyncio.wrap_future(submit(self.clock.ahead_s(), fn, *args))
+
     def _push(self, samples: np.ndarray) -> list[Frame]:  # worker thread
         return self._frames(self.stream.push(samples))
 
     def _finish(self) -> list[Frame]:  # worker thread
         return self._frames(self.stream.finish())
 
-    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], None],
-                  max_buffer_s: float = 2.0) -> int:
-        """Stream `source` to the end, calling emit(frames) per window; returns the frame count."""
-        loop = asyncio.get_running_loop()
+    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], object],
+                  max_buffer_s: float = 2.0, max_call_s: float = 1.0) -> int:
+        """Stream `source` to the end, calling emit(frames) per window; returns the frame count.
+
+        emit may return an awaitable (a sink applying back pressure): the session waits for it.
+        """
         window = _Window(max(self.window, int(max_buffer_s * RATE)))
+        piece = max(self.window, int(max_call_s * RATE))
+
+        async def out(frames: list[Frame]) -> None:
+            if inspect.isawaitable(r := emit(frames)):
+                await r
 
         async def read() -> None:
             try:
@@ -151,13 +266,17 @@ class Session:
                 if not chunks:
                     break
                 samples = np.concatenate([c.samples for c in chunks])
-                t0 = time.perf_counter()
-                frames = await loop.run_in_executor(self.executor, self._push, samples)
-                infer_s = time.perf_counter() - t0
-                emit(frames)
-                self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, len(frames))
-            frames = await loop.run_in_executor(self.executor, self._finish)
-            emit(frames)
+                infer_s, n = 0.0, 0
+                for a in range(0, len(samples), piece):
+                    t0 = time.perf_counter()
+                    frames = await self._job(self._push, samples[a : a + piece])
+                    self.clock.audio_s += min(piece, len(samples) - a) / RATE
+                    infer_s += time.perf_counter() - t0
+                    n += len(frames)
+                    await out(frames)
+                self.stats.update(len(samples) / RATE, infer_s, time.monotonic() - chunks[-1].arrival, n)
+            frames = await self._job(self._finish)
+            await out(frames)
             self.stats.frames += len(frames)
             self.stats.ended = True
             return self.stream.frames_out

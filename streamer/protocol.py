@@ -15,6 +15,10 @@ PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"
 AUDIO_FORMATS = ("pcm16", "float32")
 MAX_TEXT_BYTES = 64 * 1024
+MAX_JSON_DEPTH = 16  # nesting of objects/arrays in a client message
+MAX_NUMBER_CHARS = 32  # digits of one JSON number (Python would parse 4300-digit integers)
+MIN_RATE, MAX_RATE = 8000, 192000  # accepted client audio sample rates, Hz
+MAX_AUDIO_ABS = 4.0  # float32 samples beyond this are not -1..1 audio (wrong format or scale): refused
 MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
@@ -73,8 +77,9 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
 def frame_json(frame: Frame) -> str:
     return json.dumps({
         "type": "frame", "index": frame.index, "pts": round(frame.pts, 6),
-        "root": np.round(frame.root_pos, 5).tolist(), "rotations": np.round(frame.rotations, 6).tolist(),
-    }, separators=(",", ":"))
+        "root": np.round(np.nan_to_num(frame.root_pos), 5).tolist(),
+        "rotations": np.round(np.nan_to_num(frame.rotations), 6).tolist(),
+    }, separators=(",", ":"))  # nan_to_num: a model failure must not make unparseable JSON
 
 
 def frame_binary(frame: Frame) -> bytes:
@@ -91,8 +96,14 @@ def parse_frame_binary(buf: bytes) -> dict:
     return {"index": index, "pts": pts, "root": np.array(root), "rotations": rot}
 
 
+def dumps(msg: dict) -> str:
+    """JSON for the wire: finite numbers only (browsers cannot parse NaN or Infinity)."""
+    return json.dumps(msg, allow_nan=False, separators=(",", ":"))
+
+
 def status(latency_ms: float, rtf: float, frames_sent: int, dropped: int, clients: int, **optional) -> str:
-    return json.dumps({"type": "status", "latency_ms": round(latency_ms, 2), "rtf": round(rtf, 4),
+    finite = lambda v, nd: round(v, nd) if np.isfinite(v) else 0.0  # noqa: E731
+    return json.dumps({"type": "status", "latency_ms": finite(latency_ms, 2), "rtf": finite(rtf, 4),
                        "frames_sent": frames_sent, "dropped": dropped, "clients": clients, **optional})
 
 
@@ -104,14 +115,43 @@ def end(frames: int) -> str:
     return json.dumps({"type": "end", "frames": frames})
 
 
+def _number(kind):
+    def parse(text: str):
+        if len(text) > MAX_NUMBER_CHARS:
+            raise ProtocolError("bad_message", f"a number with {len(text)} characters (at most {MAX_NUMBER_CHARS})")
+        value = kind(text)
+        if kind is float and not np.isfinite(value):
+            raise ProtocolError("bad_message", f"number {text[:20]} is out of range")
+        return value
+    return parse
+
+
+def _constant(name: str):
+    raise ProtocolError("bad_message", f"{name} is not a JSON number")
+
+
+def _too_deep(value, limit: int) -> bool:
+    """Whether a parsed JSON value nests containers more than `limit` levels deep (no recursion)."""
+    level = [value]
+    for _ in range(limit):
+        level = [v for x in level if isinstance(x, (dict, list)) for v in (x.values() if isinstance(x, dict) else x)]
+        if not any(isinstance(x, (dict, list)) for x in level):
+            return False
+    return True
+
+
 def parse_text(text: str) -> dict:
     """A client text message -> a validated dict; raises ProtocolError("bad_message"/...)."""
     if len(text.encode("utf-8", "surrogatepass")) > MAX_TEXT_BYTES:
         raise ProtocolError("too_large", f"text messages are limited to {MAX_TEXT_BYTES} bytes")
     try:
-        msg = json.loads(text)
+        msg = json.loads(text, parse_int=_number(int), parse_float=_number(float), parse_constant=_constant)
     except json.JSONDecodeError as e:
         raise ProtocolError("bad_message", f"not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except RecursionError:  # the C parser's own guard (about 1000 levels)
+        raise ProtocolError("bad_message", f"JSON nested more than {MAX_JSON_DEPTH} levels deep") from None
+    if _too_deep(msg, MAX_JSON_DEPTH):
+        raise ProtocolError("bad_message", f"JSON nested more than {MAX_JSON_DEPTH} levels deep")
     if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
         raise ProtocolError("bad_message", 'expected a JSON object with a "type" field')
     kind = msg["type"]
@@ -135,8 +175,8 @@ def _parse_hello(msg: dict) -> dict:
         if not isinstance(a, dict):
             raise ProtocolError("bad_message", "audio must be an object {rate, format, channels}")
         rate, fmt, ch = a.get("rate", 16000), a.get("format", "pcm16"), a.get("channels", 1)
-        if not isinstance(rate, int) or isinstance(rate, bool) or not 8000 <= rate <= 192000:
-            raise ProtocolError("bad_audio", f"audio.rate must be an integer in 8000..192000 Hz, got {rate!r}")
+        if not isinstance(rate, int) or isinstance(rate, bool) or not MIN_RATE <= rate <= MAX_RATE:
+            raise ProtocolError("bad_audio", f"audio.rate must be an integer in {MIN_RATE}..{MAX_RATE} Hz, got {rate!r}")
         if fmt not in AUDIO_FORMATS:
             raise ProtocolError("bad_audio", f"audio.format must be one of {list(AUDIO_FORMATS)}, got {fmt!r}")
         if ch not in (1, 2) or isinstance(ch, bool):
@@ -145,20 +185,33 @@ def _parse_hello(msg: dict) -> dict:
     return out
 
 
-def decode_audio(data: bytes, fmt: AudioFormat) -> np.ndarray:
-    """A binary audio message -> float32 mono at fmt.rate; raises ProtocolError("bad_audio"/"too_large")."""
+def check_audio(data: bytes, fmt: AudioFormat) -> None:
+    """The constant-time checks of a binary audio message (size, whole sample frames)."""
     if len(data) > MAX_BINARY_BYTES:
         raise ProtocolError("too_large", f"binary messages are limited to {MAX_BINARY_BYTES} bytes, got {len(data)}")
     width = 2 if fmt.format == "pcm16" else 4
     if len(data) % (width * fmt.channels):
         raise ProtocolError("bad_audio", f"{len(data)} bytes is not a whole number of {fmt.format} "
                                          f"sample frames ({width * fmt.channels} bytes each)")
+
+
+def decode_audio(data: bytes, fmt: AudioFormat) -> np.ndarray:
+    """A binary audio message -> float32 mono at fmt.rate in [-1, 1]; raises ProtocolError("bad_audio"/"too_large").
+
+    float32 samples slightly beyond [-1, 1] are clipped; NaN, infinity or anything beyond
+    MAX_AUDIO_ABS (not audio in this format: e.g. integers sent as floats) is refused.
+    """
+    check_audio(data, fmt)
     if fmt.format == "pcm16":
         x = np.frombuffer(data, "<i2").astype(np.float32) / 32768.0
     else:
-        x = np.frombuffer(data, "<f4").astype(np.float32)
-        if not np.isfinite(x).all():
+        x = np.frombuffer(data, "<f4")
+        peak = float(np.max(np.abs(x), initial=0.0))
+        if not np.isfinite(peak):
             raise ProtocolError("bad_audio", "float32 audio contains NaN or infinity")
+        if peak > MAX_AUDIO_ABS:
+            raise ProtocolError("bad_audio", f"float32 audio must be scaled to -1..1, found a sample of {peak:.3g}")
+        x = np.clip(x, -1.0, 1.0)
     if fmt.channels == 2:
-        x = x.reshape(-1, 2).mean(axis=1)
+        x = x.reshape(-1, 2).mean(axis=1, dtype=np.float32)
     return x

@@ -1,52 +1,131 @@
-"""BVH recording sink: keeps the denormalized features and writes them on the training skeleton on close.
+"""BVH recording sink: frames are decoded and written to disk as they come, so a crash loses at most ~1 s.
 
-Decoding the whole recording at once with `features_to_motion` (rather than saving the streamed
-poses) makes the file identical to `dimgestor generate` on the same audio, seed and steps.
+The file is opened when the server starts (an unwritable path fails then, before anything streams)
+and always holds a valid BVH: frame lines are appended, then the header's `Frames:` count (a fixed-width
+field) is rewritten in place, at least every `flush_every_s`. After a SIGKILL the file parses with the
+frames of the last flush. The root is integrated across chunks exactly as `features_to_motion` does on
+the whole recording, so the file equals `dimgestor generate` on the same audio, seed and steps. A full
+disk (or any write error) stops the recording with one message and keeps what was written.
 """
 
 from __future__ import annotations
 
-import logging
 import os
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
 from streamer.engine import Frame
 
-log = logging.getLogger("streamer.record")
+COUNT_WIDTH = 12  # room for the frame count in the header (space-padded, so any reader takes it)
+
+
+class RecordError(OSError):
+    """The recording cannot be opened (the message says why)."""
 
 
 class BvhRecorder:
-    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0):
+    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
+                 flush_every_s: float = 0.5):
+        from dimgestor.bvh import format_hierarchy
+        from dimgestor.features import PoseDecoder
+
         self.path = Path(path)
-        self.root, self.tether_s = root, tether_s  # the root mode the live sinks use, so the file shows what they showed
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"{self.path}: folder {self.path.parent} does not exist")
-        self.skeleton, self.spec = skeleton, feature_spec
-        self.parts: list[np.ndarray] = []
-        self.frames = 0
-        self.closed = False
+        self.skeleton = skeleton
+        self.decoder = PoseDecoder(skeleton, feature_spec, root=root, tether_s=tether_s)
+        self.frame_time = 1.0 / feature_spec.fps
+        from dimgestor.bvh import ROTATION_CHANNELS
+
+        self.rot_cols = np.array([c in ROTATION_CHANNELS for chans in skeleton.channels for c in chans])
+        self.last: np.ndarray | None = None  # the previous frame's rotation channels, degrees
+        self.flush_every_s = flush_every_s
+        head = format_hierarchy(skeleton) + "MOTION\nFrames: "
+        self.count_at = len(head.encode())
+        head += " " * COUNT_WIDTH + f"\nFrame Time: {self.frame_time!r}\n"
+        try:
+            if self.path.is_dir():
+                raise IsADirectoryError(21, "is a folder")
+            self.fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError as e:
+            raise RecordError(f"cannot record to {self.path}: {e.strerror or e}") from None
+        self.size = 0  # bytes safely on disk
+        self.frames = 0  # frames safely on disk (the header's count)
+        self.pending: list[str] = []
+        self.pending_frames = 0
+        self.last_flush = time.monotonic()
+        self.failed = self.closed = False
+        if not self._append(head.encode()) or not self._set_count(0):
+            os.close(self.fd)
+            raise RecordError(f"cannot record to {self.path}: {self.failed}")
 
     def on_frames(self, frames: list[Frame]) -> None:
-        if frames:
-            self.parts.append(np.stack([f.features for f in frames]))
-            self.frames += len(frames)
+        if not frames or self.failed or self.closed:
+            return
+        from dimgestor.bvh import BvhMotion, format_frames
+
+        pose = self.decoder.decode(np.stack([f.features for f in frames]))
+        n, sk = len(frames), self.skeleton
+        translations = np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy()
+        translations[:, 0] = pose.root_pos
+        values = BvhMotion.from_pose(sk, self.frame_time, pose.rotations, translations).values
+        if self.last is not None:  # continue the angle unwrapping of the previous chunk (whole turns only)
+            values[:, self.rot_cols] += 360.0 * np.round((self.last - values[0, self.rot_cols]) / 360.0)
+        self.last = values[-1, self.rot_cols]
+        self.pending.append(format_frames(values))
+        self.pending_frames += n
+        if time.monotonic() - self.last_flush >= self.flush_every_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Append the pending frame lines, then rewrite the header's frame count."""
+        self.last_flush = time.monotonic()
+        if not self.pending or self.failed:
+            return
+        data, n = "".join(self.pending).encode(), self.pending_frames
+        self.pending, self.pending_frames = [], 0
+        if self._append(data):
+            self._set_count(self.frames + n)
+
+    def _append(self, data: bytes) -> bool:
+        at = self.size
+        try:
+            view = memoryview(data)
+            while view:
+                k = os.pwrite(self.fd, view, at)
+                view, at = view[k:], at + k
+        except OSError as e:
+            self._fail(e)
+            return False
+        self.size = at
+        return True
+
+    def _set_count(self, frames: int) -> bool:
+        try:
+            os.pwrite(self.fd, str(frames).ljust(COUNT_WIDTH).encode(), self.count_at)
+        except OSError as e:
+            self._fail(e)
+            return False
+        self.frames = frames
+        return True
+
+    def _fail(self, e: OSError) -> None:
+        """Stop recording: cut a partly written frame line, keep the frames the header counts."""
+        self.failed = f"{e.strerror or e}"
+        try:
+            os.ftruncate(self.fd, self.size)
+        except OSError:
+            pass
+        if self.size:  # the header is there: say what was kept
+            print(f"streamer: recording stopped: cannot write {self.path}: {self.failed}; kept the first "
+                  f"{self.frames} frames ({self.frames * self.frame_time:.1f} s)", file=sys.stderr, flush=True)
 
     def close(self) -> Path | None:
-        """Write the BVH (atomically: a partial file never replaces a good one); None if nothing was recorded."""
+        """Write what is pending and close; the path, or None if the recording failed."""
         if self.closed:
             return None
+        self.flush()
         self.closed = True
-        if not self.frames:
-            log.warning("%s: no frames were generated, nothing recorded", self.path)
-            return None
-        from dimgestor.bvh import write_bvh
-        from dimgestor.features import features_to_motion
-
-        motion = features_to_motion(np.concatenate(self.parts), self.skeleton, self.spec, root=self.root,
-                                    tether_s=self.tether_s)
-        tmp = self.path.with_name(self.path.name + ".part")
-        write_bvh(tmp, motion)
-        os.replace(tmp, self.path)
-        return self.path
+        os.close(self.fd)
+        return None if self.failed else self.path

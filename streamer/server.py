@@ -7,11 +7,10 @@ import os
 import signal
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import AsyncIterator
 
-from streamer.engine import Frame, Session
+from streamer.engine import Frame, RankedExecutor, Session
 from streamer.sources import AudioChunk, MicSource, open_source
 
 
@@ -82,6 +81,47 @@ def _vmc_options(args):
         raise ServeError(f"--osc: {e}") from None
 
 
+TOKEN_ENV = "STREAMER_TOKEN"
+
+
+def read_token(args) -> str | None:
+    """The WebSocket token from --token-file, --token or $STREAMER_TOKEN (in that order); never empty."""
+    if getattr(args, "token_file", None):
+        try:
+            token, where = Path(args.token_file).read_text(encoding="utf-8").strip(), f"--token-file {args.token_file}"
+        except (OSError, UnicodeDecodeError) as e:
+            raise ServeError(f"--token-file {args.token_file}: {getattr(e, 'strerror', None) or e}") from None
+    elif args.token is not None:
+        token, where = args.token, "--token"
+    elif TOKEN_ENV in os.environ:
+        token, where = os.environ[TOKEN_ENV], f"${TOKEN_ENV}"
+    else:
+        return None
+    if not token.strip():
+        raise ServeError(f"{where} is empty: an empty token would lock every client out (give a real one, or none)")
+    if any(c.isspace() or not c.isprintable() for c in token):
+        raise ServeError(f"{where} contains spaces or control characters (clients pass it in a URL)")
+    return token
+
+
+def viewer_origins(host: str, port: int) -> list[str]:
+    """The Origin values a browser sends for pages of the viewer at host:port (all the names it may be reached by)."""
+    import socket
+
+    names = {host}
+    if host in ("0.0.0.0", "::", ""):
+        names = {"127.0.0.1", "::1", "localhost"}
+        try:
+            hostname = socket.gethostname()
+            names |= {hostname, socket.getfqdn()}
+            names |= {ai[4][0] for ai in socket.getaddrinfo(hostname, None)}
+        except OSError:
+            pass
+    if names & {"127.0.0.1", "::1", "localhost"}:
+        names |= {"127.0.0.1", "::1", "localhost"}
+    return [f"http://{f'[{n}]' if ':' in n else n}:{port}" for n in sorted(names)]
+
+
 async def serve(args) -> int:
     from streamer import protocol as P
     from streamer.pose import HumanoidMapError, HumanoidRig, load_humanoid_map
@@ -103,6 +143,9 @@ async def serve(args) -> int:
         raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
     if args.record and not Path(args.record).resolve().parent.is_dir():
         raise ServeError(f"--record {args.record}: folder {Path(args.record).resolve().parent} does not exist")
+    if args.record and args.source == "ws":
+        raise ServeError("--record records the server's own source; --source ws has none")
+    token = read_token(args)
     device = int(args.device) if args.device is not None and str(args.device).isdigit() else args.device
     if getattr(args, "rate", None) is not None and args.rate < 1:
         raise ServeError(f"--rate must be > 0 Hz, got {args.rate}")
@@ -123,7 +166,7 @@ async def serve(args) -> int:
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
     fps = bundle.feature_spec.fps
     fps = int(fps) if float(fps).is_integer() else fps
-    executor = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    executor = RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
 
     def make_session(name: str = "client") -> Session:
         return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing, **root,
@@ -133,39 +176,56 @@ async def serve(args) -> int:
     lookahead = (main_session or make_session()).lookahead_s
 
     ws = vmc = recorder = viewer = None
-    if not args.no_ws:
-        from streamer.ws import WsServer
+    try:
+        if args.http is not None:
+            from streamer.http import ViewerServer
 
-        hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
-                        accepts_audio=not args.no_client_audio, window_ms=args.window_ms,
-                        source="ws" if source is None else "mic" if args.source == "mic" else "file")
-        ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
-                      token=args.token, broadcast_stats=main_session.stats if main_session else None,
-                      source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None)
-        try:
-            await ws.start()
-        except OSError as e:
-            raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
-    if args.osc is not None:
-        from streamer.vmc import VmcSink
+            host = args.http[0] or args.ws[0]  # a bare --http PORT serves beside the WebSocket
+            try:
+                viewer = ViewerServer(host, args.http[1], None, token is not None)
+            except OSError as e:
+                raise ServeError(f"cannot serve HTTP on {host}:{args.http[1]}: {e.strerror or e}") from None
+        if not args.no_ws:
+            from streamer.ws import WsServer
 
-        try:
-            vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast, jitter_s=vmc_jitter_s, options=vmc_options)
-        except OSError as e:
-            raise ServeError(f"--osc {args.osc[0]}:{args.osc[1]}: {e.strerror or e}") from None
-        vmc.start()
-    if args.record and main_session is not None:
-        from streamer.record import BvhRecorder
+            hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
+                            accepts_audio=not args.no_client_audio, window_ms=args.window_ms,
+                            source="ws" if source is None else "mic" if args.source == "mic" else "file")
+            origins = [*(viewer_origins(viewer.host, viewer.port) if viewer else []), *(args.allow_origin or [])]
+            ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
+                          token=token, broadcast_stats=main_session.stats if main_session else None,
+                          source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
+                          origins=origins)
+            try:
+                await ws.start()
+            except OSError as e:
+                raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
+        if args.osc is not None:
+            from streamer.vmc import VmcSink
 
-        recorder = BvhRecorder(args.record, sk, bundle.feature_spec, **root)
-    if args.http is not None:
-        from streamer.http import ViewerServer
+            try:
+                vmc = VmcSink(args.osc[0], args.osc[1], rig, pace=not args.fast, jitter_s=vmc_jitter_s,
+                              options=vmc_options)
+            except OSError as e:
+                raise ServeError(f"--osc {args.osc[0]}:{args.osc[1]}: {e.strerror or e}") from None
+            vmc.start()
+        if args.record and main_session is not None:  # opened last (a failure above leaves an old file alone)
+            from streamer.record import BvhRecorder, RecordError  # but before anything streams
 
-        host = args.ws[0] if args.http[0] == "127.0.0.1" else args.http[0]
-        try:
-            viewer = ViewerServer(host, args.http[1], ws.port if ws else None, args.token is not None)
-        except OSError as e:
-            raise ServeError(f"cannot serve HTTP on {host}:{args.http[1]}: {e.strerror or e}") from None
+            try:
+                recorder = BvhRecorder(args.record, sk, bundle.feature_spec, **root)
+            except RecordError as e:
+                raise ServeError(str(e)) from None
+    except BaseException:
+        if viewer:
+            viewer.close()
+        if vmc:
+            await vmc.close()
+        if ws:
+            await ws.close(within_s=0.2)
+        raise
+    if viewer:
+        viewer.ws_port = ws.port if ws else 0
         viewer.start()
 
     what = {"mic": f"microphone {getattr(source, 'name', '')!r} at {getattr(source, 'rate', 0)} Hz", "ws": "WebSocket clients' audio only",
@@ -176,10 +236,11 @@ async def serve(args) -> int:
     print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, {smooth_txt}, "
           f"{fps} fps, window {args.window_ms} ms, lookahead {lookahead * 1000:.0f} ms; source: {what}", file=sys.stderr)
     if ws:
-        print(f"streamer: WebSocket  {ws.url}{'?token=...' if args.token else ''}  (protocol v1, docs/protocol.md)",
+        print(f"streamer: WebSocket  {ws.url}{'?token=...' if token else ''}  (protocol v1, docs/protocol.md)",
               file=sys.stderr)
     if viewer:
-        print(f"streamer: web viewer {viewer.url}", file=sys.stderr)
+        print(f"streamer: web viewer {viewer.url}{'  (open it as ...?token=YOUR_TOKEN)' if token else ''}",
+              file=sys.stderr)
     if vmc:
         print(f"streamer: VMC/OSC -> {vmc.host}:{vmc.port}", file=sys.stderr)
     if recorder:
@@ -236,7 +297,7 @@ async def serve(args) -> int:
         if vmc:
             await vmc.close(drain_s=0 if stop.is_set() else 2.0)  # Ctrl-C: stop now; source end: play out the tail
         if ws:
-            await ws.close()
+            await ws.close(within_s=1.5)
         if viewer:
             viewer.close()
         executor.shutdown(wait=False, cancel_futures=True)

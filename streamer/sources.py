@@ -37,11 +37,22 @@ class AudioChunk:
         return self.t_start + len(self.samples) / RATE
 
 
+MAX_RATIO_DENOMINATOR = 4000  # bounds the resampling filter (its design takes < 0.1 s, < 2 MB)
+
+
 def make_resampler(rate: int):
-    """A stateful rate converter to 16 kHz: `fn(x) -> y` carrying its filter state across calls."""
+    """A stateful rate converter to 16 kHz: `fn(x) -> y` carrying its filter state across calls.
+
+    The rate ratio is exact when it reduces to a fraction with a denominator <= 4000 (every usual
+    rate: 8, 11.025, 22.05, 44.1, 48, 96, 192 kHz...); other rates (e.g. 191999 Hz) use the nearest such
+    fraction (within 0.013 %) rather than a filter of millions of taps.
+    """
+    from fractions import Fraction
+
     from dimgestor.audio import StreamingResampler
 
-    return StreamingResampler(rate, RATE)
+    ratio = Fraction(RATE, int(rate)).limit_denominator(MAX_RATIO_DENOMINATOR)
+    return StreamingResampler(ratio.denominator, ratio.numerator)
 
 
 class WavSource:
@@ -87,33 +98,55 @@ class WavSource:
 
 
 class PushSource:
-    """Audio pushed by someone else (a WebSocket client): `await put(x)` blocks while the queue is full."""
+    """16 kHz audio pushed by someone else (a WebSocket client), queued up to `max_backlog_s` seconds.
 
-    def __init__(self, rate: int = RATE, max_chunks: int = 64):
-        self.queue: asyncio.Queue = asyncio.Queue(max_chunks)
-        self.resampler = make_resampler(rate) if rate != RATE else None
+    `await put(x)` waits while the backlog is at the cap (the pusher stops reading its socket: TCP back
+    pressure), so nothing is dropped and memory stays bounded however fast the audio comes.
+    """
+
+    def __init__(self, max_backlog_s: float = 30.0):
+        self.chunks: deque[AudioChunk] = deque()
+        self.max_samples = int(max_backlog_s * RATE)
+        self.queued = 0  # samples waiting to be read
         self.samples_in = 0  # 16 kHz samples so far (the audio clock)
+        self.closed = False
+        self.changed = asyncio.Event()
+
+    @property
+    def full(self) -> bool:
+        return self.queued >= self.max_samples
+
+    @property
+    def backlog_s(self) -> float:
+        return self.queued / RATE
 
     async def put(self, x: np.ndarray) -> None:
+        while self.full and not self.closed:
+            self.changed.clear()
+            await self.changed.wait()
         x = np.asarray(x, dtype=np.float32)
-        if self.resampler is not None:
-            x = np.asarray(self.resampler.process(x), dtype=np.float32)
-        if len(x):
-            chunk = AudioChunk(x, self.samples_in / RATE, time.monotonic())
+        if len(x) and not self.closed:
+            self.chunks.append(AudioChunk(x, self.samples_in / RATE, time.monotonic()))
             self.samples_in += len(x)
-            await self.queue.put(chunk)
+            self.queued += len(x)
+            self.changed.set()
 
     async def close(self) -> None:
-        if self.resampler is not None:
-            tail = np.asarray(self.resampler.flush(), dtype=np.float32)
-            if len(tail):
-                await self.queue.put(AudioChunk(tail, self.samples_in / RATE, time.monotonic()))
-                self.samples_in += len(tail)
-        await self.queue.put(None)
+        self.closed = True
+        self.changed.set()
 
     async def __aiter__(self) -> AsyncIterator[AudioChunk]:
-        while (chunk := await self.queue.get()) is not None:
-            yield chunk
+        while True:
+            if self.chunks:
+                chunk = self.chunks.popleft()
+                self.queued -= len(chunk.samples)
+                self.changed.set()
+                yield chunk
+            elif self.closed:
+                return
+            else:
+                self.changed.clear()
+                await self.changed.wait()
 
 
 def _sounddevice():

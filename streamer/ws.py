@@ -1,7 +1,12 @@
 """WebSocket server for protocol v1 (docs/protocol.md): broadcast frames, per-client audio sessions.
 
-Every client has one bounded outgoing queue and one sender task; putting a frame in a full queue
-drops the oldest queued frame and counts it, so broadcasting never awaits a slow client.
+Every client has one bounded outgoing queue and one sender task. Broadcast frames put in a full queue
+drop the oldest droppable message and are counted, so broadcasting never awaits a slow client; a
+client's own frames are never dropped: its session waits for room instead.
+
+Nothing a client sends costs the event loop more than constant work: audio is decoded, resampled
+and its frames encoded in a worker thread, in pieces, one job per client at a time (so the jobs of
+all clients interleave first come first served), and inference runs in the sessions' executor.
 """
 
 from __future__ import annotations
@@ -10,19 +15,59 @@ import asyncio
 import hmac
 import json
 import logging
+import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from http import HTTPStatus
-from typing import Callable
+from typing import Callable, Iterable
 from urllib.parse import parse_qs, urlsplit
 
+import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from streamer import protocol as P
-from streamer.engine import Frame, Session
-from streamer.sources import PushSource
+from streamer.engine import AudioClock, Frame, Session
+from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
+
+PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
+DROPPABLE = ("frame", "note")  # broadcast frames; status, pong and error replies
+
+
+class ErrorLog:
+    """Logs a client's errors at most once per `every_s`, with how many were not logged in between."""
+
+    def __init__(self, who: str, every_s: float = 10.0):
+        self.who, self.every_s = who, every_s
+        self.last = -float("inf")
+        self.unlogged = 0
+
+    def __call__(self, level: int, text: str, exc_info: bool = False) -> None:
+        now = time.monotonic()
+        if now - self.last < self.every_s:
+            self.unlogged += 1
+            return
+        more = f" (and {self.unlogged} more errors in the last {now - self.last:.0f} s)" if self.unlogged else ""
+        log.log(level, "client %s: %s%s", self.who, text, more, exc_info=exc_info)
+        self.last, self.unlogged = now, 0
+
+
+class MessageBudget:
+    """Token bucket on a client's messages: `rate` per second, bursts of `burst`; a text message also costs
+    one token per KiB (parsing is the event loop's work). Over budget, the client is read more slowly."""
+
+    def __init__(self, rate: float = 250.0, burst: float = 500.0):
+        self.rate, self.burst = rate, burst
+        self.tokens, self.t = burst, time.monotonic()
+
+    def wait_s(self, message: str | bytes) -> float:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        self.tokens -= 1 + (len(message) / 1024 if isinstance(message, str) else 0)
+        return max(0.0, -self.tokens / self.rate)
 
 
 class Client:
@@ -34,28 +79,49 @@ class Client:
         self.audio = P.AudioFormat()
         self.queue: deque[tuple[str, str | bytes]] = deque()  # (kind, message)
         self.max_queue = max_queue
-        self.ready = asyncio.Event()
+        self.ready = asyncio.Event()  # something to send
+        self.room = asyncio.Event()  # the queue has room
         self.frames_sent = 0
         self.dropped = 0
         self.own = False  # true once it sent audio: from then on it gets its own frames, not the broadcast
         self.source: PushSource | None = None
+        self.resampler = None  # lives in the worker (built, used and flushed there)
         self.session: Session | None = None
         self.session_task: asyncio.Task | None = None
+        self.session_frames = 0  # frames its current session has produced
+        self.slowed = False  # told that its audio arrives faster than it is processed
+        peer = ws.remote_address
+        self.errors = ErrorLog(f"{peer[0]}:{peer[1]}" if peer else "?")
+        self.budget = MessageBudget()
+        self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
 
     def put(self, message: str | bytes, kind: str = "ctl") -> None:
-        """Queue a message; kind "frame" and "status" may be dropped (oldest first) when the queue is full."""
-        if len(self.queue) >= self.max_queue:
-            victim = next((i for i, (k, _) in enumerate(self.queue) if k != "ctl"), 0)
-            k, _ = self.queue[victim]
+        """Queue a message. "ctl" (hello, end) and "own" frames always go in; a droppable one ("frame",
+        "note") finds a full queue -> the oldest droppable message goes (itself if none is older)."""
+        if len(self.queue) >= self.max_queue and kind in DROPPABLE:
+            victim = next((i for i, (k, _) in enumerate(self.queue) if k in DROPPABLE), None)
+            if victim is None:
+                self.dropped += kind == "frame"
+                return
+            self.dropped += self.queue[victim][0] == "frame"
             del self.queue[victim]
-            self.dropped += k == "frame"
         self.queue.append((kind, message))
         self.ready.set()
 
-    def put_frames(self, frames: list[Frame]) -> None:
+    def note(self, message: str) -> None:
+        self.put(message, "note")
+
+    async def put_own(self, messages: list[str | bytes]) -> None:
+        """This client's own frames: wait (bounded by the client reading) for room, never drop."""
+        while len(self.queue) >= self.max_queue:
+            self.room.clear()
+            await self.room.wait()
+        for m in messages:
+            self.put(m, "own")
+
+    def encode(self, frames: list[Frame]) -> list[str | bytes]:  # worker thread
         enc = P.frame_binary if self.encoding == "binary" else P.frame_json
-        for f in frames:
-            self.put(enc(f), "frame")
+        return [enc(f) for f in frames]
 
     async def send_loop(self) -> None:
         while True:
@@ -63,58 +129,96 @@ class Client:
                 self.ready.clear()
                 await self.ready.wait()
             kind, message = self.queue.popleft()
+            self.room.set()
             await self.ws.send(message)
-            self.frames_sent += kind == "frame"
+            self.frames_sent += kind in ("frame", "own")
 
-    async def drained(self, timeout: float) -> None:
-        """Wait (bounded) until everything queued so far has been handed to the socket."""
+    async def drained(self, deadline: float) -> None:
+        """Wait until everything queued so far has been handed to the socket, or the loop time `deadline`."""
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
         while self.queue and loop.time() < deadline:
             await asyncio.sleep(0.01)
 
 
 class WsServer:
-    """Serves hello/frames/status to clients; `broadcast(frames)` is the server source's sink."""
+    """Serves hello/frames/status to clients; `broadcast(frames)` is the server source's sink.
+
+    origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
+    none; browsers always send one); "*" accepts any. token: required as ?token=... when set.
+    """
 
     def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
                  token: str | None = None, max_queue: int = 64, max_sessions: int = 8,
-                 status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None):
+                 status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None,
+                 origins: Iterable[str] = (), max_backlog_s: float = 30.0):
         self.host, self.port = host, port
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
         self.token = token
+        self.origins = {o.lower().rstrip("/") for o in origins}
         self.max_queue, self.max_sessions = max_queue, max_sessions
+        self.max_backlog_s = max_backlog_s
         self.status_every = status_every
         self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
         self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
         self.clients: set[Client] = set()
         self.broadcast_ended = False
+        self.broadcast_frames = 0
+        self.closing = False
+        self.prep = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ws-prep")  # decode, resample, encode
         self._server = None
         self._status_task: asyncio.Task | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
     async def start(self) -> None:
-        self._server = await serve(self._handle, self.host, self.port, process_request=self._check_token,
-                                   max_size=P.HARD_MAX_BYTES, max_queue=64)
+        self._server = await serve(self._handle, self.host, self.port, process_request=self._check_request,
+                                   max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
+                                   compression=None)  # no deflate: CPU per frame per client, and a bomb risk
         self.port = self._server.sockets[0].getsockname()[1]  # the real port when 0 was asked
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
 
     @property
     def url(self) -> str:
-        return f"ws://{self.host}:{self.port}/"
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}/"
 
-    async def close(self, drain_s: float = 2.0) -> None:
-        """Deliver what is queued (bounded wait), then close every connection and stop listening."""
-        await asyncio.gather(*(c.drained(drain_s) for c in list(self.clients)))
+    @property
+    def live_sessions(self) -> int:
+        """Client sessions still running, including those flushing after `audio_end`."""
+        return sum(1 for c in self.clients if c.session_task is not None and not c.session_task.done())
+
+    async def close(self, within_s: float = 1.5) -> None:
+        """End every client's stream (`end` to each), deliver what is queued and close, all within ~within_s."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + within_s * 0.6
+        self.closing = True
+        own = [c for c in self.clients if c.session_task is not None and not c.session_task.done()]
+        for c in own:
+            c.session_task.cancel()
+        await asyncio.gather(*(c.session_task for c in own), return_exceptions=True)
+        for c in list(self.clients):
+            if c in own:
+                c.put(P.end(c.session_frames))
+            elif not c.own and not self.broadcast_ended:
+                c.put(P.end(self.broadcast_frames))
+        await asyncio.gather(*(c.drained(deadline) for c in list(self.clients)))
         if self._status_task:
             self._status_task.cancel()
         if self._server is not None:
-            self._server.close()  # closes connections with 1001 going away
-            await self._server.wait_closed()
+            self._server.close()  # closing handshakes (1001 going away), each given close_timeout
+            try:
+                await asyncio.wait_for(self._server.wait_closed(), max(0.1, within_s * 0.4))
+            except asyncio.TimeoutError:
+                for c in list(self.clients):
+                    c.ws.transport.abort()
+        self.prep.shutdown(wait=False, cancel_futures=True)
 
-    def _check_token(self, connection, request):
+    def _check_request(self, connection, request):
+        origin = request.headers.get("Origin")
+        if origin is not None and "*" not in self.origins and origin.lower().rstrip("/") not in self.origins:
+            log.info("refused a connection from origin %r (not in the allow-list; see --allow-origin)", origin[:100])
+            return connection.respond(HTTPStatus.FORBIDDEN, "origin not allowed (see streamer serve --allow-origin)\n")
         if self.token is None:
             return None
         given = parse_qs(urlsplit(request.path).query).get("token", [None])[0]
@@ -128,13 +232,13 @@ class WsServer:
     def broadcast(self, frames: list[Frame]) -> None:
         if not frames:
             return
+        self.broadcast_frames += len(frames)
         encoded: dict[str, list] = {}
         for c in self.clients:
             if c.own:
                 continue
             if c.encoding not in encoded:
-                enc = P.frame_binary if c.encoding == "binary" else P.frame_json
-                encoded[c.encoding] = [enc(f) for f in frames]
+                encoded[c.encoding] = c.encode(frames)
             for m in encoded[c.encoding]:
                 c.put(m, "frame")
 
@@ -159,16 +263,18 @@ class WsServer:
                     else:
                         await self._on_text(client, message)
                 except P.ProtocolError as e:
-                    client.put(P.error(e.code, str(e)))
+                    client.errors(logging.INFO, f"{e.code}: {e}")
+                    client.note(P.error(e.code, str(e)))
                     if e.code == "unsupported_protocol":
-                        await client.drained(1.0)
+                        await client.drained(asyncio.get_running_loop().time() + 1.0)
                         await ws.close(1002, "unsupported protocol version")
                         break
                 except (ConnectionClosed, asyncio.CancelledError):
                     raise
                 except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
-                    log.exception("failed on a client message")
-                    client.put(P.error("internal", f"{type(e).__name__}: {e}"))
+                    client.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
+                    client.note(P.error("internal", f"{type(e).__name__}: {e}"))
+                await asyncio.sleep(client.budget.wait_s(message))  # a flood is read only as fast as the budget
         except ConnectionClosed:
             pass
         finally:
@@ -181,12 +287,13 @@ class WsServer:
     async def _on_text(self, client: Client, text: str) -> None:
         msg = P.parse_text(text)
         if msg["type"] == "ping":
-            client.put(json.dumps({**msg, "type": "pong"}))
+            client.note(P.dumps({**msg, "type": "pong"}))
         elif msg["type"] == "hello":
             client.encoding = msg.get("encoding", client.encoding)
             if "audio" in msg and msg["audio"] != client.audio:
-                client.audio = msg["audio"]
+                client.budget.tokens -= 25  # a new resampler is designed: costs as much as 25 messages
                 await self._end_session(client)  # later audio starts a session at the new rate
+                client.audio = msg["audio"]
         elif msg["type"] == "audio_end":
             if client.source is None and (client.session_task is None or client.session_task.done()):
                 client.put(P.end(0))  # no audio since the last end: an empty stream, ended
@@ -196,39 +303,78 @@ class WsServer:
     async def _on_audio(self, client: Client, data: bytes) -> None:
         if self.make_session is None:
             raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
-        x = P.decode_audio(data, client.audio)
+        if self.closing:
+            raise P.ProtocolError("busy", "the server is shutting down")
+        fmt = client.audio
+        P.check_audio(data, fmt)
+        loop = asyncio.get_running_loop()
+        x = await loop.run_in_executor(self.prep, P.decode_audio, data, fmt)  # raises bad_audio
         if client.source is None:
-            if client.session_task is not None:  # the previous session is still finishing
-                await asyncio.shield(client.session_task)
-            busy = sum(1 for c in self.clients if c.source is not None)
-            if busy >= self.max_sessions:
+            if client.session_task is not None and not client.session_task.done():
+                await asyncio.shield(client.session_task)  # the previous session is still finishing
+            if self.live_sessions >= self.max_sessions:
                 raise P.ProtocolError("busy", f"at most {self.max_sessions} client audio sessions at once")
             self._start_session(client)
-        await client.source.put(x)
+        source = client.source
+        step = max(1, int(PIECE_S * fmt.rate))
+        for a in range(0, len(x), step):
+            y = await loop.run_in_executor(self.prep, self._resample, client, x[a : a + step])
+            if source.full and not client.slowed:
+                client.slowed = True
+                client.note(P.error("slow_down", f"audio arrives faster than it is processed: "
+                                                 f"{source.backlog_s:.0f} s are queued; the server reads more as it "
+                                                 f"catches up (nothing is dropped)"))
+            await source.put(y)
+            if client.source is not source:  # the session failed meanwhile
+                return
+        if not source.full:
+            client.slowed = False
+
+    @staticmethod
+    def _resample(client: Client, x: np.ndarray) -> np.ndarray:  # worker thread
+        if client.audio.rate == RATE:
+            return x
+        if client.resampler is None:
+            client.resampler = make_resampler(client.audio.rate)
+        return client.resampler.process(x)
 
     def _start_session(self, client: Client) -> None:
         client.own = True
-        client.source = PushSource(client.audio.rate)
+        client.source = source = PushSource(self.max_backlog_s)
+        client.resampler = None
         client.session = session = self.make_session()
+        session.clock = client.clock
+        client.session_frames = 0
+        loop = asyncio.get_running_loop()
 
-        async def run(source: PushSource) -> None:
+        async def emit(frames: list[Frame]) -> None:
+            if frames:
+                client.session_frames += len(frames)
+                await client.put_own(await loop.run_in_executor(self.prep, client.encode, frames))
+
+        async def run() -> None:
             try:
-                n = await session.run(source, client.put_frames)
+                n = await session.run(source, emit)
                 client.put(P.end(n))
             except asyncio.CancelledError:
                 raise
             except Exception as e:  # the model failed on this audio: tell the client, keep the server up
-                log.exception("client session failed")
-                client.put(P.error("internal", f"session failed: {type(e).__name__}: {e}"))
+                client.errors(logging.ERROR, f"session failed: {type(e).__name__}: {e}", exc_info=True)
+                client.note(P.error("internal", f"session failed: {type(e).__name__}: {e}"))
                 if client.source is source:
                     client.source = None
+                await source.close()
 
-        client.session_task = asyncio.create_task(run(client.source), name="ws-session")
+        client.session_task = asyncio.create_task(run(), name="ws-session")
 
     async def _end_session(self, client: Client) -> None:
         """Flush the client's session (audio_end): it sends its last frames and `end` by itself."""
         if client.source is not None:
             source, client.source = client.source, None
+            if client.resampler is not None:
+                resampler, client.resampler = client.resampler, None
+                tail = await asyncio.get_running_loop().run_in_executor(self.prep, resampler.flush)
+                await source.put(np.asarray(tail, dtype=np.float32))
             await source.close()
 
     # ---- status ----------------------------------------------------------------------------------
@@ -244,4 +390,4 @@ class WsServer:
                 extra = {"session": "own" if c.own else "broadcast"}
                 if not c.own and self.source_dropped_s is not None:
                     extra["audio_dropped_s"] = round(self.source_dropped_s(), 3)
-                c.put(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients), **extra), "status")
+                c.note(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients), **extra))

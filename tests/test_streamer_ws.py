@@ -157,7 +157,7 @@ def test_a_client_that_never_reads_does_not_delay_another(bundle):
             fast_c = next(c for c in ws.clients if c is not slow)
             result = delays, slow.dropped, fast_c.dropped
         stalled.transport.abort()  # it cannot do a closing handshake: it never reads
-        await ws.close(drain_s=0.1)
+        await ws.close(within_s=0.3)
         return result
 
     delays, slow_dropped, fast_dropped = asyncio.run(run())

@@ -1,0 +1,351 @@
+"""`streamer serve` against what clients send and how processes die: limits, origins, tokens, recording."""
+
+import asyncio
+import errno
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+from dimgestor.bvh import read_bvh
+from dimgestor.synthetic import synthetic_speech
+from streamer import protocol as P
+from streamer.engine import Frame, Session
+from streamer.http import ViewerServer
+from streamer.record import BvhRecorder
+from streamer.server import ServeError, read_token, viewer_origins
+from test_streamer_cli import REPO, serve, wav  # noqa: F401 (fixture)
+from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from test_streamer_ws import bundle, make_server, recv_json  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.timeout(120)
+
+
+# ---- messages ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("text", ['{"type": "ping", "t": NaN}', '{"type": "ping", "t": 1e999}',
+                                  '{"type": "ping", "t": ' + "9" * 5000 + "}", "[" * 40000,
+                                  '{"type": "ping", "a": ' + "[" * 20 + "]" * 20 + "}"])
+def test_non_finite_huge_or_deep_json_is_a_bad_message(text):
+    with pytest.raises(P.ProtocolError) as e:
+        P.parse_text(text)
+    assert e.value.code == "bad_message"
+
+
+def test_float32_audio_far_outside_minus_one_one_is_refused_and_slightly_outside_is_clipped():
+    fmt = P.AudioFormat(16000, "float32", 1)
+    with pytest.raises(P.ProtocolError, match="scaled to -1..1") as e:
+        P.decode_audio(np.full(160, 3e38, "<f4").tobytes(), fmt)
+    assert e.value.code == "bad_audio"
+    x = P.decode_audio(np.array([1.5, -1.2, 0.5], "<f4").tobytes(), fmt)
+    assert x.tolist() == [1.0, -1.0, 0.5]
+
+
+def test_replies_carry_finite_numbers_only(bundle):
+    async def run():
+        ws = make_server(bundle)
+        await ws.start()
+        async with connect(ws.url) as c:
+            await recv_json(c)
+            await c.send('{"type": "ping", "t": Infinity}')
+            err = await recv_json(c)
+            await c.send('{"type": "ping", "t": 2.5}')
+            pong = await recv_json(c)
+        await ws.close()
+        return err, pong
+
+    err, pong = asyncio.run(run())
+    assert err["code"] == "bad_message" and pong == {"type": "pong", "t": 2.5}
+
+
+# ---- audio sessions ------------------------------------------------------------------------------
+
+def test_a_client_uploading_1mib_chunks_gets_every_frame(bundle):
+    """Two 1 MiB PCM16 messages (65 s of audio, beyond the 30 s backlog cap) -> every frame, in order."""
+    pcm = (synthetic_speech(65.6, seed=3) * 20000).astype("<i2").tobytes()[: 2 << 20]
+    seconds = len(pcm) / 2 / 16000
+
+    async def run():
+        ws = make_server(bundle)
+        await ws.start()
+        frames, notes, end = [], [], None
+        async with connect(ws.url) as c:
+            await recv_json(c)
+            await c.send(json.dumps({"type": "hello", "encoding": "binary"}))
+
+            async def send():
+                for i in range(0, len(pcm), 1 << 20):
+                    await c.send(pcm[i : i + (1 << 20)])
+                await c.send(json.dumps({"type": "audio_end"}))
+
+            sender = asyncio.create_task(send())
+            while end is None:
+                m = await asyncio.wait_for(c.recv(), 60)
+                if isinstance(m, bytes):
+                    frames.append(P.parse_frame_binary(m)["index"])
+                elif (d := json.loads(m))["type"] == "end":
+                    end = d
+                elif d["type"] == "error":
+                    notes.append(d)
+            await sender
+        await ws.close()
+        return frames, notes, end
+
+    frames, notes, end = asyncio.run(run())
+    assert frames == list(range(int(seconds * 20))) and end["frames"] == len(frames)
+    assert [n["code"] for n in notes] in ([], ["slow_down"])  # told about its backlog, nothing lost
+
+
+class SlowExecutor(ThreadPoolExecutor):
+    """Inference that takes at least 50 ms a call, so a flushing session stays alive for a while."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        return super().submit(lambda: (time.sleep(0.05), fn(*args, **kwargs))[1])
+
+
+def test_audio_end_does_not_bypass_the_session_limit(bundle):
+    executor = SlowExecutor(2)
+    audio = (synthetic_speech(2.0, seed=1) * 20000).astype("<i2").tobytes()
+
+    async def run():
+        ws = make_server(bundle, max_sessions=2)
+        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+        await ws.start()
+        codes = []
+        clients = [await connect(ws.url) for _ in range(4)]
+        for c in clients:
+            await recv_json(c)
+            await c.send(audio)
+            await c.send(json.dumps({"type": "audio_end"}))  # still flushing: its session stays counted
+        for c in clients[2:]:
+            codes.append((await recv_json(c))["code"])
+        live = ws.live_sessions
+        for c in clients:
+            await c.close()
+        await ws.close()
+        return codes, live
+
+    codes, live = asyncio.run(run())
+    executor.shutdown()
+    assert codes == ["busy", "busy"] and live <= 2
+
+
+# ---- origins and tokens --------------------------------------------------------------------------
+
+def test_foreign_origins_are_refused_and_native_clients_and_the_viewer_accepted(bundle):
+    viewer = "http://127.0.0.1:8080"
+    assert viewer in viewer_origins("127.0.0.1", 8080) and "http://localhost:8080" in viewer_origins("127.0.0.1", 8080)
+
+    async def run():
+        ws = make_server(bundle, origins=viewer_origins("127.0.0.1", 8080))
+        await ws.start()
+        with pytest.raises(InvalidStatus) as e:
+            async with connect(ws.url, origin="http://evil.example"):
+                pass
+        assert e.value.response.status_code == 403
+        for origin in (None, viewer, "http://localhost:8080"):
+            async with connect(ws.url, origin=origin) as c:
+                assert (await recv_json(c))["type"] == "hello"
+        await ws.close()
+
+    asyncio.run(run())
+
+
+def test_the_token_comes_from_a_file_the_flag_or_the_environment_and_is_never_empty(tmp_path, monkeypatch):
+    from argparse import Namespace
+
+    monkeypatch.setenv("STREAMER_TOKEN", "from-env")
+    (tmp_path / "t").write_text("from-file\n")
+    (tmp_path / "empty").write_text("\n")
+    assert read_token(Namespace(token_file=str(tmp_path / "t"), token="flag")) == "from-file"
+    assert read_token(Namespace(token_file=None, token="flag")) == "flag"
+    assert read_token(Namespace(token_file=None, token=None)) == "from-env"
+    monkeypatch.delenv("STREAMER_TOKEN")
+    assert read_token(Namespace(token_file=None, token=None)) is None
+    for bad in (Namespace(token_file=str(tmp_path / "empty"), token=None), Namespace(token_file=None, token=""),
+                Namespace(token_file=str(tmp_path / "missing"), token=None), Namespace(token_file=None, token="a b")):
+        with pytest.raises(ServeError):
+            read_token(bad)
+
+
+def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint):
+    env = {**os.environ, "STREAMER_TOKEN": "envs3cret"}
+    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--token", " ", "--no-ws"], cwd=REPO,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "empty" in r.stderr and "Traceback" not in r.stderr
+    s = subprocess.Popen([sys.executable, "-m", "streamer.cli", "serve", "--checkpoint", str(tiny_checkpoint),
+                          "--source", "ws", "--ws", "127.0.0.1:0", "-v", "--status-every", "0"], cwd=REPO, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        while not line.startswith("streamer: WebSocket"):
+            line = s.stdout.readline()
+            assert line, "the server exited"
+        url = line.split()[2].split("?")[0]
+
+        async def run():
+            with pytest.raises(InvalidStatus):
+                async with connect(url):
+                    pass
+            async with connect(url + "?token=envs3cret") as c:
+                return json.loads(await c.recv())["type"]
+
+        assert asyncio.run(run()) == "hello"
+    finally:
+        s.send_signal(signal.SIGTERM)
+        out = s.communicate(timeout=30)[0]
+    assert "envs3cret" not in out and "token=***" in out, out
+
+
+# ---- shutdown ------------------------------------------------------------------------------------
+
+def test_sigterm_ends_every_stream_within_two_seconds_whatever_clients_do(tiny_checkpoint):
+    s = serve(tiny_checkpoint, "--source", "ws")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    audio = (synthetic_speech(0.5, seed=1) * 20000).astype("<i2").tobytes()
+
+    async def run():
+        stuck = socket.socket()  # a client that never reads
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stuck.connect(("127.0.0.1", int(url.rsplit(":", 1)[1].strip("/"))))
+        never_reads = await connect(url, sock=stuck, max_queue=1)
+        async with connect(url) as talker, connect(url) as watcher:
+            await talker.recv()
+            await watcher.recv()
+            for _ in range(4):
+                await talker.send(audio)
+            got_frame = False
+            while not got_frame:
+                m = json.loads(await asyncio.wait_for(talker.recv(), 30))
+                got_frame = m["type"] == "frame"
+            t0 = time.monotonic()
+            s.proc.send_signal(signal.SIGTERM)
+            ends = []
+            for c in (talker, watcher):
+                async for m in c:
+                    if json.loads(m)["type"] == "end":
+                        ends.append(json.loads(m))
+            await asyncio.get_running_loop().run_in_executor(None, s.proc.wait, 10)
+            elapsed = time.monotonic() - t0
+        never_reads.transport.abort()
+        return ends, elapsed
+
+    ends, elapsed = asyncio.run(run())
+    print(f"SIGTERM to exit: {elapsed:.2f} s")
+    assert s.finish() == 0, s.output
+    assert len(ends) == 2 and ends[0]["frames"] > 0 and ends[1] == {"type": "end", "frames": 0}
+    assert elapsed < 4.0, f"shutdown took {elapsed:.1f} s (the server's part is bounded by 2 s)"
+
+
+# ---- recording -----------------------------------------------------------------------------------
+
+def test_record_survives_sigkill(tiny_checkpoint, wav, tmp_path):
+    import bvh
+
+    out = tmp_path / "live.bvh"
+    s = serve(tiny_checkpoint, "--source", str(wav), "--loop", "--no-ws", "--record", str(out))
+    s.wait_for(r"recording\s+")
+    time.sleep(10.0)
+    s.proc.send_signal(signal.SIGKILL)
+    s.finish()
+    motion = read_bvh(out)
+    assert motion.num_frames * motion.frame_time >= 8.0, motion.num_frames
+    parsed = bvh.Bvh(out.read_text())
+    assert parsed.nframes == motion.num_frames and len(parsed.frames) == motion.num_frames
+    assert np.allclose(np.array(parsed.frames, dtype=float), motion.values)
+
+
+@pytest.mark.parametrize("where", ["a folder", "/proc/version"])
+def test_an_unwritable_recording_fails_at_start_with_one_line(tiny_checkpoint, tmp_path, where):
+    path = str(tmp_path) if where == "a folder" else where
+    if where == "/proc/version" and os.access(path, os.W_OK):
+        pytest.skip("/proc/version is writable here")
+    s = serve(tiny_checkpoint, "--source", "demo", "--record", path)
+    assert s.finish(60) == 2
+    lines = [line for line in s.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "cannot record to" in lines[0], s.output
+
+
+def test_a_full_disk_stops_the_recording_and_keeps_what_was_written(bundle, tmp_path, monkeypatch, capsys):
+    rec = BvhRecorder(tmp_path / "full.bvh", bundle.skeleton, bundle.feature_spec, flush_every_s=0.0)
+    rng = np.random.default_rng(0)
+    feats = bundle.denormalize(rng.normal(size=(40, bundle.feature_spec.dim)) * 0.1)
+    frames = [Frame(i, i / 20, np.zeros(3), np.zeros((1, 4)), feats[i]) for i in range(40)]
+    rec.on_frames(frames[:20])
+    real_pwrite = os.pwrite
+
+    def full(fd, data, offset):  # half of the next frame lines fit, then the disk is full
+        if len(data) > 100:
+            real_pwrite(fd, bytes(data[: len(data) // 2]), offset)
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_pwrite(fd, data, offset)
+
+    monkeypatch.setattr(os, "pwrite", full)
+    rec.on_frames(frames[20:])
+    monkeypatch.setattr(os, "pwrite", real_pwrite)
+    rec.on_frames(frames[20:])  # ignored: the recording stopped
+    assert rec.close() is None
+    assert "No space left on device" in capsys.readouterr().err
+    assert read_bvh(tmp_path / "full.bvh").num_frames == 20
+
+
+# ---- the viewer's HTTP server --------------------------------------------------------------------
+
+def http(port: int, request: bytes, timeout: float = 5.0) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+        s.sendall(request)
+        out = b""
+        try:
+            while chunk := s.recv(65536):
+                out += chunk
+        except ConnectionResetError:
+            pass
+        return out
+
+
+def test_the_viewer_server_serves_files_only_inside_its_mounts(tmp_path):
+    web = tmp_path / "web"
+    (web / "sub").mkdir(parents=True)
+    (web / "index.html").write_text("<html>viewer</html>")
+    (web / ".secret").write_text("hidden")
+    (web / "sub" / "a.js").write_text("export {}")
+    (tmp_path / "outside.txt").write_text("outside")
+    (web / "escape.txt").symlink_to(tmp_path / "outside.txt")
+    lib = tmp_path / "node_modules" / "three" / "build"
+    lib.mkdir(parents=True)
+    (lib / "three.module.js").write_text("// three")
+    (lib / "other.js").write_text("// not served")
+    v = ViewerServer("127.0.0.1", 0, 8765, False, mounts={"/": web, "/vendor/three.module.js": lib / "three.module.js"},
+                     timeout_s=0.5, max_connections=4)
+    v.start()
+    try:
+        get = lambda path, method=b"GET": http(v.port, method + b" " + path + b" HTTP/1.1\r\nHost: x\r\n\r\n")  # noqa: E731
+        assert get(b"/").startswith(b"HTTP/1.1 200") and b"viewer" in get(b"/")
+        assert b"text/javascript" in get(b"/sub/a.js") and b"// three" in get(b"/vendor/three.module.js")
+        assert b'"ws_url": "ws://x:8765/"' in get(b"/config.json")
+        for path in (b"/sub/", b"/.secret", b"/escape.txt", b"/../outside.txt", b"/%2e%2e/outside.txt",
+                     b"/vendor/other.js", b"/nothing"):
+            assert get(path).startswith(b"HTTP/1.1 404"), path
+        assert get(b"/", b"POST").startswith(b"HTTP/1.1 405")
+        head = get(b"/", b"HEAD")
+        assert head.startswith(b"HTTP/1.1 200") and head.endswith(b"\r\n\r\n")
+        t0 = time.monotonic()  # a request that never finishes is cut off
+        assert http(v.port, b"GET / HTTP/1.1\r\n").startswith(b"HTTP/1.1 408") and time.monotonic() - t0 < 3
+        held = [socket.create_connection(("127.0.0.1", v.port)) for _ in range(4)]
+        time.sleep(0.1)
+        assert http(v.port, b"GET / HTTP/1.1\r\n\r\n") == b""  # over the connection limit: closed at once
+        for s in held:
+            s.close()
+        time.sleep(0.7)
+        assert get(b"/").startswith(b"HTTP/1.1 200")
+    finally:
+        v.close()
