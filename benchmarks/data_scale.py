@@ -35,13 +35,12 @@ def main() -> int:
     p.add_argument("--train-only", action="store_true",
                    help="make the data and train, no scoring (run one per size in parallel, then again to score)")
     args = p.parse_args()
-    import numpy as np
     import torch
 
     torch.set_num_threads(1)
     from dimgestor.checkpoint import latest_checkpoint, load_checkpoint
     from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import fgd_autoencoder, k_report, parse_ks
+    from dimgestor.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
     from dimgestor.synthetic import make_gesture_corpus
     from dimgestor.train import TrainOptions, train
 
@@ -73,8 +72,7 @@ def main() -> int:
             largest = max(work.glob("train_*min"), key=lambda d: float(d.name[6:-3]))
             ae = fgd_autoencoder(GestureDataset(largest, split="train", valid_fraction=0.0, **common),
                                  work / "fgd_autoencoder", 1500)
-        clips = [(np.asarray(valid.clips[c].audio[a * valid.spf:b * valid.spf], np.float32),
-                  np.asarray(valid.clips[c].features[a:b], np.float32)) for c, a, b in valid.segments]
+        clips = valid_clips(valid)
         ks = parse_ks(args.ks, bundle.config.n_steps, bundle.config.sample_steps)
         print(f"== {m:g} min")
         results[f"{m:g}"] = k_report(bundle, clips, ks, args.seeds, 0, ae, smoothing=None)

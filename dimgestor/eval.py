@@ -195,7 +195,7 @@ def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list
 
 
 def valid_clips(valid) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The valid split's whole held-out stretches as (audio, raw features)."""
+    """A split's whole stretches (the valid split: its held-out tails) as (audio, raw features)."""
     return [(np.asarray(valid.clips[c].audio[a * valid.spf:b * valid.spf], np.float32),
              np.asarray(valid.clips[c].features[a:b], np.float32)) for c, a, b in valid.segments]
 

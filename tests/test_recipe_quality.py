@@ -2,13 +2,12 @@
 output filter, K = 4 DDIM steps are about as smooth as the ground truth and K = 8 is not rougher than K = 2
 (the paper's recipe on the same budget gets rougher with every step: benchmarks/results/recipes.json)."""
 
-import numpy as np
 import pytest
 import torch
 
 from dimgestor.checkpoint import load_checkpoint
 from dimgestor.dataset import GestureDataset
-from dimgestor.eval import k_report
+from dimgestor.eval import k_report, valid_clips
 from dimgestor.synthetic import make_gesture_corpus
 from dimgestor.train import TrainOptions, train
 
@@ -30,9 +29,7 @@ def trained(tmp_path_factory):
     bundle.model.eval()
     valid = GestureDataset(root / "valid", split="train", valid_fraction=0.0, spec=bundle.feature_spec,
                            window_s=4.0, cache_dir=root / "cache")
-    clips = [(np.asarray(valid.clips[c].audio[a * valid.spf:b * valid.spf], np.float32),
-              np.asarray(valid.clips[c].features[a:b], np.float32)) for c, a, b in valid.segments]
-    return k_report(bundle, clips, [2, 4, 8], seeds=1, seed=0, ae=None, log=lambda *_: None)
+    return k_report(bundle, valid_clips(valid), [2, 4, 8], seeds=1, seed=0, ae=None, log=lambda *_: None)
 
 
 def test_k4_without_filter_is_within_2x_of_the_ground_truth_jerk(trained):
