@@ -119,8 +119,8 @@ def plot(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     panels = [("jerk_ratio", "hand jerk / real capture (1 = real)", True), ("contrast", "speech / silence wrist speed", False),
-              ("beat_align", "BeatAlign", False), ("fgd_feature", "FGD (feature space)", False),
-              ("diversity", "diversity across seeds (cm)", False), ("net_yaw_deg", "|net turn| over the clip (deg)", False)]
+              ("beat_align", "BeatAlign", False), ("fgd_feature", "FGD (feature space)", True),
+              ("diversity", "diversity across seeds (cm)", True), ("net_yaw_deg", "|net turn| over the clip (deg)", True)]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.4))
     for ax, (m, title, log) in zip(axes, panels):
         for name, r in results.items():
