@@ -18,17 +18,24 @@ $(VMC_CHECK)/node_modules/.package-lock.json: $(VMC_CHECK)/package.json $(VMC_CH
 	@if command -v npm >/dev/null; then cd $(VMC_CHECK) && npm ci --omit=optional --no-audit --no-fund --loglevel=error; \
 	else echo "npm not found: the VMC receiver check in $(VMC_CHECK) will be skipped (Debian: apt install npm)" >&2; fi
 
-.PHONY: setup test demo default-model
-setup: $(BIN)/.installed
+# The web viewer's JavaScript dependencies (three.js, three-vrm) from npm, pinned by clients/web/package-lock.json;
+# the viewer's HTTP server serves them from clients/web/node_modules (no CDN, no internet at run time).
+WEB := clients/web
+$(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.json
+	@if command -v npm >/dev/null; then cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error; \
+	else echo "npm not found: the browser viewer cannot load three.js and its tests will be skipped (Debian: apt install npm)" >&2; fi
 
-test: $(BIN)/.installed $(VMC_CHECK)/node_modules/.package-lock.json
+.PHONY: setup test demo default-model
+setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
+
+test: setup $(VMC_CHECK)/node_modules/.package-lock.json
 	$(BIN)/python -m pytest -q -rs
 
 # Ports of `make demo`, e.g. `make demo WS_PORT=9000 HTTP_PORT=9001 OSC_PORT=39540`.
 WS_PORT ?= 8765
 HTTP_PORT ?= 8080
 OSC_PORT ?= 39539
-demo: $(BIN)/.installed
+demo: setup
 	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT) --http $(HTTP_PORT)
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset on the ZEGGS sample clip

@@ -14,6 +14,7 @@ from streamer.engine import Frame
 PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"
 AUDIO_FORMATS = ("pcm16", "float32")
+AUDIO_RATE = 16000  # the model's input rate; server source audio is sent at this rate
 MAX_TEXT_BYTES = 64 * 1024
 MAX_JSON_DEPTH = 16  # nesting of objects/arrays in a client message
 MAX_NUMBER_CHARS = 32  # digits of one JSON number (Python would parse 4300-digit integers)
@@ -23,6 +24,9 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
+REVISION = 1  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+AUDIO_MAGIC = b"DGA1"
+AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
 
 class ProtocolError(ValueError):
@@ -58,7 +62,7 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
     """The server's hello; `optional` adds the optional fields (window_ms, source, ...)."""
     j = len(skeleton.names)
     return {
-        "type": "hello", "protocol": PROTOCOL, "server": SERVER, "fps": fps, "encoding": "json",
+        "type": "hello", "protocol": PROTOCOL, "revision": REVISION, "server": SERVER, "fps": fps, "encoding": "json",
         "skeleton": {
             "joints": skeleton.names, "parents": skeleton.parents,
             "offsets": np.round(skeleton.offsets, 6).tolist(),
@@ -99,6 +103,21 @@ def parse_frame_binary(buf: bytes) -> dict:
 def dumps(msg: dict) -> str:
     """JSON for the wire: finite numbers only (browsers cannot parse NaN or Infinity)."""
     return json.dumps(msg, allow_nan=False, separators=(",", ":"))
+
+
+def source_audio_binary(pts: float, samples: np.ndarray, rate: int = AUDIO_RATE) -> bytes:
+    """A DGA1 message: the server source's audio from `pts` on, PCM16 mono at `rate`."""
+    pcm = np.clip(np.round(np.asarray(samples, np.float32) * 32767.0), -32768, 32767).astype("<i2")
+    return AUDIO_HEADER.pack(AUDIO_MAGIC, rate, pts) + pcm.tobytes()
+
+
+def parse_source_audio_binary(buf: bytes) -> dict:
+    """Inverse of source_audio_binary (for clients and tests): {rate, pts, samples float32}."""
+    magic, rate, pts = AUDIO_HEADER.unpack_from(buf)
+    if magic != AUDIO_MAGIC or (len(buf) - AUDIO_HEADER.size) % 2:
+        raise ValueError(f"not a DGA1 audio message ({len(buf)} bytes, magic {magic!r})")
+    pcm = np.frombuffer(buf, "<i2", offset=AUDIO_HEADER.size)
+    return {"rate": rate, "pts": pts, "samples": pcm.astype(np.float32) / 32767.0}
 
 
 def status(latency_ms: float, rtf: float, frames_sent: int, dropped: int, clients: int, **optional) -> str:
@@ -170,6 +189,10 @@ def _parse_hello(msg: dict) -> dict:
         if msg["encoding"] not in ("json", "binary"):
             raise ProtocolError("bad_message", f'encoding must be "json" or "binary", got {msg["encoding"]!r}')
         out["encoding"] = msg["encoding"]
+    if "source_audio" in msg:
+        if not isinstance(msg["source_audio"], bool):
+            raise ProtocolError("bad_message", f"source_audio must be true or false, got {msg['source_audio']!r}")
+        out["source_audio"] = msg["source_audio"]
     if "audio" in msg:
         a = msg["audio"]
         if not isinstance(a, dict):

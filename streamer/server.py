@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import AsyncIterator
 
 from streamer.engine import Frame, RankedExecutor, Session
-from streamer.sources import AudioChunk, MicSource, open_source
+from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 
 class ServeError(RuntimeError):
@@ -39,6 +39,13 @@ async def until(source, stop: asyncio.Event) -> AsyncIterator[AudioChunk]:
         stopper.cancel()
         if hasattr(it, "aclose"):
             await it.aclose()
+
+
+async def tap(chunks: AsyncIterator[AudioChunk], sink) -> AsyncIterator[AudioChunk]:
+    """The chunks unchanged, each also handed to `sink(t_start, samples)` as the session takes it."""
+    async for chunk in chunks:
+        sink(chunk.t_start, chunk.samples)
+        yield chunk
 
 
 def _load(args):
@@ -190,7 +197,9 @@ async def serve(args) -> int:
 
             hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
                             accepts_audio=not args.no_client_audio, window_ms=args.window_ms,
-                            source="ws" if source is None else "mic" if args.source == "mic" else "file")
+                            source="ws" if source is None else "mic" if args.source == "mic" else "file",
+                            **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
+                               if isinstance(source, WavSource) else {}))
             origins = [*(viewer_origins(viewer.host, viewer.port) if viewer else []), *(args.allow_origin or [])]
             ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
                           token=token, broadcast_stats=main_session.stats if main_session else None,
@@ -280,7 +289,10 @@ async def serve(args) -> int:
             while not ws.clients and not stop.is_set():
                 await asyncio.sleep(0.02)
         if main_session is not None:
-            n = await main_session.run(until(source, stop), emit)
+            chunks = until(source, stop)
+            if ws is not None and isinstance(source, WavSource):
+                chunks = tap(chunks, ws.broadcast_audio)  # viewers may ask to hear what the avatar gestures to
+            n = await main_session.run(chunks, emit)
             if ws:
                 ws.broadcast_end(n)
             print(f"streamer: source ended after {n} frames", file=sys.stderr)

@@ -31,9 +31,11 @@ from streamer.engine import AudioClock, Frame, Session
 from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
+AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
+AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
-DROPPABLE = ("frame", "note")  # broadcast frames; status, pong and error replies
+DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
 
 
 class ErrorLog:
@@ -84,6 +86,7 @@ class Client:
         self.frames_sent = 0
         self.dropped = 0
         self.own = False  # true once it sent audio: from then on it gets its own frames, not the broadcast
+        self.source_audio = False  # asked for the server source's audio (hello "source_audio": true)
         self.source: PushSource | None = None
         self.resampler = None  # lives in the worker (built, used and flushed there)
         self.session: Session | None = None
@@ -166,6 +169,8 @@ class WsServer:
         self.broadcast_frames = 0
         self.closing = False
         self.prep = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ws-prep")  # decode, resample, encode
+        self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
+        self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._server = None
         self._status_task: asyncio.Task | None = None
 
@@ -242,8 +247,25 @@ class WsServer:
             for m in encoded[c.encoding]:
                 c.put(m, "frame")
 
+    def broadcast_audio(self, pts: float, samples: np.ndarray) -> None:
+        """The server source's audio, sent in DGA1 messages of AUDIO_BATCH_S to clients that asked for it."""
+        self.audio_pending.append((pts, samples))
+        if sum(len(x) for _, x in self.audio_pending) >= AUDIO_BATCH_S * P.AUDIO_RATE:
+            self._flush_audio()
+
+    def _flush_audio(self) -> None:
+        if not self.audio_pending:
+            return
+        message = P.source_audio_binary(self.audio_pending[0][0], np.concatenate([x for _, x in self.audio_pending]))
+        self.audio_pending = []
+        self.audio_recent.append(message)
+        for c in self.clients:
+            if c.source_audio and not c.own:
+                c.put(message, "audio")
+
     def broadcast_end(self, frames: int) -> None:
         self.broadcast_ended = True  # `end` is the last message its followers get
+        self._flush_audio()
         for c in self.clients:
             if not c.own:
                 c.put(P.end(frames))
@@ -290,6 +312,10 @@ class WsServer:
             client.note(P.dumps({**msg, "type": "pong"}))
         elif msg["type"] == "hello":
             client.encoding = msg.get("encoding", client.encoding)
+            if msg.get("source_audio") and not client.source_audio and "source_audio" in self.hello:
+                for m in self.audio_recent:  # the audio of the frames still to come to a client that joins now
+                    client.put(m, "audio")
+            client.source_audio = bool(msg.get("source_audio", client.source_audio)) and "source_audio" in self.hello
             if "audio" in msg and msg["audio"] != client.audio:
                 client.budget.tokens -= 25  # a new resampler is designed: costs as much as 25 messages
                 await self._end_session(client)  # later audio starts a session at the new rate

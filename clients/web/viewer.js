@@ -1,45 +1,81 @@
-// dimgestor browser viewer: protocol v1 client (docs/protocol.md), three.js stick figure, microphone.
+// dimgestor browser viewer: protocol v1 client (docs/protocol.md), the built-in mannequin, your own VRM,
+// the server source's audio in sync, and the microphone (Talk).
 //
 // Page parameters: ?ws=ws://host:port/  (override the server's /config.json)
 //                  ?token=T             (when the server requires one)
 //                  ?encoding=binary     (DGF1 binary frames instead of JSON)
 //                  ?audio=float32       (microphone wire format; default pcm16)
+//                  ?avatar=skeleton     (start with the skeleton instead of the mannequin)
+//                  ?sound=off           (start muted)
 import * as THREE from 'three';
-import { OrbitControls } from 'three/addons/OrbitControls.js';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { FramePlayout } from './playout.js';
-import { decodeBinaryFrame } from './protocol.js';
+import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
+import { buildMannequin } from './mannequin.js';
+import { SourceAudio } from './source-audio.js';
 
 const params = new URLSearchParams(location.search);
 const ENCODING = params.get('encoding') === 'binary' ? 'binary' : 'json';
 const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
 const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
+const FPS_WINDOW_MS = 5000;       // received fps is averaged over this long (frames come in bursts)
 
 const $ = (id) => document.getElementById(id);
 const ui = { state: $('state'), frames: $('frames'), fps: $('fps'), latency: $('latency'), rtt: $('rtt'),
              rtf: $('rtf'), buffer: $('buffer'), dropped: $('dropped'), clients: $('clients'), talk: $('talk'),
-             message: $('message'), url: $('url') };
+             message: $('message'), url: $('url'), delay: $('delay'), avatar: $('avatar'), sound: $('sound'),
+             pause: $('pause'), resetView: $('reset-view'), loadVrm: $('load-vrm'), vrmFile: $('vrm-file'),
+             drop: $('drop'), paused: $('paused') };
 
+const sourceAudio = new SourceAudio();
 // Everything a test or the console may want to read.
 const api = window.dimgestor = {
   state: 'connecting', url: null, hello: null, status: null, ended: null, errors: [],
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
-  gaps: 0, fps: 0, rttMs: null,
-  talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0,
+  gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false,
+  talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
+  avatar: 'mannequin', vrm: null, paused: false, sourceAudio,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
+  loadAvatarFile: (file) => loadAvatarFile(file), setAvatar: (m) => setAvatar(m), resetView: () => resetView(),
+  setPaused: (p) => setPaused(p), setMuted: (m) => setMuted(m),
+  facing: () => facing(), cameraPosition: () => camera.position.toArray(),
 };
 
 // ---------------------------------------------------------------- scene
 const scene = new THREE.Scene();
-scene.background = new THREE.Color(0x1d2127);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x444455, 2.0));
-const sun = new THREE.DirectionalLight(0xffffff, 1.5);
-sun.position.set(2, 4, 3);
-scene.add(sun);
-scene.add(new THREE.GridHelper(10, 20, 0x888888, 0x3a3f47));  // 10 m floor, 50 cm cells
+scene.background = gradientTexture('#2a3039', '#111318');
+scene.fog = new THREE.Fog(0x15181d, 8, 22);
+scene.add(new THREE.HemisphereLight(0xdfe8ff, 0x3a3430, 1.1));
+const key = new THREE.DirectionalLight(0xfff4e8, 2.4);  // key light from the front left, casting shadows
+key.position.set(2.0, 4.0, 3.5);
+key.castShadow = true;
+key.shadow.mapSize.set(1024, 1024);
+Object.assign(key.shadow.camera, { left: -2, right: 2, top: 2.5, bottom: -0.5, near: 0.5, far: 12 });
+key.shadow.bias = -0.0005;
+key.shadow.normalBias = 0.02;
+const lights = new THREE.Group();  // key, rim and fill turn with the framing: the avatar is lit from the camera's side
+scene.add(lights, key.target);
+lights.add(key);
+const rim = new THREE.DirectionalLight(0x9fbaff, 1.6);  // cool rim from behind: separates it from the background
+rim.position.set(-2.5, 3.0, -3.5);
+lights.add(rim);
+const fill = new THREE.DirectionalLight(0xffffff, 0.5);
+fill.position.set(-3, 1.5, 2);
+lights.add(fill);
+const floor = new THREE.Mesh(new THREE.CircleGeometry(6, 64),
+                             new THREE.MeshStandardMaterial({ color: 0x262b33, roughness: 0.95 }));
+floor.rotation.x = -Math.PI / 2;
+floor.receiveShadow = true;
+scene.add(floor);
+const grid = new THREE.GridHelper(12, 24, 0x4a5260, 0x323842);  // 50 cm cells
+grid.position.y = 0.001;
+grid.material.transparent = true;
+grid.material.opacity = 0.5;
+scene.add(grid);
 
-const camera = new THREE.PerspectiveCamera(40, innerWidth / innerHeight, 0.01, 100);
+const camera = new THREE.PerspectiveCamera(30, innerWidth / innerHeight, 0.01, 100);
 camera.position.set(0, 1.2, 4);
 let renderer = null;
 let controls = null;
@@ -47,33 +83,64 @@ try {
   renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
   renderer.setPixelRatio(devicePixelRatio);
   renderer.setSize(innerWidth, innerHeight);
+  renderer.shadowMap.enabled = true;
+  renderer.shadowMap.type = THREE.PCFSoftShadowMap;
+  renderer.toneMapping = THREE.ACESFilmicToneMapping;
   $('view').appendChild(renderer.domElement);
   controls = new OrbitControls(camera, renderer.domElement);
   controls.target.set(0, 1, 0);
+  controls.enableDamping = true;
 } catch (e) {
   // Joints are still tracked (jointWorldPositions works); only drawing is lost.
   say(`WebGL unavailable: ${e.message}`);
 }
-addEventListener('resize', () => {
+addEventListener('resize', () => { fitViewport(); });
+
+function gradientTexture(top, bottom) {
+  const c = document.createElement('canvas');
+  c.width = 2; c.height = 256;
+  const g = c.getContext('2d');
+  const grad = g.createLinearGradient(0, 0, 0, 256);
+  grad.addColorStop(0, top);
+  grad.addColorStop(1, bottom);
+  g.fillStyle = grad;
+  g.fillRect(0, 0, 2, 256);
+  const t = new THREE.CanvasTexture(c);
+  t.colorSpace = THREE.SRGBColorSpace;
+  return t;
+}
+
+/** Keep the avatar centred in the part of the window the HUD does not cover. */
+function fitViewport() {
   camera.aspect = innerWidth / innerHeight;
+  const hud = $('hud').getBoundingClientRect();
+  const shift = innerWidth > 2.5 * hud.right ? hud.right / 2 : 0;
+  if (shift) camera.setViewOffset(innerWidth, innerHeight, -shift, 0, innerWidth, innerHeight);
+  else camera.clearViewOffset();
   camera.updateProjectionMatrix();
   if (renderer) renderer.setSize(innerWidth, innerHeight);
-});
+}
 
+// ---------------------------------------------------------------- the streamed skeleton and its looks
 const figure = new THREE.Group();  // holds the skeleton in file units, scaled to metres
 scene.add(figure);
 let joints = [];                   // one Object3D per joint, in skeleton order
 let roots = [];                    // indices of joints whose parent is -1
-const boneMaterial = new THREE.MeshLambertMaterial({ color: 0xd9b38c });
-const jointMaterial = new THREE.MeshLambertMaterial({ color: 0x5b8def });
+let looks = { mannequin: [], skeleton: [] };  // the meshes of each built-in look
+let body = null;                   // buildMannequin's result: facing and bounds at rest
+let skeletonScale = 0.01;
+let vrmAvatar = null;              // a VrmAvatar when one is loaded
+const boneMaterial = new THREE.MeshStandardMaterial({ color: 0xd9b38c, roughness: 0.6 });
+const jointMaterial = new THREE.MeshStandardMaterial({ color: 0x5b8def, roughness: 0.5 });
 
-function buildSkeleton(sk) {
+function buildSkeleton(sk, humanoid) {
   const { joints: names, parents, offsets } = sk;
   const rest = sk.rest_rotations || names.map(() => [1, 0, 0, 0]);
   if (parents.length !== names.length || offsets.length !== names.length || rest.length !== names.length)
     throw new Error(`hello.skeleton: ${names.length} joints but ${parents.length} parents, ` +
                     `${offsets.length} offsets, ${rest.length} rest rotations`);
   figure.clear();
+  figure.scale.setScalar(1);
   joints = names.map((name, j) => {
     const o = new THREE.Object3D();
     o.name = name;
@@ -87,34 +154,98 @@ function buildSkeleton(sk) {
     else if (p < names.length) joints[p].add(joints[j]);
     else throw new Error(`hello.skeleton: joint ${names[j]} has parent ${p} out of range`);
   });
-  const scale = UNIT_TO_M[sk.units] ?? 0.01;
   if (!(sk.units in UNIT_TO_M)) say(`unknown skeleton units "${sk.units}", assuming cm`);
-  figure.scale.setScalar(scale);
+  skeletonScale = UNIT_TO_M[sk.units] ?? 0.01;
 
-  // Size the capsules from the rest-pose height so any unit or skeleton looks alike.
-  figure.updateMatrixWorld(true);
-  const box = new THREE.Box3();
-  joints.forEach((o) => box.expandByPoint(o.getWorldPosition(new THREE.Vector3())));
-  const height = Math.max(box.max.y - box.min.y, 1e-3) / scale;  // file units
-  const radius = 0.015 * height;
+  body = buildMannequin(sk, humanoid, joints);
+  looks = { mannequin: body.meshes, skeleton: buildStickFigure(sk) };
+  figure.scale.setScalar(skeletonScale);
+  if (vrmAvatar) attachVrm(vrmAvatar.vrm);  // a new skeleton (another server): retarget the VRM to it
+  setAvatar(api.avatar);
+  resetView();
+  needFraming = true;  // again once the first frame shows how it stands
+}
+
+/** The debug look: a capsule per bone and a sphere per joint. */
+function buildStickFigure(sk) {
+  const meshes = [];
+  const height = Math.max(body.bounds.max.y - body.bounds.min.y, 1e-3);
+  const radius = 0.012 * height;
   const up = new THREE.Vector3(0, 1, 0);
-  parents.forEach((p, j) => {
-    const off = new THREE.Vector3().fromArray(offsets[j]);
+  sk.parents.forEach((p, j) => {
+    const off = new THREE.Vector3().fromArray(sk.offsets[j]);
     const len = off.length();
     const ball = p < 0 ? radius : Math.min(0.7 * radius, 0.35 * len);
-    if (ball > 1e-6) joints[j].add(new THREE.Mesh(new THREE.SphereGeometry(ball, 12, 8), jointMaterial));
+    if (ball > 1e-6) {
+      const m = new THREE.Mesh(new THREE.SphereGeometry(ball, 12, 8), jointMaterial);
+      joints[j].add(m);
+      meshes.push(m);
+    }
     if (p < 0 || len < 1e-6) return;
     const r = Math.min(radius, 0.2 * len);
     const bone = new THREE.Mesh(new THREE.CapsuleGeometry(r, Math.max(len - 2 * r, 1e-4), 4, 10), boneMaterial);
     bone.position.copy(off).multiplyScalar(0.5);
     bone.quaternion.setFromUnitVectors(up, off.normalize());
     joints[p].add(bone);
+    meshes.push(bone);
   });
-  const center = box.getCenter(new THREE.Vector3());
-  const h = box.max.y - box.min.y;
-  if (controls) controls.target.set(center.x, center.y, center.z);
-  camera.position.set(center.x + 0.3 * h, center.y + 0.15 * h, center.z + 2.6 * h);
+  return meshes;
+}
+
+function setAvatar(mode) {
+  if (mode === 'vrm' && !vrmAvatar) mode = 'mannequin';
+  if (!['mannequin', 'skeleton', 'vrm'].includes(mode)) mode = 'mannequin';
+  api.avatar = mode;
+  looks.mannequin.forEach((m) => { m.visible = mode === 'mannequin'; });
+  looks.skeleton.forEach((m) => { m.visible = mode === 'skeleton'; });
+  if (vrmAvatar) vrmAvatar.vrm.scene.visible = mode === 'vrm';
+  ui.avatar.value = mode;
+}
+
+/** The avatar's facing now: {forward (world, unit), toCamera (unit, horizontal), cos (their angle's cosine)}. */
+function facing() {
+  if (!body || !joints.length) return null;
+  const hips = joints[roots[0]];
+  const fwd = currentForward();
+  const toCam = camera.position.clone().sub(hips.getWorldPosition(new THREE.Vector3())).setY(0).normalize();
+  return { forward: fwd.toArray(), toCamera: toCam.toArray(), cos: fwd.dot(toCam) };
+}
+
+/** The avatar's forward direction now (horizontal, world): its rest facing turned by the root joint. */
+function currentForward() {
+  const hips = joints[roots[0]];
+  figure.updateMatrixWorld(true);
+  const q = hips.getWorldQuaternion(new THREE.Quaternion());
+  const restQ = new THREE.Quaternion();
+  const r = api.hello.skeleton.rest_rotations;
+  if (r) restQ.set(r[roots[0]][1], r[roots[0]][2], r[roots[0]][3], r[roots[0]][0]);
+  const fwd = body.forward.clone().applyQuaternion(q.multiply(restQ.invert())).setY(0);
+  return fwd.lengthSq() > 1e-6 ? fwd.normalize() : body.forward.clone();
+}
+
+/** Put the camera in front of the avatar as it stands now, the whole body in view. */
+function resetView() {
+  if (!body) return;
+  fitViewport();
+  const s = skeletonScale;
+  const box = body.bounds.clone();
+  box.min.multiplyScalar(s); box.max.multiplyScalar(s);
+  if (vrmAvatar && api.avatar === 'vrm') box.copy(vrmAvatar.restBounds);
+  const height = box.max.y - Math.min(box.min.y, 0);
+  const center = new THREE.Vector3(0, Math.min(box.min.y, 0) + height * 0.5, 0);
+  const hips = joints[roots[0]].getWorldPosition(new THREE.Vector3());
+  center.x = hips.x; center.z = hips.z;
+  const fov = THREE.MathUtils.degToRad(camera.fov);
+  const fit = Math.max(height * 1.2, (box.max.x - box.min.x) * 0.55 / camera.aspect);
+  const dist = fit / 2 / Math.tan(fov / 2);
+  const fwd = currentForward();
+  lights.rotation.y = Math.atan2(fwd.x, fwd.z);
+  lights.position.set(center.x, 0, center.z);
+  key.target.position.set(center.x, 0, center.z);
+  camera.position.copy(center).addScaledVector(fwd, dist).add(new THREE.Vector3(0, height * 0.04, 0));
+  if (controls) { controls.target.copy(center); controls.update(); }
   camera.lookAt(center);
+  followFrom = hips.clone();
 }
 
 function applyFrame(f) {
@@ -133,15 +264,29 @@ function applyFrame(f) {
 // Frames are shown at their presentation time, not on arrival (they come in bursts): see playout.js.
 const playout = new FramePlayout();
 api.playout = playout;
+let lastShowAt = performance.now();
+let needFraming = false;
 
 function showPose() {
-  const now = performance.now() / 1000;
+  const nowMs = performance.now();
+  const dt = (nowMs - lastShowAt) / 1000;
+  lastShowAt = nowMs;
+  if (api.paused) return;
+  const now = nowMs / 1000;
+  sourceAudio.sync(playout.offset, now);
   const pose = playout.sample(now);
-  if (!pose || pose === api.shownFrame || !joints.length) return;
-  applyFrame(pose);
-  api.shownFrame = pose;
-  const newest = playout.queue[playout.queue.length - 1];
-  api.bufferMs = (newest.pts - (now - playout.offset)) * 1000;
+  if (!pose || !joints.length) return;
+  if (pose !== api.shownFrame) {
+    applyFrame(pose);
+    api.shownFrame = pose;
+    const newest = playout.queue[playout.queue.length - 1];
+    api.bufferMs = (newest.pts - (now - playout.offset)) * 1000;
+    if (needFraming) { needFraming = false; resetView(); }
+  }
+  if (vrmAvatar && api.avatar === 'vrm') {
+    figure.updateMatrixWorld(true);
+    vrmAvatar.drive(joints, Math.min(dt, 0.1));
+  }
 }
 setInterval(showPose, 50);  // keeps the pose current when the tab is hidden and rAF stops
 
@@ -152,26 +297,79 @@ function jointWorldPositions() {
   return joints.map((o) => o.getWorldPosition(v).toArray());
 }
 
-const figureCenter = new THREE.Vector3();
+let followFrom = null;  // where the hips were when the view was last framed: the camera follows them from there
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
-  if (joints.length) {
-    // Follow the figure (root motion can walk it out of view): ease the orbit target onto its centre.
-    figure.updateMatrixWorld(true);
-    figureCenter.set(0, 0, 0);
-    const v = new THREE.Vector3();
-    for (const o of joints) figureCenter.add(o.getWorldPosition(v));
-    figureCenter.divideScalar(joints.length);
-    const step = figureCenter.sub(controls.target).multiplyScalar(0.2);
+  if (joints.length && followFrom) {
+    // Follow the avatar across the floor (root motion), not up and down.
+    const hips = joints[roots[0]].getWorldPosition(new THREE.Vector3());
+    const step = hips.sub(followFrom).setY(0).multiplyScalar(0.1);
+    followFrom.add(step);
     controls.target.add(step);
     camera.position.add(step);
+    lights.position.add(step);
+    key.target.position.add(step);
   }
   controls.update();
   renderer.render(scene, camera);
 }
+fitViewport();
 render();
+
+// ---------------------------------------------------------------- your own avatar (VRM)
+let vrmModule = null;  // loaded on first use: the page starts without it
+
+async function loadAvatarFile(file) {
+  if (!/\.(vrm|glb)$/i.test(file.name)) { say(`${file.name}: not a .vrm file`); return false; }
+  say(`loading ${file.name} …`);
+  try {
+    vrmModule = vrmModule || await import('./vrm-avatar.js');
+    const vrm = await vrmModule.parseVrm(await file.arrayBuffer());
+    if (vrmAvatar) vrmAvatar.dispose();
+    attachVrm(vrm);
+    const opt = ui.avatar.querySelector('option[value="vrm"]') || ui.avatar.appendChild(new Option('', 'vrm'));
+    opt.textContent = `${vrmAvatar.name} (VRM ${vrmAvatar.metaVersion})`;
+    setAvatar('vrm');
+    resetView();
+    say(`${file.name}: ${vrmAvatar.name}, VRM ${vrmAvatar.metaVersion}, ${vrmAvatar.bones.filter((b) => b.joint !== undefined).length} bones driven`);
+    return true;
+  } catch (e) {
+    api.errors.push({ code: 'vrm', message: `${file.name}: ${e.message}` });
+    say(`${file.name}: cannot load this avatar (${e.message})`);
+    return false;
+  }
+}
+
+function attachVrm(vrm) {
+  if (!joints.length) throw new Error('wait for the server\'s hello before loading an avatar');
+  // Retarget against the rest pose: put the skeleton at rest while the VRM measures it.
+  const saved = joints.map((o) => [o.position.clone(), o.quaternion.clone()]);
+  const sk = api.hello.skeleton;
+  const rest = sk.rest_rotations || sk.joints.map(() => [1, 0, 0, 0]);
+  joints.forEach((o, j) => { o.position.fromArray(sk.offsets[j]); o.quaternion.set(rest[j][1], rest[j][2], rest[j][3], rest[j][0]); });
+  figure.updateMatrixWorld(true);
+  scene.add(vrm.scene);
+  vrmAvatar = new vrmModule.VrmAvatar(vrm, { joints, humanoid: api.hello.humanoid, forward: body.forward });
+  vrm.scene.updateMatrixWorld(true);
+  vrmAvatar.restBounds = new THREE.Box3().setFromObject(vrm.scene);
+  joints.forEach((o, j) => { o.position.copy(saved[j][0]); o.quaternion.copy(saved[j][1]); });
+  figure.updateMatrixWorld(true);
+  api.vrm = vrmAvatar;
+}
+
+ui.loadVrm.addEventListener('click', () => ui.vrmFile.click());
+ui.vrmFile.addEventListener('change', () => { if (ui.vrmFile.files[0]) loadAvatarFile(ui.vrmFile.files[0]); ui.vrmFile.value = ''; });
+addEventListener('dragover', (e) => { e.preventDefault(); ui.drop.classList.add('show'); });
+addEventListener('dragleave', (e) => { if (!e.relatedTarget) ui.drop.classList.remove('show'); });
+addEventListener('drop', (e) => {
+  e.preventDefault();
+  ui.drop.classList.remove('show');
+  const file = e.dataTransfer && e.dataTransfer.files[0];
+  if (file) loadAvatarFile(file);
+});
+ui.avatar.addEventListener('change', () => { setAvatar(ui.avatar.value); resetView(); });
 
 // ---------------------------------------------------------------- protocol
 let ws = null;
@@ -180,7 +378,9 @@ let reconnectTimer = null;
 let reconnectDelay = 1000;
 let pingSentAt = null;
 let lastIndex = -1;
-const arrivals = [];                // frame arrival times (ms) over the last second, for the fps readout
+const arrivals = [];                // frame arrival times (ms) over the last FPS_WINDOW_MS, for the fps readout
+let firstArrival = null;
+const spoken = [];                  // [local time (s) - pts (s)] of recent speech: when each moment of it was said
 
 async function resolveUrl() {
   let url = params.get('ws');
@@ -207,6 +407,10 @@ function connect(audio = null) {
   mode = audio ? 'talk' : 'view';
   lastIndex = -1;
   playout.offset = null;  // whatever this connection sends starts a new playout clock
+  sourceAudio.clear();
+  spoken.length = 0;
+  arrivals.length = 0;
+  firstArrival = null;
   pingSentAt = null;
   const sock = new WebSocket(api.url);
   sock.binaryType = 'arraybuffer';
@@ -214,7 +418,9 @@ function connect(audio = null) {
   setState('connecting');
   sock.onopen = () => {
     if (sock !== ws) return;
-    const hello = { type: 'hello', protocol: 1, encoding: ENCODING };
+    // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so
+    // nothing but the avatar answers the microphone.
+    const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio };
     if (audio) hello.audio = audio;
     sock.send(JSON.stringify(hello));
     reconnectDelay = 1000;
@@ -234,7 +440,10 @@ function connect(audio = null) {
 
 function onMessage(data) {
   if (typeof data !== 'string') {
-    try { onFrame(decodeBinaryFrame(data)); api.binaryFramesReceived++; } catch (e) { fail(e.message); }
+    try {
+      if (binaryKind(data) === 'DGA1') onSourceAudio(decodeSourceAudio(data));
+      else { onFrame(decodeBinaryFrame(data)); api.binaryFramesReceived++; }
+    } catch (e) { fail(e.message); }
     return;
   }
   let msg;
@@ -243,11 +452,17 @@ function onMessage(data) {
     case 'hello':
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
       api.hello = msg;
-      try { buildSkeleton(msg.skeleton); } catch (e) { fail(e.message); return; }
+      try { buildSkeleton(msg.skeleton, msg.humanoid); } catch (e) { fail(e.message); return; }
       // Buffer one inference window (frames come in bursts of that length) plus some network jitter.
       playout.delayS = (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
+      ui.sound.disabled = !msg.source_audio || mode === 'talk';
+      updateSoundButton();
+      if (msg.source === 'ws' && mode === 'view' && !api.talking) {
+        say('This server has no audio of its own: press Talk and speak.');
+        ui.talk.classList.add('hint');
+      } else ui.talk.classList.remove('hint');
       break;
     case 'frame': onFrame(msg); break;
     case 'status': api.status = msg; break;
@@ -278,10 +493,58 @@ function onFrame(f) {
   api.framesReceived++;
   api.lastFrame = f;
   const now = performance.now();
+  if (firstArrival === null) firstArrival = now;
   arrivals.push(now);
-  while (arrivals.length && arrivals[0] < now - 1000) arrivals.shift();
+  while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
   playout.push(f, now / 1000);
 }
+
+function onSourceAudio(chunk) {
+  // The server releases source audio as it is spoken (a file source is paced in real time), so its arrival
+  // tells when each moment of the speech happened, on our clock.
+  noteSpoken(performance.now() / 1000 - (chunk.pts + chunk.samples.length / chunk.rate));
+  sourceAudio.push(chunk);
+}
+
+function noteSpoken(offset) {
+  const now = performance.now() / 1000;
+  spoken.push([now, offset]);
+  while (spoken.length && spoken[0][0] < now - 5) spoken.shift();
+}
+
+// ---------------------------------------------------------------- sound, pause, view
+function updateSoundButton() {
+  const available = api.hello && api.hello.source_audio && mode === 'view';
+  ui.sound.textContent = !available ? 'No sound' : sourceAudio.muted ? 'Sound off' : sourceAudio.blocked ? 'Sound: click' : 'Sound on';
+  ui.sound.classList.toggle('on', !!available && !sourceAudio.muted);
+}
+
+function setMuted(muted) { sourceAudio.setMuted(muted); updateSoundButton(); }
+
+async function setPaused(paused) {
+  api.paused = paused;
+  ui.pause.textContent = paused ? 'Resume' : 'Pause';
+  ui.pause.classList.toggle('on', paused);
+  ui.paused.classList.toggle('show', paused);
+  await sourceAudio.setPaused(paused);
+}
+
+ui.sound.addEventListener('click', async () => {
+  if (sourceAudio.blocked) await sourceAudio.unlock();  // the click is the gesture the browser waits for
+  else setMuted(!sourceAudio.muted);
+  updateSoundButton();
+});
+ui.pause.addEventListener('click', () => setPaused(!api.paused));
+ui.resetView.addEventListener('click', () => resetView());
+addEventListener('pointerdown', () => { if (sourceAudio.blocked) sourceAudio.unlock().then(updateSoundButton); });
+addEventListener('keydown', (e) => {
+  if (e.target.tagName === 'INPUT' || e.target.tagName === 'SELECT') return;
+  if (e.key === ' ') { e.preventDefault(); setPaused(!api.paused); }
+  else if (e.key === 'r' || e.key === 'R') resetView();
+  else if (e.key === 'm' || e.key === 'M') setMuted(!sourceAudio.muted);
+});
+if (params.get('sound') === 'off') setMuted(true);
+if (params.get('avatar')) api.avatar = params.get('avatar');
 
 // ---------------------------------------------------------------- microphone
 let mic = null;
@@ -289,12 +552,13 @@ let mic = null;
 async function startTalk() {
   if (api.talking) return stopTalk();
   ui.talk.disabled = true;
+  ui.talk.classList.remove('hint');
   try {
     if (!navigator.mediaDevices) throw new Error('needs a secure context: open the page via localhost or https');
     const stream = await navigator.mediaDevices.getUserMedia(
       { audio: { channelCount: 1, echoCancellation: true, noiseSuppression: true, autoGainControl: true } });
     const ctx = new AudioContext();
-    mic = { stream, ctx, node: null };  // set now, so a failure below still releases the microphone
+    mic = { stream, ctx, node: null, samples: 0 };  // set now, so a failure below still releases the microphone
     await ctx.resume();
     const src = ctx.createMediaStreamSource(stream);
     const chunkSamples = Math.round(ctx.sampleRate * 0.02);
@@ -307,8 +571,12 @@ async function startTalk() {
       node = ctx.createScriptProcessor(2048, 1, 1);
       node.onaudioprocess = (e) => sendAudio(new Float32Array(e.inputBuffer.getChannelData(0)));
     }
+    // The node must reach the destination to be pulled; a zero gain makes sure the microphone is never heard.
+    const silence = ctx.createGain();
+    silence.gain.value = 0;
     src.connect(node);
-    node.connect(ctx.destination);  // keeps the node pulled; its output is silence
+    node.connect(silence).connect(ctx.destination);
+    api.micMonitorGain = silence.gain.value;
     mic.node = node;
     api.talking = true;
     api.audioRate = ctx.sampleRate;
@@ -316,6 +584,7 @@ async function startTalk() {
     connect({ rate: ctx.sampleRate, format: AUDIO_FORMAT, channels: 1 });
     ui.talk.textContent = 'Stop';
     ui.talk.classList.add('on');
+    updateSoundButton();
     say(`talking: ${ctx.sampleRate} Hz ${AUDIO_FORMAT}`);
   } catch (e) {
     stopMic();
@@ -363,6 +632,9 @@ function sendAudio(f32) {
   }
   ws.send(buf);
   api.audioChunksSent++;
+  // Our own speech: this chunk's last sample was said just now, at pts = samples sent so far / rate.
+  mic.samples += f32.length;
+  noteSpoken(performance.now() / 1000 - mic.samples / api.audioRate);
 }
 
 ui.talk.addEventListener('click', () => startTalk());
@@ -377,17 +649,39 @@ function say(text) { ui.message.textContent = text; }
 function fail(text) { api.errors.push({ code: 'client', message: text }); say(text); }
 const fmt = (x, d = 1) => (typeof x === 'number' && isFinite(x) ? x.toFixed(d) : '-');
 
+/** Speech -> motion: how long after a moment of speech was said its gesture is on screen. */
+function speechToMotionMs() {
+  if (playout.offset === null) return null;
+  if (spoken.length) {  // measured: the earliest arrival of recent speech is when it was said (least delayed)
+    api.delayMeasured = true;
+    return (playout.offset - Math.min(...spoken.map((s) => s[1]))) * 1000;
+  }
+  // Estimated: the model's lookahead, one window of audio, the server's latency and our playout buffer.
+  const h = api.hello || {}, s = api.status || {};
+  api.delayMeasured = false;
+  return ((h.lookahead_s || 0) + (h.window_ms || 0) / 1000 + (s.latency_ms || 0) / 1000 + playout.delayS) * 1000;
+}
+
 setInterval(() => {
   const s = api.status || {};
-  api.fps = arrivals.length;
+  const now = performance.now();
+  // Frames arrive in bursts of one window: average over FPS_WINDOW_MS (or since the first frame, once 1 s in).
+  const span = firstArrival === null ? 0 : Math.min(FPS_WINDOW_MS, now - firstArrival);
+  while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
+  // Until the window is full, the first burst holds frames made before we started counting: leave it out.
+  const counted = span < FPS_WINDOW_MS ? arrivals.filter((t) => t > firstArrival + 30).length : arrivals.length;
+  api.fps = span >= 1000 ? (counted * 1000) / span : 0;
+  api.delayMs = speechToMotionMs();
   ui.frames.textContent = api.framesReceived;
-  ui.fps.textContent = `${api.fps}` + (api.hello ? ` / ${api.hello.fps}` : '');
+  ui.fps.textContent = (span >= 1000 ? fmt(api.fps, 0) : '-') + (api.hello ? ` / ${api.hello.fps}` : '');
+  ui.delay.textContent = api.delayMs !== null ? `${api.delayMeasured ? '' : '≈ '}${fmt(api.delayMs, 0)} ms` : '-';
   ui.latency.textContent = s.latency_ms !== undefined ? `${fmt(s.latency_ms, 0)} ms` : '-';
   ui.rtt.textContent = api.rttMs !== null ? `${fmt(api.rttMs, 0)} ms` : '-';
   ui.buffer.textContent = api.bufferMs !== null ? `${fmt(api.bufferMs, 0)} ms` : '-';
   ui.rtf.textContent = fmt(s.rtf, 2);
   ui.dropped.textContent = `${s.dropped ?? '-'} / ${api.gaps}`;
   ui.clients.textContent = s.clients ?? '-';
+  updateSoundButton();
 }, 250);
 
 setInterval(() => {  // round trip on the same socket as the frames
