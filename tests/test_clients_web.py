@@ -1,7 +1,9 @@
-"""The browser viewer (clients/web/) in headless Chromium against a live `streamer serve --http`: it builds
-the skeleton from hello and moves it with the frames; the Talk button sends Chromium's fake microphone
-(fed a speech WAV) to the server and gestures come back. Chromium is driven over the DevTools protocol
-with the `websockets` package. Screenshots go to $DIMGESTOR_ARTIFACTS (or the test's tmp folder)."""
+"""The browser viewer (clients/web/) in headless Chromium against a live `streamer serve --http`, in real time:
+it builds the mannequin from hello and moves it with the frames, facing the camera; a generated VRM dropped on
+the page follows the stream; the source audio plays through Web Audio in sync with the frames; the Talk
+button sends Chromium's fake microphone (fed a speech WAV) to the server and gestures come back. Chromium is
+driven over the DevTools protocol with the `websockets` package. Screenshots go to $DIMGESTOR_ARTIFACTS (or
+the test's tmp folder)."""
 
 from __future__ import annotations
 
@@ -19,12 +21,16 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from test_clients_python import SPEECH_WAV, checkpoint, global_rotations, live_server, quat_matrix  # noqa: F401
+from test_clients_python import REPO, SPEECH_WAV, checkpoint, global_rotations, live_server, quat_matrix  # noqa: F401
+from vrm_model import make_vrm
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+THREE_JS = REPO / "clients" / "web" / "node_modules" / "three" / "build" / "three.module.js"
 pytestmark = [pytest.mark.timeout(240),
               pytest.mark.skipif(not CHROMIUM, reason="chromium not installed (Debian: apt-get install chromium; "
-                                 ".ci/run installs it)")]
+                                 ".ci/run installs it)"),
+              pytest.mark.skipif(not THREE_JS.exists(), reason="the viewer's npm dependencies are not installed "
+                                 "(make setup runs npm ci in clients/web)")]
 
 
 class Browser:
@@ -110,14 +116,17 @@ class Browser:
                 self.proc.wait()
 
 
-def assert_figure_drawn(png: Path) -> None:
-    """The screenshot shows the figure: enough pixels in the bone colour (#d9b38c, shaded)."""
+def read_png(png: Path) -> np.ndarray:
     import matplotlib.image
 
-    img = matplotlib.image.imread(str(png))[..., :3]
-    r, g, b = img[..., 0], img[..., 1], img[..., 2]
-    bone = (r > 0.45) & (r > g + 0.05) & (g > b + 0.05)  # warm, light: only the capsules look like this
-    assert bone.sum() > 300, f"{png}: the figure is not visible ({bone.sum()} bone-coloured pixels)"
+    return matplotlib.image.imread(str(png))[..., :3]
+
+
+def assert_figure_drawn(png: Path) -> None:
+    """The screenshot shows the mannequin: enough light, nearly grey pixels (its body) right of the HUD."""
+    img = read_png(png)[:, 300:]
+    light = (img.min(axis=2) > 0.55) & (img.max(axis=2) - img.min(axis=2) < 0.15)  # the background is dark
+    assert light.sum() > 1500, f"{png}: the avatar is not visible ({light.sum()} body-coloured pixels)"
 
 
 def forward_kinematics(skeleton: dict, frame: dict) -> np.ndarray:
@@ -203,3 +212,183 @@ def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, che
             assert browser.eval("window.dimgestor.errors.length") == 0, browser.eval("window.dimgestor.errors")
         finally:
             browser.close()
+
+
+# ---------------------------------------------------------------- the real skeleton: mannequin, sound, VRM
+
+@pytest.fixture(scope="module")
+def default_model_server(tmp_path_factory):
+    """The embedded default model (the ZEGGS skeleton, fingers and feet) on the speech clip, looped; the source
+    starts when the first page connects, so that page hears the clip from its first sample."""
+    with live_server(tmp_path_factory.mktemp("web_default"), str(SPEECH_WAV), None, http=True, loop=True,
+                     extra=("--wait-client",)) as s:
+        yield s
+
+
+def humanoid_positions(browser: Browser) -> dict[str, np.ndarray]:
+    """World positions (m) of the streamed skeleton's humanoid joints, by HumanBodyBones name."""
+    hello = browser.eval("window.dimgestor.hello")
+    names = hello["skeleton"]["joints"]
+    pos = browser.positions()
+    return {bone: pos[names.index(joint)] for bone, joint in hello["humanoid"].items()}
+
+
+def facing_cosine(browser: Browser) -> float:
+    """cos of the angle between where the body faces (from its joints) and where the camera is, on the floor."""
+    p = humanoid_positions(browser)
+    left, up = p["LeftUpperLeg"] - p["RightUpperLeg"], p["Head"] - p["Hips"]
+    forward = np.cross(left, up) * [1, 0, 1]
+    to_camera = (np.asarray(browser.eval("window.dimgestor.cameraPosition()")) - p["Hips"]) * [1, 0, 1]
+    return float(forward @ to_camera / np.linalg.norm(forward) / np.linalg.norm(to_camera))
+
+
+# Records what the page's sound output plays (its master gain node), sample by sample, with the context frame
+# of each render quantum: an AudioWorklet on the page's own AudioContext.
+RECORDER = """(async () => {
+  const audio = window.dimgestor.sourceAudio, ctx = audio.context();
+  const code = `registerProcessor('rec', class extends AudioWorkletProcessor {
+    process(inputs) { const x = inputs[0][0]; this.port.postMessage({frame: currentFrame, x: x ? x.slice() : null,
+                      n: 128}); return true; } });`;
+  await ctx.audioWorklet.addModule(URL.createObjectURL(new Blob([code], {type: 'text/javascript'})));
+  const node = new AudioWorkletNode(ctx, 'rec');
+  window.rec = {start: null, blocks: []};
+  node.port.onmessage = (e) => { if (window.rec.start === null) window.rec.start = e.data.frame;
+                                 window.rec.blocks.push(e.data); };
+  audio.gain.connect(node);
+  node.connect(ctx.destination);
+  return ctx.sampleRate;
+})()"""
+
+RECORDING = """(() => {
+  const r = window.rec, n = r.blocks.length ? r.blocks[r.blocks.length - 1].frame + 128 - r.start : 0;
+  const pcm = new Int16Array(n);
+  for (const b of r.blocks) if (b.x) for (let i = 0; i < b.x.length; i++)
+    pcm[b.frame - r.start + i] = Math.max(-32768, Math.min(32767, Math.round(b.x[i] * 32767)));
+  let s = ''; const u8 = new Uint8Array(pcm.buffer);
+  for (let i = 0; i < u8.length; i += 8192) s += String.fromCharCode(...u8.subarray(i, i + 8192));
+  return {start: r.start, pcm: btoa(s)};
+})()"""
+
+
+def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync(tmp_path, default_model_server):
+    from scipy.signal import resample_poly
+
+    from dimgestor.audio import load_wav
+
+    server = default_model_server
+    browser = Browser(tmp_path, server.http_url)
+    try:
+        browser.wait_for("!!(window.dimgestor && window.dimgestor.sourceAudio.ctx)", 60, "the first source audio")
+        rate = browser.eval(RECORDER)
+        browser.wait_for("!!window.dimgestor.shownFrame", 60, "a frame on screen")
+        assert browser.eval("window.dimgestor.avatar") == "mannequin"
+        time.sleep(1.5)  # the view is framed on the first frames, then keeps in front of the avatar as it turns
+        cosines = []
+        for _ in range(3):
+            cosines.append(facing_cosine(browser))
+            time.sleep(0.3)
+        assert min(cosines) > 0.7, f"the avatar does not face the camera at start (cos {np.round(cosines, 2)})"
+
+        # The audio clock advances, and the frame on screen is the one whose pts is being heard.
+        samples = []
+        for _ in range(12):
+            time.sleep(0.4)
+            samples.append(browser.eval("(() => { const c = window.dimgestor.sourceAudio.ctx; return {t: c.currentTime, "
+                                        "lat: c.outputLatency || 0, pts: window.dimgestor.shownFrame.pts}; })()"))
+        t = np.array([s["t"] for s in samples])
+        assert np.all(np.diff(t) > 0.1), f"the page's audio clock does not advance: {t}"
+        rec = browser.eval(RECORDING)
+        png_a = browser.screenshot(tmp_path / "web_mannequin_a.png")
+        time.sleep(0.7)
+        png_b = browser.screenshot(tmp_path / "web_mannequin_b.png")
+        browser.eval("window.dimgestor.setAvatar('skeleton')")
+        time.sleep(0.3)
+        png_skeleton = browser.screenshot(tmp_path / "web_skeleton.png")
+        errors = browser.eval("window.dimgestor.errors")
+    finally:
+        browser.close()
+    assert not errors, errors
+
+    # What the page played is the source from its first sample on: the recording, brought to 16 kHz, lines
+    # up with the clip (strong correlation) and the clip's start lands where the sound starts.
+    played = np.frombuffer(base64.b64decode(rec["pcm"]), "<i2").astype(np.float32) / 32767
+    played16 = resample_poly(played, 16000, rate).astype(np.float32) if rate != 16000 else played
+    source = load_wav(SPEECH_WAV).astype(np.float32)
+    onset = int(np.argmax(np.abs(played16) > 0.01))
+    np.save(tmp_path / "played16.npy", played16)
+    assert np.abs(played16).max() > 0.1, f"nothing was played ({len(played16)} samples recorded)"
+    assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
+    n = 16000
+    seg = played16[onset : onset + n]
+    window = source[: 2 * n]
+    energy = np.convolve(window**2, np.ones(n), "valid")  # |source[k:k+n]|^2 for every lag k
+    corr = np.correlate(window, seg, mode="valid") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
+    lag = int(np.argmax(corr))
+    assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f})"
+    assert lag < 0.03 * 16000, f"the sound started {lag / 16000:.3f} s into the source, not at its start"
+
+    # Sync: at context time T the listener hears source time (T - lat) * rate -> recording index -> pts.
+    start_s = rec["start"] / rate
+    errors_s = []
+    for s in samples:
+        heard_idx = (s["t"] - s["lat"] - start_s) * 16000  # index into played16
+        pts_heard = (heard_idx - onset + lag) / 16000        # source time being heard (the source starts at pts 0)
+        if 0 < heard_idx < len(played16):
+            errors_s.append(s["pts"] - pts_heard)
+    print(f"frame pts - heard pts (s): {np.round(errors_s, 3)}")
+    assert len(errors_s) >= 5 and np.all(np.abs(errors_s) < 0.1), f"frames and sound out of sync: {errors_s}"
+
+    # Two moments differ on screen (it moves), and the skeleton toggle draws something else.
+    a, b, sk = read_png(png_a), read_png(png_b), read_png(png_skeleton)
+    assert_figure_drawn(png_a)
+    assert np.abs(a[:, 300:] - b[:, 300:]).max(axis=2).__gt__(0.1).sum() > 200, "the avatar did not move between two moments"
+    assert np.abs(b[:, 300:] - sk[:, 300:]).max(axis=2).__gt__(0.1).sum() > 2000, "the skeleton toggle changed nothing"
+
+
+@pytest.mark.parametrize("version", ["1.0", "0.0"])
+def test_web_a_dropped_vrm_follows_the_stream(tmp_path, default_model_server, version):
+    vrm = make_vrm(version)
+    server = default_model_server
+    browser = Browser(tmp_path, server.http_url + "?sound=off")
+    try:
+        browser.wait_for("!!(window.dimgestor && window.dimgestor.shownFrame)", 60, "a frame on screen")
+        # The drop code path: a file dropped on the page.
+        browser.eval(f"""(() => {{
+          const bytes = Uint8Array.from(atob('{base64.b64encode(vrm).decode()}'), (c) => c.charCodeAt(0));
+          const dt = new DataTransfer();
+          dt.items.add(new File([bytes], 'test-{version}.vrm'));
+          document.body.dispatchEvent(new DragEvent('drop', {{dataTransfer: dt, bubbles: true, cancelable: true}}));
+        }})()""")
+        browser.wait_for("!!window.dimgestor.vrm && window.dimgestor.avatar === 'vrm'", 30, "the VRM to load")
+        assert browser.eval("window.dimgestor.vrm.metaVersion") == version[0]
+        time.sleep(0.5)
+
+        def pose():
+            both = browser.eval("({vrm: window.dimgestor.vrm.boneWorldPositions(), src: window.dimgestor.jointWorldPositions()})")
+            return {k: np.asarray(v) for k, v in both["vrm"].items()}, both["src"]
+
+        hello = browser.eval("window.dimgestor.hello")
+        names = hello["skeleton"]["joints"]
+        first, _ = pose()
+        time.sleep(1.0)
+        second, src = pose()
+        moved = max(np.linalg.norm(first[b] - second[b]) for b in ("leftHand", "rightHand", "leftLowerArm", "rightLowerArm"))
+        assert moved > 0.01, f"the VRM's arms did not move with the stream ({moved * 100:.1f} cm)"
+        # Retargeted, not just moving: each limb points where the streamed skeleton's limb points.
+        src = np.asarray(src)
+        for a, b, ja, jb in [("leftUpperArm", "leftLowerArm", "LeftUpperArm", "LeftLowerArm"),
+                             ("rightLowerArm", "rightHand", "RightLowerArm", "RightHand"),
+                             ("leftUpperLeg", "leftLowerLeg", "LeftUpperLeg", "LeftLowerLeg"),
+                             ("spine", "chest", "Spine", "Chest")]:
+            d_vrm = second[b] - second[a]
+            d_src = src[names.index(hello["humanoid"][jb])] - src[names.index(hello["humanoid"][ja])]
+            cos = d_vrm @ d_src / np.linalg.norm(d_vrm) / np.linalg.norm(d_src)
+            assert cos > 0.97, f"VRM {version} {a}->{b} points elsewhere than the skeleton's (cos {cos:.3f})"
+        time.sleep(0.3)
+        png = browser.screenshot(tmp_path / f"web_vrm_{version}.png")
+        assert browser.eval("window.dimgestor.errors.length") == 0, browser.eval("window.dimgestor.errors")
+    finally:
+        browser.close()
+    img = read_png(png)[:, 300:]
+    skin = (img[..., 0] > 0.45) & (img[..., 0] > img[..., 2] + 0.15)  # the test avatar's boxes are skin-coloured
+    assert skin.sum() > 100, f"{png}: the VRM is not visible ({skin.sum()} pixels)"

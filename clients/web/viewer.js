@@ -90,6 +90,7 @@ try {
   controls = new OrbitControls(camera, renderer.domElement);
   controls.target.set(0, 1, 0);
   controls.enableDamping = true;
+  controls.addEventListener('start', () => { faceFollow = false; });  // the user takes the camera
 } catch (e) {
   // Joints are still tracked (jointWorldPositions works); only drawing is lost.
   say(`WebGL unavailable: ${e.message}`);
@@ -211,16 +212,23 @@ function facing() {
   return { forward: fwd.toArray(), toCamera: toCam.toArray(), cos: fwd.dot(toCam) };
 }
 
-/** The avatar's forward direction now (horizontal, world): its rest facing turned by the root joint. */
+/** The avatar's forward direction now (horizontal, world): from where its left and right legs (or arms) and
+ * its head are, like a person would judge it; the rest facing turned by the root where those are missing. */
 function currentForward() {
-  const hips = joints[roots[0]];
   figure.updateMatrixWorld(true);
-  const q = hips.getWorldQuaternion(new THREE.Quaternion());
-  const restQ = new THREE.Quaternion();
-  const r = api.hello.skeleton.rest_rotations;
-  if (r) restQ.set(r[roots[0]][1], r[roots[0]][2], r[roots[0]][3], r[roots[0]][0]);
-  const fwd = body.forward.clone().applyQuaternion(q.multiply(restQ.invert())).setY(0);
-  return fwd.lengthSq() > 1e-6 ? fwd.normalize() : body.forward.clone();
+  const idx = (b) => api.hello.skeleton.joints.indexOf((api.hello.humanoid || {})[b]);
+  const pos = (j) => joints[j].getWorldPosition(new THREE.Vector3());
+  let fwd = null;
+  for (const [l, r] of [['LeftUpperLeg', 'RightUpperLeg'], ['LeftUpperArm', 'RightUpperArm']]) {
+    const [jl, jr, jh, jt] = [idx(l), idx(r), idx('Hips'), idx('Head')];
+    if (jl < 0 || jr < 0) continue;
+    const left = pos(jl).sub(pos(jr));
+    const up = jh >= 0 && jt >= 0 ? pos(jt).sub(pos(jh)) : new THREE.Vector3(0, 1, 0);
+    fwd = left.cross(up).setY(0);
+    break;
+  }
+  if (!fwd) fwd = body.forward.clone().applyQuaternion(joints[roots[0]].getWorldQuaternion(new THREE.Quaternion())).setY(0);
+  return fwd.lengthSq() > 1e-9 ? fwd.normalize() : body.forward.clone();
 }
 
 /** Put the camera in front of the avatar as it stands now, the whole body in view. */
@@ -246,6 +254,7 @@ function resetView() {
   if (controls) { controls.target.copy(center); controls.update(); }
   camera.lookAt(center);
   followFrom = hips.clone();
+  faceFollow = true;
 }
 
 function applyFrame(f) {
@@ -298,10 +307,26 @@ function jointWorldPositions() {
 }
 
 let followFrom = null;  // where the hips were when the view was last framed: the camera follows them from there
+let faceFollow = true;  // the camera keeps in front of the avatar as it turns, until the user moves the view
+const FACE_FOLLOW_S = 0.8;
+let lastRender = performance.now();
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
+  const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
+  lastRender = t;
+  if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
+    // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
+    const fwd = currentForward();
+    const arm = camera.position.clone().sub(controls.target);
+    const diff = Math.atan2(Math.sin(Math.atan2(fwd.x, fwd.z) - Math.atan2(arm.x, arm.z)),
+                            Math.cos(Math.atan2(fwd.x, fwd.z) - Math.atan2(arm.x, arm.z)));
+    const turn = diff * (1 - Math.exp(-dt / FACE_FOLLOW_S));
+    arm.applyAxisAngle(new THREE.Vector3(0, 1, 0), turn);
+    camera.position.copy(controls.target).add(arm);
+    lights.rotation.y += turn;
+  }
   if (joints.length && followFrom) {
     // Follow the avatar across the floor (root motion), not up and down.
     const hips = joints[roots[0]].getWorldPosition(new THREE.Vector3());
