@@ -275,6 +275,27 @@ const playout = new FramePlayout();
 api.playout = playout;
 let lastShowAt = performance.now();
 let needFraming = false;
+let avOffset = null;      // with sound: the one clock of picture and sound (local seconds minus pts)
+let starvedSince = null;
+api.avResyncs = 0;
+
+/**
+ * The clock the picture follows: the playout's own, or with the source's sound the sound's. The sound cannot
+ * jump each time a frame comes late (playout.js re-anchors then), so with sound the picture holds its last frame
+ * instead, and the shared clock moves only when frames stay late (once, with margin) or pile up far ahead.
+ */
+function clockOffset(now) {
+  if (playout.offset === null || mode !== 'view' || !sourceAudio.chunks.length) { avOffset = null; return playout.offset; }
+  if (avOffset === null) avOffset = playout.offset;
+  const newest = playout.queue[playout.queue.length - 1];
+  const want = now - avOffset;
+  if (newest && newest.pts < want - 0.15) {
+    if (starvedSince === null) starvedSince = now;
+    if (now - starvedSince > 0.3) { avOffset += want - newest.pts + 0.1; starvedSince = null; api.avResyncs++; }
+  } else starvedSince = null;
+  if (newest && newest.pts - want > 3) { avOffset = now - newest.pts + playout.delayS; api.avResyncs++; }
+  return avOffset;
+}
 
 function showPose() {
   const nowMs = performance.now();
@@ -282,14 +303,15 @@ function showPose() {
   lastShowAt = nowMs;
   if (api.paused) return;
   const now = nowMs / 1000;
-  sourceAudio.sync(playout.offset, now);
-  const pose = playout.sample(now);
+  const offset = clockOffset(now);
+  sourceAudio.sync(offset, now);
+  const pose = offset === null ? null : playout.sample(now - offset + playout.offset);  // the pose at pts now - offset
   if (!pose || !joints.length) return;
   if (pose !== api.shownFrame) {
     applyFrame(pose);
     api.shownFrame = pose;
     const newest = playout.queue[playout.queue.length - 1];
-    api.bufferMs = (newest.pts - (now - playout.offset)) * 1000;
+    api.bufferMs = (newest.pts - (now - offset)) * 1000;
     if (needFraming) { needFraming = false; resetView(); }
   }
   if (vrmAvatar && api.avatar === 'vrm') {
@@ -432,6 +454,7 @@ function connect(audio = null) {
   mode = audio ? 'talk' : 'view';
   lastIndex = -1;
   playout.offset = null;  // whatever this connection sends starts a new playout clock
+  avOffset = null;
   sourceAudio.clear();
   spoken.length = 0;
   arrivals.length = 0;
@@ -676,10 +699,11 @@ const fmt = (x, d = 1) => (typeof x === 'number' && isFinite(x) ? x.toFixed(d) :
 
 /** Speech -> motion: how long after a moment of speech was said its gesture is on screen. */
 function speechToMotionMs() {
-  if (playout.offset === null) return null;
+  const offset = avOffset !== null ? avOffset : playout.offset;
+  if (offset === null) return null;
   if (spoken.length) {  // measured: the earliest arrival of recent speech is when it was said (least delayed)
     api.delayMeasured = true;
-    return (playout.offset - Math.min(...spoken.map((s) => s[1]))) * 1000;
+    return (offset - Math.min(...spoken.map((s) => s[1]))) * 1000;
   }
   // Estimated: the model's lookahead, one window of audio, the server's latency and our playout buffer.
   const h = api.hello || {}, s = api.status || {};
