@@ -76,3 +76,19 @@ def test_audio_decoding():
         with pytest.raises(P.ProtocolError) as e:
             P.decode_audio(data, fmt)
         assert e.value.code == code
+
+
+def test_source_audio_messages_round_trip_and_the_hello_field_is_checked():
+    x = np.array([0.5, -0.25, 0.0, 1.0, -1.0, 2.0], np.float32)  # 2.0 clips
+    buf = P.source_audio_binary(12.345, x)
+    assert buf[:4] == P.AUDIO_MAGIC and len(buf) == P.AUDIO_HEADER.size + 2 * len(x) == 16 + 12
+    d = P.parse_source_audio_binary(buf)
+    assert d["rate"] == P.AUDIO_RATE and d["pts"] == 12.345
+    np.testing.assert_allclose(d["samples"], np.clip(x, -1, 1), atol=1 / 32767)
+    for bad in (buf[:-1], b"DGF1" + buf[4:]):
+        with pytest.raises(ValueError):
+            P.parse_source_audio_binary(bad)
+    assert P.parse_text('{"type": "hello", "source_audio": true}')["source_audio"] is True
+    with pytest.raises(P.ProtocolError) as e:
+        P.parse_text('{"type": "hello", "source_audio": "yes"}')
+    assert e.value.code == "bad_message"

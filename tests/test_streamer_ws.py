@@ -200,3 +200,85 @@ def test_other_protocol_versions_and_refused_audio(bundle):
         return code
 
     assert asyncio.run(run()) == 1002
+
+
+def test_source_audio_goes_to_the_viewers_that_ask_replayed_to_late_joiners_and_never_to_talkers(bundle):
+    """Revision 1: `source_audio: true` in a client's hello -> DGA1 messages of the server source's audio (the
+    recent past replayed to a late joiner); nothing to clients that did not ask, and a client that talks gets
+    its own frames and no audio at all from then on: never its own voice back."""
+    rng = np.random.default_rng(5)
+    source = np.clip(0.3 * rng.standard_normal(int(1.6 * P.AUDIO_RATE)), -0.99, 0.99).astype(np.float32)
+    chunk = 320  # 20 ms, as a WAV source reads it
+    mic = np.round(synthetic_speech(2.0, rate=16000, seed=2) * 32767 * 0.8).astype("<i2")
+
+    async def collect_until_pong(c, talker=False):
+        await c.send(json.dumps({"type": "ping", "t": 9}))
+        got, own_frames = [], 0
+        while True:
+            m = await asyncio.wait_for(c.recv(), 30)
+            if isinstance(m, bytes) and m[:4] == P.AUDIO_MAGIC:
+                got.append((own_frames, P.parse_source_audio_binary(m)))
+            elif isinstance(m, bytes) or json.loads(m)["type"] == "frame":
+                own_frames += 1
+            elif json.loads(m)["type"] == "pong" and (not talker or own_frames):
+                return got, own_frames
+
+    async def broadcast(start, stop):
+        for i in range(start, stop, chunk):
+            ws.broadcast_audio(i / P.AUDIO_RATE, source[i : i + chunk])
+            await asyncio.sleep(0.002)
+
+    async def run():
+        nonlocal ws
+        ws = make_server(bundle)
+        ws.hello = {**ws.hello, "source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
+        await ws.start()
+        async with connect(ws.url) as early, connect(ws.url) as deaf, connect(ws.url) as talker:
+            for c in (early, deaf, talker):
+                hello = await recv_json(c)
+            await early.send(json.dumps({"type": "hello", "protocol": 1, "source_audio": True, "encoding": "binary"}))
+            await deaf.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
+            await talker.send(json.dumps({"type": "hello", "protocol": 1, "source_audio": True, "encoding": "binary",
+                                          "audio": {"rate": 16000, "format": "pcm16", "channels": 1}}))
+            while len(ws.clients) < 3 or sum(c.source_audio for c in ws.clients) < 2:
+                await asyncio.sleep(0.01)
+            half = 8 * 1600  # 0.8 s, a whole number of DGA1 messages
+            await broadcast(0, half)
+            await talker.send(mic.tobytes())  # from now on it talks: its own frames, no source audio
+            await talker.send(json.dumps({"type": "audio_end"}))
+            async with connect(ws.url) as late:
+                await recv_json(late)
+                await late.send(json.dumps({"type": "hello", "protocol": 1, "source_audio": True}))
+                while sum(c.source_audio for c in ws.clients) < 3:
+                    await asyncio.sleep(0.01)
+                await broadcast(half, len(source))
+                ws.broadcast_end(0)
+                results = [await collect_until_pong(c) for c in (early, deaf, late)]
+            results.append(await collect_until_pong(talker, talker=True))
+        await ws.close()
+        return hello, results
+
+    ws = None
+    hello, (early, deaf, late, talker) = asyncio.run(run())
+    assert hello["revision"] >= 1 and hello["source_audio"]["rate"] == P.AUDIO_RATE
+
+    def audio_of(got):
+        pts = [a["pts"] for _, a in got]
+        samples = np.concatenate([a["samples"] for _, a in got]) if got else np.zeros(0)
+        return pts, samples, {a["rate"] for _, a in got}
+
+    for name, got in (("early", early), ("late", late)):
+        pts, samples, rates = audio_of(got[0])
+        assert rates == {P.AUDIO_RATE}, name
+        # Every sample once, in order, each message stamped with the pts of its first sample.
+        assert len(samples) == len(source), f"{name}: {len(samples)} of {len(source)} samples"
+        np.testing.assert_allclose(samples, source, atol=1.5 / 32767)
+        assert np.allclose(pts, np.cumsum([0] + [len(a["samples"]) for _, a in got[0][:-1]]) / P.AUDIO_RATE)
+    assert deaf[0] == [], "a client that did not ask got source audio"
+    # The talker: nothing after its first own frame, and whatever came before is the source, never its voice.
+    got, own_frames = talker
+    assert own_frames > 0
+    assert all(before == 0 for before, _ in got), "source audio reached a client that talks"
+    pts, samples, _ = audio_of(got)
+    n = min(len(samples), len(source))
+    np.testing.assert_allclose(samples[:n], source[:n], atol=1.5 / 32767)

@@ -6,6 +6,10 @@
 // offset is set when a stream starts (first frame shown `delay` seconds after it arrived), grows when a
 // frame arrives too late to be shown on time, and shrinks when more than 2 x delay is buffered (so a
 // server that caught up after a stall does not leave the viewer behind for good).
+//
+// The web viewer plays the source's sound too, and sound cannot jump at every late burst: it keeps the queue
+// and interpolation here but takes its clock from av-clock.js (picture and sound on one clock, a jitter
+// buffer sized from the lateness seen) through sampleAt(pts).
 const MAX_QUEUE = 256;
 const LATE_MARGIN_S = 0.02;
 
@@ -36,9 +40,13 @@ export class FramePlayout {
 
   /** The pose to show at local time `now`: {pts, root, rotations}, interpolated; null before any frame. */
   sample(now) {
+    return this.queue.length ? this.sampleAt(now - this.offset) : null;
+  }
+
+  /** The pose at presentation time `t` (for a clock kept outside, e.g. av-clock.js); null before any frame. */
+  sampleAt(t) {
     const q = this.queue;
     if (!q.length) return null;
-    const t = now - this.offset;
     while (q.length > 1 && q[1].pts <= t) q.shift();  // keep the last frame at or before t
     const a = q[0];
     const b = q[1];

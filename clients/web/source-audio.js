@@ -1,20 +1,23 @@
 // The server source's audio (DGA1 messages, docs/protocol.md) played through Web Audio in sync with the motion.
 //
-// Frames are shown at local time pts + offset (playout.js). Audio chunks carry the pts of their first sample, so
-// chunk k is scheduled to be *heard* at pts_k + offset: the AudioContext's output timestamp maps the page's clock
-// to the context's. Consecutive chunks are butted together (no clicks from clock jitter) unless the mapping moved
-// by more than RESYNC_S; when the playout clock jumps (late frames, pause) everything is rescheduled.
+// Picture and sound follow one clock (av-clock.js): the pts presented at local time `now` is `now - offset`.
+// Audio chunks carry the pts of their first sample, so the audio of pts p is scheduled to be *heard* at local
+// time p + offset: the AudioContext's output timestamp maps the page's clock to the context's. Sound is
+// scheduled only as far as the clock's horizon (the newest frame there is), in pieces butted together sample
+// for sample, so it never runs ahead of a picture waiting for late frames; when the clock moves (it rebuilt its
+// buffer after an underrun, or caught up) the schedule is made afresh from the pts presented now.
 const RESYNC_S = 0.03;
-const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock jump), seconds
+const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock move), seconds
 
 export class SourceAudio {
   constructor() {
     this.ctx = null;
     this.gain = null;
-    this.chunks = [];     // {pts, end, buffer}, in pts order
+    this.chunks = [];     // {pts, end, rate, buffer}, in pts order
     this.playing = [];    // {src, chunk}
-    this.next = null;     // context time where the last scheduled chunk ends
-    this.offset = null;   // the playout offset the schedule was made for
+    this.next = null;     // context time where the last scheduled piece ends
+    this.until = null;    // pts where the last scheduled piece ends
+    this.offset = null;   // the clock offset the schedule was made for
     this.muted = false;
     this.paused = false;
     this.chunksReceived = 0;
@@ -61,12 +64,11 @@ export class SourceAudio {
     const ctx = this.context();
     const buffer = ctx.createBuffer(1, chunk.samples.length, chunk.rate);
     buffer.copyToChannel(chunk.samples, 0);
-    const c = { pts: chunk.pts, end: chunk.pts + chunk.samples.length / chunk.rate, buffer };
+    const c = { pts: chunk.pts, end: chunk.pts + chunk.samples.length / chunk.rate, rate: chunk.rate, buffer };
     const last = this.chunks[this.chunks.length - 1];
     if (last && c.pts < last.pts - 1) this.clear();  // the source started over: a new audio clock
     this.chunks.push(c);
     this.chunksReceived++;
-    if (this.offset !== null) this.schedule(c);
   }
 
   /** Forget everything (a new stream or connection). */
@@ -80,18 +82,26 @@ export class SourceAudio {
     for (const p of this.playing) { try { p.src.stop(); } catch (e) { /* already ended */ } p.src.disconnect(); }
     this.playing = [];
     this.next = null;
+    this.until = null;
   }
 
-  reset() { this.stopAll(); if (this.offset !== null) this.chunks.forEach((c) => this.schedule(c)); }
+  /** Schedule afresh from the pts presented now (the context's clock stood still, or the clock moved). */
+  reset() { this.stopAll(); }
 
-  /** Follow the playout clock: `offset` = local seconds minus pts (null: no frames yet). */
-  sync(offset, now) {
+  /**
+   * Follow the shared clock: `offset` = local seconds minus pts (null: no frames yet), `horizon` = the pts
+   * the sound may be scheduled up to (the newest frame; while the picture holds, where it holds).
+   */
+  sync(offset, now, horizon) {
     if (offset === null) { if (this.offset !== null) { this.stopAll(); this.offset = null; } return; }
     while (this.chunks.length && this.chunks[0].end < now - offset - KEEP_S) this.chunks.shift();
     if (this.offset === null || Math.abs(offset - this.offset) > RESYNC_S) {
       this.offset = offset;
-      this.reset();
+      this.stopAll();
     }
+    if (this.paused || !this.ctx || this.ctx.state !== 'running') return;
+    const from = this.until !== null ? this.until : now - offset;
+    if (horizon !== null && horizon > from) this.scheduleRange(from, horizon);
   }
 
   /** Context time at which the page's clock (performance.now() seconds) reads `t`, as heard at the output. */
@@ -108,23 +118,36 @@ export class SourceAudio {
     return now - this.offset;
   }
 
-  schedule(c) {
+  /** Schedule the audio of pts [from, to) that is there; `until` moves to where the audio there ends. */
+  scheduleRange(from, to) {
+    for (const c of this.chunks) {
+      if (c.end <= from) continue;
+      if (c.pts >= to) break;
+      // Whole samples of this chunk: a piece ends where the next one starts, sample for sample.
+      const i0 = Math.max(0, Math.round((from - c.pts) * c.rate));
+      const i1 = Math.min(c.buffer.length, Math.round((to - c.pts) * c.rate));
+      if (i1 > i0) this.schedulePiece(c, i0, i1);
+      from = c.pts + i1 / c.rate;
+      this.until = from;
+    }
+  }
+
+  schedulePiece(c, i0, i1) {
     const ctx = this.ctx;
-    if (this.paused || ctx.state === 'closed') return;
-    let when = this.contextTimeAt(c.pts + this.offset);
+    let when = this.contextTimeAt(c.pts + i0 / c.rate + this.offset);
     if (this.next !== null && Math.abs(when - this.next) < RESYNC_S) when = this.next;  // butt-join
-    const dur = c.buffer.duration;
+    const dur = (i1 - i0) / c.rate;
+    this.next = when + dur;
     const soonest = ctx.currentTime + 0.005;
     if (when + dur <= soonest) return;  // already past
     const skip = Math.max(0, soonest - when);
     const src = ctx.createBufferSource();
     src.buffer = c.buffer;
     src.connect(this.gain);
-    src.start(when + skip, skip);
+    src.start(when + skip, i0 / c.rate + skip, dur - skip);
     const entry = { src, chunk: c };
     this.playing.push(entry);
     src.onended = () => { const i = this.playing.indexOf(entry); if (i >= 0) this.playing.splice(i, 1); };
-    this.samplesScheduled += Math.round((dur - skip) * c.buffer.sampleRate);
-    this.next = when + dur;
+    this.samplesScheduled += Math.round((dur - skip) * c.rate);
   }
 }

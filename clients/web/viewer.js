@@ -9,6 +9,7 @@
 //                  ?sound=off           (start muted)
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { PlayoutClock } from './av-clock.js';
 import { FramePlayout } from './playout.js';
 import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
 import { buildMannequin } from './mannequin.js';
@@ -35,7 +36,7 @@ const api = window.dimgestor = {
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
   gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
-  avatar: 'mannequin', vrm: null, paused: false, sourceAudio,
+  avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
   loadAvatarFile: (file) => loadAvatarFile(file), setAvatar: (m) => setAvatar(m), resetView: () => resetView(),
@@ -270,32 +271,14 @@ function applyFrame(f) {
   }
 }
 
-// Frames are shown at their presentation time, not on arrival (they come in bursts): see playout.js.
+// Frames are shown at their presentation time, not on arrival (they come in bursts): playout.js keeps them and
+// interpolates; av-clock.js is the one clock of picture and sound (a jitter buffer sized from the lateness seen).
 const playout = new FramePlayout();
+const clock = new PlayoutClock();
 api.playout = playout;
+api.clock = clock;
 let lastShowAt = performance.now();
 let needFraming = false;
-let avOffset = null;      // with sound: the one clock of picture and sound (local seconds minus pts)
-let starvedSince = null;
-api.avResyncs = 0;
-
-/**
- * The clock the picture follows: the playout's own, or with the source's sound the sound's. The sound cannot
- * jump each time a frame comes late (playout.js re-anchors then), so with sound the picture holds its last frame
- * instead, and the shared clock moves only when frames stay late (once, with margin) or pile up far ahead.
- */
-function clockOffset(now) {
-  if (playout.offset === null || mode !== 'view' || !sourceAudio.chunks.length) { avOffset = null; return playout.offset; }
-  if (avOffset === null) avOffset = playout.offset;
-  const newest = playout.queue[playout.queue.length - 1];
-  const want = now - avOffset;
-  if (newest && newest.pts < want - 0.15) {
-    if (starvedSince === null) starvedSince = now;
-    if (now - starvedSince > 0.3) { avOffset += want - newest.pts + 0.1; starvedSince = null; api.avResyncs++; }
-  } else starvedSince = null;
-  if (newest && newest.pts - want > 3) { avOffset = now - newest.pts + playout.delayS; api.avResyncs++; }
-  return avOffset;
-}
 
 function showPose() {
   const nowMs = performance.now();
@@ -303,15 +286,15 @@ function showPose() {
   lastShowAt = nowMs;
   if (api.paused) return;
   const now = nowMs / 1000;
-  const offset = clockOffset(now);
-  sourceAudio.sync(offset, now);
-  const pose = offset === null ? null : playout.sample(now - offset + playout.offset);  // the pose at pts now - offset
+  const t = clock.time(now);
+  sourceAudio.sync(clock.offset, now, clock.horizon());
+  const pose = t === null ? null : playout.sampleAt(t);
   if (!pose || !joints.length) return;
   if (pose !== api.shownFrame) {
     applyFrame(pose);
     api.shownFrame = pose;
-    const newest = playout.queue[playout.queue.length - 1];
-    api.bufferMs = (newest.pts - (now - offset)) * 1000;
+    api.shownAt = now;
+    api.bufferMs = (clock.newestPts - t) * 1000;
     if (needFraming) { needFraming = false; resetView(); }
   }
   if (vrmAvatar && api.avatar === 'vrm') {
@@ -337,6 +320,7 @@ function render() {
   showPose();
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
+  api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
@@ -360,7 +344,9 @@ function render() {
     key.target.position.add(step);
   }
   controls.update();
+  const r0 = performance.now();
   renderer.render(scene, camera);
+  api.renderMs = api.renderMs === null ? performance.now() - r0 : 0.9 * api.renderMs + 0.1 * (performance.now() - r0);
 }
 fitViewport();
 render();
@@ -426,7 +412,6 @@ let reconnectDelay = 1000;
 let pingSentAt = null;
 let lastIndex = -1;
 const arrivals = [];                // frame arrival times (ms) over the last FPS_WINDOW_MS, for the fps readout
-let firstArrival = null;
 const spoken = [];                  // [local time (s) - pts (s)] of recent speech: when each moment of it was said
 
 async function resolveUrl() {
@@ -454,11 +439,11 @@ function connect(audio = null) {
   mode = audio ? 'talk' : 'view';
   lastIndex = -1;
   playout.offset = null;  // whatever this connection sends starts a new playout clock
-  avOffset = null;
+  playout.queue = [];
+  clock.reset();
   sourceAudio.clear();
   spoken.length = 0;
   arrivals.length = 0;
-  firstArrival = null;
   pingSentAt = null;
   const sock = new WebSocket(api.url);
   sock.binaryType = 'arraybuffer';
@@ -503,6 +488,7 @@ function onMessage(data) {
       try { buildSkeleton(msg.skeleton, msg.humanoid); } catch (e) { fail(e.message); return; }
       // Buffer one inference window (frames come in bursts of that length) plus some network jitter.
       playout.delayS = (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
+      clock.setBaseMargin(playout.delayS);
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
       ui.sound.disabled = !msg.source_audio || mode === 'talk';
@@ -541,10 +527,10 @@ function onFrame(f) {
   api.framesReceived++;
   api.lastFrame = f;
   const now = performance.now();
-  if (firstArrival === null) firstArrival = now;
   arrivals.push(now);
   while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
   playout.push(f, now / 1000);
+  clock.arrive(f.pts, now / 1000);
 }
 
 function onSourceAudio(chunk) {
@@ -699,7 +685,7 @@ const fmt = (x, d = 1) => (typeof x === 'number' && isFinite(x) ? x.toFixed(d) :
 
 /** Speech -> motion: how long after a moment of speech was said its gesture is on screen. */
 function speechToMotionMs() {
-  const offset = avOffset !== null ? avOffset : playout.offset;
+  const offset = clock.offset;
   if (offset === null) return null;
   if (spoken.length) {  // measured: the earliest arrival of recent speech is when it was said (least delayed)
     api.delayMeasured = true;
@@ -708,21 +694,33 @@ function speechToMotionMs() {
   // Estimated: the model's lookahead, one window of audio, the server's latency and our playout buffer.
   const h = api.hello || {}, s = api.status || {};
   api.delayMeasured = false;
-  return ((h.lookahead_s || 0) + (h.window_ms || 0) / 1000 + (s.latency_ms || 0) / 1000 + playout.delayS) * 1000;
+  return ((h.lookahead_s || 0) + (h.window_ms || 0) / 1000 + (s.latency_ms || 0) / 1000 + clock.marginS) * 1000;
+}
+
+/**
+ * Frames received per second over the last FPS_WINDOW_MS (null until 1 s is seen). Frames come in bursts of one
+ * inference window, so the rate is taken from the first burst's arrival to the last one's, the first burst left
+ * out (its frames were made before the span began): a count over a fixed window would swing by a whole burst.
+ */
+function receivedFps(now) {
+  while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
+  if (arrivals.length < 2) return null;
+  const t0 = arrivals[0];
+  let first = 1;
+  while (first < arrivals.length && arrivals[first] - t0 < 30) first++;
+  const last = arrivals[arrivals.length - 1];
+  const span = now - last > 1000 ? now - t0 : last - t0;  // no frames for a while: that time counts too
+  return span >= 1000 ? ((arrivals.length - first) * 1000) / span : null;
 }
 
 setInterval(() => {
   const s = api.status || {};
   const now = performance.now();
-  // Frames arrive in bursts of one window: average over FPS_WINDOW_MS (or since the first frame, once 1 s in).
-  const span = firstArrival === null ? 0 : Math.min(FPS_WINDOW_MS, now - firstArrival);
-  while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
-  // Until the window is full, the first burst holds frames made before we started counting: leave it out.
-  const counted = span < FPS_WINDOW_MS ? arrivals.filter((t) => t > firstArrival + 30).length : arrivals.length;
-  api.fps = span >= 1000 ? (counted * 1000) / span : 0;
+  const fps = receivedFps(now);
+  api.fps = fps ?? 0;
   api.delayMs = speechToMotionMs();
   ui.frames.textContent = api.framesReceived;
-  ui.fps.textContent = (span >= 1000 ? fmt(api.fps, 0) : '-') + (api.hello ? ` / ${api.hello.fps}` : '');
+  ui.fps.textContent = (fps !== null ? fmt(fps, 0) : '-') + (api.hello ? ` / ${api.hello.fps}` : '');
   ui.delay.textContent = api.delayMs !== null ? `${api.delayMeasured ? '' : '≈ '}${fmt(api.delayMs, 0)} ms` : '-';
   ui.latency.textContent = s.latency_ms !== undefined ? `${fmt(s.latency_ms, 0)} ms` : '-';
   ui.rtt.textContent = api.rttMs !== null ? `${fmt(api.rttMs, 0)} ms` : '-';

@@ -1,0 +1,97 @@
+// The one clock that the picture and the server source's sound both follow: at local time `now` (seconds,
+// performance.now() / 1000) the pts presented is `now - offset`; frames are sampled there (playout.js) and
+// source audio is scheduled to be heard there (source-audio.js).
+//
+// The offset is a jitter buffer sized from the lateness seen: each frame's transit (arrival - pts) is noted,
+// and the offset sits a margin above the largest transit of the last WINDOW_S. When the frame for `now` has not
+// come (an underrun: the server fell behind), the clock holds at the newest frame, picture and sound together,
+// and resumes once the buffer is rebuilt to the new worst lateness plus the margin; underruns that keep coming
+// grow the margin. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
+// clock catches up. Moves are rare, so the sound does not jump at every late burst, and while it holds nothing
+// plays: what is heard at audio time t is always the frame with pts t.
+const WINDOW_S = 10;       // lateness is remembered this long
+const MARGIN_MAX_S = 2;    // the margin grows at most to this
+const GROW = 1.5;          // margin x GROW when underruns come within REPEAT_S of each other
+const REPEAT_S = 20;
+const SLACK_S = 0.5;       // catch up when the buffer exceeds lateness + margin by more than this (and a margin)
+const AHEAD_S = 3;         // frames further ahead than margin + this: the clock jumps to them (a fast source)
+
+export class PlayoutClock {
+  /** `baseMarginS`: the buffer above the worst lateness when nothing went wrong (one window + network). */
+  constructor(baseMarginS = 0.3) {
+    this.baseMarginS = baseMarginS;
+    this.reset();
+  }
+
+  /** A new stream: forget everything. */
+  reset() {
+    this.offset = null;       // local seconds minus pts; null before the first frame
+    this.marginS = this.baseMarginS;
+    this.transits = [];       // [arrival, transit] of recent frames (transit = arrival - pts), arrival order
+    this.holdAt = null;       // pts the clock stands at while it waits for late frames
+    this.newestPts = null;
+    this.lastUnderrun = -Infinity;
+    this.changedAt = null;    // when the offset last moved
+    this.underruns = 0;
+    this.catchUps = 0;
+  }
+
+  setBaseMargin(s) {
+    this.marginS = Math.max(this.marginS - this.baseMarginS + s, s);
+    this.baseMarginS = s;
+  }
+
+  /** The worst transit (seconds) of the frames that arrived in the last WINDOW_S. */
+  lateness() {
+    let worst = -Infinity;
+    for (const [, tr] of this.transits) worst = Math.max(worst, tr);
+    return worst;
+  }
+
+  /** A frame with `pts` arrived at local time `now`. */
+  arrive(pts, now) {
+    if (this.newestPts !== null && pts < this.newestPts - 1) this.reset();  // the pts went back: a new stream
+    const transit = now - pts;
+    this.transits.push([now, transit]);
+    while (this.transits.length && this.transits[0][0] < now - WINDOW_S) this.transits.shift();
+    this.newestPts = this.newestPts === null ? pts : Math.max(this.newestPts, pts);
+    if (this.offset === null) { this.move(transit + this.marginS, now); return; }
+    if (this.holdAt !== null) return;
+    const ahead = pts - (now - this.offset);
+    if (ahead > this.marginS + AHEAD_S) { this.move(transit + this.marginS, now); this.catchUps++; return; }
+    // Caught up after a stall: lateness has stayed far below the buffer for a whole window.
+    const spare = this.offset - this.lateness() - this.marginS;
+    if (spare > Math.max(SLACK_S, this.marginS) && now - this.changedAt > WINDOW_S) {
+      this.move(this.offset - spare, now);
+      this.marginS = Math.max(this.baseMarginS, this.marginS / GROW);
+      this.catchUps++;
+    }
+  }
+
+  move(offset, now) { this.offset = offset; this.changedAt = now; }
+
+  /** The pts to present at local time `now` (null before any frame); holds while the frames are late. */
+  time(now) {
+    if (this.offset === null) return null;
+    if (this.holdAt !== null) {
+      // Resume when the newest lateness (the frames that came during the hold included) has its margin again.
+      const offset = now - this.holdAt;
+      if (this.newestPts > this.holdAt && offset >= this.lateness() + this.marginS) {
+        this.move(offset, now);
+        this.holdAt = null;
+      } else return this.holdAt;
+    }
+    const t = now - this.offset;
+    if (t > this.newestPts) {  // underrun: the frame for now has not come
+      if (now - this.lastUnderrun < REPEAT_S) this.marginS = Math.min(this.marginS * GROW, MARGIN_MAX_S);
+      this.lastUnderrun = now;
+      this.underruns++;
+      this.holdAt = this.newestPts;
+      return this.holdAt;
+    }
+    return t;
+  }
+
+  /** How far the sound may be scheduled (pts): never past the frames there are, nothing new while holding. */
+  horizon() { return this.holdAt !== null ? this.holdAt : this.newestPts; }
+}
