@@ -176,6 +176,13 @@ def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast
                            "fps: document.getElementById('fps').textContent, "
                            "latency: document.getElementById('latency').textContent})")
         assert hud["state"] == "open" and hud["fps"].endswith(f"/ {hello['fps']}") and hud["latency"].endswith("ms")
+        # The received fps reads steady although frames come in bursts of one window (no 26/20 or 37/20).
+        readings = []
+        for _ in range(6):
+            time.sleep(0.5)
+            readings.append(browser.eval("document.getElementById('fps').textContent"))
+        fps = [float(r.split("/")[0]) for r in readings]
+        assert all(0.7 * hello["fps"] <= f <= 1.25 * hello["fps"] for f in fps), f"fps readout jumps: {readings}"
         assert browser.eval("window.dimgestor.errors.length") == 0, browser.eval("window.dimgestor.errors")
         time.sleep(0.5)  # let the HUD refresh before the picture
         assert_figure_drawn(browser.screenshot(tmp_path / f"web_viewer_{encoding}.png"))
@@ -204,6 +211,10 @@ def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, che
             rate = browser.eval("window.dimgestor.audioRate")
             assert 8000 <= rate <= 192000
             assert browser.eval("document.getElementById('message').textContent") == f"talking: {rate} Hz {audio}"
+            # Never an echo: the microphone's graph ends in a zero-gain node, and no sound plays while we talk.
+            assert browser.eval("window.dimgestor.micMonitorGain") == 0
+            assert browser.eval("window.dimgestor.sourceAudio.chunks.length + "
+                                "window.dimgestor.sourceAudio.playing.length") == 0
             assert_figure_drawn(browser.screenshot(tmp_path / f"web_talk_{audio}.png"))
             frames = browser.eval("window.dimgestor.framesReceived")
             browser.eval("document.getElementById('talk').click()", user_gesture=True)  # Stop -> audio_end
