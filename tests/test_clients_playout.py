@@ -163,3 +163,51 @@ def test_playout_is_the_same_in_every_client(frames_dir, schedule, tmp_path):
                 np.testing.assert_allclose(x["pts"], y["pts"], atol=1e-9)
                 np.testing.assert_allclose(x["root"], y["root"], atol=1e-9)
                 np.testing.assert_allclose(x["rotations"], y["rotations"], atol=1e-9)
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+def test_web_av_clock_holds_picture_and_sound_together_and_sizes_its_buffer_from_lateness(tmp_path):
+    """The web viewer's one clock of picture and sound (clients/web/av-clock.js) on bursts of 4 frames every
+    200 ms that arrive 0.2-0.25 s after they were made, with two 1.2 s stalls of the server (at 5 s and 9 s),
+    then on time again: steady without underruns, one hold at the first stall that rebuilds the buffer (the second
+    stall is absorbed), never presenting a pts that has not arrived, never going back, and catching up once
+    the lateness has stayed low for its 10 s window."""
+    rng = np.random.default_rng(0)
+    lines, arrivals = [f"margin {DELAY_S}"], []
+    stalls = [(5.2, 6.4), (9.2, 10.4)]  # the server computes nothing in these (wall clock), then catches up
+    for w in range(150):  # 30 s of 200 ms windows, sent when the window's last frame is made
+        pts0 = 0.2 * w
+        at = pts0 + 0.15 + 0.2 + 0.05 * rng.random()
+        at = next((end for start, end in stalls if start <= at < end), at)
+        at = max(at, arrivals[-1][0] if arrivals else 0)  # in order, as one server sends them
+        arrivals += [(at, pts0 + 0.05 * k) for k in range(4)]
+    display = np.arange(0.3, 30.0, 1 / DISPLAY_HZ)
+    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
+                    [(t, 1, 0, f"time {t:.6f}") for t in display])
+    lines += [e[3] for e in events]
+    sched = tmp_path / "clock.txt"
+    sched.write_text("\n".join(lines) + "\n")
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    counters, shown = out[-1], [s for s in out[:-1] if s["pts"] is not None]
+    t = np.array([s["t"] for s in shown])
+    pts = np.array([s["pts"] for s in shown])
+    arrived = np.array([max([p for a, p in arrivals if a <= ti], default=-1) for ti in t])
+    assert (np.diff(pts) >= -1e-9).all(), f"presented time ran backwards at {t[1:][np.diff(pts) < -1e-9]}: {counters}"
+    assert (pts <= arrived + 1e-9).all(), "presented (and so played) a pts whose frame had not arrived"
+    assert all(s["horizon"] <= a + 1e-9 for s, a in zip(shown, arrived)), "sound scheduled past the frames"
+    # Before the first stall: one steady clock, each refresh one refresh interval on.
+    steady = np.diff(pts[(pts > 0.5) & (pts < 4.5)])
+    np.testing.assert_allclose(steady, 1 / DISPLAY_HZ, atol=1e-6)
+    # The first stall: held (picture and sound) once, then the buffer covers the 1 s lateness; the second
+    # stall does not hold again.
+    assert counters["underruns"] == 1, counters
+    held = np.diff(pts) < 1e-9
+    assert held[(pts[:-1] > 4) & (pts[:-1] < 7)].sum() > 30 and not held[(pts[:-1] > 7) & (pts[:-1] < 12)].any()
+    offsets = np.array([s["offset"] for s in shown])
+    assert offsets[(t > 8) & (t < 12)].min() >= 1.2 + DELAY_S
+    # Once the late frames are 10 s in the past, the clock catches up to the usual lateness + margin.
+    assert counters["catchUps"] >= 1
+    assert offsets[-1] < 0.2 + 0.05 + 0.15 + DELAY_S + 0.1, offsets[-1]
