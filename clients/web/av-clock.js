@@ -26,6 +26,7 @@ export class PlayoutClock {
   /** A new stream: forget everything. */
   reset() {
     this.offset = null;       // local seconds minus pts; null before the first frame
+    this.firstPts = null;     // the stream's first frame, until it has been presented
     this.marginS = this.baseMarginS;
     this.transits = [];       // [arrival, transit] of recent frames (transit = arrival - pts), arrival order
     this.holdAt = null;       // pts the clock stands at while it waits for late frames
@@ -55,7 +56,7 @@ export class PlayoutClock {
     this.transits.push([now, transit]);
     while (this.transits.length && this.transits[0][0] < now - WINDOW_S) this.transits.shift();
     this.newestPts = this.newestPts === null ? pts : Math.max(this.newestPts, pts);
-    if (this.offset === null) { this.move(transit + this.marginS, now); return; }
+    if (this.offset === null) { this.firstPts = pts; this.move(transit + this.marginS, now); return; }
     if (this.holdAt !== null) return;
     const ahead = pts - (now - this.offset);
     if (ahead > this.marginS + AHEAD_S) { this.move(transit + this.marginS, now); this.catchUps++; return; }
@@ -73,6 +74,10 @@ export class PlayoutClock {
   /** The pts to present at local time `now` (null before any frame); holds while the frames are late. */
   time(now) {
     if (this.offset === null) return null;
+    if (this.firstPts !== null) {  // the first presentation starts at the first frame, however busy the page was
+      if (now - this.offset > this.firstPts) this.move(now - this.firstPts, now);
+      this.firstPts = null;
+    }
     if (this.holdAt !== null) {
       // Resume when the newest lateness (the frames that came during the hold included) has its margin again.
       const offset = now - this.holdAt;

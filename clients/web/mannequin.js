@@ -34,6 +34,37 @@ function taperedCapsule(len, r0, r1) {
 }
 
 /**
+ * A closed tube along y from y0 to y1 whose elliptical cross-section is prof(y) = [rx, rz], its ends rounded over
+ * capBottom / capTop. Pieces that share a cross-section where they meet join without a seam.
+ */
+function profiledTube(y0, y1, prof, capBottom, capTop, rings = 16, around = 36) {
+  const ys = [];  // [y, shrink] per ring: caps are quarter ellipses, so the ends close smoothly
+  const capRings = 8;
+  for (let i = capRings; i > 0; i--) { const a = (i / capRings) * Math.PI / 2; ys.push([y0 - capBottom * Math.sin(a), Math.cos(a)]); }
+  for (let i = 0; i <= rings; i++) ys.push([y0 + ((y1 - y0) * i) / rings, 1]);
+  for (let i = 1; i <= capRings; i++) { const a = (i / capRings) * Math.PI / 2; ys.push([y1 + capTop * Math.sin(a), Math.cos(a)]); }
+  const pos = [];
+  for (const [y, k] of ys) {
+    const [rx, rz] = prof(Math.min(Math.max(y, y0), y1));
+    for (let j = 0; j < around; j++) {
+      const a = (j / around) * Math.PI * 2;
+      pos.push(Math.max(k, 1e-3) * rx * Math.cos(a), y, Math.max(k, 1e-3) * rz * Math.sin(a));
+    }
+  }
+  const index = [];
+  for (let i = 0; i + 1 < ys.length; i++)
+    for (let j = 0; j < around; j++) {
+      const a = i * around + j, b = i * around + ((j + 1) % around), c = a + around, d = b + around;
+      index.push(a, c, b, b, c, d);
+    }
+  const g = new THREE.BufferGeometry();
+  g.setAttribute('position', new THREE.Float32BufferAttribute(pos, 3));
+  g.setIndex(index);
+  g.computeVertexNormals();
+  return g;
+}
+
+/**
  * Build the mannequin's meshes onto `joints` (Object3Ds in skeleton order, at rest). Returns the meshes and
  * the rest pose's facing: {meshes, forward, up, left, bounds (Box3, file units)}.
  */
@@ -99,33 +130,52 @@ export function buildMannequin(skeleton, humanoid, joints) {
   const along = (a, b, t) => new THREE.Vector3().lerpVectors(a, b, t);
   const done = new Set();  // joints whose segment is already shaped
 
-  // ---- torso: pelvis, abdomen and chest ellipsoids along the spine chain, so the torso bends with it
+  // ---- torso: one smooth body from the crotch to the shoulders, cut into a piece per spine joint (so it bends
+  // with the spine); neighbouring pieces share their cross-section where they meet, and overlap to cover bends.
   const hips = bone('Hips');
   const neck = bone('Neck');
   if (hips >= 0) {
     const hipHalf = has('LeftUpperLeg') ? at('LeftUpperLeg').distanceTo(at('Hips')) : 10 * u;
-    ellipsoid(hips, P(hips).addScaledVector(up, 0.5 * u), hipHalf + 5 * u, 9.5 * u, 9.5 * u);
     const chain = [];  // spine joints from the hips up to (not including) the neck
     if (neck >= 0) for (let a = parents[neck]; a >= 0 && a !== hips; a = parents[a]) chain.unshift(a);
     const shoulderHalf = has('LeftUpperArm') && has('RightUpperArm') ? at('LeftUpperArm').distanceTo(at('RightUpperArm')) / 2 : 18 * u;
     const top = neck >= 0 ? P(neck) : P(hips).addScaledVector(up, 50 * u);
     const seg = [hips, ...chain];
+    const ends = [...seg.map(P), top];
+    const lengths = ends.slice(1).map((p, i) => p.distanceTo(ends[i]));
+    const total = lengths.reduce((x, y) => x + y, 0) || 1;
+    // Half width and half depth along the torso, h = 0 at the hips joint, 1 at the neck: hips, waist, ribcage, chest.
+    const keys = [[0, hipHalf + 4 * u, 9.2 * u], [0.3, 11.8 * u, 8.4 * u], [0.62, Math.max(shoulderHalf * 0.78, 13.5 * u), 9.8 * u],
+                  [0.86, Math.max(shoulderHalf * 0.92, 15 * u), 9.6 * u], [1, Math.max(shoulderHalf * 0.8, 13 * u), 8 * u]];
+    const profile = (h) => {
+      let k = 0;
+      while (k + 2 < keys.length && h > keys[k + 1][0]) k++;
+      const [h0, x0, z0] = keys[k], [h1, x1, z1] = keys[k + 1];
+      const t = THREE.MathUtils.smoothstep(THREE.MathUtils.clamp((h - h0) / (h1 - h0), 0, 1), 0, 1);
+      return [x0 + (x1 - x0) * t, z0 + (z1 - z0) * t];
+    };
+    const overlap = 4 * u;
+    // The pelvis: below the hips joint, upright in the body's frame, narrowing down to the crotch.
+    const [px, pz] = profile(0);
+    const pelvis = (y) => { const k = 1 + 0.025 * Math.min(y, 0) / u; return [px * k, pz * (0.5 + 0.5 * k)]; };
+    add(hips, profiledTube(-7 * u, overlap, pelvis, 6 * u, 0), MATERIALS.body, P(hips));
+    let h = 0;
     seg.forEach((j, i) => {
-      const a = P(j), b = i + 1 < seg.length ? P(seg[i + 1]) : top;
-      const t = i / (seg.length - 1);      // 0 at the pelvis, 1 at the top of the chest
-      const len = a.distanceTo(b);
-      if (i === 0) { limb(j, a, b, 10 * u, 11 * u); return; }  // the waist, under the belly
-      if (t < 1) {  // belly to ribcage: long, overlapping ellipsoids that widen upwards (no tyre rings)
-        const rx = THREE.MathUtils.lerp(12.5 * u, Math.max(shoulderHalf * 0.95, 14.5 * u), t * t);
-        ellipsoid(j, along(a, b, 0.55).addScaledVector(forward, t * 0.8 * u), rx, Math.max(len * 1.5, 9 * u),
-                  THREE.MathUtils.lerp(9.2 * u, 10.5 * u, t));
-      } else {      // upper chest and shoulders' top, up to the neck
-        ellipsoid(j, along(a, b, 0.2).addScaledVector(forward, 0.3 * u), Math.max(shoulderHalf * 1.0, 15 * u),
-                  Math.max(len * 0.78, 8 * u), 9.8 * u);
-      }
+      const a = ends[i], b = ends[i + 1], len = lengths[i];
+      const h0 = h, h1 = h + len / total;
+      h = h1;
+      if (len < 1e-6) return;
+      const first = i === 0, last = i === seg.length - 1;
+      // The piece's frame: y along the spine segment, x towards the body's left, z forward.
+      const yAxis = new THREE.Vector3().subVectors(b, a).normalize();
+      const xAxis = left.clone().addScaledVector(yAxis, -left.dot(yAxis)).normalize();
+      const zAxis = new THREE.Vector3().crossVectors(xAxis, yAxis);
+      const rot = new THREE.Matrix4().makeBasis(xAxis, yAxis, zAxis);
+      const y0 = first ? 0 : -overlap, y1 = last ? len : len + overlap;
+      const prof = (y) => profile(h0 + (y / len) * (h1 - h0));
+      add(j, profiledTube(y0, y1, prof, 0, last ? 5 * u : 0), MATERIALS.body, a, rot);
       done.add(j);
     });
-    done.add(hips);
   }
 
   // ---- neck and head, with a face so facing reads at a glance
