@@ -211,3 +211,23 @@ def test_web_av_clock_holds_picture_and_sound_together_and_sizes_its_buffer_from
     # Once the late frames are 10 s in the past, the clock catches up to the usual lateness + margin.
     assert counters["catchUps"] >= 1
     assert offsets[-1] < 0.2 + 0.05 + 0.15 + DELAY_S + 0.1, offsets[-1]
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+def test_web_av_clock_starts_at_the_first_frame_when_the_page_was_busy(tmp_path):
+    """A page busy for 4.5 s when the stream began (shaders compiling on a slow machine) still presents, and
+    plays, the stream from its first frame on, without jumping ahead right after (the sound's start is heard)."""
+    lines = [f"margin {DELAY_S}"]
+    arrivals = [(0.2 * w + 0.4, 0.2 * w + 0.05 * k) for w in range(60) for k in range(4)]
+    display = np.arange(4.5, 12.0, 1 / DISPLAY_HZ)
+    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
+                    [(t, 1, 0, f"time {t:.6f}") for t in display])
+    sched = tmp_path / "clock.txt"
+    sched.write_text("\n".join(lines + [e[3] for e in events]) + "\n")
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    pts = np.array([s["pts"] for s in out[:-1]])
+    assert pts[0] == 0.0 and out[-1]["underruns"] == 0 and out[-1]["catchUps"] == 0, out[-1]
+    np.testing.assert_allclose(np.diff(pts), 1 / DISPLAY_HZ, atol=1e-6)

@@ -14,7 +14,9 @@ const MARGIN_MAX_S = 2;    // the margin grows at most to this
 const GROW = 1.5;          // margin x GROW when underruns come within REPEAT_S of each other
 const REPEAT_S = 20;
 const SLACK_S = 0.5;       // catch up when the buffer exceeds lateness + margin by more than this (and a margin)
-const AHEAD_S = 3;         // frames further ahead than margin + this: the clock jumps to them (a fast source)
+const AHEAD_S = 8;         // frames further ahead than margin + this: the clock jumps to them (a fast source;
+                           // playout.js keeps 256 frames, 12.8 s at 20 fps). A page that was busy for seconds
+                           // when the stream began keeps its start, and catches up by the SLACK_S rule later
 
 export class PlayoutClock {
   /** `baseMarginS`: the buffer above the worst lateness when nothing went wrong (one window + network). */
