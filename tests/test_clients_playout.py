@@ -231,3 +231,26 @@ def test_web_av_clock_starts_at_the_first_frame_when_the_page_was_busy(tmp_path)
     pts = np.array([s["pts"] for s in out[:-1]])
     assert pts[0] == 0.0 and out[-1]["underruns"] == 0 and out[-1]["catchUps"] == 0, out[-1]
     np.testing.assert_allclose(np.diff(pts), 1 / DISPLAY_HZ, atol=1e-6)
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+def test_web_av_clock_holds_for_frames_that_came_late_while_the_page_was_busy(tmp_path):
+    """The first frame comes alone and is presented; the page is then busy while the rest of the first window
+    comes late. The clock passed every frame it had meanwhile: an underrun nobody saw, so it holds at the
+    first frame and resumes from there (the sound's start is not skipped), never jumping ahead."""
+    arrivals = [(0.4, 0.0)] + [(0.9, 0.05 * k) for k in range(1, 11)] + \
+               [(0.9 + 0.2 * w, 0.5 + 0.2 * (w - 1) + 0.05 * k) for w in range(1, 30) for k in range(1, 5)]
+    display = np.concatenate([[0.41], np.arange(1.0, 6.0, 1 / DISPLAY_HZ)])
+    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
+                    [(t, 1, 0, f"time {t:.6f}") for t in display])
+    sched = tmp_path / "clock.txt"
+    sched.write_text("\n".join([f"margin {DELAY_S}"] + [e[3] for e in events]) + "\n")
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    pts = np.array([s["pts"] for s in out[:-1]])
+    assert out[-1]["underruns"] == 1 and out[-1]["catchUps"] == 0, out[-1]
+    assert pts[1] == 0.0, f"the clock skipped the start: {pts[1]}"
+    steps = np.diff(pts[1:])
+    assert (steps >= -1e-9).all() and steps.max() <= 1 / DISPLAY_HZ + 1e-6 and pts[-1] > 4

@@ -5,8 +5,9 @@
 // The offset is a jitter buffer sized from the lateness seen: each frame's transit (arrival - pts) is noted,
 // and the offset sits a margin above the largest transit of the last WINDOW_S. When the frame for `now` has not
 // come (an underrun: the server fell behind), the clock holds at the newest frame, picture and sound together,
-// and resumes once the buffer is rebuilt to the new worst lateness plus the margin; underruns that keep coming
-// grow the margin. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
+// and resumes once the buffer is rebuilt to the new worst lateness plus the margin (also when the page was busy
+// and the clock passed its newest frame unseen: the next frame's arrival tells); underruns that keep coming
+// grow the margin. The stream starts at its first frame however long the page took to present it. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
 // clock catches up. Moves are rare, so the sound does not jump at every late burst, and while it holds nothing
 // plays: what is heard at audio time t is always the frame with pts t.
 const WINDOW_S = 10;       // lateness is remembered this long
@@ -57,6 +58,9 @@ export class PlayoutClock {
     const transit = now - pts;
     this.transits.push([now, transit]);
     while (this.transits.length && this.transits[0][0] < now - WINDOW_S) this.transits.shift();
+    // The clock passed the newest frame before this one came, unseen (the page was busy): that was an underrun.
+    if (this.offset !== null && this.holdAt === null && this.firstPts === null && now - this.offset > this.newestPts)
+      this.underrun(now);
     this.newestPts = this.newestPts === null ? pts : Math.max(this.newestPts, pts);
     if (this.offset === null) { this.firstPts = pts; this.move(transit + this.marginS, now); return; }
     if (this.holdAt !== null) return;
@@ -89,14 +93,16 @@ export class PlayoutClock {
       } else return this.holdAt;
     }
     const t = now - this.offset;
-    if (t > this.newestPts) {  // underrun: the frame for now has not come
-      if (now - this.lastUnderrun < REPEAT_S) this.marginS = Math.min(this.marginS * GROW, MARGIN_MAX_S);
-      this.lastUnderrun = now;
-      this.underruns++;
-      this.holdAt = this.newestPts;
-      return this.holdAt;
-    }
+    if (t > this.newestPts) { this.underrun(now); return this.holdAt; }  // the frame for now has not come
     return t;
+  }
+
+  /** Hold at the newest frame until the buffer is rebuilt; underruns in a row grow the margin. */
+  underrun(now) {
+    if (now - this.lastUnderrun < REPEAT_S) this.marginS = Math.min(this.marginS * GROW, MARGIN_MAX_S);
+    this.lastUnderrun = now;
+    this.underruns++;
+    this.holdAt = this.newestPts;
   }
 
   /** How far the sound may be scheduled (pts): never past the frames there are, nothing new while holding. */
