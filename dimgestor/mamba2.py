@@ -7,8 +7,15 @@ with A = -exp(A_log) a scalar per head, dt_t = softplus(dt_raw_t + dt_bias), and
 heads of a group. The parameter names and the packed `in_proj` layout follow the reference implementation
 (state-spaces/mamba `Mamba2Simple`/`Mamba2`, and the transformers `Mamba2Mixer`), so their state_dicts load.
 
-`ssd_chunked` is the fast path (the chunked state-space-duality scan), `ssd_one_chunk` its form for
-windows that fit one chunk (streaming), and `ssd_naive` the per-step recurrence the tests compare both against. On CUDA, the fused `mamba_ssm` kernel is used when importable.
+Three CPU forms of the same scan, picked by length in `Mamba2._run`, each with a parity test against
+`ssd_naive` (the per-step recurrence) and against `ssd_chunked` (the whole-sequence chunked
+state-space-duality scan, kept as the reference of the chunk algebra):
+  - `ssd_steps`: the recurrence itself, for windows of up to `STEP_MAX` frames (a streaming window at
+    20 fps is 1-10 frames, where the number of ops per call, not their arithmetic, is the cost);
+  - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk;
+  - `ssd_scan`: the lean long-sequence scan, a loop over chunks carrying the state, so its working memory
+    is one chunk's (O(h Q^2 + h p n)) whatever the length; only the output grows with L.
+On CUDA, the fused `mamba_ssm` kernel is used when importable.
 """
 from __future__ import annotations
 
@@ -115,6 +122,47 @@ def ssd_one_chunk(x, dt, A, B, C, initial_state):
     return y.transpose(1, 2), final
 
 
+STEP_MAX = 4  # windows of up to this many frames run the recurrence (`ssd_steps`); see benchmarks/streaming.py
+
+
+def ssd_scan(x, dt, A, B, C, chunk_size, initial_state):
+    """The SSD scan of any length as a loop over chunks carrying the state, B and C per group (b, L, g, n).
+
+    Each chunk is `ssd_one_chunk` on that chunk alone; nothing of a finished chunk but its output and its
+    final state is kept, so peak working memory is one chunk's, not the whole sequence's chunk tensors
+    (which `ssd_chunked` materialises at once). Returns y (b, L, h, p) without the D skip and the final state.
+    """
+    b, L, h, p = x.shape
+    y = x.new_empty(b, L, h, p)
+    state = initial_state
+    for a in range(0, L, chunk_size):
+        e = min(a + chunk_size, L)
+        y[:, a:e], state = ssd_one_chunk(x[:, a:e], dt[:, a:e], A, B[:, a:e], C[:, a:e], state)
+    return y, state
+
+
+def ssd_steps(x, dt, A, B, C, initial_state):
+    """The recurrence step by step with B and C per group (b, L, g, n): fewest ops for a window of a few frames.
+
+    h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t^T, y_t = h_t C_t, with the heads of a group batched in one matmul.
+    Returns y (b, L, h, p) without the D skip and the final state (b, h, p, n).
+    """
+    b, L, h, p = x.shape
+    g, n = B.shape[2], B.shape[3]
+    rows = (h // g) * p  # the heads of a group side by side: row j * p + i is head j, channel i
+    dA = torch.exp(dt * A).repeat_interleave(p, dim=-1).transpose(0, 1).reshape(L, b * g, rows, 1)  # per row
+    Xdt = (x * dt[..., None]).view(b, L, g, rows).transpose(0, 1).reshape(L, b * g, rows, 1)
+    Bt = B.transpose(0, 1).reshape(L, b * g, 1, n)
+    Ct = C.transpose(0, 1).reshape(L, b * g, n, 1)
+    state = initial_state.reshape(b * g, rows, n)
+    ys = []
+    for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
+        state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
+        ys.append(torch.bmm(state, Ct[t]))  # (b g, r p, 1)
+    y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]  # (b g, L, r p, 1)
+    return y.view(b, g, L, rows).transpose(1, 2).reshape(b, L, h, p), state.view(b, h, p, n)
+
+
 def ssd_naive(x, dt, A, B, C, initial_state=None):
     """The per-step recurrence h_t = exp(dt A) h_{t-1} + dt x_t B_t^T, y_t = h_t C_t. Same shapes as ssd_chunked."""
     b, L, h, p = x.shape
@@ -208,11 +256,12 @@ class Mamba2(nn.Module):
     def _depthwise_conv(self, xs: torch.Tensor, L: int) -> torch.Tensor:
         """The depthwise conv as d_conv shifted multiply-adds: exact, and far faster on CPU than the
         grouped conv1d, whose backward pass dominated a training step."""
-        w = self.conv1d.weight[:, 0]  # (conv_dim, d_conv)
-        y = xs[:, :, 0:L] * w[:, 0, None]
-        for k in range(1, self.d_conv):
-            y = y + xs[:, :, k:k + L] * w[:, k, None]
-        return y if self.conv1d.bias is None else y + self.conv1d.bias[:, None]
+        w = self.conv1d.weight[:, 0, :, None]  # (conv_dim, d_conv, 1)
+        bias = self.conv1d.bias
+        y = xs[:, :, 0:L] * w[:, 0] if bias is None else torch.addcmul(bias[:, None], xs[:, :, 0:L], w[:, 0])
+        for k in range(1, self.d_conv):  # y += x shifted by k * w_k, one fused op per tap
+            y = torch.addcmul(y, xs[:, :, k:k + L], w[:, k])
+        return y
 
     def _run(self, u, state, reference):
         b, L, _ = u.shape
@@ -231,20 +280,21 @@ class Mamba2(nn.Module):
         if self.dt_limit != (0.0, float("inf")):
             dt = dt.clamp(*self.dt_limit)
         A = -torch.exp(self.A_log.float())
-        rep = self.nheads // self.ngroups  # heads of one group share B and C
         Bg = B.reshape(b, L, self.ngroups, self.d_state)
         Cg = C.reshape(b, L, self.ngroups, self.d_state)
 
         if reference:
-            y, ssm = ssd_naive(x, dt, A, Bg.repeat_interleave(rep, 2), Cg.repeat_interleave(rep, 2), state.ssm)
+            y, ssm = ssd_naive(x, dt, A, *(t.repeat_interleave(self.nheads // self.ngroups, 2) for t in (Bg, Cg)),
+                                state.ssm)
         elif u.is_cuda and mamba_chunk_scan_combined is not None:  # pragma: no cover - needs CUDA
             y, ssm = mamba_chunk_scan_combined(x, dt, A, Bg, Cg, chunk_size=self.chunk_size, D=None,
                                                initial_states=state.ssm, return_final_states=True)
-        elif L <= self.chunk_size:  # a streaming window: one chunk, fewest ops
+        elif L <= STEP_MAX:  # a streaming window of a few frames: the recurrence has the fewest ops
+            y, ssm = ssd_steps(x, dt, A, Bg, Cg, state.ssm)
+        elif L <= self.chunk_size:  # a window that fits one chunk
             y, ssm = ssd_one_chunk(x, dt, A, Bg, Cg, state.ssm)
-        else:
-            y, ssm = ssd_chunked(x, dt, A, Bg.repeat_interleave(rep, 2), Cg.repeat_interleave(rep, 2),
-                                 self.chunk_size, state.ssm)
+        else:  # a long sequence: chunk by chunk, working memory of one chunk
+            y, ssm = ssd_scan(x, dt, A, Bg, Cg, self.chunk_size, state.ssm)
 
         D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
         y = (y + x * D).reshape(b, L, self.d_inner)

@@ -2,7 +2,7 @@
 
     audio feats (100 Hz) -> FuzzyFeatureExtractor -> c[t] per 20 fps frame
     x_t (noisy motion) -> causal Conv1D k=3 encoder -> N x AdaLNMamba2Block(c + emb(t)) -> final AdaLN
-                       -> Conv1D k=1 decoder -> eps (or v)
+                       -> Conv1D k=1 decoder -> eps, v or x0 (config.prediction)
 
 Everything on the motion side is causal, and every forward takes and returns its state as a value,
 so running window by window gives the numbers of one whole-sequence run.
@@ -183,6 +183,9 @@ class DiMGestor(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
+        # frames per denoiser pass on long sequences: a multiple of the SSD chunk, so the chunks (and the
+        # numbers) are those of one whole pass; bounds the activations of an offline 100 s sequence
+        self.segment_frames = 8 * config.chunk_size
         self.frontend = build_frontend(config)
         self.extractor = FuzzyFeatureExtractor(config, self.frontend.dim)
         self.t_embedder = TimestepEmbedder(config.hidden)
@@ -237,12 +240,26 @@ class DiMGestor(nn.Module):
 
     def forward(self, x: torch.Tensor, t: torch.Tensor | int, cond: torch.Tensor,
                 state: DenoiserState | None = None) -> tuple[torch.Tensor, DenoiserState]:
-        """x (B, T, motion_dim) noisy frames at step t, cond (B, T, hidden) -> (eps or v (B, T, motion_dim), state)."""
-        B = x.shape[0]
+        """x (B, T, motion_dim) noisy frames at step t, cond (B, T, hidden) -> (eps, v or x0 (B, T, motion_dim), state).
+
+        A sequence longer than `segment_frames` runs segment by segment carrying the state (window by
+        window equals the whole), so activation memory stays that of one segment at any length.
+        """
+        B, T = x.shape[:2]
         if state is None:
             state = self.init_state(B, x.device, x.dtype)
         if not torch.is_tensor(t):
             t = torch.full((B,), int(t), device=x.device, dtype=torch.long)
+        seg = self.segment_frames
+        if T <= seg:
+            return self._denoise(x, t, cond, state)
+        outs = []
+        for a in range(0, T, seg):
+            out, state = self._denoise(x[:, a:a + seg], t, cond[:, a:a + seg], state)
+            outs.append(out)
+        return torch.cat(outs, dim=1), state
+
+    def _denoise(self, x, t, cond, state: DenoiserState) -> tuple[torch.Tensor, DenoiserState]:
         c = cond + self.t_embedder(t)[:, None, :]  # (B, T, H): diffusion-step embedding added to the condition
         h, enc_tail = self.encoder(x, state.enc)
         block_states = []
