@@ -91,14 +91,15 @@ def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str)
     stream.push(audio[:window])  # warm-up on a throwaway stream: first calls allocate
     stream = GestureStream(model, steps=steps)
     rss_start = rss_mb()
-    compute, e2e = [], []
+    compute, cpu, e2e = [], [], []
     for k in range(n_windows):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         frames = stream.push(audio[k * window : (k + 1) * window])
         if device.startswith("cuda"):
             torch.cuda.synchronize()
         dt = time.perf_counter() - t0
         compute.append(dt)
+        cpu.append(time.thread_time() - c0)
         audio_clock = (k + 1) * window / cfg.sample_rate  # when this window's last sample was spoken
         first = stream.frames_out - len(frames)
         # frame i is presented from i / fps; live, it is ready at audio_clock + compute
@@ -107,6 +108,7 @@ def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str)
     rtf = sum(compute) / audio_total
     return {"steps": steps, "window_ms": window_ms, "lookahead_ms": 1000 * stream.lookahead_s,
             "rtf": rtf, "latency_ms_p50": percentile_ms(compute, 50), "latency_ms_p95": percentile_ms(compute, 95),
+            "rtf_cpu": sum(cpu) / audio_total, "cpu_ms_p50": percentile_ms(cpu, 50),
             "e2e_latency_ms": percentile_ms(e2e, 95), "e2e_latency_ms_p50": percentile_ms(e2e, 50),
             "realtime": rtf < 1 and percentile_ms(compute, 95) < window_ms,
             "rss_mb_start": rss_start, "rss_mb_end": rss_mb(), "audio_s": audio_total, "rss_mb_after_1h": None}
@@ -120,7 +122,7 @@ def sweep(args, presets) -> list[dict]:
             for window_ms in args.windows_ms:
                 r = {"preset": label, **stream_timed(model, steps, window_ms, args.audio_s, args.device)}
                 rows.append(r)
-                print(f"{label:9s} K={steps:2d} window {window_ms:3d} ms: rtf {r['rtf']:.3f}  compute p50/p95 "
+                print(f"{label:9s} K={steps:2d} window {window_ms:3d} ms: rtf {r['rtf']:.3f} (cpu {r['rtf_cpu']:.3f})  compute p50/p95 "
                       f"{r['latency_ms_p50']:.1f}/{r['latency_ms_p95']:.1f} ms  e2e p95 {r['e2e_latency_ms']:.0f} ms",
                       flush=True)
     return rows
@@ -306,6 +308,9 @@ def main(argv=None) -> None:
         "wall_s_last_run": round(time.time() - started, 1), "sections_last_run": args.sections,
         "definitions": {
             "rtf": "compute time / audio time, audio pushed as fast as possible",
+            "rtf_cpu, cpu_ms_p50": "the same with the pushing thread's CPU time (time.thread_time): on a loaded machine "
+                                   "it leaves out the time the thread waited for a core; with --threads 1 torch runs "
+                                   "its ops in that thread",
             "latency_ms_p50/p95": "compute time of one push() of a window",
             "lookahead_ms": "algorithmic latency: audio needed after a frame's start before it exists (GestureStream.lookahead_s)",
             "e2e_latency_ms": "p95 over frames of (time the frame is ready) - (its presentation time on the audio clock), "

@@ -297,6 +297,6 @@ class Mamba2(nn.Module):
             y, ssm = ssd_scan(x, dt, A, Bg, Cg, self.chunk_size, state.ssm)
 
         D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
-        y = (y + x * D).reshape(b, L, self.d_inner)
+        y = torch.addcmul(y, x, D).reshape(b, L, self.d_inner)  # y + D x
         y = self.norm(y, z) if self.rmsnorm else y * F.silu(z)
         return self.out_proj(y), Mamba2State(new_conv, ssm.to(state.ssm.dtype))

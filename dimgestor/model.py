@@ -25,7 +25,7 @@ __all__ = ["DiMGestor", "AdaLNMamba2Block", "FuzzyFeatureExtractor", "FinalLayer
 
 
 def modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    return x * (1 + scale) + shift
+    return torch.addcmul(shift, x, 1 + scale)  # x * (1 + scale) + shift, one op fewer per call
 
 
 def _nbytes(t: torch.Tensor) -> int:
@@ -95,8 +95,8 @@ class AdaLNMamba2Block(nn.Module):
                 ) -> tuple[torch.Tensor, Mamba2State]:
         shift1, scale1, gate1, shift2, scale2, gate2 = self.adaLN_modulation(c).chunk(6, dim=-1)  # (B, T, H) each
         h, state = self.mixer(modulate(self.norm1(x), shift1, scale1), state)
-        x = x + gate1 * h
-        x = x + gate2 * self.mlp(modulate(self.norm2(x), shift2, scale2))
+        x = torch.addcmul(x, gate1, h)  # x + g1 * h
+        x = torch.addcmul(x, gate2, self.mlp(modulate(self.norm2(x), shift2, scale2)))
         return x, state
 
 
