@@ -86,3 +86,33 @@ def test_latency_and_sample_bookkeeping():
     assert sum(counts.values()) == sum(p.numel() for p in model.parameters())
     sizes = model.stream_state_nbytes(8)
     assert sizes["total"] == sizes["frontend"] + sizes["extractor"] + 8 * sizes["denoiser_per_step"]
+
+
+@pytest.mark.parametrize("T", [129, 300])
+def test_long_sequences_run_in_segments_equal_one_pass(T):
+    """forward splits sequences longer than segment_frames (8 chunks) and carries the state: same frames."""
+    model = _randomize(DiMGestor(get_preset("tiny")))
+    assert model.segment_frames == 8 * model.config.chunk_size == 128
+    x, c = torch.randn(2, T, 12), torch.randn(2, T, 32)
+    s0 = model.init_state(2)
+    y_seg, s_seg = model(x, 77, c, s0)
+    model.segment_frames = 10 ** 6  # one pass over the whole sequence
+    y_one, s_one = model(x, 77, c, s0)
+    torch.testing.assert_close(y_seg, y_one, rtol=1e-5, atol=1e-5)
+    for a, b in zip(s_seg.blocks, s_one.blocks):
+        torch.testing.assert_close(a.ssm, b.ssm, rtol=1e-5, atol=1e-5)
+
+
+def test_batch_rows_are_independent_streams():
+    """Each batch row carries its own state and step: a row run in a batch equals the row run alone."""
+    model = _randomize(DiMGestor(get_preset("tiny")))
+    torch.manual_seed(3)
+    x, c = torch.randn(3, 4, 12), torch.randn(3, 4, 32)
+    _, state = model(torch.randn(3, 5, 12), 500, torch.randn(3, 5, 32))  # a different past per row
+    t = torch.tensor([999, 500, 1])
+    y, s = model(x, t, c, state)
+    for i in range(3):
+        row = type(state)(state.enc[i:i + 1], tuple(type(b)(b.conv[i:i + 1], b.ssm[i:i + 1]) for b in state.blocks))
+        yi, si = model(x[i:i + 1], t[i:i + 1], c[i:i + 1], row)
+        torch.testing.assert_close(y[i:i + 1], yi, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(s.blocks[-1].ssm[i:i + 1], si.blocks[-1].ssm, rtol=1e-5, atol=1e-5)
