@@ -10,7 +10,6 @@ from dimgestor.checkpoint import load_checkpoint
 from dimgestor.eval import clip_stats, joint_positions
 from dimgestor.stream import generate_offline
 from streamer.sources import DEMO_WAV
-from test_streamer_default_model import DEFAULT_MODEL  # noqa: F401 (the embedded model's folder)
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
