@@ -86,3 +86,22 @@ def code_version() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
     return head + ("+dirty" if dirty else "")
+
+
+def reference_line(ax, metric: str, reference: dict | None) -> None:
+    """The real (or ground-truth) motion's value of an eval metric as a black line; ratios are 1 by definition."""
+    if metric.endswith("_ratio"):
+        ax.axhline(1.0, color="k", lw=1)
+    elif reference and metric in reference:
+        ax.axhline(reference[metric], color="k", lw=1)
+
+
+def save_panels(fig, axes, title: str, path) -> None:
+    """Legend on the first panel, grids, the title, and the PNG written."""
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")

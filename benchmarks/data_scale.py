@@ -18,7 +18,8 @@ import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+from common import (RESULTS, code_version, describe_device, load_average, reference_line, save_panels, utc_now,
+                    write_json)
 
 
 def main() -> int:
@@ -102,20 +103,11 @@ def plot(results: dict, path: Path) -> None:
     for ax, (m, title) in zip(axes, panels):
         for k in ks:
             ax.plot(minutes, [results[f"{x:g}"]["per_k"][k][m] for x in minutes], "o-", label=f"K={k}")
-        ref = next(iter(results.values()))["reference"]
-        if m == "jerk_ratio":
-            ax.axhline(1.0, color="k", lw=1)
-        elif m in ref:
-            ax.axhline(ref[m], color="k", lw=1)
+        reference_line(ax, m, next(iter(results.values()))["reference"])
         ax.set_xscale("log")
         ax.set_xlabel("minutes of training data")
         ax.set_title(title, fontsize=9)
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.suptitle("synthetic speech and gestures: quality against data (black: ground truth), filter off", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    print(f"wrote {path}")
+    save_panels(fig, axes, "synthetic speech and gestures: quality against data (black: ground truth), filter off", path)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+from common import (RESULTS, code_version, describe_device, load_average, reference_line, save_panels, utc_now,
+                    write_json)
 
 # name -> TrainOptions fields (everything else as in train_candidate). "streaming" is the default recipe.
 CANDIDATES = {
@@ -126,22 +127,13 @@ def plot(results: dict, path: Path) -> None:
         for name, r in results.items():
             ks = [int(k) for k in r["per_k"]]
             ax.plot(ks, [r["per_k"][str(k)][m] for k in ks], "o-", label=name)
-        ref = next(iter(results.values())).get("reference") or {}
-        if m == "jerk_ratio":
-            ax.axhline(1.0, color="k", lw=1)
-        elif m in ref:
-            ax.axhline(ref[m], color="k", lw=1)
+        reference_line(ax, m, next(iter(results.values())).get("reference"))
         if log:
             ax.set_yscale("log")
         ax.set_xscale("log", base=2)
         ax.set_xlabel("DDIM steps K")
         ax.set_title(title, fontsize=9)
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.suptitle("recipe x K, output filter off (black: real capture)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    print(f"wrote {path}")
+    save_panels(fig, axes, "recipe x K, output filter off (black: real capture)", path)
 
 
 if __name__ == "__main__":

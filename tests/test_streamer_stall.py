@@ -5,8 +5,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
-import sys
 import threading
 import time
 
@@ -16,6 +14,7 @@ from websockets.asyncio.client import connect
 
 from test_streamer_cli import serve, wav  # noqa: F401 (fixture)
 from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from udp_capture import UdpCapture
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow,
               pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="needs SIGSTOP/SIGCONT (POSIX)")]
@@ -23,28 +22,16 @@ JITTER_S = 0.25
 PAUSES, PAUSE_S, RUN_S = 6, 2.5, 1.0
 
 
-class VmcTimes(threading.Thread):
+class VmcTimes(UdpCapture):
     """Receives VMC bundles; keeps (arrival, /VMC/Ext/T) per bundle (T is the frame's pts)."""
 
     def __init__(self):
-        super().__init__(daemon=True)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
+        super().__init__()
         self.times: list[tuple[float, float]] = []
-        self.stop = False
 
-    def run(self):
-        while not self.stop:
-            try:
-                d = self.sock.recv(65536)
-            except socket.timeout:
-                continue
-            at = time.monotonic()
-            if d.startswith(b"#bundle") and (i := d.rfind(b"/VMC/Ext/T\0\0,f\0\0")) >= 0:
-                self.times.append((at, float(np.frombuffer(d[i + 16 : i + 20], ">f4")[0])))
+    def on_datagram(self, d: bytes, at: float) -> None:
+        if d.startswith(b"#bundle") and (i := d.rfind(b"/VMC/Ext/T\0\0,f\0\0")) >= 0:
+            self.times.append((at, float(np.frombuffer(d[i + 16 : i + 20], ">f4")[0])))
 
 
 class WsTimes(threading.Thread):

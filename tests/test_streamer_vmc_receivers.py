@@ -10,7 +10,6 @@ import socket
 import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from dimgestor.rotations import quat_mul, quat_rotate
 from streamer.pose import HumanoidRig, load_humanoid_map, to_unity_quat
 from streamer.sources import DEMO_WAV
 from streamer.vmc import UPPER_BODY
+from udp_capture import UdpCapture
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_DIR = REPO / "tests" / "node"
@@ -34,25 +34,7 @@ MODES = {
 }
 
 
-class Capture(threading.Thread):
-    """Every datagram that reaches a UDP port, raw."""
-
-    def __init__(self):
-        super().__init__(daemon=True)
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
-        self.datagrams: list[bytes] = []
-        self.stop = False
-
-    def run(self):
-        while not self.stop:
-            try:
-                self.datagrams.append(self.sock.recv(65536))
-            except socket.timeout:
-                pass
+Capture = UdpCapture  # every datagram, raw
 
 
 @pytest.fixture(scope="module")
