@@ -13,7 +13,8 @@ import torch.nn.functional as F
 
 from .config import ModelConfig
 
-__all__ = ["Diffusion", "ddim_pairs", "frame_noise", "motion_noise", "noise_kernel", "correlate", "hash32"]
+__all__ = ["Diffusion", "ddim_pairs", "frame_noise", "frame_noise_rows", "motion_noise", "motion_noise_rows",
+           "noise_kernel", "correlate", "hash32"]
 
 
 def ddim_pairs(K: int, N: int, spacing: str = "trailing") -> list[tuple[int, int]]:
@@ -180,14 +181,21 @@ def frame_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int,
     Each value hashes its counter (Philox-style, but with a plain integer mixer) into two uniforms
     and maps them through Box-Muller, so any window of frames draws exactly the same numbers.
     """
-    frames = torch.arange(frame_start, frame_start + n_frames, dtype=torch.int64, device=device)[:, None]
-    chans = torch.arange(dim, dtype=torch.int64, device=device)[None, :]
-    h = torch.full((1, 1), 0x9E3779B9, dtype=torch.int64, device=device)
+    return frame_noise_rows([seed], [frame_start], n_frames, step, dim, device)[0]
+
+
+def frame_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, device=None) -> torch.Tensor:
+    """`frame_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
+    seed = torch.as_tensor(list(seeds), dtype=torch.int64, device=device)[:, None, None]  # (B, 1, 1)
+    start = torch.as_tensor(list(frame_starts), dtype=torch.int64, device=device)[:, None, None]
+    frames = start + torch.arange(n_frames, dtype=torch.int64, device=device)[None, :, None]  # (B, n, 1)
+    chans = torch.arange(dim, dtype=torch.int64, device=device)[None, None, :]
+    h = torch.full((1, 1, 1), 0x9E3779B9, dtype=torch.int64, device=device)
     for key in (seed & _M32, (seed >> 32) & _M32, step & _M32):
         h = hash32(h ^ key)
     h = hash32(h ^ (frames & _M32))
     h = hash32(h ^ ((frames >> 32) & _M32))
-    h = hash32(h ^ chans)  # (n_frames, dim)
+    h = hash32(h ^ chans)  # (B, n_frames, dim)
     u1 = (hash32(h ^ 0x68E31DA4).double() + 0.5) / 2.0 ** 32  # (0, 1): log never sees 0
     u2 = (hash32(h ^ 0xB5297A4D).double() + 0.5) / 2.0 ** 32
     z = torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * math.pi * u2)
@@ -214,5 +222,12 @@ def motion_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int
                  device=None) -> torch.Tensor:
     """(n_frames, dim) diffusion noise for frames [frame_start, frame_start + n): `frame_noise` correlated over
     `taps` frames. A pure function of (seed, frame index, step), so every window draws the same numbers."""
-    white = frame_noise(seed, frame_start - taps + 1, n_frames + taps - 1, step, dim, device).double()
-    return correlate(white, taps).float()
+    return motion_noise_rows([seed], [frame_start], n_frames, step, dim, taps, device)[0]
+
+
+def motion_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, taps: int = 1,
+                      device=None) -> torch.Tensor:
+    """`motion_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
+    starts = [f - taps + 1 for f in frame_starts]
+    white = frame_noise_rows(seeds, starts, n_frames + taps - 1, step, dim, device)
+    return white if taps == 1 else correlate(white.double(), taps).float()

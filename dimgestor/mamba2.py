@@ -122,7 +122,7 @@ def ssd_one_chunk(x, dt, A, B, C, initial_state):
     return y.transpose(1, 2), final
 
 
-STEP_MAX = 4  # windows of up to this many frames run the recurrence (`ssd_steps`); see benchmarks/streaming.py
+STEP_MAX = 4  # windows of up to this many frames run the recurrence (`ssd_steps`; 2 for a batch of streams)
 
 
 def ssd_scan(x, dt, A, B, C, chunk_size, initial_state):
@@ -141,23 +141,42 @@ def ssd_scan(x, dt, A, B, C, chunk_size, initial_state):
     return y, state
 
 
-def ssd_steps(x, dt, A, B, C, initial_state):
+def ssd_steps(x, dt, A, B, C, initial_state, inplace: bool = False):
     """The recurrence step by step with B and C per group (b, L, g, n): fewest ops for a window of a few frames.
 
-    h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t^T, y_t = h_t C_t, with the heads of a group batched in one matmul.
+    h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t^T, y_t = h_t C_t, with the heads of a group side by side.
+    One stream (b = 1) runs each step as a fused batched matmul; a batch of streams as broadcast multiply-adds
+    (torch's CPU `baddbmm`/`bmm` loop over the batch one small matmul at a time). inplace: the state is
+    updated in `initial_state` itself (a runner's buffer; no copy of the state per step).
     Returns y (b, L, h, p) without the D skip and the final state (b, h, p, n).
     """
     b, L, h, p = x.shape
     g, n = B.shape[2], B.shape[3]
     rows = (h // g) * p  # the heads of a group side by side: row j * p + i is head j, channel i
+    if b > 1:
+        dA = torch.exp(dt * A).repeat_interleave(p, dim=-1).view(b, L, g, rows, 1)
+        Xdt = (x * dt[..., None]).view(b, L, g, rows, 1)
+        state = initial_state.view(b, g, rows, n)
+        ys = []
+        for t in range(L):
+            if inplace:
+                state = state.mul_(dA[:, t]).addcmul_(Xdt[:, t], B[:, t, :, None, :])
+            else:
+                state = torch.addcmul(state * dA[:, t], Xdt[:, t], B[:, t, :, None, :])  # (b, g, rows, n)
+            ys.append(torch.linalg.vecdot(state, C[:, t, :, None, :]))  # (b, g, rows)
+        y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]
+        return y.view(b, L, h, p), state.view(b, h, p, n)
     dA = torch.exp(dt * A).repeat_interleave(p, dim=-1).transpose(0, 1).reshape(L, b * g, rows, 1)  # per row
     Xdt = (x * dt[..., None]).view(b, L, g, rows).transpose(0, 1).reshape(L, b * g, rows, 1)
     Bt = B.transpose(0, 1).reshape(L, b * g, 1, n)
     Ct = C.transpose(0, 1).reshape(L, b * g, n, 1)
-    state = initial_state.reshape(b * g, rows, n)
+    state = initial_state.view(b * g, rows, n) if inplace else initial_state.reshape(b * g, rows, n)
     ys = []
     for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
-        state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
+        if inplace:
+            state = state.mul_(dA[t]).baddbmm_(Xdt[t], Bt[t])
+        else:
+            state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
         ys.append(torch.bmm(state, Ct[t]))  # (b g, r p, 1)
     y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]  # (b g, L, r p, 1)
     return y.view(b, g, L, rows).transpose(1, 2).reshape(b, L, h, p), state.view(b, h, p, n)
@@ -246,8 +265,11 @@ class Mamba2(nn.Module):
     def state_nbytes(self, batch: int = 1, bytes_per_value: int = 4) -> int:
         return batch * bytes_per_value * (self.conv_dim * (self.d_conv - 1) + self.nheads * self.headdim * self.d_state)
 
-    def forward(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
-        return self._run(x, state, reference=False)
+    def forward(self, x: torch.Tensor, state: Mamba2State | None = None, inplace: bool = False
+                ) -> tuple[torch.Tensor, Mamba2State]:
+        """inplace: write the new state into `state`'s own tensors and return it (a runner's preallocated
+        buffers, `dimgestor.batch`); otherwise the state is a value, as autograd and the tests want."""
+        return self._run(x, state, reference=False, inplace=inplace)
 
     def step_reference(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
         """Same as forward, but with the naive per-step recurrence: the reference the tests compare against."""
@@ -263,7 +285,7 @@ class Mamba2(nn.Module):
             y = torch.addcmul(y, xs[:, :, k:k + L], w[:, k])
         return y
 
-    def _run(self, u, state, reference):
+    def _run(self, u, state, reference, inplace=False):
         b, L, _ = u.shape
         if state is None:
             state = self.zero_state(b, u.device, u.dtype)
@@ -289,8 +311,8 @@ class Mamba2(nn.Module):
         elif u.is_cuda and mamba_chunk_scan_combined is not None:  # pragma: no cover - needs CUDA
             y, ssm = mamba_chunk_scan_combined(x, dt, A, Bg, Cg, chunk_size=self.chunk_size, D=None,
                                                initial_states=state.ssm, return_final_states=True)
-        elif L <= STEP_MAX:  # a streaming window of a few frames: the recurrence has the fewest ops
-            y, ssm = ssd_steps(x, dt, A, Bg, Cg, state.ssm)
+        elif L <= (STEP_MAX if b == 1 else 2):  # a streaming window of a few frames: the recurrence has the fewest ops
+            y, ssm = ssd_steps(x, dt, A, Bg, Cg, state.ssm, inplace=inplace)
         elif L <= self.chunk_size:  # a window that fits one chunk
             y, ssm = ssd_one_chunk(x, dt, A, Bg, Cg, state.ssm)
         else:  # a long sequence: chunk by chunk, working memory of one chunk
@@ -299,4 +321,9 @@ class Mamba2(nn.Module):
         D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
         y = torch.addcmul(y, x, D).reshape(b, L, self.d_inner)  # y + D x
         y = self.norm(y, z) if self.rmsnorm else y * F.silu(z)
+        if inplace:
+            state.conv.copy_(new_conv)
+            if ssm is not state.ssm and ssm.data_ptr() != state.ssm.data_ptr():
+                state.ssm.copy_(ssm)
+            return self.out_proj(y), state
         return self.out_proj(y), Mamba2State(new_conv, ssm.to(state.ssm.dtype))

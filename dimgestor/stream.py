@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .batch import StepStates, _Row, denoise_rows, runner_for
 from .diffusion import Diffusion, motion_noise
 from .model import DenoiserState, DiMGestor
 from .smoothing import OneEuroFilter
@@ -90,10 +91,12 @@ class GestureStream:
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
         self.smoother = make_smoother(model, smoothing)
+        self.runner = runner_for(model, self.pairs, sampler, eta)  # shared: streams of one runner batch together
         dev = _device(model)
         self._fe = model.frontend.init_state(1, dev)
         self._ex = model.extractor.init_state(1, dev)
-        self._steps: list[DenoiserState | None] = [None] * len(self.pairs)
+        # the denoiser's state for every step: its row of a buffer the runner updates in place
+        self._states = _Row(StepStates.zeros(model, len(self.pairs), 1, dev), 0)
         self.samples_in = 0  # audio samples received (the audio clock)
         self.frames_out = 0  # frames returned; frame i is presented at i / fps on the audio clock
         self.finished = False
@@ -103,27 +106,37 @@ class GestureStream:
         """Algorithmic latency: audio needed after a frame's start before that frame is final."""
         return self.model.lookahead_s
 
-    def _run(self, samples: np.ndarray) -> np.ndarray:
+    def _condition(self, samples: np.ndarray) -> torch.Tensor:
+        """Audio -> the condition (1, n, H) of the n frames it completes (front end and extractor states move on)."""
         m, dev = self.model, _device(self.model)
         with torch.inference_mode():
             x = torch.from_numpy(np.ascontiguousarray(samples)).to(dev)[None]
             feats, self._fe = m.frontend(x, self._fe)
             cond, self._ex = m.condition(feats, self._ex)
-            if cond.shape[1] == 0:
-                return np.zeros((0, m.config.motion_dim), np.float32)
-            frames, self._steps = sample_frames(m, self.diffusion, cond, self.frames_out, self._steps,
-                                                self.pairs, self.seed, self.sampler, self.eta)
-        self.frames_out += frames.shape[0]
-        out = frames.float().cpu().numpy()
-        return self.smoother(out) if self.smoother is not None else out
+        return cond
 
-    def push(self, samples) -> np.ndarray:
-        """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
+    def _begin(self, samples) -> torch.Tensor:
+        """`push`'s first half (checks, audio clock, condition); `dimgestor.batch.push_many` batches the rest."""
         if self.finished:
             raise RuntimeError("push() after finish(): start a new GestureStream")
         samples = _check_audio(samples)
         self.samples_in += len(samples)
-        return self._run(samples)
+        return self._condition(samples)
+
+    def _end(self, frames: torch.Tensor | None) -> np.ndarray:
+        """Denoised frames (n, D) (None: no new frame) -> the returned frames; the frame clock moves on."""
+        if frames is None:
+            return np.zeros((0, self.model.config.motion_dim), np.float32)
+        self.frames_out += frames.shape[0]
+        out = frames.float().cpu().numpy()
+        return self.smoother(out) if self.smoother is not None else out
+
+    def _denoise(self, cond: torch.Tensor) -> np.ndarray:
+        return self._end(denoise_rows([self], [cond])[0] if cond.shape[1] else None)
+
+    def push(self, samples) -> np.ndarray:
+        """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
+        return self._denoise(self._begin(samples))
 
     def finish(self) -> np.ndarray:
         """Pad with silence exactly as `generate_offline` does and return the remaining frames."""
@@ -134,7 +147,7 @@ class GestureStream:
         T = self.samples_in * c.fps // c.sample_rate
         pad = max(self.model.samples_needed(T) - self.samples_in, 0)
         before = self.frames_out
-        out = self._run(np.zeros(pad, np.float32))[: max(T - before, 0)]
+        out = self._denoise(self._condition(np.zeros(pad, np.float32)))[: max(T - before, 0)]
         self.frames_out = before + len(out)
         return out
 

@@ -68,8 +68,9 @@ def test_lean_scan_equals_chunked_scan_and_recurrence(L, chunk, groups):
 
 @pytest.mark.parametrize("L", [1, 2, 3, 9])
 @pytest.mark.parametrize("groups", [1, 2, 6])
-def test_step_form_equals_chunked_scan_and_recurrence(L, groups):
-    x, dt, A, B, C, h0 = random_ssd_inputs(3, L, 6, 4, 5, seed=2000 + L * 10 + groups)
+@pytest.mark.parametrize("batch", [1, 3])  # one stream (batched matmuls) and a batch of streams (broadcasts)
+def test_step_form_equals_chunked_scan_and_recurrence(L, groups, batch):
+    x, dt, A, B, C, h0 = random_ssd_inputs(batch, L, 6, 4, 5, seed=2000 + L * 10 + groups)
     Bg, Cg = B[:, :, :groups], C[:, :, :groups]
     Bh, Ch = (t.repeat_interleave(6 // groups, 2) for t in (Bg, Cg))
     y_ref, s_ref = ssd_naive(x, dt, A, Bh, Ch, h0)

@@ -1,0 +1,220 @@
+"""Denoising the windows of many streams at once, and the lean per-window path one stream takes.
+
+A streaming window is a handful of frames, so the sampler's cost is not arithmetic but reading every
+block's weights once per step (the `realtime` denoiser's ~5 MB do not fit a core's L2 cache) plus the
+cost of each op. Two things cut it:
+
+- **one matmul for every adaLN modulation of a window**: a block's shift/scale/gate depend only on the
+  condition and the step embedding, both known before the first step, so the modulations of all blocks
+  and the final layer, for all K steps, come from one (K * B * n, H) x (H, 6 H * blocks + 2 H) matmul
+  instead of (blocks + 1) * K small ones (the step embeddings are computed once per runner);
+- **batching streams**: the windows of B streams with the same frame count run as one forward per
+  step, one stream per batch row with its own carried states, seed and frame index, so the weights
+  are read once per step for all of them.
+
+`DenoiseRunner.sample` is the fast path; `dimgestor.stream.sample_frames` (the model's own forward,
+one call per step) is its reference: the tests hold them equal, and a stream equal alone or batched.
+"""
+from __future__ import annotations
+
+import weakref
+from collections import defaultdict
+from typing import NamedTuple, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .diffusion import Diffusion, motion_noise_rows
+from .mamba2 import Mamba2State
+from .model import DenoiserState, DiMGestor
+
+__all__ = ["StepStates", "DenoiseRunner", "runner_for", "push_many"]
+
+
+class StepStates(NamedTuple):
+    """The denoiser's carried state for every sampler step of B streams, stacked (batch rows on dim `B`).
+
+    enc  (K, B, motion_dim, 2)                the causal encoder's tail
+    conv (K, blocks, B, conv_dim, d_conv - 1) each block's Mamba-2 conv tail
+    ssm  (K, blocks, B, heads, headdim, d_state) each block's SSM state
+    """
+
+    enc: torch.Tensor
+    conv: torch.Tensor
+    ssm: torch.Tensor
+
+    @property
+    def batch(self) -> int:
+        return self.enc.shape[1]
+
+    @staticmethod
+    def zeros(model: DiMGestor, steps: int, batch: int = 1, device=None, dtype=None) -> "StepStates":
+        s = model.init_state(batch, device, dtype)
+        return StepStates(s.enc[None].repeat(steps, 1, 1, 1),
+                          torch.stack([b.conv for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1),
+                          torch.stack([b.ssm for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1, 1))
+
+    @staticmethod
+    def cat(states: Sequence["StepStates"]) -> "StepStates":
+        if len(states) == 1:
+            return states[0]
+        return StepStates(torch.cat([s.enc for s in states], 1), torch.cat([s.conv for s in states], 2),
+                          torch.cat([s.ssm for s in states], 2))
+
+    def rows(self) -> list["StepStates"]:
+        """One StepStates per batch row (views)."""
+        return [StepStates(self.enc[:, b:b + 1], self.conv[:, :, b:b + 1], self.ssm[:, :, b:b + 1])
+                for b in range(self.batch)]
+
+    def step(self, k: int) -> DenoiserState:
+        """Step k as the model's own DenoiserState (what `DiMGestor.forward` takes)."""
+        return DenoiserState(self.enc[k], tuple(Mamba2State(c, s) for c, s in zip(self.conv[k], self.ssm[k])))
+
+    @staticmethod
+    def from_steps(steps: Sequence[DenoiserState]) -> "StepStates":
+        return StepStates(torch.stack([s.enc for s in steps]),
+                          torch.stack([torch.stack([b.conv for b in s.blocks]) for s in steps]),
+                          torch.stack([torch.stack([b.ssm for b in s.blocks]) for s in steps]))
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in self)
+
+
+class DenoiseRunner:
+    """The K-step sampler of one model and schedule, for windows of B streams (the fast path).
+
+    Built once per (model, sampler, steps, eta) by `runner_for`; it holds the stacked adaLN weights and
+    the step embeddings, rebuilt when the model's parameters change (their version counters move).
+    """
+
+    def __init__(self, model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str = "ddim", eta: float = 0.0):
+        self.model, self.pairs, self.sampler, self.eta = model, list(pairs), sampler, float(eta)
+        self.diffusion = Diffusion(model.config)
+        self._version: tuple | None = None
+
+    def _params(self) -> list[torch.nn.Parameter]:
+        m = self.model
+        mods = [b.adaLN_modulation[-1] for b in m.blocks] + [m.final.adaLN_modulation[-1]]
+        return [p for lin in mods for p in (lin.weight, lin.bias)] + list(m.t_embedder.parameters())
+
+    def _prepare(self) -> None:
+        params = self._params()
+        version = tuple(p._version for p in params) + tuple(p.data_ptr() for p in params)
+        if version == self._version:
+            return
+        m = self.model
+        mods = [b.adaLN_modulation[-1] for b in m.blocks] + [m.final.adaLN_modulation[-1]]
+        with torch.inference_mode():
+            self._w = torch.cat([lin.weight for lin in mods]).detach().clone()  # (blocks * 6H + 2H, H)
+            self._b = torch.cat([lin.bias for lin in mods]).detach().clone()
+            t = torch.tensor([t for t, _ in self.pairs], device=self._w.device)
+            self._temb = m.t_embedder(t).detach().clone()  # (K, H)
+        self._version = version
+
+    def modulations(self, cond: torch.Tensor) -> torch.Tensor:
+        """cond (B, n, H) -> (K, B, n, blocks * 6H + 2H): every adaLN output of the window, all steps."""
+        self._prepare()
+        c = cond[None] + self._temb[:, None, None, :]  # (K, B, n, H): the condition plus each step's embedding
+        return F.linear(F.silu(c), self._w, self._b)
+
+    def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates
+               ) -> torch.Tensor:
+        """Denoise B windows of n frames: cond (B, n, H), row b's frames start at frame_starts[b] of the stream
+        seeded seeds[b] -> x0 (B, n, motion_dim). `states` is updated in place (the runner's buffers: no state
+        is copied per step). Call under torch.inference_mode()."""
+        m, d = self.model, self.diffusion
+        n = cond.shape[1]
+        D, L, H = m.config.motion_dim, m.config.noise_taps, m.config.hidden
+        nb = len(m.blocks)
+        mods = self.modulations(cond)
+        x = motion_noise_rows(seeds, frame_starts, n, 0, D, L, cond.device).to(cond.dtype)  # x_T, (B, n, D)
+        for k, (t, t_prev) in enumerate(self.pairs):
+            h, tail = m.encoder(x, states.enc[k])
+            states.enc[k].copy_(tail)
+            for j, block in enumerate(m.blocks):
+                h, _ = block(h, None, Mamba2State(states.conv[k, j], states.ssm[k, j]),
+                             mod=mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], inplace=True)
+            out = m.final(h, None, mod=mods[k, :, :, 6 * H * nb:])
+            eps, x0 = d.split(out, x, t)
+            noisy = self.sampler == "ddpm" and t > 0 or self.sampler == "ddim" and self.eta > 0 and t_prev >= 0
+            noise = motion_noise_rows(seeds, frame_starts, n, k + 1, D, L, cond.device).to(x.dtype) if noisy else None
+            if self.sampler == "ddpm":
+                x = d.ddpm_step(x, x0, t, noise)
+            else:
+                x, _ = d.ddim_step(x, eps, t, t_prev, self.eta, noise, x0=x0)
+        return x
+
+
+_RUNNERS: "weakref.WeakKeyDictionary[DiMGestor, dict]" = weakref.WeakKeyDictionary()
+
+
+def runner_for(model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str, eta: float) -> DenoiseRunner:
+    """The shared runner of this model and schedule: streams with the same one can share a batch."""
+    runners = _RUNNERS.setdefault(model, {})
+    key = (tuple(pairs), sampler, float(eta))
+    if key not in runners:
+        runners[key] = DenoiseRunner(model, pairs, sampler, eta)
+    return runners[key]
+
+
+def push_many(streams: Sequence, chunks: Sequence) -> list[np.ndarray]:
+    """Push chunks[i] into streams[i] (distinct `GestureStream`s) -> each one's new frames, as `push` would.
+
+    Each stream conditions its own audio; then the windows with the same runner and frame count are
+    denoised as one batch. A stream's frames are those it would give alone (to float rounding).
+    """
+    if len({id(s) for s in streams}) != len(streams):
+        raise ValueError("push_many: each stream at most once per call")
+    if len(chunks) != len(streams):
+        raise ValueError(f"push_many: {len(streams)} streams but {len(chunks)} chunks")
+    conds = [s._begin(c) for s, c in zip(streams, chunks)]
+    out: list[np.ndarray | None] = [None] * len(streams)
+    groups: dict[tuple, list[int]] = defaultdict(list)
+    for i, (s, cond) in enumerate(zip(streams, conds)):
+        if cond.shape[1] == 0:
+            out[i] = s._end(None)
+        else:
+            groups[(id(s.runner), cond.shape[1], cond.device, cond.dtype)].append(i)
+    for idx in groups.values():
+        members = [streams[i] for i in idx]
+        frames = denoise_rows(members, [conds[i] for i in idx])
+        for i, s, f in zip(idx, members, frames):
+            out[i] = s._end(f)
+    return out
+
+
+def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor]) -> list[torch.Tensor]:
+    """One batched sampler run over streams sharing a runner and a frame count; updates their states.
+
+    The streams' states become the rows of one buffer that the sampler updates in place; while the same
+    streams come back together (a busy server: every stream has a window due each cycle) nothing is copied.
+    """
+    runner = streams[0].runner
+    first = streams[0]._states
+    buf = getattr(first, "buffer", None)
+    same = (buf is not None and buf.batch == len(streams)
+            and all(getattr(s._states, "buffer", None) is buf and s._states.row == i for i, s in enumerate(streams)))
+    with torch.inference_mode():
+        if not same:
+            buf = StepStates.cat([s._states.view for s in streams]) if len(streams) > 1 else first.view
+            for i, s in enumerate(streams):
+                s._states = _Row(buf, i)
+        x = runner.sample(torch.cat(list(conds)), [s.frames_out for s in streams], [s.seed for s in streams], buf)
+    return list(x)
+
+
+class _Row:
+    """A stream's place in a state buffer: row `row` of `buffer` (a StepStates shared by a batch)."""
+
+    __slots__ = ("buffer", "row")
+
+    def __init__(self, buffer: StepStates, row: int):
+        self.buffer, self.row = buffer, row
+
+    @property
+    def view(self) -> StepStates:
+        b, r = self.buffer, self.row
+        if b.batch == 1:
+            return b
+        return StepStates(b.enc[:, r:r + 1], b.conv[:, :, r:r + 1], b.ssm[:, :, r:r + 1])

@@ -1,0 +1,161 @@
+"""Batched multi-stream denoising (dimgestor.batch): every stream gets the frames it would get alone."""
+import numpy as np
+import pytest
+import torch
+
+from dimgestor.batch import DenoiseRunner, StepStates, push_many
+from dimgestor.config import get_preset
+from dimgestor.diffusion import Diffusion
+from dimgestor.model import DiMGestor
+from dimgestor.stream import GestureStream, generate_offline, sample_frames
+
+TOL = 1e-5
+
+
+def _model(preset="tiny", **overrides):
+    model = DiMGestor(get_preset(preset, **overrides))
+    torch.manual_seed(3)
+    with torch.no_grad():  # break the zero init so the frames depend on everything
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    return model.eval()
+
+
+def _audio(seconds, seed):
+    rng = np.random.default_rng(seed)
+    n = int(seconds * 16000)
+    env = 0.5 + 0.5 * np.sin(np.arange(n) / (1200 + 300 * seed))
+    return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return _model()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 40])
+@pytest.mark.parametrize("sampler,eta,K", [("ddim", 0.0, 4), ("ddim", 0.6, 3), ("ddpm", 0.0, None)])
+def test_runner_equals_the_models_own_forward(model, n, sampler, eta, K):
+    """The fast path (modulations of all steps in one matmul, states updated in place) vs one model call per step."""
+    if sampler == "ddpm":  # every one of the N steps: a short chain keeps it quick
+        model = _model(n_steps=24)
+    d = Diffusion(model.config)
+    pairs = d.sampling_pairs(sampler, K or 1)
+    runner = DenoiseRunner(model, pairs, sampler, eta)
+    H = model.config.hidden
+    gen = torch.Generator().manual_seed(n)
+    with torch.inference_mode():
+        states = StepStates.zeros(model, len(pairs), 3)
+        ref = [[None] * len(pairs) for _ in range(3)]
+        for w, start in enumerate((0, n)):  # two windows: the second continues the carried states
+            cond = torch.randn(3, n, H, generator=gen)
+            seeds = [5, 6, 7 + w]
+            got = runner.sample(cond, [start] * 3, seeds, states)
+            for b in range(3):
+                want, ref[b] = sample_frames(model, d, cond[b:b + 1], start, ref[b], pairs, seeds[b], sampler, eta)
+                assert (got[b] - want).abs().max() < TOL
+        want_states = [StepStates.from_steps(r) for r in ref]
+        for b in range(3):
+            for got_t, want_t in zip(StepStates(states.enc[:, b:b + 1], states.conv[:, :, b:b + 1],
+                                                states.ssm[:, :, b:b + 1]), want_states[b]):
+                assert (got_t - want_t).abs().max() < TOL
+
+
+def _schedule(rng, total, low, high):
+    sizes, left = [], total
+    while left > 0:
+        sizes.append(min(int(rng.integers(low, high)), left))
+        left -= sizes[-1]
+    return sizes
+
+
+def test_batched_streams_equal_solo_streams(model):
+    """Different seeds, audio, start times and chunk sizes; one stream leaves mid-batch, one joins late."""
+    rng = np.random.default_rng(0)
+    specs = [  # (seed, seconds, start tick, chunk size range)
+        (11, 3.0, 0, (1600, 1601)),  # 100 ms windows
+        (12, 2.5, 0, (1600, 1601)),  # same window size: shares its batch with the first
+        (13, 1.2, 0, (700, 2600)),   # leaves early (finishes at tick ~10)
+        (14, 2.0, 6, (1600, 1601)),  # joins at tick 6
+        (15, 2.2, 2, (300, 4000)),   # ragged chunks: its own group most ticks
+    ]
+    plans = []
+    for seed, seconds, start, (lo, hi) in specs:
+        audio = _audio(seconds, seed)
+        plans.append((seed, audio, start, _schedule(rng, len(audio), lo, hi)))
+
+    solo = []
+    for seed, audio, _, sizes in plans:
+        s = GestureStream(model, steps=4, seed=seed, smoothing=None)
+        out, i = [], 0
+        for n in sizes:
+            out.append(s.push(audio[i:i + n]))
+            i += n
+        out.append(s.finish())
+        solo.append(np.concatenate(out))
+
+    streams = [GestureStream(model, steps=4, seed=seed, smoothing=None) for seed, *_ in plans]
+    outs = [[] for _ in plans]
+    pos = [0] * len(plans)
+    done = [False] * len(plans)
+    tick, batch_sizes = 0, []
+    while not all(done):
+        due = [i for i, (_, _, start, sizes) in enumerate(plans) if not done[i] and tick >= start]
+        pushing = [i for i in due if tick - plans[i][2] < len(plans[i][3])]
+        chunks = []
+        for i in pushing:
+            _, audio, start, sizes = plans[i]
+            n = sizes[tick - start]
+            chunks.append(audio[pos[i]:pos[i] + n])
+            pos[i] += n
+        for i, frames in zip(pushing, push_many([streams[i] for i in pushing], chunks)):
+            outs[i].append(frames)
+        batch_sizes.append(len(pushing))
+        for i in set(due) - set(pushing):  # its audio ended: leave the batch
+            outs[i].append(streams[i].finish())
+            done[i] = True
+        tick += 1
+    assert max(batch_sizes) >= 4
+    for i, (got, want) in enumerate(zip(outs, solo)):
+        got = np.concatenate(got)
+        assert got.shape == want.shape, i
+        assert np.abs(got - want).max() < TOL, (i, np.abs(got - want).max())
+
+
+def test_batched_streams_equal_offline_realtime_preset():
+    """The realtime preset (the served one), 100 ms windows, 6 streams batched: each equals its offline run."""
+    model = _model("realtime", motion_dim=12)
+    audios = [_audio(2.0, seed) for seed in range(6)]
+    streams = [GestureStream(model, steps=8, seed=seed, smoothing=None) for seed in range(6)]
+    outs = [[] for _ in audios]
+    for a in range(0, len(audios[0]), 1600):
+        for o, f in zip(outs, push_many(streams, [x[a:a + 1600] for x in audios])):
+            o.append(f)
+    for seed, (s, o, audio) in enumerate(zip(streams, outs, audios)):
+        got = np.concatenate(o + [s.finish()])
+        want = generate_offline(model, audio, steps=8, seed=seed, smoothing=None)
+        assert np.abs(got - want).max() < 1e-4  # the offline run scans whole chunks: float rounding differs
+
+
+def test_push_many_checks_its_arguments(model):
+    s = GestureStream(model, steps=2)
+    with pytest.raises(ValueError, match="at most once"):
+        push_many([s, s], [np.zeros(160, np.float32)] * 2)
+    with pytest.raises(ValueError, match="chunks"):
+        push_many([s], [])
+    s.finish()
+    with pytest.raises(RuntimeError, match="after finish"):
+        push_many([s], [np.zeros(160, np.float32)])
+
+
+def test_runner_follows_weight_changes(model):
+    """A runner caches stacked adaLN weights; changing the model's weights must not serve stale ones."""
+    m = _model()
+    audio = _audio(1.0, 3)
+    before = GestureStream(m, steps=2, smoothing=None).push(audio)
+    with torch.no_grad():
+        m.blocks[0].adaLN_modulation[-1].bias.add_(0.5)
+    after = GestureStream(m, steps=2, smoothing=None).push(audio)
+    want = generate_offline(m, audio, steps=2, smoothing=None)[: len(after)]
+    assert not np.allclose(before, after)
+    assert np.abs(after - want).max() < 1e-4
