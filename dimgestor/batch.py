@@ -158,29 +158,45 @@ def runner_for(model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str,
     return runners[key]
 
 
-def push_many(streams: Sequence, chunks: Sequence) -> list[np.ndarray]:
+def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = False) -> list:
     """Push chunks[i] into streams[i] (distinct `GestureStream`s) -> each one's new frames, as `push` would.
 
     Each stream conditions its own audio; then the windows with the same runner and frame count are
     denoised as one batch. A stream's frames are those it would give alone (to float rounding).
+    return_exceptions: a stream whose push fails (bad audio, a finished stream) gets its exception in
+    its place and the others go on; otherwise the first one is raised.
     """
     if len({id(s) for s in streams}) != len(streams):
         raise ValueError("push_many: each stream at most once per call")
     if len(chunks) != len(streams):
         raise ValueError(f"push_many: {len(streams)} streams but {len(chunks)} chunks")
-    conds = [s._begin(c) for s, c in zip(streams, chunks)]
-    out: list[np.ndarray | None] = [None] * len(streams)
+    out: list = [None] * len(streams)
+    conds: list = [None] * len(streams)
+    for i, (s, c) in enumerate(zip(streams, chunks)):
+        try:
+            conds[i] = s._begin(c)
+        except Exception as e:
+            if not return_exceptions:
+                raise
+            out[i] = e
     groups: dict[tuple, list[int]] = defaultdict(list)
     for i, (s, cond) in enumerate(zip(streams, conds)):
+        if cond is None:
+            continue
         if cond.shape[1] == 0:
             out[i] = s._end(None)
         else:
             groups[(id(s.runner), cond.shape[1], cond.device, cond.dtype)].append(i)
     for idx in groups.values():
         members = [streams[i] for i in idx]
-        frames = denoise_rows(members, [conds[i] for i in idx])
+        try:
+            frames = denoise_rows(members, [conds[i] for i in idx])
+        except Exception as e:
+            if not return_exceptions:
+                raise
+            frames = [e] * len(idx)
         for i, s, f in zip(idx, members, frames):
-            out[i] = s._end(f)
+            out[i] = f if isinstance(f, Exception) else s._end(f)
     return out
 
 

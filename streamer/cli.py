@@ -122,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     s.add_argument("--window-ms", type=int, default=200,
                    help="audio gathered per inference call (10..5000 ms): smaller = lower latency, more overhead")
+    s.add_argument("--no-batch", action="store_true",
+                   help="infer each stream's windows alone (default: the windows of all streams due at once run "
+                        "as one batched forward per sampler step)")
     s.add_argument("--fast", action="store_true",
                    help="read a file source as fast as inference allows instead of in real time")
     s.add_argument("--loop", action="store_true", help="repeat a file source forever instead of exiting at its end")

@@ -6,6 +6,10 @@ next window takes everything that queued up meanwhile, so latency recovers inste
 take is inferred in pieces of at most `max_call_s` of audio: sessions share the inference workers, and
 each one has at most one call queued, so short calls keep every other session's turn short. Each
 frame is stamped with pts = index / fps on the audio clock.
+
+Sessions share one `StreamBatcher` by default (`streamer serve`): the windows of all sessions that are
+due run as one batched forward per sampler step, so the model's weights are read once per step for
+all of them (`dimgestor.batch`). `RankedExecutor` (`--no-batch`) runs each session's window alone.
 """
 
 from __future__ import annotations
@@ -187,6 +191,140 @@ class RankedExecutor(Executor):
                 t.join()
 
 
+@dataclass
+class _PushJob:
+    session: "Session"
+    samples: np.ndarray
+    rank: float
+    future: Future
+
+
+class BatchStats:
+    """How many streams shared the recent batches (an exponential average, and the largest of a recent run)."""
+
+    def __init__(self, alpha: float = 0.1):
+        self.alpha, self.batches, self.last, self.mean, self.peak, self._peak_run = alpha, 0, 0, 0.0, 0, []
+
+    def add(self, size: int) -> None:
+        self.batches += 1
+        self.last = size
+        self.mean += (1.0 if self.batches == 1 else self.alpha) * (size - self.mean)
+        self._peak_run = (self._peak_run + [size])[-50:]
+        self.peak = max(self._peak_run)
+
+    def describe(self) -> str:
+        return f"batch {self.mean:.1f} streams (max {self.peak})" if self.batches else "batch -"
+
+
+class StreamBatcher(Executor):
+    """One inference thread that runs the due windows of all sessions as batched forwards.
+
+    Sessions hand it their windows (`submit_push`); each cycle it takes every window waiting, runs
+    each stream's front end and extractor, denoises the windows of equal length as one batch per
+    sampler step (`dimgestor.batch.push_many`: one stream per batch row) and decodes the poses. A
+    stream that has nothing due is not waited for, so a stalled client never delays the others;
+    streams join and leave by submitting or not. Rank as in `RankedExecutor`: while a real-time window
+    (rank <= 0) waits, windows ahead of real time (a backlog) wait for the next cycle. Other jobs
+    (`submit`: a stream's finish) run alone between batches.
+    """
+
+    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch"):
+        self.max_batch = max_batch
+        self.stats = BatchStats()
+        self._pushes: list[_PushJob] = []
+        self._jobs: deque = deque()
+        self._cv = threading.Condition()
+        self._shutdown = False
+        self._thread = threading.Thread(target=self._work, name=thread_name)  # not daemon: see RankedExecutor
+        self._thread.start()
+        register = getattr(threading, "_register_atexit", None)
+        if register is not None:
+            register(lambda: self.shutdown(wait=True, cancel_futures=True))
+
+    def submit_push(self, session: "Session", samples: np.ndarray, rank: float = 0.0) -> Future:
+        """Queue one window of `session` -> a Future of its frames (list[Frame])."""
+        future: Future = Future()
+        with self._cv:
+            if self._shutdown:
+                raise RuntimeError("cannot schedule new jobs after shutdown")
+            self._pushes.append(_PushJob(session, samples, rank, future))
+            self._cv.notify()
+        return future
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        with self._cv:
+            if self._shutdown:
+                raise RuntimeError("cannot schedule new jobs after shutdown")
+            self._jobs.append((future, fn, args, kwargs))
+            self._cv.notify()
+        return future
+
+    def submit_ranked(self, rank: float, fn, /, *args, **kwargs) -> Future:
+        return self.submit(fn, *args, **kwargs)
+
+    def _take(self) -> tuple[list[_PushJob], list]:
+        """The next cycle's windows (real-time ones first, one per session) and solo jobs; None at shutdown."""
+        with self._cv:
+            while not (self._pushes or self._jobs):
+                if self._shutdown:
+                    return None
+                self._cv.wait()
+            pushes = sorted(self._pushes, key=lambda j: j.rank)
+            if pushes and pushes[0].rank <= 0:  # real time first: a backlog waits for a cycle without any
+                pushes = [j for j in pushes if j.rank <= 0]
+            taken, seen = [], set()
+            for j in pushes:
+                if len(taken) < self.max_batch and id(j.session) not in seen:
+                    taken.append(j)
+                    seen.add(id(j.session))
+            ids = {id(j) for j in taken}
+            self._pushes = [j for j in self._pushes if id(j) not in ids]
+            jobs, self._jobs = list(self._jobs), deque()
+            return taken, jobs
+
+    def _work(self) -> None:
+        from dimgestor.batch import push_many
+
+        while (cycle := self._take()) is not None:
+            pushes, jobs = cycle
+            pushes = [j for j in pushes if j.future.set_running_or_notify_cancel()]
+            if pushes:
+                self.stats.add(len(pushes))
+                try:
+                    results = push_many([j.session.stream for j in pushes], [j.samples for j in pushes],
+                                        return_exceptions=True)
+                except BaseException as e:  # noqa: BLE001 - handed to every waiting session
+                    results = [e] * len(pushes)
+                for j, r in zip(pushes, results):
+                    if isinstance(r, BaseException):
+                        j.future.set_exception(r)
+                        continue
+                    try:
+                        j.future.set_result(j.session._frames(r))
+                    except BaseException as e:  # noqa: BLE001
+                        j.future.set_exception(e)
+            for future, fn, args, kwargs in jobs:
+                if future.set_running_or_notify_cancel():
+                    try:
+                        future.set_result(fn(*args, **kwargs))
+                    except BaseException as e:  # noqa: BLE001
+                        future.set_exception(e)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        with self._cv:
+            self._shutdown = True
+            if cancel_futures:
+                for j in self._pushes:
+                    j.future.cancel()
+                for job in self._jobs:
+                    job[0].cancel()
+                self._pushes, self._jobs = [], deque()
+            self._cv.notify_all()
+        if wait and threading.current_thread() is not self._thread:
+            self._thread.join()
+
+
 class Session:
     """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`."""
 
@@ -231,6 +369,13 @@ class Session:
             return asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
         return asyncio.wrap_future(submit(self.clock.ahead_s(), fn, *args))
 
+    def _push_job(self, samples: np.ndarray) -> asyncio.Future:
+        """This window's frames: batched with the other sessions' (a StreamBatcher) or a job of its own."""
+        submit = getattr(self.executor, "submit_push", None)
+        if submit is None:
+            return self._job(self._push, samples)
+        return asyncio.wrap_future(submit(self, samples, self.clock.ahead_s()))
+
     def _push(self, samples: np.ndarray) -> list[Frame]:  # worker thread
         return self._frames(self.stream.push(samples))
 
@@ -269,7 +414,7 @@ class Session:
                 infer_s, n = 0.0, 0
                 for a in range(0, len(samples), piece):
                     t0 = time.perf_counter()
-                    frames = await self._job(self._push, samples[a : a + piece])
+                    frames = await self._push_job(samples[a : a + piece])
                     self.clock.audio_s += min(piece, len(samples) - a) / RATE
                     infer_s += time.perf_counter() - t0
                     n += len(frames)

@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import AsyncIterator
 
-from streamer.engine import Frame, RankedExecutor, Session
+from streamer.engine import Frame, RankedExecutor, Session, StreamBatcher
 from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 
@@ -58,12 +58,14 @@ def _load(args):
         raise ServeError(f"cannot load {where}: {e}") from None
 
 
-def _status_line(session: Session | None, ws, vmc, source, t0: float) -> str:
+def _status_line(session: Session | None, ws, vmc, source, t0: float, executor=None) -> str:
     parts = [f"[streamer {time.monotonic() - t0:6.1f}s]"]
     if session is not None:
         st = session.stats
         parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",
                   f"rtf {st.rtf:.2f}"]
+    if isinstance(executor, StreamBatcher):
+        parts.append(executor.stats.describe())
     if ws is not None:
         parts += [f"clients {len(ws.clients)}", f"dropped {sum(c.dropped for c in ws.clients)}",
                   f"own sessions {sum(1 for c in ws.clients if c.session is not None)}"]
@@ -173,7 +175,10 @@ async def serve(args) -> int:
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
     fps = bundle.feature_spec.fps
     fps = int(fps) if float(fps).is_integer() else fps
-    executor = RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    if getattr(args, "no_batch", False):
+        executor = RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    else:  # one batched forward per sampler step for every session with a window due
+        executor = StreamBatcher()
 
     def make_session(name: str = "client") -> Session:
         return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing, **root,
@@ -267,7 +272,7 @@ async def serve(args) -> int:
         vmc_dropped = 0
         while args.status_every > 0:
             await asyncio.sleep(args.status_every)
-            line = _status_line(main_session, ws, vmc, source, t0)
+            line = _status_line(main_session, ws, vmc, source, t0, executor)
             if vmc is not None and vmc.dropped > vmc_dropped:  # a stall (CPU busy, process paused): say so
                 line += f" | WARNING: VMC dropped {vmc.dropped - vmc_dropped} late frames (a stall: CPU busy or process paused)"
                 vmc_dropped = vmc.dropped
@@ -313,5 +318,5 @@ async def serve(args) -> int:
         if viewer:
             viewer.close()
         executor.shutdown(wait=False, cancel_futures=True)
-        print(_status_line(main_session, ws, vmc, source, t0), file=sys.stderr, flush=True)
+        print(_status_line(main_session, ws, vmc, source, t0, executor), file=sys.stderr, flush=True)
     return 0

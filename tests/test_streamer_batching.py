@@ -1,0 +1,129 @@
+"""Sessions sharing a StreamBatcher: batched windows, each session's frames as if alone, no waiting on a stalled one."""
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from dimgestor.audio import save_wav
+from dimgestor.checkpoint import load_checkpoint, save_checkpoint
+from dimgestor.config import get_preset
+from dimgestor.features import FeatureSpec
+from dimgestor.model import DiMGestor
+from dimgestor.stream import generate_offline
+from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
+from streamer.engine import Session, StreamBatcher
+from streamer.sources import WavSource
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    sk = synthetic_skeleton()
+    spec = FeatureSpec.for_skeleton(sk)
+    torch.manual_seed(0)
+    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
+    with torch.no_grad():  # break the zero init so the frames depend on everything
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+    rng = np.random.default_rng(0)
+    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
+    path = save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
+    return load_checkpoint(path)
+
+
+def test_sessions_share_batches_and_each_gets_its_own_frames(bundle, tmp_path):
+    """Six real-time sessions (different seeds, audio, start times, one ending early) on one batcher:
+    each session's frames equal its offline run, and a client whose sink stalls for 2 s neither delays
+    the others nor loses a frame."""
+    batcher = StreamBatcher()
+    specs = [(seed, 1.6 if seed != 2 else 0.8, 0.15 * seed) for seed in range(6)]  # (seed, seconds, start delay)
+    wavs = []
+    for seed, seconds, _ in specs:
+        wav = tmp_path / f"{seed}.wav"
+        save_wav(wav, synthetic_speech(seconds, seed=seed), 16000)
+        wavs.append(wav)
+    stall_s = 2.0
+    results = {}
+
+    async def one(seed, wav, delay):
+        await asyncio.sleep(delay)
+        src = WavSource(wav, realtime=True, chunk_ms=20)
+        session = Session.from_bundle(bundle, steps=3, seed=seed, window_ms=100, executor=batcher, name=f"s{seed}")
+        frames, t0 = [], time.monotonic()
+
+        async def emit(fs):
+            if seed == 4 and not frames:  # a stalled client: its sink blocks
+                await asyncio.sleep(stall_s)
+            frames.extend(fs)
+
+        await session.run(src, emit)
+        results[seed] = (src.audio, frames, time.monotonic() - t0, delay)
+
+    async def main():
+        await asyncio.gather(*(one(seed, wav, delay) for (seed, _, delay), wav in zip(specs, wavs)))
+
+    try:
+        asyncio.run(main())
+    finally:
+        batcher.shutdown()
+    assert batcher.stats.batches > 0
+    for seed, (audio, frames, took, _) in results.items():
+        want = bundle.denormalize(generate_offline(bundle.model, audio, steps=3, seed=seed))
+        got = np.stack([f.features for f in frames])
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() < 1e-3 * max(1.0, np.abs(want).max()), seed
+        assert [f.index for f in frames] == list(range(len(frames)))
+    audio_s = {seed: len(r[0]) / 16000 for seed, r in results.items()}
+    assert results[4][2] >= stall_s  # the stalled one really waited (then caught up from its buffer)
+    for seed in (0, 1, 3, 5):  # the others kept pace with their audio meanwhile
+        assert results[seed][2] < audio_s[seed] + 1.5, (seed, results[seed][2])
+
+
+def test_windows_waiting_together_run_as_one_batch(bundle):
+    """Windows that are due while the batcher is busy run in one batch next cycle, real time before backlog."""
+    batcher = StreamBatcher()
+    gate = threading.Event()
+    try:
+        batcher.submit(gate.wait, 30)  # the batcher is busy until the windows below are all queued
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(5)]
+        audio = synthetic_speech(0.3, seed=3)
+        futures = [batcher.submit_push(s, audio, rank=0.0 if i < 4 else 1.0) for i, s in enumerate(sessions)]
+        gate.set()
+        frames = [f.result(30) for f in futures]
+        assert batcher.stats.batches == 2 and batcher.stats.peak == 4  # 4 real-time windows, then the backlog one
+        for i, fs in enumerate(frames):
+            want = bundle.denormalize(generate_offline(bundle.model, audio, steps=2, seed=i))[:len(fs)]
+            assert len(fs) == len(want) > 0
+            assert np.abs(np.stack([f.features for f in fs]) - want).max() < 1e-3 * max(1.0, np.abs(want).max())
+        assert "batch" in batcher.stats.describe()
+    finally:
+        gate.set()
+        batcher.shutdown()
+
+
+def test_batcher_isolates_a_failing_stream(bundle):
+    """A window that fails (a finished stream) fails its own future only; the batch's others get frames."""
+    batcher = StreamBatcher()
+    gate = threading.Event()
+    try:
+        good = Session.from_bundle(bundle, steps=2, seed=1, executor=batcher)
+        bad = Session.from_bundle(bundle, steps=2, seed=2, executor=batcher)
+        bad.stream.finish()
+        audio = synthetic_speech(0.5, seed=1)
+        batcher.submit(gate.wait, 30)
+        f_good, f_bad = batcher.submit_push(good, audio), batcher.submit_push(bad, audio)
+        gate.set()
+        assert len(f_good.result(30)) > 0
+        assert batcher.stats.last == 2  # they were in one batch
+        with pytest.raises(RuntimeError, match="after finish"):
+            f_bad.result(30)
+        assert batcher.submit(lambda: 42).result(30) == 42
+    finally:
+        batcher.shutdown()
+    with pytest.raises(RuntimeError, match="shutdown"):
+        batcher.submit_push(good, audio)
