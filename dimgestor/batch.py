@@ -108,12 +108,18 @@ class DenoiseRunner:
         with torch.inference_mode():
             self._w = torch.cat([lin.weight for lin in mods]).detach().clone()  # (blocks * 6H + 2H, H)
             self._b = torch.cat([lin.bias for lin in mods]).detach().clone()
+            H = m.config.hidden
+            for j in range(len(m.blocks)):  # the blocks take 1 + scale: fold the 1 into the bias
+                self._b[6 * H * j + H: 6 * H * j + 2 * H] += 1  # scale1
+                self._b[6 * H * j + 4 * H: 6 * H * j + 5 * H] += 1  # scale2
+            self._b[6 * H * len(m.blocks) + H:] += 1  # the final layer's scale
             t = torch.tensor([t for t, _ in self.pairs], device=self._w.device)
             self._temb = m.t_embedder(t).detach().clone()  # (K, H)
         self._version = version
 
     def modulations(self, cond: torch.Tensor) -> torch.Tensor:
-        """cond (B, n, H) -> (K, B, n, blocks * 6H + 2H): every adaLN output of the window, all steps."""
+        """cond (B, n, H) -> (K, B, n, blocks * 6H + 2H): every adaLN output of the window, all steps
+        (1 added to the scale chunks, as the blocks take them)."""
         self._prepare()
         c = cond[None] + self._temb[:, None, None, :]  # (K, B, n, H): the condition plus each step's embedding
         return F.linear(F.silu(c), self._w, self._b)

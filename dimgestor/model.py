@@ -93,15 +93,17 @@ class AdaLNMamba2Block(nn.Module):
 
     def forward(self, x: torch.Tensor, c: torch.Tensor | None, state: Mamba2State | None = None,
                 mod: torch.Tensor | None = None, inplace: bool = False) -> tuple[torch.Tensor, Mamba2State]:
-        """mod: this block's adaLN output (B, T, 6H) computed beforehand (`dimgestor.batch` computes every
-        block's, for every sampler step of a window, in one matmul); None computes it from c.
-        inplace: the mixer writes its new state into `state` (see `Mamba2.forward`)."""
+        """mod: this block's adaLN output (B, T, 6H) computed beforehand, with 1 already added to its two scale
+        chunks (`dimgestor.batch` computes every block's, for every sampler step of a window, in one matmul);
+        None computes it from c. inplace: the mixer writes its new state into `state` (see `Mamba2.forward`)."""
         if mod is None:
-            mod = self.adaLN_modulation(c)
-        shift1, scale1, gate1, shift2, scale2, gate2 = mod.chunk(6, dim=-1)  # (B, T, H) each
-        h, state = self.mixer(modulate(self.norm1(x), shift1, scale1), state, inplace=inplace)
+            shift1, scale1, gate1, shift2, scale2, gate2 = self.adaLN_modulation(c).chunk(6, dim=-1)  # (B, T, H) each
+            scale1, scale2 = 1 + scale1, 1 + scale2
+        else:
+            shift1, scale1, gate1, shift2, scale2, gate2 = mod.chunk(6, dim=-1)
+        h, state = self.mixer(torch.addcmul(shift1, self.norm1(x), scale1), state, inplace=inplace)
         x = torch.addcmul(x, gate1, h)  # x + g1 * h
-        x = torch.addcmul(x, gate2, self.mlp(modulate(self.norm2(x), shift2, scale2)))
+        x = torch.addcmul(x, gate2, self.mlp(torch.addcmul(shift2, self.norm2(x), scale2)))
         return x, state
 
 
@@ -115,8 +117,12 @@ class FinalLayer(nn.Module):
         self.decoder = nn.Conv1d(hidden, motion_dim, kernel_size=1)
 
     def forward(self, x, c, mod: torch.Tensor | None = None):
-        shift, scale = (self.adaLN_modulation(c) if mod is None else mod).chunk(2, dim=-1)
-        x = modulate(self.norm(x), shift, scale)
+        """mod: the adaLN output (B, T, 2H) computed beforehand, 1 already added to its scale; None: from c."""
+        if mod is None:
+            x = modulate(self.norm(x), *self.adaLN_modulation(c).chunk(2, dim=-1))
+        else:
+            shift, scale1 = mod.chunk(2, dim=-1)
+            x = torch.addcmul(shift, self.norm(x), scale1)
         # the k=1 Conv1D as the matmul it is (CPU conv kernels cost ~0.4 ms a call on streaming windows)
         return F.linear(x, self.decoder.weight[:, :, 0], self.decoder.bias)  # (B, T, motion_dim)
 
@@ -178,9 +184,14 @@ class FuzzyFeatureExtractor(nn.Module):
         if n_out == 0:
             return buf.new_zeros(buf.shape[0], 0, self.style_out.out_features), ExtractorState(style_state, buf)
         used = (n_out - 1) * self.stride + self.k
-        down = self.down(buf[:, : self.feat_dim, :used])  # (B, H, n_out)
+        feats_in = buf[:, : self.feat_dim, :used]
+        if n_out <= 8:  # a streaming window: the conv as one matmul over its few windows (CPU conv2d costs ~0.2 ms)
+            windows = feats_in.unfold(2, self.k, self.stride).transpose(1, 2).flatten(2)  # (B, n_out, F * k)
+            down = F.linear(windows, self.down.weight.flatten(1), self.down.bias)  # (B, n_out, H)
+        else:
+            down = self.down(feats_in).transpose(1, 2)  # (B, n_out, H)
         last = buf[:, self.feat_dim:, self.k - 1: used: self.stride]  # (B, S, n_out): style at the last seen frame
-        cond = down.transpose(1, 2) + self.style_out(last.transpose(1, 2))  # (B, n_out, H)
+        cond = down + self.style_out(last.transpose(1, 2))  # (B, n_out, H)
         return cond, ExtractorState(style_state, buf[:, :, n_out * self.stride:])
 
 
