@@ -305,7 +305,10 @@ class Mamba2(nn.Module):
 
         # causal depthwise conv, continued from the carried tail of the previous window
         xBC_t = torch.cat([state.conv, xBC.transpose(1, 2)], dim=2)  # (b, conv_dim, d_conv - 1 + L)
+        # the tail as its own small tensor: a view would keep this whole window's xBC alive with the state
         new_conv = xBC_t[:, :, xBC_t.shape[2] - (self.d_conv - 1):]
+        if not inplace:
+            new_conv = new_conv.clone()
         xBC = F.silu(self._depthwise_conv(xBC_t, L).transpose(1, 2))
 
         x, B, C = torch.split(xBC, [self.d_inner, self.ngroups * self.d_state, self.ngroups * self.d_state], dim=-1)

@@ -140,7 +140,7 @@ class GestureEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor, tail: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         xs = torch.cat([tail, x.transpose(1, 2)], dim=2)  # (B, D, k-1 + T)
-        new_tail = xs[:, :, xs.shape[2] - tail.shape[2]:]
+        new_tail = xs[:, :, xs.shape[2] - tail.shape[2]:].clone()  # not a view that keeps all of xs alive
         # the conv as one matmul over unfolded windows: same weights and numbers, far fewer ops per call
         windows = xs.unfold(2, self.conv.kernel_size[0], 1).transpose(1, 2).flatten(2)  # (B, T, D * k)
         w = self.conv.weight.flatten(1)  # (H, D * k), matching the unfolded (D, k) order
@@ -192,7 +192,7 @@ class FuzzyFeatureExtractor(nn.Module):
             down = self.down(feats_in).transpose(1, 2)  # (B, n_out, H)
         last = buf[:, self.feat_dim:, self.k - 1: used: self.stride]  # (B, S, n_out): style at the last seen frame
         cond = down + self.style_out(last.transpose(1, 2))  # (B, n_out, H)
-        return cond, ExtractorState(style_state, buf[:, :, n_out * self.stride:])
+        return cond, ExtractorState(style_state, buf[:, :, n_out * self.stride:].clone())  # not a view of all of buf
 
 
 class DiMGestor(nn.Module):
@@ -201,7 +201,7 @@ class DiMGestor(nn.Module):
         self.config = config
         # frames per denoiser pass on long sequences: a multiple of the SSD chunk, so the chunks (and the
         # numbers) are those of one whole pass; bounds the activations of an offline 100 s sequence
-        self.segment_frames = 8 * config.chunk_size
+        self.segment_frames = 2 * config.chunk_size
         self.frontend = build_frontend(config)
         self.extractor = FuzzyFeatureExtractor(config, self.frontend.dim)
         self.t_embedder = TimestepEmbedder(config.hidden)
@@ -269,17 +269,23 @@ class DiMGestor(nn.Module):
         seg = self.segment_frames
         if T <= seg:
             return self._denoise(x, t, cond, state)
-        outs = []
+        outs, carry = [], [state]
+        del state  # each segment's state is handed over as its only reference, so it is freed block by block
         for a in range(0, T, seg):
-            out, state = self._denoise(x[:, a:a + seg], t, cond[:, a:a + seg], state)
+            out, new = self._denoise(x[:, a:a + seg], t, cond[:, a:a + seg], carry.pop())
             outs.append(out)
-        return torch.cat(outs, dim=1), state
+            carry.append(new)
+            del new
+        return torch.cat(outs, dim=1), carry[0]
 
     def _denoise(self, x, t, cond, state: DenoiserState) -> tuple[torch.Tensor, DenoiserState]:
         c = cond + self.t_embedder(t)[:, None, :]  # (B, T, H): diffusion-step embedding added to the condition
         h, enc_tail = self.encoder(x, state.enc)
+        old = list(state.blocks)
+        del state
         block_states = []
-        for block, s in zip(self.blocks, state.blocks):
+        for j, block in enumerate(self.blocks):
+            s, old[j] = old[j], None  # the block's old state goes once its new one exists
             h, s = block(h, c, s)
             block_states.append(s)
         return self.final(h, c), DenoiserState(enc_tail, tuple(block_states))

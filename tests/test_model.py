@@ -90,9 +90,9 @@ def test_latency_and_sample_bookkeeping():
 
 @pytest.mark.parametrize("T", [129, 300])
 def test_long_sequences_run_in_segments_equal_one_pass(T):
-    """forward splits sequences longer than segment_frames (8 chunks) and carries the state: same frames."""
+    """forward splits sequences longer than segment_frames (2 chunks) and carries the state: same frames."""
     model = _randomize(DiMGestor(get_preset("tiny")))
-    assert model.segment_frames == 8 * model.config.chunk_size == 128
+    assert model.segment_frames == 2 * model.config.chunk_size == 32
     x, c = torch.randn(2, T, 12), torch.randn(2, T, 32)
     s0 = model.init_state(2)
     y_seg, s_seg = model(x, 77, c, s0)
@@ -116,3 +116,17 @@ def test_batch_rows_are_independent_streams():
         yi, si = model(x[i:i + 1], t[i:i + 1], c[i:i + 1], row)
         torch.testing.assert_close(y[i:i + 1], yi, rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(s.blocks[-1].ssm[i:i + 1], si.blocks[-1].ssm, rtol=1e-5, atol=1e-5)
+
+
+def test_carried_states_do_not_keep_a_windows_tensors_alive():
+    """The tails a forward returns own their small storage: a view would keep the whole window's
+    activations (xBC, the feature buffer) alive for as long as the state is carried."""
+    model = _randomize(DiMGestor(get_preset("tiny")))
+    T = 300
+    with torch.inference_mode():
+        _, s = model(torch.randn(1, T, 12), 5, torch.randn(1, T, 32))
+        feats = torch.randn(1, T * 5, model.frontend.dim)
+        _, ex = model.condition(feats)
+    tails = [s.enc] + [b.conv for b in s.blocks] + [b.ssm for b in s.blocks] + [ex.buf]
+    for t in tails:
+        assert t.untyped_storage().nbytes() == t.numel() * t.element_size()
