@@ -2,8 +2,10 @@
 
 For 20/40/60/80/100 s sequences at 20 fps: parameter count, inference time, peak memory. Each
 (model, length) is measured in a fresh subprocess, so a peak-memory reading cannot be inflated by an
-earlier measurement and CPU memory is read from the OS (peak RSS), which sees all of torch's
-allocations (tracemalloc does not). On CUDA the reading is torch.cuda.max_memory_allocated.
+earlier measurement. On CPU memory is read two ways: tensor memory (weights + inputs + the forward's
+peak of live tensors, from torch's profiler: what torch.cuda.max_memory_allocated counts on a GPU) and
+the OS's peak RSS (which adds the allocator's slack and BLAS/OpenMP buffers, a constant that is not the
+model's). On CUDA the reading is torch.cuda.max_memory_allocated.
 
     python benchmarks/paper_table.py                                   # small CPU default, a few minutes
     python benchmarks/paper_table.py --preset paper --hidden 0 --device cuda --mode sample --steps 50
@@ -125,13 +127,34 @@ def measure(args, name: str, length_s: float) -> dict:
         run()
         sync()
         times.append(time.perf_counter() - t0)
+    weights_mb = sum(p.numel() * p.element_size() for p in model.parameters()) / 2**20
+    inputs_mb = sum(t.numel() * t.element_size() for t in (cond, x)) / 2**20 if args.mode == "denoiser" else 0.0
     if device.type == "cuda":
         peak = torch.cuda.max_memory_allocated(device) / 2**20
+        tensor_mb, work_mb = peak, peak - weights_mb - inputs_mb
     else:
         peak = peak_rss_mb() - rss_before  # weights + inputs + activations + allocator slack
+        work_mb = peak_tensor_mb(run)  # what the forward allocates on top of weights and inputs, at its peak
+        tensor_mb = weights_mb + inputs_mb + work_mb  # what CUDA's max_memory_allocated counts
     return {"model": name, "length_s": length_s, "frames": T, "params": params,
             "denoiser_params": denoiser_params(model), "time_s": min(times), "time_s_median": float(np.median(times)),
-            "peak_mem_mb": peak, "peak_rss_mb_total": peak_rss_mb()}
+            "peak_mem_mb": peak, "peak_rss_mb_total": peak_rss_mb(), "tensor_mem_mb": tensor_mb,
+            "weights_mb": weights_mb, "inputs_mb": inputs_mb, "work_mem_mb": work_mb}
+
+
+def peak_tensor_mb(run) -> float:
+    """Peak bytes of live tensors that `run()` allocates (weights and inputs made before are not counted),
+    from torch's profiler: every allocation and free in order, as a running sum. Exact for tensors, blind
+    to the allocator's slack and to libraries' scratch buffers (peak RSS sees those)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
+        run()
+    live = peak = 0
+    for e in sorted(prof.events(), key=lambda e: e.time_range.start):
+        live += e.self_cpu_memory_usage  # an op's own allocations net of its frees; "[memory]" rows: frees
+        peak = max(peak, live)
+    return peak / 2**20
 
 
 def run_child(args, name: str, length_s: float) -> dict:
@@ -157,7 +180,10 @@ def plot(result: dict, path: Path) -> None:
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))
     for name, m in result["models"].items():
         ax_t.plot(result["lengths_s"], m["time_s"], "o-", label=f"{name} ({m['denoiser_params'] / 1e6:.1f} M denoiser params)")
-        ax_m.plot(result["lengths_s"], m["peak_mem_mb"], "o-", label=name)
+        line, = ax_m.plot(result["lengths_s"], m.get("tensor_mem_mb", m["peak_mem_mb"]), "o-", label=f"{name} tensors")
+        if "tensor_mem_mb" in m:
+            ax_m.plot(result["lengths_s"], m["peak_mem_mb"], "x--", color=line.get_color(), alpha=0.6,
+                      label=f"{name} RSS")
     attention = result.get("config", {}).get("attention", "sdpa")
     ax_t.set(xlabel="sequence length (s)", ylabel="time (s)", title="inference time")
     ax_m.set(xlabel="sequence length (s)", ylabel="peak memory (MB)", title=f"peak memory (attention: {attention})")
@@ -192,19 +218,23 @@ def main(argv=None) -> None:
         for name in MODELS:
             r = run_child(args, name, length_s)
             rows[name].append(r)
-            print(f"{name:15s} {length_s:6.0f} s: {r['time_s'] * 1000:9.1f} ms  {r['peak_mem_mb']:8.1f} MB")
+            print(f"{name:15s} {length_s:6.0f} s: {r['time_s'] * 1000:9.1f} ms  tensors {r['tensor_mem_mb']:7.1f} MB "
+                  f"(working {r['work_mem_mb']:6.1f})  RSS {r['peak_mem_mb']:7.1f} MB", flush=True)
     timing = (f"fastest of {args.repeats} runs of " if args.repeats > 1 else "") + (
               "one denoiser forward over the whole sequence (B=1, given condition)" if args.mode == "denoiser"
               else f"whole {args.steps}-step DDIM sampling incl. front end and condition (B=1)")
     memory = ("torch.cuda.max_memory_allocated" if args.device.startswith("cuda")
-              else "peak RSS of a fresh process minus its RSS before the model was built") + (
+              else "tensor_mem_mb: weights + inputs + the forward's peak of live tensors (torch profiler), what "
+                   "CUDA's max_memory_allocated counts; peak_mem_mb: peak RSS of a fresh process minus its RSS "
+                   "before the model was built (adds the allocator's slack and BLAS/OpenMP buffers)") + (
               " (denoiser weights, inputs, activations)" if args.mode == "denoiser" else " (whole model and sampling)")
     result = {
         "device": describe_device(args.device),
         "lengths_s": [float(x) for x in args.lengths],
         "models": {name: {"params": r[0]["params"], "denoiser_params": r[0]["denoiser_params"],
                           "time_s": [x["time_s"] for x in r], "peak_mem_mb": [x["peak_mem_mb"] for x in r],
-                          "time_s_median": [x["time_s_median"] for x in r]}
+                          "time_s_median": [x["time_s_median"] for x in r],
+                          **{k: [x[k] for x in r] for k in ("tensor_mem_mb", "weights_mb", "inputs_mb", "work_mem_mb")}}
                    for name, r in rows.items()},
         "timing": timing, "memory": memory, "fps": cfg.fps,
         "config": {"preset": args.preset, "hidden": cfg.hidden, "d_state": cfg.d_state, "motion_dim": cfg.motion_dim,
@@ -218,15 +248,20 @@ def main(argv=None) -> None:
         name: {"time": [a / b for a, b in zip(m["time_s"], base["time_s"])],
                "peak_mem": [a / b for a, b in zip(m["peak_mem_mb"], base["peak_mem_mb"])]}
         for name, m in result["models"].items() if name != "mamba2_6"}
+    # the issue's headline: Mamba-2 (6 blocks) over the 12-block Transformer, per length (< 1: Mamba-2 wins)
+    result["ratios"] = {
+        f"mamba2_6 / {name}": {key: [a / b for a, b in zip(base[key], m[key])]
+                               for key in ("time_s", "tensor_mem_mb", "work_mem_mb", "peak_mem_mb")}
+        for name, m in result["models"].items() if name != "mamba2_6"}
     if len(args.lengths) > 1:
         result["time_growth_exponent"] = {n: loglog_slope(args.lengths, m["time_s"]) for n, m in result["models"].items()}
     write_json(args.out, result)
     plot(result, args.plot or args.out.with_suffix(".png"))
     print(f"\n{result['device']}\ntiming: {timing}\nmemory: {memory}")
-    for name, ratio in result["ratios_vs_mamba2_6"].items():
-        t = ", ".join(f"{x:.2f}" for x in ratio["time"])
-        m = ", ".join(f"{x:.2f}" for x in ratio["peak_mem"])
-        print(f"{name} / mamba2_6 at {args.lengths} s: time x[{t}], memory x[{m}]")
+    for name, ratio in result["ratios"].items():
+        print(f"{name} at {args.lengths[-1]:g} s: time x{ratio['time_s'][-1]:.2f}, tensor memory "
+              f"x{ratio['tensor_mem_mb'][-1]:.2f} (working x{ratio['work_mem_mb'][-1]:.2f}), "
+              f"RSS x{ratio['peak_mem_mb'][-1]:.2f}")
     if "time_growth_exponent" in result:
         print("time ~ length^p, p =", {k: round(v, 2) for k, v in result["time_growth_exponent"].items()})
 
