@@ -123,9 +123,12 @@ def test_paper_table_runs_and_writes_the_issue_schema(tmp_path):
     for m in result["models"].values():
         assert m["params"] > 0 and len(m["time_s"]) == 1 and len(m["peak_mem_mb"]) == 1
         assert all(x > 0 for x in m["time_s"])
+        assert 0 < m["weights_mb"][0] < m["tensor_mem_mb"][0] and m["work_mem_mb"][0] > 0
     assert result["models"]["transformer_12"]["params"] > result["models"]["transformer_6"]["params"]
+    ratios = result["ratios"]["mamba2_6 / transformer_12"]
+    assert all(len(ratios[k]) == 1 and ratios[k][0] > 0 for k in ("time_s", "tensor_mem_mb", "work_mem_mb", "peak_mem_mb"))
     assert out.with_suffix(".png").is_file()
-    assert "transformer_6 / mamba2_6" in proc.stdout
+    assert "mamba2_6 / transformer_12 at 2 s" in proc.stdout
 
 
 @pytest.mark.slow
