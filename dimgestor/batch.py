@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from .diffusion import Diffusion, motion_noise_rows
-from .mamba2 import Mamba2State
+from .mamba2 import STEP_MAX, Mamba2State
 from .model import DenoiserState, DiMGestor
 
 __all__ = ["StepStates", "DenoiseRunner", "runner_for", "push_many"]
@@ -36,7 +36,8 @@ class StepStates(NamedTuple):
     """The denoiser's carried state for every sampler step of B streams, stacked (batch rows on dim `B`).
 
     enc  (K, B, motion_dim, 2)                the causal encoder's tail
-    conv (K, blocks, B, conv_dim, d_conv - 1) each block's Mamba-2 conv tail
+    conv (K, blocks, B, d_conv - 1, conv_dim) each block's Mamba-2 conv tail, time-major (the transpose of
+                                              `Mamba2State.conv`: the fast block appends frames without a transpose)
     ssm  (K, blocks, B, heads, headdim, d_state) each block's SSM state
     """
 
@@ -52,7 +53,7 @@ class StepStates(NamedTuple):
     def zeros(model: DiMGestor, steps: int, batch: int = 1, device=None, dtype=None) -> "StepStates":
         s = model.init_state(batch, device, dtype)
         return StepStates(s.enc[None].repeat(steps, 1, 1, 1),
-                          torch.stack([b.conv for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1),
+                          torch.stack([b.conv.transpose(1, 2) for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1),
                           torch.stack([b.ssm for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1, 1))
 
     @staticmethod
@@ -69,12 +70,12 @@ class StepStates(NamedTuple):
 
     def step(self, k: int) -> DenoiserState:
         """Step k as the model's own DenoiserState (what `DiMGestor.forward` takes)."""
-        return DenoiserState(self.enc[k], tuple(Mamba2State(c, s) for c, s in zip(self.conv[k], self.ssm[k])))
+        return DenoiserState(self.enc[k], tuple(Mamba2State(c.transpose(1, 2), s) for c, s in zip(self.conv[k], self.ssm[k])))
 
     @staticmethod
     def from_steps(steps: Sequence[DenoiserState]) -> "StepStates":
         return StepStates(torch.stack([s.enc for s in steps]),
-                          torch.stack([torch.stack([b.conv for b in s.blocks]) for s in steps]),
+                          torch.stack([torch.stack([b.conv.transpose(1, 2) for b in s.blocks]) for s in steps]),
                           torch.stack([torch.stack([b.ssm for b in s.blocks]) for s in steps]))
 
     def nbytes(self) -> int:
@@ -95,8 +96,7 @@ class DenoiseRunner:
 
     def _params(self) -> list[torch.nn.Parameter]:
         m = self.model
-        mods = [b.adaLN_modulation[-1] for b in m.blocks] + [m.final.adaLN_modulation[-1]]
-        return [p for lin in mods for p in (lin.weight, lin.bias)] + list(m.t_embedder.parameters())
+        return [p for part in (m.t_embedder, m.encoder, m.blocks, m.final) for p in part.parameters()]
 
     def _prepare(self) -> None:
         params = self._params()
@@ -115,6 +115,7 @@ class DenoiseRunner:
             self._b[6 * H * len(m.blocks) + H:] += 1  # the final layer's scale
             t = torch.tensor([t for t, _ in self.pairs], device=self._w.device)
             self._temb = m.t_embedder(t).detach().clone()  # (K, H)
+            self._blocks = [_FastBlock.of(b) for b in m.blocks]
         self._version = version
 
     def modulations(self, cond: torch.Tensor) -> torch.Tensor:
@@ -133,14 +134,22 @@ class DenoiseRunner:
         n = cond.shape[1]
         D, L, H = m.config.motion_dim, m.config.noise_taps, m.config.hidden
         nb = len(m.blocks)
+        B = cond.shape[0]
         mods = self.modulations(cond)
+        fast = n <= STEP_MAX and all(b is not None for b in self._blocks)
         x = motion_noise_rows(seeds, frame_starts, n, 0, D, L, cond.device).to(cond.dtype)  # x_T, (B, n, D)
         for k, (t, t_prev) in enumerate(self.pairs):
             h, tail = m.encoder(x, states.enc[k])
             states.enc[k].copy_(tail)
-            for j, block in enumerate(m.blocks):
-                h, _ = block(h, None, Mamba2State(states.conv[k, j], states.ssm[k, j]),
-                             mod=mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], inplace=True)
+            if fast:  # rows (B n, H), the blocks' ops written out for a window of a few frames
+                h, mk = h.reshape(B * n, H), mods[k].reshape(B * n, -1)
+                for j, fb in enumerate(self._blocks):
+                    h = fb(h, mk[:, 6 * H * j: 6 * H * (j + 1)], states.conv[k, j], states.ssm[k, j], B, n)
+                h = h.view(B, n, H)
+            else:  # a long window (a backlog): the modules, the scan picked by length
+                for j, block in enumerate(m.blocks):
+                    h, _ = block(h, None, Mamba2State(states.conv[k, j].transpose(1, 2), states.ssm[k, j]),
+                                 mod=mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], inplace=True)
             out = m.final(h, None, mod=mods[k, :, :, 6 * H * nb:])
             eps, x0 = d.split(out, x, t)
             noisy = self.sampler == "ddpm" and t > 0 or self.sampler == "ddim" and self.eta > 0 and t_prev >= 0
@@ -150,6 +159,71 @@ class DenoiseRunner:
             else:
                 x, _ = d.ddim_step(x, eps, t, t_prev, self.eta, noise, x0=x0)
         return x
+
+
+class _FastBlock:
+    """One AdaLN Mamba-2 block's inference on a window of a few frames, its ops written out.
+
+    The same algebra as `AdaLNMamba2Block.forward` with `Mamba2.forward(inplace=True)` and `ssd_steps`, on
+    rows (B n, H): no module calls, no layout changes, the derived constants (A, D per channel, the conv
+    taps) made once. The runner's tests hold it equal to the modules.
+    """
+
+    def __init__(self, block, H: int):
+        mx = block.mixer
+        self.H, self.di, self.C, self.h, self.p, self.n, self.dc = (
+            H, mx.d_inner, mx.conv_dim, mx.nheads, mx.headdim, mx.d_state, mx.d_conv)
+        self.w_in, self.w_out = mx.in_proj.weight, mx.out_proj.weight
+        self.taps = [mx.conv1d.weight[:, 0, k].detach().clone() for k in range(mx.d_conv)]
+        self.conv_bias = mx.conv1d.bias
+        self.dt_bias, self.A = mx.dt_bias, -torch.exp(mx.A_log.detach().float())
+        self.D = mx.D.detach().repeat_interleave(mx.headdim) if mx.D.numel() == mx.nheads else mx.D.detach()
+        self.norm_w, self.eps = mx.norm.weight, mx.norm.eps
+        self.fc1, self.fc2 = block.mlp.fc1, block.mlp.fc2
+
+    @staticmethod
+    def of(block) -> "_FastBlock | None":
+        """The fast form, or None where the block is not the plain one it writes out (the modules run then)."""
+        mx = block.mixer
+        plain = (mx.ngroups == 1 and mx.rmsnorm and not mx.norm.norm_before_gate and mx.in_proj.bias is None
+                 and mx.out_proj.bias is None and mx.conv1d.bias is not None and mx.dt_limit == (0.0, float("inf"))
+                 and isinstance(block.mlp.act, torch.nn.GELU) and block.mlp.act.approximate == "tanh")
+        return _FastBlock(block, block.norm1.normalized_shape[0]) if plain else None
+
+    def __call__(self, h, mod, conv, ssm, B: int, L: int):
+        """h (B L, H); mod (B L, 6H) with 1 + scale; conv (B, d_conv - 1, C) and ssm (B, h, p, n) updated in place."""
+        H, h_, p, n = self.H, self.h, self.p, self.n
+        shift1, scale1, gate1, shift2, scale2, gate2 = mod.split(H, -1)
+        u = torch.addcmul(shift1, F.layer_norm(h, (H,), eps=1e-6), scale1)
+        z, xBC, dt = F.linear(u, self.w_in).split([self.di, self.C, h_], -1)
+        xs = torch.cat([conv, xBC.view(B, L, self.C)], 1)  # (B, d_conv - 1 + L, C): the conv's window, time-major
+        conv.copy_(xs[:, L:])
+        y = torch.addcmul(self.conv_bias, xs[:, 0:L], self.taps[0])
+        for k in range(1, self.dc):
+            y = torch.addcmul(y, xs[:, k:k + L], self.taps[k])
+        x, Bm, Cm = F.silu(y).split([self.di, n, n], -1)  # (B, L, .)
+        dt = F.softplus(dt + self.dt_bias).view(B, L, h_)
+        dA = torch.exp(dt * self.A)  # (B, L, h)
+        Xdt = x.view(B, L, h_, p) * dt[..., None]  # (B, L, h, p)
+        ys = []
+        if B == 1:  # plain 2-D matmuls (CPU bmm loops over its batch)
+            flat = ssm.view(h_ * p, n)
+            for t in range(L):
+                ssm.mul_(dA[:, t, :, None, None])
+                flat.addmm_(Xdt[0, t].reshape(h_ * p, 1), Bm[0, t:t + 1])
+                ys.append(torch.mm(flat, Cm[0, t, :, None]))  # (h p, 1)
+            y = torch.cat(ys, 1).t() if L > 1 else ys[0].view(1, h_ * p)
+        else:  # broadcast multiply-adds over the batch
+            for t in range(L):
+                ssm.mul_(dA[:, t, :, None, None]).addcmul_(Xdt[:, t, :, :, None], Bm[:, t, None, None, :])
+                ys.append(torch.linalg.vecdot(ssm, Cm[:, t, None, None, :]))  # (B, h, p)
+            y = torch.stack(ys, 1)
+        y = torch.addcmul(y.reshape(B * L, self.di), x.reshape(B * L, self.di), self.D)  # + D x
+        g = F.rms_norm(y * F.silu(z), (self.di,), self.norm_w, self.eps)
+        h = torch.addcmul(h, gate1, F.linear(g, self.w_out))
+        f = F.gelu(F.linear(torch.addcmul(shift2, F.layer_norm(h, (H,), eps=1e-6), scale2), self.fc1.weight,
+                            self.fc1.bias), approximate="tanh")
+        return torch.addcmul(h, gate2, F.linear(f, self.fc2.weight, self.fc2.bias))
 
 
 _RUNNERS: "weakref.WeakKeyDictionary[DiMGestor, dict]" = weakref.WeakKeyDictionary()

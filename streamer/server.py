@@ -178,6 +178,10 @@ async def serve(args) -> int:
     if getattr(args, "no_batch", False):
         executor = RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     else:  # one batched forward per sampler step for every session with a window due
+        import torch
+
+        # the batcher's thread does all inference; one core stays with the event loop (poses, sockets, VMC)
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) - 1))
         executor = StreamBatcher()
 
     def make_session(name: str = "client") -> Session:

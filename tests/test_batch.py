@@ -33,9 +33,10 @@ def model():
     return _model()
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 7, 40])
+@pytest.mark.parametrize("n", [1, 2, 3, 7, 40])  # up to STEP_MAX frames: the written-out block; longer: modules
 @pytest.mark.parametrize("sampler,eta,K", [("ddim", 0.0, 4), ("ddim", 0.6, 3), ("ddpm", 0.0, None)])
-def test_runner_equals_the_models_own_forward(model, n, sampler, eta, K):
+@pytest.mark.parametrize("B", [1, 3])
+def test_runner_equals_the_models_own_forward(model, n, sampler, eta, K, B):
     """The fast path (modulations of all steps in one matmul, states updated in place) vs one model call per step."""
     if sampler == "ddpm":  # every one of the N steps: a short chain keeps it quick
         model = _model(n_steps=24)
@@ -45,17 +46,17 @@ def test_runner_equals_the_models_own_forward(model, n, sampler, eta, K):
     H = model.config.hidden
     gen = torch.Generator().manual_seed(n)
     with torch.inference_mode():
-        states = StepStates.zeros(model, len(pairs), 3)
-        ref = [[None] * len(pairs) for _ in range(3)]
+        states = StepStates.zeros(model, len(pairs), B)
+        ref = [[None] * len(pairs) for _ in range(B)]
         for w, start in enumerate((0, n)):  # two windows: the second continues the carried states
-            cond = torch.randn(3, n, H, generator=gen)
-            seeds = [5, 6, 7 + w]
-            got = runner.sample(cond, [start] * 3, seeds, states)
-            for b in range(3):
+            cond = torch.randn(B, n, H, generator=gen)
+            seeds = [5, 6, 7 + w][:B]
+            got = runner.sample(cond, [start] * B, seeds, states)
+            for b in range(B):
                 want, ref[b] = sample_frames(model, d, cond[b:b + 1], start, ref[b], pairs, seeds[b], sampler, eta)
                 assert (got[b] - want).abs().max() < TOL
         want_states = [StepStates.from_steps(r) for r in ref]
-        for b in range(3):
+        for b in range(B):
             for got_t, want_t in zip(StepStates(states.enc[:, b:b + 1], states.conv[:, :, b:b + 1],
                                                 states.ssm[:, :, b:b + 1]), want_states[b]):
                 assert (got_t - want_t).abs().max() < TOL
