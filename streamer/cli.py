@@ -122,6 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     s.add_argument("--window-ms", type=int, default=200,
                    help="audio gathered per inference call (10..5000 ms): smaller = lower latency, more overhead")
+    s.add_argument("--max-sessions", type=int, default=32, metavar="N",
+                   help="most WebSocket clients sending their own audio at once (default 32; one more gets a 'busy' "
+                        "error). How many keep real time depends on the CPU and K: see benchmarks/README.md")
     s.add_argument("--no-batch", action="store_true",
                    help="infer each stream's windows alone (default: the windows of all streams due at once run "
                         "as one batched forward per sampler step)")

@@ -138,6 +138,8 @@ async def serve(args) -> int:
     t0 = time.monotonic()
     if args.window_ms < 10 or args.window_ms > 5000:
         raise ServeError(f"--window-ms must be in 10..5000, got {args.window_ms}")
+    if not 1 <= getattr(args, "max_sessions", 32) <= 4096:
+        raise ServeError(f"--max-sessions must be in 1..4096, got {args.max_sessions}")
     if args.steps is not None and args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
     if not getattr(args, "tether_s", 5.0) > 0:
@@ -213,7 +215,7 @@ async def serve(args) -> int:
             ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
                           token=token, broadcast_stats=main_session.stats if main_session else None,
                           source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
-                          origins=origins)
+                          origins=origins, max_sessions=getattr(args, "max_sessions", 32))
             try:
                 await ws.start()
             except OSError as e:

@@ -29,3 +29,8 @@ def test_version():
 def test_bad_vmc_options_exit_2_with_a_message(args, message):
     r = streamer("serve", "--no-ws", "--osc", "127.0.0.1:9", *args)
     assert r.returncode == 2 and message in r.stderr, r.stderr
+
+
+def test_max_sessions_is_checked_before_anything_starts():
+    r = streamer("serve", "--source", "ws", "--ws", "127.0.0.1:0", "--max-sessions", "0")
+    assert r.returncode == 2 and "--max-sessions must be in 1..4096" in r.stderr, r.stderr
