@@ -1,23 +1,29 @@
 """Streaming benchmark: real-time factor, per-window latency, end-to-end latency, memory over an hour,
-concurrent real-time streams, and the seam check.
+concurrent real-time streams through the serving path, achieved GFLOP/s beside the matmul peak, and the seam check.
 
 Sections (run all by default, or some with --sections; each updates its part of the result file):
-  sweep    per preset x K steps x window size: audio pushed as fast as possible, timing every push
+  sweep    per preset x K steps x window size: audio pushed as fast as possible, timing every push (1 thread)
+  paper    the paper preset (hidden 1280, ~200 M params) at K = 1, 2, 4 with 0.5 s and 1 s windows on all
+           cores, and the same with bfloat16 matmuls (torch.autocast) beside it, with its error
   hour     one configuration streamed for --hour-s of audio (default 1 h) as fast as possible, RSS traced
-  streams  per preset: the most streams one process keeps in real time (audio paced by the clock)
+  streams  the most real-time streams one process keeps through the serving path (Sessions on one
+           StreamBatcher vs one RankedExecutor, audio paced by the clock) at K = 1, 4, 8 (benchmarks/streams.py)
+  gflops   the machine's matmul peak (1 thread, all threads; fp32, bf16) beside the GFLOP/s the denoiser
+           achieved in the sweep and streams sections of this run (benchmarks/flops.py)
   seams    jerk at window boundaries vs inside windows (benchmarks/seams.py)
 
     python benchmarks/streaming.py                          # CPU defaults (realtime + tiny presets)
-    python benchmarks/streaming.py --paper --device cuda    # adds the paper preset
+    python benchmarks/streaming.py --sections paper         # the paper preset alone (a few minutes)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -26,36 +32,49 @@ import numpy as np
 from common import (RESULTS, code_version, describe_device, load_average, percentile_ms, rss_mb, test_audio, utc_now,
                     write_json)
 
-SECTIONS = ("sweep", "hour", "streams", "seams")
+SECTIONS = ("sweep", "paper", "hour", "streams", "gflops", "seams")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     p.add_argument("--presets", nargs="+", default=["realtime", "tiny"])
-    p.add_argument("--paper", action="store_true", help="add the paper preset (slow on CPU)")
+    p.add_argument("--paper", action="store_true", help="add the paper preset to the sweep (slow on CPU; see --sections paper)")
     p.add_argument("--checkpoint", default=None,
                    help="time this checkpoint's model as an extra preset row (speed does not depend on the weights)")
     p.add_argument("--steps", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="DDIM steps K")
     p.add_argument("--windows-ms", type=int, nargs="+", default=[100, 200, 500], help="audio pushed per call")
     p.add_argument("--audio-s", type=float, default=5.0,
                    help="audio per sweep configuration (at least 20 windows are always pushed)")
+    p.add_argument("--paper-preset", default="paper", help="the model of the paper section (tests shrink it)")
+    p.add_argument("--paper-steps", type=int, nargs="+", default=[1, 2, 4])
+    p.add_argument("--paper-windows-ms", type=int, nargs="+", default=[500, 1000])
+    p.add_argument("--paper-threads", type=int, default=os.cpu_count() or 1,
+                   help="torch threads of the paper section (default: every core)")
+    p.add_argument("--paper-audio-s", type=float, default=10.0, help="audio per paper configuration")
     p.add_argument("--hour-preset", default="realtime")
     p.add_argument("--hour-steps", type=int, default=1)
     p.add_argument("--hour-window-ms", type=int, default=500)
     p.add_argument("--hour-s", type=float, default=3600.0, help="audio streamed in the memory run")
-    p.add_argument("--streams-steps", type=int, default=8, help="K for the concurrent-streams test")
-    p.add_argument("--streams-window-ms", type=int, default=200, help="window for the concurrent-streams test")
+    p.add_argument("--streams-preset", default="realtime")
+    p.add_argument("--streams-steps", type=int, nargs="+", default=[1, 4, 8], help="K for the concurrent-streams test")
+    p.add_argument("--streams-window-ms", type=int, default=100, help="window for the concurrent-streams test")
     p.add_argument("--streams-s", type=float, default=6.0, help="seconds of paced audio per trial")
-    p.add_argument("--streams-max", type=int, default=64, help="stop searching at this many streams")
+    p.add_argument("--streams-max", type=int, default=128, help="stop searching at this many streams")
+    p.add_argument("--streams-threads", type=int, default=os.cpu_count() or 1,
+                   help="torch threads of the StreamBatcher's one inference thread (default: every core); the "
+                        "unbatched executor runs min(4, cores) workers of one torch thread each")
+    p.add_argument("--matmul-n", type=int, default=1024, help="matmul size n (n x n x n) of the peak measurement")
+    p.add_argument("--seams-s", type=float, default=30.0, help="audio per seam check")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1,
-                   help="torch intra-op threads (default 1: on a shared 2-core machine more threads spin against "
-                        "other processes; each stream then uses one core and streams run side by side)")
+                   help="torch intra-op threads of the sweep (default 1: the cost of one stream on one core)")
     p.add_argument("--out", type=Path, default=RESULTS / "streaming.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: the hour run, in its own process
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    return args
 
 
 def build_model(preset: str, args):
@@ -77,8 +96,15 @@ def build_model(preset: str, args):
     return model, preset
 
 
-def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str) -> dict:
-    """Push `audio_s` of audio in `window_ms` pieces as fast as possible; time every push."""
+def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str, flops: float = float("nan"),
+                 context=None) -> dict:
+    """Push `audio_s` of audio in `window_ms` pieces as fast as possible; time every push.
+
+    flops: the denoiser's FLOPs per frame per step (achieved GFLOP/s = frames * steps * flops / compute time);
+    context: a context manager around the pushes (torch.autocast for the bf16 rows).
+    """
+    import contextlib
+
     import torch
 
     from dimgestor.stream import GestureStream
@@ -87,45 +113,98 @@ def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str)
     window = cfg.sample_rate * window_ms // 1000
     n_windows = max(int(round(audio_s * 1000 / window_ms)), 20)
     audio = test_audio(n_windows * window / cfg.sample_rate, cfg.sample_rate)
-    stream = GestureStream(model, steps=steps)
-    stream.push(audio[:window])  # warm-up on a throwaway stream: first calls allocate
+    context = context or contextlib.nullcontext
+    warm = GestureStream(model, steps=steps)  # a throwaway stream: first calls allocate and pick kernels
+    with context():
+        for k in range(min(n_windows, math.ceil(1000 * warm.lookahead_s / window_ms) + 2)):  # until frames come
+            warm.push(audio[k * window : (k + 1) * window])
     stream = GestureStream(model, steps=steps)
     rss_start = rss_mb()
-    compute, cpu, e2e = [], [], []
-    for k in range(n_windows):
-        t0, c0 = time.perf_counter(), time.thread_time()
-        frames = stream.push(audio[k * window : (k + 1) * window])
-        if device.startswith("cuda"):
-            torch.cuda.synchronize()
-        dt = time.perf_counter() - t0
-        compute.append(dt)
-        cpu.append(time.thread_time() - c0)
-        audio_clock = (k + 1) * window / cfg.sample_rate  # when this window's last sample was spoken
-        first = stream.frames_out - len(frames)
-        # frame i is presented from i / fps; live, it is ready at audio_clock + compute
-        e2e += [audio_clock + dt - i / cfg.fps for i in range(first, stream.frames_out)]
+    compute, cpu, e2e, outs = [], [], [], []
+    with context():
+        for k in range(n_windows):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            frames = stream.push(audio[k * window : (k + 1) * window])
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            dt = time.perf_counter() - t0
+            compute.append(dt)
+            cpu.append(time.thread_time() - c0)
+            outs.append(frames)
+            audio_clock = (k + 1) * window / cfg.sample_rate  # when this window's last sample was spoken
+            first = stream.frames_out - len(frames)
+            # frame i is presented from i / fps; live, it is ready at audio_clock + compute
+            e2e += [audio_clock + dt - i / cfg.fps for i in range(first, stream.frames_out)]
     audio_total = n_windows * window / cfg.sample_rate
     rtf = sum(compute) / audio_total
     return {"steps": steps, "window_ms": window_ms, "lookahead_ms": 1000 * stream.lookahead_s,
+            "threads": torch.get_num_threads(),
             "rtf": rtf, "latency_ms_p50": percentile_ms(compute, 50), "latency_ms_p95": percentile_ms(compute, 95),
             "rtf_cpu": sum(cpu) / audio_total, "cpu_ms_p50": percentile_ms(cpu, 50),
             "e2e_latency_ms": percentile_ms(e2e, 95), "e2e_latency_ms_p50": percentile_ms(e2e, 50),
             "realtime": rtf < 1 and percentile_ms(compute, 95) < window_ms,
-            "rss_mb_start": rss_start, "rss_mb_end": rss_mb(), "audio_s": audio_total, "rss_mb_after_1h": None}
+            "frames": stream.frames_out, "achieved_gflops": stream.frames_out * steps * flops / sum(compute) / 1e9,
+            "rss_mb_start": rss_start, "rss_mb_end": rss_mb(), "audio_s": audio_total, "rss_mb_after_1h": None,
+            "_frames": np.concatenate(outs)}
+
+
+def _row_line(label: str, r: dict) -> str:
+    return (f"{label:9s} K={r['steps']:2d} window {r['window_ms']:4d} ms, {r['threads']} thr: rtf {r['rtf']:.3f} "
+            f"(cpu {r['rtf_cpu']:.3f})  compute p50/p95 {r['latency_ms_p50']:.1f}/{r['latency_ms_p95']:.1f} ms  "
+            f"e2e p95 {r['e2e_latency_ms']:.0f} ms  {r['achieved_gflops']:.1f} GFLOP/s")
 
 
 def sweep(args, presets) -> list[dict]:
+    from flops import denoiser_flops_per_frame_step
+
     rows = []
     for preset in presets:
         model, label = build_model(preset, args)
+        flops = denoiser_flops_per_frame_step(model)
         for steps in args.steps:
             for window_ms in args.windows_ms:
-                r = {"preset": label, **stream_timed(model, steps, window_ms, args.audio_s, args.device)}
-                rows.append(r)
-                print(f"{label:9s} K={steps:2d} window {window_ms:3d} ms: rtf {r['rtf']:.3f} (cpu {r['rtf_cpu']:.3f})  compute p50/p95 "
-                      f"{r['latency_ms_p50']:.1f}/{r['latency_ms_p95']:.1f} ms  e2e p95 {r['e2e_latency_ms']:.0f} ms",
-                      flush=True)
+                r = stream_timed(model, steps, window_ms, args.audio_s, args.device, flops)
+                r.pop("_frames")
+                rows.append({"preset": label, **r, "flops_per_frame_step": flops})
+                print(_row_line(label, r), flush=True)
     return rows
+
+
+def paper(args) -> dict:
+    """The paper preset on all cores at K x window, fp32; then bf16 matmuls (autocast) at the largest K and window."""
+    import torch
+
+    from flops import denoiser_flops_per_frame_step
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(args.paper_threads)
+    try:
+        model, label = build_model(args.paper_preset, args)
+        flops = denoiser_flops_per_frame_step(model)
+        rows, frames = [], {}
+        for steps in args.paper_steps:
+            for window_ms in args.paper_windows_ms:
+                r = stream_timed(model, steps, window_ms, args.paper_audio_s, args.device, flops)
+                frames[(steps, window_ms)] = r.pop("_frames")
+                rows.append({"preset": label, **r, "flops_per_frame_step": flops, "dtype": "float32"})
+                print(_row_line(label, r), flush=True)
+        k, w = max(args.paper_steps), max(args.paper_windows_ms)
+        bf = stream_timed(model, k, w, args.paper_audio_s, args.device, flops,
+                          context=lambda: torch.autocast("cpu", dtype=torch.bfloat16))
+        ref, got = frames[(k, w)], bf.pop("_frames")
+        fp = next(r for r in rows if (r["steps"], r["window_ms"]) == (k, w))
+        bf.update(preset=label, flops_per_frame_step=flops, dtype="bfloat16 matmuls (torch.autocast, fp32 weights)",
+                  rel_rms_error_vs_fp32=float(np.sqrt(np.mean((got - ref) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-12)),
+                  max_abs_error_vs_fp32=float(np.abs(got - ref).max()), rtf_fp32=fp["rtf"],
+                  speedup_vs_fp32=fp["rtf"] / bf["rtf"])
+        print(_row_line(label + " bf16", bf) + f"  x{bf['speedup_vs_fp32']:.2f} vs fp32, rel. rms error "
+              f"{bf['rel_rms_error_vs_fp32']:.2e}", flush=True)
+    finally:
+        torch.set_num_threads(before)
+    params = sum(p.numel() for p in model.parameters())
+    return {"rows": rows, "bf16": bf, "threads": args.paper_threads, "params": params, "preset": label,
+            "note": "random weights (speed does not depend on them); the same seed and audio for fp32 and bf16, "
+                    "so the error is that of bf16 matmuls alone"}
 
 
 def hour_child(args) -> dict:
@@ -142,7 +221,7 @@ def hour_child(args) -> dict:
     rss_start = None
     for k in range(n_windows):
         frames += len(stream.push(test_audio(window / cfg.sample_rate, cfg.sample_rate, start_s=k * window / cfg.sample_rate)))
-        if k == 19:
+        if k == 19 or rss_start is None and k == n_windows - 1:
             rss_start = rss_mb()  # after warm-up: allocator pools and lazy inits are in place
         if (k + 1) % per_minute == 0:
             trace.append([round((k + 1) * window / cfg.sample_rate, 1), round(rss_mb(), 2)])
@@ -155,7 +234,7 @@ def hour_child(args) -> dict:
 
 
 def hour(args) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), *sys.argv[1:], "--child", "hour"]
+    cmd = [sys.executable, str(Path(__file__).resolve()), *args.argv, "--child", "hour"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"hour run failed:\n{proc.stderr[-3000:]}")
@@ -165,76 +244,73 @@ def hour(args) -> dict:
     return r
 
 
-def paced_trial(model, n: int, steps: int, window_ms: int, seconds: float, threads: int = 1) -> dict:
-    """n streams in n threads, each pushing a window when its audio would have arrived in real time.
+def streams(args) -> dict:
+    """Batched and unbatched: the largest number of paced sessions that keep real time, per K."""
+    from flops import denoiser_flops_per_frame_step
+    from streams import max_streams, random_bundle
 
-    Lag of window k = time its push finished - time its last sample arrived. The streams keep up
-    when the 95th percentile lag stays under one window and the last windows are not late.
-    """
+    bundle = random_bundle(args.streams_preset)
+    flops = denoiser_flops_per_frame_step(bundle.model)
+    by_k = {}
+    for steps in args.streams_steps:
+        by_k[str(steps)] = {}
+        for batched in (True, False):
+            r = max_streams(bundle, steps, args.streams_window_ms, args.streams_s, batched, args.streams_threads,
+                            args.streams_max, log=lambda line: print(line, flush=True))
+            for t in r["trials"]:
+                t["achieved_gflops"] = t["frames"] * steps * flops / t["wall_s"] / 1e9
+            by_k[str(steps)]["batched" if batched else "unbatched"] = r
+    return {"preset": args.streams_preset, "window_ms": args.streams_window_ms, "trial_s": args.streams_s,
+            "cap": args.streams_max, "flops_per_frame_step": flops, "by_k": by_k,
+            "pass_rule": "over the second half of the trial, lag p95 < window + 150 ms, and every stream's last "
+                         "window < 500 ms late; lag = frames out - last audio sample of the window in"}
+
+
+def gflops(args, result: dict) -> dict:
+    """The matmul peak of this machine now, beside what the denoiser achieved in this run's sweep and streams."""
     import torch
 
-    from dimgestor.stream import GestureStream
+    from flops import matmul_peak
 
-    cfg = model.config
-    window = cfg.sample_rate * window_ms // 1000
-    n_windows = int(seconds * 1000 // window_ms)
-    audio = test_audio(n_windows * window / cfg.sample_rate, cfg.sample_rate)
-    lags = [[] for _ in range(n)]
-    start = time.perf_counter() + 0.05
-    barrier = threading.Barrier(n)
-
-    def run(j: int):
-        torch.set_num_threads(threads)  # OpenMP's thread count is per calling thread: set it in each worker
-        stream = GestureStream(model, steps=steps, seed=j)
-        stream.push(audio[:window])  # warm-up
-        stream = GestureStream(model, steps=steps, seed=j)
-        barrier.wait()
-        for k in range(n_windows):
-            arrival = start + (k + 1) * window_ms / 1000
-            time.sleep(max(0.0, arrival - time.perf_counter()))
-            stream.push(audio[k * window : (k + 1) * window])
-            lags[j].append(time.perf_counter() - arrival)
-
-    workers = [threading.Thread(target=run, args=(j,)) for j in range(n)]
-    for w in workers:
-        w.start()
-    for w in workers:
-        w.join()
-    all_lags = [x for lag in lags for x in lag]
-    p95 = percentile_ms(all_lags, 95)
-    last = max(lag[-1] for lag in lags) * 1000
-    return {"streams": n, "lag_ms_p95": p95, "last_lag_ms": last, "ok": p95 < window_ms and last < window_ms}
-
-
-def max_streams(args, preset: str) -> dict:
-    """Double the number of streams until one trial fails, then bisect between the last pass and the fail."""
-    model, label = build_model(preset, args)
-    trials, good, bad, n = [], 0, None, 1
-    while n <= args.streams_max:
-        r = paced_trial(model, n, args.streams_steps, args.streams_window_ms, args.streams_s, args.threads)
-        trials.append(r)
-        print(f"{label:9s} {n:3d} streams: lag p95 {r['lag_ms_p95']:.0f} ms, last {r['last_lag_ms']:.0f} ms "
-              f"-> {'ok' if r['ok'] else 'falls behind'}", flush=True)
-        if not r["ok"]:
-            bad = n
-            break
-        good, n = n, n * 2
-    while bad is not None and bad - good > 1:
-        mid = (good + bad) // 2
-        r = paced_trial(model, mid, args.streams_steps, args.streams_window_ms, args.streams_s, args.threads)
-        trials.append(r)
-        print(f"{label:9s} {mid:3d} streams: lag p95 {r['lag_ms_p95']:.0f} ms -> {'ok' if r['ok'] else 'falls behind'}",
+    cores = os.cpu_count() or 1
+    peaks = {f"{dt}_{th}thr": matmul_peak(args.matmul_n, th, getattr(torch, dt))
+             for dt in ("float32", "bfloat16") for th in sorted({1, cores})}
+    for k, p in peaks.items():
+        print(f"matmul {p['n']}^3 {k}: {p['gflops']:.0f} GFLOP/s", flush=True)
+    f32_1, f32_all = peaks["float32_1thr"]["gflops"], peaks[f"float32_{cores}thr"]["gflops"]
+    out = {"matmul_peak": peaks, "achieved": []}
+    one = [r for r in result.get("results", []) if r.get("achieved_gflops") is not None]
+    # the configuration of the issue: one stream, K = 8, 100 ms windows (the nearest one the sweep ran)
+    for r in sorted(one, key=lambda r: (r["preset"] != args.streams_preset, abs(r["steps"] - 8),
+                                        abs(r["window_ms"] - 100)))[:1]:
+        out["achieved"].append({"what": f"one stream, {r['preset']}, K={r['steps']}, {r['window_ms']} ms windows, "
+                                        f"{r['threads']} thread(s)", "gflops": r["achieved_gflops"],
+                                "peak_gflops": f32_1 if r["threads"] == 1 else f32_all,
+                                "threads": r["threads"]})
+    for k, modes in (result.get("streams") or {}).get("by_k", {}).items():
+        r = modes.get("batched")
+        best = [t for t in r["trials"] if t["streams"] == r["max_realtime_streams"]] if r else []
+        if best:
+            t = best[0]
+            out["achieved"].append({"what": f"{t['streams']} batched real-time streams, "
+                                            f"{result['streams']['preset']}, K={k}, {result['streams']['window_ms']} ms "
+                                            f"windows (frames x K / trial wall time)", "gflops": t["achieved_gflops"],
+                                    "peak_gflops": f32_all, "threads": cores})
+    for a in out["achieved"]:
+        a["fraction_of_peak"] = a["gflops"] / a["peak_gflops"]
+        print(f"achieved {a['gflops']:.2f} GFLOP/s = {100 * a['fraction_of_peak']:.2f} % of the fp32 peak: {a['what']}",
               flush=True)
-        good, bad = (mid, bad) if r["ok"] else (good, mid)
-    return {"max_realtime_streams": good, "capped": bad is None, "steps": args.streams_steps,
-            "window_ms": args.streams_window_ms, "trial_s": args.streams_s, "trials": trials}
+    out["flops_counted"] = ("torch.utils.flop_counter.FlopCounterMode over one denoiser forward of 20 frames "
+                            "(matmuls, linears, convolutions; 2 FLOPs per multiply-add; element-wise ops not "
+                            "counted), divided by the frames")
+    return out
 
 
 def seams(args) -> list[dict]:
     from seams import load_model, seam_check
 
     model, bundle, source = load_model(args.checkpoint, "realtime")
-    rows = [{"model": source, **seam_check(model, bundle, w, 8, 30.0)} for w in args.windows_ms]
+    rows = [{"model": source, **seam_check(model, bundle, w, 8, args.seams_s)} for w in args.windows_ms]
     for r in rows:
         print(f"seams, window {r['window_ms']} ms: boundary/inside jerk {r['ratio']:.3f}", flush=True)
     return rows
@@ -246,35 +322,85 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    rows = result.get("results", [])
+    fig, axes = plt.subplots(2, 3, figsize=(16, 9))
+    ax_rtf, ax_e2e, ax_mem, ax_n, ax_lag, ax_gf = axes.ravel()
+    rows = result.get("results", []) + (result.get("paper") or {}).get("rows", [])
     for (preset, window_ms) in sorted({(r["preset"], r["window_ms"]) for r in rows}):
         sel = sorted((r for r in rows if r["preset"] == preset and r["window_ms"] == window_ms), key=lambda r: r["steps"])
         ks = [r["steps"] for r in sel]
-        axes[0].plot(ks, [r["rtf"] for r in sel], "o-", label=f"{preset}, {window_ms} ms")
-        axes[1].plot(ks, [r["e2e_latency_ms"] for r in sel], "o-", label=f"{preset}, {window_ms} ms")
-    axes[0].axhline(1.0, color="k", lw=0.8, ls="--")
-    axes[0].set(yscale="log", ylabel="real-time factor", title="compute / audio time (dashed: real time)")
-    axes[1].set(yscale="log", ylabel="ms", title="end-to-end latency p95")
+        label = f"{preset}, {window_ms} ms, {sel[0].get('threads', 1)} thr"
+        ax_rtf.plot(ks, [r["rtf"] for r in sel], "o-", label=label)
+        ax_e2e.plot(ks, [r["e2e_latency_ms"] for r in sel], "o-", label=label)
+    bf = (result.get("paper") or {}).get("bf16")
+    if bf:
+        ax_rtf.plot([bf["steps"]], [bf["rtf"]], "k*", ms=10, label=f"{bf['preset']}, {bf['window_ms']} ms, bf16 matmuls")
+    ax_rtf.axhline(1.0, color="k", lw=0.8, ls="--")
+    ax_rtf.set(yscale="log", ylabel="real-time factor", title="one stream: compute / audio time (dashed: real time)")
+    ax_e2e.set(yscale="log", ylabel="ms", title="one stream: end-to-end latency p95")
     ks = sorted({r["steps"] for r in rows})
-    for ax in axes[:2]:
+    for ax in (ax_rtf, ax_e2e):
         ax.set_xscale("log", base=2)
         ax.set_xticks(ks, [str(k) for k in ks])
         ax.set_xlabel("DDIM steps K")
-    axes[0].legend(fontsize=7)
+    ax_rtf.legend(fontsize=6)
     hour_run = result.get("hour_run")
     if hour_run:
         trace = np.asarray([[0.0, hour_run["rss_mb_start"]]] + hour_run["rss_trace_mb"])
-        axes[2].plot(trace[:, 0] / 60, trace[:, 1], ".-")
-        axes[2].set(xlabel="audio streamed (min)", ylabel="process RSS (MB)",
-                    title=f"memory: {hour_run['preset']}, K={hour_run['steps']}, {hour_run['window_ms']} ms windows")
-        axes[2].set_ylim(0, max(trace[:, 1]) * 1.2)
-    for ax in axes:
+        ax_mem.plot(trace[:, 0] / 60, trace[:, 1], ".-")
+        ax_mem.set(xlabel="audio streamed (min)", ylabel="process RSS (MB)",
+                   title=f"memory: {hour_run['preset']}, K={hour_run['steps']}, {hour_run['window_ms']} ms windows")
+        ax_mem.set_ylim(0, max(trace[:, 1]) * 1.2)
+    st = result.get("streams")
+    if st:
+        ks = sorted(int(k) for k in st["by_k"])
+        for i, mode in enumerate(("batched", "unbatched")):
+            n = [st["by_k"][str(k)][mode]["max_realtime_streams"] for k in ks]
+            bars = ax_n.bar(np.arange(len(ks)) + (i - 0.5) * 0.4, n, 0.4, label=mode)
+            ax_n.bar_label(bars, fontsize=8)
+            for k, color in zip(ks, plt.rcParams["axes.prop_cycle"].by_key()["color"]):
+                trials = st["by_k"][str(k)][mode]["trials"]
+                ax_lag.plot([t["streams"] for t in trials], [min(t["lag_ms_p95"], 1e5) for t in trials],
+                            "o-" if mode == "batched" else "x--", color=color, label=f"K={k}, {mode}")
+        ax_n.set_xticks(range(len(ks)), [f"K={k}" for k in ks])
+        capped = any(st["by_k"][str(k)]["batched"]["capped"] for k in ks)
+        ax_n.set(ylabel="streams", title=f"real-time streams, one process ({st['preset']}, {st['window_ms']} ms"
+                                         f"{', cap ' + str(st['cap']) if capped else ''})")
+        ax_n.legend(fontsize=7)
+        ax_lag.axhline(st["window_ms"] + 150, color="k", lw=0.8, ls="--")
+        ax_lag.set(xscale="log", yscale="log", xlabel="concurrent streams", ylabel="ms",
+                   title="lag p95, second half of each trial (dashed: pass limit)")
+        ax_lag.set_xscale("log", base=2)
+        ax_lag.legend(fontsize=6)
+    gf = result.get("gflops")
+    if gf:
+        ach = gf["achieved"]
+        y = np.arange(len(ach))
+        ax_gf.barh(y, [a["gflops"] for a in ach], color="C0", label="achieved by the denoiser")
+        for yi, a in zip(y, ach):
+            ax_gf.plot([a["peak_gflops"]], [yi], "k|", ms=14)
+            ax_gf.text(a["gflops"], yi, f" {a['gflops']:.3g} ({100 * a['fraction_of_peak']:.2g} % of peak)",
+                       va="center", fontsize=7)
+        ax_gf.set_yticks(y, [textwrap_short(a["what"]) for a in ach], fontsize=6)
+        peaks = gf["matmul_peak"]
+        ax_gf.set(xscale="log", xlabel="GFLOP/s (|: fp32 matmul peak, same threads, same run)",
+                  title="denoiser GFLOP/s achieved vs matmul peak")
+        ax_gf.set_xlim(right=30 * max(a["peak_gflops"] for a in ach))
+        ax_gf.text(0.99, 0.99, f"{peaks[next(iter(peaks))]['n']}^3 matmul peak:\n" + "\n".join(
+            f"{k}: {v['gflops']:.0f}" for k, v in peaks.items()), transform=ax_gf.transAxes, ha="right", va="top",
+            fontsize=7)
+    for ax in axes.ravel():
         ax.grid(alpha=0.3)
-    fig.suptitle(result.get("device", ""), fontsize=8)
+    fig.suptitle(f"{result.get('device', '')}  |  code {result.get('code_version', '?')}  |  load avg "
+                 f"{result.get('load_avg_before')} -> {result.get('load_avg_after')}", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=110)
     print(f"wrote {path}")
+
+
+def textwrap_short(text: str, width: int = 34) -> str:
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width)[:3])
 
 
 def main(argv=None) -> None:
@@ -287,22 +413,32 @@ def main(argv=None) -> None:
         return
     presets = list(args.presets) + (["paper"] if args.paper else []) + (["checkpoint"] if args.checkpoint else [])
     result = json.loads(args.out.read_text()) if args.out.is_file() else {}  # sections not run are kept
+    for old in ("max_realtime_streams", "streams_trials"):  # the thread-per-stream test this file ran before
+        result.pop(old, None)
     load_before, started = load_average(), time.time()
     if "sweep" in args.sections:
         result["results"] = sweep(args, presets)
+    if "paper" in args.sections:
+        result["paper"] = paper(args)
     if "hour" in args.sections and args.hour_s > 0:
         h = result["hour_run"] = hour(args)
         for r in result.get("results", []):
             if (r["preset"], r["steps"], r["window_ms"]) == (h["preset"], h["steps"], h["window_ms"]):
                 r["rss_mb_after_1h"] = h["rss_mb_after_1h"] if h["audio_s"] >= 3600 else None
     if "streams" in args.sections:
-        trials = {p: max_streams(args, p) for p in presets}
-        result["max_realtime_streams"] = {p: t["max_realtime_streams"] for p, t in trials.items()}
-        result["streams_trials"] = trials
+        result["streams"] = streams(args)
+        result["max_realtime_streams"] = {mode: {k: v[mode]["max_realtime_streams"] for k, v in result["streams"]["by_k"].items()}
+                                          for mode in ("batched", "unbatched")}
+    if "gflops" in args.sections:
+        result["gflops"] = gflops(args, result)
     if "seams" in args.sections:
         result["seams"] = seams(args)
     result.update({
         "device": describe_device(args.device), "threads": args.threads, "note": args.note,
+        "threads_by_section": {"sweep": args.threads, "paper": args.paper_threads,
+                               "streams": {"batched": f"1 inference thread x {args.streams_threads} torch threads",
+                                           "unbatched": f"min(4, cores) = {min(4, os.cpu_count() or 1)} workers x 1 "
+                                                        "torch thread"}},
         "load_avg_before": load_before, "load_avg_after": load_average(), "measured_at": utc_now(),
         "code_version": code_version(),
         "wall_s_last_run": round(time.time() - started, 1), "sections_last_run": args.sections,
@@ -316,7 +452,10 @@ def main(argv=None) -> None:
             "e2e_latency_ms": "p95 over frames of (time the frame is ready) - (its presentation time on the audio clock), "
                               "audio arriving in real time in windows: frame + lookahead + window fill + compute",
             "rss_mb_after_1h": "process RSS after an hour of audio; only the hour_run configuration streams a full hour",
-            "max_realtime_streams": "streams in threads of one process, audio paced by the clock, lag p95 and last lag < one window",
+            "achieved_gflops": "denoiser FLOPs (flops_per_frame_step x frames x K) / compute time (sweep) or / trial wall "
+                               "time (streams); the front end and condition path are not counted",
+            "max_realtime_streams": "Sessions on one executor in one asyncio loop, audio paced by the clock (see "
+                                    "streams.pass_rule); batched = one StreamBatcher, unbatched = one RankedExecutor",
         },
     })
     write_json(args.out, result)

@@ -1,0 +1,189 @@
+"""Concurrent real-time streams through the serving path: how many one process keeps in real time.
+
+Each trial runs n `streamer.engine.Session`s in one asyncio loop, each fed by its own `PacedSource`
+(20 ms chunks released when their last sample would have been spoken, as a microphone or a paced
+file does), all on ONE `StreamBatcher` (batched: the due windows of all sessions as one forward per
+sampler step) or ONE `RankedExecutor` (unbatched: each session's window alone, as `--no-batch`).
+Sessions start at staggered phases (session j's audio clock begins j/n of a window later), as clients
+that connect at random times do, so a cycle batches whichever windows are due.
+
+Lag of a window = the time its frames came out - the time its last audio sample arrived. A count n
+keeps real time when, over the second half of the trial, the 95th-percentile lag stays under one
+window + `slack_ms` and no stream ends more than `end_ms` behind (the lag does not grow).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+import time
+
+import numpy as np
+
+from common import percentile_ms, test_audio
+
+RATE = 16000
+
+
+class PacedSource:
+    """`audio` as 16 kHz chunks released in real time from `t0` (time.monotonic), stamped with their due time."""
+
+    def __init__(self, audio: np.ndarray, t0: float, chunk_ms: int = 20):
+        self.audio, self.t0, self.chunk = audio, t0, RATE * chunk_ms // 1000
+
+    async def __aiter__(self):
+        from streamer.sources import AudioChunk
+
+        for a in range(0, len(self.audio), self.chunk):
+            x = self.audio[a: a + self.chunk]
+            due = self.t0 + (a + len(x)) / RATE
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
+            yield AudioChunk(x, a / RATE, due)  # arrival = due: a late consumer shows as lag, like a live input
+
+
+def random_bundle(preset: str, seed: int = 0):
+    """A `Bundle` of `preset` with random weights and the embedded model's skeleton and normalization.
+
+    Speed does not depend on the weights; the skeleton makes each window's pose decoding (done on the
+    inference thread, as in `streamer serve`) the real one.
+    """
+    import torch
+
+    from dimgestor.checkpoint import Bundle, load_checkpoint
+    from dimgestor.config import get_preset
+    from dimgestor.model import DiMGestor
+
+    base = load_checkpoint(None)
+    torch.manual_seed(seed)
+    model = DiMGestor(get_preset(preset, motion_dim=base.feature_spec.dim)).eval()
+    with torch.no_grad():  # adaLN-Zero init makes blocks the identity; random weights cost the same as trained ones
+        for p in model.parameters():
+            p.add_(0.02 * torch.randn_like(p))
+    return Bundle(model, model.config, base.feature_spec, base.skeleton, base.mean, base.std, {"random_init": True})
+
+
+def _set_threads(executor, workers: int, threads: int) -> list[int]:
+    """Set torch's intra-op thread count in each inference thread (it is per calling thread) -> what each has."""
+    import torch
+
+    barrier = threading.Barrier(workers)
+
+    def job():
+        torch.set_num_threads(threads)
+        barrier.wait(timeout=30)  # every worker takes one job
+        return torch.get_num_threads()
+
+    return [f.result(timeout=60) for f in [executor.submit(job) for _ in range(workers)]]
+
+
+class _CountingStats:
+    """Wraps a batcher's BatchStats to also keep the exact mean batch size of a trial."""
+
+    def __init__(self, inner):
+        self.inner, self.count, self.total = inner, 0, 0
+
+    def add(self, size: int) -> None:
+        self.inner.add(size)
+        self.count += 1
+        self.total += size
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def make_executor(batched: bool, threads: int):
+    """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
+    `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker."""
+    from streamer.engine import RankedExecutor, StreamBatcher
+
+    if batched:
+        ex = StreamBatcher()
+        ex.stats = _CountingStats(ex.stats)
+        got = _set_threads(ex, 1, threads)
+        return ex, {"executor": "StreamBatcher", "inference_threads": 1, "torch_threads_per_thread": got}
+    workers = min(4, os.cpu_count() or 1)
+    ex = RankedExecutor(max_workers=workers, thread_name_prefix="bench-infer")
+    got = _set_threads(ex, workers, 1)
+    return ex, {"executor": "RankedExecutor", "inference_threads": workers, "torch_threads_per_thread": got}
+
+
+def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
+                  slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0) -> dict:
+    """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict."""
+    from streamer.engine import Session
+
+    audio = test_audio(seconds, RATE)
+    executor, how = make_executor(batched, threads)
+    lags: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # per session: (audio time, lag s)
+    frames = [0] * n
+    window_s = window_ms / 1000
+
+    async def one(j: int, t0: float) -> None:
+        session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, executor=executor,
+                                      name=f"bench{j}")
+
+        def emit(fs) -> None:
+            frames[j] += len(fs)
+            done = session.clock.audio_s  # audio handed to inference so far: this window's end
+            if not lags[j] or done > lags[j][-1][0]:  # the finish() call after the source ends is not a window
+                lags[j].append((done, time.monotonic() - (t0 + done)))
+
+        await session.run(PacedSource(audio, t0), emit)
+
+    async def main() -> float:
+        start = time.monotonic() + 0.2
+        tasks = [asyncio.ensure_future(one(j, start + window_s * j / n)) for j in range(n)]
+        done, pending = await asyncio.wait(tasks, timeout=seconds + window_s + grace_s)
+        for t in pending:
+            t.cancel()
+        await asyncio.gather(*pending, return_exceptions=True)
+        for t in done:
+            t.result()  # a failing session is a failing benchmark, not a slow one
+        return time.monotonic() - start
+
+    cpu0 = time.process_time()
+    try:
+        wall = asyncio.run(main())
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
+    cpu = time.process_time() - cpu0
+    late = [lag for per in lags for a, lag in per if a >= seconds / 2]
+    ends = [per[-1][1] if per and per[-1][0] >= seconds - window_s else float("inf") for per in lags]
+    p95 = percentile_ms(late, 95) if late else float("inf")
+    end_worst = max(ends) * 1000
+    stats = getattr(executor, "stats", None)
+    return {
+        "streams": n, "batched": batched, **how,
+        "lag_ms_p50": percentile_ms(late, 50) if late else float("inf"), "lag_ms_p95": p95,
+        "end_lag_ms_max": end_worst, "windows": sum(len(x) for x in lags), "frames": sum(frames),
+        "mean_batch": stats.total / stats.count if stats is not None and stats.count else 1.0,
+        "batches": stats.count if stats is not None else None,
+        "wall_s": wall, "process_cpu_s": cpu,
+        "ok": bool(p95 < window_ms + slack_ms and end_worst < end_ms),
+    }
+
+
+def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
+                log=print) -> dict:
+    """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail."""
+    trials, good, bad, n = [], 0, None, 1
+
+    def trial(k: int) -> bool:
+        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads)
+        trials.append(r)
+        log(f"  {'batched' if batched else 'unbatched':9s} K={steps} {k:3d} streams: lag p50/p95 "
+            f"{r['lag_ms_p50']:.0f}/{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, "
+            f"batch {r['mean_batch']:.1f} -> {'ok' if r['ok'] else 'falls behind'}")
+        return r["ok"]
+
+    while n <= cap:
+        if not trial(n):
+            bad = n
+            break
+        good, n = n, min(n * 2, cap) if n < cap else cap + 1
+    while bad is not None and bad - good > 1:
+        mid = (good + bad) // 2
+        good, bad = (mid, bad) if trial(mid) else (good, mid)
+    return {"max_realtime_streams": good, "capped": bad is None, "batched": batched, "steps": steps,
+            "window_ms": window_ms, "trial_s": seconds, "trials": sorted(trials, key=lambda r: r["streams"])}
