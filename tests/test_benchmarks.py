@@ -1,0 +1,103 @@
+"""The speed benchmarks run end to end at tiny sizes and write the result schema the README's numbers come from."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "benchmarks"
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+
+def run(script: str, *args: str) -> str:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    proc = subprocess.run([sys.executable, str(BENCH / script), *args], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+def finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def test_streaming_benchmark_writes_every_section(tmp_path):
+    out = tmp_path / "streaming.json"
+    run("streaming.py", "--out", str(out),
+        "--presets", "tiny", "--steps", "1", "2", "--windows-ms", "100", "--audio-s", "1",
+        "--paper-preset", "tiny", "--paper-steps", "1", "2", "--paper-windows-ms", "500", "--paper-audio-s", "1",
+        "--paper-threads", "2",
+        "--hour-preset", "tiny", "--hour-s", "12",
+        "--streams-preset", "tiny", "--streams-steps", "1", "2", "--streams-s", "1.5", "--streams-max", "2",
+        "--matmul-n", "128", "--seams-s", "2")
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert set(r["sections_last_run"]) == {"sweep", "paper", "hour", "streams", "gflops", "seams"}
+    assert r["code_version"] and r["device"].startswith("CPU") and len(r["load_avg_before"]) == 3
+
+    # sweep: one row per K x window, single-threaded, timings and achieved GFLOP/s finite
+    assert [(x["steps"], x["window_ms"]) for x in r["results"]] == [(1, 100), (2, 100)]
+    for row in r["results"]:
+        assert row["threads"] == 1 and row["frames"] > 0
+        for key in ("rtf", "latency_ms_p50", "latency_ms_p95", "e2e_latency_ms", "achieved_gflops",
+                    "flops_per_frame_step"):
+            assert finite(row[key]) and row[key] > 0, key
+        assert row["latency_ms_p50"] <= row["latency_ms_p95"]
+
+    # paper: K x window on the requested threads, and the bf16 row beside fp32 with its error
+    paper = r["paper"]
+    assert paper["threads"] == 2 and {x["threads"] for x in paper["rows"]} == {2}
+    assert [(x["steps"], x["window_ms"]) for x in paper["rows"]] == [(1, 500), (2, 500)]
+    bf = paper["bf16"]
+    assert (bf["steps"], bf["window_ms"]) == (2, 500)
+    for key in ("rtf", "rtf_fp32", "speedup_vs_fp32", "rel_rms_error_vs_fp32"):
+        assert finite(bf[key]), key
+    assert bf["rel_rms_error_vs_fp32"] < 0.1  # bf16 has 8 mantissa bits: close, not equal
+
+    assert r["hour_run"]["audio_s"] == 12 and finite(r["hour_run"]["rss_mb_start"])
+
+    # streams: batched and unbatched per K, every trial with its lags and batch size, the answer within the cap
+    st = r["streams"]
+    assert set(st["by_k"]) == {"1", "2"}
+    for k, modes in st["by_k"].items():
+        for mode in ("batched", "unbatched"):
+            m = modes[mode]
+            assert m["batched"] == (mode == "batched") and 0 <= m["max_realtime_streams"] <= 2
+            assert r["max_realtime_streams"][mode][k] == m["max_realtime_streams"]
+            assert m["trials"] and [t["streams"] for t in m["trials"]][0] == 1
+            for t in m["trials"]:
+                assert t["windows"] > 0 and t["frames"] > 0 and finite(t["lag_ms_p95"]) and finite(t["achieved_gflops"])
+                assert t["mean_batch"] >= 1 and (mode == "unbatched" or t["batches"] > 0)
+                assert t["executor"] == ("StreamBatcher" if mode == "batched" else "RankedExecutor")
+                assert all(n >= 1 for n in t["torch_threads_per_thread"])
+
+    # GFLOP/s: the peak measured in this run (1 thread and all threads, fp32 and bf16) beside what was achieved
+    g = r["gflops"]
+    assert {p["dtype"] for p in g["matmul_peak"].values()} == {"float32", "bfloat16"}
+    assert all(finite(p["gflops"]) and p["gflops"] > 0 for p in g["matmul_peak"].values())
+    assert len(g["achieved"]) >= 1
+    for a in g["achieved"]:
+        assert finite(a["gflops"]) and 0 < a["fraction_of_peak"] < 1
+
+    assert r["seams"] and all(finite(s["ratio"]) for s in r["seams"])
+
+
+def test_paper_table_writes_the_ratios(tmp_path):
+    out = tmp_path / "paper_table.json"
+    run("paper_table.py", "--preset", "tiny", "--hidden", "32", "--lengths", "1", "2", "--repeats", "1",
+        "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").is_file()
+    ratios = r["ratios"]
+    assert ratios["at_length_s"] == 2
+    for name in ("transformer_6", "transformer_12"):
+        x = ratios[f"mamba2_6_over_{name}"]
+        assert finite(x["time"]) and finite(x["peak_mem"]) and len(x["time_by_length"]) == 2
+        want = r["models"]["mamba2_6"]["time_s"][-1] / r["models"][name]["time_s"][-1]
+        assert x["time"] == pytest.approx(want)
