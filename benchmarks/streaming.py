@@ -64,6 +64,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--streams-threads", type=int, default=os.cpu_count() or 1,
                    help="torch threads of the StreamBatcher's one inference thread (default: every core); the "
                         "unbatched executor runs min(4, cores) workers of one torch thread each")
+    p.add_argument("--streams-aligned", type=int, nargs="*", default=[8],
+                   help="K values whose batched search is repeated with every session's windows due at the same "
+                        "instant (the best case for batching; the main search staggers them over a window)")
     p.add_argument("--matmul-n", type=int, default=1024, help="matmul size n (n x n x n) of the peak measurement")
     p.add_argument("--seams-s", type=float, default=30.0, help="audio per seam check")
     p.add_argument("--device", default="cpu")
@@ -254,14 +257,19 @@ def streams(args) -> dict:
     by_k = {}
     for steps in args.streams_steps:
         by_k[str(steps)] = {}
-        for batched in (True, False):
+        modes = [("batched", True, False), ("unbatched", False, False)]
+        if steps in args.streams_aligned:
+            modes.append(("batched_aligned", True, True))
+        for mode, batched, aligned in modes:
             r = max_streams(bundle, steps, args.streams_window_ms, args.streams_s, batched, args.streams_threads,
-                            args.streams_max, log=lambda line: print(line, flush=True))
+                            args.streams_max, aligned, log=lambda line: print(line, flush=True))
             for t in r["trials"]:
                 t["achieved_gflops"] = t["frames"] * steps * flops / t["wall_s"] / 1e9
-            by_k[str(steps)]["batched" if batched else "unbatched"] = r
+            by_k[str(steps)][mode] = r
     return {"preset": args.streams_preset, "window_ms": args.streams_window_ms, "trial_s": args.streams_s,
             "cap": args.streams_max, "flops_per_frame_step": flops, "by_k": by_k,
+            "phases": "session j's audio starts j/n of a window after session 0's (clients connect at random "
+                      "times); batched_aligned: all at once",
             "pass_rule": "over the second half of the trial, lag p95 < window + 150 ms, and every stream's last "
                          "window < 500 ms late; lag = frames out - last audio sample of the window in"}
 
@@ -287,15 +295,16 @@ def gflops(args, result: dict) -> dict:
                                         f"{r['threads']} thread(s)", "gflops": r["achieved_gflops"],
                                 "peak_gflops": f32_1 if r["threads"] == 1 else f32_all,
                                 "threads": r["threads"]})
-    for k, modes in (result.get("streams") or {}).get("by_k", {}).items():
-        r = modes.get("batched")
-        best = [t for t in r["trials"] if t["streams"] == r["max_realtime_streams"]] if r else []
-        if best:
-            t = best[0]
-            out["achieved"].append({"what": f"{t['streams']} batched real-time streams, "
-                                            f"{result['streams']['preset']}, K={k}, {result['streams']['window_ms']} ms "
-                                            f"windows (frames x K / trial wall time)", "gflops": t["achieved_gflops"],
-                                    "peak_gflops": f32_all, "threads": cores})
+    st = result.get("streams") or {}
+    for k, modes in st.get("by_k", {}).items():  # each batched search at its largest real-time count
+        for mode in ("batched", "batched_aligned"):
+            r = modes.get(mode)
+            t = next((t for t in r["trials"] if t["streams"] == r["max_realtime_streams"]), None) if r else None
+            if t is None:
+                continue
+            out["achieved"].append({"what": f"{t['streams']} {mode.replace('_', ' ')} real-time streams, {st['preset']}, "
+                                            f"K={k}, {st['window_ms']} ms windows (frames x K / trial wall time)",
+                                    "gflops": t["achieved_gflops"], "peak_gflops": f32_all, "threads": cores})
     for a in out["achieved"]:
         a["fraction_of_peak"] = a["gflops"] / a["peak_gflops"]
         print(f"achieved {a['gflops']:.2f} GFLOP/s = {100 * a['fraction_of_peak']:.2f} % of the fp32 peak: {a['what']}",
@@ -353,14 +362,20 @@ def plot(result: dict, path: Path) -> None:
     st = result.get("streams")
     if st:
         ks = sorted(int(k) for k in st["by_k"])
-        for i, mode in enumerate(("batched", "unbatched")):
-            n = [st["by_k"][str(k)][mode]["max_realtime_streams"] for k in ks]
-            bars = ax_n.bar(np.arange(len(ks)) + (i - 0.5) * 0.4, n, 0.4, label=mode)
+        modes = [m for m in ("batched", "unbatched", "batched_aligned") if any(m in v for v in st["by_k"].values())]
+        width = 0.8 / len(modes)
+        for i, mode in enumerate(modes):
+            at = [j for j, k in enumerate(ks) if mode in st["by_k"][str(k)]]
+            n = [st["by_k"][str(ks[j])][mode]["max_realtime_streams"] for j in at]
+            bars = ax_n.bar(np.asarray(at) + (i - (len(modes) - 1) / 2) * width, n, width, label=mode.replace("_", ", "))
             ax_n.bar_label(bars, fontsize=8)
             for k, color in zip(ks, plt.rcParams["axes.prop_cycle"].by_key()["color"]):
+                if mode not in st["by_k"][str(k)]:
+                    continue
                 trials = st["by_k"][str(k)][mode]["trials"]
                 ax_lag.plot([t["streams"] for t in trials], [min(t["lag_ms_p95"], 1e5) for t in trials],
-                            "o-" if mode == "batched" else "x--", color=color, label=f"K={k}, {mode}")
+                            {"batched": "o-", "unbatched": "x--", "batched_aligned": "s:"}[mode], color=color,
+                            label=f"K={k}, {mode.replace('_', ', ')}")
         ax_n.set_xticks(range(len(ks)), [f"K={k}" for k in ks])
         capped = any(st["by_k"][str(k)]["batched"]["capped"] for k in ks)
         ax_n.set(ylabel="streams", title=f"real-time streams, one process ({st['preset']}, {st['window_ms']} ms"
@@ -427,8 +442,9 @@ def main(argv=None) -> None:
                 r["rss_mb_after_1h"] = h["rss_mb_after_1h"] if h["audio_s"] >= 3600 else None
     if "streams" in args.sections:
         result["streams"] = streams(args)
-        result["max_realtime_streams"] = {mode: {k: v[mode]["max_realtime_streams"] for k, v in result["streams"]["by_k"].items()}
-                                          for mode in ("batched", "unbatched")}
+        result["max_realtime_streams"] = {
+            mode: {k: v[mode]["max_realtime_streams"] for k, v in result["streams"]["by_k"].items() if mode in v}
+            for mode in ("batched", "unbatched", "batched_aligned")}
     if "gflops" in args.sections:
         result["gflops"] = gflops(args, result)
     if "seams" in args.sections:

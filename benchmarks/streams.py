@@ -109,8 +109,11 @@ def make_executor(batched: bool, threads: int):
 
 
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
-                  slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0) -> dict:
-    """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict."""
+                  aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0) -> dict:
+    """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict.
+
+    aligned: every session's audio clock starts at the same instant (all windows due together: the best
+    case for batching) instead of staggered over one window."""
     from streamer.engine import Session
 
     audio = test_audio(seconds, RATE)
@@ -133,7 +136,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
     async def main() -> float:
         start = time.monotonic() + 0.2
-        tasks = [asyncio.ensure_future(one(j, start + window_s * j / n)) for j in range(n)]
+        tasks = [asyncio.ensure_future(one(j, start + (0.0 if aligned else window_s * j / n))) for j in range(n)]
         done, pending = await asyncio.wait(tasks, timeout=seconds + window_s + grace_s)
         for t in pending:
             t.cancel()
@@ -154,7 +157,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     end_worst = max(ends) * 1000
     stats = getattr(executor, "stats", None)
     return {
-        "streams": n, "batched": batched, **how,
+        "streams": n, "batched": batched, "phases": "aligned" if aligned else "staggered", **how,
         "lag_ms_p50": percentile_ms(late, 50) if late else float("inf"), "lag_ms_p95": p95,
         "end_lag_ms_max": end_worst, "windows": sum(len(x) for x in lags), "frames": sum(frames),
         "mean_batch": stats.total / stats.count if stats is not None and stats.count else 1.0,
@@ -165,14 +168,14 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
 
 def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
-                log=print) -> dict:
+                aligned: bool = False, log=print) -> dict:
     """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail."""
     trials, good, bad, n = [], 0, None, 1
 
     def trial(k: int) -> bool:
-        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads)
+        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned)
         trials.append(r)
-        log(f"  {'batched' if batched else 'unbatched':9s} K={steps} {k:3d} streams: lag p50/p95 "
+        log(f"  {'batched' if batched else 'unbatched':9s}{' aligned' if aligned else ''} K={steps} {k:3d} streams: lag p50/p95 "
             f"{r['lag_ms_p50']:.0f}/{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, "
             f"batch {r['mean_batch']:.1f} -> {'ok' if r['ok'] else 'falls behind'}")
         return r["ok"]
@@ -185,5 +188,6 @@ def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: boo
     while bad is not None and bad - good > 1:
         mid = (good + bad) // 2
         good, bad = (mid, bad) if trial(mid) else (good, mid)
-    return {"max_realtime_streams": good, "capped": bad is None, "batched": batched, "steps": steps,
+    return {"max_realtime_streams": good, "capped": bad is None, "batched": batched,
+            "phases": "aligned" if aligned else "staggered", "steps": steps,
             "window_ms": window_ms, "trial_s": seconds, "trials": sorted(trials, key=lambda r: r["streams"])}

@@ -34,7 +34,7 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
         "--paper-preset", "tiny", "--paper-steps", "1", "2", "--paper-windows-ms", "500", "--paper-audio-s", "1",
         "--paper-threads", "2",
         "--hour-preset", "tiny", "--hour-s", "12",
-        "--streams-preset", "tiny", "--streams-steps", "1", "2", "--streams-s", "1.5", "--streams-max", "2",
+        "--streams-preset", "tiny", "--streams-steps", "1", "2", "--streams-s", "1.5", "--streams-max", "2", "--streams-aligned", "2",
         "--matmul-n", "128", "--seams-s", "2")
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
@@ -65,16 +65,18 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
     # streams: batched and unbatched per K, every trial with its lags and batch size, the answer within the cap
     st = r["streams"]
     assert set(st["by_k"]) == {"1", "2"}
+    assert set(st["by_k"]["2"]) == {"batched", "unbatched", "batched_aligned"} and "batched_aligned" not in st["by_k"]["1"]
     for k, modes in st["by_k"].items():
-        for mode in ("batched", "unbatched"):
+        for mode in modes:
             m = modes[mode]
-            assert m["batched"] == (mode == "batched") and 0 <= m["max_realtime_streams"] <= 2
+            assert m["batched"] == mode.startswith("batched") and 0 <= m["max_realtime_streams"] <= 2
             assert r["max_realtime_streams"][mode][k] == m["max_realtime_streams"]
             assert m["trials"] and [t["streams"] for t in m["trials"]][0] == 1
             for t in m["trials"]:
                 assert t["windows"] > 0 and t["frames"] > 0 and finite(t["lag_ms_p95"]) and finite(t["achieved_gflops"])
                 assert t["mean_batch"] >= 1 and (mode == "unbatched" or t["batches"] > 0)
-                assert t["executor"] == ("StreamBatcher" if mode == "batched" else "RankedExecutor")
+                assert t["executor"] == ("RankedExecutor" if mode == "unbatched" else "StreamBatcher")
+                assert t["phases"] == ("aligned" if mode == "batched_aligned" else "staggered")
                 assert all(n >= 1 for n in t["torch_threads_per_thread"])
 
     # GFLOP/s: the peak measured in this run (1 thread and all threads, fp32 and bf16) beside what was achieved
