@@ -61,9 +61,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--streams-window-ms", type=int, default=100, help="window for the concurrent-streams test")
     p.add_argument("--streams-s", type=float, default=6.0, help="seconds of paced audio per trial")
     p.add_argument("--streams-max", type=int, default=128, help="stop searching at this many streams")
-    p.add_argument("--streams-threads", type=int, default=os.cpu_count() or 1,
-                   help="torch threads of the StreamBatcher's one inference thread (default: every core); the "
-                        "unbatched executor runs min(4, cores) workers of one torch thread each")
+    p.add_argument("--streams-threads", type=int, default=1,
+                   help="torch threads of the StreamBatcher's one inference thread (default 1: at 24 realtime K=8 "
+                        "streams on 2 cores, 2 threads gave lag p95 0.51-0.55 s against 0.17-0.21 s with 1: the ops "
+                        "are too small to split and the event loop needs the other core); the unbatched executor "
+                        "runs min(4, cores) workers of one torch thread each")
     p.add_argument("--streams-aligned", type=int, nargs="*", default=[8],
                    help="K values whose batched search is repeated with every session's windows due at the same "
                         "instant (the best case for batching; the main search staggers them over a window)")
