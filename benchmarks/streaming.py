@@ -144,7 +144,8 @@ def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str,
     rtf = sum(compute) / audio_total
     return {"steps": steps, "window_ms": window_ms, "lookahead_ms": 1000 * stream.lookahead_s,
             "threads": torch.get_num_threads(),
-            "rtf": rtf, "latency_ms_p50": percentile_ms(compute, 50), "latency_ms_p95": percentile_ms(compute, 95),
+            "rtf": rtf, "rtf_median_window": float(np.median(compute)) * 1000 / window_ms,
+            "latency_ms_p50": percentile_ms(compute, 50), "latency_ms_p95": percentile_ms(compute, 95),
             "rtf_cpu": sum(cpu) / audio_total, "cpu_ms_p50": percentile_ms(cpu, 50),
             "e2e_latency_ms": percentile_ms(e2e, 95), "e2e_latency_ms_p50": percentile_ms(e2e, 50),
             "realtime": rtf < 1 and percentile_ms(compute, 95) < window_ms,
@@ -193,16 +194,21 @@ def paper(args) -> dict:
                 frames[(steps, window_ms)] = r.pop("_frames")
                 rows.append({"preset": label, **r, "flops_per_frame_step": flops, "dtype": "float32"})
                 print(_row_line(label, r), flush=True)
+        # bf16 matmuls at the largest K and window, between two fp32 runs (a busy neighbour hits all alike)
         k, w = max(args.paper_steps), max(args.paper_windows_ms)
         bf = stream_timed(model, k, w, args.paper_audio_s, args.device, flops,
                           context=lambda: torch.autocast("cpu", dtype=torch.bfloat16))
+        again = stream_timed(model, k, w, args.paper_audio_s, args.device, flops)
         ref, got = frames[(k, w)], bf.pop("_frames")
         fp = next(r for r in rows if (r["steps"], r["window_ms"]) == (k, w))
+        rtf_fp32 = [fp["rtf"], again["rtf"]]
         bf.update(preset=label, flops_per_frame_step=flops, dtype="bfloat16 matmuls (torch.autocast, fp32 weights)",
                   rel_rms_error_vs_fp32=float(np.sqrt(np.mean((got - ref) ** 2)) / max(np.sqrt(np.mean(ref ** 2)), 1e-12)),
-                  max_abs_error_vs_fp32=float(np.abs(got - ref).max()), rtf_fp32=fp["rtf"],
-                  speedup_vs_fp32=fp["rtf"] / bf["rtf"])
-        print(_row_line(label + " bf16", bf) + f"  x{bf['speedup_vs_fp32']:.2f} vs fp32, rel. rms error "
+                  max_abs_error_vs_fp32=float(np.abs(got - ref).max()), rtf_fp32_before_after=rtf_fp32,
+                  rtf_fp32=min(rtf_fp32), speedup_vs_fp32=min(rtf_fp32) / bf["rtf"],
+                  rtf_median_window_fp32=min(fp["rtf_median_window"], again["rtf_median_window"]))
+        print(_row_line(label + " bf16", bf) + f"  x{bf['speedup_vs_fp32']:.2f} vs the faster fp32 run "
+              f"(rtf {rtf_fp32[0]:.3f} before, {rtf_fp32[1]:.3f} after), rel. rms error "
               f"{bf['rel_rms_error_vs_fp32']:.2e}", flush=True)
     finally:
         torch.set_num_threads(before)
@@ -466,6 +472,8 @@ def main(argv=None) -> None:
                                    "it leaves out the time the thread waited for a core; with --threads 1 torch runs "
                                    "its ops in that thread",
             "latency_ms_p50/p95": "compute time of one push() of a window",
+            "rtf_median_window": "median compute time of one window / the window's audio: steadier than rtf when a "
+                                 "neighbour's burst stalls a few windows",
             "lookahead_ms": "algorithmic latency: audio needed after a frame's start before it exists (GestureStream.lookahead_s)",
             "e2e_latency_ms": "p95 over frames of (time the frame is ready) - (its presentation time on the audio clock), "
                               "audio arriving in real time in windows: frame + lookahead + window fill + compute",

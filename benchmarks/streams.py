@@ -169,7 +169,8 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
 def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
                 aligned: bool = False, log=print) -> dict:
-    """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail."""
+    """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail
+    until they are within 10 % (the answer is the largest count that passed)."""
     trials, good, bad, n = [], 0, None, 1
 
     def trial(k: int) -> bool:
@@ -185,7 +186,7 @@ def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: boo
             bad = n
             break
         good, n = n, min(n * 2, cap) if n < cap else cap + 1
-    while bad is not None and bad - good > 1:
+    while bad is not None and bad - good > max(1, good // 10):  # to 10 %: trial-to-trial noise is larger
         mid = (good + bad) // 2
         good, bad = (mid, bad) if trial(mid) else (good, mid)
     return {"max_realtime_streams": good, "capped": bad is None, "batched": batched,

@@ -45,7 +45,7 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
     assert [(x["steps"], x["window_ms"]) for x in r["results"]] == [(1, 100), (2, 100)]
     for row in r["results"]:
         assert row["threads"] == 1 and row["frames"] > 0
-        for key in ("rtf", "latency_ms_p50", "latency_ms_p95", "e2e_latency_ms", "achieved_gflops",
+        for key in ("rtf", "rtf_median_window", "latency_ms_p50", "latency_ms_p95", "e2e_latency_ms", "achieved_gflops",
                     "flops_per_frame_step"):
             assert finite(row[key]) and row[key] > 0, key
         assert row["latency_ms_p50"] <= row["latency_ms_p95"]
@@ -56,7 +56,8 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
     assert [(x["steps"], x["window_ms"]) for x in paper["rows"]] == [(1, 500), (2, 500)]
     bf = paper["bf16"]
     assert (bf["steps"], bf["window_ms"]) == (2, 500)
-    for key in ("rtf", "rtf_fp32", "speedup_vs_fp32", "rel_rms_error_vs_fp32"):
+    assert len(bf["rtf_fp32_before_after"]) == 2 and bf["rtf_fp32"] == min(bf["rtf_fp32_before_after"])
+    for key in ("rtf", "rtf_fp32", "speedup_vs_fp32", "rel_rms_error_vs_fp32", "rtf_median_window"):
         assert finite(bf[key]), key
     assert bf["rel_rms_error_vs_fp32"] < 0.1  # bf16 has 8 mantissa bits: close, not equal
 
