@@ -439,24 +439,33 @@ def main(argv=None) -> None:
     for old in ("max_realtime_streams", "streams_trials"):  # the thread-per-stream test this file ran before
         result.pop(old, None)
     load_before, started = load_average(), time.time()
+    runs = result.setdefault("section_runs", {})  # sections may come from different runs: each says when and how
+
+    def section(name: str, fn):
+        before, t0 = load_average(), time.time()
+        out = fn()
+        runs[name] = {"measured_at": utc_now(), "code_version": code_version(), "load_avg_before": before,
+                      "load_avg_after": load_average(), "wall_s": round(time.time() - t0, 1)}
+        return out
+
     if "sweep" in args.sections:
-        result["results"] = sweep(args, presets)
+        result["results"] = section("sweep", lambda: sweep(args, presets))
     if "paper" in args.sections:
-        result["paper"] = paper(args)
+        result["paper"] = section("paper", lambda: paper(args))
     if "hour" in args.sections and args.hour_s > 0:
-        h = result["hour_run"] = hour(args)
+        h = result["hour_run"] = section("hour", lambda: hour(args))
         for r in result.get("results", []):
             if (r["preset"], r["steps"], r["window_ms"]) == (h["preset"], h["steps"], h["window_ms"]):
                 r["rss_mb_after_1h"] = h["rss_mb_after_1h"] if h["audio_s"] >= 3600 else None
     if "streams" in args.sections:
-        result["streams"] = streams(args)
+        result["streams"] = section("streams", lambda: streams(args))
         result["max_realtime_streams"] = {
             mode: {k: v[mode]["max_realtime_streams"] for k, v in result["streams"]["by_k"].items() if mode in v}
             for mode in ("batched", "unbatched", "batched_aligned")}
     if "gflops" in args.sections:
-        result["gflops"] = gflops(args, result)
+        result["gflops"] = section("gflops", lambda: gflops(args, result))
     if "seams" in args.sections:
-        result["seams"] = seams(args)
+        result["seams"] = section("seams", lambda: seams(args))
     result.update({
         "device": describe_device(args.device), "threads": args.threads, "note": args.note,
         "threads_by_section": {"sweep": args.threads, "paper": args.paper_threads,

@@ -41,6 +41,8 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert set(r["sections_last_run"]) == {"sweep", "paper", "hour", "streams", "gflops", "seams"}
     assert r["code_version"] and r["device"].startswith("CPU") and len(r["load_avg_before"]) == 3
+    assert set(r["section_runs"]) == set(r["sections_last_run"])
+    assert all(len(x["load_avg_after"]) == 3 and x["code_version"] for x in r["section_runs"].values())
 
     # sweep: one row per K x window, single-threaded, timings and achieved GFLOP/s finite
     assert [(x["steps"], x["window_ms"]) for x in r["results"]] == [(1, 100), (2, 100)]
