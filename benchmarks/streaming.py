@@ -282,6 +282,16 @@ def streams(args) -> dict:
                          "window < 500 ms late; lag = frames out - last audio sample of the window in"}
 
 
+def streams_summary(st: dict) -> dict:
+    """max_realtime_streams: preset -> the batched count at the largest K (what `streamer serve` holds; the
+    schema of issue 7); max_realtime_streams_by_k: mode -> K -> count."""
+    by_k = {mode: {k: v[mode]["max_realtime_streams"] for k, v in st["by_k"].items() if mode in v}
+            for mode in ("batched", "unbatched", "batched_aligned")}
+    top = max(st["by_k"], key=int)
+    return {"max_realtime_streams": {st["preset"]: st["by_k"][top]["batched"]["max_realtime_streams"]},
+            "max_realtime_streams_by_k": by_k}
+
+
 def gflops(args, result: dict) -> dict:
     """The matmul peak of this machine now, beside what the denoiser achieved in this run's sweep and streams."""
     import torch
@@ -459,9 +469,7 @@ def main(argv=None) -> None:
                 r["rss_mb_after_1h"] = h["rss_mb_after_1h"] if h["audio_s"] >= 3600 else None
     if "streams" in args.sections:
         result["streams"] = section("streams", lambda: streams(args))
-        result["max_realtime_streams"] = {
-            mode: {k: v[mode]["max_realtime_streams"] for k, v in result["streams"]["by_k"].items() if mode in v}
-            for mode in ("batched", "unbatched", "batched_aligned")}
+        result.update(streams_summary(result["streams"]))
     if "gflops" in args.sections:
         result["gflops"] = section("gflops", lambda: gflops(args, result))
     if "seams" in args.sections:
@@ -489,8 +497,12 @@ def main(argv=None) -> None:
             "rss_mb_after_1h": "process RSS after an hour of audio; only the hour_run configuration streams a full hour",
             "achieved_gflops": "denoiser FLOPs (flops_per_frame_step x frames x K) / compute time (sweep) or / trial wall "
                                "time (streams); the front end and condition path are not counted",
-            "max_realtime_streams": "Sessions on one executor in one asyncio loop, audio paced by the clock (see "
-                                    "streams.pass_rule); batched = one StreamBatcher, unbatched = one RankedExecutor",
+            "max_realtime_streams": "preset -> real-time streams through the serving path, batched (one StreamBatcher, "
+                                    "as streamer serve), at the largest K of the streams section; see "
+                                    "max_realtime_streams_by_k for every K and mode and streams.by_k for the trials",
+            "max_realtime_streams_by_k": "Sessions on one executor in one asyncio loop, audio paced by the clock (see "
+                                         "streams.pass_rule); batched = one StreamBatcher, unbatched = one "
+                                         "RankedExecutor (--no-batch)",
         },
     })
     write_json(args.out, result)

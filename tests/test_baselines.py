@@ -136,8 +136,8 @@ def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
     out = tmp_path / "st.json"
     cmd = [sys.executable, str(BENCH / "streaming.py"), "--sections", "sweep", "hour", "streams", "--presets", "tiny",
            "--steps", "1", "--windows-ms", "500", "--audio-s", "1", "--hour-preset", "tiny", "--hour-steps", "1",
-           "--hour-s", "20", "--streams-steps", "1", "--streams-window-ms", "500", "--streams-s", "1",
-           "--streams-max", "1", "--out", str(out)]
+           "--hour-s", "20", "--streams-preset", "tiny", "--streams-steps", "1", "--streams-window-ms", "500",
+           "--streams-s", "1", "--streams-max", "1", "--streams-aligned", "--out", str(out)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(out.read_text())
@@ -147,7 +147,7 @@ def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
     assert keys <= set(row) and row["preset"] == "tiny" and row["rtf"] > 0
     assert row["e2e_latency_ms"] >= row["lookahead_ms"]  # a frame cannot be ready before its audio exists
     assert result["hour_run"]["audio_s"] == 20 and len(result["hour_run"]["rss_trace_mb"]) == 0
-    assert result["max_realtime_streams"]["tiny"] in (0, 1) and result["streams_trials"]["tiny"]["trials"]
+    assert result["max_realtime_streams"]["tiny"] in (0, 1) and result["streams"]["by_k"]["1"]["batched"]["trials"]
     assert out.with_suffix(".png").is_file()
 
 

@@ -68,13 +68,14 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
 
     # streams: batched and unbatched per K, every trial with its lags and batch size, the answer within the cap
     st = r["streams"]
+    assert r["max_realtime_streams"] == {"tiny": st["by_k"]["2"]["batched"]["max_realtime_streams"]}  # issue 7's key
     assert set(st["by_k"]) == {"1", "2"}
     assert set(st["by_k"]["2"]) == {"batched", "unbatched", "batched_aligned"} and "batched_aligned" not in st["by_k"]["1"]
     for k, modes in st["by_k"].items():
         for mode in modes:
             m = modes[mode]
             assert m["batched"] == mode.startswith("batched") and 0 <= m["max_realtime_streams"] <= 2
-            assert r["max_realtime_streams"][mode][k] == m["max_realtime_streams"]
+            assert r["max_realtime_streams_by_k"][mode][k] == m["max_realtime_streams"]
             assert m["trials"] and [t["streams"] for t in m["trials"]][0] == 1
             for t in m["trials"]:
                 assert t["windows"] > 0 and t["frames"] > 0 and finite(t["lag_ms_p95"]) and finite(t["achieved_gflops"])
