@@ -259,29 +259,53 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
             if not return_exceptions:
                 raise
             out[i] = e
-    groups: dict[tuple, list[int]] = defaultdict(list)
+    live = []
     for i, (s, cond) in enumerate(zip(streams, conds)):
         if cond is None:
             continue
         if cond.shape[1] == 0:
             out[i] = s._end(None)
         else:
-            groups[(id(s.runner), cond.shape[1], cond.device, cond.dtype)].append(i)
-    for idx in groups.values():
-        members = [streams[i] for i in idx]
-        try:
-            frames = denoise_rows(members, [conds[i] for i in idx])
-        except Exception as e:
-            if not return_exceptions:
-                raise
-            frames = [e] * len(idx)
-        for i, s, f in zip(idx, members, frames):
-            out[i] = f if isinstance(f, Exception) else s._end(f)
+            live.append(i)
+    # Windows are cut into pieces of the most common length, denoised round by round: a stream that fell
+    # behind brings a longer window, and cut this way it still shares the batch of the others instead of
+    # running alone. Once a stream would be alone in a round it takes all it has left at once. Streaming
+    # equals offline for any cut, so the frames do not change.
+    lengths = [conds[i].shape[1] for i in live]
+    piece = max(set(lengths), key=lambda n: (lengths.count(n), n)) if live else 1
+    done = {i: 0 for i in live}
+    pieces: dict[int, list] = {i: [] for i in live}
+    failed: dict[int, Exception] = {}
+    while todo := [i for i in live if i not in failed and done[i] < conds[i].shape[1]]:
+        take = {i: piece if len(todo) > 1 else conds[i].shape[1] - done[i] for i in todo}
+        groups: dict[tuple, list[int]] = defaultdict(list)
+        for i in todo:
+            cond = conds[i][:, done[i]:done[i] + take[i]]
+            groups[(id(streams[i].runner), cond.shape[1], cond.device, cond.dtype)].append(i)
+        for idx in groups.values():
+            members = [streams[i] for i in idx]
+            try:
+                frames = denoise_rows(members, [conds[i][:, done[i]:done[i] + take[i]] for i in idx],
+                                      [s.frames_out + done[i] for i, s in zip(idx, members)])
+            except Exception as e:
+                if not return_exceptions:
+                    raise
+                failed.update({i: e for i in idx})
+                continue
+            for i, f in zip(idx, frames):
+                pieces[i].append(f)
+        for i in todo:
+            done[i] += take[i]
+    for i in live:
+        s = streams[i]
+        out[i] = failed[i] if i in failed else s._end(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
     return out
 
 
-def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor]) -> list[torch.Tensor]:
+def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor], frame_starts: Sequence[int] | None = None
+                 ) -> list[torch.Tensor]:
     """One batched sampler run over streams sharing a runner and a frame count; updates their states.
+    frame_starts: each stream's first frame index here (default: its frames_out).
 
     The streams' states become the rows of one buffer that the sampler updates in place; while the same
     streams come back together (a busy server: every stream has a window due each cycle) nothing is copied.
@@ -296,7 +320,8 @@ def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor]) -> list[torch
             buf = StepStates.cat([s._states.view for s in streams]) if len(streams) > 1 else first.view
             for i, s in enumerate(streams):
                 s._states = _Row(buf, i)
-        x = runner.sample(torch.cat(list(conds)), [s.frames_out for s in streams], [s.seed for s in streams], buf)
+        starts = [s.frames_out for s in streams] if frame_starts is None else list(frame_starts)
+        x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf)
     return list(x)
 
 
