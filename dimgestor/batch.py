@@ -63,11 +63,6 @@ class StepStates(NamedTuple):
         return StepStates(torch.cat([s.enc for s in states], 1), torch.cat([s.conv for s in states], 2),
                           torch.cat([s.ssm for s in states], 2))
 
-    def rows(self) -> list["StepStates"]:
-        """One StepStates per batch row (views)."""
-        return [StepStates(self.enc[:, b:b + 1], self.conv[:, :, b:b + 1], self.ssm[:, :, b:b + 1])
-                for b in range(self.batch)]
-
     def step(self, k: int) -> DenoiserState:
         """Step k as the model's own DenoiserState (what `DiMGestor.forward` takes)."""
         return DenoiserState(self.enc[k], tuple(Mamba2State(c.transpose(1, 2), s) for c, s in zip(self.conv[k], self.ssm[k])))
@@ -86,7 +81,7 @@ class DenoiseRunner:
     """The K-step sampler of one model and schedule, for windows of B streams (the fast path).
 
     Built once per (model, sampler, steps, eta) by `runner_for`; it holds the stacked adaLN weights and
-    the step embeddings, rebuilt when the model's parameters change (their version counters move).
+    the step embeddings, rebuilt when the model's parameters change (their version counters or storage move).
     """
 
     def __init__(self, model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str = "ddim", eta: float = 0.0):

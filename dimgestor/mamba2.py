@@ -141,13 +141,12 @@ def ssd_scan(x, dt, A, B, C, chunk_size, initial_state):
     return y, state
 
 
-def ssd_steps(x, dt, A, B, C, initial_state, inplace: bool = False):
+def ssd_steps(x, dt, A, B, C, initial_state):
     """The recurrence step by step with B and C per group (b, L, g, n): fewest ops for a window of a few frames.
 
     h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t^T, y_t = h_t C_t, with the heads of a group side by side.
     One stream (b = 1) runs each step as a fused batched matmul; a batch of streams as broadcast multiply-adds
-    (torch's CPU `baddbmm`/`bmm` loop over the batch one small matmul at a time). inplace: the state is
-    updated in `initial_state` itself (a runner's buffer; no copy of the state per step).
+    (torch's CPU `baddbmm`/`bmm` loop over the batch one small matmul at a time).
     Returns y (b, L, h, p) without the D skip and the final state (b, h, p, n).
     """
     b, L, h, p = x.shape
@@ -159,10 +158,7 @@ def ssd_steps(x, dt, A, B, C, initial_state, inplace: bool = False):
         state = initial_state.view(b, g, rows, n)
         ys = []
         for t in range(L):
-            if inplace:
-                state = state.mul_(dA[:, t]).addcmul_(Xdt[:, t], B[:, t, :, None, :])
-            else:
-                state = torch.addcmul(state * dA[:, t], Xdt[:, t], B[:, t, :, None, :])  # (b, g, rows, n)
+            state = torch.addcmul(state * dA[:, t], Xdt[:, t], B[:, t, :, None, :])  # (b, g, rows, n)
             ys.append(torch.linalg.vecdot(state, C[:, t, :, None, :]))  # (b, g, rows)
         y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]
         return y.view(b, L, h, p), state.view(b, h, p, n)
@@ -170,23 +166,17 @@ def ssd_steps(x, dt, A, B, C, initial_state, inplace: bool = False):
     Xdt = (x * dt[..., None]).view(b, L, g, rows).transpose(0, 1).reshape(L, b * g, rows, 1)
     Bt = B.transpose(0, 1).reshape(L, b * g, 1, n)
     Ct = C.transpose(0, 1).reshape(L, b * g, n, 1)
-    state = initial_state.view(b * g, rows, n) if inplace else initial_state.reshape(b * g, rows, n)
+    state = initial_state.reshape(b * g, rows, n)
     ys = []
     if b * g == 1:  # plain 2-D matmuls: CPU bmm/baddbmm loop over the batch with a select and clone per item
         state = state[0]
         for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
-            if inplace:
-                state = state.mul_(dA[t, 0]).addmm_(Xdt[t, 0], Bt[t, 0])
-            else:
-                state = torch.addmm(state * dA[t, 0], Xdt[t, 0], Bt[t, 0])
+            state = torch.addmm(state * dA[t, 0], Xdt[t, 0], Bt[t, 0])
             ys.append(torch.mm(state, Ct[t, 0]))  # (r p, 1)
         y = torch.stack(ys) if L > 1 else ys[0][None]  # (L, r p, 1)
         return y.view(b, L, h, p), state.view(b, h, p, n)
     for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
-        if inplace:
-            state = state.mul_(dA[t]).baddbmm_(Xdt[t], Bt[t])
-        else:
-            state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
+        state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
         ys.append(torch.bmm(state, Ct[t]))  # (b g, r p, 1)
     y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]  # (b g, L, r p, 1)
     return y.view(b, g, L, rows).transpose(1, 2).reshape(b, L, h, p), state.view(b, h, p, n)
@@ -327,7 +317,7 @@ class Mamba2(nn.Module):
             y, ssm = mamba_chunk_scan_combined(x, dt, A, Bg, Cg, chunk_size=self.chunk_size, D=None,
                                                initial_states=state.ssm, return_final_states=True)
         elif L <= (STEP_MAX if b == 1 else 2):  # a streaming window of a few frames: the recurrence has the fewest ops
-            y, ssm = ssd_steps(x, dt, A, Bg, Cg, state.ssm, inplace=inplace)
+            y, ssm = ssd_steps(x, dt, A, Bg, Cg, state.ssm)
         elif L <= self.chunk_size:  # a window that fits one chunk
             y, ssm = ssd_one_chunk(x, dt, A, Bg, Cg, state.ssm)
         else:  # a long sequence: chunk by chunk, working memory of one chunk
@@ -338,7 +328,6 @@ class Mamba2(nn.Module):
         y = self.norm(y, z) if self.rmsnorm else y * F.silu(z)
         if inplace:
             state.conv.copy_(new_conv)
-            if ssm is not state.ssm and ssm.data_ptr() != state.ssm.data_ptr():
-                state.ssm.copy_(ssm)
+            state.ssm.copy_(ssm)
             return self.out_proj(y), state
         return self.out_proj(y), Mamba2State(new_conv, ssm.to(state.ssm.dtype))

@@ -211,3 +211,19 @@ def test_matches_transformers_mamba2_mixer():
         y_peer = peer(x)
         y_ours, _ = ours(x)
     torch.testing.assert_close(y_ours, y_peer, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("L", [2, 9, 70])
+def test_inplace_forward_writes_the_same_state_into_the_given_tensors(L):
+    torch.manual_seed(L)
+    m = Mamba2(16, d_state=8, headdim=8, chunk_size=16)
+    s0 = Mamba2State(torch.randn(2, m.conv_dim, m.d_conv - 1), torch.randn(2, m.nheads, m.headdim, m.d_state))
+    u = torch.randn(2, L, 16)
+    with torch.no_grad():
+        y, s = m(u, s0)
+        buf = Mamba2State(s0.conv.clone(), s0.ssm.clone())
+        y2, s2 = m(u, buf, inplace=True)
+    assert s2.conv is buf.conv and s2.ssm is buf.ssm
+    torch.testing.assert_close(y2, y)
+    torch.testing.assert_close(buf.conv, s.conv)
+    torch.testing.assert_close(buf.ssm, s.ssm)
