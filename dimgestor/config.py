@@ -39,7 +39,9 @@ class ModelConfig(BaseModel):
     mlp_ratio: float = 4.0  # width of the per-block MLP relative to hidden (as in DiT)
 
     # --- audio front end ---
-    frontend: Literal["logmel", "pretrained"] = "logmel"  # log-mel needs no download
+    # logmel: the paper-style spectrum; speech: level-free bands + prosody relative to each stream's running
+    # statistics (dimgestor/frontend_speech.py), so gestures follow what is said, not the voice or microphone
+    frontend: Literal["logmel", "speech", "pretrained"] = "logmel"
     pretrained_path: str | None = None  # LOCAL wav2vec2/HuBERT folder when frontend == "pretrained"
     pretrained_block_ms: int = 1000  # pretrained encoder runs on fixed blocks of this length ...
     pretrained_left_ms: int = 1000  # ... with this much past audio as context ...
