@@ -6,9 +6,9 @@ relative to the stream's own running statistics, so a quiet and a loud microphon
 give features that differ only in what was said and how it was stressed:
 
     bands     n_mels log-mel bands minus their running mean over speech (cepstral mean normalization:
-              removes gain, microphone EQ and the average timbre), floored 40 dB below it so that
+              removes gain, microphone EQ and the average timbre), floored 30 dB below it so that
               silence reads the same at any gain
-    loudness  frame energy minus the running speech level (a per-stream AGC), in [-60, +15] dB
+    loudness  frame energy minus the running speech level (a per-stream AGC), in [-45, +20] dB
     flux      onset strength: mean rise of the bands since the previous frame
     voicing   periodicity (normalized autocorrelation peak, 80-400 Hz), 0 outside speech
     pitch     log2 f0 minus its running mean over voiced frames (octaves, [-1, 1]), 0 when unvoiced
@@ -38,8 +38,10 @@ SNR_DB = 15.0  # a speech frame stands this far above the running noise floor ..
 GATE_DB = 25.0  # ... and within this much of the running speech level
 FLOOR_RISE_DB_S = 3.0  # the noise floor falls to any quieter frame at once and rises this fast (dB/s): a
 # fixed rate, not a fraction of the gap to the current frame, so that the gain of the input does not matter
-BAND_RANGE = (-40.0, 30.0)  # band dB relative to the band's running mean, clipped
-LOUD_RANGE = (-60.0, 15.0)  # frame dB relative to the running speech level, clipped
+BAND_RANGE = (-30.0, 30.0)  # band dB relative to the band's running mean, clipped: room noise and digital
+# silence both read as the floor
+LOUD_RANGE = (-45.0, 20.0)  # frame dB relative to the running speech level, clipped (pauses in a quiet
+# room sit at -40..-50 dB: below -45 a pause reads the same whatever the room)
 DB_SCALE = 20.0  # dB per feature unit
 F0_RANGE = (80.0, 400.0)  # Hz searched for a pitch period inside one 25 ms window
 VOICED = 0.45  # periodicity above which a frame is voiced

@@ -48,7 +48,7 @@ def _first_speech(feats: torch.Tensor) -> int:
     return int(torch.nonzero(feats[:, LOUD] > LOUD_FLOOR).flatten()[0])
 
 
-LOUD_FLOOR = -60 / 20 + 1e-6
+LOUD_FLOOR = -45 / 20 + 1e-6
 
 
 def test_shape_and_registered_by_name(fe):
