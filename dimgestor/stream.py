@@ -4,7 +4,8 @@
 condition became complete, each denoised through all sampler steps at once (batched over the new
 frames). For every step it carries the denoiser's state (encoder tail + each block's Mamba-2 state);
 the front end and the feature extractor carry theirs. Noise is `motion_noise(seed, frame, step)`, so
-the frames equal those of `generate_offline` on the whole recording.
+the frames equal those of `generate_offline` on the whole recording. With classifier-free guidance
+(scale != 1) the unconditional branch carries its own per-step states beside the conditional one's.
 """
 from __future__ import annotations
 
