@@ -78,6 +78,10 @@ class ModelConfig(BaseModel):
     # --- inference defaults (what generate/serve/eval use when not told) ---
     sample_steps: int = Field(8, ge=1)  # DDIM steps K
     ddim_spacing: Literal["trailing", "linspace"] = "trailing"  # where the K steps sit (diffusion.ddim_pairs)
+    # classifier-free guidance scale s: out_u + s (out_c - out_u), out_u with the condition zeroed. 1 = the
+    # plain conditional sampler (no unconditional rows at all), 0 = the unconditional model; > 1 needs a model
+    # trained with condition dropout (`dimgestor train --cond-drop`) and costs a second batch row per stream
+    guidance: float = Field(1.0, ge=0, allow_inf_nan=False)
 
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off

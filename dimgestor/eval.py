@@ -315,6 +315,9 @@ def run(args: argparse.Namespace) -> dict:
         raise ValueError("give --data (BVH+WAV pairs: every metric) or --wavs (speech only: reference-free metrics)")
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
+    if getattr(args, "guidance", None) is not None:  # every generation below takes the config's scale
+        from .diffusion import check_guidance
+        bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": check_guidance(args.guidance)})
     c = bundle.config
     if args.steps is None:
         args.steps = c.sample_steps
@@ -326,7 +329,8 @@ def run(args: argparse.Namespace) -> dict:
         print(f"{len(clips)} WAV files, {sum(len(a) for a, _ in clips) / 16000:.1f} s: reference-free metrics only")
         rep = k_report(bundle, clips, ks, seeds, args.seed, None, smoothing=smoothing)
         return {"checkpoint": str(args.checkpoint or "embedded default"), "wavs": str(args.wavs), "files": names,
-                "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, **rep, "notes": NOTES}
+                "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, "guidance": c.guidance,
+                **rep, "notes": NOTES}
     data = Path(args.data)
     common = dict(spec=bundle.feature_spec, window_s=args.window_s, valid_fraction=args.valid_fraction,
                   valid_seconds=getattr(args, "valid_seconds", None))
@@ -346,7 +350,7 @@ def run(args: argparse.Namespace) -> dict:
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
-        "steps": ks[0], "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz,
+        "steps": ks[0], "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, "guidance": c.guidance,
         "fgd_autoencoder": str(ae_path),
         "systems": score(gen["windows"], gen["audio"], bundle.skeleton, valid.spec, ae),
         **rep, "notes": NOTES,
@@ -403,6 +407,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ks", default=None, metavar="K,K,...",
                    help="report these step counts, e.g. 1,2,4,8 (default: --steps alone)")
     p.add_argument("--seeds", type=int, default=3, help="seeds per K (diversity is measured between them)")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale of every generation (default: the checkpoint's; 1 = unguided)")
     p.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     p.add_argument("--seed", type=int, default=0)

@@ -44,10 +44,10 @@ SMALL_DATA_SPEEDS = (0.9, 1.1)
 # over a few frames, so that what a causal denoiser passes through is slow sway, not jitter.
 RECIPES: dict[str, dict] = {
     "paper": dict(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
-                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0),
+                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0, cond_drop=0.0),
     "streaming": dict(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
                                   ddim_spacing="linspace"), heading="facing",
-                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1),
+                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1, cond_drop=0.0),
 }
 
 
@@ -68,6 +68,9 @@ class TrainOptions:
     acc_weight: float | None = None  # weight of the x0 acceleration loss (None: the recipe's; 0 = none)
     root_weight: float | None = None  # weight of the integrated-root (drift) loss (None: the recipe's; 0 = none)
     heading: str | None = None  # root heading features: "velocity" or "facing" (None: the recipe's)
+    # probability that a training window's condition is zeroed (classifier-free guidance learns the unconditional
+    # model from these windows; sampling with guidance != 1 needs it). None: the recipe's; 0 = never
+    cond_drop: float | None = None
     speeds: tuple[float, ...] = ()  # speed perturbation factors for extra training copies, e.g. (0.9, 1.1)
     ema: float = 0.999  # EMA decay of the saved weights
     window_s: float = 10.0
@@ -95,8 +98,8 @@ class Objective(nn.Module):
         super().__init__()
         self.model, self.diffusion, self.weights = model, diffusion, weights
 
-    def forward(self, x0, feats, t, noise):
-        return self.diffusion.training_loss(self.model, x0, feats, t, noise, **self.weights)
+    def forward(self, x0, feats, t, noise, drop=None):
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise, drop=drop, **self.weights)
 
 
 LOSS_WEIGHTS = ("vel_weight", "acc_weight", "root_weight")
@@ -109,6 +112,15 @@ def resolve_recipe(opts: "TrainOptions") -> tuple[dict, dict[str, float]]:
     r = RECIPES[opts.recipe] if opts.recipe else {"config": {}}
     weights = {k: float(r.get(k, 0.0) if getattr(opts, k) is None else getattr(opts, k)) for k in LOSS_WEIGHTS}
     return {**r["config"], **(opts.overrides or {})}, weights
+
+
+def resolve_cond_drop(opts: "TrainOptions") -> float:
+    """The condition-dropout probability: the explicit option, else the recipe's, else 0."""
+    r = RECIPES.get(opts.recipe, {}) if opts.recipe else {}
+    p = float(r.get("cond_drop", 0.0) if opts.cond_drop is None else opts.cond_drop)
+    if not 0 <= p <= 1:
+        raise ValueError(f"cond_drop must be a probability in [0, 1], got {p}")
+    return p
 
 
 class WindowBank:
@@ -224,6 +236,7 @@ def train(opts: TrainOptions) -> Path:
 
     # ---- config: the checkpoint's when resuming, else the preset with the data's feature width ----
     overrides, weights = resolve_recipe(opts)
+    cond_drop = resolve_cond_drop(opts)
     if resume_from is not None:
         config = ModelConfig(**read_meta(resume_from)["model"])
     else:
@@ -289,6 +302,7 @@ def train(opts: TrainOptions) -> Path:
               f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
               f"{weights['vel_weight']:g}/{weights['acc_weight']:g}/{weights['root_weight']:g}"
               + (f", {opts.aug_copies} augmented copies of the training audio ({t_bank:.0f} s)" if opts.augment else "")
+              + (f", condition dropped in {cond_drop:.0%} of windows" if cond_drop > 0 else "")
               + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
 
     def checkpoint(step: int) -> Path:
@@ -332,9 +346,12 @@ def train(opts: TrainOptions) -> Path:
         x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame, versions)
         t = torch.randint(0, diffusion.N, (len(idx),), generator=g)
         noise = diffusion.noise_like(x0, g)
+        # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
+        drop = torch.rand(len(idx), generator=g) < cond_drop if cond_drop > 0 else None
         for group in opt.param_groups:
             group["lr"] = _lr(opts, step)
-        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device))
+        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device),
+                         None if drop is None else drop.to(device))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if opts.grad_clip > 0:
@@ -422,6 +439,10 @@ def register(subparsers) -> None:
     p.add_argument("--root-weight", type=float, default=None,
                    help="weight of a loss on the integrated root travel and turning of the predicted x0, against "
                         "spin and drift (default: the recipe's; 0 = none)")
+    p.add_argument("--cond-drop", type=float, default=None, metavar="P",
+                   help="probability that a training window's audio condition is dropped (zeroed), so the model also "
+                        "learns the unconditional motion that `--guidance S` sampling extrapolates away from "
+                        "(default: the recipe's; 0 = none)")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
@@ -439,6 +460,8 @@ def _run(args) -> int:
     if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or \
             any((getattr(args, k) or 0) < 0 for k in LOSS_WEIGHTS):
         raise ValueError("--lr and --window-s must be positive, --ema in [0, 1), the loss weights >= 0")
+    if args.cond_drop is not None and not 0 <= args.cond_drop <= 1:
+        raise ValueError(f"--cond-drop must be a probability in [0, 1], got {args.cond_drop}")
     try:
         speeds = None if args.speeds is None else tuple(float(r) for r in args.speeds.split(",") if r.strip())
     except ValueError:
@@ -455,6 +478,7 @@ def _run(args) -> int:
                         valid_seconds=args.valid_seconds, ckpt_every=args.ckpt_every, recipe=args.recipe,
                         valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight,
                         acc_weight=args.acc_weight, root_weight=args.root_weight, heading=args.heading,
+                        cond_drop=args.cond_drop,
                         resume=args.resume,
                         seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
     few = False
