@@ -12,6 +12,8 @@ give features that differ only in what was said and how it was stressed:
     flux      onset strength: mean rise of the bands since the previous frame
     voicing   periodicity (normalized autocorrelation peak, 80-400 Hz), 0 outside speech
     pitch     log2 f0 minus its running mean over voiced frames (octaves, [-1, 1]), 0 when unvoiced
+    pause     time since the last speech frame, 0..1 over `PAUSE_S` (a breath between phrases and a long
+              silence look alike in every other channel; speakers keep gesturing through the first, not the second)
 
 The running statistics are means over the frames that count as speech (within 25 dB of the current
 level), with a count-based start (the plain mean of the first frames, then an exponential one with time
@@ -31,7 +33,7 @@ from .config import ModelConfig
 
 __all__ = ["SpeechFrontEnd", "SpeechState", "SPEECH_CHANNELS"]
 
-SPEECH_CHANNELS = ("loudness", "flux", "voicing", "pitch")  # after the n_mels bands
+SPEECH_CHANNELS = ("loudness", "flux", "voicing", "pitch", "pause")  # after the n_mels bands
 
 FLOOR_DBFS = -100.0  # nothing quieter than this is speech, whatever the gain
 SNR_DB = 15.0  # a speech frame stands this far above the running noise floor ...
@@ -45,6 +47,7 @@ LOUD_RANGE = (-45.0, 20.0)  # frame dB relative to the running speech level, cli
 DB_SCALE = 20.0  # dB per feature unit
 F0_RANGE = (80.0, 400.0)  # Hz searched for a pitch period inside one 25 ms window
 VOICED = 0.45  # periodicity above which a frame is voiced
+PAUSE_S = 2.0  # the pause channel rises from 0 to 1 over this long a silence
 
 
 class SpeechState(NamedTuple):
@@ -56,11 +59,12 @@ class SpeechState(NamedTuple):
     mean: torch.Tensor  # (B, n_mels) float64: running band means over speech, dB
     voiced: torch.Tensor  # (B,) float64: voiced frames seen
     pitch: torch.Tensor  # (B,) float64: running mean log2 f0 over voiced frames
+    quiet: torch.Tensor  # (B,) float64: frames since the last speech frame
     prev: torch.Tensor  # (B, n_mels) float32: the previous frame's relative bands (for the flux)
 
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in (self.tail, self.floor, self.count, self.level, self.mean,
-                                                            self.voiced, self.pitch, self.prev))
+                                                            self.voiced, self.pitch, self.quiet, self.prev))
 
 
 def running_stats(energy, bands, periodicity, logf0, state: SpeechState, tau: float, pitch_tau: float,
@@ -68,10 +72,10 @@ def running_stats(energy, bands, periodicity, logf0, state: SpeechState, tau: fl
     """The running statistics over n new frames (numpy float64, frame by frame: any chunking gives the same
     numbers) -> (floor, count, level, mean, voiced, pitch after the last frame; level (B, n), mean (B, n, M),
     pitch (B, n) and `speech started` (B, n) after each frame)."""
-    floor, count, level, mean, nv, pitch = (t.numpy().copy() for t in (state.floor, state.count, state.level,
-                                                                         state.mean, state.voiced, state.pitch))
+    floor, count, level, mean, nv, pitch, quiet = (t.numpy().copy() for t in (
+        state.floor, state.count, state.level, state.mean, state.voiced, state.pitch, state.quiet))
     B, n = energy.shape
-    levels, pitches, started = np.empty((B, n)), np.empty((B, n)), np.empty((B, n), bool)
+    levels, pitches, quiets, started = np.empty((B, n)), np.empty((B, n)), np.empty((B, n)), np.empty((B, n), bool)
     means = np.empty((B, n, mean.shape[1]))
     for i in range(n):
         e = energy[:, i]
@@ -85,8 +89,9 @@ def running_stats(energy, bands, periodicity, logf0, state: SpeechState, tau: fl
         nv += voiced
         ap = np.where(voiced, np.maximum(1.0 / np.maximum(nv, 1.0), 1.0 / pitch_tau), 0.0)
         pitch += ap * (logf0[:, i] - pitch)
-        levels[:, i], means[:, i], pitches[:, i], started[:, i] = level, mean, pitch, count > 0
-    return floor, count, level, mean, nv, pitch, levels, means, pitches, started
+        quiet = np.where(active, 0.0, quiet + 1.0)
+        levels[:, i], means[:, i], pitches[:, i], quiets[:, i], started[:, i] = level, mean, pitch, quiet, count > 0
+    return floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, started
 
 
 class SpeechFrontEnd(nn.Module):
@@ -102,6 +107,7 @@ class SpeechFrontEnd(nn.Module):
         self.tau = tau_s * config.feature_rate  # frames
         self.pitch_tau = pitch_tau_s * config.feature_rate
         self.floor_rise = FLOOR_RISE_DB_S / config.feature_rate  # dB per frame
+        self.pause_frames = PAUSE_S * config.feature_rate
         self.register_buffer("window", torch.hann_window(self.win, periodic=True), persistent=False)
         self.register_buffer("fb", mel_filterbank(config.n_mels, config.n_fft, config.sample_rate), persistent=False)
         # autocorrelation through a zero-padded FFT (no wrap-around), normalized by the window's own (Boersma)
@@ -116,7 +122,7 @@ class SpeechFrontEnd(nn.Module):
         z = lambda *shape: torch.zeros(*shape, dtype=torch.float64, device=device)  # noqa: E731
         return SpeechState(torch.zeros(batch, self.win - self.hop, device=device), 0,
                            torch.full((batch,), float("nan"), dtype=torch.float64, device=device), z(batch), z(batch),
-                           z(batch, self.n_mels), z(batch), z(batch),
+                           z(batch, self.n_mels), z(batch), z(batch), z(batch),
                            torch.full((batch, self.n_mels), BAND_RANGE[0] / DB_SCALE, device=device))
 
     def samples_needed(self, n_feats: int) -> int:
@@ -136,7 +142,7 @@ class SpeechFrontEnd(nn.Module):
         return bands, energy, periodicity.clamp(0.0, 1.0), torch.log2(f0)
 
     def forward(self, samples: torch.Tensor, state: SpeechState) -> tuple[torch.Tensor, SpeechState]:
-        """samples (B, N) -> (feats (B, n, n_mels + 4), state)."""
+        """samples (B, N) -> (feats (B, n, n_mels + 5), state)."""
         buf = torch.cat([state.tail, samples.to(state.tail)], dim=1)  # (B, m + N)
         n = max((buf.shape[1] - (self.win - self.hop)) // self.hop, 0)
         if n == 0:
@@ -144,7 +150,8 @@ class SpeechFrontEnd(nn.Module):
         bands, energy, periodicity, logf0 = self.frame_measures(buf.unfold(1, self.win, self.hop)[:, :n])
         stats = running_stats(energy.double().numpy(), bands.double().numpy(), periodicity.numpy(),
                               logf0.double().numpy(), state, self.tau, self.pitch_tau, self.floor_rise)
-        floor, count, level, mean, nv, pitch, levels, means, pitches, speech = (torch.from_numpy(a) for a in stats)
+        floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, speech = (
+            torch.from_numpy(a) for a in stats)
         level_t, mean_t, pitch_t, started = levels.float(), means.float(), pitches.float(), speech  # (B, n), (B, n, M)
         rel = ((bands - mean_t).clamp(*BAND_RANGE) / DB_SCALE).where(started[..., None], BAND_RANGE[0] / DB_SCALE)  # (B, n, M)
         loud_db = (energy - level_t).clamp(*LOUD_RANGE)
@@ -153,6 +160,7 @@ class SpeechFrontEnd(nn.Module):
         in_speech = started & (loud_db > -GATE_DB)
         voicing = periodicity.where(in_speech, 0.0)
         pitch_rel = (logf0 - pitch_t).clamp(-1.0, 1.0).where(in_speech & (periodicity > VOICED), 0.0)
-        feats = torch.cat([rel, torch.stack([loud, flux, voicing, pitch_rel], -1)], -1)  # (B, n, M + 4)
+        pause = (quiets.float() / self.pause_frames).clamp(max=1.0).where(started, 1.0)
+        feats = torch.cat([rel, torch.stack([loud, flux, voicing, pitch_rel, pause], -1)], -1)  # (B, n, M + 5)
         return feats, SpeechState(buf[:, n * self.hop:], state.consumed + n, floor, count, level, mean, nv, pitch,
-                                  rel[:, -1].clone())
+                                  quiet, rel[:, -1].clone())

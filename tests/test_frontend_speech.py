@@ -10,7 +10,7 @@ from dimgestor.frontend_speech import SPEECH_CHANNELS, SpeechFrontEnd
 from dimgestor.synthetic import speech_and_gestures
 
 RATE, HOP = 16000, 160
-LOUD, FLUX, VOICING, PITCH = (get_preset("realtime").n_mels + i for i in range(len(SPEECH_CHANNELS)))
+LOUD, FLUX, VOICING, PITCH, PAUSE = (get_preset("realtime").n_mels + i for i in range(len(SPEECH_CHANNELS)))
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +54,7 @@ LOUD_FLOOR = -45 / 20 + 1e-6
 def test_shape_and_registered_by_name(fe):
     assert isinstance(fe, SpeechFrontEnd)
     f = _run(fe, np.zeros(RATE, np.float32))
-    assert f.shape == (RATE // HOP, get_preset("realtime").n_mels + 4) and fe.dim == f.shape[1]
+    assert f.shape == (RATE // HOP, get_preset("realtime").n_mels + 5) and fe.dim == f.shape[1]
     assert fe.samples_needed(7) == 7 * HOP
 
 
@@ -117,6 +117,9 @@ def test_silence_reads_as_silence_at_any_gain_and_after_a_long_pause(fe, speech)
         pause = f[8 * RATE // HOP + 30: 14 * RATE // HOP]
         assert torch.all(pause[:, LOUD] <= LOUD_FLOOR) and torch.all(pause[:, VOICING] == 0)
         assert torch.all(pause[:, PITCH] == 0) and torch.all(pause[:, FLUX] == 0)
+        # the pause channel: 1 after 2 s of silence, back to 0 with speech
+        assert torch.all(pause[-100:, PAUSE] == 1.0) and torch.all(pause[:, PAUSE].diff() >= 0)
+        assert f[14 * RATE // HOP:][: 4 * RATE // HOP, PAUSE].min() == 0.0
         # the level holds through the pause: speech after it reads as before, not as a new (louder) stream
         before = _run(fe, a)[8 * RATE // HOP:][: 4 * RATE // HOP]
         after = f[14 * RATE // HOP:][: 4 * RATE // HOP]
