@@ -87,11 +87,9 @@ TEXTS = {
             "我想给大家讲一个关于海边小镇的小故事。",
             "每年夏天，渔民们都会把自己的船涂成鲜艳的颜色。",
             "红色，黄色，蓝色和绿色，整整齐齐地排在码头边上。",
-            "有一年，夜里来了一场大风暴，把船吹得满海湾都是。",
             "没有人受伤，可是到处都是船！",
             "于是全镇的人一起出海，把船一条一条地拉了回来。",
-            "这就是我喜欢那个地方的原因：人们总是互相帮助。",
-            "我想，这也是我一定要回去的最好理由。"],
+            "这就是我喜欢那个地方的原因：人们总是互相帮助。"],
 }
 PAUSES_S = (0.6, 1.2, 0.8, 1.6, 0.7, 1.0, 2.0, 0.9)  # between sentences, cycled: natural pauses, some long
 LEAD_S = 0.5  # silence before the first sentence and after the last
@@ -100,12 +98,12 @@ LEAD_S = 0.5  # silence before the first sentence and after the last
 ESPEAK_VOICES = (
     ("espeak_en-us_p50_s160", "en-us", 50, 160, "en"),
     ("espeak_de_p40_s150", "de", 40, 150, "de"),
-    ("espeak_cmn_p60_s150", "cmn", 60, 150, "cmn"),
+    ("espeak_cmn_p60_s170", "cmn", 60, 170, "cmn"),
     ("espeak_en-gb_p30_s140", "en-gb", 30, 140, "en"),
     ("espeak_en-us+f3_p70_s180", "en-us+f3", 70, 180, "en"),
-    ("espeak_fr_p50_s165", "fr-fr", 50, 165, "fr"),
+    ("espeak_fr_p50_s150", "fr-fr", 50, 150, "fr"),
     ("espeak_es_p55_s170", "es", 55, 170, "es"),
-    ("espeak_cmn_p35_s130", "cmn", 35, 130, "cmn"),
+    ("espeak_cmn_p35_s165", "cmn", 35, 165, "cmn"),
 )
 UNSEEN_GROUPS = ("lawrence", "espeak")
 
