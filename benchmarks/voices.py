@@ -112,7 +112,7 @@ def espeak_version() -> str | None:
     exe = shutil.which("espeak-ng")
     if exe is None:
         return None
-    return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.strip()
+    return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.split("  Data at")[0].strip()
 
 
 def espeak_clip(voice: str, pitch: int, wpm: int, sentences: list[str], folder: Path) -> np.ndarray:
@@ -331,7 +331,8 @@ def plot(result: dict, path: Path) -> None:
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=7)
     s = result["settings"]
-    fig.suptitle(f"hands following the voice: K = {s['steps'] or 'default'}, {s['seeds']} seeds, no filter "
+    ks = "/".join(str(k) for k in dict.fromkeys(m["steps"] for m in result["models"].values()))
+    fig.suptitle(f"hands following the voice: K = {ks}, {s['seeds']} seeds, no filter "
                  f"({result['code_version']})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
