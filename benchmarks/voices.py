@@ -1,7 +1,8 @@
 """Does the motion follow the voice it is given? A per-voice table for one or more models (issue 20).
 
 For each voice: loudness coupling (metrics.speech_coupling) beside its circularly-shifted-audio baseline
-(mean, sd, and whether coupling > mean + 2 sd), onset alignment beside onsets shuffled inside speech,
+(mean, sd, and whether coupling > mean + 2 sd), onset alignment of the stressed onsets (the strongest 40%;
+of all onsets too, in the JSON) beside as many onsets shuffled inside speech,
 speech/pause contrast, wrist speed in speech over wrist speed in 6 s of silence inserted into the clip,
 and wrist jerk; each a mean over seeds (`dimgestor.eval.voice_report`, the same rows as
 `dimgestor eval --wavs`). Voices:
@@ -378,7 +379,8 @@ def main() -> int:
               "load_avg_before": load_before,
               "settings": {"steps": args.steps, "seeds": seeds, "seed": args.seed, "quick": args.quick,
                            "smoothing": "off", "silence_s": 6.0, "coupling_smooth_s": 0.5, "coupling_max_lag_s": 0.2,
-                           "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_shuffle_draws": 10},
+                           "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_stressed_keep": 0.4,
+                           "onset_shuffle_draws": 10},
               "voices": {n: {"group": v["group"], "source": v["source"]} for n, v in voices.items()},
               "skipped": skipped, "unseen_groups": list(UNSEEN_GROUPS), "models": {},
               "notes": {k: NOTES[k] for k in ("coupling", "coupling_shifted", "onset_align", "onset_shuffled",

@@ -217,3 +217,23 @@ def test_voice_row_pools_seeds_and_judges_chance(data):
     assert ev.voice_row([a])["coupling_above"] and not low["coupling_above"]  # 0.9 > 0 + 0.2; 0.1 is not
     pooled = ev.pool_drive([dict(ev.voice_row([a]), seconds=1.0), dict(low, seconds=3.0)])
     assert pooled["coupling"] == pytest.approx(0.9 * 0.25 + 0.1 * 0.75) and pooled["coupling_above"] == 0.5
+
+
+def test_the_synthetic_rule_follows_its_speech_and_mismatched_audio_does_not(tmp_path):
+    """Known answer: the synthetic world's motion (a stroke on each stressed syllable, rest in pauses) scored
+    against its own audio clears both chance levels; against its audio rolled by half a clip it does not."""
+    from dimgestor.synthetic import make_gesture_corpus
+
+    make_gesture_corpus(tmp_path / "world", 2.0, seed=999)
+    ds = GestureDataset(tmp_path / "world", split="train", valid_fraction=0.0, window_s=4.0, cache_dir=tmp_path / "c")
+    clips = ev.valid_clips(ds)
+    own = [ev.voice_row([ev.clip_stats(raw, audio, ds.skeleton, ds.spec)]) for audio, raw in clips]
+    rolled = [ev.voice_row([ev.clip_stats(raw, np.roll(audio, len(audio) // 2), ds.skeleton, ds.spec)])
+              for audio, raw in clips]
+    truth, chance = ev.pool_drive(own), ev.pool_drive(rolled)
+    assert truth["coupling_above"] == 1.0 and truth["coupling"] > 0.2
+    assert truth["onset_align"] - truth["onset_shuffled"] > 0.15
+    assert chance["onset_align"] - chance["onset_shuffled"] < 0.1 and chance["coupling"] < truth["coupling"] - 0.1
+    # every syllable's onset dilutes the stressed ones: the rule scores at chance on all onsets
+    every = np.mean([r["onset_align_all"] - r["onset_shuffled_all"] for r in own])
+    assert every < truth["onset_align"] - truth["onset_shuffled"] - 0.1
