@@ -219,7 +219,8 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
         real_jerk = reference["zeggs_heldout_real"]["hand_jerk"]
         for r in rows.values():
             r["jerk_ratio"] = r["hand_jerk"] / real_jerk
-    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "rows": rows, "reference": reference,
+    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "seeds": seeds, "rows": rows,
+            "reference": reference,
             "summary": summarize(rows, {n: v["group"] for n, v in voices.items()})}
 
 
@@ -275,11 +276,20 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
 
     for v in voices:
         lines.append(f"| {v} | " + " | ".join(fmt(m, v, c) for c in range(len(cols)) for _, m in models) + " |")
-    summary = {"unseen_coupling": "{:+.2f}", "unseen_above_chance": "{}", "unseen_onset_margin": "{:+.2f}",
-               "unseen_silence_ratio": "{:.2f}"}
-    for key, f in summary.items():
-        lines.append(f"| **{key}** | " + " | ".join(cell(f, m["summary"].get(key)) for _, m in models) + " |")
-    lines.append("\n~ : coupling not above its shifted baseline + 2 sd")
+
+    def total(m, col):
+        s = m["summary"]
+        if not s:
+            return "-"
+        return [f"{s['unseen_coupling']:+.2f} ({s['unseen_above_chance']}/{s['unseen_voices']} above)",
+                f"{s['unseen_onset_margin']:+.2f}", f"{s['unseen_silence_ratio']:.2f}",
+                f"{s['unseen_hand_jerk']:.3g}"][col]
+
+    lines.append("| **unseen mean (lawrence + espeak)** | "
+                 + " | ".join(total(m, c) for c in range(len(cols)) for _, m in models) + " |")
+    lines.append("\n~ : coupling not above its shifted baseline + 2 sd. "
+                 + "; ".join(f"{lab}: {m['checkpoint']}, K = {m['steps']}, {m.get('seeds', '?')} seeds"
+                             for lab, m in models))
     return "\n".join(lines)
 
 
@@ -289,6 +299,7 @@ def labelled_models(paths: list[str]) -> list[tuple[str, dict]]:
     for p in paths:
         result = json.loads(Path(p).read_text())
         for label, m in result["models"].items():
+            m = {"seeds": result["settings"]["seeds"], **m}  # files written before models carried their seeds
             out.append((label if len(paths) == 1 else f"{Path(p).stem}:{label}", m))
     return out
 

@@ -47,7 +47,9 @@ def test_compare_table_puts_old_beside_new(tmp_path):
     assert "coupling (shifted) old:m" in lines["voice"] and "coupling (shifted) new:m" in lines["voice"]
     assert "+0.21 (+0.00) |" in lines["lawrence_a"] and "+0.52 (+0.00) |" in lines["lawrence_a"]
     assert "+0.05 (+0.00) ~" in lines["espeak_x"]  # not above its shifted baseline + 2 sd: marked
-    assert "+0.13" in lines["**unseen_coupling**"] and "+0.49" in lines["**unseen_coupling**"]
+    total = lines["**unseen mean (lawrence + espeak)**"]
+    assert "+0.13 (1/2 above)" in total and "+0.49 (2/2 above)" in total
+    assert total.count("|") == lines["voice"].count("|")  # one cell per column
     md = voices.model_table({**_result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": 0.0}),
                              "models": _result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": 0.0})["models"]}, "m")
     assert "| lawrence_a | +0.40 | +0.00 | 0.05 | yes |" in md and "unseen mean (2 voices)" in md
