@@ -22,6 +22,8 @@ with a note when it is absent.
     python benchmarks/voices.py --checkpoint runs/new --out /tmp/new.json
     python benchmarks/voices.py --compare benchmarks/results/voices.json /tmp/new.json   # old vs new table
     python benchmarks/voices.py --checkpoint default --checkpoint runs/new --label old --label new
+    python benchmarks/voices.py --checkpoint runs/new --checkpoint runs/new --guidance 1 --guidance 2 \
+        --label unguided --label guided   # (with classifier-free guidance in dimgestor)
 """
 
 from __future__ import annotations
@@ -192,7 +194,8 @@ def summarize(rows: dict, groups: dict) -> dict:
             "unseen_hand_jerk": mean("hand_jerk")}
 
 
-def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int, log=print) -> dict:
+def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int,
+             guidance: float | None = None, log=print) -> dict:
     """One model's rows over the voices (+ the real capture's reference rows) and its summary."""
     import torch
 
@@ -201,6 +204,10 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
 
     bundle = load_checkpoint(checkpoint)
     bundle.model.eval()
+    if guidance is not None:  # as `dimgestor eval --guidance`: every generation takes the config's scale
+        if "guidance" not in type(bundle.config).model_fields:
+            raise SystemExit("--guidance: this dimgestor has no classifier-free guidance (config.guidance)")
+        bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": float(guidance)})
     steps = steps or bundle.config.sample_steps
     rows, reference, started = {}, {}, time.time()
     if "zeggs_heldout" in voices:
@@ -219,7 +226,8 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
         real_jerk = reference["zeggs_heldout_real"]["hand_jerk"]
         for r in rows.values():
             r["jerk_ratio"] = r["hand_jerk"] / real_jerk
-    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "seeds": seeds, "rows": rows,
+    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "seeds": seeds,
+            "guidance": getattr(bundle.config, "guidance", None), "rows": rows,
             "reference": reference,
             "summary": summarize(rows, {n: v["group"] for n, v in voices.items()})}
 
@@ -289,6 +297,7 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
                  + " | ".join(total(m, c) for c in range(len(cols)) for _, m in models) + " |")
     lines.append("\n~ : coupling not above its shifted baseline + 2 sd. "
                  + "; ".join(f"{lab}: {m['checkpoint']}, K = {m['steps']}, {m.get('seeds', '?')} seeds"
+                             + (f", guidance {m['guidance']:g}" if m.get("guidance") is not None else "")
                              for lab, m in models))
     return "\n".join(lines)
 
@@ -359,6 +368,9 @@ def main() -> int:
                    help="checkpoint or run folder; 'default' = the embedded model; repeat to compare models")
     p.add_argument("--label", action="append", default=None, help="a name per --checkpoint (default: its path)")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: each checkpoint's sample_steps)")
+    p.add_argument("--guidance", action="append", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale, one per --checkpoint or one for all (default: the "
+                        "checkpoint's)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn) and one seed")
@@ -377,6 +389,10 @@ def main() -> int:
     labels = args.label or [c or "default" for c in checkpoints]
     if len(labels) != len(checkpoints):
         p.error("give one --label per --checkpoint")
+    guidance = args.guidance or [None]
+    guidance = guidance * len(checkpoints) if len(guidance) == 1 else guidance
+    if len(guidance) != len(checkpoints):
+        p.error("give one --guidance for all, or one per --checkpoint")
     seeds = 1 if args.quick else args.seeds
     load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="voices_") as tmp:
@@ -397,9 +413,9 @@ def main() -> int:
               "notes": {k: NOTES[k] for k in ("coupling", "coupling_shifted", "onset_align", "onset_shuffled",
                                               "silence_ratio", "hand_jerk")}}
     started = time.time()
-    for label, ckpt in zip(labels, checkpoints):
+    for label, ckpt, scale in zip(labels, checkpoints, guidance):
         print(f"== {label}")
-        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed)
+        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed, scale)
     result["seconds"] = round(time.time() - started, 1)
     result["load_avg_after"] = load_average()
     for name, v in voices.items():
