@@ -25,7 +25,7 @@ from torch.utils.data import DistributedSampler
 
 from .augment import AugmentConfig, augment
 from .checkpoint import latest_checkpoint, read_meta, save_checkpoint
-from .config import ModelConfig, get_preset
+from .config import ModelConfig, exact_div, get_preset
 from .dataset import GestureDataset, compute_stats
 from .diffusion import Diffusion
 from .features import FeatureSpec
@@ -129,7 +129,14 @@ class WindowBank:
     With `copies` > 0 it also holds the features of that many augmented versions of each window's audio
     (augmented before the front end, so any front end works), seeded by (seed, audio window, copy);
     mirrored windows hear the same audio and share its versions.
+
+    The front end runs over up to `WARM_S` of the clip's audio before each window (and over the clip's real
+    audio after it, which the last frames' lookahead hears) and the warm-up's features are dropped: a stream's front end has heard the speech before any frame it conditions (the speech front
+    end's running level and means need a few seconds), so a window must not start from a cold state, which
+    would read the first syllables of every window as the start of a stream.
     """
+
+    WARM_S = 4.0
 
     def __init__(self, ds: GestureDataset, model: DiMGestor, mean, std, device, copies: int = 0,
                  aug_config: AugmentConfig | None = None, seed: int = 0):
@@ -143,24 +150,40 @@ class WindowBank:
             for i in range(len(ds)):
                 item = ds[i]
                 T = len(item["motion"])
-                self.feats.append(self._features(model, item["audio"], T, device))
+                audio, warm = self._with_context(ds, i, item["audio"], model.samples_needed(T) - T * ds.spf)
+                self.feats.append(self._features(model, audio, warm, T, device))
                 self.motion.append((torch.from_numpy(item["motion"]) - mean) / std)
                 if copies:
                     key = ds.windows[i][:3]  # (clip, start, length): the same audio, mirrored or not
                     if key not in shared:
                         u = len(shared)
-                        shared[key] = [self._features(model, augment(item["audio"], model.config.sample_rate,
-                                                                     (seed, u, k), aug_config, babble), T, device)
+                        shared[key] = [self._features(model, augment(audio, model.config.sample_rate,
+                                                                     (seed, u, k), aug_config, babble),
+                                                      warm, T, device)
                                        for k in range(copies)]
                     self.versions.append(shared[key])
 
+    @classmethod
+    def _with_context(cls, ds: GestureDataset, i: int, window_audio: np.ndarray, after: int = 0
+                      ) -> tuple[np.ndarray, int]:
+        """(the clip's audio from up to WARM_S before window i to `after` samples past its end (the lookahead
+        its last frames hear; silence is padded only where the clip ends), samples before the window)."""
+        c, start, n, _ = ds.windows[i]
+        a, b = start * ds.spf, (start + n) * ds.spf
+        warm = min(a, int(cls.WARM_S * ds.fps) * ds.spf)  # whole motion frames: a multiple of the hop
+        clip = ds.clips[c].audio
+        return np.concatenate([np.asarray(clip[a - warm:a], np.float32), window_audio,
+                               np.asarray(clip[b:b + max(after, 0)], np.float32)]), warm
+
     @staticmethod
-    def _features(model: DiMGestor, window_audio: np.ndarray, T: int, device) -> torch.Tensor:
+    def _features(model: DiMGestor, audio: np.ndarray, warm: int, T: int, device) -> torch.Tensor:
+        """Features of the window that starts `warm` samples into `audio` (the front end hears all of it)."""
         fe, c = model.frontend, model.config
-        audio = np.zeros(max(model.samples_needed(T), len(window_audio)), np.float32)
-        audio[: len(window_audio)] = window_audio  # silence beyond the window, as at a stream's end
-        f, _ = fe(torch.from_numpy(audio)[None].to(device), fe.init_state(1, device))
-        return f[0, : T * c.feats_per_frame + c.lookahead_feats].cpu()
+        padded = np.zeros(max(warm + model.samples_needed(T), len(audio)), np.float32)
+        padded[: len(audio)] = audio  # silence beyond the window, as at a stream's end
+        f, _ = fe(torch.from_numpy(padded)[None].to(device), fe.init_state(1, device))
+        first = exact_div(warm, c.hop_length, "warm-up samples / hop")
+        return f[0, first: first + T * c.feats_per_frame + c.lookahead_feats].cpu()
 
     def __len__(self):
         return len(self.motion)

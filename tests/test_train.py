@@ -139,8 +139,11 @@ def test_augmented_bank_holds_front_end_features_of_seeded_augmented_audio(data,
     assert bank.versions[0] is bank.versions[1] and len(bank.versions[0]) == 2
     babble = [ds.clips[c].audio[a * ds.spf: b * ds.spf] for c, a, b in ds.segments]
     u = 1  # the second distinct audio window (windows 2 and 3)
-    audio = augment(ds[2]["audio"], 16000, (5, u, 1), AugmentConfig(), babble)
-    expected = WindowBank._features(model, audio, len(ds[2]["motion"]), "cpu")
+    with_context, warm = WindowBank._with_context(ds, 2, ds[2]["audio"],
+                                                  model.samples_needed(len(ds[2]["motion"])) - len(ds[2]["audio"]))
+    assert warm == min(ds.windows[2][1] * ds.spf, int(WindowBank.WARM_S * ds.fps) * ds.spf) and warm > 0
+    audio = augment(with_context, 16000, (5, u, 1), AugmentConfig(), babble)  # the warm-up heard augmented too
+    expected = WindowBank._features(model, audio, warm, len(ds[2]["motion"]), "cpu")
     assert torch.equal(bank.versions[2][1], expected) and torch.equal(bank.versions[2][1], again.versions[2][1])
     idx = [0, 2, 4]
     x0, f_clean = bank.batch(idx, 15, 5)
@@ -150,6 +153,29 @@ def test_augmented_bank_holds_front_end_features_of_seeded_augmented_audio(data,
     assert not torch.allclose(f_aug[2], f_clean[2]) and f_aug.shape == f_clean.shape
     draws = bank.draw_versions(4000, torch.Generator().manual_seed(0))
     assert set(draws) == {0, 1, 2} and abs(draws.count(0) / 4000 - 1 / 3) < 0.03
+
+
+def test_bank_features_are_those_a_stream_computes_mid_clip(data, tmp_path):
+    """A window's features come from a front end that heard the clip before it (as a live stream has), not a
+    cold one: equal to the whole clip's features at the window's place when the clip starts within WARM_S."""
+    from dimgestor.config import get_preset
+    from dimgestor.dataset import GestureDataset, compute_stats
+    from dimgestor.features import FeatureSpec
+    from dimgestor.model import DiMGestor
+    from dimgestor.train import WindowBank
+
+    ds = GestureDataset(data, FeatureSpec(), window_s=2.0, hop_s=0.5, cache_dir=tmp_path, valid_fraction=0.2)
+    model = DiMGestor(get_preset("tiny", frontend="speech", motion_dim=ds.motion_dim))
+    bank = WindowBank(ds, model, *compute_stats(ds), "cpu")
+    fe, c = model.frontend, model.config
+    i = next(k for k, w in enumerate(ds.windows) if 0 < w[1] <= WindowBank.WARM_S * ds.fps)
+    clip, start = ds.clips[ds.windows[i][0]], ds.windows[i][1]
+    whole, _ = fe(torch.from_numpy(np.asarray(clip.audio, np.float32))[None], fe.init_state(1))
+    a = start * c.feats_per_frame
+    n = min(len(bank.feats[i]), whole.shape[1] - a)  # the lookahead too: the clip's real audio after the window
+    assert torch.allclose(bank.feats[i][:n], whole[0, a:a + n], atol=1e-5)
+    cold = WindowBank._features(model, ds[i]["audio"], 0, len(ds[i]["motion"]), "cpu")
+    assert not torch.allclose(cold[:n], bank.feats[i][:n], atol=1e-3)  # a cold start reads differently
 
 
 def test_resume_with_augmentation_continues_exactly(data, tmp_path):
