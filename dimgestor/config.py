@@ -9,6 +9,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from dimgestor.audio import SAMPLE_RATE
+
 __all__ = ["ModelConfig", "PRESETS", "get_preset", "exact_div", "ConfigError"]
 
 
@@ -49,7 +51,7 @@ class ModelConfig(BaseModel):
     n_mels: int = 80  # log-mel channels (the usual speech setting)
     n_fft: int = 512  # FFT size; the 400-sample (25 ms) window is zero-padded to it
     win_length: int = 400  # analysis window: 25 ms at 16 kHz, the speech standard
-    sample_rate: int = 16000  # every audio path resamples to this
+    sample_rate: int = SAMPLE_RATE  # every audio path resamples to this
     feature_rate: int = 100  # audio feature frames per second (hop 160 samples)
     fps: int = 20  # motion frames per second, as in the paper
 
