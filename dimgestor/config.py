@@ -156,8 +156,10 @@ PRESETS: dict[str, dict] = {
     "paper": dict(hidden=1280, n_blocks=6, d_state=256, d_conv=4, expand=2, headdim=64, chunk_size=64,
                   style_width=256, style_d_state=64, style_headdim=64, down_kernel=201, lookahead_ms=None),
     # Live use: ~200 ms algorithmic latency (50 ms frame + 150 ms lookahead); sized for RTF < 0.25
-    # with K=8 DDIM steps on 2 CPU cores. v-prediction: with this schedule alpha_bar(999) ~ e^-42, where
-    # an eps-model's x0 estimate is ill-conditioned and few-step DDIM amplifies its error.
+    # with K=8 DDIM steps on 2 CPU cores. Its own diffusion settings (v-prediction over the default 1000
+    # linear steps, where alpha_bar(999) ~ e^-42 leaves an eps-model's x0 estimate ill-conditioned) only
+    # apply without a recipe: the shipped model is trained with the "streaming" recipe (dimgestor.train),
+    # which overrides them with 8 cosine steps predicting x0.
     "realtime": dict(hidden=128, n_blocks=4, d_state=32, d_conv=4, expand=2, headdim=32, chunk_size=64,
                      style_width=64, style_d_state=16, style_headdim=32, down_kernel=31, lookahead_ms=150,
                      n_mels=64, prediction="v"),
