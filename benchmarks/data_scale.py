@@ -43,7 +43,7 @@ def main() -> int:
     from dimgestor.dataset import GestureDataset
     from dimgestor.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
     from dimgestor.synthetic import make_gesture_corpus
-    from dimgestor.train import TrainOptions, train
+    from dimgestor.train import TrainConfig, train
 
     work = Path(args.work)
     valid_dir = work / "valid"
@@ -57,10 +57,10 @@ def main() -> int:
             make_gesture_corpus(data, m, seed=1)
         if latest_checkpoint(run) is None:
             started = time.time()
-            train(TrainOptions(data=str(data), out=str(run), preset=args.preset, recipe=args.recipe,
-                               max_steps=args.steps, batch_size=8, window_s=5.0, valid_fraction=0.05,
-                               ckpt_every=args.steps, valid_every=max(args.steps // 4, 1), keep=1, seed=0,
-                               mirror=m < 30, speeds=(0.9, 1.1) if m < 30 else (), progress=False))
+            train(TrainConfig(data=str(data), out=str(run), preset=args.preset, recipe=args.recipe,
+                              max_steps=args.steps, batch_size=8, window_s=5.0, valid_fraction=0.05,
+                              ckpt_every=args.steps, valid_every=max(args.steps // 4, 1), keep=1, seed=0,
+                              mirror=m < 30, speeds=(0.9, 1.1) if m < 30 else (), progress=False))
             print(f"{m:g} min: trained {args.steps} steps in {time.time() - started:.0f} s")
         if args.train_only:
             continue

@@ -43,7 +43,7 @@ def main() -> int:
     from dimgestor.dataset import GestureDataset
     from dimgestor.eval import k_report, parse_ks, valid_clips
     from dimgestor.synthetic import make_gesture_corpus
-    from dimgestor.train import TrainOptions, train
+    from dimgestor.train import TrainConfig, train
 
     work = Path(args.work)
     data, valid_dir = work / f"train_{args.minutes:g}min", work / "valid"
@@ -60,10 +60,10 @@ def main() -> int:
         run = work / f"run_drop{drop:g}"
         if latest_checkpoint(run) is None:
             started = time.time()
-            train(TrainOptions(data=str(data), out=str(run), preset=args.preset, max_steps=args.steps, batch_size=8,
-                               window_s=5.0, valid_fraction=0.05, ckpt_every=args.steps,
-                               valid_every=max(args.steps // 4, 1), keep=1, seed=0, mirror=args.minutes < 30,
-                               speeds=(0.9, 1.1) if args.minutes < 30 else (), progress=False, cond_drop=drop))
+            train(TrainConfig(data=str(data), out=str(run), preset=args.preset, max_steps=args.steps, batch_size=8,
+                              window_s=5.0, valid_fraction=0.05, ckpt_every=args.steps,
+                              valid_every=max(args.steps // 4, 1), keep=1, seed=0, mirror=args.minutes < 30,
+                              speeds=(0.9, 1.1) if args.minutes < 30 else (), progress=False, cond_drop=drop))
             train_s[f"{drop:g}"] = round(time.time() - started)
             print(f"cond_drop {drop:g}: trained {args.steps} steps in {train_s[f'{drop:g}']} s", flush=True)
         if args.train_only:

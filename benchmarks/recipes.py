@@ -23,7 +23,7 @@ from pathlib import Path
 from common import (RESULTS, code_version, describe_device, load_average, reference_line, save_panels, utc_now,
                     write_json)
 
-# name -> TrainOptions fields (everything else as in train_candidate). "streaming" is the default recipe.
+# name -> TrainConfig fields (everything else as in train_candidate). "streaming" is the default recipe.
 CANDIDATES = {
     "x0_vel1_acc1": dict(recipe="streaming", heading="velocity", vel_weight=1.0, acc_weight=1.0, root_weight=0.0),
     "x0_vel1_acc1_noise5": dict(recipe="streaming", heading="velocity", vel_weight=1.0, acc_weight=1.0,
@@ -37,16 +37,16 @@ CANDIDATES = {
 
 def train_candidate(name: str, args, out: Path) -> Path:
     """The candidate's checkpoint after args.steps steps (trained here unless the run folder has it)."""
-    from dimgestor.train import TrainOptions, train
+    from dimgestor.train import TrainConfig, train
 
     ckpt = out / f"ckpt_{args.steps:07d}"
     if (ckpt / "config.json").is_file():
         print(f"{name}: reusing {ckpt}")
         return ckpt
-    opts = TrainOptions(data=args.data, out=str(out), preset="realtime", max_steps=args.steps, batch_size=8,
-                        window_s=5.0, valid_seconds=args.valid_seconds, ckpt_every=args.steps,
-                        valid_every=max(args.steps // 4, 1), keep=1, seed=0, mirror=args.mirror,
-                        speeds=tuple(args.speeds), progress=False, **CANDIDATES[name])
+    opts = TrainConfig(data=args.data, out=str(out), preset="realtime", max_steps=args.steps, batch_size=8,
+                       window_s=5.0, valid_seconds=args.valid_seconds, ckpt_every=args.steps,
+                       valid_every=max(args.steps // 4, 1), keep=1, seed=0, mirror=args.mirror,
+                       speeds=tuple(args.speeds), progress=False, **CANDIDATES[name])
     started = time.time()
     train(opts)
     print(f"{name}: trained {args.steps} steps in {time.time() - started:.0f} s")

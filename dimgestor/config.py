@@ -9,6 +9,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from dimgestor.audio import SAMPLE_RATE
+
 __all__ = ["ModelConfig", "PRESETS", "get_preset", "exact_div", "ConfigError"]
 
 
@@ -49,7 +51,7 @@ class ModelConfig(BaseModel):
     n_mels: int = 80  # log-mel channels (the usual speech setting)
     n_fft: int = 512  # FFT size; the 400-sample (25 ms) window is zero-padded to it
     win_length: int = 400  # analysis window: 25 ms at 16 kHz, the speech standard
-    sample_rate: int = 16000  # every audio path resamples to this
+    sample_rate: int = SAMPLE_RATE  # every audio path resamples to this
     feature_rate: int = 100  # audio feature frames per second (hop 160 samples)
     fps: int = 20  # motion frames per second, as in the paper
 
@@ -154,8 +156,10 @@ PRESETS: dict[str, dict] = {
     "paper": dict(hidden=1280, n_blocks=6, d_state=256, d_conv=4, expand=2, headdim=64, chunk_size=64,
                   style_width=256, style_d_state=64, style_headdim=64, down_kernel=201, lookahead_ms=None),
     # Live use: ~200 ms algorithmic latency (50 ms frame + 150 ms lookahead); sized for RTF < 0.25
-    # with K=8 DDIM steps on 2 CPU cores. v-prediction: with this schedule alpha_bar(999) ~ e^-42, where
-    # an eps-model's x0 estimate is ill-conditioned and few-step DDIM amplifies its error.
+    # with K=8 DDIM steps on 2 CPU cores. Its own diffusion settings (v-prediction over the default 1000
+    # linear steps, where alpha_bar(999) ~ e^-42 leaves an eps-model's x0 estimate ill-conditioned) only
+    # apply without a recipe: the shipped model is trained with the "streaming" recipe (dimgestor.train),
+    # which overrides them with 8 cosine steps predicting x0.
     "realtime": dict(hidden=128, n_blocks=4, d_state=32, d_conv=4, expand=2, headdim=32, chunk_size=64,
                      style_width=64, style_d_state=16, style_headdim=32, down_kernel=31, lookahead_ms=150,
                      n_mels=64, prediction="v"),

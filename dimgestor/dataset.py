@@ -3,7 +3,7 @@
 Each pair is preprocessed once (BVH -> features at spec.fps, WAV -> 16 kHz mono, trimmed to the
 shorter) into a cache entry keyed by the files' paths, sizes and mtimes and by the feature spec, so
 a second run memory-maps the arrays instead of parsing again. Motion frame i is aligned with audio
-samples [i * S, (i + 1) * S), S = 16000 / fps (800 at 20 fps).
+samples [i * S, (i + 1) * S), S = SAMPLE_RATE / fps (800 at 20 fps).
 
 Validation data: a split file (split.json / split.csv / split.txt in the folder, or `split_file`)
 naming whole clips as train or valid; without one, the last `valid_fraction` of every clip (or its

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics
+from .audio import SAMPLE_RATE
 from .bvh import forward_kinematics
 from .features import HEADING_COLUMN, VELOCITY_COLUMNS, decode_features, heading_track
 
@@ -93,7 +94,7 @@ def generate_systems(bundle, valid, train, steps: int, seed: int, max_windows: i
             "labels": [f"{it['name']}@{it['start_frame']}" for it in items]}
 
 
-def score(windows: dict, audio: list, skeleton, spec, ae: metrics.MotionAutoencoder, sr: int = 16000,
+def score(windows: dict, audio: list, skeleton, spec, ae: metrics.MotionAutoencoder, sr: int = SAMPLE_RATE,
           chunk_stride: int = 8) -> dict:
     """Metric values per system; the valid ground truth is the FGD reference set."""
     fps = float(spec.fps)
@@ -131,7 +132,7 @@ SILENCE_S = 6.0  # the silence inserted into each clip (issue 20's target: hands
 
 
 def drive_stats(hand_speed: np.ndarray, audio: np.ndarray, onsets: np.ndarray, mask: np.ndarray, fps: float,
-                sr: int = 16000, seed: int = 0) -> dict:
+                sr: int = SAMPLE_RATE, seed: int = 0) -> dict:
     """Speech-drivenness of one clip's hand speed (T,): loudness coupling beside shifted audio; hits of the
     stressed onsets (metrics.stressed_onsets) and of all `onsets` beside as many onsets shuffled inside speech
     (counts, so that clips pool by their onsets)."""
@@ -146,7 +147,7 @@ def drive_stats(hand_speed: np.ndarray, audio: np.ndarray, onsets: np.ndarray, m
     return out
 
 
-def silence_probe(audio: np.ndarray, sr: int = 16000, seconds: float = SILENCE_S) -> tuple[np.ndarray, float]:
+def silence_probe(audio: np.ndarray, sr: int = SAMPLE_RATE, seconds: float = SILENCE_S) -> tuple[np.ndarray, float]:
     """The clip with `seconds` of digital silence inserted at its quietest frame in the middle third (a pause
     made longer, no word cut), and where (s)."""
     n = len(audio) / sr
@@ -154,7 +155,7 @@ def silence_probe(audio: np.ndarray, sr: int = 16000, seconds: float = SILENCE_S
     return metrics.insert_silence(audio, sr, at, seconds), at
 
 
-def silence_stats(raw: np.ndarray, gapped: np.ndarray, at_s: float, skeleton, spec, sr: int = 16000,
+def silence_stats(raw: np.ndarray, gapped: np.ndarray, at_s: float, skeleton, spec, sr: int = SAMPLE_RATE,
                   seconds: float = SILENCE_S) -> dict:
     """Mean wrist speed (file units/s) in speech and inside the inserted silence, of motion made for `gapped`."""
     fps = float(spec.fps)
@@ -163,7 +164,7 @@ def silence_stats(raw: np.ndarray, gapped: np.ndarray, at_s: float, skeleton, sp
     return {"speed_speech": speaking, "speed_silence": silent}
 
 
-def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 16000, seed: int = 0) -> dict:
+def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = SAMPLE_RATE, seed: int = 0) -> dict:
     """Reference-free numbers of one clip's raw features (T, D) made for `audio`."""
     fps = float(spec.fps)
     pos = joint_positions(raw, skeleton, spec)
@@ -254,7 +255,7 @@ def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=Non
     return np.asarray(bundle.denormalize(gen), np.float32)
 
 
-def seed_stats(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, sr: int = 16000,
+def seed_stats(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, sr: int = SAMPLE_RATE,
                silence_s: float = SILENCE_S) -> tuple[np.ndarray, dict]:
     """The model's motion for `audio` under one seed, and its clip_stats with the inserted-silence speeds (the
     model run again, same seed, on the clip with silence_s of silence inserted)."""
@@ -447,7 +448,7 @@ def run(args: argparse.Namespace) -> dict:
     seeds = getattr(args, "seeds", 3)
     if getattr(args, "wavs", None) is not None:
         clips, names = wav_clips(Path(args.wavs))
-        print(f"{len(clips)} WAV files, {sum(len(a) for a, _ in clips) / 16000:.1f} s: reference-free metrics only")
+        print(f"{len(clips)} WAV files, {sum(len(a) for a, _ in clips) / SAMPLE_RATE:.1f} s: reference-free metrics only")
         rep = k_report(bundle, clips, ks, seeds, args.seed, None, smoothing=smoothing, names=names)
         return {"checkpoint": str(args.checkpoint or "embedded default"), "wavs": str(args.wavs), "files": names,
                 "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, "guidance": c.guidance,

@@ -20,7 +20,7 @@ __all__ = ["generate_motion", "register"]
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                     eta: float = 0.0, smoothing="config", root: str = "free", tether_s: float = 5.0,
                     guidance: float | None = None) -> BvhMotion:
-    """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
+    """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // SAMPLE_RATE frames)."""
     features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing,
                                guidance=guidance)
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)

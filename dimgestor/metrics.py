@@ -17,6 +17,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy.signal import argrelextrema
 
+from dimgestor.audio import SAMPLE_RATE
+
 # --------------------------------------------------------------------------------------------------
 # Fréchet distance
 # --------------------------------------------------------------------------------------------------
@@ -205,7 +207,7 @@ def _mel_filterbank(sr: int, n_fft: int, n_mels: int) -> np.ndarray:
     return np.maximum(0.0, np.minimum(up, down))
 
 
-def onset_strength(audio: np.ndarray, sr: int = 16000, hop: int = 160, n_fft: int = 1024, n_mels: int = 64):
+def onset_strength(audio: np.ndarray, sr: int = SAMPLE_RATE, hop: int = 160, n_fft: int = 1024, n_mels: int = 64):
     """Spectral flux of the log-mel spectrogram -> (envelope (F,), frames per second); frame f is at f * hop / sr."""
     y = np.asarray(audio, dtype=np.float64).reshape(-1)
     y = np.pad(y, n_fft // 2, mode="constant")  # centred frames, as librosa
@@ -232,7 +234,7 @@ def peak_pick(x: np.ndarray, pre_max: int, post_max: int, pre_avg: int, post_avg
     return np.asarray(peaks, dtype=np.int64)
 
 
-def audio_onsets(audio: np.ndarray, sr: int = 16000, delta: float = 0.07) -> np.ndarray:
+def audio_onsets(audio: np.ndarray, sr: int = SAMPLE_RATE, delta: float = 0.07) -> np.ndarray:
     """Onset times (s): peaks of the normalized onset-strength envelope (librosa's default peak picking)."""
     env, rate = onset_strength(audio, sr)
     env = env - env.min()
@@ -459,7 +461,7 @@ def shifted_coupling(hand_speed: np.ndarray, audio: np.ndarray, sr: int, fps: fl
 ONSET_WINDOW_S = (-0.1, 0.3)
 
 
-def stressed_onsets(audio: np.ndarray, sr: int = 16000, keep: float = 0.4) -> np.ndarray:
+def stressed_onsets(audio: np.ndarray, sr: int = SAMPLE_RATE, keep: float = 0.4) -> np.ndarray:
     """The strongest `keep` fraction of audio_onsets (by onset strength), in time order: a stand-in for the
     stressed syllables that beat gestures land on.
 

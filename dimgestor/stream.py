@@ -168,7 +168,7 @@ class GestureStream:
 
 def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                      eta: float = 0.0, smoothing="config", guidance: float | None = None) -> np.ndarray:
-    """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000.
+    """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // SAMPLE_RATE.
 
     steps None: the config's sample_steps; smoothing: see make_smoother; guidance None: the config's scale.
     """

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dimgestor.audio import SAMPLE_RATE
 from dimgestor.bvh import BvhMotion, Skeleton
 
 ROT = {o: [f"{a}rotation" for a in o] for o in ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")}
@@ -48,7 +49,7 @@ def synthetic_skeleton() -> Skeleton:
     )
 
 
-def synthetic_speech(seconds: float, rate: int = 16000, seed: int = 0) -> np.ndarray:
+def synthetic_speech(seconds: float, rate: int = SAMPLE_RATE, seed: int = 0) -> np.ndarray:
     """Speech-like bursts (harmonic tones with syllable rhythm, some breath noise) and silences."""
     rng = np.random.default_rng(seed)
     n = int(round(seconds * rate))
@@ -120,7 +121,7 @@ def synthetic_motion(seconds: float = 10.0, fps: float = 30.0, seed: int = 0, lo
 
 
 def make_synthetic_pair(out_dir, name: str = "synth", seconds: float = 10.0, seed: int = 0,
-                        fps: float = 30, rate: int = 16000) -> tuple[Path, Path]:
+                        fps: float = 30, rate: int = SAMPLE_RATE) -> tuple[Path, Path]:
     """Write out_dir/NAME.bvh and out_dir/NAME.wav (PCM16 mono) of equal duration; returns their paths."""
     from dimgestor.audio import save_wav
     from dimgestor.bvh import write_bvh
@@ -163,7 +164,7 @@ def _critically_damped(target: np.ndarray, fps: float, tau: float) -> np.ndarray
     return lfilter([1 - a], [1, -a], y, zi=[a * y[0]])[0]
 
 
-def speech_and_gestures(seconds: float, seed: int = 0, rate: int = 16000, fps: float = 30.0
+def speech_and_gestures(seconds: float, seed: int = 0, rate: int = SAMPLE_RATE, fps: float = 30.0
                         ) -> tuple[np.ndarray, BvhMotion, dict]:
     """(audio, motion, events) following the rule above; events: phrases [(start, end)], stresses [(t, size)]."""
     rng = np.random.default_rng(seed)
@@ -245,7 +246,7 @@ def speech_and_gestures(seconds: float, seed: int = 0, rate: int = 16000, fps: f
 
 
 def make_gesture_corpus(out_dir, minutes: float, clip_s: float = 60.0, seed: int = 0, fps: float = 30.0,
-                        rate: int = 16000) -> list[tuple[Path, Path]]:
+                        rate: int = SAMPLE_RATE) -> list[tuple[Path, Path]]:
     """Write `minutes` of speech_and_gestures as clip_NNN.bvh/.wav pairs of `clip_s` seconds (the last shorter)."""
     from dimgestor.audio import save_wav
     from dimgestor.bvh import write_bvh

@@ -14,12 +14,14 @@ import os
 import random
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 import torch
 import torch.distributed as dist
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from torch import nn
 from torch.utils.data import DistributedSampler
 
@@ -28,67 +30,127 @@ from .checkpoint import latest_checkpoint, read_meta, save_checkpoint
 from .config import ModelConfig, exact_div, get_preset
 from .dataset import GestureDataset, compute_stats
 from .diffusion import Diffusion
-from .features import FeatureSpec
+from .features import HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec
 from .model import DiMGestor
 
-__all__ = ["TrainOptions", "train", "register", "Objective", "RECIPES"]
+__all__ = ["TrainConfig", "Recipe", "train", "register", "Objective", "RECIPES"]
 
 SMALL_DATA_MIN = 30.0  # below this many minutes of training data, mirroring, speed perturbation and audio
 # augmentation default on
 SMALL_DATA_SPEEDS = (0.9, 1.1)
 
-# Named training recipes: model-config overrides for the diffusion process plus the loss weights.
+
+class Recipe(BaseModel):
+    """A named way to train: the diffusion process (model-config overrides), root heading and loss weights."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    config: dict[str, Any] = {}  # ModelConfig fields over the preset's (validated with it when the model is built)
+    heading: Literal["velocity", "facing"] = "velocity"  # root heading features (dimgestor.features)
+    vel_weight: float = Field(0.0, ge=0)  # velocity loss on the predicted x0
+    acc_weight: float = Field(0.0, ge=0)  # acceleration loss on the predicted x0
+    root_weight: float = Field(0.0, ge=0)  # integrated root travel and turning (against spin and drift)
+    cond_drop: float = Field(0.0, ge=0, le=1)  # condition dropout for classifier-free guidance
+
+
 # "paper" is Zhang et al.'s (N = 1000 linear betas, noise MSE); "streaming" is this engine's default, chosen
 # by measurement (benchmarks/recipes.py, results in benchmarks/results/recipes.json): a short cosine chain
 # whose every level is trained, x0 prediction with velocity and acceleration losses, and noise correlated
 # over a few frames, so that what a causal denoiser passes through is slow sway, not jitter.
-RECIPES: dict[str, dict] = {
-    "paper": dict(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
-                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0, cond_drop=0.0),
-    "streaming": dict(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
-                                  ddim_spacing="linspace"), heading="facing",
-                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1, cond_drop=0.0),
+RECIPES: dict[str, Recipe] = {
+    "paper": Recipe(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
+                                noise_taps=1), heading="velocity"),
+    "streaming": Recipe(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
+                                    ddim_spacing="linspace"), heading="facing",
+                        vel_weight=4.0, acc_weight=4.0, root_weight=0.1),
 }
+NO_RECIPE = Recipe()  # recipe=None: the preset's diffusion, plain loss
 
 
-@dataclass
-class TrainOptions:
-    data: str
-    out: str
+class TrainConfig(BaseModel):
+    """Everything a run is given: validated once, frozen, saved in every checkpoint (info["options"])."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    data: str  # folder of NAME.bvh + NAME.wav pairs
+    out: str  # run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
     preset: str = "realtime"
-    overrides: dict | None = None  # ModelConfig fields replacing the preset's (and the recipe's)
+    overrides: dict[str, Any] | None = None  # ModelConfig fields replacing the preset's (and the recipe's)
     recipe: str | None = "streaming"  # a RECIPES name: its config and loss weights (explicit weights below win)
-    max_steps: int = 20000
-    batch_size: int = 8
-    lr: float = 5e-4
-    warmup: int = 200  # linear LR warm-up steps (Adam on a fresh model)
-    weight_decay: float = 0.0
-    grad_clip: float = 1.0
-    vel_weight: float | None = None  # weight of the x0 velocity loss (None: the recipe's; 0 = none)
-    acc_weight: float | None = None  # weight of the x0 acceleration loss (None: the recipe's; 0 = none)
-    root_weight: float | None = None  # weight of the integrated-root (drift) loss (None: the recipe's; 0 = none)
-    heading: str | None = None  # root heading features: "velocity" or "facing" (None: the recipe's)
+    max_steps: int = Field(20000, gt=0)
+    batch_size: int = Field(8, gt=0)  # global batch, split over DDP ranks
+    lr: float = Field(5e-4, gt=0)
+    warmup: int = Field(200, ge=0)  # linear LR warm-up steps (Adam on a fresh model)
+    weight_decay: float = Field(0.0, ge=0)  # AdamW's decoupled weight decay
+    grad_clip: float = Field(1.0, ge=0)  # max global gradient norm (0 = no clipping)
+    vel_weight: float | None = Field(None, ge=0)  # weight of the x0 velocity loss (None: the recipe's; 0 = none)
+    acc_weight: float | None = Field(None, ge=0)  # weight of the x0 acceleration loss (None: the recipe's)
+    root_weight: float | None = Field(None, ge=0)  # weight of the integrated-root (drift) loss (None: the recipe's)
+    heading: Literal["velocity", "facing"] | None = None  # root heading features (None: the recipe's)
     # probability that a training window's condition is zeroed (classifier-free guidance learns the unconditional
     # model from these windows; sampling with guidance != 1 needs it). None: the recipe's; 0 = never
-    cond_drop: float | None = None
+    cond_drop: float | None = Field(None, ge=0, le=1)
     speeds: tuple[float, ...] = ()  # speed perturbation factors for extra training copies, e.g. (0.9, 1.1)
-    ema: float = 0.999  # EMA decay of the saved weights
-    window_s: float = 10.0
-    hop_s: float | None = None  # default: a quarter window (overlapping windows are cheap data)
+    ema: float = Field(0.999, ge=0, lt=1)  # EMA decay of the saved weights
+    window_s: float = Field(10.0, gt=0)
+    hop_s: float | None = Field(None, gt=0)  # default: a quarter window (overlapping windows are cheap data)
     mirror: bool = False  # left/right mirrored copies of every window
     augment: bool = False  # audio augmentation (dimgestor.augment: voice, room, noise, microphone, level)
-    aug_copies: int = 4  # augmented versions of each training window's audio; a batch item takes clean or one
-    aug_config: dict | None = None  # AugmentConfig fields replacing its defaults
-    valid_fraction: float = 0.15
-    valid_seconds: float | None = None  # hold out the last S seconds of every clip instead of a fraction
-    ckpt_every: int = 1000
-    valid_every: int = 250
-    keep: int = 3  # checkpoints kept in the run folder (oldest removed)
+    aug_copies: int = Field(4, gt=0)  # augmented versions of each window's audio; a batch item takes clean or one
+    aug_config: dict[str, Any] | None = None  # AugmentConfig fields replacing its defaults
+    valid_fraction: float = Field(0.15, ge=0, lt=1)
+    valid_seconds: float | None = Field(None, gt=0)  # hold out the last S seconds of every clip instead
+    ckpt_every: int = Field(1000, gt=0)
+    valid_every: int = Field(250, gt=0)
+    keep: int = Field(3, ge=0)  # checkpoints kept in the run folder (oldest removed; 0 = all)
     seed: int = 0
     device: str = "auto"
     resume: bool = False
     cache_dir: str | None = None
     progress: bool = True
+
+    @field_validator("data", "out", "cache_dir", mode="before")
+    @classmethod
+    def _path_as_text(cls, v):
+        return os.fspath(v) if isinstance(v, os.PathLike) else v
+
+    @field_validator("recipe")
+    @classmethod
+    def _known_recipe(cls, v):
+        if v is not None and v not in RECIPES:
+            raise ValueError(f"unknown recipe {v!r}; choose one of {', '.join(RECIPES)}")
+        return v
+
+    @field_validator("speeds")
+    @classmethod
+    def _positive_speeds(cls, v):
+        if any(r <= 0 for r in v):
+            raise ValueError(f"speed factors must be positive, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _augment_config(self):
+        AugmentConfig(**(self.aug_config or {}))  # fails here, not after the dataset is built
+        return self
+
+    @property
+    def chosen_recipe(self) -> Recipe:
+        return RECIPES[self.recipe] if self.recipe else NO_RECIPE
+
+    @classmethod
+    def from_saved(cls, options: dict) -> "TrainConfig":
+        """The config a checkpoint was trained with, from its saved `options` (older runs lack newer fields,
+        which take their defaults; the runtime-only ones that older runs saved are ignored)."""
+        unknown = set(options) - set(cls.model_fields)
+        if unknown:
+            raise ValueError(f"saved training options name fields this version does not have: {sorted(unknown)}")
+        return cls(**options)
+
+
+TrainOptions = TrainConfig  # the former name, kept for scripts and tests that use it
+
+# the runtime-only options, left out of a checkpoint's info (they do not describe the model)
+RUNTIME_OPTIONS = {"progress", "resume", "cache_dir"}
 
 
 class Objective(nn.Module):
@@ -105,22 +167,16 @@ class Objective(nn.Module):
 LOSS_WEIGHTS = ("vel_weight", "acc_weight", "root_weight")
 
 
-def resolve_recipe(opts: "TrainOptions") -> tuple[dict, dict[str, float]]:
+def resolve_recipe(opts: TrainConfig) -> tuple[dict, dict[str, float]]:
     """(config overrides, {loss weight name: value}) of the options' recipe and explicit settings."""
-    if opts.recipe is not None and opts.recipe not in RECIPES:
-        raise ValueError(f"unknown recipe {opts.recipe!r}; choose one of {', '.join(RECIPES)}")
-    r = RECIPES[opts.recipe] if opts.recipe else {"config": {}}
-    weights = {k: float(r.get(k, 0.0) if getattr(opts, k) is None else getattr(opts, k)) for k in LOSS_WEIGHTS}
-    return {**r["config"], **(opts.overrides or {})}, weights
+    r = opts.chosen_recipe
+    weights = {k: float(getattr(r, k) if getattr(opts, k) is None else getattr(opts, k)) for k in LOSS_WEIGHTS}
+    return {**r.config, **(opts.overrides or {})}, weights
 
 
-def resolve_cond_drop(opts: "TrainOptions") -> float:
-    """The condition-dropout probability: the explicit option, else the recipe's, else 0."""
-    r = RECIPES.get(opts.recipe, {}) if opts.recipe else {}
-    p = float(r.get("cond_drop", 0.0) if opts.cond_drop is None else opts.cond_drop)
-    if not 0 <= p <= 1:
-        raise ValueError(f"cond_drop must be a probability in [0, 1], got {p}")
-    return p
+def resolve_cond_drop(opts: TrainConfig) -> float:
+    """The condition-dropout probability: the explicit option, else the recipe's (0 without a recipe)."""
+    return float(opts.chosen_recipe.cond_drop if opts.cond_drop is None else opts.cond_drop)
 
 
 class WindowBank:
@@ -220,7 +276,7 @@ def _batch_indices(sampler: DistributedSampler, step: int, B: int) -> list[int]:
     return order[pos * B: pos * B + B]
 
 
-def _lr(opts: TrainOptions, step: int) -> float:
+def _lr(opts: TrainConfig, step: int) -> float:
     return opts.lr * min(1.0, (step + 1) / max(opts.warmup, 1))
 
 
@@ -239,69 +295,111 @@ def validation_loss(model: DiMGestor, diffusion: Diffusion, bank: WindowBank, se
     return total / count
 
 
-def train(opts: TrainOptions) -> Path:
-    """Run (or resume) training; returns the last checkpoint folder."""
+@dataclass
+class Run:
+    """A run between steps: what `setup` builds and the step, evaluation and checkpoint functions use."""
+
+    opts: TrainConfig
+    out: Path
+    world: int
+    rank: int
+    device: torch.device
+    resume_from: Path | None
+    config: ModelConfig
+    train_ds: GestureDataset
+    model: DiMGestor
+    ema: DiMGestor  # the weights that are evaluated and saved
+    diffusion: Diffusion
+    optimizer: torch.optim.Optimizer
+    objective: nn.Module  # the loss (wrapped in DDP when world > 1)
+    g: torch.Generator  # this rank's diffusion steps, noise, augmented versions and dropout
+    train_bank: WindowBank
+    valid_bank: WindowBank
+    sampler: DistributedSampler
+    mean: np.ndarray
+    std: np.ndarray
+    cond_drop: float
+    step: int = 0
+    history: list[dict] = field(default_factory=list)
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _init_distributed(opts: TrainConfig) -> tuple[int, int, torch.device]:
+    """(world size, rank, device); joins the process group when launched by torchrun."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     device = _device(opts.device)
-    if world > 1:  # launched by torchrun
+    if world > 1:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
         if device.type == "cuda":
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)
-    main = rank == 0
+    return world, rank, device
+
+
+def _resume_point(opts: TrainConfig) -> Path | None:
+    """The checkpoint to continue from (--resume), after checking the run folder matches the intent."""
     out = Path(opts.out)
     resume_from = latest_checkpoint(out) if opts.resume else None
     if opts.resume and resume_from is None:
         raise ValueError(f"--resume: no checkpoint found in {out}")
     if not opts.resume and latest_checkpoint(out) is not None:
         raise ValueError(f"{out} already holds checkpoints: pass --resume to continue, or choose a new --out")
+    return resume_from
 
-    # ---- config: the checkpoint's when resuming, else the preset with the data's feature width ----
-    overrides, weights = resolve_recipe(opts)
-    cond_drop = resolve_cond_drop(opts)
+
+def _config_and_data(opts: TrainConfig, resume_from: Path | None):
+    """(model config, training set, validation set): the checkpoint's config when resuming, else the preset
+    with the recipe and the data's feature width."""
+    overrides, _ = resolve_recipe(opts)
     if resume_from is not None:
-        config = ModelConfig(**read_meta(resume_from)["model"])
+        meta = read_meta(resume_from)
+        config = ModelConfig(**meta["model"])
+        heading = FeatureSpec.from_dict(meta["feature_spec"]).heading
     else:
         config = get_preset(opts.preset, **overrides)
-    if resume_from is not None:
-        heading = FeatureSpec.from_dict(read_meta(resume_from)["feature_spec"]).heading
-    else:
-        heading = opts.heading or (RECIPES[opts.recipe].get("heading", "velocity") if opts.recipe else "velocity")
+        heading = opts.heading or opts.chosen_recipe.heading
     spec = FeatureSpec(fps=config.fps, heading=heading)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
-                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction,
-                 valid_seconds=opts.valid_seconds)
-    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=tuple(opts.speeds), **ds_kw)
+                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction, valid_seconds=opts.valid_seconds)
+    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=opts.speeds, **ds_kw)
     valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
     if resume_from is None:
         config = get_preset(opts.preset, **{**overrides, "motion_dim": train_ds.motion_dim})
-        mean, std = compute_stats(train_ds)
     elif config.motion_dim != train_ds.motion_dim:
         raise ValueError(f"{resume_from}: trained on {config.motion_dim} features, the data has {train_ds.motion_dim}")
+    return config, train_ds, valid_ds
 
+
+def setup(opts: TrainConfig) -> Run:
+    """Everything a run needs, fresh or restored from its latest checkpoint (--resume)."""
+    world, rank, device = _init_distributed(opts)
+    resume_from = _resume_point(opts)
+    config, train_ds, valid_ds = _config_and_data(opts, resume_from)
+    mean, std = compute_stats(train_ds) if resume_from is None else (None, None)  # before seeding, as ever
     torch.manual_seed(opts.seed)
     random.seed(opts.seed)
     np.random.seed(opts.seed)
     model = DiMGestor(config).to(device)
     ema = DiMGestor(config).to(device).requires_grad_(False)
-    diffusion = Diffusion(config)
-    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=opts.lr,
-                            weight_decay=opts.weight_decay)
+    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=opts.lr,
+                                  weight_decay=opts.weight_decay)
     g = torch.Generator().manual_seed(opts.seed * 1000 + rank)  # t and noise; batches come from the sampler
     step, history = 0, []
     if resume_from is not None:
         ts = torch.load(resume_from / "train_state.pt", map_location="cpu", weights_only=False)
         model.load_state_dict(ts["model"])
         ema.load_state_dict(ts["ema"])
-        opt.load_state_dict(ts["optimizer"])
+        optimizer.load_state_dict(ts["optimizer"])
         g.set_state(ts["generators"][rank] if rank < len(ts["generators"]) else ts["generators"][0])
         torch.set_rng_state(ts["torch_rng"])
         step, history, mean, std = ts["step"], ts["history"], ts["mean"], ts["std"]
     else:
         ema.load_state_dict(model.state_dict())
     ema.eval()
-
     t_bank = time.time()
     train_bank = WindowBank(train_ds, model, mean, std, device, copies=opts.aug_copies if opts.augment else 0,
                             aug_config=AugmentConfig(**(opts.aug_config or {})), seed=opts.seed)
@@ -309,96 +407,131 @@ def train(opts: TrainOptions) -> Path:
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
                                  seed=opts.seed, drop_last=False)
-    from .features import HEADING_COLUMN, VELOCITY_COLUMNS
+    diffusion = Diffusion(config)
+    run = Run(opts, Path(opts.out), world, rank, device, resume_from, config, train_ds, model, ema, diffusion,
+              optimizer, _objective(model, diffusion, resolve_recipe(opts)[1], train_ds.spec, world, device), g,
+              train_bank, valid_bank, sampler, mean, std, resolve_cond_drop(opts), step, history)
+    if run.main:
+        run.out.mkdir(parents=True, exist_ok=True)
+        print(f"{train_ds.summary()}\n{valid_ds.summary()}\n{_describe(run, t_bank)}")
+    return run
 
+
+def _objective(model: DiMGestor, diffusion: Diffusion, weights: dict[str, float], spec: FeatureSpec, world: int,
+               device: torch.device) -> nn.Module:
     root_columns = tuple(VELOCITY_COLUMNS) + ((HEADING_COLUMN,) if spec.heading == "velocity" else ())
     objective = Objective(model, diffusion, {**weights, "root_columns": root_columns})
     if world > 1:
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device] if device.type == "cuda" else None)
-    if main:
-        out.mkdir(parents=True, exist_ok=True)
-        print(f"{train_ds.summary()}\n{valid_ds.summary()}\n"
-              f"model {opts.preset if resume_from is None else '(from checkpoint)'}: "
-              f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, device {device}, world {world}, "
-              f"recipe {opts.recipe or '(none)'}: {config.n_steps} {config.schedule} steps, predicts {config.prediction}, "
-              f"{spec.heading} heading, "
-              f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
-              f"{weights['vel_weight']:g}/{weights['acc_weight']:g}/{weights['root_weight']:g}"
-              + (f", {opts.aug_copies} augmented copies of the training audio ({t_bank:.0f} s)" if opts.augment else "")
-              + (f", condition dropped in {cond_drop:.0%} of windows" if cond_drop > 0 else "")
-              + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
+    return objective
 
-    def checkpoint(step: int) -> Path:
-        gens = [g.get_state()]
-        if world > 1:
-            gens = [None] * world
-            dist.all_gather_object(gens, g.get_state())
-        if not main:
-            return out
-        info = {"step": step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:],
-                "options": {k: v for k, v in vars(opts).items() if k not in ("progress", "resume", "cache_dir")},
-                "train_wall_s": history[-1].get("elapsed_s") if history else None}
-        state = {"step": step, "model": model.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
-                 "generators": gens, "torch_rng": torch.get_rng_state(), "history": history,
-                 "mean": mean, "std": std, "options": vars(opts)}
-        path = save_checkpoint(out / f"ckpt_{step:07d}", ema, train_ds.spec, train_ds.skeleton, mean, std,
-                               info=info, train_state=state)
-        if opts.keep > 0:
-            kept = sorted(p for p in out.glob("ckpt_*") if p.is_dir() and "." not in p.name)
-            for old in kept[: -opts.keep]:
-                shutil.rmtree(old, ignore_errors=True)
-        return path
 
-    def log(record: dict):
-        history.append(record)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(record) + "\n")
+def _describe(run: Run, t_bank: float) -> str:
+    """One line on the model, recipe and losses of a run, printed when it starts."""
+    opts, config, w = run.opts, run.config, resolve_recipe(run.opts)[1]
+    return (f"model {opts.preset if run.resume_from is None else '(from checkpoint)'}: "
+            f"{sum(p.numel() for p in run.model.parameters()) / 1e6:.2f} M parameters, device {run.device}, "
+            f"world {run.world}, recipe {opts.recipe or '(none)'}: {config.n_steps} {config.schedule} steps, "
+            f"predicts {config.prediction}, {run.train_ds.spec.heading} heading, "
+            f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
+            f"{w['vel_weight']:g}/{w['acc_weight']:g}/{w['root_weight']:g}"
+            + (f", {opts.aug_copies} augmented copies of the training audio ({t_bank:.0f} s)" if opts.augment else "")
+            + (f", condition dropped in {run.cond_drop:.0%} of windows" if run.cond_drop > 0 else "")
+            + (f", resuming at step {run.step} from {run.resume_from}" if run.resume_from else ""))
 
-    if main and step == 0:
-        log({"step": 0, "valid_loss": validation_loss(ema, diffusion, valid_bank, opts.seed, device)})
+
+def train_step(run: Run, B: int) -> float:
+    """One optimizer step on this rank's batch for `run.step`, then the EMA update; returns the loss."""
+    c, g = run.config, run.g
+    idx = _batch_indices(run.sampler, run.step, B)
+    versions = run.train_bank.draw_versions(len(idx), g)  # from g, so --resume stays exact
+    x0, feats = run.train_bank.batch(idx, c.lookahead_feats, c.feats_per_frame, versions)
+    t = torch.randint(0, run.diffusion.N, (len(idx),), generator=g)
+    noise = run.diffusion.noise_like(x0, g)
+    # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
+    drop = torch.rand(len(idx), generator=g) < run.cond_drop if run.cond_drop > 0 else None
+    for group in run.optimizer.param_groups:
+        group["lr"] = _lr(run.opts, run.step)
+    d = run.device
+    loss = run.objective(x0.to(d), feats.to(d), t.to(d), noise.to(d), None if drop is None else drop.to(d))
+    run.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if run.opts.grad_clip > 0:
+        nn.utils.clip_grad_norm_(run.model.parameters(), run.opts.grad_clip)
+    run.optimizer.step()
+    run.step += 1
+    decay = min(run.opts.ema, (1 + run.step) / (10 + run.step))  # short memory early, when the weights move fast
+    with torch.no_grad():
+        for pe, pm in zip(run.ema.parameters(), run.model.parameters()):
+            pe.lerp_(pm, 1 - decay)
+    return loss.item()
+
+
+def evaluate(run: Run) -> float:
+    """The EMA model's validation loss (fixed steps and noise, so runs and resumes compare)."""
+    return validation_loss(run.ema, run.diffusion, run.valid_bank, run.opts.seed, run.device)
+
+
+def log(run: Run, record: dict) -> None:
+    run.history.append(record)
+    with open(run.out / "log.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def checkpoint(run: Run) -> Path:
+    """Save the EMA model with everything --resume needs (on rank 0; every rank takes part in the gather)."""
+    gens = [run.g.get_state()]
+    if run.world > 1:
+        gens = [None] * run.world
+        dist.all_gather_object(gens, run.g.get_state())
+    if not run.main:
+        return run.out
+    opts, history = run.opts, run.history
+    info = {"step": run.step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:],
+            "options": opts.model_dump(exclude=RUNTIME_OPTIONS),
+            "train_wall_s": history[-1].get("elapsed_s") if history else None}
+    state = {"step": run.step, "model": run.model.state_dict(), "ema": run.ema.state_dict(),
+             "optimizer": run.optimizer.state_dict(), "generators": gens, "torch_rng": torch.get_rng_state(),
+             "history": history, "mean": run.mean, "std": run.std, "options": opts.model_dump()}
+    path = save_checkpoint(run.out / f"ckpt_{run.step:07d}", run.ema, run.train_ds.spec, run.train_ds.skeleton,
+                           run.mean, run.std, info=info, train_state=state)
+    if opts.keep > 0:
+        kept = sorted(p for p in run.out.glob("ckpt_*") if p.is_dir() and "." not in p.name)
+        for old in kept[: -opts.keep]:
+            shutil.rmtree(old, ignore_errors=True)
+    return path
+
+
+def train(opts: TrainConfig) -> Path:
+    """Run (or resume) training; returns the last checkpoint folder."""
     from tqdm import tqdm
-    bar = tqdm(total=opts.max_steps, initial=step, disable=not (main and opts.progress), dynamic_ncols=True,
+
+    run = setup(opts)
+    if run.main and run.step == 0:
+        log(run, {"step": 0, "valid_loss": evaluate(run)})
+    bar = tqdm(total=opts.max_steps, initial=run.step, disable=not (run.main and opts.progress), dynamic_ncols=True,
                desc="train")
-    smooth, last = None, resume_from or out
-    B = max(1, opts.batch_size // world)
+    smooth, last = None, run.resume_from or run.out
+    B = max(1, opts.batch_size // run.world)
     t0 = time.time()
-    model.train()
-    while step < opts.max_steps:
-        idx = _batch_indices(sampler, step, B)
-        versions = train_bank.draw_versions(len(idx), g)  # from g, so --resume stays exact
-        x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame, versions)
-        t = torch.randint(0, diffusion.N, (len(idx),), generator=g)
-        noise = diffusion.noise_like(x0, g)
-        # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
-        drop = torch.rand(len(idx), generator=g) < cond_drop if cond_drop > 0 else None
-        for group in opt.param_groups:
-            group["lr"] = _lr(opts, step)
-        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device),
-                         None if drop is None else drop.to(device))
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if opts.grad_clip > 0:
-            nn.utils.clip_grad_norm_(model.parameters(), opts.grad_clip)
-        opt.step()
-        step += 1
-        decay = min(opts.ema, (1 + step) / (10 + step))  # short memory early, when the weights move fast
-        with torch.no_grad():
-            for pe, pm in zip(ema.parameters(), model.parameters()):
-                pe.lerp_(pm, 1 - decay)
-        smooth = loss.item() if smooth is None else 0.98 * smooth + 0.02 * loss.item()
+    run.model.train()
+    while run.step < opts.max_steps:
+        loss = train_step(run, B)
+        smooth = loss if smooth is None else 0.98 * smooth + 0.02 * loss
         bar.update(1)
         bar.set_postfix(loss=f"{smooth:.4f}", refresh=False)
+        step = run.step
         is_valid = step % opts.valid_every == 0 or step == opts.max_steps
-        if is_valid and main:
-            vl = validation_loss(ema, diffusion, valid_bank, opts.seed, device)
-            log({"step": step, "train_loss": smooth, "valid_loss": vl, "elapsed_s": round(time.time() - t0, 1)})
+        if is_valid and run.main:
+            vl = evaluate(run)
+            log(run, {"step": step, "train_loss": smooth, "valid_loss": vl, "elapsed_s": round(time.time() - t0, 1)})
             bar.set_postfix(loss=f"{smooth:.4f}", valid=f"{vl:.4f}")
         if step % opts.ckpt_every == 0 or step == opts.max_steps:
-            last = checkpoint(step)
-        if world > 1 and is_valid:
+            last = checkpoint(run)
+        if run.world > 1 and is_valid:
             dist.barrier()
     bar.close()
-    if world > 1:
+    if run.world > 1:
         dist.destroy_process_group()
     return last
 
@@ -420,17 +553,20 @@ def _parse_set(items: list[str]) -> dict:
 def register(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    d = TrainOptions(data="", out="")
+    d = TrainConfig(data="", out="")  # the defaults, one place
     p.add_argument("--data", required=True, help="folder of BVH+WAV pairs (sub-folders allowed)")
     p.add_argument("--out", required=True, help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
     p.add_argument("--preset", default=d.preset, help="model preset: paper, realtime or tiny")
-    p.add_argument("--recipe", default="streaming", choices=list(RECIPES),
+    p.add_argument("--recipe", default=d.recipe, choices=list(RECIPES),
                    help="diffusion training recipe: 'streaming' (short cosine chain, x0 + derivative losses; smooth "
                         "at any K) or 'paper' (Zhang et al.: 1000 linear steps, noise MSE)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model config field, repeatable")
     p.add_argument("--max-steps", type=int, default=d.max_steps)
     p.add_argument("--batch-size", type=int, default=d.batch_size, help="global batch (split over DDP ranks)")
     p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--warmup", type=int, default=d.warmup, help="linear learning-rate warm-up steps")
+    p.add_argument("--weight-decay", type=float, default=d.weight_decay, help="AdamW's decoupled weight decay")
+    p.add_argument("--grad-clip", type=float, default=d.grad_clip, help="max gradient norm (0 = no clipping)")
     p.add_argument("--window-s", type=float, default=d.window_s, help="training window length in seconds")
     p.add_argument("--hop-s", type=float, default=None, help="window hop (default: a quarter window)")
     p.add_argument("--valid-fraction", type=float, default=d.valid_fraction,
@@ -476,44 +612,56 @@ def register(subparsers) -> None:
     p.set_defaults(func=_run)
 
 
-def _run(args) -> int:
-    for name in ("max_steps", "batch_size", "ckpt_every", "valid_every", "aug_copies"):
-        if getattr(args, name) <= 0:
-            raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
-    if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or \
-            any((getattr(args, k) or 0) < 0 for k in LOSS_WEIGHTS):
-        raise ValueError("--lr and --window-s must be positive, --ema in [0, 1), the loss weights >= 0")
-    if args.cond_drop is not None and not 0 <= args.cond_drop <= 1:
-        raise ValueError(f"--cond-drop must be a probability in [0, 1], got {args.cond_drop}")
+def _parse_speeds(text: str | None) -> tuple[float, ...] | None:
     try:
-        speeds = None if args.speeds is None else tuple(float(r) for r in args.speeds.split(",") if r.strip())
+        return None if text is None else tuple(float(r) for r in text.split(",") if r.strip())
     except ValueError:
-        raise ValueError(f"--speeds expects comma-separated factors such as 0.9,1.1, got {args.speeds!r}") from None
-    if speeds is not None and any(r <= 0 for r in speeds):
-        raise ValueError(f"--speeds factors must be positive, got {args.speeds!r}")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
-    opts = TrainOptions(data=args.data, out=args.out, preset=args.preset, overrides=_parse_set(args.set),
-                        max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr, window_s=args.window_s,
-                        hop_s=args.hop_s, valid_fraction=args.valid_fraction,
-                        valid_seconds=args.valid_seconds, ckpt_every=args.ckpt_every, recipe=args.recipe,
-                        valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight,
-                        acc_weight=args.acc_weight, root_weight=args.root_weight, heading=args.heading,
-                        cond_drop=args.cond_drop,
-                        resume=args.resume,
-                        seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
+        raise ValueError(f"--speeds expects comma-separated factors such as 0.9,1.1, got {text!r}") from None
+
+
+def small_data_defaults(args, speeds: tuple[float, ...] | None) -> dict:
+    """mirror, speeds and augment: as given, else on when the training split is under SMALL_DATA_MIN minutes."""
     few = False
-    if args.mirror is None or speeds is None or args.augment is None:  # these defaults depend on the data's size
+    if args.mirror is None or speeds is None or args.augment is None:  # only then is the data read
         minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
                                  valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
                                  window_s=args.window_s).seconds() / 60  # the heading layout does not change it
         few = minutes < SMALL_DATA_MIN
-    opts.mirror = few if args.mirror is None else args.mirror
-    opts.speeds = (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds
-    opts.augment, opts.aug_copies = few if args.augment is None else args.augment, args.aug_copies
-    last = train(opts)
+    return {"mirror": few if args.mirror is None else args.mirror,
+            "speeds": (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds,
+            "augment": few if args.augment is None else args.augment}
+
+
+def _flag_errors(e: ValidationError) -> str:
+    """pydantic's complaints, named by the flags a user typed."""
+    lines = []
+    for err in e.errors():
+        name = str(err["loc"][0]) if err["loc"] else ""
+        flag = {"overrides": "--set", "": "options"}.get(name, "--" + name.replace("_", "-"))
+        positive = err["type"] == "greater_than" and err.get("ctx", {}).get("gt") == 0
+        text = "must be positive" if positive else err["msg"][:1].lower() + err["msg"][1:]
+        lines.append(f"{flag} {text}, got {err['input']!r}" if name else f"{flag}: {text}")
+    return "; ".join(lines)
+
+
+def config_from_args(args) -> TrainConfig:
+    """The command line as a TrainConfig: flags are named like its fields; data-dependent defaults resolved first."""
+    speeds = _parse_speeds(args.speeds)
+    fields = {k: v for k, v in vars(args).items() if k in TrainConfig.model_fields and v is not None}
+    fields |= {"overrides": _parse_set(args.set), "progress": not args.no_progress}
+    try:
+        TrainConfig(**{**fields, "speeds": speeds or ()})  # bad flags fail before the data is read
+        return TrainConfig(**{**fields, **small_data_defaults(args, speeds)})
+    except ValidationError as e:
+        raise ValueError(_flag_errors(e)) from None
+
+
+def _run(args) -> int:
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    last = train(config_from_args(args))
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"checkpoint: {last}")
     return 0

@@ -17,3 +17,54 @@ def zeggs_dir():
     if not ZEGGS_DIR.is_dir():
         pytest.skip(f"real ZEGGS sample not found at {ZEGGS_DIR} (only present beside the dev checkout)")
     return ZEGGS_DIR
+
+
+# Fixtures shared by several test modules (a test module never imports another one).
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """A random-init `tiny` model on the synthetic skeleton, saved like a trained one (fast, exact)."""
+    import numpy as np
+    import torch
+
+    from dimgestor.checkpoint import save_checkpoint
+    from dimgestor.config import get_preset
+    from dimgestor.features import FeatureSpec
+    from dimgestor.model import DiMGestor
+    from dimgestor.synthetic import synthetic_skeleton
+
+    sk = synthetic_skeleton()
+    spec = FeatureSpec.for_skeleton(sk)
+    torch.manual_seed(0)
+    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
+    rng = np.random.default_rng(0)
+    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
+
+
+@pytest.fixture(scope="module")
+def bundle(tiny_checkpoint):
+    """`tiny_checkpoint` loaded (modules that need another model define their own `bundle`)."""
+    from dimgestor.checkpoint import load_checkpoint
+
+    return load_checkpoint(tiny_checkpoint)
+
+
+@pytest.fixture(scope="module")
+def wav(tmp_path_factory):
+    """WAV_SECONDS of synthetic speech at the model's rate, for `streamer serve --source`."""
+    from dimgestor.audio import SAMPLE_RATE, save_wav
+    from dimgestor.synthetic import synthetic_speech
+    from helpers.serve import WAV_SECONDS
+
+    path = tmp_path_factory.mktemp("audio") / "speech.wav"
+    save_wav(path, synthetic_speech(WAV_SECONDS, seed=4), SAMPLE_RATE)
+    return path
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """The client tests' tiny checkpoint (its own seed, so their recorded numbers stay as they were)."""
+    from helpers.clients import make_tiny_checkpoint
+
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"))

@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from test_clients_python import REPO, SPEECH_WAV, checkpoint, live_server, record, reference_decode  # noqa: F401
+from helpers.clients import REPO, SPEECH_WAV, live_server, record, reference_decode
 
 NODE, MCS, MONO, GXX = (shutil.which(x) for x in ("node", "mcs", "mono", "g++"))
 pytestmark = pytest.mark.timeout(180)

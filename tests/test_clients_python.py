@@ -1,214 +1,16 @@
-"""clients/python/client.py against a live `streamer serve`; also the live-server helpers the other
-client tests (web, Unity, Unreal) import: start a server on free ports, record its messages."""
+"""clients/python/client.py against a live `streamer serve` (helpers in tests/helpers/clients.py)."""
 
-from __future__ import annotations
-
-import json
-import os
 import signal
-import socket
-import struct
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-CLIENT = REPO / "clients" / "python" / "client.py"
-SPEECH_WAV = REPO / "dimgestor" / "assets" / "demo_en.wav"  # espeak-ng speech, 16 kHz mono PCM16
-FRAME_HEADER = struct.Struct("<4sId3f")  # docs/protocol.md: magic, index, pts, root xyz; then f32[J*4]
+from helpers.clients import CLIENT, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
 
 pytestmark = pytest.mark.timeout(180)
-
-
-# ---------------------------------------------------------------- live server helpers
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def make_tiny_checkpoint(folder: Path) -> Path:
-    """A random-init `tiny` model on the synthetic skeleton, saved the way training saves one.
-
-    Random weights still give motion that follows the audio and the noise, which is all a client test needs.
-    """
-    import torch
-
-    from dimgestor.checkpoint import save_checkpoint
-    from dimgestor.config import get_preset
-    from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
-    from dimgestor.synthetic import synthetic_skeleton
-
-    skeleton = synthetic_skeleton()
-    spec = FeatureSpec.for_skeleton(skeleton)
-    torch.manual_seed(1)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
-    rng = np.random.default_rng(1)
-    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
-    return save_checkpoint(folder / "tiny", model, spec, skeleton, mean, std, info={"test": "clients"})
-
-
-@dataclass
-class LiveServer:
-    ws_url: str
-    http_url: str | None
-    proc: subprocess.Popen
-    log: Path
-
-    def log_tail(self, n: int = 40) -> str:
-        return "\n".join(self.log.read_text(errors="replace").splitlines()[-n:])
-
-
-@contextmanager
-def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool = False, loop: bool = False,
-                fast: bool = False, extra: tuple[str, ...] = ()):
-    """`streamer serve` in a subprocess on free ports; yields once its WebSocket accepts connections."""
-    ws_port = free_port()
-    http_port = free_port() if http else None
-    args = ["serve", "--source", source, "--ws", f"127.0.0.1:{ws_port}", "--steps", "2", "--status-every", "0"]
-    if checkpoint is not None:
-        args += ["--checkpoint", str(checkpoint)]
-    if http:
-        args += ["--http", str(http_port)]
-    if loop:
-        args.append("--loop")
-    if fast:
-        args.append("--fast")
-    args += list(extra)
-    cmd = [sys.executable, "-c", "import sys; from streamer.cli import main; sys.exit(main())", *args]
-    log = tmp / f"server_{ws_port}.log"
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
-    with open(log, "w") as out:
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
-    server = LiveServer(f"ws://127.0.0.1:{ws_port}/", f"http://127.0.0.1:{http_port}/" if http else None, proc, log)
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None:
-                raise RuntimeError(f"streamer serve exited with {proc.returncode}:\n{server.log_tail()}")
-            try:
-                socket.create_connection(("127.0.0.1", ws_port), timeout=0.5).close()
-                if not http or socket.create_connection(("127.0.0.1", http_port), timeout=0.5):
-                    break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"streamer serve did not listen within 120 s:\n{server.log_tail()}")
-                time.sleep(0.2)
-        yield server
-    finally:
-        if proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-
-
-def run_client(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
-    """clients/python/client.py as a user runs it; fails the test with its output when it fails."""
-    r = subprocess.run([sys.executable, str(CLIENT), *args], capture_output=True, text=True, timeout=timeout, cwd=REPO)
-    assert r.returncode == 0, f"client.py {' '.join(args)} exited {r.returncode}:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
-    return r
-
-
-def record(server: LiveServer, folder: Path, frames: int, binary: bool) -> list[Path]:
-    """Save the first messages a client receives (hello, frames, status...) verbatim into `folder`."""
-    run_client("--url", server.ws_url, "--frames", str(frames), "--save", str(folder), "--quiet",
-               *(["--binary"] if binary else []))
-    return sorted(folder.iterdir())
-
-
-def reference_decode(path: Path) -> dict:
-    """What the server sent, decoded straight from the spec (json module / struct), for comparisons."""
-    if path.suffix == ".json":
-        return json.loads(path.read_text())
-    buf = path.read_bytes()
-    magic, index, pts, *root = FRAME_HEADER.unpack_from(buf)
-    assert magic == b"DGF1"
-    rot = np.frombuffer(buf, "<f4", offset=FRAME_HEADER.size).astype(np.float64).reshape(-1, 4)
-    return {"type": "frame", "index": index, "pts": pts, "root": root, "rotations": rot.tolist()}
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
-def global_rotations(parents: list[int], local: np.ndarray) -> np.ndarray:
-    g = np.empty_like(local)
-    for j, p in enumerate(parents):
-        g[j] = local[j] if p < 0 else quat_mul(g[p], local[j])
-    return g
-
-
-def quat_matrix(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def check_decoded(records: list[Path], decoded: list[dict]) -> None:
-    """A compiled decoder's output (one JSON line per recorded message) equals what the server sent."""
-    by_file = {d["file"]: d for d in decoded}
-    assert [p.name for p in records] == sorted(by_file), "decoder skipped or invented messages"
-    hello = None
-    n_frames = 0
-    for path in records:
-        ref, got = reference_decode(path), by_file[path.name]
-        assert "error" not in got, f"{path.name}: {got.get('error')}"
-        assert got["type"] == ref["type"], path.name
-        if ref["type"] == "hello":
-            hello = ref
-            sk = ref["skeleton"]
-            assert got["joints"] == len(sk["joints"]) and got["humanoid"] == len(ref["humanoid"])
-            assert got["fps"] == ref["fps"] and got["audio_rate"] == ref["audio"]["rate"]
-            np.testing.assert_allclose(got["offset_last"], sk["offsets"][-1], rtol=0, atol=1e-12)
-        elif ref["type"] == "frame":
-            n_frames += 1
-            assert hello is not None, "frame before hello"
-            exact = path.suffix == ".bin"  # float32 on the wire widens to double exactly
-            tol = 0 if exact else 1e-12
-            rot = np.asarray(ref["rotations"], np.float64)
-            root = np.asarray(ref["root"], np.float64)
-            assert got["index"] == ref["index"]
-            np.testing.assert_allclose(got["pts"], ref["pts"], rtol=0, atol=tol)
-            np.testing.assert_allclose(got["root"], root, rtol=0, atol=tol)
-            np.testing.assert_allclose(got["rotations"], rot, rtol=0, atol=tol)
-            assert rot.shape == (len(hello["skeleton"]["joints"]), 4)
-            # Unity: mirror X. Positions in metres, quaternion (w, x, -y, -z).
-            np.testing.assert_allclose(got["unity_root"], root * [-0.01, 0.01, 0.01], rtol=0, atol=1e-12)
-            np.testing.assert_allclose(got["unity_rotations"], rot * [1, 1, -1, -1], rtol=0, atol=0)
-            g = global_rotations(hello["skeleton"]["parents"], rot)
-            np.testing.assert_allclose(got["global_rotations"], g, rtol=0, atol=1e-9)
-            if "unreal_root" in got:  # (x, y, z) -> (z, -x, y) cm; quaternion (w, -z, x, -y)
-                np.testing.assert_allclose(got["unreal_root"], root[[2, 0, 1]] * [1, -1, 1], rtol=0, atol=1e-9)
-                np.testing.assert_allclose(got["unreal_rotations"], rot[:, [0, 3, 1, 2]] * [1, -1, 1, -1], rtol=0, atol=0)
-    assert n_frames > 0
-
-
-def check_axis_conversion(m: np.ndarray, rot_out: np.ndarray, rot_in: np.ndarray) -> None:
-    """The converted quaternion is the same rotation seen through the change of axes m: R' = m R m^T."""
-    for q_in, q_out in zip(rot_in, rot_out):
-        np.testing.assert_allclose(quat_matrix(q_out), m @ quat_matrix(q_in) @ m.T, atol=1e-6)
-
-
-# ---------------------------------------------------------------- the Python example client
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"))
 
 
 def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkpoint):
@@ -263,7 +65,6 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic
     """`--mic` through real PortAudio at the device's 44.1 kHz: speech played into a virtual sound card comes
     back as gestures (the embedded default model) that move faster than in the silence played after it;
     the first Ctrl-C sends audio_end and waits for the session's last frames."""
-    from test_streamer_mic import joint_speed
     from virtual_mic import speech_then_silence
 
     talk = speech_then_silence(tmp_path / "talk.wav", 4.0, 4.0)

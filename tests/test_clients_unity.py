@@ -10,8 +10,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from test_clients_python import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded, checkpoint,  # noqa: F401
-                                 global_rotations, live_server, quat_matrix, record, reference_decode)
+from helpers.clients import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded,
+                             global_rotations, live_server, quat_matrix, record, reference_decode)
 
 UNITY = REPO / "clients" / "unity"
 MCS, MONO = shutil.which("mcs"), shutil.which("mono")

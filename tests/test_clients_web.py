@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from test_clients_python import REPO, SPEECH_WAV, checkpoint, global_rotations, live_server, quat_matrix  # noqa: F401
+from helpers.clients import REPO, SPEECH_WAV, global_rotations, live_server, quat_matrix
 from vrm_model import make_vrm
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

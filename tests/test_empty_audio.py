@@ -7,7 +7,7 @@ import wave
 
 import numpy as np
 
-from test_clients_python import REPO, live_server, make_tiny_checkpoint, run_client
+from helpers.clients import REPO, live_server, make_tiny_checkpoint, run_client
 import pytest
 
 

@@ -6,7 +6,7 @@ import pytest
 
 from dimgestor.smoothing import OneEuroFilter
 from dimgestor.stream import GestureStream, generate_offline
-from test_stream import _audio, _model, _stream
+from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces as _stream
 
 
 def test_constant_signal_passes_unchanged_and_first_frame_is_kept():

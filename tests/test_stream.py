@@ -6,35 +6,7 @@ from dimgestor.config import get_preset
 from dimgestor.diffusion import Diffusion
 from dimgestor.model import DiMGestor
 from dimgestor.stream import GestureStream, generate_offline
-
-
-def _model(**overrides):
-    model = DiMGestor(get_preset("tiny", **overrides))
-    torch.manual_seed(1)
-    with torch.no_grad():  # break the zero init so the frames depend on everything
-        for p in model.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    return model
-
-
-def _audio(seconds, seed=0):
-    rng = np.random.default_rng(seed)
-    n = int(seconds * 16000)
-    env = 0.5 + 0.5 * np.sin(np.arange(n) / 1600)
-    return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
-
-
-def _stream(model, audio, sizes, **kw):
-    s = GestureStream(model, **kw)
-    out, i = [], 0
-    for n in sizes:
-        out.append(s.push(audio[i:i + n]))
-        i += n
-    assert i == len(audio)
-    out.append(s.finish())
-    frames = np.concatenate(out)
-    assert s.frames_out == len(frames)
-    return frames
+from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces as _stream
 
 
 @pytest.fixture(scope="module")

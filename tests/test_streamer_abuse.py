@@ -17,8 +17,7 @@ from websockets.asyncio.client import connect
 
 from dimgestor.synthetic import synthetic_speech
 from streamer_abusers import PATTERNS, abuse
-from test_streamer_cli import serve, wav  # noqa: F401 (fixture)
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from helpers.serve import serve
 
 pytestmark = pytest.mark.timeout(150)
 PHASE_S = 3.0

@@ -13,7 +13,8 @@ import pytest
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import read_bvh
 from streamer.sources import DEMO_WAV
-from test_streamer_cli import REPO, follow, osc_server, bundles, check_vmc_bundle, Serve
+from helpers.serve import REPO, Serve, follow
+from helpers.vmc import bundles, check_vmc_bundle, osc_server
 
 DEFAULT_MODEL = REPO / "dimgestor" / "default_model"
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]

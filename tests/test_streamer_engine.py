@@ -7,36 +7,14 @@ import pytest
 
 from dimgestor.audio import save_wav
 from dimgestor.bvh import read_bvh, write_bvh
-import torch
-
-from dimgestor.checkpoint import load_checkpoint, save_checkpoint
-from dimgestor.config import get_preset
-from dimgestor.features import FeatureSpec, features_to_motion
-from dimgestor.model import DiMGestor
+from dimgestor.features import features_to_motion
 from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
+from dimgestor.synthetic import synthetic_speech
 from streamer.engine import Session
 from streamer.record import BvhRecorder
 from streamer.sources import WavSource
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(scope="session")
-def tiny_checkpoint(tmp_path_factory):
-    """A random-init `tiny` model on the synthetic skeleton, saved like a trained one (fast, exact)."""
-    sk = synthetic_skeleton()
-    spec = FeatureSpec.for_skeleton(sk)
-    torch.manual_seed(0)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
-    rng = np.random.default_rng(0)
-    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
-
-
-@pytest.fixture(scope="module")
-def bundle(tiny_checkpoint):
-    return load_checkpoint(tiny_checkpoint)
 
 
 @pytest.mark.parametrize("window_ms", [10, 130, 1000])

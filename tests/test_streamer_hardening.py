@@ -23,9 +23,8 @@ from streamer.engine import Frame, Session
 from streamer.http import ViewerServer
 from streamer.record import BvhRecorder
 from streamer.server import ServeError, read_token, viewer_origins
-from test_streamer_cli import REPO, serve, wav  # noqa: F401 (fixture)
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
-from test_streamer_ws import bundle, make_server, recv_json  # noqa: F401 (fixture)
+from helpers.serve import REPO, serve
+from helpers.ws import make_server, recv_json
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from test_streamer_cli import REPO, Serve
+from helpers.serve import REPO, Serve
+from helpers.clients import joint_speed
 from virtual_mic import speech_then_silence, virtual_mic
 
 pytestmark = pytest.mark.timeout(180)
@@ -40,13 +41,6 @@ def test_devices_lists_the_virtual_microphones_with_their_rates(vmic):
     assert "vspeaker" not in names  # playback only: not an input
     assert names["vmic44"][1] == "ALSA" and names["vmic44"][2] in (44100, 48000)
     assert [name for name, (mark, _, _) in names.items() if mark == "*"] == ["default"]
-
-
-def joint_speed(frames: list[dict], fps: float) -> np.ndarray:
-    """Per frame step: mean over joints of the rotation angle between consecutive frames, in rad/s."""
-    q = np.array([f["rotations"] for f in frames])  # (T, J, 4)
-    dot = np.abs(np.sum(q[1:] * q[:-1], axis=-1)).clip(0, 1)
-    return (2 * np.arccos(dot)).mean(axis=1) * fps
 
 
 async def watch_while_playing(url: str, vmic, wav, sink: str, seconds: float):

@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from test_streamer_cli import serve, wav  # noqa: F401 (fixture)
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from helpers.serve import serve
 from udp_capture import UdpCapture
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow,

@@ -10,37 +10,13 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from dimgestor.checkpoint import load_checkpoint
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.engine import Frame, Session
-from streamer.pose import HumanoidRig, load_humanoid_map
-from streamer.ws import WsServer
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
+from streamer.engine import Frame
+from helpers.ws import make_server, recv_json
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(scope="module")
-def bundle(tiny_checkpoint):
-    return load_checkpoint(tiny_checkpoint)
-
-
-def make_server(bundle, **kw) -> WsServer:
-    sk = bundle.skeleton
-    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
-    hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True)
-    return WsServer("127.0.0.1", 0, hello, lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100), **kw)
-
-
-async def recv_json(c, timeout=10.0):
-    while True:
-        m = await asyncio.wait_for(c.recv(), timeout)
-        if isinstance(m, str):
-            d = json.loads(m)
-            if d["type"] != "status":
-                return d
 
 
 def test_garbage_gets_an_error_and_the_connection_keeps_being_served(bundle):

@@ -1,5 +1,6 @@
 """Training on the synthetic fixture: the validation loss falls, --resume continues exactly, checkpoints load."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -90,7 +91,7 @@ def test_recipes_set_the_diffusion_and_the_losses():
     assert (cfg["n_steps"], cfg["schedule"], cfg["prediction"]) == (1000, "linear", "eps")
     assert w == {"vel_weight": 0.0, "acc_weight": 0.0, "root_weight": 0.0}  # the paper's plain noise MSE
     cfg, w = resolve_recipe(TrainOptions(data="", out=""))  # the default recipe
-    assert cfg == RECIPES["streaming"]["config"] and cfg["prediction"] == "x0" and cfg["n_steps"] <= 16
+    assert cfg == RECIPES["streaming"].config and cfg["prediction"] == "x0" and cfg["n_steps"] <= 16
     assert w["vel_weight"] > 0 and w["acc_weight"] > 0 and w["root_weight"] > 0
     cfg, w = resolve_recipe(TrainOptions(data="", out="", overrides={"noise_taps": 3}, vel_weight=0.0))
     assert cfg["noise_taps"] == 3 and w["vel_weight"] == 0.0  # explicit settings win over the recipe
@@ -194,3 +195,62 @@ def test_resume_with_augmentation_continues_exactly(data, tmp_path):
     assert load_checkpoint(whole).info["options"]["augment"] is True
     # validation stays clean: step 0 is the same untrained EMA model on the same held-out windows
     assert _log(tmp_path / "whole")[0]["valid_loss"] == _log(tmp_path / "plain")[0]["valid_loss"]
+
+
+def test_train_config_is_validated_once_and_frozen():
+    from pydantic import ValidationError
+
+    from dimgestor.train import TrainConfig
+
+    c = TrainConfig(data=Path("d"), out="o", speeds=[0.9, 1.1])
+    assert c.speeds == (0.9, 1.1) and c.data == "d" and c.warmup == 200 and c.grad_clip == 1.0
+    with pytest.raises(ValidationError):
+        c.max_steps = 5  # frozen: a run's options are what was validated
+    for bad in (dict(max_steps=0), dict(lr=0.0), dict(ema=1.0), dict(warmup=-1), dict(weight_decay=-0.1),
+                dict(grad_clip=-1.0), dict(speeds=(0.9, 0.0)), dict(heading="sideways"), dict(cond_drop=1.5),
+                dict(aug_config={"p_pitch": 2.0}), dict(nonsense=1)):
+        with pytest.raises(ValidationError):
+            TrainConfig(data="d", out="o", **bad)
+
+
+def test_saved_options_read_back_including_a_checkpoint_from_before_train_config():
+    from dimgestor.checkpoint import DEFAULT_MODEL_DIR
+    from dimgestor.train import TrainConfig
+
+    saved = json.loads((DEFAULT_MODEL_DIR / "config.json").read_text())["info"]["options"]
+    assert "augment" not in saved and "cond_drop" not in saved  # saved by the TrainOptions dataclass
+    c = TrainConfig.from_saved(saved)
+    assert c.speeds == tuple(saved["speeds"]) and c.max_steps == saved["max_steps"] and c.augment is False
+    with pytest.raises(ValueError, match="does not have: \\['retired'\\]"):
+        TrainConfig.from_saved({**saved, "retired": 1})
+
+
+def test_a_run_saved_by_the_previous_code_resumes_exactly(data, tmp_path):
+    """Resuming reads weights, optimizer, generators and history from train_state.pt, never the saved options:
+    a run whose options were saved in the old layout (the TrainOptions dataclass's vars, fewer fields) resumes."""
+    cache = tmp_path / "cache"
+    whole = train(_opts(data, tmp_path / "whole", cache, max_steps=40))
+    part = train(_opts(data, tmp_path / "part", cache, max_steps=20))
+    ts = torch.load(part / "train_state.pt", weights_only=False)
+    old = {k: v for k, v in ts["options"].items() if k not in ("augment", "aug_copies", "aug_config", "cond_drop")}
+    torch.save({**ts, "options": {**old, "speeds": list(old["speeds"])}}, part / "train_state.pt")
+    resumed = train(_opts(data, tmp_path / "part", cache, max_steps=40, resume=True))
+    a, b = load_checkpoint(whole).model.state_dict(), load_checkpoint(resumed).model.state_dict()
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-6), k
+    saved = load_checkpoint(resumed).info["options"]  # written anew, in the current layout
+    assert saved["max_steps"] == 40 and saved["cond_drop"] is None and "resume" not in saved
+
+
+def test_cli_sets_warmup_weight_decay_and_grad_clip(data, tmp_path, monkeypatch, capsys):
+    import dimgestor.train as train_module
+    from dimgestor.cli import main
+
+    seen = {}
+    monkeypatch.setattr(train_module, "train", lambda opts: seen.setdefault("opts", opts) and tmp_path)
+    common = ["train", "--data", str(data), "--out", str(tmp_path / "r"), "--cache-dir", str(tmp_path / "c")]
+    assert main(common + ["--warmup", "7", "--weight-decay", "0.01", "--grad-clip", "0", "--set", "noise_taps=3"]) == 0
+    o = seen["opts"]
+    assert (o.warmup, o.weight_decay, o.grad_clip, o.overrides, o.progress) == (7, 0.01, 0.0, {"noise_taps": 3}, True)
+    assert main(common + ["--grad-clip", "-1"]) == 2
+    assert "--grad-clip" in capsys.readouterr().err
