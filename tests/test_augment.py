@@ -257,3 +257,30 @@ def test_reverb_keeps_the_direct_path_and_decays_at_rt60():
     edc = 10 * np.log10(e / e[0])
     t20 = (np.argmax(edc < -25) - np.argmax(edc < -5)) / SR
     assert abs(3 * t20 - rt60) < 0.1 * rt60  # RT60 from the -5..-25 dB slope
+
+
+@pytest.mark.slow
+def test_feature_change_benchmark_runs_and_reports_every_effect(tmp_path):
+    """benchmarks/augment_features.py on a short synthetic clip: every effect measured, onsets in place."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from dimgestor.audio import save_wav
+
+    repo = Path(__file__).resolve().parents[1]
+    save_wav(tmp_path / "s.wav", syllables(3.0)[0], SR)
+    out = tmp_path / "r.json"
+    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "augment_features.py"), "--wav",
+                           str(tmp_path / "s.wav"), "--seeds", "1", "--out", str(out)], cwd=repo, capture_output=True,
+                          text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert len(r["effects"]) == 16 and r["reference_other_speech_nmse"] > 0.5
+    for name, row in r["effects"].items():
+        assert row["nmse"]["mean"] > 0, name
+        if "babble" not in name:  # other talkers bring their own onsets; on 3 s of syllables they can win
+            assert max(abs(row["onset_lag_ms"]["min"]), abs(row["onset_lag_ms"]["max"])) <= 10, name
+    assert r["effects"]["gain -30 dB"]["level_dbfs"]["mean"] < r["clean_level_dbfs"] - 29
