@@ -198,19 +198,21 @@ def buzz_speech(seconds: float, rng: np.random.Generator, rate: int = 16000) -> 
     return audio, {"phrases": phrases, "stresses": stresses}
 
 
-def gesture_motion(events: dict, n_frames: int, fps: float, rng: np.random.Generator) -> BvhMotion:
+def gesture_motion(events: dict, n_frames: int, fps: float, rng: np.random.Generator,
+                   engage_tau: float = 0.12) -> BvhMotion:
     """The rule's body motion for `events` (phrases [(start, end)] and stresses [(t, size)], seconds).
 
     Arms engage over each phrase (from 0.15 s before it to 0.1 s after), a minimum-jerk stroke of one or both
     hands starts 0.05 s before each stress (its length and hand drawn from rng), the head nods with it, and
-    the trunk and head sway slowly with random phases (also from rng).
+    the trunk and head sway slowly with random phases (also from rng). engage_tau: the time constant (s) of
+    the arms' rise into gesture space and return to rest.
     """
     n = n_frames
     time = np.arange(n) / fps
     speaking = np.zeros(n)
     for a, b in events["phrases"]:
         speaking[(time >= a - 0.15) & (time < b + 0.1)] = 1.0
-    engage = _critically_damped(speaking, fps, 0.12)  # arms up into gesture space while speaking
+    engage = _critically_damped(speaking, fps, engage_tau)  # arms up into gesture space while speaking
     stroke = {"Left": np.zeros(n), "Right": np.zeros(n)}
     nod = np.zeros(n)
     for t, loud in events["stresses"]:
