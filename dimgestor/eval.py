@@ -2,7 +2,10 @@
 
 Per K (`--ks`, whole held-out stretches or whole WAV files): hand jerk and area under jerk (beside the
 real capture's: the ratio is the jitter), speech/silence motion contrast, BeatAlign beside a
-shuffled-audio baseline, FGD, diversity across seeds, net turn and turning speed. With `--wavs DIR`
+shuffled-audio baseline, FGD, diversity across seeds, net turn and turning speed; and how much the hands
+follow the speech, each beside its chance level: loudness coupling (beside circularly shifted audio),
+onset alignment (beside onsets shuffled inside speech), wrist speed in speech over wrist speed in a 6 s
+silence inserted into each clip; per K also one row per clip (the per-voice table). With `--wavs DIR`
 (speech without motion) only the reference-free metrics are reported.
 
 Systems, each scored on the held-out (valid) windows of a data folder:
@@ -117,10 +120,45 @@ def score(windows: dict, audio: list, skeleton, spec, ae: metrics.MotionAutoenco
 
 
 KMETRICS = ("jerk_ratio", "auj_ratio", "hand_jerk", "contrast", "beat_align", "beat_align_shuffled", "fgd_feature",
-            "diversity", "net_yaw_deg", "max_yaw_deg", "yaw_speed_deg_s")
+            "diversity", "net_yaw_deg", "max_yaw_deg", "yaw_speed_deg_s") + (
+            "coupling", "coupling_shifted", "coupling_shifted_sd", "coupling_above", "onset_align", "onset_shuffled",
+            "silence_ratio")
+# the per-voice table (one row per clip, averaged over seeds): speech-drivenness, rest, smoothness
+VOICE_METRICS = ("coupling", "coupling_seed_sd", "coupling_shifted", "coupling_shifted_sd", "coupling_above",
+                 "onset_align", "onset_shuffled", "n_onsets", "contrast", "speed_speech", "speed_silence",
+                 "silence_ratio", "hand_jerk", "seconds")
+SILENCE_S = 6.0  # the silence inserted into each clip (issue 20's target: hands >= 3x calmer in it than in speech)
 
 
-def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 16000) -> dict:
+def drive_stats(hand_speed: np.ndarray, audio: np.ndarray, onsets: np.ndarray, mask: np.ndarray, fps: float,
+                sr: int = 16000, seed: int = 0) -> dict:
+    """Speech-drivenness of one clip's hand speed (T,): loudness coupling beside shifted audio, onset hits beside
+    onsets shuffled inside speech (counts, so that clips pool by their onsets)."""
+    mean, sd = metrics.shifted_coupling(hand_speed, audio, sr, fps)
+    shuffled = metrics.shuffled_onset_alignment(len(onsets), hand_speed, fps, mask == 1, seed=seed)
+    return {"coupling": metrics.speech_coupling(hand_speed, audio, sr, fps), "coupling_shifted": mean,
+            "coupling_shifted_sd": sd, "onset_hits": int(metrics.onset_hits(onsets, hand_speed, fps).sum()),
+            "onset_hits_shuffled": shuffled * len(onsets) if len(onsets) else 0.0}
+
+
+def silence_probe(audio: np.ndarray, sr: int = 16000, seconds: float = SILENCE_S) -> tuple[np.ndarray, float]:
+    """The clip with `seconds` of digital silence inserted at its quietest frame in the middle third (a pause
+    made longer, no word cut), and where (s)."""
+    n = len(audio) / sr
+    at = metrics.quietest_point(audio, sr, n / 3, 2 * n / 3)
+    return metrics.insert_silence(audio, sr, at, seconds), at
+
+
+def silence_stats(raw: np.ndarray, gapped: np.ndarray, at_s: float, skeleton, spec, sr: int = 16000,
+                  seconds: float = SILENCE_S) -> dict:
+    """Mean wrist speed (file units/s) in speech and inside the inserted silence, of motion made for `gapped`."""
+    fps = float(spec.fps)
+    speed = metrics.hand_speed(joint_positions(raw, skeleton, spec), metrics.hand_joints(skeleton.names), fps)
+    speaking, silent = metrics.inserted_silence_speeds(speed, gapped, sr, fps, at_s, seconds)
+    return {"speed_speech": speaking, "speed_silence": silent}
+
+
+def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 16000, seed: int = 0) -> dict:
     """Reference-free numbers of one clip's raw features (T, D) made for `audio`."""
     fps = float(spec.fps)
     pos = joint_positions(raw, skeleton, spec)
@@ -129,9 +167,10 @@ def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 160
     shifted = (onsets + len(audio) / sr / 2) % (len(audio) / sr)  # the same onsets, half a clip away
     beats = metrics.motion_beats(pos[:, upper], fps)
     heading = np.degrees(heading_track(raw, spec))
-    hand_speed = metrics.joint_speed(pos[:, hands], fps).mean(axis=1)
+    hand_speed = metrics.hand_speed(pos, hands, fps)
+    mask = metrics.speech_mask(audio, sr, fps, len(raw))
     return {"hand_jerk": metrics.jerk(pos[:, hands], fps), "auj": metrics.area_under_jerk(pos[:, upper], fps),
-            "hand_speed": hand_speed, "mask": metrics.speech_mask(audio, sr, fps, len(raw)),
+            "hand_speed": hand_speed, "mask": mask, **drive_stats(hand_speed, audio, onsets, mask, fps, sr, seed),
             "beat_hits": (metrics.beat_align(onsets, beats) * len(onsets)) if len(onsets) else 0.0,
             "beat_hits_shuffled": (metrics.beat_align(shifted, beats) * len(onsets)) if len(onsets) else 0.0,
             "n_onsets": len(onsets), "net_yaw_deg": float(heading[-1]),
@@ -155,26 +194,99 @@ def pool_stats(stats: list[dict]) -> dict:
             "yaw_speed_deg_s": float(np.average([s["yaw_speed_deg_s"] for s in stats], weights=w))}
 
 
-def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list[int], seeds: int, seed: int,
-             ae: metrics.MotionAutoencoder | None, log=print, smoothing=None) -> dict:
-    """{"reference": real motion's numbers or None, "per_k": {K: numbers}} over whole clips (audio, raw or None)."""
+def _nanmean(values, weights=None) -> float:
+    v = np.asarray(values, dtype=np.float64)
+    w = np.ones_like(v) if weights is None else np.asarray(weights, dtype=np.float64)
+    keep = np.isfinite(v)
+    return float(np.average(v[keep], weights=w[keep])) if keep.any() else float("nan")
+
+
+def voice_row(seed_stats: list[dict]) -> dict:
+    """One clip's per-voice numbers from its clip_stats (+ silence_stats) under several seeds: means over seeds;
+    coupling_above says whether the mean coupling clears the shifted-audio mean + 2 sd."""
+    s = seed_stats
+    onsets = s[0]["n_onsets"]
+    row = {"coupling": _nanmean([x["coupling"] for x in s]),
+           "coupling_seed_sd": float(np.std([x["coupling"] for x in s], ddof=1)) if len(s) > 1 else float("nan"),
+           "coupling_shifted": _nanmean([x["coupling_shifted"] for x in s]),
+           "coupling_shifted_sd": _nanmean([x["coupling_shifted_sd"] for x in s]),
+           "onset_align": sum(x["onset_hits"] for x in s) / (onsets * len(s)) if onsets else float("nan"),
+           "onset_shuffled": sum(x["onset_hits_shuffled"] for x in s) / (onsets * len(s)) if onsets else float("nan"),
+           "n_onsets": onsets, "contrast": _nanmean([metrics.speech_contrast(x["hand_speed"], x["mask"]) for x in s]),
+           "speed_speech": _nanmean([x.get("speed_speech", np.nan) for x in s]),
+           "speed_silence": _nanmean([x.get("speed_silence", np.nan) for x in s]),
+           "hand_jerk": _nanmean([x["hand_jerk"] for x in s]), "seconds": s[0]["seconds"]}
+    row["coupling_above"] = bool(row["coupling"] > row["coupling_shifted"] + 2 * row["coupling_shifted_sd"])
+    row["silence_ratio"] = row["speed_speech"] / row["speed_silence"] if row["speed_silence"] > 0 else float("nan")
+    return row
+
+
+def pool_drive(rows: list[dict]) -> dict:
+    """The per-K speech-drivenness numbers from the clips' voice_rows: coupling and its baseline weighted by
+    length, onset alignment by onsets, coupling_above the fraction of clips above chance, silence ratio of the
+    mean speeds."""
+    w = [r["seconds"] for r in rows]
+    onsets = [r["n_onsets"] for r in rows]
+    speech, silence = _nanmean([r["speed_speech"] for r in rows], w), _nanmean([r["speed_silence"] for r in rows], w)
+    return {"coupling": _nanmean([r["coupling"] for r in rows], w),
+            "coupling_shifted": _nanmean([r["coupling_shifted"] for r in rows], w),
+            "coupling_shifted_sd": _nanmean([r["coupling_shifted_sd"] for r in rows], w),
+            "coupling_above": float(np.mean([r["coupling_above"] for r in rows])),
+            "onset_align": _nanmean([r["onset_align"] for r in rows], onsets) if sum(onsets) else float("nan"),
+            "onset_shuffled": _nanmean([r["onset_shuffled"] for r in rows], onsets) if sum(onsets) else float("nan"),
+            "silence_ratio": speech / silence if silence > 0 else float("nan")}
+
+
+def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None) -> np.ndarray:
+    """Raw (denormalized) features (T, D) the model makes for a whole clip."""
     from .stream import generate_offline
 
+    gen = generate_offline(bundle.model, audio, steps=steps, seed=seed, smoothing=smoothing)
+    return np.asarray(bundle.denormalize(gen), np.float32)
+
+
+def seed_stats(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, sr: int = 16000,
+               silence_s: float = SILENCE_S) -> tuple[np.ndarray, dict]:
+    """The model's motion for `audio` under one seed, and its clip_stats with the inserted-silence speeds (the
+    model run again, same seed, on the clip with silence_s of silence inserted)."""
+    raw = generate_raw(bundle, audio, steps, seed, smoothing)
+    stats = clip_stats(raw, audio, bundle.skeleton, bundle.feature_spec, sr, seed)
+    gapped, at = silence_probe(audio, sr, silence_s)
+    stats.update(silence_stats(generate_raw(bundle, gapped, steps, seed, smoothing), gapped, at, bundle.skeleton,
+                               bundle.feature_spec, sr, silence_s), silence_at_s=at)
+    return raw, stats
+
+
+def voice_report(bundle, audio: np.ndarray, steps: int, seeds: int, seed: int = 0, smoothing=None) -> dict:
+    """The per-voice row of one clip: voice_row over seeds seed .. seed + seeds - 1."""
+    return voice_row([seed_stats(bundle, audio, steps, seed + j, smoothing)[1] for j in range(seeds)])
+
+
+def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list[int], seeds: int, seed: int,
+             ae: metrics.MotionAutoencoder | None, log=print, smoothing=None, names: list[str] | None = None) -> dict:
+    """{"reference": real motion's numbers or None, "per_k": {K: numbers}, "per_file": {K: {name: voice_row}}}
+    over whole clips (audio, raw or None)."""
+    names = names or [f"clip_{i}" for i in range(len(clips))]
     skeleton, spec = bundle.skeleton, bundle.feature_spec
     has_ref = all(raw is not None for _, raw in clips)
     ref = [clip_stats(raw, audio, skeleton, spec) for audio, raw in clips] if has_ref else None
     real_chunks = np.concatenate([metrics.motion_chunks(raw, ae.chunk, 8) for _, raw in clips]) if has_ref and ae else None
-    out = {"reference": pool_stats(ref) if ref else None, "per_k": {}}
+    out = {"reference": {**pool_stats(ref), **pool_drive([voice_row([r]) for r in ref])} if ref else None,
+           "per_k": {}, "per_file": {}}
     started = time.time()
     for K in ks:
-        per_seed = []
+        per_seed, clip_seed_stats = [], [[] for _ in clips]
         for j in range(seeds):
-            gens = [np.asarray(bundle.denormalize(generate_offline(bundle.model, audio, steps=K, seed=seed + j,
-                                                                   smoothing=smoothing)), np.float32)
-                    for audio, _ in clips]
+            gens = []
+            for i, (audio, _) in enumerate(clips):
+                raw, st = seed_stats(bundle, audio, K, seed + j, smoothing)
+                gens.append(raw)
+                clip_seed_stats[i].append(st)
             per_seed.append(gens)
-        stats = [clip_stats(g, audio, skeleton, spec) for g, (audio, _) in zip(per_seed[0], clips)]
-        row = pool_stats(stats)
+        stats = [s[0] for s in clip_seed_stats]  # the first seed's, as before the speech-drivenness measures
+        voices = [voice_row(s) for s in clip_seed_stats]
+        out["per_file"][str(K)] = dict(zip(names, voices))
+        row = {**pool_stats(stats), **pool_drive(voices)}
         upper = metrics.upper_body_joints(skeleton.names)
         ups = [[joint_positions(g, skeleton, spec)[:, upper] for g in gens] for gens in per_seed]
         pairs = [(a, b) for a in range(seeds) for b in range(a + 1, seeds)]
@@ -324,7 +436,7 @@ def run(args: argparse.Namespace) -> dict:
     if getattr(args, "wavs", None) is not None:
         clips, names = wav_clips(Path(args.wavs))
         print(f"{len(clips)} WAV files, {sum(len(a) for a, _ in clips) / 16000:.1f} s: reference-free metrics only")
-        rep = k_report(bundle, clips, ks, seeds, args.seed, None, smoothing=smoothing)
+        rep = k_report(bundle, clips, ks, seeds, args.seed, None, smoothing=smoothing, names=names)
         return {"checkpoint": str(args.checkpoint or "embedded default"), "wavs": str(args.wavs), "files": names,
                 "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, **rep, "notes": NOTES}
     data = Path(args.data)
@@ -342,7 +454,9 @@ def run(args: argparse.Namespace) -> dict:
     ae_path = Path(args.fgd_model) if args.fgd_model else default_ae_path(data, valid.spec)
     ae = fgd_autoencoder(train, ae_path, args.fgd_steps)
     gen = generate_systems(bundle, valid, train, ks[0], args.seed, args.max_windows, smoothing=smoothing)
-    rep = k_report(bundle, valid_clips(valid), ks, seeds, args.seed, ae, smoothing=smoothing)
+    clips = valid_clips(valid)
+    names = [f"{valid.clips[c].name}@{a / valid.fps:.1f}s" for c, a, _ in valid.segments]
+    rep = k_report(bundle, clips, ks, seeds, args.seed, ae, smoothing=smoothing, names=names)
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
@@ -366,7 +480,20 @@ NOTES = {"fgd_reference": "the valid split's real motion (so ground_truth has FG
          "diversity": "mean distance of the upper body between seeds at the same moment (file units)",
          "net_yaw_deg": "mean |net turn| of a whole clip (degrees); max_yaw_deg: its largest |heading| from the start; "
                         "yaw_speed_deg_s: mean turning speed",
-         "mean_speed": "mean speed of the same joints (file units/s)"}
+         "mean_speed": "mean speed of the same joints (file units/s)",
+         "coupling": "Pearson r between wrist speed (relative to the hips) and loudness in dB per 50 ms frame, both "
+                     "averaged over 0.5 s, best lag within +-0.2 s (metrics.speech_coupling); mean over seeds and clips",
+         "coupling_shifted": "the same against the clip's audio circularly shifted by 20 offsets from 10% to 90% of "
+                             "its length: the chance level (coupling_shifted_sd: their sd)",
+         "coupling_above": "fraction of clips whose coupling > coupling_shifted + 2 coupling_shifted_sd",
+         "onset_align": "fraction of speech onsets (as BeatAlign's) with a wrist-speed peak (local maximum above the "
+                        "clip mean) from 0.1 s before to 0.3 s after them (metrics.onset_alignment)",
+         "onset_shuffled": "the same for as many onsets placed at random inside speech (10 seeded draws): chance",
+         "silence_ratio": f"mean wrist speed in speech / inside {SILENCE_S:g} s of digital silence inserted at the "
+                          "quietest frame of each clip's middle third (0.75 s at both ends of it left out)",
+         "per_file": "per K, one row per clip (mean over seeds): coupling (coupling_seed_sd: its sd over seeds), "
+                     "its baseline, onset alignment, contrast in natural pauses, wrist speed in speech and in the "
+                     "inserted silence, wrist jerk"}
 
 
 def print_table(result: dict) -> None:
@@ -376,9 +503,22 @@ def print_table(result: dict) -> None:
             print(f"{name:20s}" + "".join(f"{vals[m]:13.4g}" for m in METRICS))
     rows = [("real", result["reference"])] if result.get("reference") else []
     rows += [(f"K={k}", v) for k, v in result["per_k"].items()]
-    print(f"\n{'':8s}" + "".join(f"{m:>20s}" for m in KMETRICS))
+    print_rows(rows, KMETRICS, 8)
+    for k, files in result.get("per_file", {}).items():
+        print(f"\nper file, K={k} (mean over {result.get('seeds')} seeds)")
+        print_rows(list(files.items()), VOICE_METRICS, max([len(n) for n in files] + [8]))
+
+
+def print_rows(rows: list[tuple[str, dict]], columns, first: int) -> None:
+    """A plain table: one line per (name, values), a column per metric as wide as its name."""
+    width = {m: max(len(m) + 2, 9) for m in columns}
+    print(f"{'':{first}s}" + "".join(f"{m:>{width[m]}s}" for m in columns))
     for name, vals in rows:
-        print(f"{name:8s}" + "".join(f"{vals.get(m, float('nan')):20.4g}" for m in KMETRICS))
+        cells = []
+        for m in columns:
+            v = vals.get(m, float("nan"))
+            cells.append(f"{str(v):>{width[m]}s}" if isinstance(v, bool) else f"{v:{width[m]}.3g}")
+        print(f"{name:{first}s}" + "".join(cells))
 
 
 def main_from_args(args: argparse.Namespace) -> int:

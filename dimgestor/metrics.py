@@ -356,3 +356,197 @@ def speech_contrast(speed: np.ndarray, mask: np.ndarray) -> float:
         return float("nan")
     return float(speech.mean() / max(silence.mean(), 1e-9))
 
+
+
+# --------------------------------------------------------------------------------------------------
+# Speech-drivenness: does hand motion follow this voice? (each measure beside its chance level)
+#
+# hand speed: mean speed of the two wrists relative to the hips, per motion frame (see `hand_speed`).
+# loudness: RMS of each motion frame's audio in dB. Correlations use Pearson's r.
+# --------------------------------------------------------------------------------------------------
+
+LOUDNESS_FLOOR_DB = -100.0  # digital silence reads as this rather than -inf
+
+
+def hand_speed(positions: np.ndarray, hands: list[int], fps: float) -> np.ndarray:
+    """(T,) mean speed of the `hands` joints (metrics.hand_joints) of hip-relative positions (T, J, 3)."""
+    return joint_speed(np.asarray(positions)[:, hands], fps).mean(axis=1)
+
+
+def loudness_db(audio: np.ndarray, sr: int, fps: float, n_frames: int | None = None) -> np.ndarray:
+    """(n_frames,) RMS of each motion frame's samples ([i, i+1) / fps s) in dB re full scale, floored at -100.
+
+    n_frames defaults to the whole frames the audio holds; frames past its end read as the floor.
+    """
+    a = np.asarray(audio, dtype=np.float64).reshape(-1)
+    hop = sr / fps
+    n = int(len(a) // hop) if n_frames is None else int(n_frames)
+    edges = np.clip(np.round(np.arange(n + 1) * hop).astype(np.int64), 0, len(a))
+    cum = np.concatenate([[0.0], np.cumsum(a * a)])
+    power = (cum[edges[1:]] - cum[edges[:-1]]) / np.maximum(edges[1:] - edges[:-1], 1)
+    floor = 10.0 ** (LOUDNESS_FLOOR_DB / 10.0)
+    return 10.0 * np.log10(np.maximum(power, floor))
+
+
+def boxcar(x: np.ndarray, width: int) -> np.ndarray:
+    """Running mean over `width` frames, 'valid' part only (len(x) - width + 1 values)."""
+    x = np.asarray(x, dtype=np.float64)
+    width = max(1, min(int(width), len(x)))
+    cum = np.concatenate([[0.0], np.cumsum(x)])
+    return (cum[width:] - cum[:-width]) / width
+
+
+def lagged_correlation(x: np.ndarray, y: np.ndarray, max_lag: int) -> tuple[float, int]:
+    """Best Pearson r of x[t + lag] against y[t] over |lag| <= max_lag frames, and that lag (nan if undefined).
+
+    A positive lag means x follows y (the hands move after the sound).
+    """
+    n = min(len(x), len(y))
+    x, y = np.asarray(x[:n], np.float64), np.asarray(y[:n], np.float64)
+    best, best_lag = -np.inf, 0
+    for lag in range(-max_lag, max_lag + 1):
+        a, b = (x[lag:], y[: n - lag]) if lag >= 0 else (x[: n + lag], y[-lag:])
+        if len(a) < 3 or a.std() < 1e-12 or b.std() < 1e-12:
+            continue
+        r = float(np.corrcoef(a, b)[0, 1])
+        if r > best:
+            best, best_lag = r, lag
+    return (best, best_lag) if np.isfinite(best) else (float("nan"), 0)
+
+
+def _coupling(speed: np.ndarray, loud: np.ndarray, fps: float, smooth_s: float, max_lag_s: float) -> float:
+    width = max(1, int(round(smooth_s * fps)))
+    return lagged_correlation(boxcar(speed, width), boxcar(loud, width), int(round(max_lag_s * fps)))[0]
+
+
+def speech_coupling(hand_speed: np.ndarray, audio: np.ndarray, sr: int, fps: float, smooth_s: float = 0.5,
+                    max_lag_s: float = 0.2) -> float:
+    """Pearson r between hand speed (T,) and loudness_db, both boxcar-averaged over `smooth_s`, at the best lag
+    within +-`max_lag_s` (motion may lead or follow speech). nan for a still body or a constant signal.
+
+    Read it beside `shifted_coupling` (the same statistic against unrelated stretches of the same audio):
+    the best of several lags of two slow signals is above 0 by chance.
+    """
+    speed = np.asarray(hand_speed, dtype=np.float64)
+    return _coupling(speed, loudness_db(audio, sr, fps, len(speed)), fps, smooth_s, max_lag_s)
+
+
+def shift_offsets(n_frames: int, n: int = 20, lo: float = 0.1, hi: float = 0.9) -> np.ndarray:
+    """n circular shifts (frames) evenly spaced from lo to hi of the clip: far from 0 at both ends."""
+    return np.unique(np.round(np.linspace(lo, hi, n) * n_frames).astype(np.int64))
+
+
+def shifted_coupling(hand_speed: np.ndarray, audio: np.ndarray, sr: int, fps: float, n: int = 20,
+                     smooth_s: float = 0.5, max_lag_s: float = 0.2, lo: float = 0.1,
+                     hi: float = 0.9) -> tuple[float, float]:
+    """Chance level of speech_coupling: mean and sd of it against the audio circularly shifted by n offsets
+    spread over lo..hi of the clip (the loudness track rolled by whole frames, which is the audio rolled by
+    whole frames). The same voice, the same motion, no relation in time.
+    """
+    speed = np.asarray(hand_speed, dtype=np.float64)
+    loud = loudness_db(audio, sr, fps, len(speed))
+    values = [_coupling(speed, np.roll(loud, int(k)), fps, smooth_s, max_lag_s)
+              for k in shift_offsets(len(speed), n, lo, hi)]
+    values = np.asarray([v for v in values if np.isfinite(v)])
+    if values.size == 0:
+        return float("nan"), float("nan")
+    return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+
+
+# Strokes coincide with or follow the stressed syllable by up to ~300 ms (McNeill's phonological synchrony
+# rule; Loehr 2004 measured apexes within about 0.3 s of pitch accents). 100 ms before the onset allows for
+# the 50 ms motion frames and the onset detector's smearing.
+ONSET_WINDOW_S = (-0.1, 0.3)
+
+
+def speed_peaks(speed: np.ndarray, threshold: float | None = None) -> np.ndarray:
+    """Frames where speed is a local maximum (above the frame before, not below the one after) and above
+    `threshold` (default: the clip mean, so the small wobbles of a resting hand do not count)."""
+    s = np.asarray(speed, dtype=np.float64)
+    if len(s) < 3:
+        return np.zeros(0, dtype=np.int64)
+    threshold = s.mean() if threshold is None else threshold
+    i = np.arange(1, len(s) - 1)
+    return i[(s[i] > s[i - 1]) & (s[i] >= s[i + 1]) & (s[i] > threshold)]
+
+
+def onset_hits(onsets_s: np.ndarray, hand_speed: np.ndarray, fps: float,
+               window_s: tuple[float, float] = ONSET_WINDOW_S) -> np.ndarray:
+    """(n_onsets,) bool: a hand-speed peak (speed_peaks) lies within onset + window_s[0] .. onset + window_s[1]."""
+    onsets = np.asarray(onsets_s, dtype=np.float64).reshape(-1)
+    peaks = speed_peaks(hand_speed) / fps
+    if onsets.size == 0 or peaks.size == 0:
+        return np.zeros(onsets.size, dtype=bool)
+    d = peaks[None, :] - onsets[:, None]  # peak time after each onset
+    return ((d >= window_s[0]) & (d <= window_s[1])).any(axis=1)
+
+
+def onset_alignment(onsets_s: np.ndarray, hand_speed: np.ndarray, fps: float,
+                    window_s: tuple[float, float] = ONSET_WINDOW_S) -> float:
+    """Fraction of speech onsets (audio_onsets) with a hand-speed peak within window_s of them (nan without
+    onsets). Read it beside shuffled_onset_alignment: busy hands hit many windows by chance."""
+    hits = onset_hits(onsets_s, hand_speed, fps, window_s)
+    return float(hits.mean()) if hits.size else float("nan")
+
+
+def shuffled_onsets(n_onsets: int, speech: np.ndarray, fps: float, rng: np.random.Generator) -> np.ndarray:
+    """n_onsets times (s) drawn uniformly inside the speech frames (speech: (T,) bool), sorted."""
+    frames = np.flatnonzero(speech)
+    if frames.size == 0 or n_onsets == 0:
+        return np.zeros(0)
+    return np.sort((rng.choice(frames, n_onsets) + rng.random(n_onsets)) / fps)
+
+
+def shuffled_onset_alignment(n_onsets: int, hand_speed: np.ndarray, fps: float, speech: np.ndarray,
+                             window_s: tuple[float, float] = ONSET_WINDOW_S, draws: int = 10,
+                             seed: int = 0) -> float:
+    """Chance level of onset_alignment: the same number of onsets relocated at random inside speech
+    (speech: (T,) bool, e.g. speech_mask(...) == 1), averaged over `draws` seeded draws. Inside speech,
+    so that a model that merely moves more while speaking does not score above it."""
+    if n_onsets == 0 or not np.any(speech):
+        return float("nan")
+    rng = np.random.default_rng(seed)
+    return float(np.mean([onset_hits(shuffled_onsets(n_onsets, speech, fps, rng), hand_speed, fps, window_s).mean()
+                          for _ in range(draws)]))
+
+
+# --------------------------------------------------------------------------------------------------
+# Rest: hands calm down when the speech stops (natural pauses: speech_mask / speech_contrast above)
+# --------------------------------------------------------------------------------------------------
+
+
+def insert_silence(audio: np.ndarray, sr: int, at_s: float, seconds: float, noise_dbfs: float | None = None,
+                   seed: int = 0) -> np.ndarray:
+    """The audio with `seconds` of digital silence (exact zeros) inserted at `at_s`; with noise_dbfs, white
+    noise of that RMS (dB re full scale, seeded) instead, as a quiet room would give."""
+    a = np.asarray(audio, dtype=np.float32).reshape(-1)
+    at, n = int(round(at_s * sr)), int(round(seconds * sr))
+    if not 0 <= at <= len(a):
+        raise ValueError(f"at_s {at_s} is outside the audio (0..{len(a) / sr:g} s)")
+    gap = np.zeros(n, dtype=np.float32)
+    if noise_dbfs is not None:
+        gap = (10.0 ** (noise_dbfs / 20.0) * np.random.default_rng(seed).standard_normal(n)).astype(np.float32)
+    return np.concatenate([a[:at], gap, a[at:]])
+
+
+def quietest_point(audio: np.ndarray, sr: int, lo_s: float, hi_s: float, fps: float = 20.0) -> float:
+    """Start time (s) of the quietest motion frame between lo_s and hi_s: where a pause can be lengthened
+    without cutting a word."""
+    loud = loudness_db(audio, sr, fps)
+    lo, hi = int(lo_s * fps), max(int(lo_s * fps) + 1, min(int(hi_s * fps), len(loud)))
+    return float((lo + int(np.argmin(loud[lo:hi]))) / fps)
+
+
+def inserted_silence_speeds(hand_speed: np.ndarray, audio: np.ndarray, sr: int, fps: float, at_s: float,
+                            seconds: float, guard_s: float = 0.75) -> tuple[float, float]:
+    """(mean hand speed in speech, mean hand speed inside an inserted silence) for motion made from
+    `audio` = insert_silence(..., at_s, seconds). Speech frames are speech_mask's; the silence excludes
+    `guard_s` at both of its ends (the stroke retracting, the next one preparing), as speech_mask does."""
+    speed = np.asarray(hand_speed, dtype=np.float64)
+    mask = speech_mask(audio, sr, fps, len(speed))
+    a, b = int(np.ceil((at_s + guard_s) * fps)), int(np.floor((at_s + seconds - guard_s) * fps))
+    inside = speed[max(a, 0):min(b, len(speed))]
+    speaking = speed[mask == 1]
+    if inside.size == 0 or speaking.size == 0:
+        return float("nan"), float("nan")
+    return float(speaking.mean()), float(inside.mean())

@@ -199,3 +199,144 @@ def test_upper_body_joints_skip_fingers_and_legs():
              "RightHandThumb1", "RightUpLeg", "RightLeg", "RightFoot"]
     assert [names[i] for i in metrics.upper_body_joints(names)] == [
         "Spine", "Neck", "Head", "RightShoulder", "RightArm", "RightForeArm", "RightHand"]
+
+
+# ---------------------------------------------------------------- speech-drivenness
+
+SR, FPS = 16000, 20
+
+
+def _speech_like(seconds: float = 60.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Syllables (voiced tone bursts of random length and loudness) in phrases separated by random pauses,
+    and the syllable onset times (s)."""
+    rng = np.random.default_rng(seed)
+    audio, onsets, t = np.zeros(int(seconds * SR), np.float32), [], 0.5
+    while t < seconds - 2.0:
+        for _ in range(rng.integers(3, 12)):  # a phrase
+            if t > seconds - 1.0:
+                break
+            dur = rng.uniform(0.12, 0.3)
+            n, start = int(dur * SR), int(t * SR)
+            env = np.hanning(n) * rng.uniform(0.05, 0.5)
+            audio[start:start + n] += (env * np.sin(2 * np.pi * rng.uniform(100, 250) * np.arange(n) / SR)).astype(np.float32)
+            onsets.append(t)
+            t += dur + rng.uniform(0.03, 0.15)
+        t += rng.uniform(0.4, 2.0)  # a pause
+    return audio, np.asarray(onsets)
+
+
+def test_loudness_db_of_a_sine_and_of_silence():
+    t = np.arange(2 * SR) / SR
+    audio = np.where(t < 1, 0.5 * np.sin(2 * np.pi * 200 * t), 0.0)
+    loud = metrics.loudness_db(audio, SR, FPS)
+    assert loud.shape == (40,)
+    np.testing.assert_allclose(loud[:20], 20 * np.log10(0.5 / np.sqrt(2)), atol=0.01)  # 200 Hz: 10 periods a frame
+    assert (loud[20:] == metrics.LOUDNESS_FLOOR_DB).all()
+    assert metrics.loudness_db(audio, SR, FPS, n_frames=45)[40:].tolist() == [metrics.LOUDNESS_FLOOR_DB] * 5
+
+
+def test_hands_that_follow_the_loudness_couple_far_above_the_shifted_baseline():
+    audio, _ = _speech_like()
+    loud = metrics.loudness_db(audio, SR, FPS)
+    speed = 10.0 + np.maximum(loud, -60.0)  # speed as an affine function of the clipped loudness: r ~ 1
+    r = metrics.speech_coupling(speed, audio, SR, FPS)
+    mean, sd = metrics.shifted_coupling(speed, audio, SR, FPS)
+    assert r > 0.9
+    assert abs(mean) < 0.2 and 0 < sd < 0.2
+    assert r > mean + 2 * sd
+
+
+def test_coupling_finds_a_lag_within_the_window_and_not_beyond():
+    audio, _ = _speech_like(seed=1)
+    speed = np.maximum(metrics.loudness_db(audio, SR, FPS), -60.0)
+    late = np.concatenate([np.full(3, speed[0]), speed[:-3]])  # the hands 150 ms after the sound
+    much_later = np.concatenate([np.full(20, speed[0]), speed[:-20]])  # 1 s after
+    assert metrics.speech_coupling(late, audio, SR, FPS) > 0.9
+    assert metrics.lagged_correlation(late, speed, 4)[1] == 3
+    assert metrics.speech_coupling(much_later, audio, SR, FPS) < 0.5
+
+
+def test_random_hand_speed_couples_at_its_baseline():
+    audio, _ = _speech_like(seed=2)
+    rng = np.random.default_rng(3)
+    speed = np.abs(np.convolve(rng.standard_normal(len(audio) // 800 + 20), np.ones(5) / 5, mode="same"))[:len(audio) // 800]
+    r = metrics.speech_coupling(speed, audio, SR, FPS)
+    mean, sd = metrics.shifted_coupling(speed, audio, SR, FPS)
+    assert abs(r - mean) < 3 * sd and abs(r - mean) < 0.3
+
+
+def test_coupling_of_a_still_body_is_undefined():
+    audio, _ = _speech_like(seconds=10.0)
+    assert np.isnan(metrics.speech_coupling(np.zeros(200), audio, SR, FPS))
+    assert all(np.isnan(metrics.shifted_coupling(np.zeros(200), audio, SR, FPS)))
+
+
+def _bumps(times_s: np.ndarray, n_frames: int, width_s: float = 0.08) -> np.ndarray:
+    t = np.arange(n_frames) / FPS
+    return 1.0 + sum(5.0 * np.exp(-0.5 * ((t - c) / width_s) ** 2) for c in times_s)
+
+
+def test_peaks_after_each_onset_align_and_random_peaks_score_as_shuffled():
+    audio, onsets = _speech_like(seed=4)
+    n = len(audio) // 800
+    speech = metrics.speech_mask(audio, SR, FPS, n) == 1
+    # sparse onsets (every 4th syllable) so that each gets its own peak
+    onsets = onsets[::4]
+    following = _bumps(onsets + 0.1, n)
+    assert metrics.onset_alignment(onsets, following, FPS) == 1.0
+    shuffled = metrics.shuffled_onset_alignment(len(onsets), following, FPS, speech, draws=20)
+    assert shuffled < 0.75
+    # peaks 0.5 s after the onsets are outside the stated window
+    assert metrics.onset_alignment(onsets, _bumps(onsets + 0.5, n), FPS, window_s=(-0.1, 0.3)) < shuffled
+    assert metrics.onset_alignment(onsets, _bumps(onsets + 0.5, n), FPS, window_s=(0.4, 0.6)) == 1.0
+
+    rng = np.random.default_rng(5)
+    random_peaks = _bumps(np.sort(rng.choice(np.flatnonzero(speech), len(onsets)) / FPS), n)
+    aligned = metrics.onset_alignment(onsets, random_peaks, FPS)
+    assert abs(aligned - metrics.shuffled_onset_alignment(len(onsets), random_peaks, FPS, speech, draws=20)) < 0.12
+
+
+def test_speed_peaks_need_to_rise_above_the_clip_mean():
+    speed = np.array([0, 1, 0, 0.1, 0.2, 0.1, 0, 3, 0, 0], float)
+    assert metrics.speed_peaks(speed).tolist() == [1, 7]  # the 0.2 wobble is below the mean (0.44)
+    assert metrics.speed_peaks(speed, threshold=0.0).tolist() == [1, 4, 7]
+    assert np.isnan(metrics.onset_alignment(np.zeros(0), speed, FPS))
+    assert metrics.onset_hits(np.array([0.3]), np.zeros(10), FPS).tolist() == [False]  # no peaks, no hits
+
+
+def test_shuffled_onset_alignment_is_deterministic_for_a_seed():
+    audio, onsets = _speech_like(seconds=20.0, seed=6)
+    n = len(audio) // 800
+    speed = _bumps(onsets[::3] + 0.1, n)
+    speech = metrics.speech_mask(audio, SR, FPS, n) == 1
+    a = metrics.shuffled_onset_alignment(30, speed, FPS, speech, seed=7)
+    assert a == metrics.shuffled_onset_alignment(30, speed, FPS, speech, seed=7)
+    times = metrics.shuffled_onsets(500, speech, FPS, np.random.default_rng(0))
+    assert speech[(times * FPS).astype(int)].all()  # relocated inside speech only
+
+
+def test_insert_silence_puts_exact_zeros_where_asked_and_keeps_the_rest():
+    audio = np.random.default_rng(8).uniform(0.1, 0.9, 5 * SR).astype(np.float32)  # no zeros of its own
+    out = metrics.insert_silence(audio, SR, at_s=2.0, seconds=6.0)
+    assert len(out) == len(audio) + 6 * SR
+    assert (out[2 * SR:8 * SR] == 0).all()
+    np.testing.assert_array_equal(out[:2 * SR], audio[:2 * SR])
+    np.testing.assert_array_equal(out[8 * SR:], audio[2 * SR:])
+    noisy = metrics.insert_silence(audio, SR, at_s=2.0, seconds=6.0, noise_dbfs=-60.0)
+    gap = noisy[2 * SR:8 * SR].astype(np.float64)
+    assert 20 * np.log10(np.sqrt(np.mean(gap**2))) == pytest.approx(-60.0, abs=0.1)
+    np.testing.assert_array_equal(noisy[8 * SR:], audio[2 * SR:])
+    with pytest.raises(ValueError, match="outside"):
+        metrics.insert_silence(audio, SR, at_s=6.0, seconds=1.0)
+
+
+def test_inserted_silence_speeds_and_quietest_point():
+    audio, _ = _speech_like(seconds=30.0, seed=9)
+    at = metrics.quietest_point(audio, SR, 10.0, 20.0)
+    assert 10.0 <= at < 20.0 and metrics.loudness_db(audio, SR, FPS)[int(at * FPS)] == metrics.LOUDNESS_FLOOR_DB
+    gapped = metrics.insert_silence(audio, SR, at, 6.0)
+    n = len(gapped) // 800
+    t = np.arange(n) / FPS
+    speed = np.where((t >= at) & (t < at + 6.0), 2.0, 10.0)  # calm in the inserted silence, busy elsewhere
+    speaking, silent = metrics.inserted_silence_speeds(speed, gapped, SR, FPS, at, 6.0)
+    assert (speaking, silent) == (10.0, 2.0)

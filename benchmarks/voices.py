@@ -1,0 +1,406 @@
+"""Does the motion follow the voice it is given? A per-voice table for one or more models (issue 20).
+
+For each voice: loudness coupling (metrics.speech_coupling) beside its circularly-shifted-audio baseline
+(mean, sd, and whether coupling > mean + 2 sd), onset alignment beside onsets shuffled inside speech,
+speech/pause contrast, wrist speed in speech over wrist speed in 6 s of silence inserted into the clip,
+and wrist jerk; each a mean over seeds (`dimgestor.eval.voice_report`, the same rows as
+`dimgestor eval --wavs`). Voices:
+
+  zeggs_heldout   the training speaker's held-out last 15 s (../shared ZEGGS sample), and the real
+                  capture's own numbers on that stretch and on the whole clip (references)
+  lawrence_*      BEAT speaker "lawrence", two takes (../shared/data/unseen_speech): unseen, real speech
+  demo_en/zh      the bundled espeak clips (dimgestor/assets)
+  espeak_*        espeak-ng voices in six languages at several pitches and rates, made at run time from
+                  the fixed texts below (sentences joined by fixed pauses, peak-normalized to -1 dBFS)
+
+summary: mean coupling over the unseen voices (lawrence + espeak_*), how many clear their chance level,
+mean onset margin over shuffled and mean silence ratio over them. Rows that need ../shared are skipped
+with a note when it is absent.
+
+    python benchmarks/voices.py                                  # the embedded default model, ~1-2 min
+    python benchmarks/voices.py --checkpoint runs/new --out /tmp/new.json
+    python benchmarks/voices.py --compare benchmarks/results/voices.json /tmp/new.json   # old vs new table
+    python benchmarks/voices.py --checkpoint default --checkpoint runs/new --label old --label new
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+ZEGGS = SHARED / "zeggs_sample"
+LAWRENCE = SHARED / "unseen_speech"
+SR = 16000
+SCHEMA = 1
+
+# Fixed texts (written for this benchmark), a sentence per item; pauses between sentences below.
+TEXTS = {
+    "en": ["Good morning, and thank you all for coming today.",
+           "I want to tell you a short story about a small town by the sea.",
+           "Every summer, the fishermen would paint their boats in bright colours.",
+           "Red, yellow, blue and green, all lined up along the harbour wall.",
+           "One year, a storm came in the night and scattered them across the bay.",
+           "Nobody was hurt, but the boats were everywhere!",
+           "So the whole town went out together, and brought them back, one by one.",
+           "That is what I love about that place: people simply help each other.",
+           "And that, I think, is the best reason to go back there."],
+    "de": ["Guten Morgen, und vielen Dank, dass Sie heute gekommen sind.",
+           "Ich möchte Ihnen eine kurze Geschichte über eine kleine Stadt am Meer erzählen.",
+           "Jeden Sommer haben die Fischer ihre Boote in hellen Farben gestrichen.",
+           "Rot, gelb, blau und grün, alle in einer Reihe an der Hafenmauer.",
+           "In einem Jahr kam nachts ein Sturm und verteilte sie über die ganze Bucht.",
+           "Niemand wurde verletzt, aber die Boote waren überall!",
+           "Also ging die ganze Stadt gemeinsam hinaus und holte sie zurück, eines nach dem anderen.",
+           "Das liebe ich an diesem Ort: Die Menschen helfen einander einfach."],
+    "fr": ["Bonjour à tous, et merci d'être venus aujourd'hui.",
+           "Je voudrais vous raconter une petite histoire sur un village au bord de la mer.",
+           "Chaque été, les pêcheurs peignaient leurs bateaux de couleurs vives.",
+           "Rouge, jaune, bleu et vert, tous alignés le long du port.",
+           "Une année, une tempête est arrivée dans la nuit et les a dispersés dans la baie.",
+           "Personne n'a été blessé, mais il y avait des bateaux partout !",
+           "Alors tout le village est sorti ensemble, et les a ramenés, un par un.",
+           "C'est ce que j'aime dans cet endroit : les gens s'entraident, tout simplement."],
+    "es": ["Buenos días a todos, y gracias por venir hoy.",
+           "Quiero contarles una pequeña historia sobre un pueblo junto al mar.",
+           "Cada verano, los pescadores pintaban sus barcos de colores brillantes.",
+           "Rojo, amarillo, azul y verde, todos en fila junto al muelle.",
+           "Un año, llegó una tormenta por la noche y los dispersó por toda la bahía.",
+           "Nadie salió herido, ¡pero había barcos por todas partes!",
+           "Así que todo el pueblo salió junto, y los trajo de vuelta, uno por uno.",
+           "Eso es lo que me encanta de ese lugar: la gente simplemente se ayuda."],
+    "cmn": ["大家早上好，谢谢你们今天来到这里。",
+            "我想给大家讲一个关于海边小镇的小故事。",
+            "每年夏天，渔民们都会把自己的船涂成鲜艳的颜色。",
+            "红色，黄色，蓝色和绿色，整整齐齐地排在码头边上。",
+            "有一年，夜里来了一场大风暴，把船吹得满海湾都是。",
+            "没有人受伤，可是到处都是船！",
+            "于是全镇的人一起出海，把船一条一条地拉了回来。",
+            "这就是我喜欢那个地方的原因：人们总是互相帮助。",
+            "我想，这也是我一定要回去的最好理由。"],
+}
+PAUSES_S = (0.6, 1.2, 0.8, 1.6, 0.7, 1.0, 2.0, 0.9)  # between sentences, cycled: natural pauses, some long
+LEAD_S = 0.5  # silence before the first sentence and after the last
+
+# (row name, espeak-ng voice, pitch 0-99, words per minute, text); --quick keeps the first three
+ESPEAK_VOICES = (
+    ("espeak_en-us_p50_s160", "en-us", 50, 160, "en"),
+    ("espeak_de_p40_s150", "de", 40, 150, "de"),
+    ("espeak_cmn_p60_s150", "cmn", 60, 150, "cmn"),
+    ("espeak_en-gb_p30_s140", "en-gb", 30, 140, "en"),
+    ("espeak_en-us+f3_p70_s180", "en-us+f3", 70, 180, "en"),
+    ("espeak_fr_p50_s165", "fr-fr", 50, 165, "fr"),
+    ("espeak_es_p55_s170", "es", 55, 170, "es"),
+    ("espeak_cmn_p35_s130", "cmn", 35, 130, "cmn"),
+)
+UNSEEN_GROUPS = ("lawrence", "espeak")
+
+
+def espeak_version() -> str | None:
+    exe = shutil.which("espeak-ng")
+    if exe is None:
+        return None
+    return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.strip()
+
+
+def espeak_clip(voice: str, pitch: int, wpm: int, sentences: list[str], folder: Path) -> np.ndarray:
+    """The sentences spoken one by one by espeak-ng, joined by PAUSES_S, peak at -1 dBFS, 16 kHz mono."""
+    from dimgestor.audio import load_wav
+
+    parts = [np.zeros(int(LEAD_S * SR), np.float32)]
+    for i, text in enumerate(sentences):
+        path = folder / f"{voice}_{pitch}_{wpm}_{i}.wav"
+        subprocess.run(["espeak-ng", "-v", voice, "-p", str(pitch), "-s", str(wpm), "-w", str(path), text],
+                       check=True, capture_output=True)
+        parts.append(load_wav(path))
+        parts.append(np.zeros(int((PAUSES_S[i % len(PAUSES_S)] if i < len(sentences) - 1 else LEAD_S) * SR),
+                              np.float32))
+    audio = np.concatenate(parts)
+    return (audio * (10 ** (-1 / 20) / max(np.abs(audio).max(), 1e-9))).astype(np.float32)
+
+
+def collect_voices(quick: bool, folder: Path) -> tuple[dict, dict]:
+    """({name: {"group", "source", "audio", ["real": raw features]}}, {name: why skipped})."""
+    from dimgestor.audio import load_wav
+
+    voices, skipped = {}, {}
+    if (ZEGGS / "067_Speech_2_x_1_0.wav").is_file():
+        voices["zeggs_heldout"] = {"group": "heldout", "source": "067_Speech_2_x_1_0.wav, last 15 s"}
+    else:
+        skipped["zeggs_heldout"] = f"{ZEGGS} not found (the ZEGGS sample lives beside the dev checkout)"
+    takes = sorted(LAWRENCE.glob("*.wav")) if LAWRENCE.is_dir() else []
+    for p in takes:
+        voices[f"lawrence_{p.stem.split('_', 2)[-1]}"] = {"group": "lawrence", "source": p.name, "audio": load_wav(p)}
+    if not takes:
+        skipped["lawrence"] = f"{LAWRENCE} not found (BEAT takes live beside the dev checkout)"
+    for name in ("demo_en", "demo_zh"):
+        voices[name] = {"group": "demo", "source": f"dimgestor/assets/{name}.wav",
+                        "audio": load_wav(REPO / "dimgestor" / "assets" / f"{name}.wav")}
+    if espeak_version() is None:
+        skipped["espeak"] = "espeak-ng not installed (apt-get install espeak-ng)"
+        return voices, skipped
+    for name, voice, pitch, wpm, lang in ESPEAK_VOICES[:3] if quick else ESPEAK_VOICES:
+        voices[name] = {"group": "espeak", "source": f"espeak-ng -v {voice} -p {pitch} -s {wpm}, text '{lang}'",
+                        "audio": espeak_clip(voice, pitch, wpm, TEXTS[lang], folder)}
+    return voices, skipped
+
+
+def zeggs_real(bundle) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(held-out audio, its real raw features, whole-clip audio, whole-clip features) of the ZEGGS sample."""
+    from dimgestor.dataset import GestureDataset
+    from dimgestor.eval import valid_clips
+
+    valid = GestureDataset(ZEGGS, spec=bundle.feature_spec, split="valid", window_s=4.0, valid_seconds=15.0)
+    (audio, raw), = valid_clips(valid)
+    clip = valid.clips[0]
+    return audio, raw, np.asarray(clip.audio, np.float32), np.asarray(clip.features, np.float32)
+
+
+def real_row(bundle, audio: np.ndarray, raw: np.ndarray) -> dict:
+    """The per-voice numbers of real capture on its own speech (no inserted silence: it was never recorded)."""
+    from dimgestor.eval import clip_stats, voice_row
+
+    row = voice_row([clip_stats(raw, audio, bundle.skeleton, bundle.feature_spec)])
+    return {k: v for k, v in row.items() if k not in ("speed_silence", "silence_ratio")}
+
+
+def summarize(rows: dict, groups: dict) -> dict:
+    """Means over the unseen voices (lawrence + espeak) and the count above chance."""
+    unseen = [rows[n] for n in rows if groups[n] in UNSEEN_GROUPS]
+    if not unseen:
+        return {}
+    mean = lambda key: float(np.nanmean([r[key] for r in unseen]))  # noqa: E731
+    return {"unseen_voices": len(unseen), "unseen_coupling": mean("coupling"),
+            "unseen_coupling_min": float(np.nanmin([r["coupling"] for r in unseen])),
+            "unseen_coupling_shifted": mean("coupling_shifted"),
+            "unseen_above_chance": int(sum(r["coupling_above"] for r in unseen)),
+            "unseen_onset_margin": float(np.nanmean([r["onset_align"] - r["onset_shuffled"] for r in unseen])),
+            "unseen_silence_ratio": mean("silence_ratio"), "unseen_contrast": mean("contrast"),
+            "unseen_hand_jerk": mean("hand_jerk")}
+
+
+def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int, log=print) -> dict:
+    """One model's rows over the voices (+ the real capture's reference rows) and its summary."""
+    import torch
+
+    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.eval import voice_report
+
+    bundle = load_checkpoint(checkpoint)
+    bundle.model.eval()
+    steps = steps or bundle.config.sample_steps
+    rows, reference, started = {}, {}, time.time()
+    if "zeggs_heldout" in voices:
+        audio, raw, whole_audio, whole_raw = zeggs_real(bundle)
+        voices["zeggs_heldout"]["audio"] = audio
+        reference["zeggs_heldout_real"] = real_row(bundle, audio, raw)
+        reference["zeggs_whole_real"] = real_row(bundle, whole_audio, whole_raw)
+    for name, v in voices.items():
+        with torch.inference_mode():
+            rows[name] = voice_report(bundle, v["audio"], steps, seeds, seed, smoothing=None)
+        log(f"{name:28s} coupling {rows[name]['coupling']:+.3f} (shifted {rows[name]['coupling_shifted']:+.3f} "
+            f"+- {rows[name]['coupling_shifted_sd']:.3f}), onsets {rows[name]['onset_align']:.3f} vs "
+            f"{rows[name]['onset_shuffled']:.3f}, silence ratio {rows[name]['silence_ratio']:.2f} "
+            f"({time.time() - started:.0f} s)")
+    if "zeggs_heldout_real" in reference:
+        real_jerk = reference["zeggs_heldout_real"]["hand_jerk"]
+        for r in rows.values():
+            r["jerk_ratio"] = r["hand_jerk"] / real_jerk
+    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "rows": rows, "reference": reference,
+            "summary": summarize(rows, {n: v["group"] for n, v in voices.items()})}
+
+
+# ------------------------------------------------------------------------------------------------ tables
+
+COLUMNS = (("coupling", "coupling", "{:+.2f}"), ("coupling_shifted", "shifted", "{:+.2f}"),
+           ("coupling_shifted_sd", "sd", "{:.2f}"), ("coupling_above", ">+2sd", "{}"),
+           ("onset_align", "onsets", "{:.2f}"), ("onset_shuffled", "shuffled", "{:.2f}"),
+           ("contrast", "pauses", "{:.2f}"), ("silence_ratio", "silence", "{:.2f}"),
+           ("hand_jerk", "jerk", "{:.3g}"))
+
+
+def cell(fmt: str, v) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return fmt.format("yes" if v is True else "no" if v is False else v)
+
+
+def model_table(result: dict, label: str) -> str:
+    """Markdown: one row per voice (and the real capture), the summary last."""
+    m = result["models"][label]
+    head = "| voice | " + " | ".join(h for _, h, _ in COLUMNS) + " |"
+    lines = [f"**{label}** ({m['checkpoint']}, K = {m['steps']}, {result['settings']['seeds']} seeds)", "",
+             head, "|" + "---|" * (len(COLUMNS) + 1)]
+    for name, row in list(m["reference"].items()) + list(m["rows"].items()):
+        lines.append(f"| {name} | " + " | ".join(cell(f, row.get(k)) for k, _, f in COLUMNS) + " |")
+    s = m["summary"]
+    if s:
+        lines.append(f"| **unseen mean ({s['unseen_voices']} voices)** | {s['unseen_coupling']:+.2f} | "
+                     f"{s['unseen_coupling_shifted']:+.2f} | | {s['unseen_above_chance']}/{s['unseen_voices']} | "
+                     f"margin {s['unseen_onset_margin']:+.2f} | | {s['unseen_contrast']:.2f} | "
+                     f"{s['unseen_silence_ratio']:.2f} | {s['unseen_hand_jerk']:.3g} |")
+    return "\n".join(lines)
+
+
+def compare_table(models: list[tuple[str, dict]]) -> str:
+    """Markdown, old against new: per voice coupling (shifted baseline), onset margin, silence ratio, jerk."""
+    labels = [lab for lab, _ in models]
+    voices = [v for v in dict.fromkeys(v for _, m in models for v in m["rows"])]
+    cols = ["coupling (shifted)", "onsets - shuffled", "silence ratio", "wrist jerk"]
+    head = "| voice | " + " | ".join(f"{c} {lab}" for c in cols for lab in labels) + " |"
+    lines = [head, "|" + "---|" * (1 + len(cols) * len(labels))]
+
+    def fmt(m, voice, col):
+        r = m["rows"].get(voice)
+        if r is None:
+            return "-"
+        if col == 0:
+            return f"{r['coupling']:+.2f} ({r['coupling_shifted']:+.2f})" + ("" if r["coupling_above"] else " ~")
+        if col == 1:
+            return cell("{:+.2f}", r["onset_align"] - r["onset_shuffled"])
+        return cell("{:.2f}" if col == 2 else "{:.3g}", r["silence_ratio" if col == 2 else "hand_jerk"])
+
+    for v in voices:
+        lines.append(f"| {v} | " + " | ".join(fmt(m, v, c) for c in range(len(cols)) for _, m in models) + " |")
+    summary = {"unseen_coupling": "{:+.2f}", "unseen_above_chance": "{}", "unseen_onset_margin": "{:+.2f}",
+               "unseen_silence_ratio": "{:.2f}"}
+    for key, f in summary.items():
+        lines.append(f"| **{key}** | " + " | ".join(cell(f, m["summary"].get(key)) for _, m in models) + " |")
+    lines.append("\n~ : coupling not above its shifted baseline + 2 sd")
+    return "\n".join(lines)
+
+
+def labelled_models(paths: list[str]) -> list[tuple[str, dict]]:
+    """(label, model result) of every model in the given result files, labels made unique by file stem."""
+    out = []
+    for p in paths:
+        result = json.loads(Path(p).read_text())
+        for label, m in result["models"].items():
+            out.append((label if len(paths) == 1 else f"{Path(p).stem}:{label}", m))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ plot
+
+def plot(result: dict, path: Path) -> None:
+    """Per voice: coupling beside the shifted baseline's mean + 2 sd, onset alignment beside shuffled, silence
+    ratio; one colour per model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(result["models"])
+    voices = list(dict.fromkeys(v for m in result["models"].values() for v in m["rows"]))
+    x = np.arange(len(voices))
+    width = 0.8 / len(labels)
+    colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728"]
+    fig, axes = plt.subplots(3, 1, figsize=(max(8, 0.8 * len(voices) + 2), 9), sharex=True)
+    for j, label in enumerate(labels):
+        rows = result["models"][label]["rows"]
+        get = lambda k: np.array([rows[v][k] if v in rows else np.nan for v in voices], float)  # noqa: E731
+        xs = x + (j - (len(labels) - 1) / 2) * width
+        c = colours[j % len(colours)]
+        axes[0].bar(xs, get("coupling"), width, color=c, label=label)
+        axes[0].errorbar(xs, get("coupling_shifted"), yerr=2 * get("coupling_shifted_sd"), fmt="_", color="k",
+                         capsize=2, lw=1, label="shifted audio, mean +- 2 sd" if j == 0 else None)
+        axes[1].bar(xs, get("onset_align"), width, color=c, label=label)
+        axes[1].plot(xs, get("onset_shuffled"), "k_", ms=10, label="onsets shuffled in speech" if j == 0 else None)
+        axes[2].bar(xs, get("silence_ratio"), width, color=c, label=label)
+    ref = next(iter(result["models"].values()))["reference"].get("zeggs_heldout_real")
+    if ref:
+        axes[0].axhline(ref["coupling"], color="#555555", ls="--", lw=1, label="real capture, held-out ZEGGS")
+    axes[0].set_ylabel("loudness coupling r")
+    axes[1].set_ylabel("onsets with a wrist peak")
+    axes[2].set_ylabel("speech / inserted silence")
+    axes[2].axhline(3.0, color="#555555", ls=":", lw=1, label="issue 20 target")
+    axes[2].set_xticks(x, voices, rotation=40, ha="right", fontsize=8)
+    for ax in axes:
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=7)
+    s = result["settings"]
+    fig.suptitle(f"hands following the voice: K = {s['steps'] or 'default'}, {s['seeds']} seeds, no filter "
+                 f"({result['code_version']})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
+# ------------------------------------------------------------------------------------------------ main
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", action="append", default=None,
+                   help="checkpoint or run folder; 'default' = the embedded model; repeat to compare models")
+    p.add_argument("--label", action="append", default=None, help="a name per --checkpoint (default: its path)")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: each checkpoint's sample_steps)")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn) and one seed")
+    p.add_argument("--out", default=str(RESULTS / "voices.json"))
+    p.add_argument("--plot", default=None, help="PNG (default: --out with .png)")
+    p.add_argument("--compare", nargs="+", metavar="JSON",
+                   help="print the old-vs-new markdown table of these result files and exit (no model is run)")
+    args = p.parse_args()
+    if args.compare:
+        print(compare_table(labelled_models(args.compare)))
+        return 0
+    import torch
+
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    checkpoints = [None if c in (None, "default") else c for c in (args.checkpoint or [None])]
+    labels = args.label or [c or "default" for c in checkpoints]
+    if len(labels) != len(checkpoints):
+        p.error("give one --label per --checkpoint")
+    seeds = 1 if args.quick else args.seeds
+    load_before = load_average()
+    with tempfile.TemporaryDirectory(prefix="voices_") as tmp:
+        voices, skipped = collect_voices(args.quick, Path(tmp))
+    for name, why in skipped.items():
+        print(f"skipped {name}: {why}")
+    from dimgestor.eval import NOTES
+
+    result = {"benchmark": "voices", "schema": SCHEMA, "created": utc_now(), "code_version": code_version(),
+              "device": describe_device("cpu"), "torch": torch.__version__, "espeak_ng": espeak_version(),
+              "load_avg_before": load_before,
+              "settings": {"steps": args.steps, "seeds": seeds, "seed": args.seed, "quick": args.quick,
+                           "smoothing": "off", "silence_s": 6.0, "coupling_smooth_s": 0.5, "coupling_max_lag_s": 0.2,
+                           "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_shuffle_draws": 10},
+              "voices": {n: {"group": v["group"], "source": v["source"]} for n, v in voices.items()},
+              "skipped": skipped, "unseen_groups": list(UNSEEN_GROUPS), "models": {},
+              "notes": {k: NOTES[k] for k in ("coupling", "coupling_shifted", "onset_align", "onset_shuffled",
+                                              "silence_ratio", "hand_jerk")}}
+    started = time.time()
+    for label, ckpt in zip(labels, checkpoints):
+        print(f"== {label}")
+        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed)
+    result["seconds"] = round(time.time() - started, 1)
+    result["load_avg_after"] = load_average()
+    for name, v in voices.items():
+        result["voices"][name]["seconds"] = len(v["audio"]) / SR
+    out = Path(args.out)
+    write_json(out, result)
+    for label in labels:
+        print("\n" + model_table(result, label))
+    if len(labels) > 1:
+        print("\n" + compare_table(list(result["models"].items())))
+    plot(result, Path(args.plot) if args.plot else out.with_suffix(".png"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
