@@ -29,55 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from common import RESULTS, code_version, describe_device, load_average, save_panels, utc_now, write_json
-
-SYSTEM_METRICS = ("contrast", "coupling", "coupling_shifted", "coupling_shifted_sd", "stroke_align",
-                  "stroke_shuffled", "onset_align", "onset_shuffled", "beat_align", "beat_align_shuffled")
-
-
-def score_clips(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0) -> dict:
-    """The SYSTEM_METRICS of motion (raw features per clip) against the audio it is scored with, pooled."""
-    from dimgestor import metrics
-    from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
-    from dimgestor.voiceworld import rule_events
-
-    stats, hits, shuffled, n_strokes = [], 0.0, 0.0, 0
-    for i, (raw, audio) in enumerate(zip(raws, audios)):
-        n = min(len(raw), len(audio) // 800)
-        raw, audio = raw[:n], audio[: n * 800]
-        st = clip_stats(raw, audio, skeleton, spec, seed=seed + i)
-        stats.append(st)
-        strokes = np.array([t for t, _ in rule_events(audio)["stresses"]])
-        strokes = strokes[strokes < n / spec.fps]
-        if strokes.size:
-            speech = st["mask"] == 1
-            hits += metrics.onset_hits(strokes, st["hand_speed"], spec.fps).sum()
-            shuffled += metrics.shuffled_onset_alignment(len(strokes), st["hand_speed"], spec.fps, speech,
-                                                         seed=seed + i) * len(strokes)
-            n_strokes += len(strokes)
-    row = {**pool_stats(stats), **pool_drive([voice_row([s]) for s in stats])}
-    row["stroke_align"] = hits / n_strokes if n_strokes else float("nan")
-    row["stroke_shuffled"] = shuffled / n_strokes if n_strokes else float("nan")
-    return {m: float(row[m]) for m in SYSTEM_METRICS}
-
-
-def margins(row: dict) -> dict:
-    """Each measure above its chance level."""
-    return {"stroke_margin": row["stroke_align"] - row["stroke_shuffled"],
-            "onset_margin": row["onset_align"] - row["onset_shuffled"],
-            "coupling_margin": row["coupling"] - row["coupling_shifted"],
-            "beat_margin": row["beat_align"] - row["beat_align_shuffled"]}
-
-
-def verdict(model: dict, rule: dict) -> dict:
-    """Issue 20's bar: stroke-alignment margin and contrast each at least half the rule's."""
-    m, r = margins(model), margins(rule)
-    return {"stroke_margin_vs_rule": m["stroke_margin"] / r["stroke_margin"],
-            "contrast_vs_rule": model["contrast"] / rule["contrast"],
-            "coupling_margin_vs_rule": m["coupling_margin"] / r["coupling_margin"],
-            "passes": bool(m["stroke_margin"] >= 0.5 * r["stroke_margin"] and model["contrast"] >= 0.5 * rule["contrast"])}
-
 
 def train_run(data: Path, run: Path, args, cache: Path) -> float:
     """`dimgestor train` on the world's train split (its split.json holds the held-out voices out); wall s."""
@@ -124,7 +76,7 @@ def main() -> int:
     from dimgestor.checkpoint import load_checkpoint
     from dimgestor.dataset import GestureDataset
     from dimgestor.eval import generate_raw, valid_clips
-    from dimgestor.voiceworld import make_voice_world, voice_split
+    from dimgestor.voiceworld import make_voice_world, margins, score_motion, verdict, voice_split
 
     work = Path(args.work)
     cache = work / "cache"
@@ -151,8 +103,8 @@ def main() -> int:
             clips = valid_clips(valid)
             audios = [a for a, _ in clips]
             if truth is None:  # the held-out set is the same in every world (same seed)
-                truth = {"rule": score_clips([r for _, r in clips], audios, bundle.skeleton, spec),
-                         "rule_shuffled_audio": score_clips([r for _, r in clips], audios[1:] + audios[:1],
+                truth = {"rule": score_motion([r for _, r in clips], audios, bundle.skeleton, spec),
+                         "rule_shuffled_audio": score_motion([r for _, r in clips], audios[1:] + audios[:1],
                                                             bundle.skeleton, spec)}
                 for name, row in truth.items():
                     row.update(margins(row))
@@ -160,7 +112,7 @@ def main() -> int:
             K = args.k or bundle.config.sample_steps
             started = time.time()
             raws = [generate_raw(bundle, a, K, seed=i) for i, a in enumerate(audios)]
-            row = score_clips(raws, audios, bundle.skeleton, spec)
+            row = score_motion(raws, audios, bundle.skeleton, spec)
             row.update(margins(row))
             row.update(verdict(row, truth["rule"]))
             row["generate_s"] = round(time.time() - started, 1)

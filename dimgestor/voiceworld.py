@@ -6,13 +6,14 @@ pitches and rates, sentence by sentence from texts shipped below, with natural p
 audio alone, so whatever voice speaks, the right motion is known:
 
   * speech: frames whose loudness is within 35 dB of the clip's loud frames; gaps under 0.25 s are bridged
-    (stop closures, commas), so each run is a phrase; the arms engage over a phrase and rest in pauses;
+    (stop closures, commas), so each run is a phrase; the arms engage over a phrase, stay up over pauses
+    shorter than HOLD_S and come down to rest in longer ones;
   * strokes: syllable nuclei (peaks of the loudness envelope smoothed over ~50 ms) that stand above their
     phrase's median loudness by STRESS_MARGIN_DB are stressed; each launches a beat stroke at its syllable's
     onset (where the envelope rises through half-way from the valley before it), sized by how far the
     nucleus stands above the phrase median (relative loudness, so the microphone level does not matter);
   * the body machinery is `synthetic.gesture_motion` (the same as `speech_and_gestures`), its random choices
-    (which hand, stroke length, idle-sway phases) seeded by a hash of the audio.
+    (which hand, stroke length, idle-sway phases) seeded by a hash of the events.
 
 So the motion is exactly a function of the audio. Train voices and held-out voices are disjoint, and one
 language (Italian) is held out entirely: `voice_split`.
@@ -255,6 +256,7 @@ def voice_clip(seconds: float, voice: Voice, seed: int) -> tuple[np.ndarray, dic
 SPEECH_REL_DB = -35.0  # a frame is speech within this of the clip's loud frames (95th percentile)
 BRIDGE_S = 0.25  # gaps shorter than this inside speech are not pauses
 MIN_PHRASE_S = 0.1
+HOLD_S = 1.5  # the arms stay up over pauses shorter than this (a speaker holds a gesture between phrases)
 STRESS_MARGIN_DB = 4.0  # a syllable nucleus this far above its phrase's median loudness is stressed
 MIN_STROKE_GAP_S = 0.6  # one stroke per stressed nucleus at most every 0.6 s (a stroke lasts 0.4-0.6 s)
 ENGAGE_TAU_S = 0.12  # arms rise into gesture space and return to rest as in speech_and_gestures
@@ -305,20 +307,28 @@ def rule_events(audio: np.ndarray, rate: int = RATE) -> dict:
             onset = valley + int(np.flatnonzero(seg[valley:p + 1] >= half)[0])  # rising through half-way
             size = SIZE_MIN + (SIZE_MAX - SIZE_MIN) * float(np.clip((seg[p] - median - STRESS_MARGIN_DB) / 12.0, 0, 1))
             stresses.append(((a + onset) / ENV_RATE, round(size, 4)))
-    return {"phrases": [(a / ENV_RATE, b / ENV_RATE) for a, b in phrases], "stresses": stresses}
+    held = []  # the arms stay in gesture space over pauses shorter than HOLD_S
+    for a, b in phrases:
+        if held and a - held[-1][1] < HOLD_S * ENV_RATE:
+            held[-1] = (held[-1][0], b)
+        else:
+            held.append((a, b))
+    return {"phrases": [(a / ENV_RATE, b / ENV_RATE) for a, b in held], "stresses": stresses}
 
 
-def audio_seed(audio: np.ndarray) -> int:
-    """A seed that is a function of the samples (on the PCM16 grid) alone."""
-    pcm = np.round(np.asarray(audio, np.float64) * 32767.0).astype("<i2")
-    return int.from_bytes(hashlib.sha256(pcm.tobytes()).digest()[:8], "little")
+def events_seed(events: dict) -> int:
+    """A seed that is a function of the events alone (times to 10 ms): the motion's random choices then depend
+    on what was said, not on the microphone level or the file's sample format."""
+    text = json.dumps([[round(a, 2), round(b, 2)] for a, b in events["phrases"]]
+                      + [[round(t, 2), round(s, 2)] for t, s in events["stresses"]])
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little")
 
 
 def rule_motion(audio: np.ndarray, fps: float = 30.0, rate: int = RATE) -> tuple[BvhMotion, dict]:
     """(the rule's motion for `audio`, its events): a function of the audio alone."""
     events = rule_events(audio, rate)
     n = int(round(len(audio) / rate * fps))
-    return gesture_motion(events, n, fps, np.random.default_rng(audio_seed(audio)), ENGAGE_TAU_S), events
+    return gesture_motion(events, n, fps, np.random.default_rng(events_seed(events)), ENGAGE_TAU_S), events
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -369,3 +379,55 @@ def make_voice_world(out_dir, train_minutes: float, heldout_minutes: float, seed
     split = {"train": [b.stem for b, _ in train], "valid": [b.stem for b, _ in held]}
     (out_dir / "split.json").write_text(json.dumps(split, indent=1) + "\n")
     return split
+
+
+# ---------------------------------------------------------------------------------------------------
+# Scoring motion against the rule (the measures a model is held to, each beside its chance level)
+# ---------------------------------------------------------------------------------------------------
+
+SYSTEM_METRICS = ("contrast", "coupling", "coupling_shifted", "coupling_shifted_sd", "stroke_align",
+                  "stroke_shuffled", "onset_align", "onset_shuffled", "beat_align", "beat_align_shuffled")
+
+
+def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0) -> dict:
+    """SYSTEM_METRICS of motion (raw features (T, D) per clip, at spec.fps) against the audio (16 kHz) it is scored
+    with, pooled over the clips; strokes are the rule's (rule_events) of that audio."""
+    from dimgestor import metrics
+    from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
+
+    stats, hits, shuffled, n_strokes = [], 0.0, 0.0, 0
+    spf = int(round(RATE / spec.fps))
+    for i, (raw, audio) in enumerate(zip(raws, audios)):
+        n = min(len(raw), len(audio) // spf)
+        raw, audio = raw[:n], audio[: n * spf]
+        st = clip_stats(raw, audio, skeleton, spec, seed=seed + i)
+        stats.append(st)
+        strokes = np.array([t for t, _ in rule_events(audio)["stresses"]])
+        strokes = strokes[strokes < n / spec.fps]
+        if strokes.size:
+            speech = st["mask"] == 1
+            hits += metrics.onset_hits(strokes, st["hand_speed"], spec.fps).sum()
+            shuffled += metrics.shuffled_onset_alignment(len(strokes), st["hand_speed"], spec.fps, speech,
+                                                         seed=seed + i) * len(strokes)
+            n_strokes += len(strokes)
+    row = {**pool_stats(stats), **pool_drive([voice_row([s]) for s in stats])}
+    row["stroke_align"] = hits / n_strokes if n_strokes else float("nan")
+    row["stroke_shuffled"] = shuffled / n_strokes if n_strokes else float("nan")
+    return {m: float(row[m]) for m in SYSTEM_METRICS}
+
+
+def margins(row: dict) -> dict:
+    """Each measure above its chance level."""
+    return {"stroke_margin": row["stroke_align"] - row["stroke_shuffled"],
+            "onset_margin": row["onset_align"] - row["onset_shuffled"],
+            "coupling_margin": row["coupling"] - row["coupling_shifted"],
+            "beat_margin": row["beat_align"] - row["beat_align_shuffled"]}
+
+
+def verdict(model: dict, rule: dict) -> dict:
+    """Issue 20's bar: stroke-alignment margin and contrast each at least half the rule's."""
+    m, r = margins(model), margins(rule)
+    return {"stroke_margin_vs_rule": m["stroke_margin"] / r["stroke_margin"],
+            "contrast_vs_rule": model["contrast"] / rule["contrast"],
+            "coupling_margin_vs_rule": m["coupling_margin"] / r["coupling_margin"],
+            "passes": bool(m["stroke_margin"] >= 0.5 * r["stroke_margin"] and model["contrast"] >= 0.5 * rule["contrast"])}
