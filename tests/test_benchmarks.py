@@ -94,3 +94,27 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
 
     assert r["seams"] and all(finite(s["ratio"]) for s in r["seams"])
 
+
+
+def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
+    """Tiny sizes: the world is made, --set and --train-args reach dimgestor train, every checkpoint is scored."""
+    pytest.importorskip("matplotlib")
+    import shutil
+
+    if shutil.which("espeak-ng") is None:
+        pytest.skip("espeak-ng is not installed (Debian: apt-get install espeak-ng)")
+    out = tmp_path / "voice_world.json"
+    run("voice_world.py", "--minutes", "0.25", "--heldout-minutes", "0.7", "--steps", "4", "--ckpt-every", "2",
+        "--preset", "tiny", "--set", "n_mels=16", "--train-args", "--seed 3 --no-mirror",
+        "--work", str(tmp_path / "work"), "--out", str(out))
+    r = json.loads(out.read_text())
+    rule, shuffled = r["truth"]["rule"], r["truth"]["rule_shuffled_audio"]
+    assert rule["contrast"] > 3 * shuffled["contrast"] and rule["stroke_margin"] > shuffled["stroke_margin"] + 0.1
+    assert sorted(r["results"]["0.25"], key=int) == ["2", "4"]
+    row = r["results"]["0.25"]["4"]
+    assert all(finite(row[k]) for k in ("contrast", "stroke_margin", "coupling_margin", "stroke_margin_vs_rule"))
+    assert isinstance(row["passes"], bool) and r["set"] == ["n_mels=16"] and r["train_args"] == "--seed 3 --no-mirror"
+    run_dir = tmp_path / "work" / "run_0.25min_n_mels=16"
+    meta = json.loads((run_dir / "ckpt_0000004" / "config.json").read_text())
+    assert meta["model"]["n_mels"] == 16 and meta["info"]["options"]["seed"] == 3
+    assert (tmp_path / "voice_world.png").is_file()
