@@ -1,7 +1,8 @@
 """Does the motion follow the voice it is given? A per-voice table for one or more models (issue 20).
 
 For each voice: loudness coupling (metrics.speech_coupling) beside its circularly-shifted-audio baseline
-(mean, sd, and whether coupling > mean + 2 sd), onset alignment beside onsets shuffled inside speech,
+(mean, sd, and whether coupling > mean + 2 sd), onset alignment of the stressed onsets (the strongest 40%;
+of all onsets too, in the JSON) beside as many onsets shuffled inside speech,
 speech/pause contrast, wrist speed in speech over wrist speed in 6 s of silence inserted into the clip,
 and wrist jerk; each a mean over seeds (`dimgestor.eval.voice_report`, the same rows as
 `dimgestor eval --wavs`). Voices:
@@ -21,6 +22,8 @@ with a note when it is absent.
     python benchmarks/voices.py --checkpoint runs/new --out /tmp/new.json
     python benchmarks/voices.py --compare benchmarks/results/voices.json /tmp/new.json   # old vs new table
     python benchmarks/voices.py --checkpoint default --checkpoint runs/new --label old --label new
+    python benchmarks/voices.py --checkpoint runs/new --checkpoint runs/new --guidance 1 --guidance 2 \
+        --label unguided --label guided   # (with classifier-free guidance in dimgestor)
 """
 
 from __future__ import annotations
@@ -87,11 +90,9 @@ TEXTS = {
             "我想给大家讲一个关于海边小镇的小故事。",
             "每年夏天，渔民们都会把自己的船涂成鲜艳的颜色。",
             "红色，黄色，蓝色和绿色，整整齐齐地排在码头边上。",
-            "有一年，夜里来了一场大风暴，把船吹得满海湾都是。",
             "没有人受伤，可是到处都是船！",
             "于是全镇的人一起出海，把船一条一条地拉了回来。",
-            "这就是我喜欢那个地方的原因：人们总是互相帮助。",
-            "我想，这也是我一定要回去的最好理由。"],
+            "这就是我喜欢那个地方的原因：人们总是互相帮助。"],
 }
 PAUSES_S = (0.6, 1.2, 0.8, 1.6, 0.7, 1.0, 2.0, 0.9)  # between sentences, cycled: natural pauses, some long
 LEAD_S = 0.5  # silence before the first sentence and after the last
@@ -100,12 +101,12 @@ LEAD_S = 0.5  # silence before the first sentence and after the last
 ESPEAK_VOICES = (
     ("espeak_en-us_p50_s160", "en-us", 50, 160, "en"),
     ("espeak_de_p40_s150", "de", 40, 150, "de"),
-    ("espeak_cmn_p60_s150", "cmn", 60, 150, "cmn"),
+    ("espeak_cmn_p60_s170", "cmn", 60, 170, "cmn"),
     ("espeak_en-gb_p30_s140", "en-gb", 30, 140, "en"),
     ("espeak_en-us+f3_p70_s180", "en-us+f3", 70, 180, "en"),
-    ("espeak_fr_p50_s165", "fr-fr", 50, 165, "fr"),
+    ("espeak_fr_p50_s150", "fr-fr", 50, 150, "fr"),
     ("espeak_es_p55_s170", "es", 55, 170, "es"),
-    ("espeak_cmn_p35_s130", "cmn", 35, 130, "cmn"),
+    ("espeak_cmn_p35_s165", "cmn", 35, 165, "cmn"),
 )
 UNSEEN_GROUPS = ("lawrence", "espeak")
 
@@ -114,7 +115,7 @@ def espeak_version() -> str | None:
     exe = shutil.which("espeak-ng")
     if exe is None:
         return None
-    return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.strip()
+    return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.split("  Data at")[0].strip()
 
 
 def espeak_clip(voice: str, pitch: int, wpm: int, sentences: list[str], folder: Path) -> np.ndarray:
@@ -193,7 +194,8 @@ def summarize(rows: dict, groups: dict) -> dict:
             "unseen_hand_jerk": mean("hand_jerk")}
 
 
-def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int, log=print) -> dict:
+def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int,
+             guidance: float | None = None, log=print) -> dict:
     """One model's rows over the voices (+ the real capture's reference rows) and its summary."""
     import torch
 
@@ -202,6 +204,10 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
 
     bundle = load_checkpoint(checkpoint)
     bundle.model.eval()
+    if guidance is not None:  # as `dimgestor eval --guidance`: every generation takes the config's scale
+        if "guidance" not in type(bundle.config).model_fields:
+            raise SystemExit("--guidance: this dimgestor has no classifier-free guidance (config.guidance)")
+        bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": float(guidance)})
     steps = steps or bundle.config.sample_steps
     rows, reference, started = {}, {}, time.time()
     if "zeggs_heldout" in voices:
@@ -220,7 +226,9 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
         real_jerk = reference["zeggs_heldout_real"]["hand_jerk"]
         for r in rows.values():
             r["jerk_ratio"] = r["hand_jerk"] / real_jerk
-    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "rows": rows, "reference": reference,
+    return {"checkpoint": checkpoint or "embedded default", "steps": steps, "seeds": seeds,
+            "guidance": getattr(bundle.config, "guidance", None), "rows": rows,
+            "reference": reference,
             "summary": summarize(rows, {n: v["group"] for n, v in voices.items()})}
 
 
@@ -276,11 +284,21 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
 
     for v in voices:
         lines.append(f"| {v} | " + " | ".join(fmt(m, v, c) for c in range(len(cols)) for _, m in models) + " |")
-    summary = {"unseen_coupling": "{:+.2f}", "unseen_above_chance": "{}", "unseen_onset_margin": "{:+.2f}",
-               "unseen_silence_ratio": "{:.2f}"}
-    for key, f in summary.items():
-        lines.append(f"| **{key}** | " + " | ".join(cell(f, m["summary"].get(key)) for _, m in models) + " |")
-    lines.append("\n~ : coupling not above its shifted baseline + 2 sd")
+
+    def total(m, col):
+        s = m["summary"]
+        if not s:
+            return "-"
+        return [f"{s['unseen_coupling']:+.2f} ({s['unseen_above_chance']}/{s['unseen_voices']} above)",
+                f"{s['unseen_onset_margin']:+.2f}", f"{s['unseen_silence_ratio']:.2f}",
+                f"{s['unseen_hand_jerk']:.3g}"][col]
+
+    lines.append("| **unseen mean (lawrence + espeak)** | "
+                 + " | ".join(total(m, c) for c in range(len(cols)) for _, m in models) + " |")
+    lines.append("\n~ : coupling not above its shifted baseline + 2 sd. "
+                 + "; ".join(f"{lab}: {m['checkpoint']}, K = {m['steps']}, {m.get('seeds', '?')} seeds"
+                             + (f", guidance {m['guidance']:g}" if m.get("guidance") is not None else "")
+                             for lab, m in models))
     return "\n".join(lines)
 
 
@@ -290,6 +308,7 @@ def labelled_models(paths: list[str]) -> list[tuple[str, dict]]:
     for p in paths:
         result = json.loads(Path(p).read_text())
         for label, m in result["models"].items():
+            m = {"seeds": result["settings"]["seeds"], **m}  # files written before models carried their seeds
             out.append((label if len(paths) == 1 else f"{Path(p).stem}:{label}", m))
     return out
 
@@ -333,7 +352,8 @@ def plot(result: dict, path: Path) -> None:
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=7)
     s = result["settings"]
-    fig.suptitle(f"hands following the voice: K = {s['steps'] or 'default'}, {s['seeds']} seeds, no filter "
+    ks = "/".join(str(k) for k in dict.fromkeys(m["steps"] for m in result["models"].values()))
+    fig.suptitle(f"hands following the voice: K = {ks}, {s['seeds']} seeds, no filter "
                  f"({result['code_version']})", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -348,6 +368,9 @@ def main() -> int:
                    help="checkpoint or run folder; 'default' = the embedded model; repeat to compare models")
     p.add_argument("--label", action="append", default=None, help="a name per --checkpoint (default: its path)")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: each checkpoint's sample_steps)")
+    p.add_argument("--guidance", action="append", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale, one per --checkpoint or one for all (default: the "
+                        "checkpoint's)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn) and one seed")
@@ -366,6 +389,10 @@ def main() -> int:
     labels = args.label or [c or "default" for c in checkpoints]
     if len(labels) != len(checkpoints):
         p.error("give one --label per --checkpoint")
+    guidance = args.guidance or [None]
+    guidance = guidance * len(checkpoints) if len(guidance) == 1 else guidance
+    if len(guidance) != len(checkpoints):
+        p.error("give one --guidance for all, or one per --checkpoint")
     seeds = 1 if args.quick else args.seeds
     load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="voices_") as tmp:
@@ -379,15 +406,16 @@ def main() -> int:
               "load_avg_before": load_before,
               "settings": {"steps": args.steps, "seeds": seeds, "seed": args.seed, "quick": args.quick,
                            "smoothing": "off", "silence_s": 6.0, "coupling_smooth_s": 0.5, "coupling_max_lag_s": 0.2,
-                           "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_shuffle_draws": 10},
+                           "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_stressed_keep": 0.4,
+                           "onset_shuffle_draws": 10},
               "voices": {n: {"group": v["group"], "source": v["source"]} for n, v in voices.items()},
               "skipped": skipped, "unseen_groups": list(UNSEEN_GROUPS), "models": {},
               "notes": {k: NOTES[k] for k in ("coupling", "coupling_shifted", "onset_align", "onset_shuffled",
                                               "silence_ratio", "hand_jerk")}}
     started = time.time()
-    for label, ckpt in zip(labels, checkpoints):
+    for label, ckpt, scale in zip(labels, checkpoints, guidance):
         print(f"== {label}")
-        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed)
+        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed, scale)
     result["seconds"] = round(time.time() - started, 1)
     result["load_avg_after"] = load_average()
     for name, v in voices.items():

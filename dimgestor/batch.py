@@ -12,6 +12,11 @@ cost of each op. Two things cut it:
   step, one stream per batch row with its own carried states, seed and frame index, so the weights
   are read once per step for all of them.
 
+Classifier-free guidance runs the same way: a guided stream brings a second batch row, its unconditional
+branch (the condition zeroed), with its own carried states (its Mamba-2 states differ from the conditional
+branch's); the two rows' outputs are mixed before the sampler step. A stream at scale 1 has no second row,
+and a batch without guided streams runs exactly the unguided ops.
+
 `DenoiseRunner.sample` is the fast path; `dimgestor.stream.sample_frames` (the model's own forward,
 one call per step) is its reference: the tests hold them equal, and a stream equal alone or batched.
 """
@@ -25,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .diffusion import Diffusion, motion_noise_rows
+from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State
 from .model import DenoiserState, DiMGestor
 
@@ -77,6 +82,48 @@ class StepStates(NamedTuple):
         return sum(t.numel() * t.element_size() for t in self)
 
 
+class _Guidance(NamedTuple):
+    """Where the rows of a guided batch sit. The network runs on R = B + G rows: each window's conditional
+    row, directly followed by its unconditional row when the window is guided (the rows of one stream's state
+    are adjacent, so a stream's state is one slice of the batch's buffer)."""
+
+    rows: torch.Tensor  # (R,) the window each network row belongs to
+    cond_rows: torch.Tensor  # (B,) each window's conditional row
+    null_rows: torch.Tensor  # (G,) each guided window's unconditional row
+    guided: torch.Tensor  # (G,) the guided windows
+    scale: torch.Tensor  # (G, 1, 1) their guidance scales
+    all_guided: bool
+
+    @staticmethod
+    def plan(guidance: Sequence[float] | None, device, dtype) -> "_Guidance | None":
+        """None where no window is guided (scale 1): then the batch runs exactly the unguided ops."""
+        if guidance is None or all(s == 1.0 for s in guidance):
+            return None
+        rows, cond_rows, null_rows, guided, scale = [], [], [], [], []
+        for b, s in enumerate(guidance):
+            cond_rows.append(len(rows))
+            rows.append(b)
+            if s != 1.0:
+                null_rows.append(len(rows))
+                rows.append(b)
+                guided.append(b)
+                scale.append(float(s))
+        idx = lambda v: torch.tensor(v, dtype=torch.long, device=device)  # noqa: E731
+        return _Guidance(idx(rows), idx(cond_rows), idx(null_rows), idx(guided),
+                         torch.tensor(scale, dtype=dtype, device=device)[:, None, None], len(guided) == len(guidance))
+
+    def condition(self, cond: torch.Tensor) -> torch.Tensor:
+        """cond (B, n, H) -> (R, n, H): the null condition (zeros) on the unconditional rows."""
+        return cond.index_select(0, self.rows).index_fill_(0, self.null_rows, 0.0)
+
+    def combine(self, out: torch.Tensor) -> torch.Tensor:
+        """The network output on the R rows -> the guided output (B, n, D) of the B windows."""
+        out_c, out_u = out.index_select(0, self.cond_rows), out.index_select(0, self.null_rows)
+        if self.all_guided:
+            return guide(out_c, out_u, self.scale)
+        return out_c.index_copy(0, self.guided, guide(out_c.index_select(0, self.guided), out_u, self.scale))
+
+
 class DenoiseRunner:
     """The K-step sampler of one model and schedule, for windows of B streams (the fast path).
 
@@ -120,21 +167,30 @@ class DenoiseRunner:
         c = cond[None] + self._temb[:, None, None, :]  # (K, B, n, H): the condition plus each step's embedding
         return F.linear(F.silu(c), self._w, self._b)
 
-    def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates
-               ) -> torch.Tensor:
+    def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates,
+               guidance: Sequence[float] | None = None) -> torch.Tensor:
         """Denoise B windows of n frames: cond (B, n, H), row b's frames start at frame_starts[b] of the stream
         seeded seeds[b] -> x0 (B, n, motion_dim). `states` is updated in place (the runner's buffers: no state
-        is copied per step). Call under torch.inference_mode()."""
+        is copied per step). Call under torch.inference_mode().
+
+        guidance: each window's classifier-free guidance scale (None: all 1). A guided window has two rows in
+        `states`, its conditional then its unconditional branch (see `_Guidance`), so `states` has B + G rows.
+        """
         m, d = self.model, self.diffusion
         n = cond.shape[1]
         D, L, H = m.config.motion_dim, m.config.noise_taps, m.config.hidden
         nb = len(m.blocks)
-        B = cond.shape[0]
+        plan = _Guidance.plan(guidance, cond.device, cond.dtype)
+        x = motion_noise_rows(seeds, frame_starts, n, 0, D, L, cond.device).to(cond.dtype)  # x_T, (B, n, D)
+        if plan is not None:
+            cond = plan.condition(cond)  # (R, n, H)
+        B = cond.shape[0]  # network rows
+        if states.batch != B:
+            raise ValueError(f"states hold {states.batch} rows, the windows (with their guided rows) need {B}")
         mods = self.modulations(cond)
         fast = n <= STEP_MAX and all(b is not None for b in self._blocks)
-        x = motion_noise_rows(seeds, frame_starts, n, 0, D, L, cond.device).to(cond.dtype)  # x_T, (B, n, D)
         for k, (t, t_prev) in enumerate(self.pairs):
-            h, tail = m.encoder(x, states.enc[k])
+            h, tail = m.encoder(x if plan is None else x.index_select(0, plan.rows), states.enc[k])
             states.enc[k].copy_(tail)
             if fast:  # rows (B n, H), the blocks' ops written out for a window of a few frames
                 h, mk = h.reshape(B * n, H), mods[k].reshape(B * n, -1)
@@ -146,6 +202,8 @@ class DenoiseRunner:
                     h, _ = block(h, None, Mamba2State(states.conv[k, j].transpose(1, 2), states.ssm[k, j]),
                                  mod=mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], inplace=True)
             out = m.final(h, None, mod=mods[k, :, :, 6 * H * nb:])
+            if plan is not None:
+                out = plan.combine(out)  # (B windows, n, D)
             eps, x0 = d.split(out, x, t)
             noisy = self.sampler == "ddpm" and t > 0 or self.sampler == "ddim" and self.eta > 0 and t_prev >= 0
             noise = motion_noise_rows(seeds, frame_starts, n, k + 1, D, L, cond.device).to(x.dtype) if noisy else None
@@ -308,29 +366,33 @@ def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor], frame_starts:
     runner = streams[0].runner
     first = streams[0]._states
     buf = getattr(first, "buffer", None)
-    same = (buf is not None and buf.batch == len(streams)
-            and all(getattr(s._states, "buffer", None) is buf and s._states.row == i for i, s in enumerate(streams)))
+    offsets = np.cumsum([0] + [s._states.rows for s in streams]).tolist()  # a guided stream has two rows
+    same = (buf is not None and buf.batch == offsets[-1]
+            and all(getattr(s._states, "buffer", None) is buf and s._states.row == offsets[i]
+                    for i, s in enumerate(streams)))
     with torch.inference_mode():
         if not same:
             buf = StepStates.cat([s._states.view for s in streams]) if len(streams) > 1 else first.view
             for i, s in enumerate(streams):
-                s._states = _Row(buf, i)
+                s._states = _Row(buf, offsets[i], s._states.rows)
         starts = [s.frames_out for s in streams] if frame_starts is None else list(frame_starts)
-        x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf)
+        x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf,
+                          [s.guidance for s in streams])
     return list(x)
 
 
 class _Row:
-    """A stream's place in a state buffer: row `row` of `buffer` (a StepStates shared by a batch)."""
+    """A stream's place in a state buffer: rows [row, row + rows) of `buffer` (a StepStates shared by a batch);
+    rows is 2 for a guided stream (its conditional and unconditional branches), else 1."""
 
-    __slots__ = ("buffer", "row")
+    __slots__ = ("buffer", "row", "rows")
 
-    def __init__(self, buffer: StepStates, row: int):
-        self.buffer, self.row = buffer, row
+    def __init__(self, buffer: StepStates, row: int, rows: int = 1):
+        self.buffer, self.row, self.rows = buffer, row, rows
 
     @property
     def view(self) -> StepStates:
-        b, r = self.buffer, self.row
-        if b.batch == 1:
+        b, r, e = self.buffer, self.row, self.row + self.rows
+        if b.batch == self.rows:
             return b
-        return StepStates(b.enc[:, r:r + 1], b.conv[:, :, r:r + 1], b.ssm[:, :, r:r + 1])
+        return StepStates(b.enc[:, r:e], b.conv[:, :, r:e], b.ssm[:, :, r:e])

@@ -67,14 +67,16 @@ class Bundle:
         return (f * self.std + self.mean).astype(np.float32)
 
     def stream(self, steps: int | None = None, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
-               smoothing="config") -> GestureStream:
-        """A live stream; steps None and smoothing "config" take the checkpoint's defaults."""
-        return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
+               smoothing="config", guidance: float | None = None) -> GestureStream:
+        """A live stream; steps and guidance None and smoothing "config" take the checkpoint's defaults."""
+        return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing,
+                             guidance=guidance)
 
     def generate(self, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                 eta: float = 0.0, smoothing="config") -> np.ndarray:
+                 eta: float = 0.0, smoothing="config", guidance: float | None = None) -> np.ndarray:
         """Offline generation: 16 kHz mono audio -> (T, D) denormalized motion features (defaults as stream)."""
-        return self.denormalize(generate_offline(self.model, audio, steps, seed, sampler, eta, smoothing))
+        return self.denormalize(generate_offline(self.model, audio, steps, seed, sampler, eta, smoothing,
+                                                 guidance=guidance))
 
 
 def save_checkpoint(folder: str | Path, model: DiMGestor, feature_spec: FeatureSpec, skeleton: Skeleton,
@@ -182,14 +184,15 @@ def load_checkpoint(path: str | Path | None = None, device: str | torch.device =
 def export_checkpoint(src: str | Path | None, dst: str | Path, **inference) -> Path:
     """Copy a checkpoint's inference files (no train_state.pt) to `dst`, e.g. dimgestor/default_model/.
 
-    `inference` sets inference-only config fields (sample_steps, smooth_hz, smooth_beta) in the exported config.
+    `inference` sets inference-only config fields (sample_steps, smooth_hz, smooth_beta, guidance) in the
+    exported config.
     """
-    allowed = {"smooth_hz", "smooth_beta", "sample_steps"}
+    allowed = {"smooth_hz", "smooth_beta", "sample_steps", "guidance"}
     if set(inference) - allowed:
         raise ValueError(f"export can only set {sorted(allowed)}, got {sorted(set(inference) - allowed)}")
     bundle = load_checkpoint(src)  # validates before anything is written
-    if inference:
-        bundle.model.config = bundle.model.config.model_copy(update=inference)
+    if inference:  # validated as a whole config (model_copy would not check the new values)
+        bundle.model.config = ModelConfig(**{**bundle.model.config.model_dump(), **inference})
     info = {**bundle.info, "exported_from": str(bundle.path)}
     ts = bundle.path / "train_state.pt" if bundle.path is not None else None
     if "options" not in info and ts is not None and ts.is_file():  # checkpoints older than info["options"]

@@ -56,7 +56,8 @@ def _info(args) -> int:
           + (f"cosine schedule over {c.n_steps} steps" if c.schedule == "cosine" else
              f"{c.schedule} betas {c.beta_start:g}..{c.beta_end:g} over {c.n_steps}")
           + (f", noise correlated over {c.noise_taps} frames" if c.noise_taps > 1 else "")
-          + f", DDIM K={c.sample_steps} ({c.ddim_spacing})")
+          + f", DDIM K={c.sample_steps} ({c.ddim_spacing})"
+          + (f", guidance {c.guidance:g}" if c.guidance != 1.0 else ""))
     print(f"algorithmic latency: {info['lookahead_s'] * 1000:.0f} ms (one frame + {c.lookahead_feats * 1000 // c.feature_rate} ms audio lookahead)")
     print("parameters:")
     for k, v in info["parameters"].items():
@@ -71,9 +72,12 @@ def _info(args) -> int:
 def _export(args) -> int:
     from .checkpoint import export_checkpoint
     inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta),
-                                   ("sample_steps", args.sample_steps)) if v is not None}
+                                   ("sample_steps", args.sample_steps), ("guidance", args.guidance)) if v is not None}
     if inference.get("sample_steps", 1) < 1:
         raise ValueError("--sample-steps must be >= 1")
+    if "guidance" in inference:
+        from .diffusion import check_guidance
+        check_guidance(inference["guidance"])
     if inference.get("smooth_hz", 1) < 0 or inference.get("smooth_beta", 0) < 0:
         raise ValueError("--smooth and --smooth-beta must be >= 0")
     if inference.get("smooth_hz") == 0:
@@ -102,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="set the output filter's cutoff that generate/serve use by default (0 = off)")
     p.add_argument("--smooth-beta", type=float, default=None, help="set the output filter's speed coefficient")
     p.add_argument("--sample-steps", type=int, default=None, help="set the DDIM steps K generate/serve use by default")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="set the classifier-free guidance scale generate/serve/eval use by default (1 = unguided)")
     p.set_defaults(func=_export)
 
     from . import eval as evaluation

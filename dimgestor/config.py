@@ -39,7 +39,9 @@ class ModelConfig(BaseModel):
     mlp_ratio: float = 4.0  # width of the per-block MLP relative to hidden (as in DiT)
 
     # --- audio front end ---
-    frontend: Literal["logmel", "pretrained"] = "logmel"  # log-mel needs no download
+    # logmel: the paper-style spectrum; speech: level-free bands + prosody relative to each stream's running
+    # statistics (dimgestor/frontend_speech.py), so gestures follow what is said, not the voice or microphone
+    frontend: Literal["logmel", "speech", "pretrained"] = "logmel"
     pretrained_path: str | None = None  # LOCAL wav2vec2/HuBERT folder when frontend == "pretrained"
     pretrained_block_ms: int = 1000  # pretrained encoder runs on fixed blocks of this length ...
     pretrained_left_ms: int = 1000  # ... with this much past audio as context ...
@@ -76,6 +78,10 @@ class ModelConfig(BaseModel):
     # --- inference defaults (what generate/serve/eval use when not told) ---
     sample_steps: int = Field(8, ge=1)  # DDIM steps K
     ddim_spacing: Literal["trailing", "linspace"] = "trailing"  # where the K steps sit (diffusion.ddim_pairs)
+    # classifier-free guidance scale s: out_u + s (out_c - out_u), out_u with the condition zeroed. 1 = the
+    # plain conditional sampler (no unconditional rows at all), 0 = the unconditional model; > 1 needs a model
+    # trained with condition dropout (`dimgestor train --cond-drop`) and costs a second batch row per stream
+    guidance: float = Field(1.0, ge=0, allow_inf_nan=False)
 
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off

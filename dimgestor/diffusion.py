@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from .config import ModelConfig
 
-__all__ = ["Diffusion", "ddim_pairs", "frame_noise", "frame_noise_rows", "motion_noise", "motion_noise_rows",
+__all__ = ["Diffusion", "ddim_pairs", "guide", "check_guidance", "frame_noise", "frame_noise_rows", "motion_noise", "motion_noise_rows",
            "noise_kernel", "correlate", "hash32"]
 
 
@@ -33,6 +33,23 @@ def ddim_pairs(K: int, N: int, spacing: str = "trailing") -> list[tuple[int, int
     else:
         raise ValueError(f"unknown DDIM spacing {spacing!r}; choose 'trailing' or 'linspace'")
     return list(zip(ts, ts[1:] + [-1]))
+
+
+def guide(out_c: torch.Tensor, out_u: torch.Tensor, s) -> torch.Tensor:
+    """Classifier-free guidance (Ho & Salimans 2022, eq. 6 written as an extrapolation): out_u + s (out_c - out_u).
+
+    out_c, out_u: the network's output with the condition and with the null (zero) condition; s a float or a
+    tensor broadcasting over rows. Linear in the output, so eps, v and x0 predictions are guided alike.
+    """
+    return out_u + s * (out_c - out_u)
+
+
+def check_guidance(s: float) -> float:
+    """A guidance scale as a float: finite and >= 0 (0 = unconditional, 1 = unguided)."""
+    s = float(s)
+    if not (math.isfinite(s) and s >= 0):
+        raise ValueError(f"guidance scale must be a finite number >= 0 (1 = unguided), got {s}")
+    return s
 
 
 class Diffusion:
@@ -79,7 +96,8 @@ class Diffusion:
 
     def training_loss(self, model, x0: torch.Tensor, feats: torch.Tensor, t: torch.Tensor,
                       noise: torch.Tensor, vel_weight: float = 0.0, acc_weight: float = 0.0,
-                      root_weight: float = 0.0, root_columns: tuple[int, ...] = (0, 1, 2)) -> torch.Tensor:
+                      root_weight: float = 0.0, root_columns: tuple[int, ...] = (0, 1, 2),
+                      drop: torch.Tensor | None = None) -> torch.Tensor:
         """MSE between the network output on x_t and the target; feats: (B, n, F) audio features.
 
         vel_weight / acc_weight > 0 add MSEs between the first / second frame differences of the predicted
@@ -88,9 +106,13 @@ class Diffusion:
         between the integrated root velocities (`root_columns`: ground travel, and turning when the heading is
         a velocity) of the predicted and the real x0, per frame of the window: a small bias in a velocity is
         a walk or a spin once integrated, and the per-frame losses barely see it. 0 is the paper's objective.
+        drop: (B,) bool, the windows whose condition is replaced by the null condition (zeros) for
+        classifier-free guidance (Ho & Salimans 2022): the same network then learns the unconditional model.
         """
         cond, _ = model.condition(feats)
         cond = cond[:, : x0.shape[1]]
+        if drop is not None:
+            cond = torch.where(drop.to(cond.device)[:, None, None], torch.zeros_like(cond), cond)
         x_t = self.q_sample(x0, t, noise)
         out, _ = model(x_t, t, cond)
         loss = F.mse_loss(out, self.target(x0, t, noise))

@@ -125,20 +125,25 @@ KMETRICS = ("jerk_ratio", "auj_ratio", "hand_jerk", "contrast", "beat_align", "b
             "silence_ratio")
 # the per-voice table (one row per clip, averaged over seeds): speech-drivenness, rest, smoothness
 VOICE_METRICS = ("coupling", "coupling_seed_sd", "coupling_shifted", "coupling_shifted_sd", "coupling_above",
-                 "onset_align", "onset_shuffled", "n_onsets", "contrast", "speed_speech", "speed_silence",
-                 "silence_ratio", "hand_jerk", "seconds")
+                 "onset_align", "onset_shuffled", "n_onsets", "onset_align_all", "onset_shuffled_all", "n_onsets_all",
+                 "contrast", "speed_speech", "speed_silence", "silence_ratio", "hand_jerk", "seconds")
 SILENCE_S = 6.0  # the silence inserted into each clip (issue 20's target: hands >= 3x calmer in it than in speech)
 
 
 def drive_stats(hand_speed: np.ndarray, audio: np.ndarray, onsets: np.ndarray, mask: np.ndarray, fps: float,
                 sr: int = 16000, seed: int = 0) -> dict:
-    """Speech-drivenness of one clip's hand speed (T,): loudness coupling beside shifted audio, onset hits beside
-    onsets shuffled inside speech (counts, so that clips pool by their onsets)."""
+    """Speech-drivenness of one clip's hand speed (T,): loudness coupling beside shifted audio; hits of the
+    stressed onsets (metrics.stressed_onsets) and of all `onsets` beside as many onsets shuffled inside speech
+    (counts, so that clips pool by their onsets)."""
     mean, sd = metrics.shifted_coupling(hand_speed, audio, sr, fps)
-    shuffled = metrics.shuffled_onset_alignment(len(onsets), hand_speed, fps, mask == 1, seed=seed)
-    return {"coupling": metrics.speech_coupling(hand_speed, audio, sr, fps), "coupling_shifted": mean,
-            "coupling_shifted_sd": sd, "onset_hits": int(metrics.onset_hits(onsets, hand_speed, fps).sum()),
-            "onset_hits_shuffled": shuffled * len(onsets) if len(onsets) else 0.0}
+    out = {"coupling": metrics.speech_coupling(hand_speed, audio, sr, fps), "coupling_shifted": mean,
+           "coupling_shifted_sd": sd}
+    for tag, times in (("", metrics.stressed_onsets(audio, sr)), ("_all", onsets)):
+        shuffled = metrics.shuffled_onset_alignment(len(times), hand_speed, fps, mask == 1, seed=seed)
+        out[f"n_onsets{tag or '_stressed'}"] = len(times)
+        out[f"onset_hits{tag}"] = int(metrics.onset_hits(times, hand_speed, fps).sum())
+        out[f"onset_hits{tag}_shuffled"] = shuffled * len(times) if len(times) else 0.0
+    return out
 
 
 def silence_probe(audio: np.ndarray, sr: int = 16000, seconds: float = SILENCE_S) -> tuple[np.ndarray, float]:
@@ -170,7 +175,7 @@ def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = 160
     hand_speed = metrics.hand_speed(pos, hands, fps)
     mask = metrics.speech_mask(audio, sr, fps, len(raw))
     return {"hand_jerk": metrics.jerk(pos[:, hands], fps), "auj": metrics.area_under_jerk(pos[:, upper], fps),
-            "hand_speed": hand_speed, "mask": mask, **drive_stats(hand_speed, audio, onsets, mask, fps, sr, seed),
+            **drive_stats(hand_speed, audio, onsets, mask, fps, sr, seed), "hand_speed": hand_speed, "mask": mask,
             "beat_hits": (metrics.beat_align(onsets, beats) * len(onsets)) if len(onsets) else 0.0,
             "beat_hits_shuffled": (metrics.beat_align(shifted, beats) * len(onsets)) if len(onsets) else 0.0,
             "n_onsets": len(onsets), "net_yaw_deg": float(heading[-1]),
@@ -205,14 +210,18 @@ def voice_row(seed_stats: list[dict]) -> dict:
     """One clip's per-voice numbers from its clip_stats (+ silence_stats) under several seeds: means over seeds;
     coupling_above says whether the mean coupling clears the shifted-audio mean + 2 sd."""
     s = seed_stats
-    onsets = s[0]["n_onsets"]
+    onsets, every = s[0]["n_onsets_stressed"], s[0]["n_onsets_all"]
     row = {"coupling": _nanmean([x["coupling"] for x in s]),
            "coupling_seed_sd": float(np.std([x["coupling"] for x in s], ddof=1)) if len(s) > 1 else float("nan"),
            "coupling_shifted": _nanmean([x["coupling_shifted"] for x in s]),
            "coupling_shifted_sd": _nanmean([x["coupling_shifted_sd"] for x in s]),
            "onset_align": sum(x["onset_hits"] for x in s) / (onsets * len(s)) if onsets else float("nan"),
            "onset_shuffled": sum(x["onset_hits_shuffled"] for x in s) / (onsets * len(s)) if onsets else float("nan"),
-           "n_onsets": onsets, "contrast": _nanmean([metrics.speech_contrast(x["hand_speed"], x["mask"]) for x in s]),
+           "onset_align_all": sum(x["onset_hits_all"] for x in s) / (every * len(s)) if every else float("nan"),
+           "onset_shuffled_all": (sum(x["onset_hits_all_shuffled"] for x in s) / (every * len(s)) if every
+                                  else float("nan")),
+           "n_onsets": onsets, "n_onsets_all": every,
+           "contrast": _nanmean([metrics.speech_contrast(x["hand_speed"], x["mask"]) for x in s]),
            "speed_speech": _nanmean([x.get("speed_speech", np.nan) for x in s]),
            "speed_silence": _nanmean([x.get("speed_silence", np.nan) for x in s]),
            "hand_jerk": _nanmean([x["hand_jerk"] for x in s]), "seconds": s[0]["seconds"]}
@@ -427,6 +436,9 @@ def run(args: argparse.Namespace) -> dict:
         raise ValueError("give --data (BVH+WAV pairs: every metric) or --wavs (speech only: reference-free metrics)")
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
+    if getattr(args, "guidance", None) is not None:  # every generation below takes the config's scale
+        from .diffusion import check_guidance
+        bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": check_guidance(args.guidance)})
     c = bundle.config
     if args.steps is None:
         args.steps = c.sample_steps
@@ -438,7 +450,8 @@ def run(args: argparse.Namespace) -> dict:
         print(f"{len(clips)} WAV files, {sum(len(a) for a, _ in clips) / 16000:.1f} s: reference-free metrics only")
         rep = k_report(bundle, clips, ks, seeds, args.seed, None, smoothing=smoothing, names=names)
         return {"checkpoint": str(args.checkpoint or "embedded default"), "wavs": str(args.wavs), "files": names,
-                "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, **rep, "notes": NOTES}
+                "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, "guidance": c.guidance,
+                **rep, "notes": NOTES}
     data = Path(args.data)
     common = dict(spec=bundle.feature_spec, window_s=args.window_s, valid_fraction=args.valid_fraction,
                   valid_seconds=getattr(args, "valid_seconds", None))
@@ -460,7 +473,7 @@ def run(args: argparse.Namespace) -> dict:
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
-        "steps": ks[0], "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz,
+        "steps": ks[0], "ks": ks, "seeds": seeds, "seed": args.seed, "smooth_hz": smooth_hz, "guidance": c.guidance,
         "fgd_autoencoder": str(ae_path),
         "systems": score(gen["windows"], gen["audio"], bundle.skeleton, valid.spec, ae),
         **rep, "notes": NOTES,
@@ -486,8 +499,9 @@ NOTES = {"fgd_reference": "the valid split's real motion (so ground_truth has FG
          "coupling_shifted": "the same against the clip's audio circularly shifted by 20 offsets from 10% to 90% of "
                              "its length: the chance level (coupling_shifted_sd: their sd)",
          "coupling_above": "fraction of clips whose coupling > coupling_shifted + 2 coupling_shifted_sd",
-         "onset_align": "fraction of speech onsets (as BeatAlign's) with a wrist-speed peak (local maximum above the "
-                        "clip mean) from 0.1 s before to 0.3 s after them (metrics.onset_alignment)",
+         "onset_align": "fraction of stressed onsets (the strongest 40% of BeatAlign's speech onsets, "
+                        "metrics.stressed_onsets) with a wrist-speed peak (local maximum above the clip mean) from "
+                        "0.1 s before to 0.3 s after them (metrics.onset_alignment); onset_align_all: of all onsets",
          "onset_shuffled": "the same for as many onsets placed at random inside speech (10 seeded draws): chance",
          "silence_ratio": f"mean wrist speed in speech / inside {SILENCE_S:g} s of digital silence inserted at the "
                           "quietest frame of each clip's middle third (0.75 s at both ends of it left out)",
@@ -543,6 +557,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ks", default=None, metavar="K,K,...",
                    help="report these step counts, e.g. 1,2,4,8 (default: --steps alone)")
     p.add_argument("--seeds", type=int, default=3, help="seeds per K (diversity is measured between them)")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale of every generation (default: the checkpoint's; 1 = unguided)")
     p.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     p.add_argument("--seed", type=int, default=0)

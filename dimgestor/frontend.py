@@ -172,4 +172,8 @@ class PretrainedFrontEnd(AudioFrontEnd):
 def build_frontend(config: ModelConfig) -> AudioFrontEnd:
     if config.frontend == "logmel":
         return LogMelFrontEnd(config)
+    if config.frontend == "speech":
+        from .frontend_speech import SpeechFrontEnd
+
+        return SpeechFrontEnd(config)
     return PretrainedFrontEnd(config)

@@ -11,15 +11,18 @@ from .audio import SAMPLE_RATE, AudioError, load_wav
 from .bvh import BvhMotion, write_bvh
 from .checkpoint import Bundle, load_checkpoint
 from .features import features_to_motion
+from .diffusion import check_guidance
 from .stream import smoothing_from_flag
 
 __all__ = ["generate_motion", "register"]
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                    eta: float = 0.0, smoothing="config", root: str = "free", tether_s: float = 5.0) -> BvhMotion:
+                    eta: float = 0.0, smoothing="config", root: str = "free", tether_s: float = 5.0,
+                    guidance: float | None = None) -> BvhMotion:
     """16 kHz mono audio -> motion on the checkpoint's skeleton at its feature rate (len(audio) * fps // 16000 frames)."""
-    features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing)
+    features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing,
+                               guidance=guidance)
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
 
 
@@ -35,6 +38,9 @@ def register(subparsers) -> None:
     p.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale: 1 = unguided, > 1 follows the audio more (needs a model "
+                        "trained with --cond-drop; costs a second batch row); default: the checkpoint's")
     p.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
     p.add_argument("--root", choices=("free", "tether", "lock"), default="free",
@@ -51,6 +57,8 @@ def _run(args) -> int:
     if args.eta < 0:
         raise ValueError(f"--eta must be >= 0, got {args.eta}")
     smoothing = smoothing_from_flag(args.smooth)
+    if args.guidance is not None:
+        check_guidance(args.guidance)
     if not args.tether_s > 0:
         raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
     out = Path(args.out)
@@ -70,7 +78,7 @@ def _run(args) -> int:
         raise AudioError(f"{args.audio}: {len(audio)} audio samples, shorter than one motion frame "
                          f"({1000 / bundle.feature_spec.fps:g} ms): nothing to generate")
     motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
-                             args.tether_s)
+                             args.tether_s, args.guidance)
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
           f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")

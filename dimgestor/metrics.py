@@ -459,6 +459,23 @@ def shifted_coupling(hand_speed: np.ndarray, audio: np.ndarray, sr: int, fps: fl
 ONSET_WINDOW_S = (-0.1, 0.3)
 
 
+def stressed_onsets(audio: np.ndarray, sr: int = 16000, keep: float = 0.4) -> np.ndarray:
+    """The strongest `keep` fraction of audio_onsets (by onset strength), in time order: a stand-in for the
+    stressed syllables that beat gestures land on.
+
+    Every syllable makes an onset, and at ~4 syllables/s busy hands have a speed peak near almost any of
+    them; on the synthetic world (a stroke on each stressed syllable, ~40% of them) the rule's own motion
+    aligns no better with all onsets than with shuffled ones, and 0.2 better with the strongest 40%.
+    """
+    onsets = audio_onsets(audio, sr)
+    if onsets.size == 0:
+        return onsets
+    env, rate = onset_strength(audio, sr)
+    strength = env[np.clip(np.round(onsets * rate).astype(np.int64), 0, len(env) - 1)]
+    n = max(1, int(round(keep * onsets.size)))
+    return np.sort(onsets[np.argsort(-strength, kind="stable")[:n]])
+
+
 def speed_peaks(speed: np.ndarray, threshold: float | None = None) -> np.ndarray:
     """Frames where speed is a local maximum (above the frame before, not below the one after) and above
     `threshold` (default: the clip mean, so the small wobbles of a resting hand do not count)."""

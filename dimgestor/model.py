@@ -309,8 +309,11 @@ class DiMGestor(nn.Module):
         ex = self.extractor.init_state(1)
         c = self.config
         # the front-end tail and the extractor buffer vary in length; count their largest size
-        fe_bytes = (fe.tail.shape[1] + c.hop_length) * 4 if c.frontend == "logmel" else \
-            (fe.tail.shape[1] + self.frontend.block + self.frontend.right) * 4
+        if c.frontend == "pretrained":
+            fe_bytes = (fe.tail.shape[1] + self.frontend.block + self.frontend.right) * 4
+        else:
+            fe_bytes = (fe.tail.shape[1] + c.hop_length) * 4 + (fe.nbytes() - fe.tail.numel() * 4
+                                                                if hasattr(fe, "nbytes") else 0)
         ex_bytes = ex.style.nbytes() + ex.buf.shape[1] * (self.extractor.k - 1) * 4
         per_step = self.init_state(1).nbytes()
         return {"frontend": fe_bytes, "extractor": ex_bytes, "denoiser_per_step": per_step,

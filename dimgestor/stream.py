@@ -4,7 +4,8 @@
 condition became complete, each denoised through all sampler steps at once (batched over the new
 frames). For every step it carries the denoiser's state (encoder tail + each block's Mamba-2 state);
 the front end and the feature extractor carry theirs. Noise is `motion_noise(seed, frame, step)`, so
-the frames equal those of `generate_offline` on the whole recording.
+the frames equal those of `generate_offline` on the whole recording. With classifier-free guidance
+(scale != 1) the unconditional branch carries its own per-step states beside the conditional one's.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 
 from .batch import StepStates, _Row, denoise_rows, runner_for
-from .diffusion import Diffusion, motion_noise
+from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor
 from .smoothing import OneEuroFilter
 
@@ -21,14 +22,23 @@ __all__ = ["GestureStream", "generate_offline", "make_smoother", "sample_frames"
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
                   states: list[DenoiserState | None], pairs: list[tuple[int, int]], seed: int,
-                  sampler: str, eta: float) -> tuple[torch.Tensor, list[DenoiserState]]:
-    """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step."""
+                  sampler: str, eta: float, guidance: float = 1.0) -> tuple[torch.Tensor, list[DenoiserState]]:
+    """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step.
+
+    guidance != 1: classifier-free guidance; the unconditional branch (the condition zeroed) is row 1 of
+    every step's state and of the network's batch, beside the conditional row 0. At 1 it does not exist.
+    """
     n, D, dev = cond.shape[1], model.config.motion_dim, cond.device
     L = model.config.noise_taps
+    guided = guidance != 1.0
+    if guided:
+        cond = torch.cat([cond, torch.zeros_like(cond)])  # (2, n, H): conditional, unconditional
     x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
     new_states = []
     for i, ((t, t_prev), state) in enumerate(zip(pairs, states)):
-        out, state = model(x, t, cond, state)
+        out, state = model(x.expand(2, -1, -1) if guided else x, t, cond, state)
+        if guided:
+            out = guide(out[:1], out[1:], guidance)
         new_states.append(state)
         eps, x0 = diffusion.split(out, x, t)
         noisy = sampler == "ddpm" and t > 0 or sampler == "ddim" and eta > 0 and t_prev >= 0
@@ -83,11 +93,13 @@ class GestureStream:
     """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
 
     def __init__(self, model: DiMGestor, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                 eta: float = 0.0, smoothing="config"):
+                 eta: float = 0.0, smoothing="config", guidance: float | None = None):
         if not getattr(model, "streams", True):
             raise ValueError(f"{type(model).__name__} cannot stream: it carries no state between windows "
                              "(use generate_offline on the whole recording)")
         self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
+        # classifier-free guidance scale (None: the config's); != 1 adds an unconditional row to the state
+        self.guidance = check_guidance(model.config.guidance if guidance is None else guidance)
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
         self.smoother = make_smoother(model, smoothing)
@@ -95,8 +107,10 @@ class GestureStream:
         dev = _device(model)
         self._fe = model.frontend.init_state(1, dev)
         self._ex = model.extractor.init_state(1, dev)
-        # the denoiser's state for every step: its row of a buffer the runner updates in place
-        self._states = _Row(StepStates.zeros(model, len(self.pairs), 1, dev), 0)
+        # the denoiser's state for every step: its row of a buffer the runner updates in place (two rows when
+        # guided: the conditional branch, then the unconditional one)
+        rows = 1 if self.guidance == 1.0 else 2
+        self._states = _Row(StepStates.zeros(model, len(self.pairs), rows, dev), 0, rows)
         self.samples_in = 0  # audio samples received (the audio clock)
         self.frames_out = 0  # frames returned; frame i is presented at i / fps on the audio clock
         self.finished = False
@@ -153,13 +167,14 @@ class GestureStream:
 
 
 def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                     eta: float = 0.0, smoothing="config") -> np.ndarray:
+                     eta: float = 0.0, smoothing="config", guidance: float | None = None) -> np.ndarray:
     """Whole-recording generation: (T, motion_dim) normalized features, T = len(audio) * fps // 16000.
 
-    steps None: the config's sample_steps; smoothing: see make_smoother.
+    steps None: the config's sample_steps; smoothing: see make_smoother; guidance None: the config's scale.
     """
     audio = _check_audio(audio)
     c = model.config
+    guidance = check_guidance(c.guidance if guidance is None else guidance)
     T = len(audio) * c.fps // c.sample_rate
     diffusion = Diffusion(c)
     pairs = diffusion.sampling_pairs(sampler, steps or c.sample_steps)
@@ -171,7 +186,8 @@ def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: in
         x = torch.from_numpy(np.concatenate([audio, np.zeros(pad, np.float32)])).to(dev)[None]
         feats, _ = model.frontend(x, model.frontend.init_state(1, dev))
         cond, _ = model.condition(feats)
-        frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta)
+        frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta,
+                                  guidance)
     out = frames.float().cpu().numpy()
     smoother = make_smoother(model, smoothing)
     return smoother(out) if smoother is not None else out

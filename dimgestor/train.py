@@ -23,6 +23,7 @@ import torch.distributed as dist
 from torch import nn
 from torch.utils.data import DistributedSampler
 
+from .augment import AugmentConfig, augment
 from .checkpoint import latest_checkpoint, read_meta, save_checkpoint
 from .config import ModelConfig, get_preset
 from .dataset import GestureDataset, compute_stats
@@ -32,7 +33,8 @@ from .model import DiMGestor
 
 __all__ = ["TrainOptions", "train", "register", "Objective", "RECIPES"]
 
-SMALL_DATA_MIN = 30.0  # below this many minutes of training data, mirroring and speed perturbation default on
+SMALL_DATA_MIN = 30.0  # below this many minutes of training data, mirroring, speed perturbation and audio
+# augmentation default on
 SMALL_DATA_SPEEDS = (0.9, 1.1)
 
 # Named training recipes: model-config overrides for the diffusion process plus the loss weights.
@@ -42,10 +44,10 @@ SMALL_DATA_SPEEDS = (0.9, 1.1)
 # over a few frames, so that what a causal denoiser passes through is slow sway, not jitter.
 RECIPES: dict[str, dict] = {
     "paper": dict(config=dict(n_steps=1000, schedule="linear", beta_start=1e-4, beta_end=8e-2, prediction="eps",
-                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0),
+                              noise_taps=1), heading="velocity", vel_weight=0.0, acc_weight=0.0, cond_drop=0.0),
     "streaming": dict(config=dict(n_steps=8, schedule="cosine", prediction="x0", noise_taps=1, sample_steps=4,
                                   ddim_spacing="linspace"), heading="facing",
-                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1),
+                      vel_weight=4.0, acc_weight=4.0, root_weight=0.1, cond_drop=0.0),
 }
 
 
@@ -66,11 +68,17 @@ class TrainOptions:
     acc_weight: float | None = None  # weight of the x0 acceleration loss (None: the recipe's; 0 = none)
     root_weight: float | None = None  # weight of the integrated-root (drift) loss (None: the recipe's; 0 = none)
     heading: str | None = None  # root heading features: "velocity" or "facing" (None: the recipe's)
+    # probability that a training window's condition is zeroed (classifier-free guidance learns the unconditional
+    # model from these windows; sampling with guidance != 1 needs it). None: the recipe's; 0 = never
+    cond_drop: float | None = None
     speeds: tuple[float, ...] = ()  # speed perturbation factors for extra training copies, e.g. (0.9, 1.1)
     ema: float = 0.999  # EMA decay of the saved weights
     window_s: float = 10.0
     hop_s: float | None = None  # default: a quarter window (overlapping windows are cheap data)
     mirror: bool = False  # left/right mirrored copies of every window
+    augment: bool = False  # audio augmentation (dimgestor.augment: voice, room, noise, microphone, level)
+    aug_copies: int = 4  # augmented versions of each training window's audio; a batch item takes clean or one
+    aug_config: dict | None = None  # AugmentConfig fields replacing its defaults
     valid_fraction: float = 0.15
     valid_seconds: float | None = None  # hold out the last S seconds of every clip instead of a fraction
     ckpt_every: int = 1000
@@ -90,8 +98,8 @@ class Objective(nn.Module):
         super().__init__()
         self.model, self.diffusion, self.weights = model, diffusion, weights
 
-    def forward(self, x0, feats, t, noise):
-        return self.diffusion.training_loss(self.model, x0, feats, t, noise, **self.weights)
+    def forward(self, x0, feats, t, noise, drop=None):
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise, drop=drop, **self.weights)
 
 
 LOSS_WEIGHTS = ("vel_weight", "acc_weight", "root_weight")
@@ -106,30 +114,67 @@ def resolve_recipe(opts: "TrainOptions") -> tuple[dict, dict[str, float]]:
     return {**r["config"], **(opts.overrides or {})}, weights
 
 
-class WindowBank:
-    """Normalized motion and front-end features of every window, computed once."""
+def resolve_cond_drop(opts: "TrainOptions") -> float:
+    """The condition-dropout probability: the explicit option, else the recipe's, else 0."""
+    r = RECIPES.get(opts.recipe, {}) if opts.recipe else {}
+    p = float(r.get("cond_drop", 0.0) if opts.cond_drop is None else opts.cond_drop)
+    if not 0 <= p <= 1:
+        raise ValueError(f"cond_drop must be a probability in [0, 1], got {p}")
+    return p
 
-    def __init__(self, ds: GestureDataset, model: DiMGestor, mean, std, device):
-        self.motion, self.feats = [], []
-        fe, c = model.frontend, model.config
+
+class WindowBank:
+    """Normalized motion and front-end features of every window, computed once.
+
+    With `copies` > 0 it also holds the features of that many augmented versions of each window's audio
+    (augmented before the front end, so any front end works), seeded by (seed, audio window, copy);
+    mirrored windows hear the same audio and share its versions.
+    """
+
+    def __init__(self, ds: GestureDataset, model: DiMGestor, mean, std, device, copies: int = 0,
+                 aug_config: AugmentConfig | None = None, seed: int = 0):
+        self.motion, self.feats, self.versions = [], [], []  # versions[i]: features of window i's augmented audio
+        self.copies = copies
         mean, std = torch.from_numpy(mean), torch.from_numpy(std)
+        # babble is made of the training speech itself, pitch-shifted and time-shifted
+        babble = [ds.clips[c].audio[a * ds.spf: b * ds.spf] for c, a, b in ds.segments] if copies else None
+        shared: dict[tuple, list[torch.Tensor]] = {}
         with torch.no_grad():
             for i in range(len(ds)):
                 item = ds[i]
                 T = len(item["motion"])
-                audio = np.zeros(max(model.samples_needed(T), len(item["audio"])), np.float32)
-                audio[: len(item["audio"])] = item["audio"]  # silence beyond the window, as at a stream's end
-                f, _ = fe(torch.from_numpy(audio)[None].to(device), fe.init_state(1, device))
-                self.feats.append(f[0, : T * c.feats_per_frame + c.lookahead_feats].cpu())
+                self.feats.append(self._features(model, item["audio"], T, device))
                 self.motion.append((torch.from_numpy(item["motion"]) - mean) / std)
+                if copies:
+                    key = ds.windows[i][:3]  # (clip, start, length): the same audio, mirrored or not
+                    if key not in shared:
+                        u = len(shared)
+                        shared[key] = [self._features(model, augment(item["audio"], model.config.sample_rate,
+                                                                     (seed, u, k), aug_config, babble), T, device)
+                                       for k in range(copies)]
+                    self.versions.append(shared[key])
+
+    @staticmethod
+    def _features(model: DiMGestor, window_audio: np.ndarray, T: int, device) -> torch.Tensor:
+        fe, c = model.frontend, model.config
+        audio = np.zeros(max(model.samples_needed(T), len(window_audio)), np.float32)
+        audio[: len(window_audio)] = window_audio  # silence beyond the window, as at a stream's end
+        f, _ = fe(torch.from_numpy(audio)[None].to(device), fe.init_state(1, device))
+        return f[0, : T * c.feats_per_frame + c.lookahead_feats].cpu()
 
     def __len__(self):
         return len(self.motion)
 
-    def batch(self, idx: list[int], frames_extra: int, fpf: int):
+    def draw_versions(self, n: int, g: torch.Generator) -> list[int] | None:
+        """Per batch item 0 (clean) or k (augmented copy k), uniformly; None (nothing drawn) without copies."""
+        return torch.randint(0, self.copies + 1, (n,), generator=g).tolist() if self.copies else None
+
+    def batch(self, idx: list[int], frames_extra: int, fpf: int, versions: list[int] | None = None):
         T = min(len(self.motion[i]) for i in idx)  # crop to the shortest window
         x0 = torch.stack([self.motion[i][:T] for i in idx])
-        feats = torch.stack([self.feats[i][: T * fpf + frames_extra] for i in idx])
+        src = [self.feats[i] if not versions or v == 0 else self.versions[i][v - 1]
+               for i, v in zip(idx, versions or [0] * len(idx))]
+        feats = torch.stack([f[: T * fpf + frames_extra] for f in src])
         return x0, feats
 
 
@@ -191,6 +236,7 @@ def train(opts: TrainOptions) -> Path:
 
     # ---- config: the checkpoint's when resuming, else the preset with the data's feature width ----
     overrides, weights = resolve_recipe(opts)
+    cond_drop = resolve_cond_drop(opts)
     if resume_from is not None:
         config = ModelConfig(**read_meta(resume_from)["model"])
     else:
@@ -233,7 +279,10 @@ def train(opts: TrainOptions) -> Path:
         ema.load_state_dict(model.state_dict())
     ema.eval()
 
-    train_bank = WindowBank(train_ds, model, mean, std, device)
+    t_bank = time.time()
+    train_bank = WindowBank(train_ds, model, mean, std, device, copies=opts.aug_copies if opts.augment else 0,
+                            aug_config=AugmentConfig(**(opts.aug_config or {})), seed=opts.seed)
+    t_bank = time.time() - t_bank
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
                                  seed=opts.seed, drop_last=False)
@@ -252,6 +301,8 @@ def train(opts: TrainOptions) -> Path:
               f"{spec.heading} heading, "
               f"noise over {config.noise_taps} frames, loss weights velocity/acceleration/root "
               f"{weights['vel_weight']:g}/{weights['acc_weight']:g}/{weights['root_weight']:g}"
+              + (f", {opts.aug_copies} augmented copies of the training audio ({t_bank:.0f} s)" if opts.augment else "")
+              + (f", condition dropped in {cond_drop:.0%} of windows" if cond_drop > 0 else "")
               + (f", resuming at step {step} from {resume_from}" if resume_from else ""))
 
     def checkpoint(step: int) -> Path:
@@ -291,12 +342,16 @@ def train(opts: TrainOptions) -> Path:
     model.train()
     while step < opts.max_steps:
         idx = _batch_indices(sampler, step, B)
-        x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame)
+        versions = train_bank.draw_versions(len(idx), g)  # from g, so --resume stays exact
+        x0, feats = train_bank.batch(idx, config.lookahead_feats, config.feats_per_frame, versions)
         t = torch.randint(0, diffusion.N, (len(idx),), generator=g)
         noise = diffusion.noise_like(x0, g)
+        # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
+        drop = torch.rand(len(idx), generator=g) < cond_drop if cond_drop > 0 else None
         for group in opt.param_groups:
             group["lr"] = _lr(opts, step)
-        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device))
+        loss = objective(x0.to(device), feats.to(device), t.to(device), noise.to(device),
+                         None if drop is None else drop.to(device))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if opts.grad_clip > 0:
@@ -367,6 +422,12 @@ def register(subparsers) -> None:
     p.add_argument("--speeds", default=None, metavar="R,R",
                    help="speed-perturbed copies of the training audio+motion, e.g. 0.9,1.1 ('' = none; "
                         "default: 0.9,1.1 when the training split is under 30 min)")
+    p.add_argument("--augment", action=argparse.BooleanOptionalAction, default=None,
+                   help="train on augmented copies of the audio too (pitch/formant, reverb, noise, EQ/band limits, "
+                        "gain) so gestures follow other voices and microphones (default: on when the training split "
+                        "is under 30 min)")
+    p.add_argument("--aug-copies", type=int, default=d.aug_copies,
+                   help="augmented versions of each training window (features of all are kept in memory)")
     p.add_argument("--ckpt-every", type=int, default=d.ckpt_every)
     p.add_argument("--valid-every", type=int, default=d.valid_every)
     p.add_argument("--keep", type=int, default=d.keep, help="checkpoints to keep (0 = all)")
@@ -378,6 +439,10 @@ def register(subparsers) -> None:
     p.add_argument("--root-weight", type=float, default=None,
                    help="weight of a loss on the integrated root travel and turning of the predicted x0, against "
                         "spin and drift (default: the recipe's; 0 = none)")
+    p.add_argument("--cond-drop", type=float, default=None, metavar="P",
+                   help="probability that a training window's audio condition is dropped (zeroed), so the model also "
+                        "learns the unconditional motion that `--guidance S` sampling extrapolates away from "
+                        "(default: the recipe's; 0 = none)")
     p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
@@ -389,12 +454,14 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
-    for name in ("max_steps", "batch_size", "ckpt_every", "valid_every"):
+    for name in ("max_steps", "batch_size", "ckpt_every", "valid_every", "aug_copies"):
         if getattr(args, name) <= 0:
             raise ValueError(f"--{name.replace('_', '-')} must be positive, got {getattr(args, name)}")
     if args.lr <= 0 or args.window_s <= 0 or not 0 <= args.ema < 1 or \
             any((getattr(args, k) or 0) < 0 for k in LOSS_WEIGHTS):
         raise ValueError("--lr and --window-s must be positive, --ema in [0, 1), the loss weights >= 0")
+    if args.cond_drop is not None and not 0 <= args.cond_drop <= 1:
+        raise ValueError(f"--cond-drop must be a probability in [0, 1], got {args.cond_drop}")
     try:
         speeds = None if args.speeds is None else tuple(float(r) for r in args.speeds.split(",") if r.strip())
     except ValueError:
@@ -411,16 +478,18 @@ def _run(args) -> int:
                         valid_seconds=args.valid_seconds, ckpt_every=args.ckpt_every, recipe=args.recipe,
                         valid_every=args.valid_every, keep=args.keep, ema=args.ema, vel_weight=args.vel_weight,
                         acc_weight=args.acc_weight, root_weight=args.root_weight, heading=args.heading,
+                        cond_drop=args.cond_drop,
                         resume=args.resume,
                         seed=args.seed, device=args.device, cache_dir=args.cache_dir, progress=not args.no_progress)
     few = False
-    if args.mirror is None or speeds is None:  # augmentation defaults depend on how much training data there is
+    if args.mirror is None or speeds is None or args.augment is None:  # these defaults depend on the data's size
         minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
                                  valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
                                  window_s=args.window_s).seconds() / 60  # the heading layout does not change it
         few = minutes < SMALL_DATA_MIN
     opts.mirror = few if args.mirror is None else args.mirror
     opts.speeds = (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds
+    opts.augment, opts.aug_copies = few if args.augment is None else args.augment, args.aug_copies
     last = train(opts)
     if int(os.environ.get("RANK", "0")) == 0:
         print(f"checkpoint: {last}")

@@ -112,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--steps", type=int, default=None,
                    help="DDIM denoising steps K, fewer is faster (default: the checkpoint's sample_steps)")
     s.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
+    s.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale: 1 = unguided, > 1 follows the audio more (needs a model "
+                        "trained with --cond-drop; each stream then takes two batch rows); default: the checkpoint's")
     s.add_argument("--root", choices=("tether", "free", "lock"), default="tether",
                    help="root ground motion: 'tether' follows the model's steps and turns but removes any steady "
                         "walk or spin and drifts back to the start position and heading (time constant "

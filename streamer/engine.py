@@ -340,11 +340,11 @@ class Session:
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
-                    tether_s: float = 5.0, **kw) -> "Session":
+                    tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
         from dimgestor.features import PoseDecoder
 
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
-        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing), decoder,
+        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing, guidance=guidance), decoder,
                    bundle.denormalize, bundle.feature_spec.fps, **kw)
 
     @property

@@ -142,6 +142,13 @@ async def serve(args) -> int:
         raise ServeError(f"--max-sessions must be in 1..4096, got {args.max_sessions}")
     if args.steps is not None and args.steps < 1:
         raise ServeError(f"--steps must be >= 1, got {args.steps}")
+    guidance = getattr(args, "guidance", None)  # a Namespace from tests may lack it
+    if guidance is not None:
+        from dimgestor.diffusion import check_guidance
+        try:
+            check_guidance(guidance)
+        except ValueError as e:
+            raise ServeError(f"--guidance: {e}") from None
     if not getattr(args, "tether_s", 5.0) > 0:
         raise ServeError(f"--tether-s must be > 0, got {args.tether_s}")
     root = dict(root=getattr(args, "root", "free"), tether_s=getattr(args, "tether_s", 5.0))
@@ -173,6 +180,8 @@ async def serve(args) -> int:
     bundle = _load(args)
     if args.steps is None:
         args.steps = bundle.config.sample_steps
+    if guidance is None:
+        guidance = bundle.config.guidance
     sk = bundle.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
     fps = bundle.feature_spec.fps
@@ -188,7 +197,7 @@ async def serve(args) -> int:
 
     def make_session(name: str = "client") -> Session:
         return Session.from_bundle(bundle, steps=args.steps, seed=args.seed, smoothing=smoothing, **root,
-                                   window_ms=args.window_ms, executor=executor, name=name)
+                                   guidance=guidance, window_ms=args.window_ms, executor=executor, name=name)
 
     main_session = make_session("source") if source is not None else None
     lookahead = (main_session or make_session()).lookahead_s
@@ -253,7 +262,8 @@ async def serve(args) -> int:
     smoother = (main_session or make_session()).stream.smoother
     smooth_txt = f"smoothing {smoother.min_cutoff_hz:g} Hz" if smoother else "no smoothing"
     smooth_txt += f", root {root['root']}" + (f" ({root['tether_s']:g} s)" if root["root"] == "tether" else "")
-    print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, {smooth_txt}, "
+    print(f"streamer: model {args.checkpoint or 'default (embedded)'}, K={args.steps}, seed={args.seed}, "
+          + (f"guidance {guidance:g}, " if guidance != 1.0 else "") + f"{smooth_txt}, "
           f"{fps} fps, window {args.window_ms} ms, lookahead {lookahead * 1000:.0f} ms; source: {what}", file=sys.stderr)
     if ws:
         print(f"streamer: WebSocket  {ws.url}{'?token=...' if token else ''}  (protocol v1, docs/protocol.md)",

@@ -96,6 +96,24 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
 
 
 
+def test_guidance_benchmark_writes_its_schema(tmp_path):
+    out = tmp_path / "guidance.json"
+    run("guidance.py", "--preset", "tiny", "--steps", "1", "2", "--audio-s", "1", "--batches", "2",
+        "--batch-audio-s", "1.5", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code_version"] and r["device"].startswith("CPU") and r["guidance"] == 2.0 and r["window_ms"] == 100
+    assert [x["steps"] for x in r["single"]] == [1, 2]
+    for x in r["single"]:
+        for arm in ("unguided", "guided"):
+            assert all(finite(x[arm][k]) and x[arm][k] > 0 for k in ("ms_p50", "ms_p95", "rtf"))
+        assert finite(x["ratio_p50"]) and finite(x["ratio_rtf"])
+    assert [(x["steps"], x["batch"]) for x in r["batched"]] == [(1, 2), (2, 2)]
+    for x in r["batched"]:
+        assert [x[a]["rows"] for a in ("unguided", "guided", "unguided_2x")] == [2, 4, 4]
+        assert finite(x["ratio_p50"]) and finite(x["ratio_p50_vs_2x_unguided"])
+
+
 def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
     """Tiny sizes: the world is made, --set and --train-args reach dimgestor train, every checkpoint is scored."""
     pytest.importorskip("matplotlib")

@@ -158,7 +158,7 @@ def test_speech_mask_and_contrast():
     assert np.isnan(metrics.speech_contrast(speed, np.ones(200, int)))  # no silence: undefined
 
 
-def test_eval_on_speech_without_motion_and_per_k(data, tmp_path):
+def test_eval_on_speech_without_motion_and_per_k(data, tmp_path, capsys):
     from dimgestor.audio import save_wav
     from dimgestor.checkpoint import save_checkpoint
 
@@ -179,8 +179,61 @@ def test_eval_on_speech_without_motion_and_per_k(data, tmp_path):
     assert res["files"] == ["one.wav", "two.wav"] and res["ks"] == [1, 3]  # 2000 > the chain's 1000 steps: dropped
     assert res["reference"] is None and "systems" not in res
     assert np.isnan(res["per_k"]["3"]["jerk_ratio"]) and res["per_k"]["3"]["hand_jerk"] > 0
+    # speech-drivenness beside its chance levels, per K and per file (the per-voice table)
+    for row in res["per_k"].values():
+        for key in ("coupling", "coupling_shifted", "coupling_shifted_sd", "onset_align", "onset_shuffled",
+                    "silence_ratio"):
+            assert np.isfinite(row[key]), key
+        assert -1 <= row["coupling"] <= 1 and row["coupling_shifted_sd"] > 0 and 0 <= row["coupling_above"] <= 1
+        assert 0 <= row["onset_align"] <= 1 and 0 <= row["onset_shuffled"] <= 1 and row["silence_ratio"] > 0
+    assert list(res["per_file"]) == ["1", "3"] and list(res["per_file"]["1"]) == ["one.wav", "two.wav"]
+    for name, row in res["per_file"]["1"].items():
+        assert set(row) == set(ev.VOICE_METRICS), name
+        assert row["n_onsets"] > 0 and row["speed_speech"] > 0 and row["speed_silence"] > 0 and row["seconds"] > 1
+        assert row["silence_ratio"] == pytest.approx(row["speed_speech"] / row["speed_silence"])
+        assert row["coupling_above"] == (row["coupling"] > row["coupling_shifted"] + 2 * row["coupling_shifted_sd"])
+    out = capsys.readouterr().out
+    assert "per file, K=1" in out and "one.wav" in out and "silence_ratio" in out
     assert (tmp_path / "w.png").stat().st_size > 1000
     with pytest.raises(ValueError, match="--data .* or --wavs"):
         ev.run(parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck")]))
     with pytest.raises(ValueError, match="--ks"):
         ev.parse_ks("1,x", 8, 4)
+
+
+def test_voice_row_pools_seeds_and_judges_chance(data):
+    _, valid, train = data
+    bundle = _bundle(train)
+    audio, _ = ev.valid_clips(valid)[0]
+    one = ev.seed_stats(bundle, audio, 1, seed=0)[1]
+    assert set(ev.voice_row([one])) == set(ev.VOICE_METRICS)
+    # the inserted silence is in the middle third of the clip, and the model ran on the longer clip
+    assert len(audio) / 16000 / 3 <= one["silence_at_s"] <= 2 * len(audio) / 16000 / 3
+    a, b = dict(one, coupling=0.9, coupling_shifted=0.0, coupling_shifted_sd=0.1), dict(one, coupling=0.5)
+    row = ev.voice_row([a, b])
+    assert row["coupling"] == pytest.approx(0.7) and row["coupling_seed_sd"] == pytest.approx(np.std([0.9, 0.5], ddof=1))
+    assert row["coupling_shifted"] == pytest.approx((0.0 + one["coupling_shifted"]) / 2)
+    low = ev.voice_row([dict(one, coupling=0.1, coupling_shifted=0.0, coupling_shifted_sd=0.1)])
+    assert ev.voice_row([a])["coupling_above"] and not low["coupling_above"]  # 0.9 > 0 + 0.2; 0.1 is not
+    pooled = ev.pool_drive([dict(ev.voice_row([a]), seconds=1.0), dict(low, seconds=3.0)])
+    assert pooled["coupling"] == pytest.approx(0.9 * 0.25 + 0.1 * 0.75) and pooled["coupling_above"] == 0.5
+
+
+def test_the_synthetic_rule_follows_its_speech_and_mismatched_audio_does_not(tmp_path):
+    """Known answer: the synthetic world's motion (a stroke on each stressed syllable, rest in pauses) scored
+    against its own audio clears both chance levels; against its audio rolled by half a clip it does not."""
+    from dimgestor.synthetic import make_gesture_corpus
+
+    make_gesture_corpus(tmp_path / "world", 2.0, seed=999)
+    ds = GestureDataset(tmp_path / "world", split="train", valid_fraction=0.0, window_s=4.0, cache_dir=tmp_path / "c")
+    clips = ev.valid_clips(ds)
+    own = [ev.voice_row([ev.clip_stats(raw, audio, ds.skeleton, ds.spec)]) for audio, raw in clips]
+    rolled = [ev.voice_row([ev.clip_stats(raw, np.roll(audio, len(audio) // 2), ds.skeleton, ds.spec)])
+              for audio, raw in clips]
+    truth, chance = ev.pool_drive(own), ev.pool_drive(rolled)
+    assert truth["coupling_above"] == 1.0 and truth["coupling"] > 0.2
+    assert truth["onset_align"] - truth["onset_shuffled"] > 0.15
+    assert chance["onset_align"] - chance["onset_shuffled"] < 0.1 and chance["coupling"] < truth["coupling"] - 0.1
+    # every syllable's onset dilutes the stressed ones: the rule scores at chance on all onsets
+    every = np.mean([r["onset_align_all"] - r["onset_shuffled_all"] for r in own])
+    assert every < truth["onset_align"] - truth["onset_shuffled"] - 0.1

@@ -340,3 +340,15 @@ def test_inserted_silence_speeds_and_quietest_point():
     speed = np.where((t >= at) & (t < at + 6.0), 2.0, 10.0)  # calm in the inserted silence, busy elsewhere
     speaking, silent = metrics.inserted_silence_speeds(speed, gapped, SR, FPS, at, 6.0)
     assert (speaking, silent) == (10.0, 2.0)
+
+
+def test_stressed_onsets_are_the_strongest_onsets_in_time_order():
+    audio, _ = _speech_like(seconds=20.0, seed=10)
+    every = metrics.audio_onsets(audio, SR)
+    strong = metrics.stressed_onsets(audio, SR, keep=0.4)
+    assert len(strong) == round(0.4 * len(every)) and np.all(np.diff(strong) > 0) and set(strong) <= set(every)
+    env, rate = metrics.onset_strength(audio, SR)
+    at = lambda t: env[np.round(np.asarray(t) * rate).astype(int)]  # noqa: E731
+    weaker = np.setdiff1d(every, strong)
+    assert at(strong).min() >= at(weaker).max()
+    assert metrics.stressed_onsets(np.zeros(SR, np.float32), SR).size == 0

@@ -120,18 +120,20 @@ def test_wav_file_to_websocket_client_and_vmc(tiny_checkpoint, wav, tmp_path):
     assert re.search(r"latency\s+\d+ms \| rtf \d", s.output)
 
 
-@pytest.mark.parametrize("root", ["free", "tether"])
-def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root):
-    """Streaming (--record, window 150 ms) == `dimgestor generate` on the same file, seed, steps and root mode."""
+@pytest.mark.parametrize("root,guidance", [("free", None), ("tether", None), ("tether", "2.5")])
+def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, guidance):
+    """Streaming (--record, window 150 ms) == `dimgestor generate` on the same file, seed, steps, root mode and
+    guidance scale."""
     out_stream, out_offline = tmp_path / "stream.bvh", tmp_path / "offline.bvh"
+    extra = ["--guidance", guidance] if guidance else []
     s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--no-ws", "--seed", "7", "--steps", "3",
-              "--window-ms", "150", "--record", str(out_stream), "--root", root, "--tether-s", "0.5")
+              "--window-ms", "150", "--record", str(out_stream), "--root", root, "--tether-s", "0.5", *extra)
     assert s.finish() == 0, s.output
-    assert f"root {root}" in s.output
+    assert f"root {root}" in s.output and (f"guidance {guidance}" in s.output) == bool(guidance)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
                         "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
-                        "--root", root, "--tether-s", "0.5"],
+                        "--root", root, "--tether-s", "0.5", *extra],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(out_stream), read_bvh(out_offline)
@@ -188,6 +190,7 @@ def test_mic_without_an_input_device_exits_with_a_clear_message():
     (["--smooth", "-1"], "--smooth must be >= 0"),
     (["--steps", "0"], "--steps must be >= 1"),
     (["--tether-s", "0"], "--tether-s must be > 0"),
+    (["--guidance", "-1"], "--guidance: guidance scale must be"),
 ])
 def test_bad_arguments_exit_2_with_a_message(args, message):
     r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--no-ws", *args],

@@ -107,8 +107,64 @@ def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, c
     common = ["train", "--data", str(data), "--out", str(tmp_path / "r"), "--cache-dir", str(tmp_path / "c")]
     assert main(common) == 0
     assert seen["opts"].mirror is True and seen["opts"].speeds == (0.9, 1.1) and seen["opts"].recipe == "streaming"
+    assert seen["opts"].augment is True and seen["opts"].aug_copies == 4
     seen.clear()
-    assert main(common + ["--no-mirror", "--speeds", "", "--recipe", "paper"]) == 0
+    assert main(common + ["--no-mirror", "--speeds", "", "--recipe", "paper", "--no-augment"]) == 0
     assert seen["opts"].mirror is False and seen["opts"].speeds == () and seen["opts"].recipe == "paper"
+    assert seen["opts"].augment is False
+    seen.clear()
+    assert main(common + ["--aug-copies", "2"]) == 0 and seen["opts"].aug_copies == 2 and seen["opts"].augment
+    assert main(common + ["--aug-copies", "0"]) == 2
+    assert "--aug-copies must be positive" in capsys.readouterr().err
     assert main(common + ["--speeds", "fast"]) == 2
     assert "--speeds expects" in capsys.readouterr().err
+
+
+def test_augmented_bank_holds_front_end_features_of_seeded_augmented_audio(data, tmp_path):
+    from dimgestor.augment import AugmentConfig, augment
+    from dimgestor.config import get_preset
+    from dimgestor.dataset import GestureDataset, compute_stats
+    from dimgestor.features import FeatureSpec
+    from dimgestor.model import DiMGestor
+    from dimgestor.train import WindowBank
+
+    ds = GestureDataset(data, FeatureSpec(), window_s=2.0, hop_s=0.5, mirror=True, cache_dir=tmp_path, valid_fraction=0.2)
+    model = DiMGestor(get_preset("tiny", motion_dim=ds.motion_dim))
+    mean, std = compute_stats(ds)
+    bank = WindowBank(ds, model, mean, std, "cpu", copies=2, seed=5)
+    again = WindowBank(ds, model, mean, std, "cpu", copies=2, seed=5)
+    clean = WindowBank(ds, model, mean, std, "cpu")
+    assert clean.versions == [] and clean.draw_versions(4, torch.Generator()) is None
+    assert ds.windows[0][3] is False and ds.windows[1][3] is True  # a window and its mirror hear the same audio
+    assert bank.versions[0] is bank.versions[1] and len(bank.versions[0]) == 2
+    babble = [ds.clips[c].audio[a * ds.spf: b * ds.spf] for c, a, b in ds.segments]
+    u = 1  # the second distinct audio window (windows 2 and 3)
+    audio = augment(ds[2]["audio"], 16000, (5, u, 1), AugmentConfig(), babble)
+    expected = WindowBank._features(model, audio, len(ds[2]["motion"]), "cpu")
+    assert torch.equal(bank.versions[2][1], expected) and torch.equal(bank.versions[2][1], again.versions[2][1])
+    idx = [0, 2, 4]
+    x0, f_clean = bank.batch(idx, 15, 5)
+    x0b, f_aug = bank.batch(idx, 15, 5, versions=[0, 2, 1])
+    assert torch.equal(x0, x0b) and torch.equal(f_clean, clean.batch(idx, 15, 5)[1])  # motion never changes
+    assert torch.equal(f_aug[0], f_clean[0]) and not torch.allclose(f_aug[1], f_clean[1])
+    assert not torch.allclose(f_aug[2], f_clean[2]) and f_aug.shape == f_clean.shape
+    draws = bank.draw_versions(4000, torch.Generator().manual_seed(0))
+    assert set(draws) == {0, 1, 2} and abs(draws.count(0) / 4000 - 1 / 3) < 0.03
+
+
+def test_resume_with_augmentation_continues_exactly(data, tmp_path):
+    cache = tmp_path / "cache"
+    aug = dict(augment=True, aug_copies=2)
+    whole = train(_opts(data, tmp_path / "whole", cache, max_steps=30, ckpt_every=15, valid_every=15, **aug))
+    train(_opts(data, tmp_path / "part", cache, max_steps=15, ckpt_every=15, valid_every=15, **aug))
+    resumed = train(_opts(data, tmp_path / "part", cache, max_steps=30, ckpt_every=15, valid_every=15, resume=True,
+                          **aug))
+    plain = train(_opts(data, tmp_path / "plain", cache, max_steps=30, ckpt_every=15, valid_every=15))
+    a, b = load_checkpoint(whole).model.state_dict(), load_checkpoint(resumed).model.state_dict()
+    for k in a:
+        assert torch.allclose(a[k], b[k], atol=1e-6), k
+    c = load_checkpoint(plain).model.state_dict()
+    assert any(not torch.allclose(a[k], c[k], atol=1e-4) for k in a)  # the augmented features were trained on
+    assert load_checkpoint(whole).info["options"]["augment"] is True
+    # validation stays clean: step 0 is the same untrained EMA model on the same held-out windows
+    assert _log(tmp_path / "whole")[0]["valid_loss"] == _log(tmp_path / "plain")[0]["valid_loss"]

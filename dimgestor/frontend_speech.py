@@ -1,0 +1,166 @@
+"""A front end that hears speech rather than a speaker: level-free spectra and prosody, streamed with state.
+
+Log-mel (`LogMelFrontEnd`) carries the microphone's gain and colour and the speaker's timbre in every
+number, and a model trained on one voice learns those instead of the rhythm. Every channel here is
+relative to the stream's own running statistics, so a quiet and a loud microphone, or two voices,
+give features that differ only in what was said and how it was stressed:
+
+    bands     n_mels log-mel bands minus their running mean over speech (cepstral mean normalization:
+              removes gain, microphone EQ and the average timbre), floored 30 dB below it so that
+              silence reads the same at any gain
+    loudness  frame energy minus the running speech level (a per-stream AGC), in [-45, +20] dB
+    flux      onset strength: mean rise of the bands since the previous frame
+    voicing   periodicity (normalized autocorrelation peak, 80-400 Hz), 0 outside speech
+    pitch     log2 f0 minus its running mean over voiced frames (octaves, [-1, 1]), 0 when unvoiced
+    pause     time since the last speech frame, 0..1 over `PAUSE_S` (a breath between phrases and a long
+              silence look alike in every other channel; speakers keep gesturing through the first, not the second)
+
+The running statistics are means over the frames that count as speech (within 25 dB of the current
+level), with a count-based start (the plain mean of the first frames, then an exponential one with time
+constant `tau_s`), and they hold through silence: a long pause neither raises the noise to speech level
+nor forgets the speaker. They are updated frame by frame, so any chunking gives the same numbers.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from .config import ModelConfig
+
+__all__ = ["SpeechFrontEnd", "SpeechState", "SPEECH_CHANNELS"]
+
+SPEECH_CHANNELS = ("loudness", "flux", "voicing", "pitch", "pause")  # after the n_mels bands
+
+FLOOR_DBFS = -100.0  # nothing quieter than this is speech, whatever the gain
+SNR_DB = 15.0  # a speech frame stands this far above the running noise floor ...
+GATE_DB = 25.0  # ... and within this much of the running speech level
+FLOOR_RISE_DB_S = 3.0  # the noise floor falls to any quieter frame at once and rises this fast (dB/s): a
+# fixed rate, not a fraction of the gap to the current frame, so that the gain of the input does not matter
+BAND_RANGE = (-30.0, 30.0)  # band dB relative to the band's running mean, clipped: room noise and digital
+# silence both read as the floor
+LOUD_RANGE = (-45.0, 20.0)  # frame dB relative to the running speech level, clipped (pauses in a quiet
+# room sit at -40..-50 dB: below -45 a pause reads the same whatever the room)
+DB_SCALE = 20.0  # dB per feature unit
+F0_RANGE = (80.0, 400.0)  # Hz searched for a pitch period inside one 25 ms window
+VOICED = 0.45  # periodicity above which a frame is voiced
+PAUSE_S = 2.0  # the pause channel rises from 0 to 1 over this long a silence
+
+
+class SpeechState(NamedTuple):
+    tail: torch.Tensor  # (B, m) samples received but not yet consumed by a complete frame
+    consumed: int  # frames emitted
+    floor: torch.Tensor  # (B,) float64: running noise floor, dBFS (NaN before the first frame)
+    count: torch.Tensor  # (B,) float64: speech frames seen (for the count-based start of the means)
+    level: torch.Tensor  # (B,) float64: running speech level, dBFS
+    mean: torch.Tensor  # (B, n_mels) float64: running band means over speech, dB
+    voiced: torch.Tensor  # (B,) float64: voiced frames seen
+    pitch: torch.Tensor  # (B,) float64: running mean log2 f0 over voiced frames
+    quiet: torch.Tensor  # (B,) float64: frames since the last speech frame
+    prev: torch.Tensor  # (B, n_mels) float32: the previous frame's relative bands (for the flux)
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.tail, self.floor, self.count, self.level, self.mean,
+                                                            self.voiced, self.pitch, self.quiet, self.prev))
+
+
+def running_stats(energy, bands, periodicity, logf0, state: SpeechState, tau: float, pitch_tau: float,
+                  floor_rise: float):
+    """The running statistics over n new frames (numpy float64, frame by frame: any chunking gives the same
+    numbers) -> (floor, count, level, mean, voiced, pitch after the last frame; level (B, n), mean (B, n, M),
+    pitch (B, n) and `speech started` (B, n) after each frame)."""
+    floor, count, level, mean, nv, pitch, quiet = (t.numpy().copy() for t in (
+        state.floor, state.count, state.level, state.mean, state.voiced, state.pitch, state.quiet))
+    B, n = energy.shape
+    levels, pitches, quiets, started = np.empty((B, n)), np.empty((B, n)), np.empty((B, n)), np.empty((B, n), bool)
+    means = np.empty((B, n, mean.shape[1]))
+    for i in range(n):
+        e = energy[:, i]
+        floor = np.where(np.isnan(floor), e, np.minimum(e, floor + floor_rise))
+        active = (e > floor + SNR_DB) & (e > FLOOR_DBFS) & ((count == 0) | (e > level - GATE_DB))
+        count += active
+        a = np.where(active, np.maximum(1.0 / np.maximum(count, 1.0), 1.0 / tau), 0.0)
+        level += a * (e - level)
+        mean += a[:, None] * (bands[:, i] - mean)
+        voiced = active & (periodicity[:, i] > VOICED)
+        nv += voiced
+        ap = np.where(voiced, np.maximum(1.0 / np.maximum(nv, 1.0), 1.0 / pitch_tau), 0.0)
+        pitch += ap * (logf0[:, i] - pitch)
+        quiet = np.where(active, 0.0, quiet + 1.0)
+        levels[:, i], means[:, i], pitches[:, i], quiets[:, i], started[:, i] = level, mean, pitch, quiet, count > 0
+    return floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, started
+
+
+class SpeechFrontEnd(nn.Module):
+    """Streaming level-free bands + prosody at `feature_rate`; frame i ends at sample (i+1)*hop (no lookahead)."""
+
+    def __init__(self, config: ModelConfig, tau_s: float = 3.0, pitch_tau_s: float = 5.0):
+        super().__init__()
+        from .frontend import mel_filterbank
+
+        self.hop, self.win, self.n_fft, self.sr = config.hop_length, config.win_length, config.n_fft, config.sample_rate
+        self.n_mels = config.n_mels
+        self.dim = config.n_mels + len(SPEECH_CHANNELS)
+        self.tau = tau_s * config.feature_rate  # frames
+        self.pitch_tau = pitch_tau_s * config.feature_rate
+        self.floor_rise = FLOOR_RISE_DB_S / config.feature_rate  # dB per frame
+        self.pause_frames = PAUSE_S * config.feature_rate
+        self.register_buffer("window", torch.hann_window(self.win, periodic=True), persistent=False)
+        self.register_buffer("fb", mel_filterbank(config.n_mels, config.n_fft, config.sample_rate), persistent=False)
+        # autocorrelation through a zero-padded FFT (no wrap-around), normalized by the window's own (Boersma)
+        self.ac_fft = 1 << (2 * self.win - 1).bit_length()
+        w_ac = torch.fft.irfft(torch.fft.rfft(self.window, n=self.ac_fft).abs().square(), n=self.ac_fft)
+        self.lag_lo = int(self.sr // F0_RANGE[1])
+        self.lag_hi = min(int(math.ceil(self.sr / F0_RANGE[0])), self.win // 2)
+        self.register_buffer("w_ac", (w_ac[self.lag_lo:self.lag_hi + 1] / w_ac[0]).clamp_min(1e-3), persistent=False)
+        self.register_buffer("w_power", self.window.square().mean(), persistent=False)
+
+    def init_state(self, batch: int, device=None) -> SpeechState:
+        z = lambda *shape: torch.zeros(*shape, dtype=torch.float64, device=device)  # noqa: E731
+        return SpeechState(torch.zeros(batch, self.win - self.hop, device=device), 0,
+                           torch.full((batch,), float("nan"), dtype=torch.float64, device=device), z(batch), z(batch),
+                           z(batch, self.n_mels), z(batch), z(batch), z(batch),
+                           torch.full((batch, self.n_mels), BAND_RANGE[0] / DB_SCALE, device=device))
+
+    def samples_needed(self, n_feats: int) -> int:
+        return n_feats * self.hop
+
+    def frame_measures(self, frames: torch.Tensor):
+        """Windowed frames (B, n, win) -> (band dB (B, n, M), frame dBFS (B, n), periodicity (B, n), log2 f0 (B, n))."""
+        x = frames * self.window
+        spec = torch.fft.rfft(x, n=self.n_fft)
+        power = spec.real.square() + spec.imag.square()  # (B, n, n_fft//2+1)
+        bands = 10.0 * torch.log10((power @ self.fb).clamp_min(1e-12))  # (B, n, M)
+        energy = 10.0 * torch.log10(x.square().mean(-1) / self.w_power + 1e-12)  # dBFS: a full-scale sine is -3
+        ac = torch.fft.irfft(torch.fft.rfft(x, n=self.ac_fft).abs().square(), n=self.ac_fft)  # (B, n, ac_fft)
+        r = ac[..., self.lag_lo:self.lag_hi + 1] / ac[..., :1].clamp_min(1e-12) / self.w_ac  # normalized
+        periodicity, k = r.max(dim=-1)
+        f0 = self.sr / (k + self.lag_lo).to(x.dtype)
+        return bands, energy, periodicity.clamp(0.0, 1.0), torch.log2(f0)
+
+    def forward(self, samples: torch.Tensor, state: SpeechState) -> tuple[torch.Tensor, SpeechState]:
+        """samples (B, N) -> (feats (B, n, n_mels + 5), state)."""
+        buf = torch.cat([state.tail, samples.to(state.tail)], dim=1)  # (B, m + N)
+        n = max((buf.shape[1] - (self.win - self.hop)) // self.hop, 0)
+        if n == 0:
+            return buf.new_zeros(buf.shape[0], 0, self.dim), state._replace(tail=buf)
+        bands, energy, periodicity, logf0 = self.frame_measures(buf.unfold(1, self.win, self.hop)[:, :n])
+        stats = running_stats(energy.double().numpy(), bands.double().numpy(), periodicity.numpy(),
+                              logf0.double().numpy(), state, self.tau, self.pitch_tau, self.floor_rise)
+        floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, speech = (
+            torch.from_numpy(a) for a in stats)
+        level_t, mean_t, pitch_t, started = levels.float(), means.float(), pitches.float(), speech  # (B, n), (B, n, M)
+        rel = ((bands - mean_t).clamp(*BAND_RANGE) / DB_SCALE).where(started[..., None], BAND_RANGE[0] / DB_SCALE)  # (B, n, M)
+        loud_db = (energy - level_t).clamp(*LOUD_RANGE)
+        loud = (loud_db / DB_SCALE).where(started, LOUD_RANGE[0] / DB_SCALE)
+        flux = (rel - torch.cat([state.prev[:, None], rel[:, :-1]], 1)).clamp_min(0.0).mean(-1)  # (B, n)
+        in_speech = started & (loud_db > -GATE_DB)
+        voicing = periodicity.where(in_speech, 0.0)
+        pitch_rel = (logf0 - pitch_t).clamp(-1.0, 1.0).where(in_speech & (periodicity > VOICED), 0.0)
+        pause = (quiets.float() / self.pause_frames).clamp(max=1.0).where(started, 1.0)
+        feats = torch.cat([rel, torch.stack([loud, flux, voicing, pitch_rel, pause], -1)], -1)  # (B, n, M + 5)
+        return feats, SpeechState(buf[:, n * self.hop:], state.consumed + n, floor, count, level, mean, nv, pitch,
+                                  quiet, rel[:, -1].clone())
