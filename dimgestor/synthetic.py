@@ -164,10 +164,8 @@ def _critically_damped(target: np.ndarray, fps: float, tau: float) -> np.ndarray
     return lfilter([1 - a], [1, -a], y, zi=[a * y[0]])[0]
 
 
-def speech_and_gestures(seconds: float, seed: int = 0, rate: int = SAMPLE_RATE, fps: float = 30.0
-                        ) -> tuple[np.ndarray, BvhMotion, dict]:
-    """(audio, motion, events) following the rule above; events: phrases [(start, end)], stresses [(t, size)]."""
-    rng = np.random.default_rng(seed)
+def buzz_speech(seconds: float, rng: np.random.Generator, rate: int = SAMPLE_RATE) -> tuple[np.ndarray, dict]:
+    """Buzz-syllable speech and its events: (audio, {"phrases": [(start, end)], "stresses": [(t, size)]})."""
     n_audio = int(round(seconds * rate))
     audio = np.zeros(n_audio)
     f0_speaker = rng.uniform(100, 220)
@@ -198,16 +196,27 @@ def speech_and_gestures(seconds: float, seed: int = 0, rate: int = SAMPLE_RATE, 
         pos = t + rng.uniform(0.4, 3.0)
     audio += 0.002 * rng.standard_normal(n_audio)  # room noise
     audio = (0.6 * audio / max(np.abs(audio).max(), 1e-9)).astype(np.float32)
+    return audio, {"phrases": phrases, "stresses": stresses}
 
-    n = int(round(seconds * fps))
+
+def gesture_motion(events: dict, n_frames: int, fps: float, rng: np.random.Generator,
+                   engage_tau: float = 0.12) -> BvhMotion:
+    """The rule's body motion for `events` (phrases [(start, end)] and stresses [(t, size)], seconds).
+
+    Arms engage over each phrase (from 0.15 s before it to 0.1 s after), a minimum-jerk stroke of one or both
+    hands starts 0.05 s before each stress (its length and hand drawn from rng), the head nods with it, and
+    the trunk and head sway slowly with random phases (also from rng). engage_tau: the time constant (s) of
+    the arms' rise into gesture space and return to rest.
+    """
+    n = n_frames
     time = np.arange(n) / fps
     speaking = np.zeros(n)
-    for a, b in phrases:
+    for a, b in events["phrases"]:
         speaking[(time >= a - 0.15) & (time < b + 0.1)] = 1.0
-    engage = _critically_damped(speaking, fps, 0.12)  # arms up into gesture space while speaking
+    engage = _critically_damped(speaking, fps, engage_tau)  # arms up into gesture space while speaking
     stroke = {"Left": np.zeros(n), "Right": np.zeros(n)}
     nod = np.zeros(n)
-    for t, loud in stresses:
+    for t, loud in events["stresses"]:
         pulse = loud * _min_jerk_pulse((time - t + 0.05) / rng.uniform(0.4, 0.6))
         which = rng.choice(["Left", "Right", "both"], p=[0.35, 0.35, 0.3])
         for side in ("Left", "Right"):
@@ -242,7 +251,15 @@ def speech_and_gestures(seconds: float, seed: int = 0, rate: int = SAMPLE_RATE, 
         if j == 0:
             cols += [root_pos[:, 0], root_pos[:, 1], root_pos[:, 2]]
         cols += list(angles[name])
-    return audio, BvhMotion(sk, 1.0 / fps, np.stack(cols, -1)), {"phrases": phrases, "stresses": stresses}
+    return BvhMotion(sk, 1.0 / fps, np.stack(cols, -1))
+
+
+def speech_and_gestures(seconds: float, seed: int = 0, rate: int = SAMPLE_RATE, fps: float = 30.0
+                        ) -> tuple[np.ndarray, BvhMotion, dict]:
+    """(audio, motion, events) following the rule above; events: phrases [(start, end)], stresses [(t, size)]."""
+    rng = np.random.default_rng(seed)  # one stream: the speech's draws, then the motion's
+    audio, events = buzz_speech(seconds, rng, rate)
+    return audio, gesture_motion(events, int(round(seconds * fps)), fps, rng), events
 
 
 def make_gesture_corpus(out_dir, minutes: float, clip_s: float = 60.0, seed: int = 0, fps: float = 30.0,

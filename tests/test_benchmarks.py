@@ -112,3 +112,27 @@ def test_guidance_benchmark_writes_its_schema(tmp_path):
     for x in r["batched"]:
         assert [x[a]["rows"] for a in ("unguided", "guided", "unguided_2x")] == [2, 4, 4]
         assert finite(x["ratio_p50"]) and finite(x["ratio_p50_vs_2x_unguided"])
+
+
+def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
+    """Tiny sizes: the world is made, --set and --train-args reach dimgestor train, every checkpoint is scored."""
+    pytest.importorskip("matplotlib")
+    import shutil
+
+    if shutil.which("espeak-ng") is None:
+        pytest.skip("espeak-ng is not installed (Debian: apt-get install espeak-ng)")
+    out = tmp_path / "voice_world.json"
+    run("voice_world.py", "--minutes", "0.25", "--heldout-minutes", "0.7", "--steps", "4", "--ckpt-every", "2",
+        "--preset", "tiny", "--set", "n_mels=16", "--train-args", "--seed 3 --no-mirror",
+        "--work", str(tmp_path / "work"), "--out", str(out))
+    r = json.loads(out.read_text())
+    rule, shuffled = r["truth"]["rule"], r["truth"]["rule_shuffled_audio"]
+    assert rule["contrast"] > 3 * shuffled["contrast"] and rule["stroke_margin"] > shuffled["stroke_margin"] + 0.1
+    assert sorted(r["results"]["0.25"], key=int) == ["2", "4"]
+    row = r["results"]["0.25"]["4"]
+    assert all(finite(row[k]) for k in ("contrast", "stroke_margin", "coupling_margin", "stroke_margin_vs_rule"))
+    assert isinstance(row["passes"], bool) and r["set"] == ["n_mels=16"] and r["train_args"] == "--seed 3 --no-mirror"
+    run_dir = tmp_path / "work" / "run_0.25min_n_mels=16"
+    meta = json.loads((run_dir / "ckpt_0000004" / "config.json").read_text())
+    assert meta["model"]["n_mels"] == 16 and meta["info"]["options"]["seed"] == 3
+    assert (tmp_path / "voice_world.png").is_file()

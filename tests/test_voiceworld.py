@@ -1,0 +1,94 @@
+"""The voice world (dimgestor.voiceworld): espeak-ng voices with gestures from a rule computed on the audio alone.
+
+The generator is deterministic, the rule's motion is a function of the audio only, the rule itself passes the
+measures that models are held to (and fails them against unrelated audio), and held-out voices are unseen.
+"""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from dimgestor import voiceworld as vw
+from dimgestor.audio import load_wav
+from dimgestor.bvh import read_bvh
+from dimgestor.dataset import GestureDataset, find_pairs, read_split
+from dimgestor.eval import valid_clips
+
+pytestmark = pytest.mark.skipif(shutil.which("espeak-ng") is None,
+                                reason="espeak-ng is not installed (Debian: apt-get install espeak-ng)")
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """1 min of train voices and 1 min of held-out voices, 20 s clips."""
+    root = tmp_path_factory.mktemp("world")
+    vw.make_voice_world(root, 1.0, 1.0, seed=5, clip_s=20.0)
+    return root
+
+
+def test_the_same_seed_writes_the_same_files_and_another_seed_others(tmp_path):
+    train, _ = vw.voice_split()
+    a = vw.make_voice_corpus(tmp_path / "a", 0.3, train, seed=3, clip_s=10.0)
+    b = vw.make_voice_corpus(tmp_path / "b", 0.3, train, seed=3, clip_s=10.0)
+    c = vw.make_voice_corpus(tmp_path / "c", 0.3, train, seed=4, clip_s=10.0)
+    assert len(a) == 2  # 18 s in clips of 10 s: the last one shorter
+    for (ba, wa), (bb, wb) in zip(a, b):
+        assert ba.read_bytes() == bb.read_bytes() and wa.read_bytes() == wb.read_bytes()
+    assert (tmp_path / "a" / "voices.json").read_text() == (tmp_path / "b" / "voices.json").read_text()
+    assert a[0][1].read_bytes() != c[0][1].read_bytes()
+
+
+def test_the_rule_motion_is_a_function_of_the_audio_alone(world):
+    wav, bvh = world / "train_000.wav", world / "train_000.bvh"
+    audio = load_wav(wav)
+    written = read_bvh(bvh)
+    again, events = vw.rule_motion(audio, fps=round(1 / written.frame_time))
+    np.testing.assert_allclose(again.values, written.values, atol=1e-4)  # the BVH text keeps ~6 decimals
+    assert len(events["stresses"]) > 5 and len(events["phrases"]) >= 2
+    other, _ = vw.rule_motion(load_wav(world / "train_001.wav")[: len(audio)], fps=30)
+    assert np.abs(other.values - again.values).max() > 1.0  # another voice's speech, other gestures
+
+
+def test_the_rule_does_not_depend_on_the_microphone_level():
+    voice = vw.voice_split()[0][0]
+    audio, _ = vw.voice_clip(12.0, voice, seed=1)
+    loud = vw.rule_events(audio)
+    quiet = vw.rule_events(vw.pcm16(audio * 10 ** (-20 / 20)))
+    assert [round(a, 2) for a, _ in loud["stresses"]] == [round(a, 2) for a, _ in quiet["stresses"]]
+    assert loud["phrases"] == quiet["phrases"]
+    np.testing.assert_array_equal(vw.rule_motion(audio)[0].values, vw.rule_motion(audio * 0.1)[0].values)
+
+
+def test_held_out_voices_and_language_are_not_in_the_training_split(world):
+    train, held = vw.voice_split()
+    assert train and held and not {v.name for v in train} & {v.name for v in held}
+    assert vw.HELD_OUT_LANGUAGE not in {v.lang for v in train}
+    assert vw.HELD_OUT_LANGUAGE in {v.lang for v in held}
+    assert len({v.lang for v in train}) >= 8 and len({v.variant for v in held} - {v.variant for v in train}) >= 3
+    names = [p.name for p in find_pairs(world)]
+    split = read_split(world / "split.json", names)
+    voices = json.loads((world / "voices.json").read_text())
+    assert set(voices) == set(names)
+    train_names, held_names = {v.name for v in train}, {v.name for v in held}
+    for clip, which in split.items():
+        assert voices[clip]["voice"] in (held_names if which == "valid" else train_names), clip
+    assert sorted(set(split.values())) == ["train", "valid"]
+
+
+def test_the_rule_passes_the_measures_models_are_held_to(world):
+    """The truth clears every bar by far; the same motion against another clip's audio does not."""
+    valid = GestureDataset(world, split="valid", window_s=5.0, use_cache=False)
+    clips = valid_clips(valid)
+    raws, audios = [r for _, r in clips], [a for a, _ in clips]
+    rule = vw.score_motion(raws, audios, valid.skeleton, valid.spec)
+    rule.update(vw.margins(rule))
+    shuffled = vw.score_motion(raws, audios[1:] + audios[:1], valid.skeleton, valid.spec)
+    shuffled.update(vw.margins(shuffled))
+    assert rule["contrast"] > 8.0, rule  # hands rest in pauses
+    assert rule["stroke_margin"] > 0.15, rule  # strokes at the stressed onsets
+    assert rule["coupling_margin"] > 0.1, rule  # hand speed follows loudness
+    assert shuffled["contrast"] < 2.0 and shuffled["stroke_margin"] < 0.08, shuffled
+    assert shuffled["coupling_margin"] < 0.1, shuffled
+    assert vw.verdict(rule, rule)["passes"] and not vw.verdict(shuffled, rule)["passes"]

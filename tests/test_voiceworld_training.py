@@ -1,0 +1,71 @@
+"""A small model trained in CI time on the voice world follows voices it never heard (issue 20).
+
+Trained on 3 minutes of the train voices, scored on held-out voices (unseen variants and an unseen language):
+its wrist speed must follow the speech's loudness (coupling above the circularly shifted baseline by
+COUPLING_MARGIN; the rule's own is ~0.34) and its hands must rest in pauses (speech/silence wrist speed at
+least CONTRAST; the rule's own is ~20).
+
+The front end is FRONTEND (override with DIMGESTOR_TEST_FRONTEND). Front ends measured not to learn the rule at
+this scale are listed in KNOWN_TO_FAIL with what they scored, and the tests are then marked as expected failures
+and not run (the training would only confirm it). Set FRONTEND to the one that passes (or remove its entry) and
+the tests become a requirement; do not lower the bars to make one pass.
+"""
+
+import os
+import shutil
+
+import pytest
+import torch
+
+from dimgestor.checkpoint import load_checkpoint
+from dimgestor.dataset import GestureDataset
+from dimgestor.eval import generate_raw, valid_clips
+from dimgestor.train import TrainOptions, train
+from dimgestor.voiceworld import make_voice_world, margins, score_motion
+
+FRONTEND = os.environ.get("DIMGESTOR_TEST_FRONTEND", "logmel")
+TRAIN_MINUTES, HELDOUT_MINUTES, STEPS = 3.0, 1.5, 300
+COUPLING_MARGIN = 0.1  # coupling - mean coupling against shifted audio
+CONTRAST = 3.0  # wrist speed in speech / in silence (natural pauses)
+# measured with this file's settings on held-out voices (the rule itself: contrast ~20, coupling margin ~0.3-0.4)
+KNOWN_TO_FAIL = {
+    "logmel": "measured contrast 1.8, coupling margin -0.18 (stroke margin 0.08; the rule's 0.27)",
+    "speech": "main 7deaad2 speech front end, no augmentation: measured contrast 2.0, coupling margin -0.14 "
+              "(stroke margin 0.04)",
+}
+EXPECTED_FAILURE = pytest.mark.xfail(FRONTEND in KNOWN_TO_FAIL, run=False,
+                                     reason=f"{FRONTEND} front end at CI scale: {KNOWN_TO_FAIL.get(FRONTEND)}")
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
+              pytest.mark.skipif(shutil.which("espeak-ng") is None,
+                                 reason="espeak-ng is not installed (Debian: apt-get install espeak-ng)")]
+
+
+@pytest.fixture(scope="module")
+def held_out_scores(tmp_path_factory):
+    root = tmp_path_factory.mktemp("voiceworld")
+    make_voice_world(root / "world", TRAIN_MINUTES, HELDOUT_MINUTES, seed=11, clip_s=30.0)
+    torch.set_num_threads(1)
+    run = train(TrainOptions(data=str(root / "world"), out=str(root / "run"), preset="realtime",
+                             overrides={"frontend": FRONTEND}, max_steps=STEPS, batch_size=8, window_s=5.0,
+                             ckpt_every=STEPS, valid_every=STEPS, seed=0, cache_dir=str(root / "cache"),
+                             progress=False, mirror=True, speeds=(0.9, 1.1)))
+    bundle = load_checkpoint(run)
+    bundle.model.eval()
+    valid = GestureDataset(root / "world", split="valid", spec=bundle.feature_spec, window_s=5.0,
+                           cache_dir=root / "cache")
+    audios = [a for a, _ in valid_clips(valid)]
+    raws = [generate_raw(bundle, a, bundle.config.sample_steps, seed=i) for i, a in enumerate(audios)]
+    row = score_motion(raws, audios, bundle.skeleton, bundle.feature_spec)
+    row.update(margins(row))
+    return row
+
+
+@EXPECTED_FAILURE
+def test_hand_speed_follows_the_loudness_of_held_out_voices(held_out_scores):
+    assert held_out_scores["coupling_margin"] >= COUPLING_MARGIN, held_out_scores
+
+
+@EXPECTED_FAILURE
+def test_hands_rest_in_the_pauses_of_held_out_voices(held_out_scores):
+    assert held_out_scores["contrast"] >= CONTRAST, held_out_scores
