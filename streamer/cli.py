@@ -52,14 +52,25 @@ def _http_addr(text: str) -> tuple[str | None, int]:
 
 
 class RedactTokens(logging.Filter):
-    """Keeps tokens out of every log line (websockets logs request paths at debug level)."""
+    """Keeps tokens out of every log line (websockets logs request paths at debug level): any `token=` value,
+    and the server's own token wherever it appears (a client may put it in the URL path, say)."""
 
     pattern = re.compile(r"(token=)[^&\s'\"]+", re.IGNORECASE)
+    secrets: set[str] = set()  # the server's token, plain and URL-encoded (`streamer.server` adds it)
+
+    @classmethod
+    def add_secret(cls, token: str) -> None:
+        from urllib.parse import quote
+
+        cls.secrets |= {token, quote(token, safe=""), quote(token)}
 
     def filter(self, record: logging.LogRecord) -> bool:
         text = record.getMessage()
-        if "token=" in text.lower():
-            record.msg, record.args = self.pattern.sub(r"\1***", text), None
+        redacted = self.pattern.sub(r"\1***", text) if "token=" in text.lower() else text
+        for secret in self.secrets:
+            redacted = redacted.replace(secret, "***")
+        if redacted != text:
+            record.msg, record.args = redacted, None
         return True
 
 
@@ -151,6 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--wait-client", action="store_true",
                    help="start the server's source only once a first WebSocket client is connected")
     s.add_argument("--no-client-audio", action="store_true", help="refuse audio sent by WebSocket clients")
+    s.add_argument("--ping-interval", type=float, default=20.0, metavar="S",
+                   help="WebSocket keepalive: ping each client every S seconds (0 = no keepalive)")
+    s.add_argument("--ping-timeout", type=float, default=20.0, metavar="S",
+                   help="WebSocket keepalive: close a client not heard from for --ping-interval + S seconds (time "
+                        "while the server itself holds the client's audio unread, and its frames flow, does not count)")
     s.add_argument("-v", "--verbose", action="store_true", help="log debug information")
     sub.add_parser("devices", help="list audio input devices (for --source mic --device N)")
     return ap

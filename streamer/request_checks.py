@@ -35,8 +35,7 @@ def split_target(target: str) -> tuple[str, str] | None:
 
 
 def url_path(target: str) -> str | None:
-    """The decoded path of a request target, or None when it cannot name a file: not absolute, a NUL, a
-    backslash, a dot segment (".", "..", dot files), a segment over 255 bytes or a path over 1024 bytes."""
+    """The decoded path of a request target if it may name a file (`file_path`), else None."""
     parts = split_target(target)
     if parts is None:
         return None
@@ -44,10 +43,15 @@ def url_path(target: str) -> str | None:
         path = unquote(parts[0], errors="strict")
     except UnicodeDecodeError:
         return None
-    if "\0" in path or "\\" in path or not path.startswith("/"):
+    return file_path(path)
+
+
+def file_path(path: str) -> str | None:
+    """`path` (decoded) if it may name a file: absolute, no NUL, no backslash, no dot segment (".", "..", dot
+    files), no segment over 255 bytes (the OS raises on one), at most 1024 bytes; else None."""
+    if not isinstance(path, str) or "\0" in path or "\\" in path or not path.startswith("/"):
         return None
-    encoded = path.encode("utf-8", "surrogatepass")
-    if len(encoded) > MAX_PATH_BYTES:
+    if len(path.encode("utf-8", "surrogatepass")) > MAX_PATH_BYTES:
         return None
     for segment in path.split("/"):
         if segment.startswith(".") or len(segment.encode("utf-8", "surrogatepass")) > MAX_SEGMENT_BYTES:
