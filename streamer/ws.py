@@ -375,7 +375,9 @@ class WsServer:
                 client.heard = now
             moved = progress
             if now - client.heard > self.ping_interval + self.ping_timeout:
-                client.errors(logging.INFO, f"nothing heard for {now - client.heard:.0f} s: closing (keepalive)")
+                client.errors(logging.WARNING, f"nothing heard for {now - client.heard:.1f} s (keepalive): closing "
+                                               f"({'holding its audio, ' if client.holding else ''}"
+                                               f"{client.frames_sent} frames sent, {len(client.queue)} queued)")
                 await client.ws.close(1011, "keepalive ping timeout")
                 return
             if pong is None or pong.done():

@@ -143,3 +143,90 @@ def test_a_client_leaving_in_any_blocked_state_frees_its_slot_and_memory_at_once
     assert "Traceback" not in s.output, s.output[-3000:]
     departures = [line for line in s.output.splitlines() if "left with its audio session running" in line]
     assert 1 <= len(departures) <= len(STATES), s.output[-3000:]  # said once per departure at most (rate-limited)
+
+
+# ---- throttled clients and the keepalive ---------------------------------------------------------
+
+FLOOD_S = 15.0  # the issue's check is 31 sessions for 60 s (benchmarks/keepalive.py); here 4 for 15 s with a
+PING = 1.0      # keepalive 20x shorter (--ping-interval 1 --ping-timeout 1), so ~7 keepalive periods pass
+
+
+async def flood(url: str, cooperative: bool) -> dict:
+    """Send audio faster than it is processed for FLOOD_S, reading every frame meanwhile; then audio_end and
+    read to the `end`. A flooder sends 1 MiB messages (33 s of audio: the server reads none of its frames, pongs
+included, while it works through the ones before) as fast as the server takes them,
+    ignores `slow_down` and does not ping: the server holds its audio unread (TCP back pressure) for most of
+    the run. A `cooperative` client sends 1 s messages at 40x real time, pauses at `slow_down` until
+    `resume` and keeps its own keepalive (a ping every PING s, closing after PING s without a pong)."""
+    chunk = pcm(1.0, seed=3) if cooperative else pcm(32.768, seed=3)[:MIB]
+    out = {"frames": [], "codes": [], "resumes": 0, "closed": None, "end": None, "sent": 0}
+    go = asyncio.Event()
+    go.set()
+    kw = dict(ping_interval=PING, ping_timeout=PING) if cooperative else dict(ping_interval=None)
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 16)  # (what it has in flight stays bounded)
+    sock.connect(("127.0.0.1", port_of(url)))
+    async with connect(url, sock=sock, **kw) as c:
+        await recv_json(c)
+        await c.send(json.dumps({"type": "hello", "encoding": "binary"}))
+
+        async def read():
+            try:
+                async for m in c:
+                    if isinstance(m, bytes):
+                        out["frames"].append(P.parse_frame_binary(m)["index"])
+                        continue
+                    d = json.loads(m)
+                    if d["type"] == "error":
+                        out["codes"].append(d["code"])
+                        if d["code"] == "slow_down" and cooperative:
+                            go.clear()
+                    elif d["type"] == "resume":
+                        out["resumes"] += 1
+                        go.set()
+                    elif d["type"] == "end":
+                        out["end"] = d
+                        return
+            except ConnectionClosed as e:
+                out["closed"] = (e.rcvd.code if e.rcvd else None, e.rcvd.reason if e.rcvd else "no close frame",
+                                 e.sent.code if e.sent else None, e.sent.reason if e.sent else "")
+
+        reader = asyncio.create_task(read())
+        t0 = time.monotonic()
+        try:
+            while time.monotonic() - t0 < FLOOD_S and out["closed"] is None:
+                await go.wait()
+                await c.send(chunk)
+                out["sent"] += len(chunk) // 2
+                if cooperative:
+                    await asyncio.sleep(1.0 / 40)
+            await c.send(json.dumps({"type": "audio_end"}))
+        except ConnectionClosed:
+            pass  # (the reader says how)
+        out["flood_s"] = time.monotonic() - t0
+        await asyncio.wait_for(reader, 120)
+        out["end_s"] = time.monotonic() - t0
+    return out
+
+
+@pytest.mark.slow
+def test_clients_throttled_by_back_pressure_are_not_closed_by_the_keepalive_and_get_every_frame(tiny_checkpoint):
+    s = serve(tiny_checkpoint, "--source", "ws", "--max-sessions", "4", "--ping-interval", str(PING), "--window-ms", "20",
+              "--ping-timeout", str(PING), "--status-every", "0")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+
+    async def run():
+        return await asyncio.gather(*(flood(url, cooperative=i == 0) for i in range(4)))
+
+    results = asyncio.run(run())
+    s.proc.send_signal(signal.SIGTERM)
+    assert s.finish() == 0, s.output
+    print("audio s sent, frames, notices, s:", [(r["sent"] / 16000, len(r["frames"]), r["codes"], r["resumes"], round(r["flood_s"], 1), round(r["end_s"], 1))
+                                            for r in results])
+    for i, r in enumerate(results):
+        assert r["closed"] is None, f"client {i} was closed: {r['closed']}\n{s.output[-2000:]}"
+        n = int(r["sent"] / 16000 * 20)
+        assert r["end"] == {"type": "end", "frames": n} and r["frames"] == list(range(n)), (i, r["end"], len(r["frames"]))
+        assert "slow_down" in r["codes"] and set(r["codes"]) == {"slow_down"}, r["codes"]  # it was throttled
+    assert results[0]["resumes"] >= 1 and results[0]["codes"].count("slow_down") == results[0]["resumes"]
+    assert "Traceback" not in s.output, s.output[-3000:]
