@@ -240,7 +240,8 @@ class WsServer:
         """Origin, then token; a refusal is a 4xx and at most one log line per 10 s. Never raises (a raise
         would be a 500 and a traceback in the log)."""
         try:
-            status, why = self.refusal(request.path, request.headers.get_all("Origin"))
+            status, why = self.refusal(request.path, request.headers.get_all("Origin"),
+                                       getattr(request, "protocol", "HTTP/1.1"))  # (websockets >= 15 parses it)
         except Exception as e:  # a bug here must not become a 500 with a traceback per request
             status, why = HTTPStatus.BAD_REQUEST, f"malformed request ({type(e).__name__})"
         if status is None:
@@ -250,12 +251,13 @@ class WsServer:
                                            HTTPStatus.UNAUTHORIZED: "missing or wrong token (use ?token=...)\n"}
                                   .get(status, "bad request\n"))
 
-    def refusal(self, target: str, origins: list[str]) -> tuple[HTTPStatus | None, str]:
+    def refusal(self, target: str, origins: list[str], version: str = "HTTP/1.1") -> tuple[HTTPStatus | None, str]:
         """(None, "") to accept a handshake for request target `target` with these Origin headers, else
-        (status, why): 400 for a malformed target or Origin (or two of them), 403 for an origin not allowed,
-        401 for a missing or wrong token. Pure: reads only the allow-list and the token."""
-        if RC.split_target(target) is None:
-            return HTTPStatus.BAD_REQUEST, "a malformed request target"
+        (status, why): 400 for a malformed target or Origin (or two of them) or an HTTP version other than
+        1.1 (the WebSocket handshake's own; the library would answer 505), 403 for an origin not allowed, 401
+        for a missing or wrong token. Pure: reads only the allow-list and the token."""
+        if RC.split_target(target) is None or version != "HTTP/1.1":
+            return HTTPStatus.BAD_REQUEST, "a malformed request target or HTTP version"
         given = RC.single(origins)
         if given is RC.REPEATED:
             return HTTPStatus.BAD_REQUEST, f"{len(origins)} Origin headers"
