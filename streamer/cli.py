@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import re
 import sys
 
+from streamer.redact import RedactTokens
 from streamer.sources import DEMO_WAV, SourceError
 
 EXIT_USAGE = 2
@@ -49,29 +49,6 @@ def _http_addr(text: str) -> tuple[str | None, int]:
     """--http [HOST:]PORT; no host -> None (serve beside the WebSocket)."""
     host, port = _hostport(text)
     return (host if ":" in text else None), port
-
-
-class RedactTokens(logging.Filter):
-    """Keeps tokens out of every log line (websockets logs request paths at debug level): any `token=` value,
-    and the server's own token wherever it appears (a client may put it in the URL path, say)."""
-
-    pattern = re.compile(r"(token=)[^&\s'\"]+", re.IGNORECASE)
-    secrets: set[str] = set()  # the server's token, plain and URL-encoded (`streamer.server` adds it)
-
-    @classmethod
-    def add_secret(cls, token: str) -> None:
-        from urllib.parse import quote
-
-        cls.secrets |= {token, quote(token, safe=""), quote(token)}
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        text = record.getMessage()
-        redacted = self.pattern.sub(r"\1***", text) if "token=" in text.lower() else text
-        for secret in self.secrets:
-            redacted = redacted.replace(secret, "***")
-        if redacted != text:
-            record.msg, record.args = redacted, None
-        return True
 
 
 def build_parser() -> argparse.ArgumentParser:

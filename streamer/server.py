@@ -164,7 +164,7 @@ async def serve(args) -> int:
         raise ServeError("--record records the server's own source; --source ws has none")
     token = read_token(args)
     if token is not None:
-        from streamer.cli import RedactTokens
+        from streamer.redact import RedactTokens
 
         RedactTokens.add_secret(token)  # -v logs request lines: a token put in the URL path is masked there too
     ping_interval, ping_timeout = getattr(args, "ping_interval", 20.0), getattr(args, "ping_timeout", 20.0)

@@ -193,9 +193,10 @@ def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint
         url = line.split()[2].split("?")[0]
 
         async def run():
-            with pytest.raises(InvalidStatus):
-                async with connect(url):
-                    pass
+            for wrong in (url, url + "envs3cret", url + "x%2Fenvs3cret?t=envs3cret"):  # the token in the path too
+                with pytest.raises(InvalidStatus):
+                    async with connect(wrong):
+                        pass
             async with connect(url + "?token=envs3cret") as c:
                 return json.loads(await c.recv())["type"]
 

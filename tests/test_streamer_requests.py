@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from streamer import request_checks as RC
-from streamer.cli import RedactTokens
+from streamer.redact import RedactTokens
 from streamer.http import ViewerServer
 from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
 from test_streamer_ws import bundle, make_server  # noqa: F401 (fixture)

@@ -230,3 +230,35 @@ def test_clients_throttled_by_back_pressure_are_not_closed_by_the_keepalive_and_
         assert "slow_down" in r["codes"] and set(r["codes"]) == {"slow_down"}, r["codes"]  # it was throttled
     assert results[0]["resumes"] >= 1 and results[0]["codes"].count("slow_down") == results[0]["resumes"]
     assert "Traceback" not in s.output, s.output[-3000:]
+
+
+# ---- small promises ------------------------------------------------------------------------------
+
+def test_audio_end_while_the_previous_session_finishes_gets_an_empty_end_after_that_sessions_end(bundle):
+    executor = SlowExecutor(1)  # inference of >= 50 ms a call: the first session is still flushing
+    audio = pcm(2.0)
+
+    async def run():
+        ws = make_server(bundle)
+        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+        await ws.start()
+        ends, frames_before = [], []
+        async with connect(ws.url) as c:
+            await recv_json(c)
+            await c.send(audio)
+            await c.send(json.dumps({"type": "audio_end"}))
+            await c.send(json.dumps({"type": "audio_end"}))  # nothing since the last one: an empty stream
+            n = 0
+            while len(ends) < 2:
+                d = await recv_json(c, timeout=30)
+                if d["type"] == "frame":
+                    n += 1
+                elif d["type"] == "end":
+                    ends.append(d)
+                    frames_before.append(n)
+        await ws.close()
+        return ends, frames_before
+
+    ends, frames_before = asyncio.run(run())
+    executor.shutdown()
+    assert ends == [{"type": "end", "frames": 40}, {"type": "end", "frames": 0}] and frames_before == [40, 40]
