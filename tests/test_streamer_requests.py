@@ -225,3 +225,21 @@ def test_the_token_is_masked_wherever_it_appears_in_a_log_line():
         assert record.getMessage() == "< GET /***/x?a=1&token=*** HTTP/1.1"
     finally:
         RedactTokens.secrets.clear()
+
+
+def test_connections_held_open_cannot_shut_real_requests_out(viewer):
+    """One client re-opening slow connections (never sending a whole request) beside real requests: the
+    real ones are all served (the viewer drops the connection that has waited longest without a request)."""
+    viewer.start()
+    held, served = [], 0
+    try:
+        for i in range(30):
+            for _ in range(3):  # the abuser keeps re-opening, 3 per real request, past the limit of 8
+                s = socket.create_connection(("127.0.0.1", viewer.port))
+                s.sendall(b"GET / HTTP/1.1\r\n")  # and never finishes its request
+                held.append(s)
+            served += raw(viewer.port, b"GET / HTTP/1.1\r\nHost: localhost\r\n\r\n").startswith(b"HTTP/1.1 200")
+    finally:
+        for s in held:
+            s.close()
+    assert served == 30 and viewer.connections <= viewer.max_connections
