@@ -21,6 +21,7 @@ from pathlib import Path
 
 import streamer
 from streamer import request_checks as RC
+from streamer.log_limit import ErrorLog
 
 WEB_DIR = Path(streamer.__file__).resolve().parents[1] / "clients" / "web"
 MAX_HEAD_BYTES = 8192
@@ -40,8 +41,6 @@ class ViewerServer:
     def __init__(self, host: str, port: int, ws_port: int | None, token_required: bool, web_dir: Path = WEB_DIR,
                  mounts: dict[str, Path] | None = None, max_connections: int = 64, timeout_s: float = 10.0,
                  ws_hosts: set[str] | None = None):
-        from streamer.ws import ErrorLog
-
         self.mounts = {k: Path(v).resolve() for k, v in (mounts or {"/": web_dir}).items()}
         self.ws_port, self.token_required = ws_port or 0, token_required
         self.ws_hosts = ws_hosts  # the Host names config.json may point the viewer to (None: any well-formed one)

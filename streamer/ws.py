@@ -34,6 +34,7 @@ from websockets.exceptions import ConnectionClosed
 from streamer import protocol as P
 from streamer import request_checks as RC
 from streamer.engine import AudioClock, Frame, Session
+from streamer.log_limit import ErrorLog
 from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
@@ -42,24 +43,6 @@ AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers
 
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
 DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
-
-
-class ErrorLog:
-    """Logs at most once per `every_s` (one line, prefixed with `who`), with how many were not logged in between."""
-
-    def __init__(self, who: str, every_s: float = 10.0, what: str = "errors", logger: logging.Logger = log):
-        self.who, self.every_s, self.what, self.log = who, every_s, what, logger
-        self.last = -float("inf")
-        self.unlogged = 0
-
-    def __call__(self, level: int, text: str, exc_info: bool = False) -> None:
-        now = time.monotonic()
-        if now - self.last < self.every_s:
-            self.unlogged += 1
-            return
-        more = f" (and {self.unlogged} more {self.what} in the last {now - self.last:.0f} s)" if self.unlogged else ""
-        self.log.log(level, "%s: %s%s", self.who, text, more, exc_info=exc_info)
-        self.last, self.unlogged = now, 0
 
 
 class MessageBudget:
