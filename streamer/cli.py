@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import re
 import sys
 
+from streamer.redact import RedactTokens
 from streamer.sources import DEMO_WAV, SourceError
 
 EXIT_USAGE = 2
@@ -49,18 +49,6 @@ def _http_addr(text: str) -> tuple[str | None, int]:
     """--http [HOST:]PORT; no host -> None (serve beside the WebSocket)."""
     host, port = _hostport(text)
     return (host if ":" in text else None), port
-
-
-class RedactTokens(logging.Filter):
-    """Keeps tokens out of every log line (websockets logs request paths at debug level)."""
-
-    pattern = re.compile(r"(token=)[^&\s'\"]+", re.IGNORECASE)
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        text = record.getMessage()
-        if "token=" in text.lower():
-            record.msg, record.args = self.pattern.sub(r"\1***", text), None
-        return True
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,6 +142,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--wait-client", action="store_true",
                    help="start the server's source only once a first WebSocket client is connected")
     s.add_argument("--no-client-audio", action="store_true", help="refuse audio sent by WebSocket clients")
+    s.add_argument("--ping-interval", type=float, default=20.0, metavar="S",
+                   help="WebSocket keepalive: ping each client every S seconds (0 = no keepalive)")
+    s.add_argument("--ping-timeout", type=float, default=20.0, metavar="S",
+                   help="WebSocket keepalive: close a client not heard from for --ping-interval + S seconds (time "
+                        "while the server itself holds the client's audio unread, and its frames flow, does not count)")
     s.add_argument("-v", "--verbose", action="store_true", help="log debug information")
     sub.add_parser("devices", help="list audio input devices (for --source mic --device N)")
     return ap

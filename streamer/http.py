@@ -2,29 +2,36 @@
 
 A deliberately small server on its own thread and event loop, so nothing it does can slow the
 streaming: GET and HEAD only, one request per connection, a deadline on reading a request and on
-sending a response, a bounded number of connections, and only regular files inside explicitly
-mounted folders (no directory listings, no dot files, symlinks followed only within a mount).
+sending a response, a bounded number of connections (when all are taken, the one that has waited
+longest for its request is dropped for a new one: holding connections open cannot shut others out),
+and only regular files inside explicitly mounted folders (no directory listings, no dot files, symlinks
+followed only within a mount). No request raises: whatever it holds, the answer is a status line (the
+checks of paths and headers are `streamer.request_checks`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import mimetypes
 import socket
 import threading
 from pathlib import Path
-from urllib.parse import unquote, urlsplit
 
 import streamer
+from streamer import request_checks as RC
+from streamer.log_limit import ErrorLog
 
 WEB_DIR = Path(streamer.__file__).resolve().parents[1] / "clients" / "web"
 MAX_HEAD_BYTES = 8192
 MAX_FILE_BYTES = 64 * 1024 * 1024
 TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
          ".html": "text/html; charset=utf-8", ".css": "text/css", ".wasm": "application/wasm"}
-REASONS = {200: "OK", 400: "Bad Request", 404: "Not Found", 405: "Method Not Allowed",
-           408: "Request Timeout", 431: "Request Header Fields Too Large", 503: "Service Unavailable"}
+REASONS = {200: "OK", 400: "Bad Request", 404: "Not Found", 405: "Method Not Allowed", 408: "Request Timeout",
+           414: "URI Too Long", 431: "Request Header Fields Too Large", 500: "Internal Server Error",
+           503: "Service Unavailable"}
+log = logging.getLogger("streamer.http")
 
 
 class ViewerServer:
@@ -32,11 +39,15 @@ class ViewerServer:
     thread; `url` is where to point a browser. The default mount is the web viewer folder at "/"."""
 
     def __init__(self, host: str, port: int, ws_port: int | None, token_required: bool, web_dir: Path = WEB_DIR,
-                 mounts: dict[str, Path] | None = None, max_connections: int = 64, timeout_s: float = 10.0):
+                 mounts: dict[str, Path] | None = None, max_connections: int = 64, timeout_s: float = 10.0,
+                 ws_hosts: set[str] | None = None):
         self.mounts = {k: Path(v).resolve() for k, v in (mounts or {"/": web_dir}).items()}
         self.ws_port, self.token_required = ws_port or 0, token_required
+        self.ws_hosts = ws_hosts  # the Host names config.json may point the viewer to (None: any well-formed one)
         self.max_connections, self.timeout_s = max_connections, timeout_s
-        self.connections = 0
+        self.waiting: dict[asyncio.StreamWriter, None] = {}  # connections still reading their request, oldest first
+        self.busy = 0  # connections past their request (being answered)
+        self.failures = ErrorLog("viewer", what="failed requests", logger=log)
         self.web_dir = web_dir
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.create_server((host, port), family=family, backlog=128)
@@ -69,15 +80,26 @@ class ViewerServer:
         server = await asyncio.start_server(self._serve, sock=self.sock, limit=MAX_HEAD_BYTES)
         async with server:
             await self._stopped.wait()
+            for writer in list(self.waiting):  # connections still sending a request: not worth waiting for
+                writer.transport.abort()
         server.close()
 
     # ---- one connection --------------------------------------------------------------------------
 
+    @property
+    def connections(self) -> int:
+        return len(self.waiting) + self.busy
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if self.connections >= self.max_connections:
-            writer.transport.abort()  # over the limit: refuse at once rather than queue
-            return
-        self.connections += 1
+            if not self.waiting:
+                writer.transport.abort()  # every connection is being answered: refuse at once rather than queue
+                return
+            oldest = next(iter(self.waiting))  # the one that has held a slot longest without asking anything
+            del self.waiting[oldest]
+            oldest.transport.abort()
+        self.waiting[writer] = None
+        answering = False
         try:
             try:
                 head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), self.timeout_s)
@@ -89,10 +111,19 @@ class ViewerServer:
                 return
             except (asyncio.IncompleteReadError, ConnectionError):
                 return
-            status, body, ctype, method = self._route(head)
+            if self.waiting.pop(writer, 0) is not None:  # evicted meanwhile (for a newer connection)
+                return
+            self.busy += 1
+            answering = True
+            try:
+                status, body, ctype, method = self._route(head)
+            except Exception as e:  # a bug: one line (rate-limited), no traceback, and an answer all the same
+                self.failures(logging.ERROR, f"failed on a request: {type(e).__name__}: {e}")
+                status, body, ctype, method = 500, b"internal error\n", "text/plain", ""
             await self._respond(writer, status, body, ctype, head_only=method == "HEAD")
         finally:
-            self.connections -= 1
+            self.waiting.pop(writer, None)
+            self.busy -= answering
             if writer.transport.get_write_buffer_size():
                 writer.transport.abort()  # a client that does not read what it asked for
             else:
@@ -105,11 +136,18 @@ class ViewerServer:
         except (UnicodeDecodeError, ValueError):
             return 400, b"bad request\n", "text/plain", ""
         if method not in ("GET", "HEAD"):
-            return 405, b"only GET and HEAD\n", "text/plain", method
-        path = unquote(urlsplit(target).path)
+            return 405, b"only GET and HEAD\n", "text/plain", ""
+        if len(target) > RC.MAX_TARGET_CHARS:
+            return 414, b"request target too long\n", "text/plain", method
+        if RC.split_target(target) is None or not version.startswith("HTTP/1."):
+            return 400, b"bad request\n", "text/plain", method
+        path = RC.url_path(target)
         if path == "/config.json":
-            return 200, self._config(head), "application/json", method
-        file = self._file(path)
+            config = self._config(head)
+            if config is None:
+                return 400, b"bad Host header\n", "text/plain", method
+            return 200, config, "application/json", method
+        file = self._file(path) if path is not None else None
         if file is None:
             return 404, b"not found\n", "text/plain", method
         ctype = TYPES.get(file.suffix) or mimetypes.guess_type(file.name)[0] or "application/octet-stream"
@@ -120,10 +158,14 @@ class ViewerServer:
 
     def _file(self, path: str) -> Path | None:
         """The regular file a URL path names inside a mount, or None (never outside a mount)."""
-        if "\0" in path or "\\" in path or not path.startswith("/"):
+        if RC.file_path(path) is None:  # (dot files, `..`, NUL, over-long segments...)
             return None
-        if any(part.startswith(".") for part in path.split("/")):
-            return None  # dot files and `..`
+        try:
+            return self._mounted(path)
+        except (OSError, ValueError, RuntimeError):  # the file system's own refusals (a name too long, a loop)
+            return None
+
+    def _mounted(self, path: str) -> Path | None:
         for prefix in sorted(self.mounts, key=len, reverse=True):
             root = self.mounts[prefix]
             if path == prefix or (prefix.endswith("/") and path.startswith(prefix)):
@@ -142,13 +184,20 @@ class ViewerServer:
                 return None
         return None
 
-    def _config(self, head: bytes) -> bytes:
-        # The browser reaches the WebSocket on the host it loaded this page from.
-        host = "127.0.0.1"
-        for line in head.split(b"\r\n")[1:]:
-            name, _, value = line.partition(b":")
-            if name.strip().lower() == b"host":
-                host = urlsplit("//" + value.strip().decode("latin-1")).hostname or host
+    def _config(self, head: bytes) -> bytes | None:
+        """config.json: the WebSocket on the host the browser loaded this page from, if it is one of this
+        server's names (a Host header is the client's to choose: an arbitrary one is never echoed back);
+        None for a malformed or repeated Host header."""
+        values = [value.strip().decode("latin-1") for name, _, value in
+                  (line.partition(b":") for line in head.split(b"\r\n")[1:]) if name.strip().lower() == b"host"]
+        given = RC.single(values)
+        if given is RC.REPEATED:
+            return None
+        host = RC.host_name(given) if given is not None else None
+        if given is not None and host is None:
+            return None
+        if host is None or (self.ws_hosts is not None and host not in self.ws_hosts):
+            host = self.host if self.host not in ("0.0.0.0", "::", "") else "127.0.0.1"
         host = f"[{host}]" if ":" in host else host  # IPv6 literal
         return json.dumps({"ws_url": f"ws://{host}:{self.ws_port}/", "token_required": self.token_required}).encode()
 

@@ -24,7 +24,7 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
-REVISION = 1  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 2  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
@@ -132,6 +132,11 @@ def error(code: str, message: str) -> str:
 
 def end(frames: int) -> str:
     return json.dumps({"type": "end", "frames": frames})
+
+
+def resume(backlog_s: float) -> str:
+    """After a `slow_down`: the client's backlog is down to `backlog_s` (at most half the cap); send again."""
+    return json.dumps({"type": "resume", "backlog_s": round(float(backlog_s), 3)})
 
 
 def _number(kind):

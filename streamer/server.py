@@ -157,6 +157,12 @@ async def serve(args) -> int:
         smoothing = smoothing_from_flag(getattr(args, "smooth", None))
     except ValueError as e:
         raise ServeError(str(e)) from None
+    from streamer.request_checks import allowed_origin, host_name
+
+    bad = [o for o in (getattr(args, "allow_origin", None) or []) if allowed_origin(o) is None]
+    if bad:
+        raise ServeError(f"--allow-origin {bad[0]!r} is not an origin (scheme://host[:port], e.g. "
+                         f"http://myapp.example:3000, or '*')")
     if args.no_ws and args.source == "ws":
         raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
     if args.record and not Path(args.record).resolve().parent.is_dir():
@@ -164,6 +170,14 @@ async def serve(args) -> int:
     if args.record and args.source == "ws":
         raise ServeError("--record records the server's own source; --source ws has none")
     token = read_token(args)
+    if token is not None:
+        from streamer.redact import RedactTokens
+
+        RedactTokens.add_secret(token)  # -v logs request lines: a token put in the URL path is masked there too
+    ping_interval, ping_timeout = getattr(args, "ping_interval", 20.0), getattr(args, "ping_timeout", 20.0)
+    if not (0 <= ping_interval <= 3600 and 0 < ping_timeout <= 3600):
+        raise ServeError(f"--ping-interval must be in 0..3600 and --ping-timeout in (0, 3600], got "
+                         f"{ping_interval} and {ping_timeout}")
     device = int(args.device) if args.device is not None and str(args.device).isdigit() else args.device
     if getattr(args, "rate", None) is not None and args.rate < 1:
         raise ServeError(f"--rate must be > 0 Hz, got {args.rate}")
@@ -224,7 +238,8 @@ async def serve(args) -> int:
             ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
                           token=token, broadcast_stats=main_session.stats if main_session else None,
                           source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
-                          origins=origins, max_sessions=getattr(args, "max_sessions", 32))
+                          origins=origins, max_sessions=getattr(args, "max_sessions", 32),
+                          ping_interval=ping_interval or None, ping_timeout=ping_timeout)
             try:
                 await ws.start()
             except OSError as e:
@@ -255,6 +270,8 @@ async def serve(args) -> int:
         raise
     if viewer:
         viewer.ws_port = ws.port if ws else 0
+        if ws is not None and "*" not in ws.origins:  # config.json names only hosts whose pages may connect
+            viewer.ws_hosts = {host_name(o.split("://", 1)[1]) for o in ws.origins if "://" in o} - {None}
         viewer.start()
 
     what = {"mic": f"microphone {getattr(source, 'name', '')!r} at {getattr(source, 'rate', 0)} Hz", "ws": "WebSocket clients' audio only",

@@ -7,6 +7,12 @@ client's own frames are never dropped: its session waits for room instead.
 Nothing a client sends costs the event loop more than constant work: audio is decoded, resampled
 and its frames encoded in a worker thread, in pieces, one job per client at a time (so the jobs of
 all clients interleave first come first served), and inference runs in the sessions' executor.
+
+A client's session lives exactly as long as its connection: whatever its handler is blocked on (room in
+the backlog, room in the client's queue, a flush, the previous session finishing), the connection closing
+cancels it, frees its slot and its queued audio at once and logs one (rate-limited) line. The keepalive is
+this module's own: while the server holds a client's data unread on purpose (its backlog is full), the
+client's pongs cannot be read either, so that time counts against it only when nothing moves at all.
 """
 
 from __future__ import annotations
@@ -20,14 +26,15 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from http import HTTPStatus
 from typing import Callable, Iterable
-from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from streamer import protocol as P
+from streamer import request_checks as RC
 from streamer.engine import AudioClock, Frame, Session
+from streamer.log_limit import ErrorLog
 from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
@@ -36,24 +43,6 @@ AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers
 
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
 DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
-
-
-class ErrorLog:
-    """Logs a client's errors at most once per `every_s`, with how many were not logged in between."""
-
-    def __init__(self, who: str, every_s: float = 10.0):
-        self.who, self.every_s = who, every_s
-        self.last = -float("inf")
-        self.unlogged = 0
-
-    def __call__(self, level: int, text: str, exc_info: bool = False) -> None:
-        now = time.monotonic()
-        if now - self.last < self.every_s:
-            self.unlogged += 1
-            return
-        more = f" (and {self.unlogged} more errors in the last {now - self.last:.0f} s)" if self.unlogged else ""
-        log.log(level, "client %s: %s%s", self.who, text, more, exc_info=exc_info)
-        self.last, self.unlogged = now, 0
 
 
 class MessageBudget:
@@ -92,9 +81,13 @@ class Client:
         self.session: Session | None = None
         self.session_task: asyncio.Task | None = None
         self.session_frames = 0  # frames its current session has produced
-        self.slowed = False  # told that its audio arrives faster than it is processed
+        self.slowed = False  # told that its audio arrives faster than it is processed (until `resume`)
+        self.heard = time.monotonic()  # when the last message or pong came from it
+        self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
+        self.after_session: list[str] = []  # replies due once the running session has sent its `end`
         peer = ws.remote_address
-        self.errors = ErrorLog(f"{peer[0]}:{peer[1]}" if peer else "?")
+        self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
+        self.errors = ErrorLog(f"client {self.who}")
         self.budget = MessageBudget()
         self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
 
@@ -148,19 +141,25 @@ class WsServer:
 
     origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
     none; browsers always send one); "*" accepts any. token: required as ?token=... when set.
+    ping_interval, ping_timeout: the keepalive (seconds; None: none): a client from which nothing was heard
+    for their sum, while the server was reading it or while nothing moved, is closed (1011).
     """
 
     def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
                  token: str | None = None, max_queue: int = 64, max_sessions: int = 8,
                  status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None,
-                 origins: Iterable[str] = (), max_backlog_s: float = 30.0):
+                 origins: Iterable[str] = (), max_backlog_s: float = 30.0, ping_interval: float | None = 20.0,
+                 ping_timeout: float = 20.0):
         self.host, self.port = host, port
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
         self.token = token
-        self.origins = {o.lower().rstrip("/") for o in origins}
+        self.origins = {o for o in map(RC.allowed_origin, origins) if o is not None}
         self.max_queue, self.max_sessions = max_queue, max_sessions
         self.max_backlog_s = max_backlog_s
+        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
+        self.refusals = ErrorLog("refused handshakes", what="refusals")  # one line per 10 s, whatever the flood
+        self.departures = ErrorLog("sessions", what="departures")
         self.status_every = status_every
         self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
         self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
@@ -179,6 +178,7 @@ class WsServer:
     async def start(self) -> None:
         self._server = await serve(self._handle, self.host, self.port, process_request=self._check_request,
                                    max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
+                                   ping_interval=None,  # our own keepalive (_keepalive): knows back pressure
                                    compression=None)  # no deflate: CPU per frame per client, and a bomb risk
         self.port = self._server.sockets[0].getsockname()[1]  # the real port when 0 was asked
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
@@ -220,17 +220,42 @@ class WsServer:
         self.prep.shutdown(wait=False, cancel_futures=True)
 
     def _check_request(self, connection, request):
-        origin = request.headers.get("Origin")
-        if origin is not None and "*" not in self.origins and origin.lower().rstrip("/") not in self.origins:
-            log.info("refused a connection from origin %r (not in the allow-list; see --allow-origin)", origin[:100])
-            return connection.respond(HTTPStatus.FORBIDDEN, "origin not allowed (see streamer serve --allow-origin)\n")
-        if self.token is None:
+        """Origin, then token; a refusal is a 4xx and at most one log line per 10 s. Never raises (a raise
+        would be a 500 and a traceback in the log)."""
+        try:
+            status, why = self.refusal(request.path, request.headers.get_all("Origin"),
+                                       getattr(request, "protocol", "HTTP/1.1"))  # (websockets >= 15 parses it)
+        except Exception as e:  # a bug here must not become a 500 with a traceback per request
+            status, why = HTTPStatus.BAD_REQUEST, f"malformed request ({type(e).__name__})"
+        if status is None:
             return None
-        given = parse_qs(urlsplit(request.path).query).get("token", [None])[0]
-        if given is None or not hmac.compare_digest(given.encode(), self.token.encode()):
-            log.info("refused a connection with a missing or wrong token")
-            return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong token (use ?token=...)\n")
-        return None
+        self.refusals(logging.INFO, f"{why}")
+        return connection.respond(status, {HTTPStatus.FORBIDDEN: "origin not allowed (see streamer serve --allow-origin)\n",
+                                           HTTPStatus.UNAUTHORIZED: "missing or wrong token (use ?token=...)\n"}
+                                  .get(status, "bad request\n"))
+
+    def refusal(self, target: str, origins: list[str], version: str = "HTTP/1.1") -> tuple[HTTPStatus | None, str]:
+        """(None, "") to accept a handshake for request target `target` with these Origin headers, else
+        (status, why): 400 for a malformed target or Origin (or two of them) or an HTTP version other than
+        1.1 (the WebSocket handshake's own; the library would answer 505), 403 for an origin not allowed, 401
+        for a missing or wrong token. Pure: reads only the allow-list and the token."""
+        if RC.split_target(target) is None or version != "HTTP/1.1":
+            return HTTPStatus.BAD_REQUEST, "a malformed request target or HTTP version"
+        given = RC.single(origins)
+        if given is RC.REPEATED:
+            return HTTPStatus.BAD_REQUEST, f"{len(origins)} Origin headers"
+        if given is not None and "*" not in self.origins:
+            origin = RC.origin(given)
+            if origin is None:
+                return HTTPStatus.BAD_REQUEST, "a malformed Origin header"
+            if origin not in self.origins:
+                return HTTPStatus.FORBIDDEN, f"origin {origin[:100]!r} (not in the allow-list; see --allow-origin)"
+        if self.token is None:
+            return None, ""
+        token = RC.query_value(target, "token")
+        if token is None or not hmac.compare_digest(token.encode("utf-8", "surrogatepass"), self.token.encode()):
+            return HTTPStatus.UNAUTHORIZED, "a missing or wrong token"
+        return None, ""
 
     # ---- broadcast (the server's own source) -----------------------------------------------------
 
@@ -275,10 +300,22 @@ class WsServer:
     async def _handle(self, ws: ServerConnection) -> None:
         client = Client(ws, self.max_queue)
         self.clients.add(client)
-        sender = asyncio.create_task(client.send_loop(), name="ws-sender")
         client.put(json.dumps(self.hello))
+        tasks = [asyncio.create_task(client.send_loop(), name="ws-sender"),
+                 asyncio.create_task(self._read_loop(client), name="ws-reader"),
+                 asyncio.ensure_future(ws.wait_closed())]
+        if self.ping_interval:
+            tasks.append(asyncio.create_task(self._keepalive(client), name="ws-keepalive"))
+        try:  # whichever ends first (the connection closed, the sender failed, the reader is done) ends it all
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            await self._leave(client, tasks)
+
+    async def _read_loop(self, client: Client) -> None:
+        ws = client.ws
         try:
             async for message in ws:
+                client.heard, client.holding = time.monotonic(), True
                 try:
                     if isinstance(message, bytes):
                         await self._on_audio(client, message)
@@ -297,14 +334,66 @@ class WsServer:
                     client.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
                     client.note(P.error("internal", f"{type(e).__name__}: {e}"))
                 await asyncio.sleep(client.budget.wait_s(message))  # a flood is read only as fast as the budget
+                client.holding = False
         except ConnectionClosed:
             pass
-        finally:
-            self.clients.discard(client)
-            if client.session_task is not None:
-                client.session_task.cancel()
-            sender.cancel()
-            await asyncio.gather(sender, *(t for t in [client.session_task] if t), return_exceptions=True)
+
+    async def _keepalive(self, client: Client) -> None:
+        """Ping every ping_interval; close (1011) a client not heard from for ping_interval + ping_timeout.
+
+        While its handler holds one of its messages (its backlog is full: TCP back pressure), the server
+        reads none of its frames, pongs included, so it cannot be blamed for silence as long as its
+        frames go out or its audio is being processed; a client that neither reads nor is read is not.
+        """
+        pong: asyncio.Future | None = None
+        moved = None
+
+        def answered(f: asyncio.Future) -> None:
+            if not f.cancelled() and f.exception() is None:
+                client.heard = time.monotonic()
+
+        while True:
+            await asyncio.sleep(self.ping_interval)
+            now = time.monotonic()
+            progress = (client.frames_sent, client.session_frames)
+            if client.holding and progress != moved:
+                client.heard = now
+            moved = progress
+            if now - client.heard > self.ping_interval + self.ping_timeout:
+                client.errors(logging.WARNING, f"nothing heard for {now - client.heard:.1f} s (keepalive): closing "
+                                               f"({'holding its audio, ' if client.holding else ''}"
+                                               f"{client.frames_sent} frames sent, {len(client.queue)} queued)")
+                await client.ws.close(1011, "keepalive ping timeout")
+                return
+            if pong is None or pong.done():
+                try:
+                    pong = await client.ws.ping()
+                except ConnectionClosed:
+                    return
+                pong.add_done_callback(answered)
+
+    async def _leave(self, client: Client, tasks: list[asyncio.Future]) -> None:
+        """The client is gone: cancel everything it has in flight (whatever it waits on), free its slot, its
+        queue and its audio now, and say so once (rate-limited) if a session was cut short."""
+        self.clients.discard(client)
+        session = client.session_task
+        running = session is not None and not session.done()
+        backlog_s = client.source.backlog_s if client.source is not None else 0.0
+        pending = [*tasks, *([session] if session is not None else [])]
+        for t in pending:
+            t.cancel()
+        client.queue.clear()
+        client.room.set()
+        if client.source is not None:
+            client.source.chunks.clear()
+            client.source.queued = 0
+            await client.source.close()
+        await asyncio.gather(*pending, return_exceptions=True)
+        client.source = client.session = client.session_task = client.resampler = None
+        client.after_session.clear()
+        if running and not self.closing:
+            self.departures(logging.WARNING, f"client {client.who} left with its audio session running: session "
+                                             f"cancelled, {backlog_s:.1f} s of queued audio and its slot freed")
 
     async def _on_text(self, client: Client, text: str) -> None:
         msg = P.parse_text(text)
@@ -321,10 +410,12 @@ class WsServer:
                 await self._end_session(client)  # later audio starts a session at the new rate
                 client.audio = msg["audio"]
         elif msg["type"] == "audio_end":
-            if client.source is None and (client.session_task is None or client.session_task.done()):
-                client.put(P.end(0))  # no audio since the last end: an empty stream, ended
-            else:
+            if client.source is not None:
                 await self._end_session(client)
+            elif client.session_task is None or client.session_task.done():
+                client.put(P.end(0))  # no audio since the last end: an empty stream, ended
+            else:  # the previous session is still finishing: its `end` first, then this empty stream's
+                client.after_session.append(P.end(0))
 
     async def _on_audio(self, client: Client, data: bytes) -> None:
         if self.make_session is None:
@@ -338,6 +429,7 @@ class WsServer:
         if client.source is None:
             if client.session_task is not None and not client.session_task.done():
                 await asyncio.shield(client.session_task)  # the previous session is still finishing
+                await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
             if self.live_sessions >= self.max_sessions:
                 raise P.ProtocolError("busy", f"at most {self.max_sessions} client audio sessions at once")
             self._start_session(client)
@@ -346,15 +438,13 @@ class WsServer:
         for a in range(0, len(x), step):
             y = await loop.run_in_executor(self.prep, self._resample, client, x[a : a + step])
             if source.full and not client.slowed:
-                client.slowed = True
-                client.note(P.error("slow_down", f"audio arrives faster than it is processed: "
-                                                 f"{source.backlog_s:.0f} s are queued; the server reads more as it "
-                                                 f"catches up (nothing is dropped)"))
+                client.slowed = True  # until the backlog is down to half: `resume` (see emit in _start_session)
+                client.put(P.error("slow_down", f"audio arrives faster than it is processed: "
+                                                f"{source.backlog_s:.0f} s are queued; pause until `resume` (or the "
+                                                f"server reads more as it catches up; nothing is dropped)"))
             await source.put(y)
             if client.source is not source:  # the session failed meanwhile
                 return
-        if not source.full:
-            client.slowed = False
 
     @staticmethod
     def _resample(client: Client, x: np.ndarray) -> np.ndarray:  # worker thread
@@ -374,6 +464,9 @@ class WsServer:
         loop = asyncio.get_running_loop()
 
         async def emit(frames: list[Frame]) -> None:
+            if client.slowed and source.backlog_s <= self.max_backlog_s / 2:
+                client.slowed = False
+                client.put(P.resume(source.backlog_s))  # a client that paused at slow_down may send again
             if frames:
                 client.session_frames += len(frames)
                 await client.put_own(await loop.run_in_executor(self.prep, client.encode, frames))
@@ -391,7 +484,17 @@ class WsServer:
                     client.source = None
                 await source.close()
 
+        def done(task: asyncio.Task) -> None:
+            if client.slowed and client.source is not source:  # ended while the client was paused: let it go on
+                client.slowed = False
+                client.put(P.resume(0.0))
+            if not task.cancelled():
+                for m in client.after_session:
+                    client.put(m)
+            client.after_session.clear()
+
         client.session_task = asyncio.create_task(run(), name="ws-session")
+        client.session_task.add_done_callback(done)
 
     async def _end_session(self, client: Client) -> None:
         """Flush the client's session (audio_end): it sends its last frames and `end` by itself."""
