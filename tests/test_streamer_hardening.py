@@ -9,7 +9,6 @@ import socket
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -24,7 +23,7 @@ from streamer.http import ViewerServer
 from streamer.record import BvhRecorder
 from streamer.server import ServeError, read_token, viewer_origins
 from helpers.serve import REPO, serve
-from helpers.ws import make_server, recv_json
+from helpers.ws import SlowExecutor, make_server, recv_json
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -102,13 +101,6 @@ def test_a_client_uploading_1mib_chunks_gets_every_frame(bundle):
     frames, notes, end = asyncio.run(run())
     assert frames == list(range(int(seconds * 20))) and end["frames"] == len(frames)
     assert [n["code"] for n in notes] in ([], ["slow_down"])  # told about its backlog, nothing lost
-
-
-class SlowExecutor(ThreadPoolExecutor):
-    """Inference that takes at least 50 ms a call, so a flushing session stays alive for a while."""
-
-    def submit(self, fn, /, *args, **kwargs):
-        return super().submit(lambda: (time.sleep(0.05), fn(*args, **kwargs))[1])
 
 
 def test_audio_end_does_not_bypass_the_session_limit(bundle):

@@ -19,8 +19,7 @@ from hypothesis import strategies as st
 from streamer import request_checks as RC
 from streamer.redact import RedactTokens
 from streamer.http import ViewerServer
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
-from test_streamer_ws import bundle, make_server  # noqa: F401 (fixture)
+from helpers.ws import make_server
 
 pytestmark = pytest.mark.timeout(180)
 FUZZ = settings(max_examples=300, deadline=None,  # the fixtures used under @given hold no per-example state

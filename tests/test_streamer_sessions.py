@@ -12,7 +12,6 @@ import signal
 import socket
 import time
 
-import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
@@ -20,10 +19,8 @@ from websockets.exceptions import ConnectionClosed
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.engine import Session
-from test_streamer_cli import serve  # noqa: F401
-from test_streamer_engine import tiny_checkpoint  # noqa: F401 (fixture)
-from test_streamer_hardening import SlowExecutor
-from test_streamer_ws import bundle, make_server, recv_json  # noqa: F401 (fixture)
+from helpers.serve import serve
+from helpers.ws import SlowExecutor, make_server, recv_json
 
 pytestmark = pytest.mark.timeout(240)
 MIB = 1 << 20
