@@ -69,25 +69,35 @@ def test_real_capture_reference(zeggs_dir, tmp_path):
 
 # ---- issue "voice": the default model follows voices it never heard ----
 UNSEEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "unseen_speech"
+TAKES = ("4_lawrence_0_19_19.wav", "4_lawrence_0_35_35.wav")
 
 
-def _voices():
-    yield pytest.param(DEMO_WAV.parent / "demo_en.wav", id="demo_en")
-    yield pytest.param(DEMO_WAV.parent / "demo_zh.wav", id="demo_zh")
-    for take in ("4_lawrence_0_19_19.wav", "4_lawrence_0_35_35.wav"):
-        yield pytest.param(UNSEEN / take, id=take[:-4])
-
-
-@pytest.mark.parametrize("wav", _voices())
-def test_default_model_follows_an_unseen_voice(bundle, wav):
-    """Over two seeds, at the default K and guidance: wrist speed follows the speech's loudness better than it
-    follows the same speech shifted in time, the hands are calmer in 6 s of silence inserted into a pause than
-    in speech, and the wrists stay within 1.5x the real capture's jerk."""
+@pytest.fixture(scope="module")
+def unseen_rows(bundle):
+    """voice_report (two seeds, the default K and guidance) of the demo clips and the unseen speaker's takes."""
     from dimgestor.eval import voice_report
 
-    if not wav.exists():
-        pytest.skip(f"{wav} not found: the unseen-speaker takes are only present beside the dev checkout (../shared)")
-    row = voice_report(bundle, load_wav(wav), bundle.config.sample_steps, seeds=2)
-    assert row["coupling"] > row["coupling_shifted"] + 0.05, row
-    assert row["silence_ratio"] > 1.5, row
+    clips = {"demo_en": DEMO_WAV.parent / "demo_en.wav", "demo_zh": DEMO_WAV.parent / "demo_zh.wav",
+             **{t[:-4]: UNSEEN / t for t in TAKES}}
+    return {name: voice_report(bundle, load_wav(wav), bundle.config.sample_steps, seeds=2)
+            for name, wav in clips.items() if wav.exists()}
+
+
+@pytest.mark.parametrize("take", [t[:-4] for t in TAKES])
+def test_default_model_follows_the_unseen_speaker(unseen_rows, take):
+    """BEAT speaker lawrence (74-82 s takes): wrist speed follows the speech's loudness clearly better than the
+    same speech shifted in time, and the wrists stay within 1.5x the real capture's jerk. (The 14 s demo clips
+    are too short for coupling: their shifted baseline's sd is 0.13-0.16.)"""
+    if take not in unseen_rows:
+        pytest.skip(f"{UNSEEN / take}.wav not found: the unseen speaker is only present beside the dev checkout (../shared)")
+    row = unseen_rows[take]
+    assert row["coupling"] > row["coupling_shifted"] + 0.1, row
     assert row["hand_jerk"] < 1.5 * REAL_HAND_JERK, row
+
+
+@pytest.mark.parametrize("clip", ["demo_en", "demo_zh"] + [t[:-4] for t in TAKES])
+def test_default_model_calms_in_an_inserted_silence(unseen_rows, clip):
+    """6 s of silence inserted into a pause of an unseen voice: the wrists move at least 1.5x faster in speech."""
+    if clip not in unseen_rows:
+        pytest.skip(f"{clip}.wav not found: the unseen speaker is only present beside the dev checkout (../shared)")
+    assert unseen_rows[clip]["silence_ratio"] > 1.5, unseen_rows[clip]
