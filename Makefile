@@ -25,7 +25,7 @@ $(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.
 	@if command -v npm >/dev/null; then cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error; \
 	else echo "npm not found: the browser viewer cannot load three.js and its tests will be skipped (Debian: apt install npm)" >&2; fi
 
-.PHONY: setup test demo default-model
+.PHONY: setup test demo default-model voice-model
 setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
 
 test: setup $(VMC_CHECK)/node_modules/.package-lock.json
@@ -40,11 +40,20 @@ demo: setup
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset on the ZEGGS sample clip
 # (last 15 s held out) with the default "streaming" recipe (mirroring and 0.9x/1.1x speed perturbation on, as
-# for any small set), one CPU thread (deterministic; ~10 min on a quiet machine), then copy its inference files
-# into the package with its sampling default: K = 4 DDIM steps, no output filter.
+# for any small set; audio augmentation off, as when the shipped weights were trained), one CPU thread
+# (deterministic; ~10 min on a quiet machine), then copy its inference files into the package with its
+# sampling default: K = 4 DDIM steps, no output filter.
 ZEGGS ?= ../shared/data/zeggs_sample
 default-model: $(BIN)/.installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/default \
 		--max-steps 600 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 200 --valid-every 200 --seed 0 \
-		--valid-seconds 15
+		--valid-seconds 15 --no-augment
 	$(BIN)/dimgestor export --checkpoint runs/default --out dimgestor/default_model --sample-steps 4 --smooth 0
+
+# The candidate for the next default model (issue "voice", MODEL_CARD.md): the same run with the speech front end
+# and 15 % condition dropout, exported to runs/voice_model (not into the package) with guidance 1.5.
+voice-model: $(BIN)/.installed
+	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/voice \
+		--max-steps 600 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 200 --valid-every 200 --seed 0 \
+		--valid-seconds 15 --no-augment --set frontend=speech --cond-drop 0.15
+	$(BIN)/dimgestor export --checkpoint runs/voice --out runs/voice_model --sample-steps 4 --smooth 0 --guidance 1.5
