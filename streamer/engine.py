@@ -226,10 +226,16 @@ class StreamBatcher(Executor):
     streams join and leave by submitting or not. Rank as in `RankedExecutor`: while a real-time window
     (rank <= 0) waits, windows ahead of real time (a backlog) wait for the next cycle. Other jobs
     (`submit`: a stream's finish) run alone between batches.
+
+    A cycle of backlog alone takes windows (least ahead of real time first) only until they hold
+    `backlog_s` of audio: a real-time window that arrives meanwhile then waits for a short cycle, not for
+    every fast sender's next second at once (31 clients sending faster than real time had pushed a
+    bystander's p95 latency from 0.15 to 4.5 s).
     """
 
-    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch"):
+    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", backlog_s: float = 1.0):
         self.max_batch = max_batch
+        self.backlog_samples = int(backlog_s * RATE)
         self.stats = BatchStats()
         self._pushes: list[_PushJob] = []
         self._jobs: deque = deque()
@@ -271,13 +277,17 @@ class StreamBatcher(Executor):
                     return None
                 self._cv.wait()
             pushes = sorted(self._pushes, key=lambda j: j.rank)
-            if pushes and pushes[0].rank <= 0:  # real time first: a backlog waits for a cycle without any
+            realtime = bool(pushes) and pushes[0].rank <= 0
+            if realtime:  # real time first: a backlog waits for a cycle without any
                 pushes = [j for j in pushes if j.rank <= 0]
-            taken, seen = [], set()
+            taken, seen, backlog = [], set(), 0
             for j in pushes:
+                if not realtime and taken and backlog + len(j.samples) > self.backlog_samples:
+                    break  # a short backlog cycle, so that the next real-time window is not kept waiting
                 if len(taken) < self.max_batch and id(j.session) not in seen:
                     taken.append(j)
                     seen.add(id(j.session))
+                    backlog += len(j.samples)
             ids = {id(j) for j in taken}
             self._pushes = [j for j in self._pushes if id(j) not in ids]
             jobs, self._jobs = list(self._jobs), deque()

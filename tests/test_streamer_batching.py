@@ -106,6 +106,32 @@ def test_windows_waiting_together_run_as_one_batch(bundle):
         batcher.shutdown()
 
 
+def test_a_backlog_cycle_is_short_so_real_time_windows_do_not_wait_behind_it(bundle):
+    """Six sessions with 0.6 s of backlog each and a 1 s budget: backlog cycles of one window (the least ahead of
+    real time first), and a real-time window queued meanwhile runs in the next cycle, before the rest of it."""
+    batcher = StreamBatcher(backlog_s=1.0)
+    gate, order = threading.Event(), []
+    try:
+        batcher.submit(gate.wait, 30)
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(7)]
+        audio = synthetic_speech(0.6, seed=3)
+        backlog = [batcher.submit_push(s, audio, rank=1.0 + i) for i, s in enumerate(sessions[:6])]
+        for i, f in enumerate(backlog):
+            f.add_done_callback(lambda _, i=i: order.append(i))
+        gate.set()
+        backlog[0].result(30)
+        live = batcher.submit_push(sessions[6], synthetic_speech(0.1, seed=4), rank=0.0)
+        live.add_done_callback(lambda _: order.append("live"))
+        for f in backlog + [live]:
+            f.result(60)
+        assert batcher.stats.peak == 1 and batcher.stats.batches == 7  # never two 0.6 s backlog windows at once
+        assert order.index("live") <= 2, order  # the live window overtakes the backlog (before: after all six)
+        assert sorted(i for i in order if i != "live") == list(range(6)) and order.index(5) > order.index(0)
+    finally:
+        gate.set()
+        batcher.shutdown()
+
+
 def test_batcher_isolates_a_failing_stream(bundle):
     """A window that fails (a finished stream) fails its own future only; the batch's others get frames."""
     batcher = StreamBatcher()
