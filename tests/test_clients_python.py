@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers.clients import CLIENT, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
+from helpers.clients import CLIENT, REPO, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
 
 pytestmark = pytest.mark.timeout(180)
 
