@@ -34,7 +34,7 @@ from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State, ssd_step
 from .model import DenoiserState, DiMGestor
 
-__all__ = ["StepStates", "DenoiseRunner", "runner_for", "push_many"]
+__all__ = ["StepStates", "StateRow", "DenoiseRunner", "runner_for", "push_many", "denoise_rows"]
 
 
 class StepStates(NamedTuple):
@@ -322,7 +322,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
     conds: list = [None] * len(streams)
     for i, (s, c) in enumerate(zip(streams, chunks)):
         try:
-            conds[i] = s._begin(c)
+            conds[i] = s.begin_push(c)
         except Exception as e:
             if not return_exceptions:
                 raise
@@ -332,7 +332,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
         if cond is None:
             continue
         if cond.shape[1] == 0:
-            out[i] = s._end(None)
+            out[i] = s.end_push(None)
         else:
             live.append(i)
     # Windows are cut into pieces of the most common length, denoised round by round: a stream that fell
@@ -366,7 +366,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
             done[i] += take[i]
     for i in live:
         s = streams[i]
-        out[i] = failed[i] if i in failed else s._end(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
+        out[i] = failed[i] if i in failed else s.end_push(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
     return out
 
 
@@ -379,26 +379,28 @@ def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor], frame_starts:
     streams come back together (a busy server: every stream has a window due each cycle) nothing is copied.
     """
     runner = streams[0].runner
-    first = streams[0]._states
-    buf = getattr(first, "buffer", None)
-    offsets = np.cumsum([0] + [s._states.rows for s in streams]).tolist()  # a guided stream has two rows
-    same = (buf is not None and buf.batch == offsets[-1]
-            and all(getattr(s._states, "buffer", None) is buf and s._states.row == offsets[i]
-                    for i, s in enumerate(streams)))
+    first = streams[0].state_row
+    buf = first.buffer
+    offsets = np.cumsum([0] + [s.state_row.rows for s in streams]).tolist()  # a guided stream has two rows
+    same = buf.batch == offsets[-1] and all(s.state_row.buffer is buf and s.state_row.row == offsets[i]
+                                            for i, s in enumerate(streams))
     with torch.inference_mode():
         if not same:
-            buf = StepStates.cat([s._states.view for s in streams]) if len(streams) > 1 else first.view
+            buf = StepStates.cat([s.state_row.view for s in streams]) if len(streams) > 1 else first.view
             for i, s in enumerate(streams):
-                s._states = _Row(buf, offsets[i], s._states.rows)
+                s.state_row = StateRow(buf, offsets[i], s.state_row.rows)
         starts = [s.frames_out for s in streams] if frame_starts is None else list(frame_starts)
         x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf,
                           [s.guidance for s in streams])
     return list(x)
 
 
-class _Row:
+class StateRow:
     """A stream's place in a state buffer: rows [row, row + rows) of `buffer` (a StepStates shared by a batch);
-    rows is 2 for a guided stream (its conditional and unconditional branches), else 1."""
+    rows is 2 for a guided stream (its conditional and unconditional branches), else 1.
+
+    The buffer is the runner's storage: `denoise_rows` updates it in place and may move a stream to another
+    buffer (the rows of the streams batched with it); `view` is the stream's own rows."""
 
     __slots__ = ("buffer", "row", "rows")
 
