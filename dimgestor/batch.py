@@ -31,10 +31,10 @@ import torch
 import torch.nn.functional as F
 
 from .diffusion import Diffusion, guide, motion_noise_rows
-from .mamba2 import STEP_MAX, Mamba2State
+from .mamba2 import STEP_MAX, Mamba2State, ssd_step
 from .model import DenoiserState, DiMGestor
 
-__all__ = ["StepStates", "DenoiseRunner", "runner_for", "push_many"]
+__all__ = ["StepStates", "StateRow", "DenoiseRunner", "runner_for", "push_many", "denoise_rows"]
 
 
 class StepStates(NamedTuple):
@@ -197,11 +197,11 @@ class DenoiseRunner:
                 for j, fb in enumerate(self._blocks):
                     h = fb(h, mk[:, 6 * H * j: 6 * H * (j + 1)], states.conv[k, j], states.ssm[k, j], B, n)
                 h = h.view(B, n, H)
-            else:  # a long window (a backlog): the modules, the scan picked by length
+            else:  # a long window (a backlog): the block's modules, the scan picked by length
                 for j, block in enumerate(m.blocks):
-                    h, _ = block(h, None, Mamba2State(states.conv[k, j].transpose(1, 2), states.ssm[k, j]),
-                                 mod=mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], inplace=True)
-            out = m.final(h, None, mod=mods[k, :, :, 6 * H * nb:])
+                    h = _modulated_block(block, h, mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], states.conv[k, j],
+                                         states.ssm[k, j])
+            out = _modulated_final(m.final, h, mods[k, :, :, 6 * H * nb:])
             if plan is not None:
                 out = plan.combine(out)  # (B windows, n, D)
             eps, x0 = d.split(out, x, t)
@@ -214,12 +214,30 @@ class DenoiseRunner:
         return x
 
 
+def _modulated_block(block, h, mod, conv, ssm):
+    """`AdaLNMamba2Block.forward` with its adaLN output `mod` (B, n, 6H) computed beforehand (1 added to the
+    scales); the new state is written into the runner's buffers conv (B, d_conv - 1, C) and ssm."""
+    shift1, scale1, gate1, shift2, scale2, gate2 = mod.chunk(6, dim=-1)
+    y, state = block.mixer(torch.addcmul(shift1, block.norm1(h), scale1), Mamba2State(conv.transpose(1, 2), ssm))
+    conv.copy_(state.conv.transpose(1, 2))
+    ssm.copy_(state.ssm)
+    h = torch.addcmul(h, gate1, y)
+    return torch.addcmul(h, gate2, block.mlp(torch.addcmul(shift2, block.norm2(h), scale2)))
+
+
+def _modulated_final(final, h, mod):
+    """`FinalLayer.forward` with its adaLN output `mod` (B, n, 2H) computed beforehand (1 added to the scale)."""
+    shift, scale = mod.chunk(2, dim=-1)
+    return F.linear(torch.addcmul(shift, final.norm(h), scale), final.decoder.weight[:, :, 0], final.decoder.bias)
+
+
 class _FastBlock:
     """One AdaLN Mamba-2 block's inference on a window of a few frames, its ops written out.
 
-    The same algebra as `AdaLNMamba2Block.forward` with `Mamba2.forward(inplace=True)` and `ssd_steps`, on
-    rows (B n, H): no module calls, no layout changes, the derived constants (A, D per channel, the conv
-    taps) made once. The runner's tests hold it equal to the modules.
+    The same algebra as `AdaLNMamba2Block.forward` with `Mamba2.forward` and `ssd_steps` (the recurrence is
+    their `ssd_step`, writing into the runner's buffer), on rows (B n, H): no module calls, no layout changes,
+    the derived constants (A, D per channel, the conv taps) made once. The runner's tests hold it equal to
+    the modules.
     """
 
     def __init__(self, block, H: int):
@@ -258,18 +276,15 @@ class _FastBlock:
         dt = F.softplus(dt + self.dt_bias).view(B, L, h_)
         dA = torch.exp(dt * self.A)  # (B, L, h)
         Xdt = x.view(B, L, h_, p) * dt[..., None]  # (B, L, h, p)
-        ys = []
-        if B == 1:  # plain 2-D matmuls (CPU bmm loops over its batch)
+        if B == 1:  # 2-D matmuls on the state's rows (a head's p channels each), written into the buffer
             flat = ssm.view(h_ * p, n)
-            for t in range(L):
-                ssm.mul_(dA[:, t, :, None, None])
-                flat.addmm_(Xdt[0, t].reshape(h_ * p, 1), Bm[0, t:t + 1])
-                ys.append(torch.mm(flat, Cm[0, t, :, None]))  # (h p, 1)
+            dA = dA[0, :, :, None].expand(L, h_, p).reshape(L, h_ * p, 1)
+            Xdt, Bm, Cm = Xdt.view(L, h_ * p, 1), Bm.view(L, 1, n), Cm.view(L, n, 1)
+            ys = [ssd_step(flat, dA[t], Xdt[t], Bm[t], Cm[t], out=flat)[0] for t in range(L)]  # (h p, 1) each
             y = torch.cat(ys, 1).t() if L > 1 else ys[0].view(1, h_ * p)
-        else:  # broadcast multiply-adds over the batch
-            for t in range(L):
-                ssm.mul_(dA[:, t, :, None, None]).addcmul_(Xdt[:, t, :, :, None], Bm[:, t, None, None, :])
-                ys.append(torch.linalg.vecdot(ssm, Cm[:, t, None, None, :]))  # (B, h, p)
+        else:  # broadcast multiply-adds over the batch, a head's decay over its channels
+            dA, Xdt, Bm, Cm = dA[..., None, None], Xdt[..., None], Bm[:, :, None, None], Cm[:, :, None, None]
+            ys = [ssd_step(ssm, dA[:, t], Xdt[:, t], Bm[:, t], Cm[:, t], out=ssm)[0] for t in range(L)]  # (B, h, p)
             y = torch.stack(ys, 1)
         y = torch.addcmul(y.reshape(B * L, self.di), x.reshape(B * L, self.di), self.D)  # + D x
         g = F.rms_norm(y * F.silu(z), (self.di,), self.norm_w, self.eps)
@@ -307,7 +322,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
     conds: list = [None] * len(streams)
     for i, (s, c) in enumerate(zip(streams, chunks)):
         try:
-            conds[i] = s._begin(c)
+            conds[i] = s.begin_push(c)
         except Exception as e:
             if not return_exceptions:
                 raise
@@ -317,7 +332,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
         if cond is None:
             continue
         if cond.shape[1] == 0:
-            out[i] = s._end(None)
+            out[i] = s.end_push(None)
         else:
             live.append(i)
     # Windows are cut into pieces of the most common length, denoised round by round: a stream that fell
@@ -351,7 +366,7 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
             done[i] += take[i]
     for i in live:
         s = streams[i]
-        out[i] = failed[i] if i in failed else s._end(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
+        out[i] = failed[i] if i in failed else s.end_push(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
     return out
 
 
@@ -364,26 +379,28 @@ def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor], frame_starts:
     streams come back together (a busy server: every stream has a window due each cycle) nothing is copied.
     """
     runner = streams[0].runner
-    first = streams[0]._states
-    buf = getattr(first, "buffer", None)
-    offsets = np.cumsum([0] + [s._states.rows for s in streams]).tolist()  # a guided stream has two rows
-    same = (buf is not None and buf.batch == offsets[-1]
-            and all(getattr(s._states, "buffer", None) is buf and s._states.row == offsets[i]
-                    for i, s in enumerate(streams)))
+    first = streams[0].state_row
+    buf = first.buffer
+    offsets = np.cumsum([0] + [s.state_row.rows for s in streams]).tolist()  # a guided stream has two rows
+    same = buf.batch == offsets[-1] and all(s.state_row.buffer is buf and s.state_row.row == offsets[i]
+                                            for i, s in enumerate(streams))
     with torch.inference_mode():
         if not same:
-            buf = StepStates.cat([s._states.view for s in streams]) if len(streams) > 1 else first.view
+            buf = StepStates.cat([s.state_row.view for s in streams]) if len(streams) > 1 else first.view
             for i, s in enumerate(streams):
-                s._states = _Row(buf, offsets[i], s._states.rows)
+                s.state_row = StateRow(buf, offsets[i], s.state_row.rows)
         starts = [s.frames_out for s in streams] if frame_starts is None else list(frame_starts)
         x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf,
                           [s.guidance for s in streams])
     return list(x)
 
 
-class _Row:
+class StateRow:
     """A stream's place in a state buffer: rows [row, row + rows) of `buffer` (a StepStates shared by a batch);
-    rows is 2 for a guided stream (its conditional and unconditional branches), else 1."""
+    rows is 2 for a guided stream (its conditional and unconditional branches), else 1.
+
+    The buffer is the runner's storage: `denoise_rows` updates it in place and may move a stream to another
+    buffer (the rows of the streams batched with it); `view` is the stream's own rows."""
 
     __slots__ = ("buffer", "row", "rows")
 

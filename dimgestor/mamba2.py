@@ -10,7 +10,8 @@ heads of a group. The parameter names and the packed `in_proj` layout follow the
 Three CPU forms of the same scan, picked by length in `Mamba2._run`, each with a parity test against
 `ssd_naive` (the per-step recurrence) and against `ssd_chunked` (the whole-sequence chunked
 state-space-duality scan, kept as the reference of the chunk algebra):
-  - `ssd_steps`: the recurrence itself, for windows of up to `STEP_MAX` frames (a streaming window at
+  - `ssd_steps`: the recurrence itself (`ssd_step`, also what `ssd_naive` and the runner's written-out
+    block in `dimgestor.batch` call), for windows of up to `STEP_MAX` frames (a streaming window at
     20 fps is 1-10 frames, where the number of ops per call, not their arithmetic, is the cost);
   - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk;
   - `ssd_scan`: the lean long-sequence scan, a loop over chunks carrying the state, so its working memory
@@ -141,59 +142,59 @@ def ssd_scan(x, dt, A, B, C, chunk_size, initial_state):
     return y, state
 
 
+def ssd_step(h, dA, Xdt, B, C, out=None):
+    """One step of the recurrence, the one place it is written (every step-by-step form calls it):
+
+        h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T,    y_t = h_t C_t
+
+    with a head's p channels as rows of the state. One sequence: h (r, n), dA and Xdt (r, 1) (each row's decay
+    exp(dt A) and discretised input dt x), B (1, n), C (n, 1) -> y (r, 1), as plain 2-D matmuls (torch's CPU
+    `bmm`/`baddbmm` loop over their batch one small matmul at a time). A batch: h (..., r, n), dA and Xdt
+    broadcastable to (..., r, 1), B and C (..., 1, n) -> y (..., r), as broadcast multiply-adds.
+    Returns (y, new state); out: write the new state there (a runner's buffer, may be h itself).
+    """
+    if h.dim() == 2:
+        new = torch.addmm(h * dA, Xdt, B, out=out)
+        return torch.mm(new, C), new
+    new = torch.addcmul(h * dA, Xdt, B, out=out)
+    return torch.linalg.vecdot(new, C), new
+
+
 def ssd_steps(x, dt, A, B, C, initial_state):
     """The recurrence step by step with B and C per group (b, L, g, n): fewest ops for a window of a few frames.
 
-    h_t = exp(dt_t A) h_{t-1} + dt_t x_t B_t^T, y_t = h_t C_t, with the heads of a group side by side.
-    One stream (b = 1) runs each step as a fused batched matmul; a batch of streams as broadcast multiply-adds
-    (torch's CPU `baddbmm`/`bmm` loop over the batch one small matmul at a time).
+    The heads of a group sit side by side as r rows of the state (row j * p + i: head j, channel i).
     Returns y (b, L, h, p) without the D skip and the final state (b, h, p, n).
     """
     b, L, h, p = x.shape
     g, n = B.shape[2], B.shape[3]
-    rows = (h // g) * p  # the heads of a group side by side: row j * p + i is head j, channel i
-    if b > 1:
-        dA = torch.exp(dt * A).repeat_interleave(p, dim=-1).view(b, L, g, rows, 1)
-        Xdt = (x * dt[..., None]).view(b, L, g, rows, 1)
-        state = initial_state.view(b, g, rows, n)
-        ys = []
-        for t in range(L):
-            state = torch.addcmul(state * dA[:, t], Xdt[:, t], B[:, t, :, None, :])  # (b, g, rows, n)
-            ys.append(torch.linalg.vecdot(state, C[:, t, :, None, :]))  # (b, g, rows)
-        y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]
-        return y.view(b, L, h, p), state.view(b, h, p, n)
-    dA = torch.exp(dt * A).repeat_interleave(p, dim=-1).transpose(0, 1).reshape(L, b * g, rows, 1)  # per row
-    Xdt = (x * dt[..., None]).view(b, L, g, rows).transpose(0, 1).reshape(L, b * g, rows, 1)
-    Bt = B.transpose(0, 1).reshape(L, b * g, 1, n)
-    Ct = C.transpose(0, 1).reshape(L, b * g, n, 1)
-    state = initial_state.reshape(b * g, rows, n)
+    r = (h // g) * p
+    dA = torch.exp(dt * A).repeat_interleave(p, dim=-1)  # (b, L, h p): each head's decay on its p rows
+    Xdt = x * dt[..., None]
     ys = []
-    if b * g == 1:  # plain 2-D matmuls: CPU bmm/baddbmm loop over the batch with a select and clone per item
-        state = state[0]
-        for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
-            state = torch.addmm(state * dA[t, 0], Xdt[t, 0], Bt[t, 0])
-            ys.append(torch.mm(state, Ct[t, 0]))  # (r p, 1)
-        y = torch.stack(ys) if L > 1 else ys[0][None]  # (L, r p, 1)
-        return y.view(b, L, h, p), state.view(b, h, p, n)
-    for t in range(L):  # h_t = exp(dt_t A) h_{t-1} + (dt_t x_t) B_t^T as one fused multiply-add
-        state = torch.baddbmm(state * dA[t], Xdt[t], Bt[t])
-        ys.append(torch.bmm(state, Ct[t]))  # (b g, r p, 1)
-    y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]  # (b g, L, r p, 1)
-    return y.view(b, g, L, rows).transpose(1, 2).reshape(b, L, h, p), state.view(b, h, p, n)
+    if b * g == 1:  # one sequence, one group: 2-D matmuls
+        dA, Xdt, B, C = dA.view(L, r, 1), Xdt.reshape(L, r, 1), B.reshape(L, 1, n), C.reshape(L, n, 1)
+        state = initial_state.reshape(r, n)
+        for t in range(L):
+            y, state = ssd_step(state, dA[t], Xdt[t], B[t], C[t])
+            ys.append(y)  # (r, 1)
+        y = torch.stack(ys) if L > 1 else ys[0][None]  # (L, r, 1)
+    else:
+        dA, Xdt, B, C = dA.view(b, L, g, r, 1), Xdt.reshape(b, L, g, r, 1), B[:, :, :, None], C[:, :, :, None]
+        state = initial_state.reshape(b, g, r, n)
+        for t in range(L):
+            y, state = ssd_step(state, dA[:, t], Xdt[:, t], B[:, t], C[:, t])
+            ys.append(y)  # (b, g, r)
+        y = torch.stack(ys, 1) if L > 1 else ys[0][:, None]  # (b, L, g, r)
+    return y.reshape(b, L, h, p), state.reshape(b, h, p, n)
 
 
 def ssd_naive(x, dt, A, B, C, initial_state=None):
-    """The per-step recurrence h_t = exp(dt A) h_{t-1} + dt x_t B_t^T, y_t = h_t C_t. Same shapes as ssd_chunked."""
+    """The recurrence with B and C per head (b, L, h, n), from zeros by default: the reference the chunked
+    scans are tested against. Same shapes as ssd_chunked."""
     b, L, h, p = x.shape
-    n = B.shape[-1]
-    state = initial_state if initial_state is not None else x.new_zeros(b, h, p, n)
-    ys = []
-    for t in range(L):
-        dA = torch.exp(dt[:, t] * A)  # (b, h)
-        dBx = torch.einsum("bh,bhn,bhp->bhpn", dt[:, t], B[:, t], x[:, t])
-        state = state * dA[..., None, None] + dBx
-        ys.append(torch.einsum("bhpn,bhn->bhp", state, C[:, t]))
-    return torch.stack(ys, dim=1), state
+    state = initial_state if initial_state is not None else x.new_zeros(b, h, p, B.shape[-1])
+    return ssd_steps(x, dt, A, B, C, state)  # one group per head
 
 
 class RMSNormGated(nn.Module):
@@ -267,11 +268,8 @@ class Mamba2(nn.Module):
     def state_nbytes(self, batch: int = 1, bytes_per_value: int = 4) -> int:
         return batch * bytes_per_value * (self.conv_dim * (self.d_conv - 1) + self.nheads * self.headdim * self.d_state)
 
-    def forward(self, x: torch.Tensor, state: Mamba2State | None = None, inplace: bool = False
-                ) -> tuple[torch.Tensor, Mamba2State]:
-        """inplace: write the new state into `state`'s own tensors and return it (a runner's preallocated
-        buffers, `dimgestor.batch`); otherwise the state is a value, as autograd and the tests want."""
-        return self._run(x, state, reference=False, inplace=inplace)
+    def forward(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
+        return self._run(x, state, reference=False)
 
     def step_reference(self, x: torch.Tensor, state: Mamba2State | None = None) -> tuple[torch.Tensor, Mamba2State]:
         """Same as forward, but with the naive per-step recurrence: the reference the tests compare against."""
@@ -287,7 +285,7 @@ class Mamba2(nn.Module):
             y = torch.addcmul(y, xs[:, :, k:k + L], w[:, k])
         return y
 
-    def _run(self, u, state, reference, inplace=False):
+    def _run(self, u, state, reference):
         b, L, _ = u.shape
         if state is None:
             state = self.zero_state(b, u.device, u.dtype)
@@ -296,9 +294,7 @@ class Mamba2(nn.Module):
         # causal depthwise conv, continued from the carried tail of the previous window
         xBC_t = torch.cat([state.conv, xBC.transpose(1, 2)], dim=2)  # (b, conv_dim, d_conv - 1 + L)
         # the tail as its own small tensor: a view would keep this whole window's xBC alive with the state
-        new_conv = xBC_t[:, :, xBC_t.shape[2] - (self.d_conv - 1):]
-        if not inplace:
-            new_conv = new_conv.clone()
+        new_conv = xBC_t[:, :, xBC_t.shape[2] - (self.d_conv - 1):].clone()
         xBC = F.silu(self._depthwise_conv(xBC_t, L).transpose(1, 2))
 
         x, B, C = torch.split(xBC, [self.d_inner, self.ngroups * self.d_state, self.ngroups * self.d_state], dim=-1)
@@ -326,8 +322,4 @@ class Mamba2(nn.Module):
         D = self.D.reshape(self.nheads, -1) if self.D.numel() == self.d_inner else self.D[:, None]
         y = torch.addcmul(y, x, D).reshape(b, L, self.d_inner)  # y + D x
         y = self.norm(y, z) if self.rmsnorm else y * F.silu(z)
-        if inplace:
-            state.conv.copy_(new_conv)
-            state.ssm.copy_(ssm)
-            return self.out_proj(y), state
         return self.out_proj(y), Mamba2State(new_conv, ssm.to(state.ssm.dtype))

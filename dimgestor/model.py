@@ -91,19 +91,12 @@ class AdaLNMamba2Block(nn.Module):
         self.mlp = Mlp(H, config.mlp_ratio)
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(H, 6 * H))
 
-    def forward(self, x: torch.Tensor, c: torch.Tensor | None, state: Mamba2State | None = None,
-                mod: torch.Tensor | None = None, inplace: bool = False) -> tuple[torch.Tensor, Mamba2State]:
-        """mod: this block's adaLN output (B, T, 6H) computed beforehand, with 1 already added to its two scale
-        chunks (`dimgestor.batch` computes every block's, for every sampler step of a window, in one matmul);
-        None computes it from c. inplace: the mixer writes its new state into `state` (see `Mamba2.forward`)."""
-        if mod is None:
-            shift1, scale1, gate1, shift2, scale2, gate2 = self.adaLN_modulation(c).chunk(6, dim=-1)  # (B, T, H) each
-            scale1, scale2 = 1 + scale1, 1 + scale2
-        else:
-            shift1, scale1, gate1, shift2, scale2, gate2 = mod.chunk(6, dim=-1)
-        h, state = self.mixer(torch.addcmul(shift1, self.norm1(x), scale1), state, inplace=inplace)
+    def forward(self, x: torch.Tensor, c: torch.Tensor, state: Mamba2State | None = None
+                ) -> tuple[torch.Tensor, Mamba2State]:
+        shift1, scale1, gate1, shift2, scale2, gate2 = self.adaLN_modulation(c).chunk(6, dim=-1)  # (B, T, H) each
+        h, state = self.mixer(modulate(self.norm1(x), shift1, scale1), state)
         x = torch.addcmul(x, gate1, h)  # x + g1 * h
-        x = torch.addcmul(x, gate2, self.mlp(torch.addcmul(shift2, self.norm2(x), scale2)))
+        x = torch.addcmul(x, gate2, self.mlp(modulate(self.norm2(x), shift2, scale2)))
         return x, state
 
 
@@ -116,13 +109,8 @@ class FinalLayer(nn.Module):
         self.adaLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(hidden, 2 * hidden))
         self.decoder = nn.Conv1d(hidden, motion_dim, kernel_size=1)
 
-    def forward(self, x, c, mod: torch.Tensor | None = None):
-        """mod: the adaLN output (B, T, 2H) computed beforehand, 1 already added to its scale; None: from c."""
-        if mod is None:
-            x = modulate(self.norm(x), *self.adaLN_modulation(c).chunk(2, dim=-1))
-        else:
-            shift, scale1 = mod.chunk(2, dim=-1)
-            x = torch.addcmul(shift, self.norm(x), scale1)
+    def forward(self, x, c):
+        x = modulate(self.norm(x), *self.adaLN_modulation(c).chunk(2, dim=-1))
         # the k=1 Conv1D as the matmul it is (CPU conv kernels cost ~0.4 ms a call on streaming windows)
         return F.linear(x, self.decoder.weight[:, :, 0], self.decoder.bias)  # (B, T, motion_dim)
 

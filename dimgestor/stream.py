@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .batch import StepStates, _Row, denoise_rows, runner_for
+from .batch import StateRow, StepStates, denoise_rows, runner_for
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor
 from .smoothing import OneEuroFilter
@@ -107,13 +107,17 @@ class GestureStream:
         dev = _device(model)
         self._fe = model.frontend.init_state(1, dev)
         self._ex = model.extractor.init_state(1, dev)
-        # the denoiser's state for every step: its row of a buffer the runner updates in place (two rows when
-        # guided: the conditional branch, then the unconditional one)
+        # the denoiser's state for every step: its rows of a buffer the runner updates in place (two rows when
+        # guided: the conditional branch, then the unconditional one); `dimgestor.batch.denoise_rows` owns it
         rows = 1 if self.guidance == 1.0 else 2
-        self._states = _Row(StepStates.zeros(model, len(self.pairs), rows, dev), 0, rows)
+        self.state_row = StateRow(StepStates.zeros(model, len(self.pairs), rows, dev), 0, rows)
         self.samples_in = 0  # audio samples received (the audio clock)
         self.frames_out = 0  # frames returned; frame i is presented at i / fps on the audio clock
         self.finished = False
+
+    @property
+    def _states(self) -> StateRow:  # the former name, which tests/test_guidance.py reads
+        return self.state_row
 
     @property
     def lookahead_s(self) -> float:
@@ -129,16 +133,19 @@ class GestureStream:
             cond, self._ex = m.condition(feats, self._ex)
         return cond
 
-    def _begin(self, samples) -> torch.Tensor:
-        """`push`'s first half (checks, audio clock, condition); `dimgestor.batch.push_many` batches the rest."""
+    def begin_push(self, samples) -> torch.Tensor:
+        """`push`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
+        complete. `end_push(denoise_rows([stream], [cond])[0])` is the rest; `dimgestor.batch.push_many`
+        batches the middle over many streams."""
         if self.finished:
             raise RuntimeError("push() after finish(): start a new GestureStream")
         samples = _check_audio(samples)
         self.samples_in += len(samples)
         return self._condition(samples)
 
-    def _end(self, frames: torch.Tensor | None) -> np.ndarray:
-        """Denoised frames (n, D) (None: no new frame) -> the returned frames; the frame clock moves on."""
+    def end_push(self, frames: torch.Tensor | None) -> np.ndarray:
+        """`push`'s last half: denoised frames (n, D) (None: no new frame) -> the returned frames (output
+        filter applied); the frame clock moves on."""
         if frames is None:
             return np.zeros((0, self.model.config.motion_dim), np.float32)
         self.frames_out += frames.shape[0]
@@ -146,11 +153,11 @@ class GestureStream:
         return self.smoother(out) if self.smoother is not None else out
 
     def _denoise(self, cond: torch.Tensor) -> np.ndarray:
-        return self._end(denoise_rows([self], [cond])[0] if cond.shape[1] else None)
+        return self.end_push(denoise_rows([self], [cond])[0] if cond.shape[1] else None)
 
     def push(self, samples) -> np.ndarray:
         """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
-        return self._denoise(self._begin(samples))
+        return self._denoise(self.begin_push(samples))
 
     def finish(self) -> np.ndarray:
         """Pad with silence exactly as `generate_offline` does and return the remaining frames."""

@@ -139,8 +139,8 @@ class TrainConfig(BaseModel):
 
     @classmethod
     def from_saved(cls, options: dict) -> "TrainConfig":
-        """The config a checkpoint was trained with, from its saved `options` (older runs lack newer fields,
-        which take their defaults; the runtime-only ones that older runs saved are ignored)."""
+        """The config a checkpoint was trained with, from its saved `options` (info["options"] or train_state.pt's);
+        older runs lack newer fields, which take their defaults; a field this version dropped is an error."""
         unknown = set(options) - set(cls.model_fields)
         if unknown:
             raise ValueError(f"saved training options name fields this version does not have: {sorted(unknown)}")
@@ -379,7 +379,7 @@ def setup(opts: TrainConfig) -> Run:
     world, rank, device = _init_distributed(opts)
     resume_from = _resume_point(opts)
     config, train_ds, valid_ds = _config_and_data(opts, resume_from)
-    mean, std = compute_stats(train_ds) if resume_from is None else (None, None)  # before seeding, as ever
+    mean, std = compute_stats(train_ds) if resume_from is None else (None, None)  # before seeding, as runs always did
     torch.manual_seed(opts.seed)
     random.seed(opts.seed)
     np.random.seed(opts.seed)

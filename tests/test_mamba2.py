@@ -213,17 +213,20 @@ def test_matches_transformers_mamba2_mixer():
     torch.testing.assert_close(y_ours, y_peer, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("L", [2, 9, 70])
-def test_inplace_forward_writes_the_same_state_into_the_given_tensors(L):
-    torch.manual_seed(L)
-    m = Mamba2(16, d_state=8, headdim=8, chunk_size=16)
-    s0 = Mamba2State(torch.randn(2, m.conv_dim, m.d_conv - 1), torch.randn(2, m.nheads, m.headdim, m.d_state))
-    u = torch.randn(2, L, 16)
-    with torch.no_grad():
-        y, s = m(u, s0)
-        buf = Mamba2State(s0.conv.clone(), s0.ssm.clone())
-        y2, s2 = m(u, buf, inplace=True)
-    assert s2.conv is buf.conv and s2.ssm is buf.ssm
+@pytest.mark.parametrize("batch", [(), (3, 2)])
+def test_a_step_written_into_a_buffer_equals_the_step_as_a_value(batch):
+    """`ssd_step` is the recurrence, in its 2-D form (one sequence) and broadcast over a batch, and
+    `out=h` (how the runner updates its state buffers) gives the same y and state as the value form."""
+    gen = torch.Generator().manual_seed(len(batch))
+    r, n = 6, 5
+    h0, dA, Xdt = (torch.randn(*batch, r, k, generator=gen) for k in (n, 1, 1))
+    B, C = torch.randn(*batch, 1, n, generator=gen), torch.randn(*batch, 1, n, generator=gen)
+    C_in = C.transpose(-1, -2) if not batch else C  # one sequence takes C as a column
+    y, h1 = mamba2.ssd_step(h0, dA, Xdt, B, C_in)
+    torch.testing.assert_close(h1, h0 * dA + Xdt * B)  # exp(dt A) h + (dt x) B^T
+    torch.testing.assert_close(y.reshape(*batch, r), (h1 * C).sum(-1))  # h C
+    buf = h0.clone()
+    y2, h2 = mamba2.ssd_step(buf, dA, Xdt, B, C_in, out=buf)
+    assert h2 is buf
     torch.testing.assert_close(y2, y)
-    torch.testing.assert_close(buf.conv, s.conv)
-    torch.testing.assert_close(buf.ssm, s.ssm)
+    torch.testing.assert_close(buf, h1)
