@@ -29,7 +29,9 @@ TRAIN_MINUTES, HELDOUT_MINUTES, STEPS = 3.0, 1.5, 300
 COUPLING_MARGIN = 0.1  # coupling - mean coupling against shifted audio
 CONTRAST = 3.0  # wrist speed in speech / in silence (natural pauses)
 # Measured with this file's settings on held-out voices (the rule itself: contrast ~20, coupling margin ~0.3-0.4).
-# logmel passes: contrast 3.9, coupling margin 0.13 (stroke margin 0.02, the rule's 0.27).
+# logmel passes: contrast 3.9, coupling margin 0.13 (training seed 1: 4.3, 0.13); its stroke margin is only 0.02-0.03
+# (the rule's 0.27), so strokes are not asserted here (benchmarks/voice_world.py follows them). ~4 min on one
+# thread of the shared 2-core machine.
 KNOWN_TO_FAIL: dict[str, str] = {}
 EXPECTED_FAILURE = pytest.mark.xfail(FRONTEND in KNOWN_TO_FAIL, run=False,
                                      reason=f"{FRONTEND} front end at CI scale: {KNOWN_TO_FAIL.get(FRONTEND)}")
