@@ -16,8 +16,8 @@ after, beside as many onsets shuffled inside speech; onset alignment to every sp
 what a researcher measures without knowing the rule) and BeatAlign, each beside its shuffled level.
 Pass: stroke-alignment margin over shuffled >= half the rule's, contrast >= half the rule's.
 
-    python benchmarks/voice_world.py                       # 10, 30, 60 min x 600 steps, log-mel: ~1.5 h here
-    python benchmarks/voice_world.py --quick               # 1 + 2 min x 60 steps: a smoke run (~5 min)
+    python benchmarks/voice_world.py                       # 10, 30, 60 min x 500 steps, log-mel: ~50 min here
+    python benchmarks/voice_world.py --quick               # 1 + 2 min x 60 steps: a smoke run (~3 min)
     python benchmarks/voice_world.py --set frontend=speech --train-args "--augment" --out results/voice_world_speech.json
 """
 
@@ -54,8 +54,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", default="10,30,60", help="training data sizes (minutes of train voices)")
     p.add_argument("--heldout-minutes", type=float, default=3.0, help="held-out voices scored")
-    p.add_argument("--steps", type=int, default=600, help="training steps per data size")
-    p.add_argument("--ckpt-every", type=int, default=200, help="score a checkpoint every this many steps")
+    p.add_argument("--steps", type=int, default=500, help="training steps per data size")
+    p.add_argument("--ckpt-every", type=int, default=125, help="score a checkpoint every this many steps")
     p.add_argument("--preset", default="realtime")
     p.add_argument("--recipe", default="streaming")
     p.add_argument("--batch-size", type=int, default=8)

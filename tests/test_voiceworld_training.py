@@ -1,6 +1,7 @@
 """A small model trained in CI time on the voice world follows voices it never heard (issue 20).
 
-Trained on 3 minutes of the train voices, scored on held-out voices (unseen variants and an unseen language):
+Trained on 3 minutes of the train voices (without mirroring or speed perturbation: with them the same budget
+measured contrast 1.8 and coupling margin -0.18, the model not yet following the audio), scored on held-out voices (unseen variants and an unseen language):
 its wrist speed must follow the speech's loudness (coupling above the circularly shifted baseline by
 COUPLING_MARGIN; the rule's own is ~0.34) and its hands must rest in pauses (speech/silence wrist speed at
 least CONTRAST; the rule's own is ~20).
@@ -27,11 +28,13 @@ FRONTEND = os.environ.get("DIMGESTOR_TEST_FRONTEND", "logmel")
 TRAIN_MINUTES, HELDOUT_MINUTES, STEPS = 3.0, 1.5, 300
 COUPLING_MARGIN = 0.1  # coupling - mean coupling against shifted audio
 CONTRAST = 3.0  # wrist speed in speech / in silence (natural pauses)
-# measured with this file's settings on held-out voices (the rule itself: contrast ~20, coupling margin ~0.3-0.4)
+# Measured with this file's settings on held-out voices (the rule itself: contrast ~20, coupling margin ~0.3-0.4).
+# logmel passes: contrast 3.9, coupling margin 0.13 (training seed 1: 4.3, 0.13); its stroke margin is only 0.02-0.03
+# (the rule's 0.27), so strokes are not asserted here (benchmarks/voice_world.py follows them). ~4 min on one
+# thread of the shared 2-core machine.
 KNOWN_TO_FAIL = {
-    "logmel": "measured contrast 1.8, coupling margin -0.18 (stroke margin 0.08; the rule's 0.27)",
-    "speech": "main 7deaad2 speech front end, no augmentation: measured contrast 2.0, coupling margin -0.14 "
-              "(stroke margin 0.04)",
+    "speech": "speech front end (main 7deaad2), these settings: measured contrast 2.9, coupling margin 0.06 "
+              "(stroke margin 0.05); at 30 min x 500 steps it beats log-mel (benchmarks/results/voice_world_speech.json)",
 }
 EXPECTED_FAILURE = pytest.mark.xfail(FRONTEND in KNOWN_TO_FAIL, run=False,
                                      reason=f"{FRONTEND} front end at CI scale: {KNOWN_TO_FAIL.get(FRONTEND)}")
@@ -49,7 +52,7 @@ def held_out_scores(tmp_path_factory):
     run = train(TrainOptions(data=str(root / "world"), out=str(root / "run"), preset="realtime",
                              overrides={"frontend": FRONTEND}, max_steps=STEPS, batch_size=8, window_s=5.0,
                              ckpt_every=STEPS, valid_every=STEPS, seed=0, cache_dir=str(root / "cache"),
-                             progress=False, mirror=True, speeds=(0.9, 1.1)))
+                             progress=False, mirror=False, speeds=()))
     bundle = load_checkpoint(run)
     bundle.model.eval()
     valid = GestureDataset(root / "world", split="valid", spec=bundle.feature_spec, window_s=5.0,
