@@ -233,7 +233,7 @@ class StreamBatcher(Executor):
     bystander's p95 latency from 0.15 to 4.5 s).
     """
 
-    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", backlog_s: float = 1.0):
+    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", backlog_s: float = 4.0):
         self.max_batch = max_batch
         self.backlog_samples = int(backlog_s * RATE)
         self.stats = BatchStats()

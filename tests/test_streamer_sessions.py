@@ -153,8 +153,10 @@ async def flood(url: str, cooperative: bool) -> dict:
     read to the `end`. A flooder sends 1 MiB messages (33 s of audio: the server reads none of its frames, pongs
 included, while it works through the ones before) as fast as the server takes them,
     ignores `slow_down` and does not ping: the server holds its audio unread (TCP back pressure) for most of
-    the run. A `cooperative` client sends 1 s messages at 40x real time, pauses at `slow_down` until
-    `resume` and keeps its own keepalive (a ping every PING s, closing after PING s without a pong)."""
+    the run. A `cooperative` client sends 1 s messages at 200x real time (several times what the server gives one
+    of four streams here, ~60x on a quiet machine, so it is throttled however idle the machine is; at 40x a quiet
+    machine kept up and never said `slow_down`), pauses at `slow_down` until `resume` and keeps its own
+    keepalive (a ping every PING s, closing after PING s without a pong)."""
     chunk = pcm(1.0, seed=3) if cooperative else pcm(32.768, seed=3)[:MIB]
     out = {"frames": [], "codes": [], "resumes": 0, "closed": None, "end": None, "sent": 0}
     go = asyncio.Event()
@@ -196,7 +198,7 @@ included, while it works through the ones before) as fast as the server takes th
                 await c.send(chunk)
                 out["sent"] += len(chunk) // 2
                 if cooperative:
-                    await asyncio.sleep(1.0 / 40)
+                    await asyncio.sleep(1.0 / 200)
             await c.send(json.dumps({"type": "audio_end"}))
         except ConnectionClosed:
             pass  # (the reader says how)
