@@ -31,12 +31,11 @@ setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
 test: setup $(VMC_CHECK)/node_modules/.package-lock.json
 	$(BIN)/python -m pytest -q -rs
 
-# Ports of `make demo`, e.g. `make demo WS_PORT=9000 HTTP_PORT=9001 OSC_PORT=39540`.
+# Ports of `make demo`, e.g. `make demo WS_PORT=9000 OSC_PORT=39540` (the viewer: http://127.0.0.1:WS_PORT/).
 WS_PORT ?= 8765
-HTTP_PORT ?= 8080
 OSC_PORT ?= 39539
 demo: setup
-	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT) --http $(HTTP_PORT)
+	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT)
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset on the ZEGGS sample clip
 # (last 15 s held out) with the default "streaming" recipe (mirroring and 0.9x/1.1x speed perturbation on, as

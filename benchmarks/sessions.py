@@ -7,8 +7,9 @@ and never pinging, while reading every frame; then `audio_end` and read to `end`
 the server closed (should be 0), whether each got all its frames, and the talker's frame latency
 (p50/p95) in a quiet phase and during the flood.
 
-fuzz: R malformed requests (default 10,000) to the WebSocket port and to the viewer (`--http`): the
-status codes seen (no 5xx), tracebacks in the log (none) and how much the log grew.
+fuzz: R malformed requests (default 10,000) to the server's one port, half WebSocket handshakes and half
+requests for the viewer's pages: the status codes seen (no 5xx), tracebacks in the log (none) and how much
+the log grew.
 
     python benchmarks/sessions.py                              # the embedded default model, both parts
     python benchmarks/sessions.py --flooders 4 --seconds 20 --requests 2000 --checkpoint runs/x
@@ -199,12 +200,12 @@ def send(port: int, request: bytes) -> int | None:
     return int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else None
 
 
-def fuzz_part(server: Server, ws_port: int, http_port: int, requests: int) -> dict:
+def fuzz_part(server: Server, port: int, requests: int) -> dict:
     log0 = len(server.output.encode())
     t0 = time.monotonic()
     statuses: dict[str, int] = {}
-    for port, websocket in ((ws_port, True), (http_port, False)):
-        for r in fuzz_requests(requests // 2, seed=port, websocket=websocket):
+    for seed, websocket in ((port, True), (port + 1, False)):  # handshakes, then pages of the viewer
+        for r in fuzz_requests(requests // 2, seed=seed, websocket=websocket):
             key = f"{'ws' if websocket else 'http'} {send(port, r)}"
             statuses[key] = statuses.get(key, 0) + 1
     time.sleep(0.5)
@@ -227,16 +228,15 @@ def main() -> None:
     args = ap.parse_args()
     extra = [*(["--checkpoint", args.checkpoint] if args.checkpoint else []),
              *(["--steps", str(args.steps)] if args.steps else [])]
-    server = Server("--source", "ws", "--ws", "127.0.0.1:0", "--http", "0", "--max-sessions", str(args.flooders + 1),
+    server = Server("--source", "ws", "--ws", "127.0.0.1:0", "--max-sessions", str(args.flooders + 1),
                     "--status-every", "10", *extra)
     ws_url = server.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
-    http_port = int(server.wait_for(r"web viewer\s+http://\S+:(\d+)/").group(1))
     time.sleep(1.0)
     rss0 = server.rss_mb()
     result = {"when": utc_now(), "device": describe_device("cpu"), "load_before": load_average()}
     result["keepalive"] = asyncio.run(keepalive_part(ws_url, args.flooders, args.seconds, args.quiet_s))
     print(json.dumps(result["keepalive"]), flush=True)
-    result["fuzz"] = fuzz_part(server, int(ws_url.rsplit(":", 1)[1].strip("/")), http_port, args.requests)
+    result["fuzz"] = fuzz_part(server, int(ws_url.rsplit(":", 1)[1].strip("/")), args.requests)
     print(json.dumps(result["fuzz"]), flush=True)
     result["rss_mb"] = {"before": round(rss0), "after": round(server.rss_mb())}
     result["sigterm_to_exit_s"] = round(server.stop(), 2)

@@ -129,10 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read the token from this file (surrounding whitespace ignored)")
     s.add_argument("--allow-origin", action="append", default=None, metavar="ORIGIN",
                    help="also accept browser pages from this origin, e.g. http://myapp.example:3000 (repeatable; "
-                        "'*' = any). By default only the --http viewer's own pages, and clients that send no "
-                        "Origin (Unity, Unreal, Python), may connect")
+                        "'*' = any). By default only the viewer's own pages (served on the --ws port), and "
+                        "clients that send no Origin (Unity, Unreal, Python), may connect")
     s.add_argument("--http", type=_http_addr, default=None, metavar="[HOST:]PORT",
-                   help="also serve the web viewer (clients/web) over HTTP at HOST:PORT (a bare PORT: on the --ws host)")
+                   help="deprecated: the web viewer (clients/web) is served on the --ws port itself (open "
+                        "http://127.0.0.1:8765/); --http also serves it, and the WebSocket, at HOST:PORT (a bare "
+                        "PORT: on the --ws host)")
     s.add_argument("--humanoid-map", default=None, metavar="FILE.json",
                    help="{HumanBodyBones name: joint name} map for OSC and the hello; default streamer/maps/zeggs.json")
     s.add_argument("--status-every", type=float, default=2.0, metavar="S",

@@ -2,7 +2,7 @@
 
 Every function takes untrusted text and returns a value or None ("malformed"); none of them raises, so a
 caller answers a malformed request with a 4xx instead of a traceback. They are shared by the viewer's
-HTTP server (`streamer.http`) and the WebSocket handshake (`streamer.ws`), and hold no state.
+files (`streamer.viewer`) and the WebSocket handshake (`streamer.ws`), served on one port, and hold no state.
 """
 
 from __future__ import annotations

@@ -113,24 +113,6 @@ def read_token(args) -> str | None:
     return token
 
 
-def viewer_origins(host: str, port: int) -> list[str]:
-    """The Origin values a browser sends for pages of the viewer at host:port (all the names it may be reached by)."""
-    import socket
-
-    names = {host}
-    if host in ("0.0.0.0", "::", ""):
-        names = {"127.0.0.1", "::1", "localhost"}
-        try:
-            hostname = socket.gethostname()
-            names |= {hostname, socket.getfqdn()}
-            names |= {ai[4][0] for ai in socket.getaddrinfo(hostname, None)}
-        except OSError:
-            pass
-    if names & {"127.0.0.1", "::1", "localhost"}:
-        names |= {"127.0.0.1", "::1", "localhost"}
-    return [f"http://{f'[{n}]' if ':' in n else n}:{port}" for n in sorted(names)]
-
-
 async def serve(args) -> int:
     from streamer import protocol as P
     from streamer.pose import HumanoidMapError, HumanoidRig, load_humanoid_map
@@ -157,12 +139,14 @@ async def serve(args) -> int:
         smoothing = smoothing_from_flag(getattr(args, "smooth", None))
     except ValueError as e:
         raise ServeError(str(e)) from None
-    from streamer.request_checks import allowed_origin, host_name
+    from streamer.request_checks import allowed_origin
 
     bad = [o for o in (getattr(args, "allow_origin", None) or []) if allowed_origin(o) is None]
     if bad:
         raise ServeError(f"--allow-origin {bad[0]!r} is not an origin (scheme://host[:port], e.g. "
                          f"http://myapp.example:3000, or '*')")
+    if args.no_ws and args.http is not None:
+        raise ServeError("--http serves the viewer from the WebSocket server (drop --no-ws)")
     if args.no_ws and args.source == "ws":
         raise ServeError("--source ws needs the WebSocket server (drop --no-ws)")
     if args.record and not Path(args.record).resolve().parent.is_dir():
@@ -216,16 +200,8 @@ async def serve(args) -> int:
     main_session = make_session("source") if source is not None else None
     lookahead = (main_session or make_session()).lookahead_s
 
-    ws = vmc = recorder = viewer = None
+    ws = vmc = recorder = None
     try:
-        if args.http is not None:
-            from streamer.http import ViewerServer
-
-            host = args.http[0] or args.ws[0]  # a bare --http PORT serves beside the WebSocket
-            try:
-                viewer = ViewerServer(host, args.http[1], None, token is not None)
-            except OSError as e:
-                raise ServeError(f"cannot serve HTTP on {host}:{args.http[1]}: {e.strerror or e}") from None
         if not args.no_ws:
             from streamer.ws import WsServer
 
@@ -234,16 +210,17 @@ async def serve(args) -> int:
                             source="ws" if source is None else "mic" if args.source == "mic" else "file",
                             **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
                                if isinstance(source, WavSource) else {}))
-            origins = [*(viewer_origins(viewer.host, viewer.port) if viewer else []), *(args.allow_origin or [])]
+            also = [(args.http[0] or args.ws[0], args.http[1])] if args.http is not None else []
             ws = WsServer(args.ws[0], args.ws[1], hello, None if args.no_client_audio else make_session,
                           token=token, broadcast_stats=main_session.stats if main_session else None,
                           source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
-                          origins=origins, max_sessions=getattr(args, "max_sessions", 32),
+                          origins=args.allow_origin or [], also=also, max_sessions=getattr(args, "max_sessions", 32),
                           ping_interval=ping_interval or None, ping_timeout=ping_timeout)
             try:
                 await ws.start()
             except OSError as e:
-                raise ServeError(f"cannot listen on {args.ws[0]}:{args.ws[1]}: {e.strerror or e}") from None
+                where = " or ".join(f"{h}:{p}" for h, p in [tuple(args.ws), *also])
+                raise ServeError(f"cannot listen on {where}: {e.strerror or e}") from None
         if args.osc is not None:
             from streamer.vmc import VmcSink
 
@@ -261,18 +238,11 @@ async def serve(args) -> int:
             except RecordError as e:
                 raise ServeError(str(e)) from None
     except BaseException:
-        if viewer:
-            viewer.close()
         if vmc:
             await vmc.close()
         if ws:
             await ws.close(within_s=0.2)
         raise
-    if viewer:
-        viewer.ws_port = ws.port if ws else 0
-        if ws is not None and "*" not in ws.origins:  # config.json names only hosts whose pages may connect
-            viewer.ws_hosts = {host_name(o.split("://", 1)[1]) for o in ws.origins if "://" in o} - {None}
-        viewer.start()
 
     what = {"mic": f"microphone {getattr(source, 'name', '')!r} at {getattr(source, 'rate', 0)} Hz", "ws": "WebSocket clients' audio only",
             "demo": f"demo clip {Path(getattr(source, 'path', '')).name}"}.get(args.source, f"file {args.source}")
@@ -285,9 +255,11 @@ async def serve(args) -> int:
     if ws:
         print(f"streamer: WebSocket  {ws.url}{'?token=...' if token else ''}  (protocol v1, docs/protocol.md)",
               file=sys.stderr)
-    if viewer:
-        print(f"streamer: web viewer {viewer.url}{'  (open it as ...?token=YOUR_TOKEN)' if token else ''}",
-              file=sys.stderr)
+    for url in ws.viewer_urls if ws else []:
+        print(f"streamer: web viewer {url}{'  (open it as ...?token=YOUR_TOKEN)' if token else ''}", file=sys.stderr)
+    if args.http is not None:
+        print(f"streamer: --http is deprecated: the viewer is served on the WebSocket port ({ws.viewer_urls[0]}); "
+              f"--http still serves it, and the WebSocket, on port {ws.addresses[-1][1]} too", file=sys.stderr)
     if vmc:
         print(f"streamer: VMC/OSC -> {vmc.host}:{vmc.port}", file=sys.stderr)
     if recorder:
@@ -348,8 +320,6 @@ async def serve(args) -> int:
             await vmc.close(drain_s=0 if stop.is_set() else 2.0)  # Ctrl-C: stop now; source end: play out the tail
         if ws:
             await ws.close(within_s=1.5)
-        if viewer:
-            viewer.close()
         executor.shutdown(wait=False, cancel_futures=True)
         print(_status_line(main_session, ws, vmc, source, t0, executor), file=sys.stderr, flush=True)
     return 0

@@ -21,6 +21,7 @@ import asyncio
 import hmac
 import json
 import logging
+import socket
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -36,11 +37,15 @@ from streamer import request_checks as RC
 from streamer.engine import AudioClock, Frame, Session
 from streamer.log_limit import ErrorLog
 from streamer.sources import RATE, PushSource, make_resampler
+from streamer.viewer import Answer, ViewerFiles, is_upgrade
+from streamer.waiting import WaitingRoom
 
 log = logging.getLogger("streamer.ws")
 AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
 AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 
+MAX_SESSIONS = 32  # most clients sending their own audio at once (streamer serve --max-sessions)
+PING_INTERVAL_S, PING_TIMEOUT_S = 20.0, 20.0  # the keepalive (--ping-interval, --ping-timeout)
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
 DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
 
@@ -136,21 +141,45 @@ class Client:
             await asyncio.sleep(0.01)
 
 
+def own_origins(host: str, port: int) -> list[str]:
+    """The Origin values a browser sends for pages loaded from host:port (all the names it may be reached by)."""
+    names = {host}
+    if host in ("0.0.0.0", "::", ""):
+        names = {"127.0.0.1", "::1", "localhost"}
+        try:
+            hostname = socket.gethostname()
+            names |= {hostname, socket.getfqdn()}
+            names |= {ai[4][0] for ai in socket.getaddrinfo(hostname, None)}
+        except OSError:
+            pass
+    if names & {"127.0.0.1", "::1", "localhost"}:
+        names |= {"127.0.0.1", "::1", "localhost"}
+    return [f"http://{f'[{n}]' if ':' in n else n}:{port}" for n in sorted(names)]
+
+
 class WsServer:
-    """Serves hello/frames/status to clients; `broadcast(frames)` is the server source's sink.
+    """Serves hello/frames/status to clients; `broadcast(frames)` is the server source's sink. A request
+    that is not a WebSocket upgrade gets a file of the web viewer (`files`; None: no files) on the same port.
 
     origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
-    none; browsers always send one); "*" accepts any. token: required as ?token=... when set.
-    ping_interval, ping_timeout: the keepalive (seconds; None: none): a client from which nothing was heard
-    for their sum, while the server was reading it or while nothing moved, is closed (1011).
+    none; browsers always send one) and the server's own (its viewer's pages); "*" accepts any. token:
+    required as ?token=... when set. also: more (host, port) addresses serving the same (the deprecated
+    --http). ping_interval, ping_timeout: the keepalive (seconds; None: none): a client from which nothing
+    was heard for their sum, while the server was reading it or while nothing moved, is closed (1011).
+    max_waiting, request_timeout_s: connections that have not sent a whole request (`WaitingRoom`).
     """
 
     def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
-                 token: str | None = None, max_queue: int = 64, max_sessions: int = 8,
+                 token: str | None = None, max_queue: int = 64, max_sessions: int = MAX_SESSIONS,
                  status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None,
-                 origins: Iterable[str] = (), max_backlog_s: float = 30.0, ping_interval: float | None = 20.0,
-                 ping_timeout: float = 20.0):
+                 origins: Iterable[str] = (), max_backlog_s: float = 30.0,
+                 ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
+                 files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
+                 max_waiting: int = 64, request_timeout_s: float = 10.0):
         self.host, self.port = host, port
+        self.addresses = [(host, port), *also]  # (the real ports once open)
+        self.files = files
+        self.waiting_room = WaitingRoom(max_waiting, request_timeout_s)
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
         self.token = token
@@ -160,6 +189,7 @@ class WsServer:
         self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.refusals = ErrorLog("refused handshakes", what="refusals")  # one line per 10 s, whatever the flood
         self.departures = ErrorLog("sessions", what="departures")
+        self.file_failures = ErrorLog("viewer", what="failed requests")
         self.status_every = status_every
         self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
         self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
@@ -170,23 +200,40 @@ class WsServer:
         self.prep = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ws-prep")  # decode, resample, encode
         self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
-        self._server = None
+        self._servers: list = []
         self._status_task: asyncio.Task | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
     async def start(self) -> None:
-        self._server = await serve(self._handle, self.host, self.port, process_request=self._check_request,
-                                   max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
-                                   ping_interval=None,  # our own keepalive (_keepalive): knows back pressure
-                                   compression=None)  # no deflate: CPU per frame per client, and a bomb risk
-        self.port = self._server.sockets[0].getsockname()[1]  # the real port when 0 was asked
+        try:
+            for host, port in self.addresses:
+                self._servers.append(await serve(
+                    self._handle, host, port, process_request=self._process_request,
+                    create_connection=self.waiting_room.connection,
+                    open_timeout=2 * self.waiting_room.timeout_s,  # reading the request, then sending the answer
+                    max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
+                    ping_interval=None,  # our own keepalive (_keepalive): knows back pressure
+                    compression=None))  # no deflate: CPU per frame per client, and a bomb risk
+        except OSError:
+            for server in self._servers:
+                server.close()
+            raise
+        # the real ports when 0 was asked; the viewer's pages are the server's own origins
+        self.addresses = [(host, s.sockets[0].getsockname()[1]) for (host, _), s in zip(self.addresses, self._servers)]
+        self.port = self.addresses[0][1]
+        if "*" not in self.origins:
+            self.origins |= {o for host, port in self.addresses for o in own_origins(host, port)}
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
 
     @property
     def url(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"ws://{host}:{self.port}/"
+        return f"ws://{_url_host(self.host)}:{self.port}/"
+
+    @property
+    def viewer_urls(self) -> list[str]:
+        """Where a browser finds the viewer (one per address), if it is served."""
+        return [f"http://{_url_host(host)}:{port}/" for host, port in self.addresses] if self.files else []
 
     @property
     def live_sessions(self) -> int:
@@ -210,18 +257,28 @@ class WsServer:
         await asyncio.gather(*(c.drained(deadline) for c in list(self.clients)))
         if self._status_task:
             self._status_task.cancel()
-        if self._server is not None:
-            self._server.close()  # closing handshakes (1001 going away), each given close_timeout
+        if self._servers:
+            for server in self._servers:
+                server.close()  # closing handshakes (1001 going away), each given close_timeout
             try:
-                await asyncio.wait_for(self._server.wait_closed(), max(0.1, within_s * 0.4))
+                await asyncio.wait_for(asyncio.gather(*(s.wait_closed() for s in self._servers)),
+                                       max(0.1, within_s * 0.4))
             except asyncio.TimeoutError:
                 for c in list(self.clients):
                     c.ws.transport.abort()
         self.prep.shutdown(wait=False, cancel_futures=True)
 
-    def _check_request(self, connection, request):
-        """Origin, then token; a refusal is a 4xx and at most one log line per 10 s. Never raises (a raise
-        would be a 500 and a traceback in the log)."""
+    def _process_request(self, connection, request):
+        """A page of the viewer is answered here; a WebSocket handshake is checked (origin, then token: a
+        refusal is a 4xx and at most one log line per 10 s). Never raises (a raise would be a 500 and a
+        traceback in the log)."""
+        self.waiting_room.requested(connection)
+        if self.files is not None and not is_upgrade(request.headers.get_all("Upgrade")):
+            try:  # (websockets < 17 passes GET requests only: it closes the others unanswered)
+                return self.files.answer(getattr(request, "method", "GET"), request.path).response()
+            except Exception as e:  # a bug: one line (rate-limited), no traceback, and an answer all the same
+                self.file_failures(logging.ERROR, f"failed on a request: {type(e).__name__}: {e}")
+                return Answer(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n").response()
         try:
             status, why = self.refusal(request.path, request.headers.get_all("Origin"),
                                        getattr(request, "protocol", "HTTP/1.1"))  # (websockets >= 15 parses it)
@@ -520,3 +577,7 @@ class WsServer:
                 if not c.own and self.source_dropped_s is not None:
                     extra["audio_dropped_s"] = round(self.source_dropped_s(), 3)
                 c.note(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients), **extra))
+
+
+def _url_host(host: str) -> str:
+    return f"[{host}]" if ":" in host else host

@@ -1,4 +1,4 @@
-"""The browser viewer (clients/web/) in headless Chromium against a live `streamer serve --http`, in real time:
+"""The browser viewer (clients/web/) in headless Chromium against a live `streamer serve`, in real time:
 it builds the mannequin from hello and moves it with the frames, facing the camera; a generated VRM dropped on
 the page follows the stream; the source audio plays through Web Audio in sync with the frames; the Talk
 button sends Chromium's fake microphone (fed a speech WAV) to the server and gestures come back. Chromium is
@@ -155,7 +155,7 @@ def broadcast_server(tmp_path_factory, checkpoint):  # noqa: F811
 @pytest.mark.parametrize("encoding", ["json", "binary"])
 def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast_server, encoding):
     server = broadcast_server
-    # JSON: the page finds the WebSocket through /config.json; binary: through the ?ws= override.
+    # JSON: the page connects to its own origin (the server's one port); binary: through the ?ws= override.
     url = server.http_url if encoding == "json" else f"{server.http_url}?ws={server.ws_url}&encoding=binary"
     browser = Browser(tmp_path, url)
     try:
@@ -194,16 +194,15 @@ def test_web_viewer_animates_the_skeleton_from_a_live_server(tmp_path, broadcast
 
 @pytest.mark.parametrize("audio", ["pcm16", "float32"])
 def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, checkpoint, audio):  # noqa: F811
-    # With a token: the page learns from /config.json that one is needed and takes it from ?token=.
+    # With a token: the page takes it from ?token= and connects to its own origin with it.
     with live_server(tmp_path, "ws", checkpoint, http=True, extra=("--token", "t0k3n")) as server:
-        config = json.load(urllib.request.urlopen(server.http_url + "config.json", timeout=10))
-        assert config["ws_url"] == server.ws_url and config["token_required"] is True
         browser = Browser(tmp_path, server.http_url + f"?token=t0k3n&audio={audio}", (
             "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
             f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
         try:
             browser.wait_for("window.dimgestor && window.dimgestor.hello && "
                              "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
+            assert browser.eval("window.dimgestor.url") == server.ws_url + "?token=t0k3n"
             assert browser.eval("window.dimgestor.framesReceived") == 0  # --source ws: nothing until we talk
             browser.eval("document.getElementById('talk').click()", user_gesture=True)
             browser.wait_for("window.dimgestor.talking && window.dimgestor.audioChunksSent > 10", 30,

@@ -7,6 +7,7 @@ import re
 import signal
 import subprocess
 import sys
+import urllib.error
 import urllib.request
 
 import numpy as np
@@ -85,16 +86,32 @@ def test_ctrl_c_stops_cleanly_and_finishes_the_recording(tiny_checkpoint, wav, t
     assert motion.num_frames > 0 and np.isfinite(motion.values).all()
 
 
-def test_http_serves_the_viewer_and_its_config(tiny_checkpoint):
+def test_the_viewer_is_served_on_the_websocket_port_and_http_is_a_deprecated_alias(tiny_checkpoint):
     s = serve(tiny_checkpoint, "--source", "ws", "--http", "0", "--token", "t0k", "--max-seconds", "20")
     ws_url = s.wait_for(r"WebSocket\s+(ws://\S+?)\?").group(1)
-    http_url = s.wait_for(r"web viewer (http://\S+)").group(1)
-    cfg = json.loads(urllib.request.urlopen(http_url + "config.json", timeout=10).read())
-    assert cfg == {"ws_url": ws_url, "token_required": True}
-    page = urllib.request.urlopen(http_url, timeout=10).read().decode()
+    viewer_url = s.wait_for(r"web viewer (http://\S+)").group(1)
+    assert viewer_url == "http" + ws_url[2:]  # one port: the page, its assets and the WebSocket
+    page = urllib.request.urlopen(viewer_url, timeout=10).read().decode()
     assert "<html" in page.lower()
+    assert "text/javascript" in urllib.request.urlopen(viewer_url + "viewer.js", timeout=10).headers["Content-Type"]
+    with pytest.raises(urllib.error.HTTPError) as e:  # no /config.json: the page connects to its own origin
+        urllib.request.urlopen(viewer_url + "config.json", timeout=10)
+    assert e.value.code == 404
+    # --http: still the viewer, and the WebSocket beside it (its pages connect to their own origin), with a warning
+    alias = s.wait_for(r"--http is deprecated: .* on port (\d+) too").group(1)
+    assert alias != ws_url.rsplit(":", 1)[1].strip("/")
+    assert "<html" in urllib.request.urlopen(f"http://127.0.0.1:{alias}/", timeout=10).read().decode().lower()
+    assert asyncio.run(first_message(f"ws://127.0.0.1:{alias}/?token=t0k"))["type"] == "hello"
     s.proc.send_signal(signal.SIGTERM)
     assert s.finish(30) == 0, s.output
+
+
+async def first_message(url: str) -> dict:
+    """The first message of a WebSocket opened as a page of the viewer at that address would (its Origin)."""
+    from websockets.asyncio.client import connect
+
+    async with connect(url, origin=url.replace("ws://", "http://").split("/?")[0]) as c:
+        return json.loads(await asyncio.wait_for(c.recv(), 30))
 
 
 def test_mic_without_an_input_device_exits_with_a_clear_message():

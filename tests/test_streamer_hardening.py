@@ -19,11 +19,12 @@ from dimgestor.bvh import read_bvh
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.engine import Frame, Session
-from streamer.http import ViewerServer
+from streamer.viewer import ViewerFiles
 from streamer.record import BvhRecorder
-from streamer.server import ServeError, read_token, viewer_origins
+from streamer.server import ServeError, read_token
+from streamer.ws import WsServer, own_origins
 from helpers.serve import REPO, serve
-from helpers.ws import SlowExecutor, make_server, recv_json
+from helpers.ws import SlowExecutor, make_server, recv_json, running
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -134,16 +135,18 @@ def test_audio_end_does_not_bypass_the_session_limit(bundle):
 
 def test_foreign_origins_are_refused_and_native_clients_and_the_viewer_accepted(bundle):
     viewer = "http://127.0.0.1:8080"
-    assert viewer in viewer_origins("127.0.0.1", 8080) and "http://localhost:8080" in viewer_origins("127.0.0.1", 8080)
+    assert viewer in own_origins("127.0.0.1", 8080) and "http://localhost:8080" in own_origins("127.0.0.1", 8080)
 
     async def run():
-        ws = make_server(bundle, origins=viewer_origins("127.0.0.1", 8080))
+        ws = make_server(bundle, origins=own_origins("127.0.0.1", 8080))
         await ws.start()
         with pytest.raises(InvalidStatus) as e:
             async with connect(ws.url, origin="http://evil.example"):
                 pass
         assert e.value.response.status_code == 403
-        for origin in (None, viewer, "http://localhost:8080"):
+        # native clients, the allowed origins, and the pages of the viewer served on this port (same origin)
+        for origin in (None, viewer, "http://localhost:8080", f"http://127.0.0.1:{ws.port}",
+                       f"http://localhost:{ws.port}"):
             async with connect(ws.url, origin=origin) as c:
                 assert (await recv_json(c))["type"] == "hello"
         await ws.close()
@@ -290,7 +293,7 @@ def test_a_full_disk_stops_the_recording_and_keeps_what_was_written(bundle, tmp_
     assert read_bvh(tmp_path / "full.bvh").num_frames == 20
 
 
-# ---- the viewer's HTTP server --------------------------------------------------------------------
+# ---- the viewer, served on the WebSocket port --------------------------------------------------
 
 def http(port: int, request: bytes, timeout: float = 5.0) -> bytes:
     with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
@@ -304,7 +307,7 @@ def http(port: int, request: bytes, timeout: float = 5.0) -> bytes:
         return out
 
 
-def test_the_viewer_server_serves_files_only_inside_its_mounts(tmp_path):
+def test_the_viewer_is_served_with_files_only_inside_its_mounts(tmp_path):
     web = tmp_path / "web"
     (web / "sub").mkdir(parents=True)
     (web / "index.html").write_text("<html>viewer</html>")
@@ -316,14 +319,12 @@ def test_the_viewer_server_serves_files_only_inside_its_mounts(tmp_path):
     lib.mkdir(parents=True)
     (lib / "three.module.js").write_text("// three")
     (lib / "other.js").write_text("// not served")
-    v = ViewerServer("127.0.0.1", 0, 8765, False, mounts={"/": web, "/vendor/three.module.js": lib / "three.module.js"},
-                     timeout_s=0.5, max_connections=4)
-    v.start()
-    try:
+    files = ViewerFiles({"/": web, "/vendor/three.module.js": lib / "three.module.js"})
+    with running(WsServer("127.0.0.1", 0, {"type": "hello"}, None, files=files, request_timeout_s=0.5,
+                          max_waiting=4)) as v:
         get = lambda path, method=b"GET": http(v.port, method + b" " + path + b" HTTP/1.1\r\nHost: x\r\n\r\n")  # noqa: E731
         assert get(b"/").startswith(b"HTTP/1.1 200") and b"viewer" in get(b"/")
         assert b"text/javascript" in get(b"/sub/a.js") and b"// three" in get(b"/vendor/three.module.js")
-        assert b'"ws_url": "ws://x:8765/"' in get(b"/config.json")
         for path in (b"/sub/", b"/.secret", b"/escape.txt", b"/../outside.txt", b"/%2e%2e/outside.txt",
                      b"/vendor/other.js", b"/nothing"):
             assert get(path).startswith(b"HTTP/1.1 404"), path
@@ -342,5 +343,3 @@ def test_the_viewer_server_serves_files_only_inside_its_mounts(tmp_path):
             s.close()
         time.sleep(0.7)
         assert get(b"/").startswith(b"HTTP/1.1 200")
-    finally:
-        v.close()

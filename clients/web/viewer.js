@@ -1,7 +1,7 @@
 // dimgestor browser viewer: protocol v1 client (docs/protocol.md), the built-in mannequin, your own VRM,
 // the server source's audio in sync, and the microphone (Talk).
 //
-// Page parameters: ?ws=ws://host:port/  (override the server's /config.json)
+// Page parameters: ?ws=ws://host:port/  (another server than the one this page came from)
 //                  ?token=T             (when the server requires one)
 //                  ?encoding=binary     (DGF1 binary frames instead of JSON)
 //                  ?audio=float32       (microphone wire format; default pcm16)
@@ -414,22 +414,15 @@ let lastIndex = -1;
 const arrivals = [];                // frame arrival times (ms) over the last FPS_WINDOW_MS, for the fps readout
 const spoken = [];                  // [local time (s) - pts (s)] of recent speech: when each moment of it was said
 
-async function resolveUrl() {
-  let url = params.get('ws');
-  let tokenRequired = false;
-  if (!url) {
-    try {
-      const r = await fetch(new URL('config.json', location.href), { cache: 'no-store' });
-      if (r.ok) { const c = await r.json(); url = c.ws_url; tokenRequired = !!c.token_required; }
-    } catch (e) { /* opened from disk or another server: fall back below */ }
-  }
-  if (!url) url = `ws://${location.hostname || 'localhost'}:8765/`;
-  const u = new URL(url);
-  // A server bound to every interface advertises 0.0.0.0, which a browser cannot dial.
+// The page and the WebSocket share one port (streamer serve answers both): connect to the page's own origin.
+function socketUrl() {
+  const given = params.get('ws');
+  const scheme = location.protocol === 'https:' ? 'wss' : 'ws';  // behind a TLS proxy
+  const u = new URL(given || (location.host ? `${scheme}://${location.host}/` : 'ws://localhost:8765/'));
+  // A server bound to every interface may be named 0.0.0.0, which a browser cannot dial.
   if (['0.0.0.0', '[::]', '::'].includes(u.hostname) && location.hostname) u.hostname = location.hostname;
   const token = params.get('token');
   if (token) u.searchParams.set('token', token);
-  else if (tokenRequired) say('the server requires a token: open this page with ?token=...');
   return u.toString();
 }
 
@@ -448,9 +441,11 @@ function connect(audio = null) {
   const sock = new WebSocket(api.url);
   sock.binaryType = 'arraybuffer';
   ws = sock;
+  let opened = false;
   setState('connecting');
   sock.onopen = () => {
     if (sock !== ws) return;
+    opened = true;
     // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so
     // nothing but the avatar answers the microphone.
     const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio };
@@ -464,6 +459,8 @@ function connect(audio = null) {
     if (sock !== ws) return;  // a socket we replaced on purpose
     ws = null;
     setState('closed', ev.code === 1000 ? '' : ` (code ${ev.code}${ev.reason ? ': ' + ev.reason : ''})`);
+    // A refused handshake (a 401 for a missing token) reaches a page only as a close before open.
+    if (!opened && !params.get('token')) say('cannot connect: if the server requires a token, open this page with ?token=...');
     if (api.talking) stopMic();
     // Keep trying: the server may be restarting. A 401 (bad token) also lands here as code 1006.
     reconnectTimer = setTimeout(() => connect(null), reconnectDelay);
@@ -738,8 +735,6 @@ setInterval(() => {  // round trip on the same socket as the frames
   }
 }, 2000);
 
-resolveUrl().then((url) => {
-  api.url = url;
-  ui.url.textContent = url.replace(/token=[^&]+/, 'token=…');
-  connect(null);
-});
+api.url = socketUrl();
+ui.url.textContent = api.url.replace(/token=[^&]+/, 'token=…');
+connect(null);

@@ -64,14 +64,12 @@ class LiveServer:
 @contextmanager
 def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool = False, loop: bool = False,
                 fast: bool = False, extra: tuple[str, ...] = ()):
-    """`streamer serve` in a subprocess on free ports; yields once its WebSocket accepts connections."""
+    """`streamer serve` in a subprocess on a free port; yields once its WebSocket accepts connections. http: the
+    viewer's address too (it is served on the WebSocket port)."""
     ws_port = free_port()
-    http_port = free_port() if http else None
     args = ["serve", "--source", source, "--ws", f"127.0.0.1:{ws_port}", "--steps", "2", "--status-every", "0"]
     if checkpoint is not None:
         args += ["--checkpoint", str(checkpoint)]
-    if http:
-        args += ["--http", str(http_port)]
     if loop:
         args.append("--loop")
     if fast:
@@ -82,7 +80,7 @@ def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool =
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     with open(log, "w") as out:
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
-    server = LiveServer(f"ws://127.0.0.1:{ws_port}/", f"http://127.0.0.1:{http_port}/" if http else None, proc, log)
+    server = LiveServer(f"ws://127.0.0.1:{ws_port}/", f"http://127.0.0.1:{ws_port}/" if http else None, proc, log)
     try:
         deadline = time.monotonic() + 120
         while True:
@@ -90,8 +88,7 @@ def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool =
                 raise RuntimeError(f"streamer serve exited with {proc.returncode}:\n{server.log_tail()}")
             try:
                 socket.create_connection(("127.0.0.1", ws_port), timeout=0.5).close()
-                if not http or socket.create_connection(("127.0.0.1", http_port), timeout=0.5):
-                    break
+                break
             except OSError:
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"streamer serve did not listen within 120 s:\n{server.log_tail()}")

@@ -2,8 +2,10 @@
 
 import asyncio
 import json
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 from streamer import protocol as P
 from streamer.engine import Session
@@ -16,6 +18,22 @@ def make_server(bundle, **kw) -> WsServer:
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
     hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True)
     return WsServer("127.0.0.1", 0, hello, lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100), **kw)
+
+
+@contextmanager
+def running(ws: WsServer):
+    """`ws` open on its own thread and event loop, for tests that talk to it with plain sockets."""
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="ws-test", daemon=True)
+    thread.start()
+    asyncio.run_coroutine_threadsafe(ws.start(), loop).result(10)
+    try:
+        yield ws
+    finally:
+        asyncio.run_coroutine_threadsafe(ws.close(within_s=0.5), loop).result(10)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)
+        loop.close()
 
 
 async def recv_json(c, timeout=10.0):
