@@ -129,3 +129,30 @@ class BvhRecorder:
         self.closed = True
         os.close(self.fd)
         return None if self.failed else self.path
+
+
+class RecordingSink:
+    """`BvhRecorder` as a `Sink` (streamer/sink.py): the file is created by `open`, last of all the sinks, so
+    that a failure to start anything else leaves an old recording alone."""
+
+    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0):
+        self.path = Path(path)
+        self.args = (skeleton, feature_spec, root, tether_s)
+        self.recorder: BvhRecorder | None = None
+
+    async def open(self) -> None:
+        self.recorder = BvhRecorder(self.path, *self.args)  # RecordError (an OSError) says why not
+
+    def send(self, frames: list[Frame]) -> None:
+        self.recorder.on_frames(frames)
+
+    async def close(self, drain: bool = True) -> None:
+        path = self.recorder.close() if self.recorder is not None else None
+        if path:
+            print(f"streamer: wrote {self.recorder.frames} frames to {path}", file=sys.stderr)
+
+    def describe(self) -> str:
+        return f"recording  {self.path}"
+
+    def status(self) -> str:
+        return ""

@@ -198,14 +198,16 @@ def _split(sizes: list[int], max_bytes: int) -> list[list[int]]:
 
 
 class VmcSink:
-    """Sends frames as VMC bundles, paced (`Pacer`); `pace=False` sends them as soon as they are made (--fast)."""
+    """Sends frames as VMC bundles, paced (`Pacer`); `pace=False` sends them as soon as they are made (--fast).
+    A `Sink` (streamer/sink.py); drain_s: how long `close` plays out what is queued when the source ended."""
 
     def __init__(self, host: str, port: int, rig: HumanoidRig, scale: float = 0.01, pace: bool = True,
-                 jitter_s: float = 0.25, max_queue: int = 200, options: VmcOptions = VmcOptions()):
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+                 jitter_s: float = 0.25, max_queue: int = 200, options: VmcOptions = VmcOptions(),
+                 drain_s: float = 2.0):
+        self.sock: socket.socket | None = None
         self.host, self.port = host, port
-        self.sock.connect((host, port))  # fails early on a bad address
+        self.drain_s = drain_s
+        self.reported_dropped = 0  # drops already told in a status line
         self.encoder = VmcEncoder(rig, options, scale)
         self.pace, self.jitter_s = pace, jitter_s
         self.pacer = Pacer(buffer_s=jitter_s)
@@ -234,7 +236,7 @@ class VmcSink:
     def heartbeat(self) -> None:
         self._send(self.encoder.heartbeat(self.last_t))
 
-    def on_frames(self, frames: list[Frame]) -> None:
+    def send(self, frames: list[Frame]) -> None:
         now = time.monotonic()
         if frames and self.pace and self.pacer.anchor is not None:
             log.debug("frames %d..%d in, due in %.3f..%.3f s", frames[0].index, frames[-1].index,
@@ -284,11 +286,32 @@ class VmcSink:
             self.sent += 1
             await asyncio.sleep(0)
 
-    def start(self) -> None:
+    async def open(self) -> None:
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            self.sock.connect((self.host, self.port))  # fails early on a bad address
+        except OSError as e:
+            self.sock.close()
+            self.sock = None
+            raise OSError(f"--osc {self.host}:{self.port}: {e.strerror or e}") from None
         self.task = asyncio.get_running_loop().create_task(self.run(), name="vmc")
 
-    async def close(self, drain_s: float = 2.0) -> None:
-        """Stop: play out what is queued for at most drain_s (0: drop it, as on Ctrl-C), then the idle heartbeat."""
+    def describe(self) -> str:
+        return f"VMC/OSC -> {self.host}:{self.port}"
+
+    def status(self) -> str:
+        line = f"osc sent {self.sent} dropped {self.dropped}"
+        if self.dropped > self.reported_dropped:  # a stall (CPU busy, process paused): say so
+            line += (f" | WARNING: VMC dropped {self.dropped - self.reported_dropped} late frames (a stall: CPU busy "
+                     f"or process paused)")
+            self.reported_dropped = self.dropped
+        return line
+
+    async def close(self, drain: bool = True) -> None:
+        """Stop: play out what is queued for at most drain_s (drain=False: drop it, as on Ctrl-C), then the idle
+        heartbeat."""
+        drain_s = self.drain_s if drain else 0.0
         self.closing = True
         self.ready.set()
         if self.task is not None:
@@ -301,5 +324,7 @@ class VmcSink:
                 await asyncio.gather(self.task, return_exceptions=True)
         self.dropped_full += len(self.queue)
         self.queue.clear()
-        self.heartbeat()
-        self.sock.close()
+        self.reported_dropped = self.dropped  # (what a stop drops is the queue, not a stall to warn about)
+        if self.sock is not None:
+            self.heartbeat()
+            self.sock.close()

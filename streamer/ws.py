@@ -32,11 +32,13 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
+from dimgestor.audio import SAMPLE_RATE
 from streamer import protocol as P
 from streamer import request_checks as RC
 from streamer.engine import AudioClock, Frame, Session
 from streamer.log_limit import ErrorLog
-from streamer.sources import RATE, PushSource, make_resampler
+from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
+from streamer.sources import PushSource, make_resampler
 from streamer.viewer import Answer, ViewerFiles, is_upgrade
 from streamer.waiting import WaitingRoom
 
@@ -44,8 +46,6 @@ log = logging.getLogger("streamer.ws")
 AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
 AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 
-MAX_SESSIONS = 32  # most clients sending their own audio at once (streamer serve --max-sessions)
-PING_INTERVAL_S, PING_TIMEOUT_S = 20.0, 20.0  # the keepalive (--ping-interval, --ping-timeout)
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
 DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
 
@@ -158,7 +158,7 @@ def own_origins(host: str, port: int) -> list[str]:
 
 
 class WsServer:
-    """Serves hello/frames/status to clients; `broadcast(frames)` is the server source's sink. A request
+    """Serves hello/frames/status to clients; a `Sink` (streamer/sink.py) of the server's source. A request
     that is not a WebSocket upgrade gets a file of the web viewer (`files`; None: no files) on the same port.
 
     origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
@@ -205,7 +205,7 @@ class WsServer:
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
-    async def start(self) -> None:
+    async def open(self) -> None:
         try:
             for host, port in self.addresses:
                 self._servers.append(await serve(
@@ -215,10 +215,11 @@ class WsServer:
                     max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
                     ping_interval=None,  # our own keepalive (_keepalive): knows back pressure
                     compression=None))  # no deflate: CPU per frame per client, and a bomb risk
-        except OSError:
+        except OSError as e:
             for server in self._servers:
                 server.close()
-            raise
+            where = " or ".join(f"{_url_host(h)}:{p}" for h, p in self.addresses)
+            raise OSError(f"cannot listen on {where}: {e.strerror or e}") from None
         # the real ports when 0 was asked; the viewer's pages are the server's own origins
         self.addresses = [(host, s.sockets[0].getsockname()[1]) for (host, _), s in zip(self.addresses, self._servers)]
         self.port = self.addresses[0][1]
@@ -240,8 +241,21 @@ class WsServer:
         """Client sessions still running, including those flushing after `audio_end`."""
         return sum(1 for c in self.clients if c.session_task is not None and not c.session_task.done())
 
-    async def close(self, within_s: float = 1.5) -> None:
-        """End every client's stream (`end` to each), deliver what is queued and close, all within ~within_s."""
+    def describe(self) -> str:
+        hint = "?token=..." if self.token else ""
+        lines = [f"WebSocket  {self.url}{hint}  (protocol v1, docs/protocol.md)"]
+        lines += [f"web viewer {url}{'  (open it as ...?token=YOUR_TOKEN)' if self.token else ''}"
+                  for url in self.viewer_urls]
+        return "\n".join(lines)
+
+    def status(self) -> str:
+        return (f"clients {len(self.clients)} | dropped {sum(c.dropped for c in self.clients)} | "
+                f"own sessions {sum(1 for c in self.clients if c.session is not None)}")
+
+    async def close(self, drain: bool = True, within_s: float = 1.5) -> None:
+        """End every client's stream (`end` to each), deliver what is queued and close, all within ~within_s
+        (whether the source ended or was stopped: `drain` makes no difference here)."""
+        self._flush_audio()  # the source's last audio before its `end`
         loop = asyncio.get_running_loop()
         deadline = loop.time() + within_s * 0.6
         self.closing = True
@@ -316,7 +330,8 @@ class WsServer:
 
     # ---- broadcast (the server's own source) -----------------------------------------------------
 
-    def broadcast(self, frames: list[Frame]) -> None:
+    def send(self, frames: list[Frame]) -> None:
+        """The server source's frames, to every client that follows it (never awaits a client)."""
         if not frames:
             return
         self.broadcast_frames += len(frames)
@@ -505,7 +520,7 @@ class WsServer:
 
     @staticmethod
     def _resample(client: Client, x: np.ndarray) -> np.ndarray:  # worker thread
-        if client.audio.rate == RATE:
+        if client.audio.rate == SAMPLE_RATE:
             return x
         if client.resampler is None:
             client.resampler = make_resampler(client.audio.rate)

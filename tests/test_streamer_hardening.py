@@ -21,7 +21,7 @@ from streamer import protocol as P
 from streamer.engine import Frame, Session
 from streamer.viewer import ViewerFiles
 from streamer.record import BvhRecorder
-from streamer.server import ServeError, read_token
+from streamer.server import ServeError, ServeOptions, read_token
 from streamer.ws import WsServer, own_origins
 from helpers.serve import REPO, serve
 from helpers.ws import SlowExecutor, make_server, recv_json, running
@@ -52,7 +52,7 @@ def test_float32_audio_far_outside_minus_one_one_is_refused_and_slightly_outside
 def test_replies_carry_finite_numbers_only(bundle):
     async def run():
         ws = make_server(bundle)
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as c:
             await recv_json(c)
             await c.send('{"type": "ping", "t": Infinity}')
@@ -75,7 +75,7 @@ def test_a_client_uploading_1mib_chunks_gets_every_frame(bundle):
 
     async def run():
         ws = make_server(bundle)
-        await ws.start()
+        await ws.open()
         frames, notes, end = [], [], None
         async with connect(ws.url) as c:
             await recv_json(c)
@@ -111,7 +111,7 @@ def test_audio_end_does_not_bypass_the_session_limit(bundle):
     async def run():
         ws = make_server(bundle, max_sessions=2)
         ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
-        await ws.start()
+        await ws.open()
         codes = []
         clients = [await connect(ws.url) for _ in range(4)]
         for c in clients:
@@ -139,7 +139,7 @@ def test_foreign_origins_are_refused_and_native_clients_and_the_viewer_accepted(
 
     async def run():
         ws = make_server(bundle, origins=own_origins("127.0.0.1", 8080))
-        await ws.start()
+        await ws.open()
         with pytest.raises(InvalidStatus) as e:
             async with connect(ws.url, origin="http://evil.example"):
                 pass
@@ -155,18 +155,16 @@ def test_foreign_origins_are_refused_and_native_clients_and_the_viewer_accepted(
 
 
 def test_the_token_comes_from_a_file_the_flag_or_the_environment_and_is_never_empty(tmp_path, monkeypatch):
-    from argparse import Namespace
-
     monkeypatch.setenv("STREAMER_TOKEN", "from-env")
     (tmp_path / "t").write_text("from-file\n")
     (tmp_path / "empty").write_text("\n")
-    assert read_token(Namespace(token_file=str(tmp_path / "t"), token="flag")) == "from-file"
-    assert read_token(Namespace(token_file=None, token="flag")) == "flag"
-    assert read_token(Namespace(token_file=None, token=None)) == "from-env"
+    assert read_token(ServeOptions(token_file=str(tmp_path / "t"), token="flag")) == "from-file"
+    assert read_token(ServeOptions(token_file=None, token="flag")) == "flag"
+    assert read_token(ServeOptions(token_file=None, token=None)) == "from-env"
     monkeypatch.delenv("STREAMER_TOKEN")
-    assert read_token(Namespace(token_file=None, token=None)) is None
-    for bad in (Namespace(token_file=str(tmp_path / "empty"), token=None), Namespace(token_file=None, token=""),
-                Namespace(token_file=str(tmp_path / "missing"), token=None), Namespace(token_file=None, token="a b")):
+    assert read_token(ServeOptions(token_file=None, token=None)) is None
+    for bad in (ServeOptions(token_file=str(tmp_path / "empty"), token=None), ServeOptions(token_file=None, token=""),
+                ServeOptions(token_file=str(tmp_path / "missing"), token=None), ServeOptions(token_file=None, token="a b")):
         with pytest.raises(ServeError):
             read_token(bad)
 

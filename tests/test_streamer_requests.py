@@ -173,7 +173,7 @@ def test_a_flood_of_malformed_viewer_requests_gets_4xx_and_no_log(viewer, record
 def test_a_flood_of_malformed_handshakes_gets_4xx_and_at_most_a_rate_limited_line(bundle, records):
     async def run():
         ws = make_server(bundle, token="s3cret", origins=["http://127.0.0.1:8080"])
-        await ws.start()
+        await ws.open()
         loop = asyncio.get_running_loop()
         try:
             return [status_of(await loop.run_in_executor(None, raw, ws.port, r))

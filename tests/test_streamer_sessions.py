@@ -240,7 +240,7 @@ def test_audio_end_while_the_previous_session_finishes_gets_an_empty_end_after_t
     async def run():
         ws = make_server(bundle)
         ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
-        await ws.start()
+        await ws.open()
         ends, frames_before = [], []
         async with connect(ws.url) as c:
             await recv_json(c)

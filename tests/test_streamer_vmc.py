@@ -28,8 +28,8 @@ def test_vmc_sink_sends_spec_typed_bundles(zeggs_dir):
 
     async def run():
         sink = VmcSink("127.0.0.1", server.server_address[1], rig, pace=True, jitter_s=0.05)
-        sink.start()
-        sink.on_frames(frames)
+        await sink.open()
+        sink.send(frames)
         await sink.close()
         return sink
 
@@ -61,8 +61,8 @@ def test_paced_frames_follow_their_pts():
 
     async def run():
         sink = VmcSink("127.0.0.1", server.server_address[1], rig, pace=True, jitter_s=0.02)
-        sink.start()
-        sink.on_frames(frames)  # one burst, as inference makes them
+        await sink.open()
+        sink.send(frames)  # one burst, as inference makes them
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         while sink.sent < 6:
@@ -131,14 +131,14 @@ def test_a_late_frame_is_dropped_not_burst_and_close_is_quick():
 
     async def run():
         sink = VmcSink("127.0.0.1", server.server_address[1], rig, jitter_s=0.05)
-        sink.start()
-        sink.on_frames([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4)])
+        await sink.open()
+        sink.send([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4)])
         await asyncio.sleep(0.3)
         time.sleep(1.0)  # the event loop stalls while frames 4.. arrive "in time" for a clock that moved on
-        sink.on_frames([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4, 60)])
+        sink.send([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4, 60)])
         await asyncio.sleep(1.5)
         t = time.monotonic()
-        await sink.close(drain_s=0)
+        await sink.close(drain=False)
         return sink, time.monotonic() - t
 
     sink, close_s = asyncio.run(run())

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.timeout(120)
 def test_garbage_gets_an_error_and_the_connection_keeps_being_served(bundle):
     async def run():
         ws = make_server(bundle)
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as c:
             assert (await recv_json(c))["type"] == "hello"
             for bad, code in [("{oops", "bad_message"), ('{"type": "jump"}', "bad_message"),
@@ -40,7 +40,7 @@ def test_garbage_gets_an_error_and_the_connection_keeps_being_served(bundle):
 def test_wrong_or_missing_token_is_refused_with_401(bundle):
     async def run():
         ws = make_server(bundle, token="s3cret")
-        await ws.start()
+        await ws.open()
         for url in (ws.url, ws.url + "?token=wrong"):
             with pytest.raises(InvalidStatus) as e:
                 async with connect(url):
@@ -61,7 +61,7 @@ def test_client_audio_at_48khz_comes_back_as_its_own_gestures(bundle):
 
     async def run():
         ws = make_server(bundle)
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as c:
             hello = await recv_json(c)
             await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary",
@@ -100,7 +100,7 @@ def test_a_client_that_never_reads_does_not_delay_another(bundle):
 
     async def run():
         ws = make_server(bundle, max_queue=32)
-        await ws.start()
+        await ws.open()
         # The stalled client: a tiny receive buffer and a library queue of 1, and it never calls recv().
         s = socket.socket()
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
@@ -126,7 +126,7 @@ def test_a_client_that_never_reads_does_not_delay_another(bundle):
                 frames = [Frame(k, k / 20, np.zeros(3), rot, np.zeros(1)) for k in range(i, i + burst)]
                 for f in frames:
                     sent_at[f.index] = time.monotonic()
-                ws.broadcast(frames)
+                ws.send(frames)
                 await asyncio.sleep(0.01)
             await asyncio.wait_for(task, 20)
             slow = next(c for c in ws.clients if c.ws.remote_address[1] == s.getsockname()[1])
@@ -145,7 +145,7 @@ def test_a_client_that_never_reads_does_not_delay_another(bundle):
 def test_status_arrives_about_once_a_second_with_the_documented_fields(bundle):
     async def run():
         ws = make_server(bundle, status_every=0.3)
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as c:
             await c.recv()  # hello
             st = json.loads(await asyncio.wait_for(c.recv(), 5))
@@ -163,7 +163,7 @@ def test_other_protocol_versions_and_refused_audio(bundle):
     async def run():
         ws = make_server(bundle)
         ws.make_session = None  # as with --no-client-audio
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as c:
             await recv_json(c)
             await c.send(np.zeros(160, "<i2").tobytes())
@@ -208,7 +208,7 @@ def test_source_audio_goes_to_the_viewers_that_ask_replayed_to_late_joiners_and_
         nonlocal ws
         ws = make_server(bundle)
         ws.hello = {**ws.hello, "source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
-        await ws.start()
+        await ws.open()
         async with connect(ws.url) as early, connect(ws.url) as deaf, connect(ws.url) as talker:
             for c in (early, deaf, talker):
                 hello = await recv_json(c)

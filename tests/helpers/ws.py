@@ -26,7 +26,7 @@ def running(ws: WsServer):
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, name="ws-test", daemon=True)
     thread.start()
-    asyncio.run_coroutine_threadsafe(ws.start(), loop).result(10)
+    asyncio.run_coroutine_threadsafe(ws.open(), loop).result(10)
     try:
         yield ws
     finally:
