@@ -31,12 +31,11 @@ from common import RESULTS, code_version, describe_device, utc_now, write_json
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from dimgestor.audio import load_wav, save_wav  # noqa: E402
+from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav  # noqa: E402
 from dimgestor.augment import AugmentConfig, active_level, augment  # noqa: E402
 from dimgestor.config import get_preset  # noqa: E402
 from dimgestor.frontend import build_frontend  # noqa: E402
 
-SR = 16000
 OFF = dict(p_pitch=0, p_formant=0, p_reverb=0, p_noise=0, p_eq=0, p_band=0, p_gain=0)
 EFFECTS: dict[str, dict] = {
     "pitch (+-4 st)": dict(p_pitch=1),
@@ -67,7 +66,7 @@ def features(fe, audio: np.ndarray) -> np.ndarray:
 HOP_MS = 5
 
 
-def loudness_db(x: np.ndarray, frame: int = 160, hop: int = SR * HOP_MS // 1000) -> np.ndarray:
+def loudness_db(x: np.ndarray, frame: int = 160, hop: int = SAMPLE_RATE * HOP_MS // 1000) -> np.ndarray:
     n = (len(x) - frame) // hop
     idx = np.arange(frame)[None] + hop * np.arange(n)[:, None]
     return 10 * np.log10(np.mean(np.square(x.astype(np.float64)[idx]), 1) + 1e-10)
@@ -96,7 +95,7 @@ def main() -> int:
     p.add_argument("--out", default=str(RESULTS / "augment_features.json"))
     args = p.parse_args()
     wav = Path(args.wav) if args.wav else next((REPO.parent / "shared" / "data" / "zeggs_sample").glob("*.wav"))
-    x = load_wav(wav, SR)
+    x = load_wav(wav, SAMPLE_RATE)
     fe = build_frontend(get_preset("realtime"))
     clean = features(fe, x)
     var = float(clean.var(0).mean())
@@ -109,18 +108,18 @@ def main() -> int:
         config = AugmentConfig() if over is None else AugmentConfig(**{**OFF, **over})
         nmse, nmse_c, lag, loud_lag, level = [], [], [], [], []
         for s in range(args.seeds):
-            y = augment(x, SR, (1234, s), config, babble=[x])
+            y = augment(x, SAMPLE_RATE, (1234, s), config, babble=[x])
             f = features(fe, y)
             nmse.append(float(np.mean((f - clean) ** 2) / var))
             nmse_c.append(float(np.mean((f - f.mean(0) - centred) ** 2) / var))
             ly = loudness_db(y)
             lag.append(best_lag_ms(onsets(loud), onsets(ly)))
             loud_lag.append(best_lag_ms(loud, ly))
-            level.append(10 * np.log10(active_level(y, SR) + 1e-20))
+            level.append(10 * np.log10(active_level(y, SAMPLE_RATE) + 1e-20))
             if args.wav_dir and s == 0:
                 Path(args.wav_dir).mkdir(parents=True, exist_ok=True)
                 save_wav(Path(args.wav_dir) / (name.split(" (")[0].replace(" ", "_").replace(":", "").replace("/", "")
-                                               .replace(",", "") + ".wav"), y, SR)
+                                               .replace(",", "") + ".wav"), y, SAMPLE_RATE)
         rows[name] = {"nmse": summary(nmse), "nmse_centered": summary(nmse_c), "onset_lag_ms": summary(lag, 1),
                       "loudness_lag_ms": summary(loud_lag, 1),
                       "level_dbfs": summary(level, 1)}
@@ -130,8 +129,8 @@ def main() -> int:
     result = {
         "what": "log-mel feature change under each audio augmentation (dimgestor.augment), NMSE relative to the "
                 "clean clip's feature variance; loudness-envelope lag; active level",
-        "audio": wav.name, "seconds": round(len(x) / SR, 1), "seeds": args.seeds,
-        "clean_level_dbfs": round(10 * np.log10(active_level(x, SR)), 1),
+        "audio": wav.name, "seconds": round(len(x) / SAMPLE_RATE, 1), "seeds": args.seeds,
+        "clean_level_dbfs": round(10 * np.log10(active_level(x, SAMPLE_RATE)), 1),
         "reference_other_speech_nmse": round(float(np.mean((other - clean) ** 2) / var), 3),
         "reference_other_speech_nmse_centered": round(float(np.mean((other - other.mean(0) - centred) ** 2) / var), 3),
         "effects": rows, "elapsed_s": round(time.time() - t0, 1),

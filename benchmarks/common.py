@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dimgestor.audio import SAMPLE_RATE
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -60,7 +62,7 @@ def utc_now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
-def test_audio(seconds: float, sr: int = 16000, seed: int = 0, start_s: float = 0.0) -> np.ndarray:
+def test_audio(seconds: float, sr: int = SAMPLE_RATE, seed: int = 0, start_s: float = 0.0) -> np.ndarray:
     """Speech-like synthetic audio: a voiced tone with syllable-rate loudness and noise (deterministic).
 
     The benchmarks time the network, which does not look at what the audio says; a chunk of any span of

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from common import RESULTS, describe_device, load_average, utc_now, write_json
+from dimgestor.audio import SAMPLE_RATE
 
 REPO = Path(__file__).resolve().parents[1]
 MIB = 1 << 20
@@ -135,7 +136,7 @@ async def talker(url: str, stop: asyncio.Event, latency: list) -> None:
             if stop.is_set():
                 break
             await c.send(audio[2 * i : 2 * (i + step)])
-            sent.append(((i + step) / 16000, time.monotonic()))
+            sent.append(((i + step) / SAMPLE_RATE, time.monotonic()))
             await asyncio.sleep(max(0.0, t0 + (k + 1) * 0.1 - time.monotonic()))
         reader.cancel()
 
@@ -162,8 +163,8 @@ async def keepalive_part(url: str, flooders: int, seconds: float, quiet_s: float
     await asyncio.gather(talk, return_exceptions=True)
     return {"flooders": flooders, "seconds": seconds, "closed": sum(o["closed"] is not None for o in outs),
             "closes": [o["closed"] for o in outs if o["closed"]],
-            "all_frames": sum(o["end"] == o["frames"] == int(o["sent"] / 16000 * 20) and o["in_order"] for o in outs),
-            "audio_s_each": [round(o["sent"] / 16000) for o in outs], "talker_quiet": quiet, "talker_flood": flood,
+            "all_frames": sum(o["end"] == o["frames"] == int(o["sent"] / SAMPLE_RATE * 20) and o["in_order"] for o in outs),
+            "audio_s_each": [round(o["sent"] / SAMPLE_RATE) for o in outs], "talker_quiet": quiet, "talker_flood": flood,
             "wall_s": round(time.monotonic() - t0, 1)}
 
 

@@ -22,24 +22,23 @@ import time
 import numpy as np
 
 from common import percentile_ms, test_audio
-
-RATE = 16000
+from dimgestor.audio import SAMPLE_RATE
 
 
 class PacedSource:
     """`audio` as 16 kHz chunks released in real time from `t0` (time.monotonic), stamped with their due time."""
 
     def __init__(self, audio: np.ndarray, t0: float, chunk_ms: int = 20):
-        self.audio, self.t0, self.chunk = audio, t0, RATE * chunk_ms // 1000
+        self.audio, self.t0, self.chunk = audio, t0, SAMPLE_RATE * chunk_ms // 1000
 
     async def __aiter__(self):
         from streamer.sources import AudioChunk
 
         for a in range(0, len(self.audio), self.chunk):
             x = self.audio[a: a + self.chunk]
-            due = self.t0 + (a + len(x)) / RATE
+            due = self.t0 + (a + len(x)) / SAMPLE_RATE
             await asyncio.sleep(max(0.0, due - time.monotonic()))
-            yield AudioChunk(x, a / RATE, due)  # arrival = due: a late consumer shows as lag, like a live input
+            yield AudioChunk(x, a / SAMPLE_RATE, due)  # arrival = due: a late consumer shows as lag, like a live input
 
 
 def random_bundle(preset: str, seed: int = 0):
@@ -116,7 +115,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     case for batching) instead of staggered over one window."""
     from streamer.engine import Session
 
-    audio = test_audio(seconds, RATE)
+    audio = test_audio(seconds, SAMPLE_RATE)
     executor, how = make_executor(batched, threads)
     lags: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # per session: (audio time, lag s)
     frames = [0] * n

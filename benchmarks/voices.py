@@ -43,12 +43,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json  # noqa: E402
+from dimgestor.audio import SAMPLE_RATE  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 ZEGGS = SHARED / "zeggs_sample"
 LAWRENCE = SHARED / "unseen_speech"
-SR = 16000
 SCHEMA = 1
 
 # Fixed texts (written for this benchmark), a sentence per item; pauses between sentences below.
@@ -122,13 +122,13 @@ def espeak_clip(voice: str, pitch: int, wpm: int, sentences: list[str], folder: 
     """The sentences spoken one by one by espeak-ng, joined by PAUSES_S, peak at -1 dBFS, 16 kHz mono."""
     from dimgestor.audio import load_wav
 
-    parts = [np.zeros(int(LEAD_S * SR), np.float32)]
+    parts = [np.zeros(int(LEAD_S * SAMPLE_RATE), np.float32)]
     for i, text in enumerate(sentences):
         path = folder / f"{voice}_{pitch}_{wpm}_{i}.wav"
         subprocess.run(["espeak-ng", "-v", voice, "-p", str(pitch), "-s", str(wpm), "-w", str(path), text],
                        check=True, capture_output=True)
         parts.append(load_wav(path))
-        parts.append(np.zeros(int((PAUSES_S[i % len(PAUSES_S)] if i < len(sentences) - 1 else LEAD_S) * SR),
+        parts.append(np.zeros(int((PAUSES_S[i % len(PAUSES_S)] if i < len(sentences) - 1 else LEAD_S) * SAMPLE_RATE),
                               np.float32))
     audio = np.concatenate(parts)
     return (audio * (10 ** (-1 / 20) / max(np.abs(audio).max(), 1e-9))).astype(np.float32)
@@ -419,7 +419,7 @@ def main() -> int:
     result["seconds"] = round(time.time() - started, 1)
     result["load_avg_after"] = load_average()
     for name, v in voices.items():
-        result["voices"][name]["seconds"] = len(v["audio"]) / SR
+        result["voices"][name]["seconds"] = len(v["audio"]) / SAMPLE_RATE
     out = Path(args.out)
     write_json(out, result)
     for label in labels:

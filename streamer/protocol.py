@@ -9,12 +9,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from dimgestor import __version__
+from dimgestor.audio import SAMPLE_RATE
 from streamer.engine import Frame
 
 PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"
 AUDIO_FORMATS = ("pcm16", "float32")
-AUDIO_RATE = 16000  # the model's input rate; server source audio is sent at this rate
+AUDIO_RATE = SAMPLE_RATE  # the model's input rate; server source audio is sent at this rate
 MAX_TEXT_BYTES = 64 * 1024
 MAX_JSON_DEPTH = 16  # nesting of objects/arrays in a client message
 MAX_NUMBER_CHARS = 32  # digits of one JSON number (Python would parse 4300-digit integers)
@@ -52,7 +53,7 @@ class SkeletonInfo:
 
 @dataclass(frozen=True)
 class AudioFormat:
-    rate: int = 16000
+    rate: int = AUDIO_RATE
     format: str = "pcm16"
     channels: int = 1
 
@@ -70,7 +71,7 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
             "units": skeleton.units, "handedness": "right", "up": "y",
         },
         "humanoid": humanoid,
-        "audio": {"accepts": accepts_audio, "rate": 16000, "formats": list(AUDIO_FORMATS)},
+        "audio": {"accepts": accepts_audio, "rate": AUDIO_RATE, "formats": list(AUDIO_FORMATS)},
         "lookahead_s": round(float(lookahead_s), 6),
         "max_message_bytes": MAX_BINARY_BYTES,
         "binary_frame_bytes": FRAME_HEADER.size + 16 * j,
@@ -202,7 +203,7 @@ def _parse_hello(msg: dict) -> dict:
         a = msg["audio"]
         if not isinstance(a, dict):
             raise ProtocolError("bad_message", "audio must be an object {rate, format, channels}")
-        rate, fmt, ch = a.get("rate", 16000), a.get("format", "pcm16"), a.get("channels", 1)
+        rate, fmt, ch = a.get("rate", AUDIO_RATE), a.get("format", "pcm16"), a.get("channels", 1)
         if not isinstance(rate, int) or isinstance(rate, bool) or not MIN_RATE <= rate <= MAX_RATE:
             raise ProtocolError("bad_audio", f"audio.rate must be an integer in {MIN_RATE}..{MAX_RATE} Hz, got {rate!r}")
         if fmt not in AUDIO_FORMATS:

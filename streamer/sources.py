@@ -1,6 +1,6 @@
 """Audio sources: async iterators of timestamped 16 kHz mono chunks (microphone, WAV file, pushed audio).
 
-Every chunk carries `t_start`, its position on the source's audio clock (samples / 16000), and
+Every chunk carries `t_start`, its position on the source's audio clock (samples / SAMPLE_RATE), and
 `arrival`, the monotonic time its last sample reached the server (what latency is measured from).
 Live sources drop the oldest audio when the consumer falls behind, and count it; file and pushed
 sources apply back pressure instead, so nothing is lost.
@@ -17,7 +17,9 @@ from typing import AsyncIterator
 
 import numpy as np
 
-RATE = 16000
+from dimgestor.audio import SAMPLE_RATE
+
+RATE = SAMPLE_RATE  # (the name streamer/engine.py imports)
 ASSETS = Path(__file__).resolve().parents[1] / "dimgestor" / "assets"
 DEMO_WAV = ASSETS / "demo_en.wav"
 
@@ -34,7 +36,7 @@ class AudioChunk:
 
     @property
     def t_end(self) -> float:
-        return self.t_start + len(self.samples) / RATE
+        return self.t_start + len(self.samples) / SAMPLE_RATE
 
 
 MAX_RATIO_DENOMINATOR = 4000  # bounds the resampling filter (its design takes < 0.1 s, < 2 MB)
@@ -51,7 +53,7 @@ def make_resampler(rate: int):
 
     from dimgestor.audio import StreamingResampler
 
-    ratio = Fraction(RATE, int(rate)).limit_denominator(MAX_RATIO_DENOMINATOR)
+    ratio = Fraction(SAMPLE_RATE, int(rate)).limit_denominator(MAX_RATIO_DENOMINATOR)
     return StreamingResampler(ratio.denominator, ratio.numerator)
 
 
@@ -71,11 +73,11 @@ class WavSource:
         if len(self.audio) == 0:
             raise SourceError(f"{self.path}: no audio samples")
         self.realtime, self.loop = realtime, loop
-        self.chunk = RATE * chunk_ms // 1000
+        self.chunk = SAMPLE_RATE * chunk_ms // 1000
 
     @property
     def duration_s(self) -> float:
-        return len(self.audio) / RATE
+        return len(self.audio) / SAMPLE_RATE
 
     async def __aiter__(self) -> AsyncIterator[AudioChunk]:
         t0 = time.monotonic()
@@ -83,10 +85,10 @@ class WavSource:
         while True:
             for i in range(0, len(self.audio), self.chunk):
                 x = self.audio[i : i + self.chunk]
-                t_start = sent / RATE
+                t_start = sent / SAMPLE_RATE
                 sent += len(x)
                 if self.realtime:  # release each chunk when its last sample would have been spoken
-                    due = t0 + sent / RATE
+                    due = t0 + sent / SAMPLE_RATE
                     await asyncio.sleep(max(0.0, due - time.monotonic()))
                     arrival = due  # like a live input: if the consumer is late, that lateness is latency
                 else:
@@ -106,7 +108,7 @@ class PushSource:
 
     def __init__(self, max_backlog_s: float = 30.0):
         self.chunks: deque[AudioChunk] = deque()
-        self.max_samples = int(max_backlog_s * RATE)
+        self.max_samples = int(max_backlog_s * SAMPLE_RATE)
         self.queued = 0  # samples waiting to be read
         self.samples_in = 0  # 16 kHz samples so far (the audio clock)
         self.closed = False
@@ -118,7 +120,7 @@ class PushSource:
 
     @property
     def backlog_s(self) -> float:
-        return self.queued / RATE
+        return self.queued / SAMPLE_RATE
 
     async def put(self, x: np.ndarray) -> None:
         while self.full and not self.closed:
@@ -126,7 +128,7 @@ class PushSource:
             await self.changed.wait()
         x = np.asarray(x, dtype=np.float32)
         if len(x) and not self.closed:
-            self.chunks.append(AudioChunk(x, self.samples_in / RATE, time.monotonic()))
+            self.chunks.append(AudioChunk(x, self.samples_in / SAMPLE_RATE, time.monotonic()))
             self.samples_in += len(x)
             self.queued += len(x)
             self.changed.set()
@@ -247,7 +249,7 @@ class MicSource:
     async def __aiter__(self) -> AsyncIterator[AudioChunk]:
         loop = asyncio.get_running_loop()
         ready = asyncio.Event()
-        resampler = make_resampler(self.rate) if self.rate != RATE else None
+        resampler = make_resampler(self.rate) if self.rate != SAMPLE_RATE else None
 
         def on_block(block: np.ndarray) -> None:  # on the event loop
             self.blocks.append((block, time.monotonic()))
@@ -275,7 +277,7 @@ class MicSource:
                     block = self.condition(block)
                     x = block if resampler is None else np.asarray(resampler.process(block), dtype=np.float32)
                     if len(x):
-                        yield AudioChunk(x, samples / RATE, arrival)
+                        yield AudioChunk(x, samples / SAMPLE_RATE, arrival)
                         samples += len(x)
 
 

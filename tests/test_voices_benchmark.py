@@ -59,12 +59,12 @@ def test_compare_table_puts_old_beside_new(tmp_path):
 def test_espeak_clips_are_deterministic_with_pauses_and_long_enough(tmp_path):
     for name, voice, pitch, wpm, lang in voices.ESPEAK_VOICES:
         a = voices.espeak_clip(voice, pitch, wpm, voices.TEXTS[lang], tmp_path)
-        assert 35 <= len(a) / voices.SR <= 70, (name, len(a) / voices.SR)
+        assert 35 <= len(a) / voices.SAMPLE_RATE <= 70, (name, len(a) / voices.SAMPLE_RATE)
         assert np.abs(a).max() == pytest.approx(10 ** (-1 / 20), rel=1e-4)
         # the fixed pauses between sentences are digital silence: at least one run of zeros >= 1.5 s
         zero = np.concatenate([[0], (a == 0).astype(np.int8), [0]])
         runs = np.diff(np.flatnonzero(np.diff(zero)))[::2]
-        assert runs.max() >= 1.5 * voices.SR, name
+        assert runs.max() >= 1.5 * voices.SAMPLE_RATE, name
     again = voices.espeak_clip(*voices.ESPEAK_VOICES[0][1:4], voices.TEXTS["en"], tmp_path)
     first = voices.espeak_clip(*voices.ESPEAK_VOICES[0][1:4], voices.TEXTS["en"], tmp_path)
     np.testing.assert_array_equal(again, first)
