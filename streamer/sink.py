@@ -3,7 +3,7 @@
 `WsServer` (WebSocket clients, `streamer/ws.py`), `VmcSink` (VMC/OSC over UDP, `streamer/vmc.py`) and
 `RecordingSink` (a BVH file, `streamer/record.py`) implement it; `streamer.server.build` picks them from
 the options and `run` drives them all alike. A new output (another protocol, a file format) is one more
-class with these five methods and one more line in `build`'s `_sinks`.
+class with these five methods and one more entry in the sinks `build` makes.
 """
 
 from __future__ import annotations
