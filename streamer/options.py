@@ -127,9 +127,10 @@ class ServeOptions(BaseModel):
     @field_validator("smooth")
     @classmethod
     def _smooth(cls, value):
-        from dimgestor.stream import smoothing_from_flag
+        if value is not None:
+            from dimgestor.stream import smoothing_from_flag
 
-        smoothing_from_flag(value)  # raises with the flag's own message
+            smoothing_from_flag(value)  # raises with the flag's own message
         return value
 
     @model_validator(mode="after")

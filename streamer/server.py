@@ -279,10 +279,10 @@ async def tap(chunks: AsyncIterator[AudioChunk], sink) -> AsyncIterator[AudioChu
 # ---- what it prints ------------------------------------------------------------------------------
 
 def _banner(p: Pipeline) -> str:
-    o = p.options
-    what = {"mic": f"microphone {getattr(p.source, 'name', '')!r} at {getattr(p.source, 'rate', 0)} Hz",
-            "ws": "WebSocket clients' audio only",
-            "demo": f"demo clip {Path(getattr(p.source, 'path', '')).name}"}.get(o.source, f"file {o.source}")
+    o, source = p.options, p.source
+    what = (f"microphone {source.name!r} at {source.rate} Hz" if isinstance(source, MicSource)
+            else "WebSocket clients' audio only" if source is None
+            else f"demo clip {source.path.name}" if o.source == "demo" else f"file {o.source}")
     session = p.session or p.make_session()
     smoother = session.stream.smoother
     smooth = f"smoothing {smoother.min_cutoff_hz:g} Hz" if smoother else "no smoothing"
