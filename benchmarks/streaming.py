@@ -56,7 +56,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--hour-steps", type=int, default=1)
     p.add_argument("--hour-window-ms", type=int, default=500)
     p.add_argument("--hour-s", type=float, default=3600.0, help="audio streamed in the memory run")
-    p.add_argument("--streams-preset", default="realtime")
+    p.add_argument("--streams-preset", default="realtime", help="a preset (random weights) or \"default\" (the embedded model)")
     p.add_argument("--streams-steps", type=int, nargs="+", default=[1, 4, 8], help="K for the concurrent-streams test")
     p.add_argument("--streams-window-ms", type=int, default=100, help="window for the concurrent-streams test")
     p.add_argument("--streams-s", type=float, default=6.0, help="seconds of paced audio per trial")

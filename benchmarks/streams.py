@@ -42,7 +42,8 @@ class PacedSource:
 
 
 def random_bundle(preset: str, seed: int = 0):
-    """A `Bundle` of `preset` with random weights and the embedded model's skeleton and normalization.
+    """A `Bundle` of `preset` with random weights and the embedded model's skeleton and normalization;
+    preset "default": the embedded default model itself (its front end, lookahead and guidance).
 
     Speed does not depend on the weights; the skeleton makes each window's pose decoding (done on the
     inference thread, as in `streamer serve`) the real one.
@@ -54,6 +55,8 @@ def random_bundle(preset: str, seed: int = 0):
     from dimgestor.model import DiMGestor
 
     base = load_checkpoint(None)
+    if preset == "default":
+        return base
     torch.manual_seed(seed)
     model = DiMGestor(get_preset(preset, motion_dim=base.feature_spec.dim)).eval()
     with torch.no_grad():  # adaLN-Zero init makes blocks the identity; random weights cost the same as trained ones

@@ -97,7 +97,8 @@ def test_default_model_follows_the_unseen_speaker(unseen_rows, take):
 
 @pytest.mark.parametrize("clip", ["demo_en", "demo_zh"] + [t[:-4] for t in TAKES])
 def test_default_model_calms_in_an_inserted_silence(unseen_rows, clip):
-    """6 s of silence inserted into a pause of an unseen voice: the wrists move at least 1.5x faster in speech."""
+    """6 s of silence inserted into a pause of an unseen voice: the wrists move at least 3x faster in speech
+    (issue "voice"'s target; the model measures 4.0-4.5 on these clips, the previous default 2.0-5.1)."""
     if clip not in unseen_rows:
         pytest.skip(f"{clip}.wav not found: the unseen speaker is only present beside the dev checkout (../shared)")
-    assert unseen_rows[clip]["silence_ratio"] > 1.5, unseen_rows[clip]
+    assert unseen_rows[clip]["silence_ratio"] > 3.0, unseen_rows[clip]

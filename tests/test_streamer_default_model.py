@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dimgestor.audio import load_wav, save_wav
-from dimgestor.bvh import read_bvh
+from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer.sources import DEMO_WAV
 from helpers.serve import REPO, Serve, follow
 from helpers.vmc import bundles, check_vmc_bundle, osc_server
@@ -81,4 +81,7 @@ def test_default_model_streams_the_demo_like_offline_generate(tmp_path):
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(rec_path), read_bvh(off_path)
     assert a.values.shape == b.values.shape == (80, a.skeleton.num_channels)
-    assert np.abs(a.values - b.values).max() < 1e-3
+    # the same motion: every joint within 1e-3 cm of the offline one (FK of the written files), and every channel
+    # within 0.01 degree (a large unwrapped Euler angle, e.g. -266 degrees, carries float32 rounding of ~1e-5 of it)
+    assert np.abs(forward_kinematics(a) - forward_kinematics(b)).max() < 1e-3
+    assert np.abs(a.values - b.values).max() < 1e-2
