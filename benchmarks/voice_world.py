@@ -63,6 +63,9 @@ def main() -> int:
                    help="model config override passed to dimgestor train, e.g. frontend=speech (repeatable)")
     p.add_argument("--train-args", default="", help="more dimgestor train options, e.g. \"--augment --cond-drop 0.1\"")
     p.add_argument("--k", type=int, default=None, help="DDIM steps K when scoring (default: the model's)")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale when scoring (default: the model's; needs --cond-drop in "
+                        "--train-args)")
     p.add_argument("--seed", type=int, default=0, help="world seed (voices' clips, held-out set)")
     p.add_argument("--work", default="runs/voice_world", help="data and runs (reused when present)")
     p.add_argument("--out", default=str(RESULTS / "voice_world.json"))
@@ -109,6 +112,8 @@ def main() -> int:
                 for name, row in truth.items():
                     row.update(margins(row))
                     print(f"{name}: " + ", ".join(f"{k} {v:.3g}" for k, v in row.items()))
+            if args.guidance is not None:
+                bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": args.guidance})
             K = args.k or bundle.config.sample_steps
             started = time.time()
             raws = [generate_raw(bundle, a, K, seed=i) for i, a in enumerate(audios)]
@@ -126,6 +131,7 @@ def main() -> int:
         "device": describe_device("cpu"), "load_average": load_average(),
         "command": " ".join(["python", "benchmarks/voice_world.py"] + sys.argv[1:]),
         "preset": args.preset, "recipe": args.recipe, "set": args.set or [], "train_args": args.train_args,
+        "guidance": args.guidance,
         "train_steps": args.steps, "batch_size": args.batch_size, "heldout_minutes": args.heldout_minutes,
         "train_voices": [v.name for v in train_voices], "heldout_voices": [v.name for v in held_voices],
         "output_filter": "off", "timing_s": timing, "truth": truth, "results": results,
