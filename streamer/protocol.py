@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dimgestor import __version__
-from streamer.engine import Frame
+from streamer.frames import Frame
 
 PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"

@@ -33,8 +33,9 @@ from websockets.exceptions import ConnectionClosed
 
 from streamer import protocol as P
 from streamer import request_checks as RC
-from streamer.engine import AudioClock, Frame, Session
+from streamer.frames import Frame
 from streamer.log_limit import ErrorLog
+from streamer.sessions import AudioClock, Session
 from streamer.sources import RATE, PushSource, make_resampler
 
 log = logging.getLogger("streamer.ws")
