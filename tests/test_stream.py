@@ -155,10 +155,13 @@ def _same(a, b):
     return a == b
 
 
-@pytest.mark.parametrize("guidance,smoothing", [(1.0, None), (2.0, (3.0, 0.5))])
-def test_a_step_only_reads_its_state(model, guidance, smoothing):
+@pytest.mark.parametrize("guidance,smoothing,frontend", [(1.0, None, "logmel"), (2.0, (3.0, 0.5), "logmel"),
+                                                        (1.0, 2.0, "speech")])
+def test_a_step_only_reads_its_state(model, guidance, smoothing, frontend):
     """step(state, audio) -> (frames, state): the state given stays as it was, so stepping it again gives the
     same frames (front end, extractor, every denoiser step, the output filter and the counters are all in it)."""
+    if frontend != model.config.frontend:
+        model = _model(frontend=frontend)
     audio = _audio(1.6)
     s = GestureStream(model, steps=3, seed=4, smoothing=smoothing, guidance=guidance)
     _, s1 = s.step(s.state, audio[:7001])
