@@ -1,6 +1,6 @@
 """Concurrent real-time streams through the serving path: how many one process keeps in real time.
 
-Each trial runs n `streamer.engine.Session`s in one asyncio loop, each fed by its own `PacedSource`
+Each trial runs n `streamer.sessions.Session`s in one asyncio loop, each fed by its own `PacedSource`
 (20 ms chunks released when their last sample would have been spoken, as a microphone or a paced
 file does), all on ONE `StreamBatcher` (batched: the due windows of all sessions as one forward per
 sampler step) or ONE `RankedExecutor` (unbatched: each session's window alone, as `--no-batch`).
@@ -97,7 +97,7 @@ class _CountingStats:
 def make_executor(batched: bool, threads: int):
     """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
     `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker."""
-    from streamer.engine import RankedExecutor, StreamBatcher
+    from streamer.scheduling import RankedExecutor, StreamBatcher
 
     if batched:
         ex = StreamBatcher()
@@ -116,7 +116,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window."""
-    from streamer.engine import Session
+    from streamer.sessions import Session
 
     audio = test_audio(seconds, SAMPLE_RATE)
     executor, how = make_executor(batched, threads)

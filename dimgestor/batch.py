@@ -26,7 +26,6 @@ import weakref
 from collections import defaultdict
 from typing import NamedTuple, Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -34,7 +33,7 @@ from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State, ssd_step
 from .model import DenoiserState, DiMGestor
 
-__all__ = ["StepStates", "StateRow", "DenoiseRunner", "runner_for", "push_many", "denoise_rows"]
+__all__ = ["StepStates", "DenoiseRunner", "runner_for", "push_many", "step_many", "denoise"]
 
 
 class StepStates(NamedTuple):
@@ -168,10 +167,11 @@ class DenoiseRunner:
         return F.linear(F.silu(c), self._w, self._b)
 
     def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates,
-               guidance: Sequence[float] | None = None) -> torch.Tensor:
+               guidance: Sequence[float] | None = None, out: StepStates | None = None) -> torch.Tensor:
         """Denoise B windows of n frames: cond (B, n, H), row b's frames start at frame_starts[b] of the stream
-        seeded seeds[b] -> x0 (B, n, motion_dim). `states` is updated in place (the runner's buffers: no state
-        is copied per step). Call under torch.inference_mode().
+        seeded seeds[b] -> x0 (B, n, motion_dim). The new states are written into `out` (same shapes as
+        `states`; None: into `states` itself, in place), step by step: no state is copied. Call under
+        torch.inference_mode().
 
         guidance: each window's classifier-free guidance scale (None: all 1). A guided window has two rows in
         `states`, its conditional then its unconditional branch (see `_Guidance`), so `states` has B + G rows.
@@ -187,24 +187,26 @@ class DenoiseRunner:
         B = cond.shape[0]  # network rows
         if states.batch != B:
             raise ValueError(f"states hold {states.batch} rows, the windows (with their guided rows) need {B}")
+        out = states if out is None else out
         mods = self.modulations(cond)
         fast = n <= STEP_MAX and all(b is not None for b in self._blocks)
         for k, (t, t_prev) in enumerate(self.pairs):
             h, tail = m.encoder(x if plan is None else x.index_select(0, plan.rows), states.enc[k])
-            states.enc[k].copy_(tail)
+            out.enc[k].copy_(tail)
             if fast:  # rows (B n, H), the blocks' ops written out for a window of a few frames
                 h, mk = h.reshape(B * n, H), mods[k].reshape(B * n, -1)
                 for j, fb in enumerate(self._blocks):
-                    h = fb(h, mk[:, 6 * H * j: 6 * H * (j + 1)], states.conv[k, j], states.ssm[k, j], B, n)
+                    h = fb(h, mk[:, 6 * H * j: 6 * H * (j + 1)], (states.conv[k, j], states.ssm[k, j]),
+                           (out.conv[k, j], out.ssm[k, j]), B, n)
                 h = h.view(B, n, H)
             else:  # a long window (a backlog): the block's modules, the scan picked by length
                 for j, block in enumerate(m.blocks):
-                    h = _modulated_block(block, h, mods[k, :, :, 6 * H * j: 6 * H * (j + 1)], states.conv[k, j],
-                                         states.ssm[k, j])
-            out = _modulated_final(m.final, h, mods[k, :, :, 6 * H * nb:])
+                    h = _modulated_block(block, h, mods[k, :, :, 6 * H * j: 6 * H * (j + 1)],
+                                         (states.conv[k, j], states.ssm[k, j]), (out.conv[k, j], out.ssm[k, j]))
+            y = _modulated_final(m.final, h, mods[k, :, :, 6 * H * nb:])
             if plan is not None:
-                out = plan.combine(out)  # (B windows, n, D)
-            eps, x0 = d.split(out, x, t)
+                y = plan.combine(y)  # (B windows, n, D)
+            eps, x0 = d.split(y, x, t)
             noisy = self.sampler == "ddpm" and t > 0 or self.sampler == "ddim" and self.eta > 0 and t_prev >= 0
             noise = motion_noise_rows(seeds, frame_starts, n, k + 1, D, L, cond.device).to(x.dtype) if noisy else None
             if self.sampler == "ddpm":
@@ -214,13 +216,13 @@ class DenoiseRunner:
         return x
 
 
-def _modulated_block(block, h, mod, conv, ssm):
+def _modulated_block(block, h, mod, state, out):
     """`AdaLNMamba2Block.forward` with its adaLN output `mod` (B, n, 6H) computed beforehand (1 added to the
-    scales); the new state is written into the runner's buffers conv (B, d_conv - 1, C) and ssm."""
+    scales); state: the (conv (B, d_conv - 1, C), ssm) it continues; the new one is written into `out`'s."""
     shift1, scale1, gate1, shift2, scale2, gate2 = mod.chunk(6, dim=-1)
-    y, state = block.mixer(torch.addcmul(shift1, block.norm1(h), scale1), Mamba2State(conv.transpose(1, 2), ssm))
-    conv.copy_(state.conv.transpose(1, 2))
-    ssm.copy_(state.ssm)
+    y, new = block.mixer(torch.addcmul(shift1, block.norm1(h), scale1), Mamba2State(state[0].transpose(1, 2), state[1]))
+    out[0].copy_(new.conv.transpose(1, 2))
+    out[1].copy_(new.ssm)
     h = torch.addcmul(h, gate1, y)
     return torch.addcmul(h, gate2, block.mlp(torch.addcmul(shift2, block.norm2(h), scale2)))
 
@@ -261,14 +263,16 @@ class _FastBlock:
                  and isinstance(block.mlp.act, torch.nn.GELU) and block.mlp.act.approximate == "tanh")
         return _FastBlock(block, block.norm1.normalized_shape[0]) if plain else None
 
-    def __call__(self, h, mod, conv, ssm, B: int, L: int):
-        """h (B L, H); mod (B L, 6H) with 1 + scale; conv (B, d_conv - 1, C) and ssm (B, h, p, n) updated in place."""
+    def __call__(self, h, mod, state, out, B: int, L: int):
+        """h (B L, H); mod (B L, 6H) with 1 + scale; state: the (conv (B, d_conv - 1, C), ssm (B, h, p, n)) it
+        continues; the new one is written into `out`'s (may be the same tensors)."""
         H, h_, p, n = self.H, self.h, self.p, self.n
+        (conv, ssm), (conv_out, ssm_out) = state, out
         shift1, scale1, gate1, shift2, scale2, gate2 = mod.split(H, -1)
         u = torch.addcmul(shift1, F.layer_norm(h, (H,), eps=1e-6), scale1)
         z, xBC, dt = F.linear(u, self.w_in).split([self.di, self.C, h_], -1)
         xs = torch.cat([conv, xBC.view(B, L, self.C)], 1)  # (B, d_conv - 1 + L, C): the conv's window, time-major
-        conv.copy_(xs[:, L:])
+        conv_out.copy_(xs[:, L:])
         y = torch.addcmul(self.conv_bias, xs[:, 0:L], self.taps[0])
         for k in range(1, self.dc):
             y = torch.addcmul(y, xs[:, k:k + L], self.taps[k])
@@ -277,14 +281,16 @@ class _FastBlock:
         dA = torch.exp(dt * self.A)  # (B, L, h)
         Xdt = x.view(B, L, h_, p) * dt[..., None]  # (B, L, h, p)
         if B == 1:  # 2-D matmuls on the state's rows (a head's p channels each), written into the buffer
-            flat = ssm.view(h_ * p, n)
+            flat, flat_out = ssm.view(h_ * p, n), ssm_out.view(h_ * p, n)
             dA = dA[0, :, :, None].expand(L, h_, p).reshape(L, h_ * p, 1)
             Xdt, Bm, Cm = Xdt.view(L, h_ * p, 1), Bm.view(L, 1, n), Cm.view(L, n, 1)
-            ys = [ssd_step(flat, dA[t], Xdt[t], Bm[t], Cm[t], out=flat)[0] for t in range(L)]  # (h p, 1) each
+            ys = [ssd_step(flat if t == 0 else flat_out, dA[t], Xdt[t], Bm[t], Cm[t], out=flat_out)[0]
+                  for t in range(L)]  # (h p, 1) each
             y = torch.cat(ys, 1).t() if L > 1 else ys[0].view(1, h_ * p)
         else:  # broadcast multiply-adds over the batch, a head's decay over its channels
             dA, Xdt, Bm, Cm = dA[..., None, None], Xdt[..., None], Bm[:, :, None, None], Cm[:, :, None, None]
-            ys = [ssd_step(ssm, dA[:, t], Xdt[:, t], Bm[:, t], Cm[:, t], out=ssm)[0] for t in range(L)]  # (B, h, p)
+            ys = [ssd_step(ssm if t == 0 else ssm_out, dA[:, t], Xdt[:, t], Bm[:, t], Cm[:, t], out=ssm_out)[0]
+                  for t in range(L)]  # (B, h, p) each
             y = torch.stack(ys, 1)
         y = torch.addcmul(y.reshape(B * L, self.di), x.reshape(B * L, self.di), self.D)  # + D x
         g = F.rms_norm(y * F.silu(z), (self.di,), self.norm_w, self.eps)
@@ -307,42 +313,64 @@ def runner_for(model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str,
 
 
 def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = False) -> list:
-    """Push chunks[i] into streams[i] (distinct `GestureStream`s) -> each one's new frames, as `push` would.
+    """Push chunks[i] into streams[i] (distinct `GestureStream`s) -> each one's new frames, as `push` would:
+    `step_many` on the streams' states, each stream then holding its new state (a failed one keeps its own)."""
+    outs, states = step_many(streams, [s.state for s in streams], chunks, return_exceptions)
+    for s, out, state in zip(streams, outs, states):
+        s.state = state
+    return outs
+
+
+def step_many(streams: Sequence, states: Sequence, chunks: Sequence, return_exceptions: bool = False
+              ) -> tuple[list, list]:
+    """`GestureStream.step` of many streams at once: states[i] (a `StreamState` of streams[i]) and chunks[i] ->
+    (each stream's frames, each one's new state). The states given are only read.
 
     Each stream conditions its own audio; then the windows with the same runner and frame count are
     denoised as one batch. A stream's frames are those it would give alone (to float rounding).
-    return_exceptions: a stream whose push fails (bad audio, a finished stream) gets its exception in
-    its place and the others go on; otherwise the first one is raised.
+    return_exceptions: a stream whose step fails (bad audio, a finished stream) gets its exception in
+    its place and keeps its state, and the others go on; otherwise the first one is raised.
     """
     if len({id(s) for s in streams}) != len(streams):
         raise ValueError("push_many: each stream at most once per call")
-    if len(chunks) != len(streams):
-        raise ValueError(f"push_many: {len(streams)} streams but {len(chunks)} chunks")
+    if not len(chunks) == len(states) == len(streams):
+        raise ValueError(f"push_many: {len(streams)} streams but {len(states)} states and {len(chunks)} chunks")
     out: list = [None] * len(streams)
-    conds: list = [None] * len(streams)
+    new, conds = list(states), [None] * len(streams)
     for i, (s, c) in enumerate(zip(streams, chunks)):
         try:
-            conds[i] = s.begin_push(c)
+            conds[i], new[i] = s.begin_step(states[i], c)
         except Exception as e:
             if not return_exceptions:
                 raise
             out[i] = e
-    live = []
-    for i, (s, cond) in enumerate(zip(streams, conds)):
-        if cond is None:
-            continue
-        if cond.shape[1] == 0:
-            out[i] = s.end_push(None)
+    live = [i for i, c in enumerate(conds) if c is not None and c.shape[1]]
+    for i, c in enumerate(conds):
+        if c is not None and not c.shape[1]:
+            out[i], new[i] = streams[i].end_step(new[i], None, new[i].denoiser)
+    frames, denoisers, failed = _denoise_rounds(streams, new, conds, live, return_exceptions)
+    for i in live:
+        if i in failed:
+            out[i], new[i] = failed[i], states[i]
         else:
-            live.append(i)
-    # Windows are cut into pieces of the most common length, denoised round by round: a stream that fell
-    # behind brings a longer window, and cut this way it still shares the batch of the others instead of
-    # running alone. Once a stream would be alone in a round it takes all it has left at once. Streaming
-    # equals offline for any cut, so the frames do not change.
+            out[i], new[i] = streams[i].end_step(new[i], frames[i], denoisers[i])
+    return out, new
+
+
+def _denoise_rounds(streams, states, conds, live: list[int], return_exceptions: bool):
+    """The windows of the `live` streams, denoised in batches -> (each one's frames, each one's new denoiser
+    state, the exceptions of the failed ones), all keyed by stream index.
+
+    Windows are cut into pieces of the most common length, denoised round by round: a stream that fell
+    behind brings a longer window, and cut this way it still shares the batch of the others instead of
+    running alone. Once a stream would be alone in a round it takes all it has left at once. Streaming
+    equals offline for any cut, so the frames do not change.
+    """
     lengths = [conds[i].shape[1] for i in live]
     piece = max(set(lengths), key=lambda n: (lengths.count(n), n)) if live else 1
     done = {i: 0 for i in live}
     pieces: dict[int, list] = {i: [] for i in live}
+    denoisers = {i: states[i].denoiser for i in live}
     failed: dict[int, Exception] = {}
     while todo := [i for i in live if i not in failed and done[i] < conds[i].shape[1]]:
         take = {i: piece if len(todo) > 1 else conds[i].shape[1] - done[i] for i in todo}
@@ -351,65 +379,74 @@ def push_many(streams: Sequence, chunks: Sequence, return_exceptions: bool = Fal
             cond = conds[i][:, done[i]:done[i] + take[i]]
             groups[(id(streams[i].runner), cond.shape[1], cond.device, cond.dtype)].append(i)
         for idx in groups.values():
-            members = [streams[i] for i in idx]
             try:
-                frames = denoise_rows(members, [conds[i][:, done[i]:done[i] + take[i]] for i in idx],
-                                      [s.frames_out + done[i] for i, s in zip(idx, members)])
+                xs, news = denoise([streams[i] for i in idx], [denoisers[i] for i in idx],
+                                   [conds[i][:, done[i]:done[i] + take[i]] for i in idx],
+                                   [states[i].frames_out + done[i] for i in idx])
             except Exception as e:
                 if not return_exceptions:
                     raise
                 failed.update({i: e for i in idx})
                 continue
-            for i, f in zip(idx, frames):
-                pieces[i].append(f)
+            for i, x, d in zip(idx, xs, news):
+                pieces[i].append(x)
+                denoisers[i] = d
         for i in todo:
             done[i] += take[i]
-    for i in live:
-        s = streams[i]
-        out[i] = failed[i] if i in failed else s.end_push(torch.cat(pieces[i]) if len(pieces[i]) > 1 else pieces[i][0])
-    return out
+    frames = {i: torch.cat(p) if len(p) > 1 else p[0] for i, p in pieces.items() if i not in failed}
+    return frames, denoisers, failed
 
 
-def denoise_rows(streams: Sequence, conds: Sequence[torch.Tensor], frame_starts: Sequence[int] | None = None
-                 ) -> list[torch.Tensor]:
-    """One batched sampler run over streams sharing a runner and a frame count; updates their states.
-    frame_starts: each stream's first frame index here (default: its frames_out).
+def denoise(streams: Sequence, states: Sequence[StepStates], conds: Sequence[torch.Tensor],
+            frame_starts: Sequence[int]) -> tuple[list[torch.Tensor], list[StepStates]]:
+    """One batched sampler run over streams sharing a runner and a frame count: their denoiser states, their
+    windows' conditions (1, n, H) and first frame indices -> each one's x0 (n, D) and new denoiser state.
 
-    The streams' states become the rows of one buffer that the sampler updates in place; while the same
-    streams come back together (a busy server: every stream has a window due each cycle) nothing is copied.
+    The states given are only read. The new ones are the rows of one new buffer, in the streams' order; when
+    the same streams come back together (a busy server: every stream has a window due each cycle), that
+    buffer is read in place (`_join`), so no state is copied on the way in or out.
     """
-    runner = streams[0].runner
-    first = streams[0].state_row
-    buf = first.buffer
-    offsets = np.cumsum([0] + [s.state_row.rows for s in streams]).tolist()  # a guided stream has two rows
-    same = buf.batch == offsets[-1] and all(s.state_row.buffer is buf and s.state_row.row == offsets[i]
-                                            for i, s in enumerate(streams))
     with torch.inference_mode():
-        if not same:
-            buf = StepStates.cat([s.state_row.view for s in streams]) if len(streams) > 1 else first.view
-            for i, s in enumerate(streams):
-                s.state_row = StateRow(buf, offsets[i], s.state_row.rows)
-        starts = [s.frames_out for s in streams] if frame_starts is None else list(frame_starts)
-        x = runner.sample(torch.cat(list(conds)), starts, [s.seed for s in streams], buf,
-                          [s.guidance for s in streams])
-    return list(x)
+        buf = _join(states)
+        new = StepStates(*(torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in buf))
+        x = streams[0].runner.sample(torch.cat(list(conds)), list(frame_starts), [s.seed for s in streams], buf,
+                                     [s.guidance for s in streams], out=new)
+    return list(x), _split(new, [s.batch for s in states])
 
 
-class StateRow:
-    """A stream's place in a state buffer: rows [row, row + rows) of `buffer` (a StepStates shared by a batch);
-    rows is 2 for a guided stream (its conditional and unconditional branches), else 1.
+_BATCH_DIMS = (1, 2, 2)  # the batch (stream row) dimension of StepStates' enc, conv and ssm
 
-    The buffer is the runner's storage: `denoise_rows` updates it in place and may move a stream to another
-    buffer (the rows of the streams batched with it); `view` is the stream's own rows."""
 
-    __slots__ = ("buffer", "row", "rows")
+def _join(states: Sequence[StepStates]) -> StepStates:
+    """Streams' states as one buffer of their rows in turn: without a copy where they already lie so (the rows
+    of the buffer `denoise` made for them last time), else copied together."""
+    if len(states) == 1:
+        return states[0]
+    joined = [_adjacent([s[f] for s in states], dim) for f, dim in enumerate(_BATCH_DIMS)]
+    return StepStates(*joined) if all(t is not None for t in joined) else StepStates.cat(states)
 
-    def __init__(self, buffer: StepStates, row: int, rows: int = 1):
-        self.buffer, self.row, self.rows = buffer, row, rows
 
-    @property
-    def view(self) -> StepStates:
-        b, r, e = self.buffer, self.row, self.row + self.rows
-        if b.batch == self.rows:
-            return b
-        return StepStates(b.enc[:, r:e], b.conv[:, :, r:e], b.ssm[:, :, r:e])
+def _adjacent(parts: Sequence[torch.Tensor], dim: int) -> torch.Tensor | None:
+    """The tensor whose slices along `dim` are `parts` in turn, as a view, when they lie so in one storage."""
+    first = parts[0]
+    storage, strides, offset = first.untyped_storage().data_ptr(), first.stride(), first.storage_offset()
+    others = lambda t: t.shape[:dim] + t.shape[dim + 1:]  # noqa: E731
+    for t in parts:
+        if (t.untyped_storage().data_ptr() != storage or t.stride() != strides or t.storage_offset() != offset
+                or others(t) != others(first)):
+            return None
+        offset += t.shape[dim] * strides[dim]
+    shape = list(first.shape)
+    shape[dim] = sum(t.shape[dim] for t in parts)
+    return first.as_strided(shape, strides, first.storage_offset())
+
+
+def _split(buf: StepStates, rows: Sequence[int]) -> list[StepStates]:
+    """A batch's buffer -> each stream's state: its rows (views, in order)."""
+    if len(rows) == 1:
+        return [buf]
+    out, r = [], 0
+    for n in rows:
+        out.append(StepStates(buf.enc[:, r:r + n], buf.conv[:, :, r:r + n], buf.ssm[:, :, r:r + n]))
+        r += n
+    return out

@@ -6,18 +6,26 @@ frames). For every step it carries the denoiser's state (encoder tail + each blo
 the front end and the feature extractor carry theirs. Noise is `motion_noise(seed, frame, step)`, so
 the frames equal those of `generate_offline` on the whole recording. With classifier-free guidance
 (scale != 1) the unconditional branch carries its own per-step states beside the conditional one's.
+
+All of that is one value, `StreamState`; `GestureStream.step(state, samples) -> (frames, state)` is the
+stream as a function (it never writes into the state it is given), and `push` / `finish` step the state
+the stream holds. `dimgestor.batch.step_many` maps the step over the states of many streams at once.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import torch
 
-from .batch import StateRow, StepStates, denoise_rows, runner_for
+from .batch import StepStates, denoise, runner_for
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
-from .model import DenoiserState, DiMGestor
-from .smoothing import OneEuroFilter
+from .model import DenoiserState, DiMGestor, ExtractorState
+from .smoothing import OneEuroFilter, OneEuroState
 
-__all__ = ["GestureStream", "generate_offline", "make_smoother", "sample_frames", "smoothing_from_flag"]
+__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames",
+           "smoothing_from_flag"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -89,8 +97,26 @@ def _device(model: torch.nn.Module) -> torch.device:
     return next(model.parameters()).device
 
 
+@dataclass(frozen=True)
+class StreamState:
+    """Everything a stream carries from one push to the next: a value. `GestureStream.step` returns a new one
+    and never writes into the one it was given, so a state can be kept, compared or stepped again."""
+
+    frontend: Any  # the audio front end's state (`AudioFrontEnd.init_state`)
+    extractor: ExtractorState  # the feature extractor's
+    denoiser: StepStates  # every sampler step's denoiser state; 2 rows when guided (conditional, unconditional)
+    smoother: OneEuroState | None = None  # the output filter's (None: no frame filtered yet, or no filter)
+    samples_in: int = 0  # audio samples received (the audio clock)
+    frames_out: int = 0  # frames returned; frame i is presented at i / fps on the audio clock
+    finished: bool = False
+
+
 class GestureStream:
-    """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads."""
+    """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads.
+
+    The stream's settings (model, schedule, seed, guidance, output filter) and its `state`. `step(state,
+    samples) -> (frames, state)` is the stream as a function; `push` and `finish` step the state it holds.
+    """
 
     def __init__(self, model: DiMGestor, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                  eta: float = 0.0, smoothing="config", guidance: float | None = None):
@@ -104,73 +130,95 @@ class GestureStream:
         self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
         self.smoother = make_smoother(model, smoothing)
         self.runner = runner_for(model, self.pairs, sampler, eta)  # shared: streams of one runner batch together
-        dev = _device(model)
-        self._fe = model.frontend.init_state(1, dev)
-        self._ex = model.extractor.init_state(1, dev)
-        # the denoiser's state for every step: its rows of a buffer the runner updates in place (two rows when
-        # guided: the conditional branch, then the unconditional one); `dimgestor.batch.denoise_rows` owns it
-        rows = 1 if self.guidance == 1.0 else 2
-        self.state_row = StateRow(StepStates.zeros(model, len(self.pairs), rows, dev), 0, rows)
-        self.samples_in = 0  # audio samples received (the audio clock)
-        self.frames_out = 0  # frames returned; frame i is presented at i / fps on the audio clock
-        self.finished = False
+        self.state = self.initial_state()
 
-    @property
-    def _states(self) -> StateRow:  # the former name, which tests/test_guidance.py reads
-        return self.state_row
+    def initial_state(self) -> StreamState:
+        m, dev = self.model, _device(self.model)
+        rows = 1 if self.guidance == 1.0 else 2
+        return StreamState(m.frontend.init_state(1, dev), m.extractor.init_state(1, dev),
+                           StepStates.zeros(m, len(self.pairs), rows, dev))
 
     @property
     def lookahead_s(self) -> float:
         """Algorithmic latency: audio needed after a frame's start before that frame is final."""
         return self.model.lookahead_s
 
-    def _condition(self, samples: np.ndarray) -> torch.Tensor:
-        """Audio -> the condition (1, n, H) of the n frames it completes (front end and extractor states move on)."""
+    @property
+    def samples_in(self) -> int:
+        return self.state.samples_in
+
+    @property
+    def frames_out(self) -> int:
+        return self.state.frames_out
+
+    @property
+    def finished(self) -> bool:
+        return self.state.finished
+
+    def _condition(self, state: StreamState, samples: np.ndarray) -> tuple[torch.Tensor, StreamState]:
+        """Audio -> the condition (1, n, H) of the n frames it completes, and the state with the front end's and
+        the extractor's moved on."""
         m, dev = self.model, _device(self.model)
         with torch.inference_mode():
             x = torch.from_numpy(np.ascontiguousarray(samples)).to(dev)[None]
-            feats, self._fe = m.frontend(x, self._fe)
-            cond, self._ex = m.condition(feats, self._ex)
-        return cond
+            feats, fe = m.frontend(x, state.frontend)
+            cond, ex = m.condition(feats, state.extractor)
+        return cond, replace(state, frontend=fe, extractor=ex)
 
-    def begin_push(self, samples) -> torch.Tensor:
-        """`push`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
-        complete. `end_push(denoise_rows([stream], [cond])[0])` is the rest; `dimgestor.batch.push_many`
-        batches the middle over many streams."""
-        if self.finished:
+    def begin_step(self, state: StreamState, samples) -> tuple[torch.Tensor, StreamState]:
+        """`step`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
+        complete. `dimgestor.batch.step_many` denoises the windows of many streams together between the halves."""
+        if state.finished:
             raise RuntimeError("push() after finish(): start a new GestureStream")
         samples = _check_audio(samples)
-        self.samples_in += len(samples)
-        return self._condition(samples)
+        cond, state = self._condition(state, samples)
+        return cond, replace(state, samples_in=state.samples_in + len(samples))
 
-    def end_push(self, frames: torch.Tensor | None) -> np.ndarray:
-        """`push`'s last half: denoised frames (n, D) (None: no new frame) -> the returned frames (output
-        filter applied); the frame clock moves on."""
+    def end_step(self, state: StreamState, frames: torch.Tensor | None, denoiser: StepStates
+                 ) -> tuple[np.ndarray, StreamState]:
+        """`step`'s last half: the denoised frames (n, D) (None: no new frame) and the denoiser state after them
+        -> the returned frames (output filter applied) and the state; the frame clock moves on."""
         if frames is None:
-            return np.zeros((0, self.model.config.motion_dim), np.float32)
-        self.frames_out += frames.shape[0]
-        out = frames.float().cpu().numpy()
-        return self.smoother(out) if self.smoother is not None else out
+            return np.zeros((0, self.model.config.motion_dim), np.float32), replace(state, denoiser=denoiser)
+        out, smoothed = frames.float().cpu().numpy(), state.smoother
+        if self.smoother is not None:
+            out, smoothed = self.smoother.step(smoothed, out)
+        return out, replace(state, denoiser=denoiser, smoother=smoothed, frames_out=state.frames_out + len(out))
 
-    def _denoise(self, cond: torch.Tensor) -> np.ndarray:
-        return self.end_push(denoise_rows([self], [cond])[0] if cond.shape[1] else None)
+    def _denoise(self, state: StreamState, cond: torch.Tensor) -> tuple[np.ndarray, StreamState]:
+        if not cond.shape[1]:
+            return self.end_step(state, None, state.denoiser)
+        (x,), (denoiser,) = denoise([self], [state.denoiser], [cond], [state.frames_out])
+        return self.end_step(state, x, denoiser)
+
+    def step(self, state: StreamState, samples) -> tuple[np.ndarray, StreamState]:
+        """The stream as a function: mono float32 16 kHz samples (any length) after `state` -> the (n, motion_dim)
+        frames that became final and the state after them. `state` is only read."""
+        cond, state = self.begin_step(state, samples)
+        return self._denoise(state, cond)
+
+    def finish_step(self, state: StreamState) -> tuple[np.ndarray, StreamState]:
+        """The end of the audio after `state`: pad with silence exactly as `generate_offline` does -> the
+        remaining frames and the finished state."""
+        if state.finished:
+            return np.zeros((0, self.model.config.motion_dim), np.float32), state
+        c = self.model.config
+        T = state.samples_in * c.fps // c.sample_rate
+        pad = max(self.model.samples_needed(T) - state.samples_in, 0)
+        cond, padded = self._condition(replace(state, finished=True), np.zeros(pad, np.float32))
+        frames, end = self._denoise(padded, cond)
+        out = frames[: max(T - state.frames_out, 0)]
+        return out, replace(end, frames_out=state.frames_out + len(out))
 
     def push(self, samples) -> np.ndarray:
         """Feed mono float32 16 kHz samples (any length) -> (n, motion_dim) frames that became final."""
-        return self._denoise(self.begin_push(samples))
+        frames, self.state = self.step(self.state, samples)
+        return frames
 
     def finish(self) -> np.ndarray:
         """Pad with silence exactly as `generate_offline` does and return the remaining frames."""
-        if self.finished:
-            return np.zeros((0, self.model.config.motion_dim), np.float32)
-        self.finished = True
-        c = self.model.config
-        T = self.samples_in * c.fps // c.sample_rate
-        pad = max(self.model.samples_needed(T) - self.samples_in, 0)
-        before = self.frames_out
-        out = self._denoise(self._condition(np.zeros(pad, np.float32)))[: max(T - before, 0)]
-        self.frames_out = before + len(out)
-        return out
+        frames, self.state = self.finish_step(self.state)
+        return frames
 
 
 def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: int = 0, sampler: str = "ddim",

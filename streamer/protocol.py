@@ -10,7 +10,7 @@ import numpy as np
 
 from dimgestor import __version__
 from dimgestor.audio import SAMPLE_RATE
-from streamer.engine import Frame
+from streamer.frames import Frame
 
 PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"

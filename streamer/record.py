@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from streamer.engine import Frame
+from streamer.frames import Frame
 
 COUNT_WIDTH = 12  # room for the frame count in the header (space-padded, so any reader takes it)
 

@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
 
-from streamer.engine import Frame, RankedExecutor, Session, StreamBatcher
+from streamer.frames import Frame
+from streamer.scheduling import RankedExecutor, StreamBatcher
+from streamer.sessions import Session
 from streamer.options import ServeError, ServeOptions
 from streamer.sink import Sink
 from streamer.sources import AudioChunk, MicSource, WavSource, open_source

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Protocol, runtime_checkable
 
-from streamer.engine import Frame
+from streamer.frames import Frame
 
 
 @runtime_checkable

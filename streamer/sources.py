@@ -19,7 +19,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 
-RATE = SAMPLE_RATE  # (the name streamer/engine.py imports)
+
 ASSETS = Path(__file__).resolve().parents[1] / "dimgestor" / "assets"
 DEMO_WAV = ASSETS / "demo_en.wav"
 

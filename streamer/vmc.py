@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamer.engine import Frame
+from streamer.frames import Frame
 from streamer.pacing import Pacer
 from streamer.pose import HumanoidRig, to_unity_position, to_unity_quat
 

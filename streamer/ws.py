@@ -35,9 +35,10 @@ from websockets.exceptions import ConnectionClosed
 from dimgestor.audio import SAMPLE_RATE
 from streamer import protocol as P
 from streamer import request_checks as RC
-from streamer.engine import AudioClock, Frame, Session
+from streamer.frames import Frame
 from streamer.log_limit import ErrorLog
 from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
+from streamer.sessions import AudioClock, Session
 from streamer.sources import PushSource, make_resampler
 from streamer.viewer import Answer, ViewerFiles, is_upgrade
 from streamer.waiting import WaitingRoom

@@ -160,3 +160,28 @@ def test_runner_follows_weight_changes(model):
     want = generate_offline(m, audio, steps=2, smoothing=None)[: len(after)]
     assert not np.allclose(before, after)
     assert np.abs(after - want).max() < 1e-4
+
+
+def test_batched_steps_only_read_their_states_and_reuse_the_batch_buffer(model, monkeypatch):
+    """step_many maps the step over states: stepping the same old states again gives the same frames (the batch
+    never writes into a state a caller holds), yet the same streams coming back together are not copied."""
+    from dimgestor.batch import step_many
+
+    audios = [_audio(1.5, seed) for seed in range(3)]
+    streams = [GestureStream(model, steps=3, seed=seed, smoothing=None) for seed in range(3)]
+    copies = []
+    cat = StepStates.cat
+    monkeypatch.setattr(StepStates, "cat", staticmethod(lambda states: (copies.append(len(states)), cat(states))[1]))
+    states, outs = [s.state for s in streams], [[] for _ in streams]
+    for a in range(0, 8000, 1600):  # the same streams together each round: copied into one buffer once
+        frames, states = step_many(streams, states, [x[a:a + 1600] for x in audios])
+        for o, f in zip(outs, frames):
+            o.append(f)
+    assert copies == [3]
+    first, _ = step_many(streams, states, [x[8000:9600] for x in audios])
+    again, _ = step_many(streams, states, [x[8000:9600] for x in audios])
+    assert all(len(f) > 0 and np.array_equal(f, g) for f, g in zip(first, again))
+    for s, audio, o, f in zip(streams, audios, outs, first):
+        solo = GestureStream(model, steps=3, seed=s.seed, smoothing=None)
+        want = np.concatenate([solo.push(audio[a:a + 1600]) for a in range(0, 9600, 1600)])
+        assert np.abs(np.concatenate(o + [f]) - want).max() < TOL

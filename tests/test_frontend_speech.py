@@ -4,12 +4,13 @@ import pytest
 import torch
 from scipy.signal import butter, lfilter
 
+from dimgestor.audio import SAMPLE_RATE
 from dimgestor.config import get_preset
 from dimgestor.frontend import build_frontend
 from dimgestor.frontend_speech import SPEECH_CHANNELS, SpeechFrontEnd
 from dimgestor.synthetic import speech_and_gestures
 
-RATE, HOP = 16000, 160
+RATE, HOP = SAMPLE_RATE, 160
 LOUD, FLUX, VOICING, PITCH, PAUSE = (get_preset("realtime").n_mels + i for i in range(len(SPEECH_CHANNELS)))
 
 

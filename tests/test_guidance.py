@@ -109,7 +109,7 @@ def test_scale_one_is_the_unguided_sampler_streaming_and_batched(model):
     audios = [_audio(1.5, s) for s in range(3)]
     plain = [GestureStream(model, steps=4, seed=s, smoothing=None) for s in range(3)]
     ones = [GestureStream(model, steps=4, seed=s, smoothing=None, guidance=1.0) for s in range(3)]
-    assert all(s._states.rows == 1 and s._states.buffer.batch == 1 for s in ones)
+    assert all(s.state.denoiser.batch == 1 for s in ones)
     for i in range(0, len(audios[0]), 1600):
         for x, y in zip(push_many(plain, [a[i:i + 1600] for a in audios]), push_many(ones, [a[i:i + 1600] for a in audios])):
             assert np.array_equal(x, y)
@@ -151,11 +151,11 @@ def test_guided_streaming_equals_offline_for_awkward_chunks(model, guidance, eta
     assert not np.allclose(offline, generate_offline(model, audio, steps=5, seed=9, eta=eta, smoothing=None), atol=1e-3)
     for pattern in ([1, 2, 799, 801, 1601], [800], [3333]):  # 1 sample, odd lengths, one frame, not frame multiples
         s = GestureStream(model, steps=5, seed=9, eta=eta, smoothing=None, guidance=guidance)
-        assert s._states.rows == 2
+        assert s.state.denoiser.batch == 2
         assert np.abs(_stream(s, audio, _sizes(len(audio), pattern)) - offline).max() < 1e-4
 
 
-def test_guided_streams_batched_equal_guided_streams_alone(model):
+def test_guided_streams_batched_equal_guided_streams_alone(model, monkeypatch):
     """Scales 2, 1, 3, 0 and 2 with their own seeds, audio and chunking; one joins late, one leaves early."""
     rng = np.random.default_rng(0)
     specs = [  # (seed, guidance, seconds, start tick, chunk sizes)
@@ -170,8 +170,13 @@ def test_guided_streams_batched_equal_guided_streams_alone(model):
             for seed, g, audio, _, sizes in plans]
 
     streams = [GestureStream(model, steps=4, seed=seed, smoothing=None, guidance=g) for seed, g, *_ in plans]
+    runner, rows = streams[0].runner, []
+    assert all(s.runner is runner for s in streams)
+    sample = runner.sample
+    monkeypatch.setattr(runner, "sample", lambda cond, starts, seeds, states, *a, **k: (
+        rows.append(states.batch), sample(cond, starts, seeds, states, *a, **k))[1])  # the network rows of each batch
     outs, pos, done = [[] for _ in plans], [0] * len(plans), [False] * len(plans)
-    tick, widest = 0, 0
+    tick = 0
     while not all(done):
         due = [i for i, p in enumerate(plans) if not done[i] and tick >= p[3]]
         pushing = [i for i in due if tick - plans[i][3] < len(plans[i][4])]
@@ -182,12 +187,11 @@ def test_guided_streams_batched_equal_guided_streams_alone(model):
             pos[i] += n
         for i, frames in zip(pushing, push_many([streams[i] for i in pushing], chunks)):
             outs[i].append(frames)
-        widest = max([widest] + [s._states.buffer.batch for s in streams])
         for i in set(due) - set(pushing):
             outs[i].append(streams[i].finish())
             done[i] = True
         tick += 1
-    assert widest >= 6  # guided streams shared a batch: two rows each
+    assert max(rows) >= 6  # guided streams shared a batch: two rows each
     for i, (got, want) in enumerate(zip(outs, solo)):
         got = np.concatenate(got)
         assert got.shape == want.shape and np.abs(got - want).max() < TOL, (i, np.abs(got - want).max())

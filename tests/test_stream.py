@@ -130,3 +130,52 @@ def test_streaming_recipe_streams_exactly(taps):
                 sizes.append(len(audio) - total)
             assert np.abs(_stream(model, audio, sizes, steps=K, seed=3) - offline).max() < 1e-4
     assert not np.allclose(generate_offline(model, audio, steps=8, seed=3), generate_offline(model, audio, steps=8, seed=4))
+
+
+def _snapshot(state):
+    """Copies of everything a StreamState holds (tensors and arrays cloned, counters as they are)."""
+    def copy(v):
+        if isinstance(v, torch.Tensor):
+            return v.clone()
+        if isinstance(v, np.ndarray):
+            return v.copy()
+        if isinstance(v, tuple):
+            return type(v)(*map(copy, v)) if hasattr(v, "_fields") else tuple(map(copy, v))
+        return v
+    return [copy(getattr(state, f)) for f in state.__dataclass_fields__]
+
+
+def _same(a, b):
+    if isinstance(a, torch.Tensor):
+        return torch.equal(a, b)
+    if isinstance(a, np.ndarray):
+        return np.array_equal(a, b)
+    if isinstance(a, tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+@pytest.mark.parametrize("guidance,smoothing,frontend", [(1.0, None, "logmel"), (2.0, (3.0, 0.5), "logmel"),
+                                                        (1.0, 2.0, "speech")])
+def test_a_step_only_reads_its_state(model, guidance, smoothing, frontend):
+    """step(state, audio) -> (frames, state): the state given stays as it was, so stepping it again gives the
+    same frames (front end, extractor, every denoiser step, the output filter and the counters are all in it)."""
+    if frontend != model.config.frontend:
+        model = _model(frontend=frontend)
+    audio = _audio(1.6)
+    s = GestureStream(model, steps=3, seed=4, smoothing=smoothing, guidance=guidance)
+    _, s1 = s.step(s.state, audio[:7001])
+    kept = _snapshot(s1)
+    a, s2 = s.step(s1, audio[7001:19000])
+    b, s3 = s.step(s1, audio[7001:19000])
+    assert len(a) > 0 and np.array_equal(a, b)
+    assert all(_same(x, y) for x, y in zip(kept, _snapshot(s1)))  # s1 untouched by two steps from it
+    assert (s2.samples_in, s2.frames_out) == (19000, s1.frames_out + len(a))
+    assert (s2.smoother is not None) == (smoothing is not None)  # the output filter's state is in the state too
+    end, done = s.finish_step(s2)
+    assert done.finished and not s2.finished and done.frames_out == len(audio[:19000]) * 20 // 16000
+    with pytest.raises(RuntimeError, match="after finish"):
+        s.step(done, audio[:10])
+    want = generate_offline(model, audio[:19000], steps=3, seed=4, smoothing=smoothing, guidance=guidance)
+    got = np.concatenate([s.step(s.initial_state(), audio[:7001])[0], a, end])
+    assert np.abs(got - want).max() < 1e-4

@@ -15,7 +15,8 @@ from dimgestor.features import FeatureSpec
 from dimgestor.model import DiMGestor
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
-from streamer.engine import Session, StreamBatcher
+from streamer.scheduling import StreamBatcher
+from streamer.sessions import Session
 from streamer.sources import WavSource
 
 pytestmark = pytest.mark.timeout(180)

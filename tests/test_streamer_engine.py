@@ -10,7 +10,7 @@ from dimgestor.bvh import read_bvh, write_bvh
 from dimgestor.features import features_to_motion
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_speech
-from streamer.engine import Session
+from streamer.sessions import Session
 from streamer.record import BvhRecorder
 from streamer.sources import WavSource
 

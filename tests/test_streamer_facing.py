@@ -10,16 +10,17 @@ from dimgestor import rotations as R
 from dimgestor.audio import load_wav
 from dimgestor.checkpoint import load_checkpoint
 from streamer.cli import build_parser
-from streamer.engine import Session
-from streamer.sources import DEMO_WAV, RATE, AudioChunk
+from streamer.sessions import Session
+from dimgestor.audio import SAMPLE_RATE
+from streamer.sources import DEMO_WAV, AudioChunk
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
 def run_session(bundle, audio, **root):
     async def source():
-        for i in range(0, len(audio), RATE // 5):
-            yield AudioChunk(audio[i : i + RATE // 5], i / RATE, 0.0)
+        for i in range(0, len(audio), SAMPLE_RATE // 5):
+            yield AudioChunk(audio[i : i + SAMPLE_RATE // 5], i / SAMPLE_RATE, 0.0)
 
     frames = []
     session = Session.from_bundle(bundle, **root)
@@ -36,7 +37,7 @@ def test_the_looping_demo_faces_its_start_on_average_under_the_live_default():
     assert args.root == "tether"
     bundle = load_checkpoint(None)
     clip = load_wav(DEMO_WAV)
-    audio = np.tile(clip, int(np.ceil(60 * RATE / len(clip))))[: 60 * RATE]
+    audio = np.tile(clip, int(np.ceil(60 * SAMPLE_RATE / len(clip))))[: 60 * SAMPLE_RATE]
     frames = run_session(bundle, audio, root=args.root, tether_s=args.tether_s)
     assert len(frames) == 60 * 20
     heading = headings_deg(frames)

@@ -18,7 +18,8 @@ from websockets.exceptions import InvalidStatus
 from dimgestor.bvh import read_bvh
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.engine import Frame, Session
+from streamer.frames import Frame
+from streamer.sessions import Session
 from streamer.viewer import ViewerFiles
 from streamer.record import BvhRecorder
 from streamer.server import ServeError, ServeOptions, read_token

@@ -7,7 +7,7 @@ import pytest
 
 from dimgestor.synthetic import synthetic_skeleton
 from streamer import protocol as P
-from streamer.engine import Frame
+from streamer.frames import Frame
 
 
 def frame(J=13, index=7):

@@ -18,7 +18,7 @@ from websockets.exceptions import ConnectionClosed
 
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.engine import Session
+from streamer.sessions import Session
 from helpers.serve import serve
 from helpers.ws import SlowExecutor, make_server, recv_json
 

@@ -13,7 +13,7 @@ from pythonosc.osc_message import OscMessage
 from dimgestor.bvh import read_bvh
 from dimgestor.rotations import quat_normalize
 from dimgestor.synthetic import synthetic_skeleton
-from streamer.engine import Frame
+from streamer.frames import Frame
 from streamer.pose import HumanoidRig, load_humanoid_map
 from streamer.vmc import VmcEncoder, VmcOptions, VmcSink, reference_bundle
 from helpers.vmc import bundles, check_vmc_bundle, osc_server, type_tags

@@ -13,7 +13,7 @@ from websockets.exceptions import InvalidStatus
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.engine import Frame
+from streamer.frames import Frame
 from helpers.ws import make_server, recv_json
 
 pytestmark = pytest.mark.timeout(120)

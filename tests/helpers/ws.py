@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 from streamer import protocol as P
-from streamer.engine import Session
+from streamer.sessions import Session
 from streamer.pose import HumanoidRig, load_humanoid_map
 from streamer.ws import WsServer
 

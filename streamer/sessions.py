@@ -1,0 +1,206 @@
+"""Session: one audio source -> gesture frames, window by window, inference off the event loop.
+
+A session owns one `GestureStream` (the model's streaming state) and one `PoseDecoder` (the root
+integration). Its scheduler (`streamer.scheduling`) says when a window of audio is due and how a long take
+is cut into calls (`WindowPolicy`), and runs the calls: batched with the other sessions' windows
+(`StreamBatcher`, `streamer serve`'s default) or each alone (`RankedExecutor`, `--no-batch`). Calls are ranked
+by how far the session's audio is ahead of real time (`AudioClock`). Each frame is stamped with
+pts = index / fps on the audio clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import time
+from collections import deque
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import AsyncIterable, Callable
+
+import numpy as np
+
+from dimgestor.audio import SAMPLE_RATE
+from streamer.frames import Frame
+from streamer.scheduling import as_scheduler
+from streamer.sources import AudioChunk
+
+__all__ = ["Session", "Stats", "AudioClock"]
+
+
+@dataclass
+class Stats:
+    """Running measurements of one session; averages are exponential over recent windows."""
+
+    windows: int = 0
+    frames: int = 0
+    audio_s: float = 0.0
+    infer_s: float = 0.0
+    latency_ms: float = 0.0  # last sample of a window in -> its frames out
+    rtf: float = 0.0         # inference time / audio time
+    ended: bool = False
+
+    def update(self, audio_s: float, infer_s: float, latency_s: float, frames: int, alpha: float = 0.2) -> None:
+        a = 1.0 if self.windows == 0 else alpha
+        self.windows += 1
+        self.frames += frames
+        self.audio_s += audio_s
+        self.infer_s += infer_s
+        self.latency_ms += a * (1000 * latency_s - self.latency_ms)
+        if audio_s > 0:
+            self.rtf += a * (infer_s / audio_s - self.rtf)
+
+
+class _AudioBuffer:
+    """Bounded audio buffer between the source reader and the inference loop (back pressure when full)."""
+
+    def __init__(self, max_samples: int):
+        self.chunks: deque[AudioChunk] = deque()
+        self.samples = 0
+        self.max_samples = max_samples
+        self.closed = False
+        self.error: BaseException | None = None
+        self.changed = asyncio.Event()
+
+    async def put(self, chunk: AudioChunk) -> None:
+        while self.samples >= self.max_samples:
+            self.changed.clear()
+            await self.changed.wait()
+        self.chunks.append(chunk)
+        self.samples += len(chunk.samples)
+        self.changed.set()
+
+    def close(self, error: BaseException | None = None) -> None:
+        self.closed, self.error = True, error
+        self.changed.set()
+
+    async def take(self, min_samples: int) -> list[AudioChunk]:
+        """Everything buffered once at least min_samples are there (or the source ended)."""
+        while self.samples < min_samples and not self.closed:
+            self.changed.clear()
+            await self.changed.wait()
+        if self.error is not None:
+            raise self.error
+        chunks, self.chunks, self.samples = list(self.chunks), deque(), 0
+        self.changed.set()
+        return chunks
+
+
+class AudioClock:
+    """How far a stream's audio is ahead of real time: audio handed to inference minus time elapsed.
+
+    Shared by the successive sessions of one client (so restarting sessions earns no priority); time
+    without audio earns at most `max_credit_s` of catching up.
+    """
+
+    def __init__(self, max_credit_s: float = 2.0):
+        self.t0: float | None = None
+        self.audio_s = 0.0
+        self.max_credit_s = max_credit_s
+
+    def ahead_s(self) -> float:
+        now = time.monotonic()
+        if self.t0 is None:
+            self.t0 = now
+        behind = (now - self.t0) - self.audio_s
+        if behind > self.max_credit_s:
+            self.t0 += behind - self.max_credit_s
+        return -min(behind, self.max_credit_s)
+
+
+class Session:
+    """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`.
+
+    executor: a `streamer.scheduling.Scheduler`, any `concurrent.futures.Executor`, or None (a shared pool).
+    """
+
+    def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
+                 window_ms: int = 200, executor: Executor | None = None, name: str = "session"):
+        self.scheduler = as_scheduler(executor)
+        self.windows = self.scheduler.windows(window_ms)
+        self.stream, self.decoder, self.denormalize = stream, decoder, denormalize
+        self.fps, self.name = fps, name
+        self.stats = Stats()
+        self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
+
+    @classmethod
+    def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
+                    tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
+        from dimgestor.features import PoseDecoder
+
+        decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
+        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing, guidance=guidance), decoder,
+                   bundle.denormalize, bundle.feature_spec.fps, **kw)
+
+    @property
+    def lookahead_s(self) -> float:
+        return float(self.stream.lookahead_s)
+
+    def frames_of(self, normalized: np.ndarray) -> list[Frame]:
+        """The stream's newest n frames as normalized features (n, D) -> Frames (decoded poses, stamped).
+        A scheduler that pushed the stream itself (a batch) calls it; the pose decoder moves on."""
+        n = len(normalized)
+        if n == 0:
+            return []
+        first = self.stream.frames_out - n
+        feats = np.asarray(self.denormalize(normalized), dtype=np.float64)
+        pose = self.decoder.decode(feats)
+        return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
+                      np.asarray(pose.rotations[i]), feats[i]) for i in range(n)]
+
+    def infer(self, samples: np.ndarray) -> list[Frame]:
+        """One window's frames, inferred in the calling thread (a scheduler's worker)."""
+        return self.frames_of(self.stream.push(samples))
+
+    def infer_finish(self) -> list[Frame]:
+        """The frames after the audio ended, in the calling thread (a scheduler's worker)."""
+        return self.frames_of(self.stream.finish())
+
+    async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], object]) -> int:
+        """Stream `source` to the end, calling emit(frames) per call's frames; returns the frame count.
+
+        emit may return an awaitable (a sink applying back pressure): the session waits for it.
+        """
+        buffer = _AudioBuffer(self.windows.buffer)
+        reader = asyncio.create_task(self._read(source, buffer), name=f"{self.name}-reader")
+        try:
+            while chunks := await buffer.take(self.windows.window):
+                await self._window(chunks, emit)
+            finish = self.scheduler.submit_ranked(self.clock.ahead_s(), self.infer_finish)
+            frames = await asyncio.wrap_future(finish)
+            await _emit(emit, frames)
+            self.stats.frames += len(frames)
+            self.stats.ended = True
+            return self.stream.frames_out
+        finally:
+            if not reader.done():
+                reader.cancel()
+            await asyncio.gather(reader, return_exceptions=True)
+
+    @staticmethod
+    async def _read(source: AsyncIterable[AudioChunk], buffer: _AudioBuffer) -> None:
+        try:
+            async for chunk in source:
+                await buffer.put(chunk)
+            buffer.close()
+        except BaseException as e:  # surfaces in the inference loop, cancellation included
+            buffer.close(e if not isinstance(e, asyncio.CancelledError) else None)
+            raise
+
+    async def _window(self, chunks: list[AudioChunk], emit: Callable[[list[Frame]], object]) -> None:
+        """One due window: its calls in turn, each call's frames emitted as they come."""
+        samples = np.concatenate([c.samples for c in chunks])
+        infer_s, n = 0.0, 0
+        for call in self.windows.calls(samples):
+            t0 = time.perf_counter()
+            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, self.clock.ahead_s()))
+            self.clock.audio_s += len(call) / SAMPLE_RATE
+            infer_s += time.perf_counter() - t0
+            n += len(frames)
+            await _emit(emit, frames)
+        self.stats.update(len(samples) / SAMPLE_RATE, infer_s, time.monotonic() - chunks[-1].arrival, n)
+
+
+async def _emit(emit: Callable[[list[Frame]], object], frames: list[Frame]) -> None:
+    if inspect.isawaitable(r := emit(frames)):
+        await r

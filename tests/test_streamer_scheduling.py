@@ -1,0 +1,120 @@
+"""The schedulers behind one interface: every kind gives a session its offline frames; the window rule; exit."""
+
+import asyncio
+import subprocess
+import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dimgestor.stream import generate_offline
+from dimgestor.synthetic import synthetic_speech
+from streamer.scheduling import PoolScheduler, RankedExecutor, Scheduler, StreamBatcher, WindowPolicy, as_scheduler
+from streamer.sessions import Session
+from streamer.sources import AudioChunk
+
+pytestmark = pytest.mark.timeout(120)
+REPO = Path(__file__).resolve().parents[1]
+
+
+async def _chunks(audio, n=700):
+    for a in range(0, len(audio), n):
+        yield AudioChunk(audio[a:a + n], a / 16000, 0.0)
+
+
+@pytest.mark.parametrize("kind", ["batcher", "ranked", "pool", "none"])
+def test_every_scheduler_gives_a_session_its_offline_frames(bundle, kind):
+    audio = synthetic_speech(1.13, seed=2)
+    executor = {"batcher": lambda: StreamBatcher(), "ranked": lambda: RankedExecutor(2),
+                "pool": lambda: ThreadPoolExecutor(1), "none": lambda: None}[kind]()
+    session = Session.from_bundle(bundle, steps=2, seed=4, window_ms=130, executor=executor)
+    assert isinstance(session.scheduler, Scheduler)
+    frames = []
+    try:
+        n = asyncio.run(session.run(_chunks(audio), frames.extend))
+    finally:
+        session.scheduler.shutdown()
+    want = bundle.denormalize(generate_offline(bundle.model, audio, steps=2, seed=4))
+    assert n == len(frames) == len(want) and [f.index for f in frames] == list(range(n))
+    assert np.abs(np.stack([f.features for f in frames]) - want).max() < 1e-4
+
+
+def test_the_window_rule():
+    p = WindowPolicy.of(130, max_call_s=0.5, max_buffer_s=2.0)
+    assert (p.window, p.call, p.buffer) == (2080, 8000, 32000)
+    x = np.arange(17000)
+    assert [len(c) for c in p.calls(x)] == [8000, 8000, 1000] and np.array_equal(np.concatenate(p.calls(x)), x)
+    big = WindowPolicy.of(5000)  # a window longer than a call or the buffer: one call, room for one window
+    assert big.call == big.buffer == big.window == 80000
+    for bad in (9, 5001):
+        with pytest.raises(ValueError, match="window_ms"):
+            WindowPolicy.of(bad)
+    assert StreamBatcher.windows is RankedExecutor.windows is PoolScheduler.windows  # one rule for every kind
+
+
+def test_ranked_executor_runs_real_time_before_backlog():
+    ex, gate, order = RankedExecutor(1), threading.Event(), []
+    try:
+        ex.submit(gate.wait, 30)
+        futures = [ex.submit_ranked(r, order.append, r) for r in (2.0, 0.5, -1.0, 0.0, -1.0)]
+        gate.set()
+        [f.result(30) for f in futures]
+        assert order == [-1.0, -1.0, 0.0, 0.5, 2.0]
+    finally:
+        gate.set()
+        ex.shutdown()
+    with pytest.raises(RuntimeError, match="shutdown"):
+        ex.submit(print)
+
+
+def test_shutdown_cancels_what_waits():
+    for ex in (RankedExecutor(1), StreamBatcher()):
+        gate, started = threading.Event(), threading.Event()
+        running = ex.submit(lambda: (started.set(), gate.wait(30))[1])
+        assert started.wait(30)
+        waiting = ex.submit(lambda: 1)
+        ex.shutdown(wait=False, cancel_futures=True)
+        gate.set()
+        ex.shutdown()
+        assert running.result(5) is True and waiting.cancelled()
+
+
+def test_a_plain_executor_is_adapted_and_a_scheduler_is_itself():
+    b = StreamBatcher()
+    try:
+        assert as_scheduler(b) is b
+        assert isinstance(as_scheduler(None), PoolScheduler) and as_scheduler(None).submit(lambda: 7).result(10) == 7
+    finally:
+        b.shutdown()
+
+
+def test_the_interpreter_exits_with_schedulers_left_running():
+    """Never shut down, jobs inside torch calls: the exit hook lets them end and the process exits cleanly
+    (without it the daemon workers die mid-call and the process aborts: "terminate called ...")."""
+    code = """if True:
+        import time, torch
+        from streamer.scheduling import RankedExecutor, StreamBatcher
+        ex, b = RankedExecutor(1), StreamBatcher()
+        def job(name):
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 0.5:
+                torch.randn(200, 200).matmul(torch.randn(200, 200))
+            print("done", name, flush=True)
+        ex.submit(job, "ranked"), b.submit(job, "batcher")
+        time.sleep(0.2)
+        print("leaving", flush=True)
+    """
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "terminate" not in r.stderr, r.stderr[-2000:]
+    assert r.stdout.split("\n")[0] == "leaving" and {"done ranked", "done batcher"} <= set(r.stdout.split("\n"))
+
+
+def test_frames_protocol_and_vmc_do_not_import_the_threaded_engine():
+    code = ("import sys, streamer.protocol, streamer.vmc, streamer.record; "
+            "print(sorted(m for m in sys.modules if m in ('streamer.engine', 'streamer.sessions', "
+            "'streamer.scheduling', 'dimgestor.batch')))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-2000:])
