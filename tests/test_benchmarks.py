@@ -96,6 +96,18 @@ def test_streaming_benchmark_writes_every_section(tmp_path):
 
 
 
+def test_model_cost_benchmark_writes_its_schema(tmp_path):
+    out = tmp_path / "cost.json"
+    run("model_cost.py", "--preset", "tiny", "--steps", "1", "--batches", "1", "2", "--rounds", "2", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code_version"] and r["device"].startswith("CPU") and set(r["models"]) == {"default", "default_unguided", "preset"}
+    assert [(x["steps"], x["batch"]) for x in r["rows"]] == [(1, 1), (1, 2)]
+    for x in r["rows"]:
+        assert all(finite(x[m]["ms_p50"]) and x[m]["ms_p50"] > 0 for m in r["models"])
+        assert finite(x["ratio_p50"]) and finite(x["ratio_p50_unguided"]) and x["ratio_p50"] > 0
+
+
 def test_guidance_benchmark_writes_its_schema(tmp_path):
     out = tmp_path / "guidance.json"
     run("guidance.py", "--preset", "tiny", "--steps", "1", "2", "--audio-s", "1", "--batches", "2",
