@@ -8,7 +8,10 @@ import time
 import numpy as np
 import pytest
 
+from streamer.engine import Session
+
 from helpers.clients import CLIENT, REPO, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
+from helpers.ws import SlowExecutor, make_server, running
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -31,6 +34,72 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
     assert all(p.suffix == ".bin" for p in sorted(saved.iterdir()) if reference_decode(p)["type"] == "frame")
     assert f"received {len(frames)} frames" in r.stderr
     assert "frame" in r.stdout and "end:" in r.stdout
+
+
+def write_wav(path, seconds: float, rate: int = 16000) -> None:
+    import wave
+
+    from dimgestor.synthetic import synthetic_speech
+
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(rate)
+        w.writeframes((synthetic_speech(seconds, rate=rate, seed=2) * 20000).astype("<i2").tobytes())
+
+
+def check_own_session(saved, seconds: float) -> list[dict]:
+    """Every frame of `seconds` of audio, in order, then `end` with their count."""
+    msgs = [reference_decode(p) for p in sorted(saved.iterdir())]
+    frames = [m for m in msgs if m["type"] == "frame"]
+    assert [f["index"] for f in frames] == list(range(len(frames)))
+    assert abs(len(frames) - seconds * msgs[0]["fps"]) <= 2, (len(frames), seconds)
+    assert msgs[-1] == {"type": "end", "frames": len(frames)}
+    return msgs
+
+
+def test_python_client_pauses_at_slow_down_and_goes_on_at_resume(tmp_path, bundle):
+    """A server whose backlog holds 1 s of audio and whose inference runs only a few times real time: the
+    client's 10 s of self-clocked lead overflows it, so it gets `slow_down`, stops sending until `resume`
+    (revision 2) and still ends with every frame of the file, printing no error."""
+    talk = tmp_path / "talk.wav"
+    write_wav(talk, 20.0)
+    executor = SlowExecutor(1)  # >= 50 ms per inference call: the server cannot keep up with a burst
+    ws = make_server(bundle, max_backlog_s=1.0, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    saved = tmp_path / "own"
+    with running(ws):
+        r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
+                       timeout=170)
+    executor.shutdown()
+    msgs = check_own_session(saved, 20.0)
+    kinds = [m["type"] if m["type"] != "error" else m["code"] for m in msgs]
+    assert kinds.count("slow_down") >= 1 and kinds.count("slow_down") == kinds.count("resume"), kinds
+    assert set(kinds) <= {"hello", "frame", "status", "slow_down", "resume", "end"}, set(kinds)
+    out = r.stdout.splitlines()
+    pauses = [i for i, line in enumerate(out) if line.startswith("slow_down: pausing")]
+    resumes = [i for i, line in enumerate(out) if line.startswith("resume: ")]
+    assert len(pauses) == len(resumes) == kinds.count("slow_down") and all(a < b for a, b in zip(pauses, resumes))
+    assert not [line for line in out if line.startswith("error:")], r.stdout
+    assert f"paused {len(pauses)} times at slow_down" in r.stderr, r.stderr
+
+
+def test_python_client_sends_a_file_self_clocked_and_is_never_slowed_down(tmp_path, bundle):
+    """Against a server that runs a few times real time and holds 12 s of backlog, a file sent --fast but kept
+    within 10 s (plus one 1 s message) of the frames that came back never fills the backlog: no `slow_down`
+    (so the server never holds its socket, pings included), and every frame. Sent as fast as the server
+    reads, the same file would overflow it."""
+    talk = tmp_path / "long.wav"
+    write_wav(talk, 30.0, rate=22050)
+    executor = SlowExecutor(1, delay_s=0.3)  # calls take up to 1 s of audio: about 3x real time at most
+    ws = make_server(bundle, max_backlog_s=12.0, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    saved = tmp_path / "own"
+    with running(ws):
+        r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
+                       timeout=170)
+    executor.shutdown()
+    msgs = check_own_session(saved, 30.0)
+    assert not [m for m in msgs if m["type"] in ("error", "resume")], [m for m in msgs if m["type"] != "frame"]
+    assert "slow_down" not in r.stdout and "error:" not in r.stdout, r.stdout
 
 
 def test_python_client_watches_the_broadcast_as_json(tmp_path, checkpoint):
