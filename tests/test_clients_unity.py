@@ -153,6 +153,34 @@ def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint): 
     assert out["moved"] > 1e-3 and out["changed"] > 1.5 * out["frames"], out
 
 
+def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path, bundle):
+    """The same run against a server slower than real time whose backlog holds 0.5 s (in process; its session
+    buffers 2 s more itself, so it is full about 4 s into our talk): the client
+    gets `slow_down`, holds what SendAudio gives it, sends it at `resume`, and every second of its audio comes
+    back as frames, with no error."""
+    from streamer.engine import Session
+
+    from helpers.ws import SlowExecutor, make_server, running
+
+    exe = tmp_path / "LiveCheck.exe"
+    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
+                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs",
+                                   "tests/StubAvatar.cs", "tests/LiveCheck.cs")))
+    seconds = 5
+    executor = SlowExecutor(1, delay_s=3.0)  # at most 1 s of audio per call: a third of real time
+    ws = make_server(bundle, max_backlog_s=0.5, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    with running(ws):
+        r = subprocess.run([MONO, str(exe), ws.url, str(SPEECH_WAV), str(seconds)], capture_output=True,
+                           text=True, timeout=120)
+    executor.shutdown()
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["sent"] and out["error"] == "", out
+    assert out["pauses"] >= 1 and out["resumes"] == out["pauses"] and not out["paused"], out
+    assert out["dropped_s"] == 0 and out["frames"] >= seconds * 20 - 2, out
+
+
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
     mcs(tmp_path / "DimgestorClient.dll", UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs",
         UNITY / "DimgestorPlayout.cs", UNITY / "DimgestorAudioFlow.cs", UNITY / "DimgestorClient.cs",
