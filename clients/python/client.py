@@ -260,6 +260,12 @@ async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicH
                 flow.sent_s += len(data) / 4 / rate
         except asyncio.CancelledError:
             pass
+    # Stopped (Ctrl-C): what is held goes too, after the server's `resume` if it has us paused; then audio_end.
+    while flow.paused and not flow.refused:
+        flow.changed.clear()
+        await flow.changed.wait()
+    while hold.chunks and not flow.refused:
+        await ws.send(hold.take())
     await ws.send(json.dumps({"type": "audio_end"}))
     return hold
 
@@ -277,7 +283,7 @@ async def run(args) -> int:
             sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow))
             loop = asyncio.get_running_loop()
 
-            def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
+            def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
                 loop.remove_signal_handler(signal.SIGINT)
                 sender.cancel()
             loop.add_signal_handler(signal.SIGINT, stop_talking)
