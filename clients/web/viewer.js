@@ -524,7 +524,7 @@ function onMessage(data) {
       if (mode === 'talk' && api.audioFlow) {
         for (const buf of api.audioFlow.resume()) sendNow(buf);
         if (endPending) endAudio();
-        else say(`the server resumed (backlog ${fmt(msg.backlog_s)} s): talking again`);
+        else if (api.talking) say(`the server resumed (backlog ${fmt(msg.backlog_s)} s): talking again`);
       }
       break;
     case 'end':
