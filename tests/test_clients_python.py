@@ -8,7 +8,10 @@ import time
 import numpy as np
 import pytest
 
+from streamer.engine import Session
+
 from helpers.clients import CLIENT, REPO, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
+from helpers.ws import SlowExecutor, make_server, running
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -31,6 +34,117 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
     assert all(p.suffix == ".bin" for p in sorted(saved.iterdir()) if reference_decode(p)["type"] == "frame")
     assert f"received {len(frames)} frames" in r.stderr
     assert "frame" in r.stdout and "end:" in r.stdout
+
+
+def write_wav(path, seconds: float, rate: int = 16000) -> None:
+    import wave
+
+    from dimgestor.synthetic import synthetic_speech
+
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(rate)
+        w.writeframes((synthetic_speech(seconds, rate=rate, seed=2) * 20000).astype("<i2").tobytes())
+
+
+def check_own_session(saved, seconds: float) -> list[dict]:
+    """Every frame of `seconds` of audio, in order, then `end` with their count."""
+    msgs = [reference_decode(p) for p in sorted(saved.iterdir())]
+    frames = [m for m in msgs if m["type"] == "frame"]
+    assert [f["index"] for f in frames] == list(range(len(frames)))
+    assert abs(len(frames) - seconds * msgs[0]["fps"]) <= 2, (len(frames), seconds)
+    assert msgs[-1] == {"type": "end", "frames": len(frames)}
+    return msgs
+
+
+def test_python_client_pauses_at_slow_down_and_goes_on_at_resume(tmp_path, bundle):
+    """A server whose backlog holds 1 s of audio and whose inference runs only a few times real time: the
+    client's 10 s of self-clocked lead overflows it, so it gets `slow_down`, stops sending until `resume`
+    (revision 2) and still ends with every frame of the file, printing no error."""
+    talk = tmp_path / "talk.wav"
+    write_wav(talk, 20.0)
+    executor = SlowExecutor(1)  # >= 50 ms per inference call: the server cannot keep up with a burst
+    ws = make_server(bundle, max_backlog_s=1.0, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    saved = tmp_path / "own"
+    with running(ws):
+        r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
+                       timeout=170)
+    executor.shutdown()
+    msgs = check_own_session(saved, 20.0)
+    kinds = [m["type"] if m["type"] != "error" else m["code"] for m in msgs]
+    assert kinds.count("slow_down") >= 1 and kinds.count("slow_down") == kinds.count("resume"), kinds
+    assert set(kinds) <= {"hello", "frame", "status", "slow_down", "resume", "end"}, set(kinds)
+    out = r.stdout.splitlines()
+    pauses = [i for i, line in enumerate(out) if line.startswith("slow_down: pausing")]
+    resumes = [i for i, line in enumerate(out) if line.startswith("resume: ")]
+    assert len(pauses) == len(resumes) == kinds.count("slow_down") and all(a < b for a, b in zip(pauses, resumes))
+    assert not [line for line in out if line.startswith("error:")], r.stdout
+    assert f"paused {len(pauses)} times at slow_down" in r.stderr, r.stderr
+
+
+def test_python_client_sends_a_file_self_clocked_and_is_never_slowed_down(tmp_path, bundle):
+    """Against a server that runs a few times real time and holds 12 s of backlog, a file sent --fast but kept
+    within 10 s (plus one 1 s message) of the frames that came back never fills the backlog: no `slow_down`
+    (so the server never holds its socket, pings included), and every frame. Sent as fast as the server
+    reads, the same file would overflow it."""
+    talk = tmp_path / "long.wav"
+    write_wav(talk, 30.0, rate=22050)
+    executor = SlowExecutor(1, delay_s=0.3)  # calls take up to 1 s of audio: about 3x real time at most
+    ws = make_server(bundle, max_backlog_s=12.0, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    saved = tmp_path / "own"
+    with running(ws):
+        r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
+                       timeout=170)
+    executor.shutdown()
+    msgs = check_own_session(saved, 30.0)
+    assert not [m for m in msgs if m["type"] in ("error", "resume")], [m for m in msgs if m["type"] != "frame"]
+    assert "slow_down" not in r.stdout and "error:" not in r.stdout, r.stdout
+
+
+def load_client():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("dimgestor_example_client", CLIENT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_python_client_mic_hold_is_bounded_and_counts_what_it_drops():
+    """While paused, the microphone's chunks wait in MicHold: in order, at most hold_s seconds of them; beyond,
+    the oldest go and are counted (never the newest)."""
+    client = load_client()
+    hold = client.MicHold(rate=1000, hold_s=1.0)
+    chunks = [np.full(400, k, "<f4").tobytes() for k in range(6)]  # 0.4 s each
+    for c in chunks:
+        hold.add(c)
+    assert list(hold.chunks) == chunks[4:] and hold.samples == 800  # a third 0.4 s chunk would exceed 1 s
+    assert hold.dropped_samples == 1600 and hold.dropped_s == 1.6
+    assert hold.take() == chunks[4] and hold.samples == 400
+
+
+def test_python_client_flow_pauses_and_clocks_itself_on_the_server_messages():
+    """AudioFlow: paused from `slow_down` to `resume`; a file at most ahead_s beyond the last frame of its own
+    session (frames of a broadcast still queued before ours, which start at index 0, do not count)."""
+    client = load_client()
+    flow = client.AudioFlow(ahead_s=10.0)
+    assert flow.may_send()
+    flow.sent_s = 10.0
+    assert not flow.may_send()  # 10 s ahead of nothing yet
+    flow.on_message({"type": "frame", "index": 500, "pts": 25.0}, 20.0)  # the broadcast's, before ours
+    assert not flow.may_send() and flow.heard_s == 0.0
+    flow.on_message({"type": "frame", "index": 0, "pts": 0.0}, 20.0)
+    flow.on_message({"type": "frame", "index": 1, "pts": 0.05}, 20.0)
+    assert flow.heard_s == 0.1 and flow.may_send()
+    flow.on_message({"type": "error", "code": "slow_down", "message": "x"}, 20.0)
+    assert flow.paused and not flow.may_send() and flow.pauses == 1
+    flow.on_message({"type": "future_thing"}, 20.0)
+    assert not flow.may_send()
+    flow.on_message({"type": "resume", "backlog_s": 14.9}, 20.0)
+    assert flow.may_send() and not flow.paused
+    flow.on_message({"type": "error", "code": "busy", "message": "x"}, 20.0)
+    assert flow.refused == "busy" and flow.may_send()  # (the sender stops and sends audio_end)
 
 
 def test_python_client_watches_the_broadcast_as_json(tmp_path, checkpoint):
@@ -104,6 +218,43 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic
     talking, resting = speed[(t > 1.0) & (t < 4.0)], speed[(t > 6.0) & (t < 8.0)]
     assert len(talking) > 40 and len(resting) > 25, (len(talking), len(resting))
     assert np.median(talking) > 2 * np.median(resting), (np.median(talking), np.median(resting))
+
+
+def test_python_client_mic_holds_its_audio_at_slow_down_and_sends_it_at_resume(tmp_path, vmic, bundle):
+    """`--mic` (real PortAudio, a virtual sound card) talking to a server at a third of real time whose backlog
+    holds 0.5 s (in process): it gets `slow_down`, holds the microphone (under its 10 s bound: nothing dropped)
+    and sends it at `resume`; Ctrl-C then ends the session with `end`, no error, and says how often it paused."""
+    from virtual_mic import speech_then_silence
+
+    talk = speech_then_silence(tmp_path / "talk.wav", 3.0, 1.0)
+    executor = SlowExecutor(1, delay_s=3.0)
+    ws = make_server(bundle, max_backlog_s=0.5, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    with running(ws):
+        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", ws.url, "--mic", "--device", "vmic44",
+                                 "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=vmic.env,
+                                cwd=REPO)
+        try:
+            lines = []
+            while not any(line.startswith("resume: ") for line in lines):
+                line = proc.stdout.readline()
+                assert line, f"client ended early: {''.join(lines)}{proc.stderr.read()}"
+                lines.append(line)
+                if line.startswith("hello:"):
+                    vmic.play(talk, "mic44")
+            proc.send_signal(signal.SIGINT)  # first Ctrl-C: held audio, audio_end, the last frames
+            out, err = proc.stdout.read(), proc.stderr.read()
+            proc.wait(60)
+        finally:
+            vmic.stop_players()
+            if proc.poll() is None:
+                proc.kill()
+    executor.shutdown()
+    out = "".join(lines) + out
+    assert proc.returncode == 0, err
+    assert "end:" in out and "error:" not in out, out
+    assert any(line.startswith("slow_down: pausing") for line in out.splitlines()), out
+    assert "paused" in err and "times at slow_down" in err and "dropped" not in err, err
 
 
 @pytest.mark.parametrize("args, says", [

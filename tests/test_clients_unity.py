@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from helpers.clients import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded,
+from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
 
 UNITY = REPO / "clients" / "unity"
@@ -74,14 +74,28 @@ def test_unity_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
     assert out[3] == {"file": "000003.json", "type": "future_thing"}  # unknown types are ignored, not errors
 
 
+def test_unity_audio_flow_pauses_at_slow_down_and_resumes_with_bounded_holding(tmp_path):
+    """Protocol.Parse + AudioFlow (DimgestorAudioFlow.cs) on the server's slow_down / resume (revision 2): chunks
+    are held in order while paused, at most 1 s of them (the oldest dropped and counted), sent at `resume`,
+    with an audio_end asked for meanwhile after them; an unknown message type changes nothing."""
+    exe = tmp_path / "FlowCheck.exe"
+    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorAudioFlow.cs",
+        UNITY / "tests" / "FlowCheck.cs")
+    script = tmp_path / "flow.txt"
+    script.write_text(FLOW_SCRIPT)
+    r = subprocess.run([MONO, str(exe), "1.0", str(script)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    check_flow([json.loads(line) for line in r.stdout.splitlines()])
+
+
 @pytest.mark.parametrize("yaw", [0.0, 37.0])
 def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, recordings, yaw):
     """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
     the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
     exe = tmp_path / "RetargetCheck.exe"
     mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorPlayout.cs",
-        UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs", UNITY / "tests" / "StubAvatar.cs",
-        UNITY / "tests" / "RetargetCheck.cs")
+        UNITY / "DimgestorAudioFlow.cs", UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs",
+        UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "RetargetCheck.cs")
     folder = recordings["binary"][0].parent
     r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -126,7 +140,7 @@ def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint): 
     smoothly (pose changes on most display ticks, not once per 200 ms burst)."""
     exe = tmp_path / "LiveCheck.exe"
     mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                   "DimgestorClient.cs", "tests/UnityEngineStubs.cs", "tests/StubAvatar.cs",
+                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs", "tests/StubAvatar.cs",
                                    "tests/LiveCheck.cs")))
     seconds = 4
     with live_server(tmp_path, "ws", checkpoint) as server:
@@ -139,10 +153,38 @@ def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint): 
     assert out["moved"] > 1e-3 and out["changed"] > 1.5 * out["frames"], out
 
 
+def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path, bundle):
+    """The same run against a server slower than real time whose backlog holds 0.5 s (in process; its session
+    buffers 2 s more itself, so it is full about 4 s into our talk): the client
+    gets `slow_down`, holds what SendAudio gives it, sends it at `resume`, and every second of its audio comes
+    back as frames, with no error."""
+    from streamer.engine import Session
+
+    from helpers.ws import SlowExecutor, make_server, running
+
+    exe = tmp_path / "LiveCheck.exe"
+    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
+                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs",
+                                   "tests/StubAvatar.cs", "tests/LiveCheck.cs")))
+    seconds = 5
+    executor = SlowExecutor(1, delay_s=3.0)  # at most 1 s of audio per call: a third of real time
+    ws = make_server(bundle, max_backlog_s=0.5, files=None)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    with running(ws):
+        r = subprocess.run([MONO, str(exe), ws.url, str(SPEECH_WAV), str(seconds)], capture_output=True,
+                           text=True, timeout=120)
+    executor.shutdown()
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["sent"] and out["error"] == "", out
+    assert out["pauses"] >= 1 and out["resumes"] == out["pauses"] and not out["paused"], out
+    assert out["dropped_s"] == 0 and out["frames"] >= seconds * 20 - 2, out
+
+
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
     mcs(tmp_path / "DimgestorClient.dll", UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs",
-        UNITY / "DimgestorPlayout.cs", UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs",
-        library=True)
+        UNITY / "DimgestorPlayout.cs", UNITY / "DimgestorAudioFlow.cs", UNITY / "DimgestorClient.cs",
+        UNITY / "tests" / "UnityEngineStubs.cs", library=True)
     # The stubs must only declare what Unity really has; the client must use nothing Unity lacks.
     stub = (UNITY / "tests" / "UnityEngineStubs.cs").read_text()
     assert "namespace UnityEngine" in stub and "GetBoneTransform(HumanBodyBones" in stub

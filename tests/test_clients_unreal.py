@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from helpers.clients import (REPO, SPEECH_WAV, check_axis_conversion, check_decoded,
+from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
 
 UNREAL = REPO / "clients" / "unreal"
@@ -67,10 +67,51 @@ def retarget_check(tmp_path_factory):
     exe = tmp_path_factory.mktemp("unreal_component") / "retarget_check"
     cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
            f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "retarget_check.cpp"),
-           *(str(UNREAL / f) for f in ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp"))]
+           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
     return exe
+
+
+COMPONENT_SOURCES = ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp",
+                     "DimgestorAudioFlow.cpp")
+
+
+def test_unreal_audio_flow_pauses_at_slow_down_and_resumes_with_bounded_holding(tmp_path):
+    """ParseMessage + AudioFlow (DimgestorAudioFlow.h) on the server's slow_down / resume (revision 2): chunks
+    are held in order while paused, at most 1 s of them (the oldest dropped and counted), sent at `resume`,
+    with an audio_end asked for meanwhile after them; an unknown message type changes nothing."""
+    exe = tmp_path / "flow_check"
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Wextra", "-Werror", "-fno-exceptions", "-o", str(exe),
+           *(str(UNREAL / f) for f in ("DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorAudioFlow.cpp",
+                                       "tests/flow_check.cpp"))]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    script = tmp_path / "flow.txt"
+    script.write_text(FLOW_SCRIPT)
+    r = subprocess.run([str(exe), "1.0", str(script)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    check_flow([json.loads(line) for line in r.stdout.splitlines()])
+
+
+def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path):
+    """UDimgestorComponent (engine stand-ins) talking: after the server's slow_down nothing more goes out, what
+    SendAudio gets is held (at most MaxHeldAudioS = 1 s: the oldest dropped and counted), an EndAudio waits;
+    at resume the held chunks go in order, then audio_end. slow_down is no error."""
+    exe = tmp_path / "component_flow_check"
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
+           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "component_flow_check.cpp"),
+           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ok"] and out["paused"] and not out["paused_after"] and out["last_error"] == "", out
+    assert out["sent_while_paused"] == 2, out  # the audio hello and chunk 1, before the slow_down
+    assert out["log"] == ['text:{"type":"hello","encoding":"binary"}', "binary:1:1600", "binary:5:1600",
+                          "binary:6:1600", 'text:{"type":"audio_end"}'], out["log"]
+    assert out["dropped_s"] == pytest.approx(1.2) and "slow down" in out["notice"], out
 
 
 @pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])

@@ -226,6 +226,67 @@ def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, che
             browser.close()
 
 
+def test_web_mic_flow_control_holds_bounded_and_sends_in_order(tmp_path):
+    """clients/web/audio-flow.js under node: chunks go out at once until `slow_down`, are held (in order) until
+    `resume`, and beyond the bound (here 1 s) the oldest are dropped and counted, never the newest."""
+    node = shutil.which("node")
+    if not node:
+        pytest.skip("node not installed (Debian: apt-get install nodejs)")
+    script = tmp_path / "flow.txt"
+    script.write_text("\n".join(["chunk a 400", "slow_down", "chunk b 400", "chunk c 400", "slow_down", "resume",
+                                 "resume", "chunk d 400", "slow_down"] + [f"chunk e{i} 400" for i in range(5)]
+                                + ["resume"]))
+    r = subprocess.run([node, str(REPO / "clients/web/tests/audio_flow_check.mjs"), "1000", "1", str(script)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    assert [o["sent"] for o in out[:9]] == [["a"], [], [], [], [], ["b", "c"], [], ["d"], []]
+    assert out[1]["paused"] and out[3]["held_s"] == 0.8 and not out[5]["paused"]
+    assert out[4]["pauses"] == 1 and out[6]["resumes"] == 1  # a repeated notice is one pause
+    # 5 x 0.4 s held with room for 1 s: e0, e1, e2 dropped (counted), e3 and e4 sent at resume
+    assert out[-1]["sent"] == ["e3", "e4"] and out[-1]["dropped_chunks"] == 3 and out[-1]["dropped_s"] == 1.2
+    assert out[-2]["held_s"] == 0.8 and out[-1]["held_s"] == 0
+
+
+def test_web_talk_pauses_at_slow_down_and_resumes_without_an_error(tmp_path, bundle):  # noqa: F811
+    """A server slower than real time with a 1 s backlog (in process, serving the viewer itself): the page's
+    microphone gets `slow_down`, holds its audio, sends it at `resume` (protocol revision 2), shows no error,
+    and ends its session with `end` after Stop."""
+    from streamer.engine import Session
+
+    from helpers.ws import SlowExecutor, make_server, running
+
+    executor = SlowExecutor(1, delay_s=2.0)  # at most 1 s of audio per call: about half real time
+    ws = make_server(bundle, max_backlog_s=1.0)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+    with running(ws):
+        browser = Browser(tmp_path, ws.viewer_urls[0], (
+            "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+            f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
+        try:
+            browser.wait_for("window.dimgestor && window.dimgestor.hello && "
+                             "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
+            browser.eval("document.getElementById('talk').click()", user_gesture=True)
+            browser.wait_for("window.dimgestor.audioFlow && window.dimgestor.audioFlow.resumes >= 1", 90,
+                             "slow_down then resume")
+            browser.wait_for("window.dimgestor.framesReceived >= 10", 60, "gestures from our own audio")
+            flow = browser.eval("({pauses: dimgestor.audioFlow.pauses, resumes: dimgestor.audioFlow.resumes, "
+                                "dropped: dimgestor.audioFlow.droppedChunks, sent: dimgestor.audioChunksSent, "
+                                "notices: dimgestor.notices.map((m) => m.type === 'error' ? m.code : m.type)})")
+            assert flow["pauses"] >= 1 and flow["dropped"] == 0 and flow["sent"] > 10, flow
+            assert set(flow["notices"]) == {"slow_down", "resume"}, flow
+            assert "server error" not in browser.eval("document.getElementById('message').textContent")
+            frames = browser.eval("window.dimgestor.framesReceived")
+            browser.eval("document.getElementById('talk').click()", user_gesture=True)  # Stop -> audio_end
+            ended = browser.wait_for("window.dimgestor.ended", 120, "end of our session")
+            assert ended["frames"] >= frames
+            assert browser.eval("window.dimgestor.errors.length") == 0, browser.eval("window.dimgestor.errors")
+            assert browser.eval("window.dimgestor.audioFlow.paused") is False
+        finally:
+            browser.close()
+    executor.shutdown()
+
+
 # ---------------------------------------------------------------- the real skeleton: mannequin, sound, VRM
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Example dimgestor client (protocol v1, docs/protocol.md): print frames, optionally send a WAV or the mic.
+"""Example dimgestor client (protocol v1 revision 2, docs/protocol.md): print frames, optionally send a WAV or the mic.
 
     python clients/python/client.py                                # watch the server's source
     python clients/python/client.py --wav speech.wav --binary      # own session from a WAV file
@@ -17,6 +17,7 @@ import signal
 import struct
 import sys
 import wave
+from collections import deque
 from pathlib import Path
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
@@ -26,6 +27,9 @@ from websockets.exceptions import InvalidStatus
 
 BINARY_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then J*4 float32 wxyz
 CHUNK_S = 0.02  # audio message length: small enough for latency, large enough for little overhead
+FAST_CHUNK_S = 1.0  # --fast: messages of about a second (docs/protocol.md, Audio), few and small enough to pause
+AHEAD_S = 10.0  # a file is sent at most this far ahead of the pts of the last frame back (self-clocked)
+MIC_HOLD_S = 10.0  # microphone audio held while the server has us paused; beyond it the oldest is dropped, counted
 
 
 def decode_binary_frame(buf: bytes) -> dict:
@@ -67,6 +71,47 @@ def with_token(url: str, token: str | None) -> str:
     return urlunsplit(parts._replace(query=urlencode(query)))
 
 
+class AudioFlow:
+    """When our audio may go out (docs/protocol.md, Audio): not between a `slow_down` and its `resume`, and
+    never more than `ahead_s` seconds beyond the pts of the last frame of our own session (self-clocked:
+    the server's 30 s backlog is then never reached, so it never has to hold our socket, pings included)."""
+
+    def __init__(self, ahead_s: float = float("inf")):
+        self.ahead_s = ahead_s
+        self.sent_s = 0.0  # audio sent in this session, seconds
+        self.heard_s = 0.0  # pts of the last frame of our own session, plus one frame
+        self.own = False  # our session's frames have begun (a frame with index 0 after our first audio)
+        self.paused = False
+        self.pauses = 0
+        self.refused: str | None = None  # the server will not take our audio (busy, ...): stop sending
+        self.changed = asyncio.Event()
+
+    def on_message(self, msg: dict, fps: float) -> None:
+        kind = msg.get("type")
+        if kind == "error" and msg.get("code") == "slow_down":
+            self.paused, self.pauses = True, self.pauses + 1
+        elif kind == "resume":
+            self.paused = False
+        elif kind == "error" and msg.get("code") in ("busy", "audio_disabled", "internal"):
+            self.refused = msg["code"]
+        elif kind == "frame" and self.sent_s > 0:
+            # Frames of the broadcast we followed before our audio may still come; ours start at index 0.
+            self.own = self.own or msg["index"] == 0
+            if self.own:
+                self.heard_s = max(self.heard_s, msg["pts"] + 1.0 / fps)
+        else:
+            return
+        self.changed.set()
+
+    def may_send(self) -> bool:
+        return self.refused is not None or (not self.paused and self.sent_s - self.heard_s < self.ahead_s)
+
+    async def ready(self) -> None:
+        while not self.may_send():
+            self.changed.clear()
+            await self.changed.wait()
+
+
 class Printer:
     """Prints messages (and saves them verbatim with --save); counts frames."""
 
@@ -100,6 +145,10 @@ class Printer:
         elif kind == "status" and not self.args.quiet:
             print(f"status: latency {msg.get('latency_ms')} ms, rtf {msg.get('rtf')}, sent {msg.get('frames_sent')}, "
                   f"dropped {msg.get('dropped')}, clients {msg.get('clients')}")
+        elif kind == "error" and msg.get("code") == "slow_down":  # a notice: nothing was lost
+            print(f"slow_down: pausing our audio until resume ({msg.get('message')})")
+        elif kind == "resume":
+            print(f"resume: the server's backlog of our audio is down to {msg.get('backlog_s')} s; sending again")
         elif kind in ("error", "end"):
             print(f"{kind}: {json.dumps({k: v for k, v in msg.items() if k != 'type'})}")
         return msg
@@ -113,12 +162,17 @@ def client_hello(binary: bool, audio: dict | None = None) -> str:
     return json.dumps(hello)
 
 
-async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool) -> None:
+async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, flow: AudioFlow) -> None:
     await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": audio.shape[1]}))
-    step = max(1, int(rate * CHUNK_S))
+    step = max(1, int(rate * (CHUNK_S if pace else FAST_CHUNK_S)))
     for i in range(0, len(audio), step):
-        await ws.send(audio[i:i + step].astype("<f4").tobytes())
-        if pace:  # like a live talker; the server back-pressures anyway when it falls behind
+        await flow.ready()  # paused by slow_down, or too far ahead of the frames we got back
+        if flow.refused:
+            break  # (audio_end below: the server answers `end`)
+        chunk = audio[i:i + step]
+        await ws.send(chunk.astype("<f4").tobytes())
+        flow.sent_s += len(chunk) / rate
+        if pace:  # like a live talker
             await asyncio.sleep(CHUNK_S)
     await ws.send(json.dumps({"type": "audio_end"}))
 
@@ -145,18 +199,49 @@ def open_mic(device: str | None, rate: int | None) -> tuple[int | str | None, in
     return dev, rate
 
 
-async def send_mic(ws, rate: int, device, binary: bool) -> None:
+class MicHold:
+    """Microphone chunks not sent yet (paused by `slow_down`, or a stalled socket): at most `hold_s` seconds;
+    beyond that the oldest go, and are counted (a live talker wants now, not what it said long ago)."""
+
+    def __init__(self, rate: int, hold_s: float = MIC_HOLD_S):
+        self.rate, self.max_samples = rate, int(hold_s * rate)
+        self.chunks: deque[bytes] = deque()
+        self.samples = 0
+        self.dropped_samples = 0
+
+    def add(self, data: bytes) -> None:
+        self.chunks.append(data)
+        self.samples += len(data) // 4
+        while self.samples > self.max_samples:
+            old = self.chunks.popleft()
+            self.samples -= len(old) // 4
+            self.dropped_samples += len(old) // 4
+
+    def take(self) -> bytes:
+        data = self.chunks.popleft()
+        self.samples -= len(data) // 4
+        return data
+
+    @property
+    def dropped_s(self) -> float:
+        return self.dropped_samples / self.rate
+
+
+async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicHold:
     import sounddevice as sd
 
     loop = asyncio.get_running_loop()
-    chunks: asyncio.Queue[bytes] = asyncio.Queue(maxsize=100)  # ~2 s; a stalled socket drops the oldest
+    hold = MicHold(rate)
 
     def on_audio(indata, frames, time, status):
         data = indata[:, 0].astype("<f4").tobytes()
         def put():
-            if chunks.full():
-                chunks.get_nowait()
-            chunks.put_nowait(data)
+            dropped = hold.dropped_samples
+            hold.add(data)
+            if hold.dropped_samples and not dropped:
+                print(f"microphone: the server has held us back for {MIC_HOLD_S:.0f} s; dropping the oldest audio "
+                      f"(counted, reported at the end)", file=sys.stderr)
+            flow.changed.set()
         loop.call_soon_threadsafe(put)
 
     await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}))
@@ -165,25 +250,40 @@ async def send_mic(ws, rate: int, device, binary: bool) -> None:
                         device=device, callback=on_audio):
         try:
             while True:
-                await ws.send(await chunks.get())
+                while not (hold.chunks and not flow.paused) and not flow.refused:  # paused: they wait in `hold`
+                    flow.changed.clear()
+                    await flow.changed.wait()
+                if flow.refused:
+                    break
+                data = hold.take()
+                await ws.send(data)
+                flow.sent_s += len(data) / 4 / rate
         except asyncio.CancelledError:
             pass
+    # Stopped (Ctrl-C): what is held goes too, after the server's `resume` if it has us paused; then audio_end.
+    while flow.paused and not flow.refused:
+        flow.changed.clear()
+        await flow.changed.wait()
+    while hold.chunks and not flow.refused:
+        await ws.send(hold.take())
     await ws.send(json.dumps({"type": "audio_end"}))
+    return hold
 
 
 async def run(args) -> int:
     printer = Printer(args)
     wav = read_wav(args.wav) if args.wav else None  # a bad file or device fails before we connect
     mic = open_mic(args.device, args.rate) if args.mic else None
+    flow = AudioFlow(AHEAD_S if args.wav else float("inf"))  # a microphone is clocked by the talker
     async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
         sender = None
         if args.wav:
-            sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary))
+            sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow))
         elif args.mic:
-            sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary))
+            sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow))
             loop = asyncio.get_running_loop()
 
-            def stop_talking():  # first Ctrl-C: audio_end and wait for the last frames; second: quit
+            def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
                 loop.remove_signal_handler(signal.SIGINT)
                 sender.cancel()
             loop.add_signal_handler(signal.SIGINT, stop_talking)
@@ -191,8 +291,11 @@ async def run(args) -> int:
             await ws.send(client_hello(True))
 
         async def receive():
+            fps = 20.0
             async for message in ws:
                 msg = printer.handle(message)
+                fps = msg.get("fps", fps) if msg.get("type") == "hello" else fps
+                flow.on_message(msg, fps)
                 if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
                     return
         try:
@@ -205,7 +308,11 @@ async def run(args) -> int:
     if sender and sender.done() and not sender.cancelled() and sender.exception():
         print(f"sending audio failed: {sender.exception()!r}", file=sys.stderr)
         return 1
-    print(f"received {printer.frames} frames", file=sys.stderr)
+    notes = [f"paused {flow.pauses} times at slow_down"] if flow.pauses else []
+    hold = sender.result() if args.mic and sender and sender.done() and not sender.cancelled() else None
+    if hold is not None and hold.dropped_samples:
+        notes.append(f"dropped {hold.dropped_s:.2f} s of microphone audio held back beyond {MIC_HOLD_S:.0f} s")
+    print(f"received {printer.frames} frames" + "".join(f"; {n}" for n in notes), file=sys.stderr)
     return 0
 
 

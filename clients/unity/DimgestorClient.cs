@@ -1,4 +1,4 @@
-// Unity client for dimgestor (protocol v1): receives gesture frames over a WebSocket and drives a Humanoid
+// Unity client for dimgestor (protocol v1 revision 2): receives gesture frames over a WebSocket and drives a Humanoid
 // avatar through Animator.GetBoneTransform. No third-party package: System.Net.WebSockets.ClientWebSocket.
 //
 // Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
@@ -28,6 +28,8 @@ namespace Dimgestor
         public Animator animator;
         [Tooltip("Move the hips with the source root (scaled to the avatar's hip height)")]
         public bool applyRootPosition = true;
+        [Tooltip("Audio held while the server has us paused (slow_down until resume); beyond it the oldest is dropped")]
+        public float maxHeldAudioS = (float)AudioFlow.DefaultMaxHeldS;
 
         [Header("Read only")]
         public string connectionState = "idle";
@@ -35,6 +37,9 @@ namespace Dimgestor
         public float latencyMs;
         public long droppedFrames;
         public string lastError = "";
+        public bool audioPaused;                  // between the server's slow_down and its resume
+        public float heldAudioS;                  // audio waiting for resume
+        public float droppedAudioS;               // held beyond maxHeldAudioS: dropped (oldest first)
 
         class Binding { public Transform bone; public int joint; public Quaternion rest; }
 
@@ -56,6 +61,7 @@ namespace Dimgestor
         ClientWebSocket socket;
         readonly SemaphoreSlim sendLock = new SemaphoreSlim(1, 1);  // ClientWebSocket allows one send at a time
         int audioFormatKey;                       // rate * 16 + channels declared in our last hello (0: none yet)
+        readonly AudioFlow flow = new AudioFlow();  // slow_down / resume (protocol revision 2)
 
         void OnEnable()
         {
@@ -85,6 +91,8 @@ namespace Dimgestor
                         await ws.ConnectAsync(uri, ct).ConfigureAwait(false);
                         socket = ws;
                         audioFormatKey = 0;
+                        flow.Reset();
+                        audioPaused = false;
                         connectionState = "open";
                         await SendText(Protocol.ClientHello(binaryFrames), ct).ConfigureAwait(false);
                         await ReceiveLoop(ws, ct).ConfigureAwait(false);
@@ -139,7 +147,29 @@ namespace Dimgestor
             var s = m as Status;
             if (s != null) { latencyMs = (float)s.LatencyMs; droppedFrames = s.Dropped; return; }
             var e = m as ErrorMessage;
-            if (e != null) lastError = e.Code + ": " + e.Text;
+            if (e != null && e.IsSlowDown) { flow.SlowDown(); audioPaused = true; return; }  // a notice, not an error
+            if (e != null) { lastError = e.Code + ": " + e.Text; return; }
+            if (m is Resume) { audioPaused = false; SendHeld(); }  // (not awaited: the receive loop goes on)
+        }
+
+        /// <summary>After `resume`: what was held while paused goes first, in order, then a pending audio_end.</summary>
+        async void SendHeld()  // (async void: every exception is caught inside)
+        {
+            var ws = socket;
+            if (ws == null || cts == null) return;
+            var ct = cts.Token;
+            try
+            {
+                await sendLock.WaitAsync(ct).ConfigureAwait(false);
+                try
+                {
+                    foreach (var chunk in flow.Resume()) await Send(ws, chunk, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                    if (flow.TakeEndPending()) await Send(ws, Encoding.UTF8.GetBytes(AudioEnd), WebSocketMessageType.Text, ct).ConfigureAwait(false);
+                    heldAudioS = (float)flow.HeldS;
+                }
+                finally { sendLock.Release(); }
+            }
+            catch (Exception x) { lastError = x.Message; }  // the connection went meanwhile: the receive loop reconnects
         }
 
         // After the Animator, so an Animator Controller (if any) does not overwrite the gestures.
@@ -214,35 +244,65 @@ namespace Dimgestor
 
         // ---- optional: send your own audio (e.g. from Microphone or OnAudioFilterRead) for an own session
 
-        /// <summary>Send float samples (interleaved if channels == 2). Thread-safe; returns false when not connected.</summary>
+        // Flow control (protocol revision 2): after the server's slow_down, chunks are held (at most maxHeldAudioS,
+        // the oldest dropped beyond it and counted in droppedAudioS) and go out at its resume, in order.
+
+        const string AudioEnd = "{\"type\":\"audio_end\"}";
+
+        /// <summary>Send float samples (interleaved if channels == 2): now, or held while the server has us paused.
+        /// Thread-safe; returns false when not connected.</summary>
         public async Task<bool> SendAudio(float[] samples, int sampleRate, int channels = 1)
         {
             var ws = socket;
             if (ws == null || ws.State != WebSocketState.Open || cts == null) return false;
             var ct = cts.Token;
-            if (sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
-            {
-                await SendText(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels), ct).ConfigureAwait(false);
-                audioFormatKey = sampleRate * 16 + channels;
-            }
             var bytes = Protocol.EncodeFloat32(samples, 0, samples.Length);
             await sendLock.WaitAsync(ct).ConfigureAwait(false);
-            try { await ws.SendAsync(new ArraySegment<byte>(bytes), WebSocketMessageType.Binary, true, ct).ConfigureAwait(false); }
+            try
+            {
+                if (sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
+                {
+                    flow.DropHeld();  // (held audio of another format cannot follow the new hello)
+                    await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels)),
+                               WebSocketMessageType.Text, ct).ConfigureAwait(false);
+                    audioFormatKey = sampleRate * 16 + channels;
+                }
+                flow.MaxHeldS = maxHeldAudioS;
+                foreach (var chunk in flow.Offer(bytes, samples.Length / (double)(channels * sampleRate)))
+                    await Send(ws, chunk, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                heldAudioS = (float)flow.HeldS;
+                if (flow.DroppedS > 0 && droppedAudioS == 0)
+                    Debug.LogWarning("dimgestor: paused by the server for over " + maxHeldAudioS + " s: dropping the oldest audio (droppedAudioS)");
+                droppedAudioS = (float)flow.DroppedS;
+            }
             finally { sendLock.Release(); }
             return true;
         }
 
-        /// <summary>No more audio: the server finishes the session and sends "end".</summary>
-        public Task EndAudio() { return SendText("{\"type\":\"audio_end\"}", cts != null ? cts.Token : CancellationToken.None); }
+        /// <summary>No more audio: the server finishes the session and sends "end" (after `resume` if paused).</summary>
+        public async Task EndAudio()
+        {
+            var ws = socket;
+            if (ws == null || ws.State != WebSocketState.Open || cts == null) return;
+            var ct = cts.Token;
+            await sendLock.WaitAsync(ct).ConfigureAwait(false);
+            try { if (flow.End()) await Send(ws, Encoding.UTF8.GetBytes(AudioEnd), WebSocketMessageType.Text, ct).ConfigureAwait(false); }
+            finally { sendLock.Release(); }
+        }
 
         async Task SendText(string text, CancellationToken ct)
         {
             var ws = socket;
             if (ws == null || ws.State != WebSocketState.Open) return;
-            var bytes = Encoding.UTF8.GetBytes(text);
             await sendLock.WaitAsync(ct).ConfigureAwait(false);
-            try { await ws.SendAsync(new ArraySegment<byte>(bytes), WebSocketMessageType.Text, true, ct).ConfigureAwait(false); }
+            try { await Send(ws, Encoding.UTF8.GetBytes(text), WebSocketMessageType.Text, ct).ConfigureAwait(false); }
             finally { sendLock.Release(); }
+        }
+
+        // ClientWebSocket allows one send at a time: callers hold sendLock.
+        static Task Send(ClientWebSocket ws, byte[] bytes, WebSocketMessageType type, CancellationToken ct)
+        {
+            return ws.SendAsync(new ArraySegment<byte>(bytes), type, true, ct);
         }
     }
 }

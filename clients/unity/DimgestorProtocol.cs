@@ -1,4 +1,4 @@
-// dimgestor protocol v1 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
+// dimgestor protocol v1 revision 2 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
 // and is tested outside Unity (clients/unity/tests/). The Unity glue is DimgestorClient.cs.
 //
 // Spaces: the wire is BVH space (right-handed, Y up, file units). Unity is left-handed, Y up, metres:
@@ -87,7 +87,14 @@ namespace Dimgestor
         public long FramesSent, Dropped, Clients;
     }
 
-    public class ErrorMessage : Message { public string Code, Text; }
+    public class ErrorMessage : Message
+    {
+        public string Code, Text;
+        /// <summary>`slow_down` is a notice, not a failure: pause sending audio until `resume` (nothing was lost).</summary>
+        public bool IsSlowDown { get { return Code == "slow_down"; } }
+    }
+    /// <summary>Revision 2: after a `slow_down`, the server's backlog of our audio is down to BacklogS: send again.</summary>
+    public class Resume : Message { public double BacklogS; }
     public class End : Message { public long Frames; }
     public class Pong : Message { }
     /// <summary>A type this client does not know; the protocol says to ignore it.</summary>
@@ -101,6 +108,7 @@ namespace Dimgestor
     public static class Protocol
     {
         public const int Version = 1;
+        public const int Revision = 2;  // the optional additions this client knows (docs/protocol.md, "Revisions")
         public const int BinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
         /// <summary>Parse one text message. Throws ProtocolException (with the position) on bad input.</summary>
@@ -124,6 +132,7 @@ namespace Dimgestor
                 case "error": return new ErrorMessage { Type = type, Code = Json.Str(o, "code", ""), Text = Json.Str(o, "message", "") };
                 case "end": return new End { Type = type, Frames = (long)Json.Num(o, "frames", 0) };
                 case "pong": return new Pong { Type = type };
+                case "resume": return new Resume { Type = type, BacklogS = Json.Num(o, "backlog_s", 0) };
                 case null: throw new ProtocolException("message has no \"type\" field");
                 default: return new UnknownMessage { Type = type };
             }

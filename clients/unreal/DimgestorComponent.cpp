@@ -126,6 +126,8 @@ void UDimgestorComponent::HandleConnected()
 {
 	ConnectionState = TEXT("open");
 	AudioFormatKey = 0;
+	Flow.Reset();
+	bAudioPaused = false;
 	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
 	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
 	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
@@ -190,7 +192,20 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 		DroppedFrames = Message.status.dropped;
 		break;
 	case dimgestor::MessageType::Error:
+		if (Message.error_code == "slow_down")  // a notice, nothing lost: hold our audio until resume
+		{
+			Flow.SlowDown();
+			bAudioPaused = true;
+			AudioNotice = TEXT("the server asks us to slow down: holding audio until it resumes");
+			break;
+		}
 		LastError = FString(UTF8_TO_TCHAR(Message.error_code.c_str())) + TEXT(": ") + UTF8_TO_TCHAR(Message.error_message.c_str());
+		break;
+	case dimgestor::MessageType::Resume:
+		bAudioPaused = false;
+		AudioNotice = FString::Printf(TEXT("resumed (server backlog %.1f s)"), Message.resume_backlog_s);
+		SendChunks(Flow.Resume());  // what was held goes first, in order
+		if (Flow.TakeEndPending()) SendAudioEnd();
 		break;
 	default:
 		break;  // end, pong and unknown types need nothing here
@@ -284,19 +299,38 @@ bool UDimgestorComponent::SendAudio(const TArray<float>& Samples, int32 SampleRa
 		ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
 		ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
 		ClientHello->SetObjectField(TEXT("audio"), Audio);
+		Flow.DropHeld();  // (held audio of another format cannot follow the new hello)
 		SendText(Condensed(ClientHello));
 		AudioFormatKey = SampleRate * 16 + Channels;
 	}
 	// float32 little-endian on the wire; every platform Unreal ships on is little-endian.
-	Socket->Send(Samples.GetData(), Samples.Num() * sizeof(float), true);
+	const uint8* Bytes = reinterpret_cast<const uint8*>(Samples.GetData());
+	Flow.max_held_s = MaxHeldAudioS;
+	const bool bWasDropping = Flow.dropped_chunks() > 0;
+	SendChunks(Flow.Offer(dimgestor::AudioFlow::Chunk(Bytes, Bytes + Samples.Num() * sizeof(float)),
+	                      double(Samples.Num()) / (double(Channels) * SampleRate)));
+	DroppedAudioS = float(Flow.dropped_s());
+	if (!bWasDropping && Flow.dropped_chunks() > 0)
+		AudioNotice = FString::Printf(TEXT("paused by the server for over %.0f s: dropping the oldest audio (DroppedAudioS)"), MaxHeldAudioS);
 	return true;
 }
 
 void UDimgestorComponent::EndAudio()
 {
+	if (Flow.End()) SendAudioEnd();  // paused: at resume, after the held audio
+}
+
+void UDimgestorComponent::SendAudioEnd()
+{
 	TSharedRef<FJsonObject> End = MakeShared<FJsonObject>();
 	End->SetStringField(TEXT("type"), TEXT("audio_end"));
 	SendText(Condensed(End));
+}
+
+void UDimgestorComponent::SendChunks(const std::vector<dimgestor::AudioFlow::Chunk>& Chunks)
+{
+	if (!Socket || !Socket->IsConnected()) return;
+	for (const auto& Chunk : Chunks) Socket->Send(Chunk.data(), Chunk.size(), true);
 }
 
 void UDimgestorComponent::SendText(const FString& Text)

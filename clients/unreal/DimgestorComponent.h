@@ -1,9 +1,10 @@
-// Unreal client for dimgestor (protocol v1): receives gesture frames over a WebSocket (WebSockets module)
+// Unreal client for dimgestor (protocol v1 revision 2): receives gesture frames over a WebSocket (WebSockets module)
 // and poses a UPoseableMeshComponent by bone name. Decoding is in the engine-independent DimgestorProtocol.
 #pragma once
 
 #include "CoreMinimal.h"
 #include "Components/ActorComponent.h"
+#include "DimgestorAudioFlow.h"
 #include "DimgestorPlayout.h"
 #include "DimgestorProtocol.h"
 #include "DimgestorComponent.generated.h"
@@ -69,11 +70,28 @@ public:
 	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
 	FString LastError;
 
-	/** Send your own audio (mono or interleaved float samples) for an own session; declares the format first. */
+	/** Audio held while the server has us paused (slow_down until resume); beyond it the oldest is dropped. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	float MaxHeldAudioS = float(dimgestor::kDefaultMaxHeldS);
+
+	/** Between the server's slow_down and its resume (protocol revision 2): SendAudio holds the audio. */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	bool bAudioPaused = false;
+
+	/** Seconds of audio held beyond MaxHeldAudioS while paused, and so dropped (oldest first). */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	float DroppedAudioS = 0.f;
+
+	/** What flow control is doing (paused, resumed, dropping); not an error. */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	FString AudioNotice;
+
+	/** Send your own audio (mono or interleaved float samples) for an own session; declares the format first.
+	 *  Held (at most MaxHeldAudioS) while the server has us paused, and sent in order at its resume. */
 	UFUNCTION(BlueprintCallable, Category = "Dimgestor")
 	bool SendAudio(const TArray<float>& Samples, int32 SampleRate, int32 Channels = 1);
 
-	/** No more audio: the server finishes the session and sends "end". */
+	/** No more audio: the server finishes the session and sends "end" (if paused: at resume, after the held audio). */
 	UFUNCTION(BlueprintCallable, Category = "Dimgestor")
 	void EndAudio();
 
@@ -99,11 +117,14 @@ private:
 	void Bind();
 	void Apply(const dimgestor::Frame& Frame);
 	void SendText(const FString& Text);
+	void SendChunks(const std::vector<dimgestor::AudioFlow::Chunk>& Chunks);
+	void SendAudioEnd();
 
 	TSharedPtr<IWebSocket> Socket;
 	TArray<uint8> BinaryBuffer;  // fragments of the binary message being received
 	float ReconnectIn = 0.f;
 	int32 AudioFormatKey = 0;    // SampleRate * 16 + Channels declared in our last hello
+	dimgestor::AudioFlow Flow;   // slow_down / resume (protocol revision 2); all on the game thread
 
 	bool bHaveHello = false;
 	bool bNeedBind = false;

@@ -204,6 +204,10 @@ bool ParseMessage(const std::string& text, Message& out, std::string& error) {
     out.end_frames = int64_t(frames);
     return true;
   }
+  if (t == "resume") {
+    out.type = MessageType::Resume;
+    return f.Num(v, "backlog_s", 0, out.resume_backlog_s);
+  }
   out.type = t == "pong" ? MessageType::Pong : MessageType::Unknown;
   return true;
 }

@@ -1,4 +1,4 @@
-// dimgestor protocol v1 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
+// dimgestor protocol v1 revision 2 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
 // no exceptions (Unreal builds without them), so it compiles and is tested outside the engine.
 //
 // The wire is BVH space: right-handed, Y up, file units (cm for ZEGGS). Conversions provided:
@@ -66,7 +66,8 @@ struct Status {
   int64_t frames_sent = 0, dropped = 0, clients = 0;
 };
 
-enum class MessageType { Hello, Frame, Status, Error, End, Pong, Unknown };
+// Resume (revision 2): after a `slow_down` error (a notice, not a failure), the server takes our audio again.
+enum class MessageType { Hello, Frame, Status, Error, End, Pong, Resume, Unknown };
 
 // One decoded server message; only the member named by `type` is filled.
 struct Message {
@@ -75,11 +76,13 @@ struct Message {
   Hello hello;
   Frame frame;
   Status status;
-  std::string error_code, error_message;
+  std::string error_code, error_message;  // error_code "slow_down": pause sending audio until Resume
   int64_t end_frames = 0;
+  double resume_backlog_s = 0;  // Resume: seconds of our audio the server still has queued
 };
 
 constexpr int kProtocolVersion = 1;
+constexpr int kProtocolRevision = 2;  // the optional additions this client knows (docs/protocol.md, "Revisions")
 constexpr size_t kBinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
 // Parse one text message. On bad input returns false and says what and where in `error`.

@@ -1,4 +1,4 @@
-// Protocol v1 (revision 1) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
+// Protocol v1 (revision 2) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
 
 /** Decode a DGF1 binary frame: "DGF1" | u32 index | f64 pts | f32[3] root | f32[J*4] wxyz, little-endian. */
 export function decodeBinaryFrame(buf) {

@@ -1,5 +1,5 @@
-// dimgestor browser viewer: protocol v1 client (docs/protocol.md), the built-in mannequin, your own VRM,
-// the server source's audio in sync, and the microphone (Talk).
+// dimgestor browser viewer: protocol v1 revision 2 client (docs/protocol.md), the built-in mannequin, your own
+// VRM, the server source's audio in sync, and the microphone (Talk), paused by the server's flow control.
 //
 // Page parameters: ?ws=ws://host:port/  (another server than the one this page came from)
 //                  ?token=T             (when the server requires one)
@@ -12,6 +12,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PlayoutClock } from './av-clock.js';
 import { FramePlayout } from './playout.js';
 import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
+import { AudioFlow, MIC_HOLD_S } from './audio-flow.js';
 import { buildMannequin } from './mannequin.js';
 import { SourceAudio } from './source-audio.js';
 
@@ -36,6 +37,8 @@ const api = window.dimgestor = {
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
   gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
+  audioFlow: null,  // the microphone's AudioFlow while talking: paused, pauses, resumes, heldS, droppedS
+  notices: [],      // slow_down / resume: the server's flow control, not errors
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -428,6 +431,7 @@ function socketUrl() {
 
 function connect(audio = null) {
   clearTimeout(reconnectTimer);
+  endPending = false;
   if (ws) { const old = ws; ws = null; old.close(1000, 'reconnect'); }
   mode = audio ? 'talk' : 'view';
   lastIndex = -1;
@@ -499,12 +503,28 @@ function onMessage(data) {
     case 'status': api.status = msg; break;
     case 'pong': if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; } break;
     case 'error':
+      if (msg.code === 'slow_down') {  // a notice, nothing was lost: hold the microphone until `resume`
+        api.notices.push(msg);
+        if (mode === 'talk' && api.audioFlow) {
+          api.audioFlow.slowDown();
+          say(`the server asks us to slow down: holding the microphone until it resumes (at most ${MIC_HOLD_S} s)`);
+        }
+        break;
+      }
       api.errors.push(msg);
       say(`server error ${msg.code}: ${msg.message}`);
       // The server will not take (more of) our audio: stop the microphone and watch again.
       if (mode === 'talk' && ['busy', 'audio_disabled', 'internal'].includes(msg.code)) {
         stopMic();
         reconnectTimer = setTimeout(() => connect(null), 1000);
+      }
+      break;
+    case 'resume':  // revision 2: the server takes our audio again (ignored while only watching)
+      api.notices.push(msg);
+      if (mode === 'talk' && api.audioFlow) {
+        for (const buf of api.audioFlow.resume()) sendNow(buf);
+        if (endPending) endAudio();
+        else if (api.talking) say(`the server resumed (backlog ${fmt(msg.backlog_s)} s): talking again`);
       }
       break;
     case 'end':
@@ -611,6 +631,7 @@ async function startTalk() {
     mic.node = node;
     api.talking = true;
     api.audioRate = ctx.sampleRate;
+    api.audioFlow = new AudioFlow(ctx.sampleRate);
     // Our own session: a fresh connection whose hello declares the audio we will send.
     connect({ rate: ctx.sampleRate, format: AUDIO_FORMAT, channels: 1 });
     ui.talk.textContent = 'Stop';
@@ -629,11 +650,21 @@ function stopTalk() {
   if (!api.talking) return;
   stopMic();
   if (ws && ws.readyState === WebSocket.OPEN) {
-    ws.send(JSON.stringify({ type: 'audio_end' }));
-    say('audio ended; waiting for the last gestures');
+    if (api.audioFlow && api.audioFlow.paused) {  // what is held goes first, at `resume`, then audio_end
+      endPending = true;
+      say('stopped; the server has us paused: the last audio and audio_end go when it resumes');
+    } else endAudio();
   } else {
     connect(null);  // the talk connection never opened: nothing to wait for
   }
+}
+
+let endPending = false;  // stopped talking while paused: audio_end waits for `resume` (after the held audio)
+
+function endAudio() {
+  endPending = false;
+  ws.send(JSON.stringify({ type: 'audio_end' }));
+  say('audio ended; waiting for the last gestures');
 }
 
 function stopMic() {
@@ -650,7 +681,8 @@ function stopMic() {
 
 function sendAudio(f32) {
   if (!api.talking || mode !== 'talk' || !ws || ws.readyState !== WebSocket.OPEN) return;
-  if (ws.bufferedAmount > MAX_SEND_BUFFER) { api.audioChunksDropped++; return; }  // bounded, counted
+  const flow = api.audioFlow;
+  if (!flow.paused && ws.bufferedAmount > MAX_SEND_BUFFER) { api.audioChunksDropped++; return; }  // bounded, counted
   let buf;
   if (AUDIO_FORMAT === 'float32') {
     buf = new ArrayBuffer(f32.length * 4);
@@ -661,11 +693,20 @@ function sendAudio(f32) {
     const dv = new DataView(buf);
     for (let i = 0; i < f32.length; i++) dv.setInt16(i * 2, Math.round(Math.max(-1, Math.min(1, f32[i])) * 32767), true);
   }
+  // Our own speech: this chunk's last sample was said just now, at pts = the samples the server gets up to it.
+  mic.samples += f32.length;
+  noteSpoken(performance.now() / 1000 - (mic.samples - flow.droppedSamples) / api.audioRate);
+  const dropped = flow.droppedChunks;
+  for (const b of flow.offer(buf, f32.length)) sendNow(b);  // paused (slow_down): held, at most MIC_HOLD_S
+  api.audioChunksDropped += flow.droppedChunks - dropped;
+  if (flow.droppedChunks > dropped && dropped === 0)
+    say(`paused by the server for over ${MIC_HOLD_S} s: dropping the oldest microphone audio (counted)`);
+}
+
+function sendNow(buf) {
+  if (!ws || ws.readyState !== WebSocket.OPEN) return;
   ws.send(buf);
   api.audioChunksSent++;
-  // Our own speech: this chunk's last sample was said just now, at pts = samples sent so far / rate.
-  mic.samples += f32.length;
-  noteSpoken(performance.now() / 1000 - mic.samples / api.audioRate);
 }
 
 ui.talk.addEventListener('click', () => startTalk());

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 CLIENT = REPO / "clients" / "python" / "client.py"
@@ -200,3 +201,38 @@ def joint_speed(frames: list[dict], fps: float) -> np.ndarray:
     q = np.array([f["rotations"] for f in frames])  # (T, J, 4)
     dot = np.abs(np.sum(q[1:] * q[:-1], axis=-1)).clip(0, 1)
     return (2 * np.arccos(dot)).mean(axis=1) * fps
+
+
+# Flow control (protocol revision 2) as the engine clients' cores see it: the server's messages as they come
+# on the wire, the chunks the client offers (ID, seconds) and its audio_end; the bound on held audio is 1 s.
+FLOW_SCRIPT = "\n".join([
+    'chunk a 0.4',
+    'message {"type": "error", "code": "slow_down", "message": "audio arrives faster than it is processed"}',
+    'chunk b 0.4', 'chunk c 0.4',
+    'message {"type": "future_thing", "x": [1, {"y": 2}]}',
+    'message {"type": "error", "code": "slow_down", "message": "again"}',
+    'message {"type": "resume", "backlog_s": 14.9}',
+    'message {"type": "resume", "backlog_s": 0.0}',
+    'chunk d 0.4',
+    'message {"type": "error", "code": "slow_down", "message": "x"}',
+    *(f'chunk e{i} 0.4' for i in range(5)),
+    'end',
+    'message {"type": "resume", "backlog_s": 15}',
+    'end',
+])
+
+
+def check_flow(out: list[dict]) -> None:
+    """What a client core must do with FLOW_SCRIPT: send at once until `slow_down`, hold (in order) until
+    `resume`, drop the oldest beyond 1 s held (counted), send a pending audio_end after the held audio."""
+    assert [o["sent"] for o in out] == [["a"], [], [], [], [], [], ["b", "c"], [], ["d"], [], [], [], [], [], [],
+                                        [], ["e3", "e4"], []]
+    assert [o["type"] for o in out if o["event"] == "message"] == ["error", "future_thing", "error", "resume",
+                                                                  "resume", "error", "resume"]
+    assert out[1]["code"] == "slow_down" and out[1]["paused"] and out[5]["paused"] and not out[6]["paused"]
+    assert out[6]["backlog_s"] == 14.9 and out[3]["held_s"] == pytest.approx(0.8)
+    assert out[5]["pauses"] == 1 and out[7]["resumes"] == 1 and out[-1]["pauses"] == out[-1]["resumes"] == 2
+    assert out[15]["end_now"] is False and out[15]["paused"]  # audio_end waits for resume, after the held audio
+    assert out[16]["end_now"] is True and out[16]["held_s"] == 0 and out[17]["end_now"] is True
+    assert out[14]["held_s"] == pytest.approx(0.8) and out[-1]["dropped_chunks"] == 3
+    assert out[-1]["dropped_s"] == pytest.approx(1.2)

@@ -46,7 +46,11 @@ async def recv_json(c, timeout=10.0):
 
 
 class SlowExecutor(ThreadPoolExecutor):
-    """Inference that takes at least 50 ms a call, so a flushing session stays alive for a while."""
+    """Inference that takes at least `delay_s` (50 ms) a call, so a flushing session stays alive for a while."""
+
+    def __init__(self, max_workers=None, delay_s: float = 0.05):
+        super().__init__(max_workers)
+        self.delay_s = delay_s
 
     def submit(self, fn, /, *args, **kwargs):
-        return super().submit(lambda: (time.sleep(0.05), fn(*args, **kwargs))[1])
+        return super().submit(lambda: (time.sleep(self.delay_s), fn(*args, **kwargs))[1])

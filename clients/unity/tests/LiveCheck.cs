@@ -1,7 +1,7 @@
 // Test driver: DimgestorClient against a live `streamer serve`, the way Unity runs it: OnEnable starts the
 // ClientWebSocket task, LateUpdate runs at 60 Hz on the "main" thread and poses a stand-in avatar
 // (StubAvatar.cs), and SendAudio/EndAudio stream the first SECONDS of a 16-bit WAV in real time from
-// another thread (the client's own session). Prints a JSON summary for tests/test_clients_unity.py.
+// another thread (the client's own session), paused by the server's slow_down until its resume. Prints a JSON summary for tests/test_clients_unity.py.
 // usage: mono LiveCheck.exe URL WAV SECONDS
 using System;
 using System.Globalization;
@@ -106,9 +106,12 @@ static class LiveCheck
         }
         typeof(DimgestorClient).GetMethod("OnDisable", flags).Invoke(client, null);
         string error = sender != null && sender.IsFaulted ? sender.Exception.InnerException.Message : client.lastError;
+        var flow = (AudioFlow)typeof(DimgestorClient).GetField("flow", flags).GetValue(client);
         Console.WriteLine("{\"state\":\"" + client.connectionState + "\",\"frames\":" + client.framesReceived + ",\"ticks\":" + ticks
             + ",\"changed\":" + changed + ",\"moved\":" + moved.ToString("R", CultureInfo.InvariantCulture) + ",\"sent\":"
-            + (sender != null && sender.Status == TaskStatus.RanToCompletion ? "true" : "false") + ",\"error\":\""
+            + (sender != null && sender.Status == TaskStatus.RanToCompletion ? "true" : "false")
+            + ",\"pauses\":" + flow.Pauses + ",\"resumes\":" + flow.Resumes + ",\"paused\":" + (client.audioPaused ? "true" : "false")
+            + ",\"dropped_s\":" + flow.DroppedS.ToString("R", CultureInfo.InvariantCulture) + ",\"error\":\""
             + (error ?? "").Replace("\\", "\\\\").Replace("\"", "\\\"") + "\"}");
         return 0;
     }

@@ -16,6 +16,11 @@ namespace UnityEngine
         public T GetComponent<T>() { return default(T); }
     }
 
+    public class Debug
+    {
+        public static void LogWarning(object message) { Console.Error.WriteLine(message); }
+    }
+
     public class Behaviour : Component { public bool enabled { get; set; } }
     public class MonoBehaviour : Behaviour { }
 
