@@ -17,7 +17,7 @@ from dimgestor.diffusion import Diffusion, motion_noise
 from dimgestor.model import DiMGestor
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
 from dimgestor.synthetic import make_synthetic_pair
-from dimgestor.train import TrainOptions, resolve_cond_drop, train
+from dimgestor.train import TrainConfig, resolve_cond_drop, train
 
 TOL = 1e-5  # batched vs alone, runner vs the model's own forward (as tests/test_batch.py)
 
@@ -243,7 +243,7 @@ def runs(tmp_path_factory):
         base = dict(data=str(root / "data"), out=str(root / out), preset="tiny", max_steps=60, batch_size=4, lr=3e-3,
                     warmup=10, window_s=2.0, ckpt_every=30, valid_every=30, ema=0.9, seed=0, device="cpu",
                     cache_dir=str(root / "cache"), progress=False, valid_fraction=0.2, cond_drop=0.5)
-        return TrainOptions(**{**base, **kw})
+        return TrainConfig(**{**base, **kw})
 
     whole = train(opts("whole"))
     train(opts("part", max_steps=30))
@@ -278,11 +278,11 @@ def test_guidance_extrapolates_from_the_unconditional_towards_the_conditional(ru
 
 
 def test_recipes_and_options_set_the_dropout():
-    assert resolve_cond_drop(TrainOptions(data="", out="")) == 0.0  # the streaming recipe: none until measured
-    assert resolve_cond_drop(TrainOptions(data="", out="", cond_drop=0.2)) == 0.2
-    assert resolve_cond_drop(TrainOptions(data="", out="", recipe=None)) == 0.0
+    assert resolve_cond_drop(TrainConfig(data="", out="")) == 0.0  # the streaming recipe: none until measured
+    assert resolve_cond_drop(TrainConfig(data="", out="", cond_drop=0.2)) == 0.2
+    assert resolve_cond_drop(TrainConfig(data="", out="", recipe=None)) == 0.0
     with pytest.raises(ValueError, match="cond_drop"):
-        resolve_cond_drop(TrainOptions(data="", out="", cond_drop=1.5))
+        resolve_cond_drop(TrainConfig(data="", out="", cond_drop=1.5))
 
 
 # ---------------- the command line ----------------

@@ -9,7 +9,7 @@ from dimgestor.checkpoint import load_checkpoint
 from dimgestor.dataset import GestureDataset
 from dimgestor.eval import k_report, valid_clips
 from dimgestor.synthetic import make_gesture_corpus
-from dimgestor.train import TrainOptions, train
+from dimgestor.train import TrainConfig, train
 
 pytestmark = [pytest.mark.timeout(900), pytest.mark.slow]
 
@@ -22,7 +22,7 @@ def trained(tmp_path_factory):
     make_gesture_corpus(root / "train", MINUTES, clip_s=30.0, seed=3)
     make_gesture_corpus(root / "valid", 0.5, clip_s=30.0, seed=4)
     torch.set_num_threads(1)
-    run = train(TrainOptions(data=str(root / "train"), out=str(root / "run"), preset="realtime", max_steps=STEPS,
+    run = train(TrainConfig(data=str(root / "train"), out=str(root / "run"), preset="realtime", max_steps=STEPS,
                              batch_size=8, window_s=5.0, valid_fraction=0.05, ckpt_every=STEPS, valid_every=STEPS,
                              seed=0, cache_dir=str(root / "cache"), progress=False, mirror=True, speeds=(0.9, 1.1)))
     bundle = load_checkpoint(run)

@@ -8,7 +8,7 @@ import torch
 
 from dimgestor.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, resolve_checkpoint
 from dimgestor.synthetic import make_synthetic_pair
-from dimgestor.train import TrainOptions, train
+from dimgestor.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +22,7 @@ def _opts(data, out, cache, **kw):
     base = dict(data=str(data), out=str(out), preset="tiny", max_steps=40, batch_size=4, lr=3e-3, warmup=20,
                 window_s=2.0, ckpt_every=20, valid_every=20, ema=0.99, seed=0, device="cpu",
                 cache_dir=str(cache), progress=False, valid_fraction=0.2)
-    return TrainOptions(**{**base, **kw})
+    return TrainConfig(**{**base, **kw})
 
 
 def _log(run):
@@ -87,16 +87,16 @@ def test_no_embedded_default_model_is_a_clear_error(tmp_path, monkeypatch):
 def test_recipes_set_the_diffusion_and_the_losses():
     from dimgestor.train import RECIPES, resolve_recipe
 
-    cfg, w = resolve_recipe(TrainOptions(data="", out="", recipe="paper"))
+    cfg, w = resolve_recipe(TrainConfig(data="", out="", recipe="paper"))
     assert (cfg["n_steps"], cfg["schedule"], cfg["prediction"]) == (1000, "linear", "eps")
     assert w == {"vel_weight": 0.0, "acc_weight": 0.0, "root_weight": 0.0}  # the paper's plain noise MSE
-    cfg, w = resolve_recipe(TrainOptions(data="", out=""))  # the default recipe
+    cfg, w = resolve_recipe(TrainConfig(data="", out=""))  # the default recipe
     assert cfg == RECIPES["streaming"].config and cfg["prediction"] == "x0" and cfg["n_steps"] <= 16
     assert w["vel_weight"] > 0 and w["acc_weight"] > 0 and w["root_weight"] > 0
-    cfg, w = resolve_recipe(TrainOptions(data="", out="", overrides={"noise_taps": 3}, vel_weight=0.0))
+    cfg, w = resolve_recipe(TrainConfig(data="", out="", overrides={"noise_taps": 3}, vel_weight=0.0))
     assert cfg["noise_taps"] == 3 and w["vel_weight"] == 0.0  # explicit settings win over the recipe
     with pytest.raises(ValueError, match="unknown recipe"):
-        resolve_recipe(TrainOptions(data="", out="", recipe="nope"))
+        resolve_recipe(TrainConfig(data="", out="", recipe="nope"))
 
 
 def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, capsys):
@@ -213,12 +213,24 @@ def test_train_config_is_validated_once_and_frozen():
             TrainConfig(data="d", out="o", **bad)
 
 
+# The training options the previous embedded default model recorded (commit cdc995f), saved by the options
+# dataclass TrainConfig replaced: no augment, aug_*, cond_drop fields.
+OPTIONS_BEFORE_TRAIN_CONFIG = {
+    "data": "/work/shared/data/zeggs_sample", "out": "/work/runs/G", "preset": "realtime", "overrides": {},
+    "recipe": "streaming", "max_steps": 800, "batch_size": 8, "lr": 0.0005, "warmup": 200, "weight_decay": 0.0,
+    "grad_clip": 1.0, "vel_weight": None, "acc_weight": None, "root_weight": None, "heading": None,
+    "speeds": [0.9, 1.1], "ema": 0.999, "window_s": 5.0, "hop_s": None, "mirror": True, "valid_fraction": 0.15,
+    "valid_seconds": 15.0, "ckpt_every": 200, "valid_every": 200, "keep": 0, "seed": 0, "device": "auto"}
+
+
 def test_saved_options_read_back_including_a_checkpoint_from_before_train_config():
     from dimgestor.checkpoint import DEFAULT_MODEL_DIR
     from dimgestor.train import TrainConfig
 
-    saved = json.loads((DEFAULT_MODEL_DIR / "config.json").read_text())["info"]["options"]
-    assert "augment" not in saved and "cond_drop" not in saved  # saved by the TrainOptions dataclass
+    shipped = json.loads((DEFAULT_MODEL_DIR / "config.json").read_text())["info"]["options"]
+    c = TrainConfig.from_saved(shipped)  # saved by TrainConfig itself
+    assert c.cond_drop == shipped["cond_drop"] and c.overrides == shipped["overrides"]
+    saved = OPTIONS_BEFORE_TRAIN_CONFIG
     c = TrainConfig.from_saved(saved)
     assert c.speeds == tuple(saved["speeds"]) and c.max_steps == saved["max_steps"] and c.augment is False
     with pytest.raises(ValueError, match="does not have: \\['retired'\\]"):
@@ -227,7 +239,7 @@ def test_saved_options_read_back_including_a_checkpoint_from_before_train_config
 
 def test_a_run_saved_by_the_previous_code_resumes_exactly(data, tmp_path):
     """Resuming reads weights, optimizer, generators and history from train_state.pt, never the saved options:
-    a run whose options were saved in the old layout (the TrainOptions dataclass's vars, fewer fields) resumes."""
+    a run whose options were saved in the old layout (the TrainConfig dataclass's vars, fewer fields) resumes."""
     cache = tmp_path / "cache"
     whole = train(_opts(data, tmp_path / "whole", cache, max_steps=40))
     part = train(_opts(data, tmp_path / "part", cache, max_steps=20))

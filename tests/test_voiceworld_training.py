@@ -22,7 +22,7 @@ import torch
 from dimgestor.checkpoint import load_checkpoint
 from dimgestor.dataset import GestureDataset
 from dimgestor.eval import generate_raw, valid_clips
-from dimgestor.train import TrainOptions, train
+from dimgestor.train import TrainConfig, train
 from dimgestor.voiceworld import make_voice_world, margins, score_motion
 
 RECIPE = os.environ.get("DIMGESTOR_TEST_RECIPE", "default")
@@ -67,7 +67,7 @@ def held_out_scores(tmp_path_factory):
     make_voice_world(root / "world", TRAIN_MINUTES, HELDOUT_MINUTES, seed=11, clip_s=30.0)
     torch.set_num_threads(1)
     overrides, cond_drop, guidance = recipe(RECIPE)
-    run = train(TrainOptions(data=str(root / "world"), out=str(root / "run"), preset="realtime",
+    run = train(TrainConfig(data=str(root / "world"), out=str(root / "run"), preset="realtime",
                              overrides=overrides, cond_drop=cond_drop, max_steps=STEPS, batch_size=8, window_s=5.0,
                              ckpt_every=STEPS, valid_every=STEPS, seed=0, cache_dir=str(root / "cache"),
                              progress=False, mirror=False, speeds=()))
