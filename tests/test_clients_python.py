@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from streamer.engine import Session
+from streamer.sessions import Session
 
 from helpers.clients import CLIENT, REPO, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
 from helpers.ws import SlowExecutor, make_server, running

@@ -158,7 +158,7 @@ def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path
     buffers 2 s more itself, so it is full about 4 s into our talk): the client
     gets `slow_down`, holds what SendAudio gives it, sends it at `resume`, and every second of its audio comes
     back as frames, with no error."""
-    from streamer.engine import Session
+    from streamer.sessions import Session
 
     from helpers.ws import SlowExecutor, make_server, running
 

@@ -252,7 +252,7 @@ def test_web_talk_pauses_at_slow_down_and_resumes_without_an_error(tmp_path, bun
     """A server slower than real time with a 1 s backlog (in process, serving the viewer itself): the page's
     microphone gets `slow_down`, holds its audio, sends it at `resume` (protocol revision 2), shows no error,
     and ends its session with `end` after Stop."""
-    from streamer.engine import Session
+    from streamer.sessions import Session
 
     from helpers.ws import SlowExecutor, make_server, running
 
