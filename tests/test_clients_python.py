@@ -56,21 +56,27 @@ def check_own_session(saved, seconds: float) -> list[dict]:
     return msgs
 
 
-def test_python_client_pauses_at_slow_down_and_goes_on_at_resume(tmp_path, bundle):
-    """A server whose backlog holds 1 s of audio and whose inference runs only a few times real time: the
-    client's 10 s of self-clocked lead overflows it, so it gets `slow_down`, stops sending until `resume`
-    (revision 2) and still ends with every frame of the file, printing no error."""
+def _send_wav_to_slow_server(tmp_path, bundle, seconds, rate, executor, max_backlog_s):
+    """`client.py --wav --fast` against a WsServer whose sessions infer on `executor` and hold `max_backlog_s` of
+    backlog -> (the client's CompletedProcess, the messages of its own session, checked whole)."""
     talk = tmp_path / "talk.wav"
-    write_wav(talk, 20.0)
-    executor = SlowExecutor(1)  # >= 50 ms per inference call: the server cannot keep up with a burst
-    ws = make_server(bundle, max_backlog_s=1.0, files=None)
+    write_wav(talk, seconds, rate=rate)
+    ws = make_server(bundle, max_backlog_s=max_backlog_s, files=None)
     ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
     saved = tmp_path / "own"
     with running(ws):
         r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
                        timeout=170)
     executor.shutdown()
-    msgs = check_own_session(saved, 20.0)
+    return r, check_own_session(saved, seconds)
+
+
+def test_python_client_pauses_at_slow_down_and_goes_on_at_resume(tmp_path, bundle):
+    """A server whose backlog holds 1 s of audio and whose inference runs only a few times real time: the
+    client's 10 s of self-clocked lead overflows it, so it gets `slow_down`, stops sending until `resume`
+    (revision 2) and still ends with every frame of the file, printing no error."""
+    # >= 50 ms per inference call: the server cannot keep up with a burst
+    r, msgs = _send_wav_to_slow_server(tmp_path, bundle, 20.0, 16000, SlowExecutor(1), max_backlog_s=1.0)
     kinds = [m["type"] if m["type"] != "error" else m["code"] for m in msgs]
     assert kinds.count("slow_down") >= 1 and kinds.count("slow_down") == kinds.count("resume"), kinds
     assert set(kinds) <= {"hello", "frame", "status", "slow_down", "resume", "end"}, set(kinds)
@@ -87,17 +93,8 @@ def test_python_client_sends_a_file_self_clocked_and_is_never_slowed_down(tmp_pa
     within 10 s (plus one 1 s message) of the frames that came back never fills the backlog: no `slow_down`
     (so the server never holds its socket, pings included), and every frame. Sent as fast as the server
     reads, the same file would overflow it."""
-    talk = tmp_path / "long.wav"
-    write_wav(talk, 30.0, rate=22050)
-    executor = SlowExecutor(1, delay_s=0.3)  # calls take up to 1 s of audio: about 3x real time at most
-    ws = make_server(bundle, max_backlog_s=12.0, files=None)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
-    saved = tmp_path / "own"
-    with running(ws):
-        r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
-                       timeout=170)
-    executor.shutdown()
-    msgs = check_own_session(saved, 30.0)
+    # calls take up to 1 s of audio: about 3x real time at most
+    r, msgs = _send_wav_to_slow_server(tmp_path, bundle, 30.0, 22050, SlowExecutor(1, delay_s=0.3), max_backlog_s=12.0)
     assert not [m for m in msgs if m["type"] in ("error", "resume")], [m for m in msgs if m["type"] != "frame"]
     assert "slow_down" not in r.stdout and "error:" not in r.stdout, r.stdout
 
