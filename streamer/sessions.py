@@ -87,25 +87,32 @@ class _AudioBuffer:
 
 
 class AudioClock:
-    """How far a stream's audio is ahead of real time: audio handed to inference minus time elapsed.
+    """How far a stream's audio is ahead of real time: the audio it handed to inference, plus the audio that
+    already waits for it, minus the time elapsed since its audio began.
 
+    A real-time sender (a talker, a microphone) stays about one window behind, whatever the jitter of its
+    packets: its first call's audio took that call's length to arrive, so the clock starts that long
+    before the first call. A fast sender throttled by the server (its queue full: it waits for inference, not
+    the other way round) stays ahead by its queue even when inference gives it less than real time.
     Shared by the successive sessions of one client (so restarting sessions earns no priority); time
     without audio earns at most `max_credit_s` of catching up.
     """
 
-    def __init__(self, max_credit_s: float = 2.0):
+    def __init__(self, max_credit_s: float = 2.0, now: Callable[[], float] = time.monotonic):
         self.t0: float | None = None
         self.audio_s = 0.0
         self.max_credit_s = max_credit_s
+        self.now = now
 
-    def ahead_s(self) -> float:
-        now = time.monotonic()
+    def ahead_s(self, call_s: float = 0.0, waiting_s: float = 0.0) -> float:
+        """Before a call of `call_s` seconds of audio, with `waiting_s` more received and waiting behind it."""
+        now = self.now()
         if self.t0 is None:
-            self.t0 = now
+            self.t0 = now - call_s
         behind = (now - self.t0) - self.audio_s
         if behind > self.max_credit_s:
             self.t0 += behind - self.max_credit_s
-        return -min(behind, self.max_credit_s)
+        return waiting_s - min(behind, self.max_credit_s)
 
 
 class Session:
@@ -163,9 +170,13 @@ class Session:
         """
         buffer = _AudioBuffer(self.windows.buffer)
         reader = asyncio.create_task(self._read(source, buffer), name=f"{self.name}-reader")
+
+        def waiting_s() -> float:  # received, not yet taken: this session's buffer and its source's queue
+            return buffer.samples / SAMPLE_RATE + float(getattr(source, "backlog_s", 0.0))
+
         try:
             while chunks := await buffer.take(self.windows.window):
-                await self._window(chunks, emit)
+                await self._window(chunks, emit, waiting_s)
             finish = self.scheduler.submit_ranked(self.clock.ahead_s(), self.infer_finish)
             frames = await asyncio.wrap_future(finish)
             await _emit(emit, frames)
@@ -187,13 +198,18 @@ class Session:
             buffer.close(e if not isinstance(e, asyncio.CancelledError) else None)
             raise
 
-    async def _window(self, chunks: list[AudioChunk], emit: Callable[[list[Frame]], object]) -> None:
-        """One due window: its calls in turn, each call's frames emitted as they come."""
+    async def _window(self, chunks: list[AudioChunk], emit: Callable[[list[Frame]], object],
+                      waiting_s: Callable[[], float] = lambda: 0.0) -> None:
+        """One due window: its calls in turn, each call's frames emitted as they come, each ranked by how far
+        the session's audio is ahead of real time counting what waits behind it (`AudioClock`)."""
         samples = np.concatenate([c.samples for c in chunks])
         infer_s, n = 0.0, 0
-        for call in self.windows.calls(samples):
+        calls = self.windows.calls(samples)
+        for k, call in enumerate(calls):
             t0 = time.perf_counter()
-            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, self.clock.ahead_s()))
+            later = sum(len(c) for c in calls[k + 1:]) / SAMPLE_RATE
+            rank = self.clock.ahead_s(len(call) / SAMPLE_RATE, later + waiting_s())
+            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, rank))
             self.clock.audio_s += len(call) / SAMPLE_RATE
             infer_s += time.perf_counter() - t0
             n += len(frames)
