@@ -87,20 +87,22 @@ class _AudioBuffer:
 
 
 class AudioClock:
-    """How far a stream's audio is ahead of real time: the audio it handed to inference, plus the audio that
-    already waits for it, minus the time elapsed since its audio began.
+    """How far a stream's audio is ahead of real time: the audio received and waiting for inference, minus how
+    late its inference runs (the time elapsed since its audio began less the audio inferred, at most
+    `max_credit_s`). Real time (<= 0): nothing waits but the window in hand; backlog (> 0): more waits.
 
     A real-time sender (a talker, a microphone) stays about one window behind, whatever the jitter of its
-    packets: its first call's audio took that call's length to arrive, so the clock starts that long
-    before the first call. A fast sender throttled by the server (its queue full: it waits for inference, not
-    the other way round) stays ahead by its queue even when inference gives it less than real time.
-    Shared by the successive sessions of one client (so restarting sessions earns no priority); time
-    without audio earns at most `max_credit_s` of catching up.
+    packets: its first call's audio took that call's length to arrive, so the clock starts that long before
+    the first call. A fast sender held back by the server (its queue full) stays ahead by its queue, though
+    inference may give it less than real time. Time in which the client sent nothing earns at most
+    `max_credit_s` of catching up (time in which the server was slow earns it all: a talker's window late
+    by a stall is not made backlog). Shared by the successive sessions of one client (so restarting
+    sessions earns no priority).
     """
 
     def __init__(self, max_credit_s: float = 2.0, now: Callable[[], float] = time.monotonic):
         self.t0: float | None = None
-        self.audio_s = 0.0
+        self.audio_s = 0.0  # handed to inference
         self.max_credit_s = max_credit_s
         self.now = now
 
@@ -109,10 +111,10 @@ class AudioClock:
         now = self.now()
         if self.t0 is None:
             self.t0 = now - call_s
-        behind = (now - self.t0) - self.audio_s
-        if behind > self.max_credit_s:
-            self.t0 += behind - self.max_credit_s
-        return waiting_s - min(behind, self.max_credit_s)
+        silent = (now - self.t0) - (self.audio_s + call_s + waiting_s)  # the client sent less than real time
+        if silent > self.max_credit_s:
+            self.t0 += silent - self.max_credit_s
+        return waiting_s - min((now - self.t0) - self.audio_s, self.max_credit_s)
 
 
 class Session:
