@@ -174,7 +174,7 @@ class Session:
         reader = asyncio.create_task(self._read(source, buffer), name=f"{self.name}-reader")
 
         def waiting_s() -> float:  # received, not yet taken: this session's buffer and its source's queue
-            return buffer.samples / SAMPLE_RATE + float(getattr(source, "backlog_s", 0.0))
+            return buffer.samples / SAMPLE_RATE + float(getattr(source, "waiting_s", 0.0))
 
         try:
             while chunks := await buffer.take(self.windows.window):

@@ -188,24 +188,33 @@ def test_a_real_time_sender_ranks_as_real_time_however_its_packets_jitter(stall_
     assert max(ranks) <= 0, f"real-time calls ranked as backlog: {np.round(ranks, 3)}"
 
 
-def test_a_fast_sender_held_back_by_the_server_ranks_as_backlog_even_when_it_gets_less_than_real_time():
-    """20 s of audio queued at once in a client's source (`PushSource`, as `streamer serve` holds a fast
-    sender's audio), inferred at half real time (fake clock): the client is ahead of real time by its queue,
-    so its calls rank as backlog (> 0) as long as more than the credit of time without audio (2 s) waits
-    behind them, though the audio inferred falls behind the time elapsed. (Ranked by audio inferred alone, it
-    had looked real time after 2 s and shared every cycle with the real-time talkers.)"""
+@pytest.mark.parametrize("pieces", [1, 40])
+def test_a_fast_sender_held_back_by_the_server_ranks_as_backlog_even_when_it_gets_less_than_real_time(pieces):
+    """A 20 s message in a client's source (`PushSource`, as `streamer serve` holds a fast sender's audio),
+    put at once or in 0.5 s pieces (as the server resamples it), inferred at half real time (fake clock): the
+    client is ahead of real time by what waits, so its calls rank as backlog (> 0) as long as more than the
+    credit of time without audio (2 s) waits behind them, though the audio inferred falls behind the time
+    elapsed. (Ranked by audio inferred alone, it had looked real time after 2 s and shared every cycle with
+    the real-time talkers; and counting only what was queued, its first calls, each on the first pieces of
+    its first message, looked real time: 31 new flooders in one real-time cycle had held a talker 1.1 s.)"""
     from streamer.sources import PushSource
 
     clock = [0.0]
     scheduler = _Ranks(clock, compute_per_audio_s=2.0)
 
-    async def main():
+    async def main(pieces: int):
         source = PushSource(max_backlog_s=30.0)
-        await source.put(synthetic_speech(20.0, seed=1))
-        await source.close()
-        await _ranked_session(scheduler).run(source, lambda frames: None)
+        x = synthetic_speech(20.0, seed=1)
 
-    asyncio.run(main())
+        async def client():  # one 20 s message, put in `pieces` as `streamer serve` resamples it
+            for k, y in enumerate(np.array_split(x, pieces)):
+                await source.put(y, more_s=20.0 * (pieces - 1 - k) / pieces)
+                await asyncio.sleep(0)
+            await source.close()
+
+        await asyncio.gather(client(), _ranked_session(scheduler).run(source, lambda frames: None))
+
+    asyncio.run(main(pieces))
     assert sum(s for _, s in scheduler.calls) == pytest.approx(20.0)
     left = 20.0 - np.cumsum([s for _, s in scheduler.calls])  # audio behind each call
     ranks = np.array([r for r, _ in scheduler.calls])
