@@ -220,3 +220,23 @@ def test_a_fast_sender_held_back_by_the_server_ranks_as_backlog_even_when_it_get
     ranks = np.array([r for r, _ in scheduler.calls])
     assert clock[0] == pytest.approx(40.0) and np.all(ranks[left > 2.5] > 0), \
         f"backlog calls ranked as real time: {np.round(ranks, 2)} with {np.round(left, 1)} s behind"
+
+
+def test_backlogs_rank_by_service_not_by_queue():
+    """Two fast senders held back by the server: served alike, they rank alike whatever their queues (30 s, or
+    62 s in the middle of a 32 s message); the one served more goes after. (Ranked by their queues, the one
+    that had just read a new message waited until every other had worked through theirs: 19 of 31 flooders
+    closed by the keepalive, measured.) A real-time call ranks before both."""
+    from streamer.sessions import AudioClock
+
+    t = [0.0]
+    a, b = AudioClock(now=lambda: t[0]), AudioClock(now=lambda: t[0])
+    for clock, queue in ((a, 30.0), (b, 62.0)):
+        clock.rank(1.0, queue)
+        clock.audio_s += 1.0
+    t[0] = 1.5
+    assert a.rank(1.0, 30.0) == b.rank(1.0, 62.0) > 0
+    a.audio_s += 1.0
+    t[0] = 2.0
+    assert 0 < b.rank(1.0, 62.0) < a.rank(1.0, 30.0)
+    assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0  # (a talker's window, its next packet behind it)
