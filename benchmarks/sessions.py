@@ -165,7 +165,9 @@ async def keepalive_part(url: str, flooders: int, seconds: float, quiet_s: float
             "closes": [o["closed"] for o in outs if o["closed"]],
             "all_frames": sum(o["end"] == o["frames"] == int(o["sent"] / SAMPLE_RATE * 20) and o["in_order"] for o in outs),
             "audio_s_each": [round(o["sent"] / SAMPLE_RATE) for o in outs], "talker_quiet": quiet, "talker_flood": flood,
-            "wall_s": round(time.monotonic() - t0, 1)}
+            "wall_s": round(time.monotonic() - t0, 1),
+            # the flooders' throughput: all their audio over the time from the flood's start to their last `end`
+            "flood_audio_s_per_s": round(sum(o["sent"] for o in outs) / SAMPLE_RATE / (time.monotonic() - t0), 1)}
 
 
 def fuzz_requests(n: int, seed: int, websocket: bool) -> list[bytes]:

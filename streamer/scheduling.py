@@ -17,6 +17,7 @@ import atexit
 import heapq
 import itertools
 import threading
+import time
 import weakref
 from abc import ABC, abstractmethod
 from collections import deque
@@ -241,6 +242,25 @@ class BatchStats:
         return f"batch {self.mean:.1f} streams (max {self.peak})" if self.batches else "batch -"
 
 
+class CycleCost:
+    """A running estimate of what a backlog cycle costs: seconds of compute per second of audio (an exponential
+    average over measured cycles; None before the first). Measured at the size the cycles run at, so the cycles
+    it sizes converge to the compute asked for even though batching makes the cost per second fall with size."""
+
+    def __init__(self, alpha: float = 0.2):
+        self.alpha, self.s_per_audio_s, self.last_s = alpha, None, 0.0
+
+    def add(self, seconds: float, audio_s: float) -> None:
+        self.last_s = seconds
+        if audio_s > 0:
+            x = seconds / audio_s
+            old = self.s_per_audio_s
+            self.s_per_audio_s = x if old is None else old + self.alpha * (x - old)
+
+    def describe(self) -> str:
+        return f"backlog cycle {1000 * self.last_s:.0f} ms" if self.s_per_audio_s is not None else ""
+
+
 class StreamBatcher(_Threads):
     """One inference thread that runs the due windows of all sessions as batched forwards.
 
@@ -251,16 +271,19 @@ class StreamBatcher(_Threads):
     window (rank <= 0) waits, windows ahead of real time (a backlog) wait for the next cycle. Other jobs (a
     stream's finish) run alone between batches, unranked.
 
-    A cycle of backlog alone takes windows (least ahead of real time first) only until they hold
-    `backlog_s` of audio: a real-time window that arrives meanwhile then waits for a short cycle, not for
+    A cycle of backlog alone takes windows (least ahead of real time first) only until their estimated compute
+    (`CycleCost`, measured on the backlog cycles) reaches `cycle_s` (`backlog_s` of audio before the first
+    measurement): a real-time window that arrives meanwhile waits for at most that, then goes first, not for
     every fast sender's next second at once (31 clients sending faster than real time had pushed a
-    bystander's p95 latency from 0.15 to 4.5 s).
+    bystander's p95 latency from 0.15 to 4.5 s). A bound in time, not in audio, holds on any model and machine.
     """
 
-    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", backlog_s: float = 4.0):
+    def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", cycle_s: float = 0.1,
+                 backlog_s: float = 4.0, clock: Callable[[], float] = time.perf_counter):
         self.max_batch = max_batch
-        self.backlog_samples = int(backlog_s * SAMPLE_RATE)
+        self.cycle_s, self.backlog_s, self.clock = cycle_s, backlog_s, clock
         self.stats = BatchStats()
+        self.cost = CycleCost()
         self._pushes: list[_PushJob] = []
         self._jobs: deque[_Job] = deque()
         super().__init__([thread_name])
@@ -288,8 +311,10 @@ class StreamBatcher(_Threads):
         if realtime:  # real time first: a backlog waits for a cycle without any
             pushes = [j for j in pushes if j.rank <= 0]
         taken, seen, backlog = [], set(), 0
+        cost = self.cost.s_per_audio_s
+        most = SAMPLE_RATE * (self.backlog_s if cost is None else self.cycle_s / max(cost, 1e-6))
         for j in pushes:
-            if not realtime and taken and backlog + len(j.samples) > self.backlog_samples:
+            if not realtime and taken and backlog + len(j.samples) > most:
                 break  # a short backlog cycle, so that the next real-time window is not kept waiting
             if len(taken) < self.max_batch and id(j.session) not in seen:
                 taken.append(j)
@@ -313,6 +338,7 @@ class StreamBatcher(_Threads):
         from dimgestor.batch import push_many
 
         self.stats.add(len(pushes))
+        started = self.clock()
         try:
             results = push_many([j.session.stream for j in pushes], [j.samples for j in pushes],
                                 return_exceptions=True)
@@ -326,6 +352,9 @@ class StreamBatcher(_Threads):
                 j.future.set_result(j.session.frames_of(r))
             except BaseException as e:  # noqa: BLE001
                 j.future.set_exception(e)
+        took = self.clock() - started
+        if all(j.rank > 0 for j in pushes):  # (a real-time window's cycle is not what sizes backlog cycles)
+            self.cost.add(took, sum(len(j.samples) for j in pushes) / SAMPLE_RATE)
 
 
 _POOL: ThreadPoolExecutor | None = None

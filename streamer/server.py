@@ -314,7 +314,7 @@ def _status_line(p: Pipeline) -> str:
         parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",
                   f"rtf {st.rtf:.2f}"]
     if isinstance(p.executor, StreamBatcher):
-        parts.append(p.executor.stats.describe())
+        parts += [text for text in (p.executor.stats.describe(), p.executor.cost.describe()) if text]
     parts += [text for text in (sink.status() for sink in p.sinks) if text]
     if isinstance(p.source, MicSource):
         parts += [p.source.meter.describe(), f"mic dropped {p.source.dropped_s:.1f}s"]

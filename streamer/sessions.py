@@ -4,7 +4,7 @@ A session owns one `GestureStream` (the model's streaming state) and one `PoseDe
 integration). Its scheduler (`streamer.scheduling`) says when a window of audio is due and how a long take
 is cut into calls (`WindowPolicy`), and runs the calls: batched with the other sessions' windows
 (`StreamBatcher`, `streamer serve`'s default) or each alone (`RankedExecutor`, `--no-batch`). Calls are ranked
-by how far the session's audio is ahead of real time (`AudioClock`). Each frame is stamped with
+real time first, then backlogs (`AudioClock`). Each frame is stamped with
 pts = index / fps on the audio clock.
 """
 
@@ -87,25 +87,36 @@ class _AudioBuffer:
 
 
 class AudioClock:
-    """How far a stream's audio is ahead of real time: audio handed to inference minus time elapsed.
+    """Ranks a stream's calls: real time first, the latest first; then backlogs, the least served first.
 
-    Shared by the successive sessions of one client (so restarting sessions earns no priority); time
-    without audio earns at most `max_credit_s` of catching up.
+    A call is real time when less audio waits behind it than the call holds (a talker, a microphone, a window
+    late after a stall): its rank is minus how late its inference runs (the time elapsed since the stream's
+    audio began less the audio inferred, at most `max_credit_s`), <= 0. A call with more waiting behind it is
+    backlog: 1 + how far its inference is ahead of the latest it may be, >= 1, so among fast senders held back
+    by the server the one served least goes first (equals: first come, first served), whatever their queues.
+
+    A real-time sender stays about one window late, whatever the jitter of its packets: its first call's audio
+    took that call's length to arrive, so the clock starts that long before the first call. Time in which the
+    client sent nothing earns at most `max_credit_s` of catching up (time in which the server was slow earns
+    it all). Shared by the successive sessions of one client (so restarting sessions earns no priority).
     """
 
-    def __init__(self, max_credit_s: float = 2.0):
+    def __init__(self, max_credit_s: float = 2.0, now: Callable[[], float] = time.monotonic):
         self.t0: float | None = None
-        self.audio_s = 0.0
+        self.audio_s = 0.0  # handed to inference
         self.max_credit_s = max_credit_s
+        self.now = now
 
-    def ahead_s(self) -> float:
-        now = time.monotonic()
+    def rank(self, call_s: float = 0.0, waiting_s: float = 0.0) -> float:
+        """A call of `call_s` seconds of audio, with `waiting_s` more received and waiting behind it."""
+        now = self.now()
         if self.t0 is None:
-            self.t0 = now
-        behind = (now - self.t0) - self.audio_s
-        if behind > self.max_credit_s:
-            self.t0 += behind - self.max_credit_s
-        return -min(behind, self.max_credit_s)
+            self.t0 = now - call_s
+        silent = (now - self.t0) - (self.audio_s + call_s + waiting_s)  # the client sent less than real time
+        if silent > self.max_credit_s:
+            self.t0 += silent - self.max_credit_s
+        late = min((now - self.t0) - self.audio_s, self.max_credit_s)
+        return -late if waiting_s <= call_s else 1.0 + self.max_credit_s - late
 
 
 class Session:
@@ -163,10 +174,14 @@ class Session:
         """
         buffer = _AudioBuffer(self.windows.buffer)
         reader = asyncio.create_task(self._read(source, buffer), name=f"{self.name}-reader")
+
+        def waiting_s() -> float:  # received, not yet taken: this session's buffer and its source's queue
+            return buffer.samples / SAMPLE_RATE + float(getattr(source, "waiting_s", 0.0))
+
         try:
             while chunks := await buffer.take(self.windows.window):
-                await self._window(chunks, emit)
-            finish = self.scheduler.submit_ranked(self.clock.ahead_s(), self.infer_finish)
+                await self._window(chunks, emit, waiting_s)
+            finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)
             frames = await asyncio.wrap_future(finish)
             await _emit(emit, frames)
             self.stats.frames += len(frames)
@@ -187,13 +202,18 @@ class Session:
             buffer.close(e if not isinstance(e, asyncio.CancelledError) else None)
             raise
 
-    async def _window(self, chunks: list[AudioChunk], emit: Callable[[list[Frame]], object]) -> None:
-        """One due window: its calls in turn, each call's frames emitted as they come."""
+    async def _window(self, chunks: list[AudioChunk], emit: Callable[[list[Frame]], object],
+                      waiting_s: Callable[[], float] = lambda: 0.0) -> None:
+        """One due window: its calls in turn, each call's frames emitted as they come, each ranked by
+        `AudioClock` with what waits behind it."""
         samples = np.concatenate([c.samples for c in chunks])
         infer_s, n = 0.0, 0
-        for call in self.windows.calls(samples):
+        calls = self.windows.calls(samples)
+        for k, call in enumerate(calls):
             t0 = time.perf_counter()
-            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, self.clock.ahead_s()))
+            later = sum(len(c) for c in calls[k + 1:]) / SAMPLE_RATE
+            rank = self.clock.rank(len(call) / SAMPLE_RATE, later + waiting_s())
+            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, rank))
             self.clock.audio_s += len(call) / SAMPLE_RATE
             infer_s += time.perf_counter() - t0
             n += len(frames)

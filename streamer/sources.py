@@ -111,6 +111,7 @@ class PushSource:
         self.max_samples = int(max_backlog_s * SAMPLE_RATE)
         self.queued = 0  # samples waiting to be read
         self.samples_in = 0  # 16 kHz samples so far (the audio clock)
+        self.more_s = 0.0  # audio of the message being put that is still to come (put in pieces)
         self.closed = False
         self.changed = asyncio.Event()
 
@@ -122,10 +123,18 @@ class PushSource:
     def backlog_s(self) -> float:
         return self.queued / SAMPLE_RATE
 
-    async def put(self, x: np.ndarray) -> None:
+    @property
+    def waiting_s(self) -> float:
+        """Audio received and not yet read: queued, and the rest of the message being put (what ranks the
+        session as ahead of real time from its first call, not only once its queue has filled)."""
+        return self.backlog_s + self.more_s
+
+    async def put(self, x: np.ndarray, more_s: float = 0.0) -> None:
+        """Queue `x` (16 kHz), one piece of a message with `more_s` seconds of audio still to come."""
         while self.full and not self.closed:
             self.changed.clear()
             await self.changed.wait()
+        self.more_s = more_s
         x = np.asarray(x, dtype=np.float32)
         if len(x) and not self.closed:
             self.chunks.append(AudioChunk(x, self.samples_in / SAMPLE_RATE, time.monotonic()))

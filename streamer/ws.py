@@ -515,7 +515,7 @@ class WsServer:
                 client.put(P.error("slow_down", f"audio arrives faster than it is processed: "
                                                 f"{source.backlog_s:.0f} s are queued; pause until `resume` (or the "
                                                 f"server reads more as it catches up; nothing is dropped)"))
-            await source.put(y)
+            await source.put(y, more_s=max(0, len(x) - a - step) / fmt.rate)
             if client.source is not source:  # the session failed meanwhile
                 return
 

@@ -4,7 +4,7 @@ import asyncio
 import subprocess
 import sys
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +118,125 @@ def test_frames_protocol_and_vmc_do_not_import_the_threaded_engine():
             "'streamer.scheduling', 'dimgestor.batch')))")
     r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-2000:])
+
+
+class _Ranks(Scheduler):
+    """Runs nothing: records each call's (rank, seconds of audio) and answers it at once with no frames; each
+    call advances a fake clock by `compute_per_audio_s` times its audio (inference slower or faster than real time)."""
+
+    def __init__(self, clock: list, compute_per_audio_s: float = 0.0):
+        self.clock, self.compute_per_audio_s, self.calls = clock, compute_per_audio_s, []
+        self.on_call = lambda rank, seconds: None
+
+    def submit_push(self, session, samples, rank=0.0):
+        self.calls.append((rank, len(samples) / 16000))
+        self.clock[0] += self.compute_per_audio_s * len(samples) / 16000
+        self.on_call(rank, len(samples) / 16000)
+        return self._done([])
+
+    def submit_ranked(self, rank, fn, /, *args, **kwargs):
+        return self._done([])
+
+    @staticmethod
+    def _done(result):
+        f = Future()
+        f.set_result(result)
+        return f
+
+
+def _ranked_session(scheduler: _Ranks) -> Session:
+    from types import SimpleNamespace
+
+    from streamer.sessions import AudioClock
+
+    session = Session(SimpleNamespace(frames_out=0), None, None, 20, window_ms=200, executor=scheduler)
+    session.clock = AudioClock(now=lambda: scheduler.clock[0])
+    return session
+
+
+@pytest.mark.parametrize("stall_s", [0.0, 3.0])
+def test_a_real_time_sender_ranks_as_real_time_however_its_packets_jitter(stall_s):
+    """A talker's 100 ms packets, each up to 40 ms early or late (a fake clock; inference takes no time, but
+    for one call that takes `stall_s`, meanwhile the talker's packets pile up): every call is real time
+    (rank <= 0), so it never waits behind a backlog. (The clock used to start at the first call, which put
+    a real-time sender at 0 +- its jitter: half its windows ranked as backlog; and a stall beyond the credit
+    of 2 s used to leave it ranked ahead by the excess for good.)"""
+    clock = [0.0]
+    scheduler = _Ranks(clock)
+    jitter = np.random.default_rng(0).uniform(-0.04, 0.04, 100)
+    x = synthetic_speech(10.0, seed=1)
+    taken = lambda: sum(s for _, s in scheduler.calls)  # noqa: E731
+
+    def stall(rank, seconds):  # the 20th call takes stall_s
+        if len(scheduler.calls) == 20:
+            clock[0] += stall_s
+
+    scheduler.on_call = stall
+
+    async def talker():
+        for k in range(100):
+            arrival = 0.1 * (k + 1) + jitter[k]  # when this packet's last sample arrives
+            if arrival > clock[0]:  # (not there yet: the session took its window meanwhile)
+                while taken() < 0.1 * k - 0.1 - 1e-9:
+                    await asyncio.sleep(0)
+                clock[0] = max(clock[0], arrival)
+            yield AudioChunk(x[1600 * k:1600 * (k + 1)], 0.1 * k, arrival)
+
+    asyncio.run(_ranked_session(scheduler).run(talker(), lambda frames: None))
+    assert taken() == pytest.approx(10.0)
+    ranks = [r for r, _ in scheduler.calls]
+    assert max(ranks) <= 0, f"real-time calls ranked as backlog: {np.round(ranks, 3)}"
+
+
+@pytest.mark.parametrize("pieces", [1, 40])
+def test_a_fast_sender_held_back_by_the_server_ranks_as_backlog_even_when_it_gets_less_than_real_time(pieces):
+    """A 20 s message in a client's source (`PushSource`, as `streamer serve` holds a fast sender's audio),
+    put at once or in 0.5 s pieces (as the server resamples it), inferred at half real time (fake clock): the
+    client is ahead of real time by what waits, so its calls rank as backlog (> 0) as long as more than the
+    credit of time without audio (2 s) waits behind them, though the audio inferred falls behind the time
+    elapsed. (Ranked by audio inferred alone, it had looked real time after 2 s and shared every cycle with
+    the real-time talkers; and counting only what was queued, its first calls, each on the first pieces of
+    its first message, looked real time: 31 new flooders in one real-time cycle had held a talker 1.1 s.)"""
+    from streamer.sources import PushSource
+
+    clock = [0.0]
+    scheduler = _Ranks(clock, compute_per_audio_s=2.0)
+
+    async def main(pieces: int):
+        source = PushSource(max_backlog_s=30.0)
+        x = synthetic_speech(20.0, seed=1)
+
+        async def client():  # one 20 s message, put in `pieces` as `streamer serve` resamples it
+            for k, y in enumerate(np.array_split(x, pieces)):
+                await source.put(y, more_s=20.0 * (pieces - 1 - k) / pieces)
+                await asyncio.sleep(0)
+            await source.close()
+
+        await asyncio.gather(client(), _ranked_session(scheduler).run(source, lambda frames: None))
+
+    asyncio.run(main(pieces))
+    assert sum(s for _, s in scheduler.calls) == pytest.approx(20.0)
+    left = 20.0 - np.cumsum([s for _, s in scheduler.calls])  # audio behind each call
+    ranks = np.array([r for r, _ in scheduler.calls])
+    assert clock[0] == pytest.approx(40.0) and np.all(ranks[left > 2.5] > 0), \
+        f"backlog calls ranked as real time: {np.round(ranks, 2)} with {np.round(left, 1)} s behind"
+
+
+def test_backlogs_rank_by_service_not_by_queue():
+    """Two fast senders held back by the server: served alike, they rank alike whatever their queues (30 s, or
+    62 s in the middle of a 32 s message); the one served more goes after. (Ranked by their queues, the one
+    that had just read a new message waited until every other had worked through theirs: 19 of 31 flooders
+    closed by the keepalive, measured.) A real-time call ranks before both."""
+    from streamer.sessions import AudioClock
+
+    t = [0.0]
+    a, b = AudioClock(now=lambda: t[0]), AudioClock(now=lambda: t[0])
+    for clock, queue in ((a, 30.0), (b, 62.0)):
+        clock.rank(1.0, queue)
+        clock.audio_s += 1.0
+    t[0] = 1.5
+    assert a.rank(1.0, 30.0) == b.rank(1.0, 62.0) > 0
+    a.audio_s += 1.0
+    t[0] = 2.0
+    assert 0 < b.rank(1.0, 62.0) < a.rank(1.0, 30.0)
+    assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0  # (a talker's window, its next packet behind it)
