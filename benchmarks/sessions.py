@@ -141,6 +141,12 @@ async def talker(url: str, stop: asyncio.Event, latency: list) -> None:
         reader.cancel()
 
 
+def worst_by_second(latency: list, t0: float, t1: float) -> list:
+    """The talker's largest frame latency (ms) in each second from t0 to t1: where a p95 comes from (a stall)."""
+    return [round(max((v for t, v in latency if t0 + k <= t < t0 + k + 1), default=0.0) * 1000)
+            for k in range(int(t1 - t0))]
+
+
 def percentiles(latency: list, t0: float, t1: float) -> dict:
     x = np.array([v for t, v in latency if t0 <= t <= t1]) * 1000
     return {"n": int(len(x)), "p50_ms": round(float(np.median(x)), 1) if len(x) else None,
@@ -159,6 +165,7 @@ async def keepalive_part(url: str, flooders: int, seconds: float, quiet_s: float
     t0 = time.monotonic()
     await asyncio.gather(*(flooder(url, seconds, o) for o in outs))
     flood = percentiles(latency, t0 + 2, t0 + seconds)
+    flood["worst_ms_by_second"] = worst_by_second(latency, t0, t0 + seconds)
     stop.set()
     await asyncio.gather(talk, return_exceptions=True)
     return {"flooders": flooders, "seconds": seconds, "closed": sum(o["closed"] is not None for o in outs),
