@@ -7,9 +7,17 @@
 // come (an underrun: the server fell behind), the clock holds at the newest frame, picture and sound together,
 // and resumes once the buffer is rebuilt to the new worst lateness plus the margin (also when the page was busy
 // and the clock passed its newest frame unseen: the next frame's arrival tells); underruns that keep coming
-// grow the margin. The stream starts at its first frame however long the page took to present it. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
+// grow the margin. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
 // clock catches up. Moves are rare, so the sound does not jump at every late burst, and while it holds nothing
 // plays: what is heard at audio time t is always the frame with pts t.
+//
+// The stream starts at its first frame however long the page took to present it, with a buffer set from the
+// frames that came before that. A stream's first message may be the tail of a window (a model that looks ahead
+// has only a few frames' audio at first: 2 of 4 with 350 ms), whose frames are later than their pts by less
+// than a whole window's first frame will be: the lateness expected is the newest of them plus the burst's span
+// (one window less one frame), when that is more than the first's. A busy page stamps arrivals up to one of its
+// own frames late (a software-rendered page on a loaded machine draws at ~5 fps), so the start's buffer also
+// holds the page's longest recent frame (`pageS`).
 const WINDOW_S = 10;       // lateness is remembered this long
 const MARGIN_MAX_S = 2;    // the margin grows at most to this
 const GROW = 1.5;          // margin x GROW when underruns come within REPEAT_S of each other
@@ -23,6 +31,8 @@ export class PlayoutClock {
   /** `baseMarginS`: the buffer above the worst lateness when nothing went wrong (one window + network). */
   constructor(baseMarginS = 0.3) {
     this.baseMarginS = baseMarginS;
+    this.burstS = 0;  // frames come in bursts this long (first to last pts): setBursts
+    this.pageS = 0;   // the page's longest recent frame interval (s), kept current by the page
     this.reset();
   }
 
@@ -30,6 +40,7 @@ export class PlayoutClock {
   reset() {
     this.offset = null;       // local seconds minus pts; null before the first frame
     this.firstPts = null;     // the stream's first frame, until it has been presented
+    this.firstTransit = null; // and its transit
     this.marginS = this.baseMarginS;
     this.transits = [];       // [arrival, transit] of recent frames (transit = arrival - pts), arrival order
     this.holdAt = null;       // pts the clock stands at while it waits for late frames
@@ -44,6 +55,9 @@ export class PlayoutClock {
     this.marginS = Math.max(this.marginS - this.baseMarginS + s, s);
     this.baseMarginS = s;
   }
+
+  /** Frames come in bursts: one inference window of `windowS` seconds, frames `frameS` apart. */
+  setBursts(windowS, frameS) { this.burstS = Math.max(0, windowS - frameS); }
 
   /** The worst transit (seconds) of the frames that arrived in the last WINDOW_S. */
   lateness() {
@@ -62,7 +76,12 @@ export class PlayoutClock {
     if (this.offset !== null && this.holdAt === null && this.firstPts === null && now - this.offset > this.newestPts)
       this.underrun(now);
     this.newestPts = this.newestPts === null ? pts : Math.max(this.newestPts, pts);
-    if (this.offset === null) { this.firstPts = pts; this.move(transit + this.marginS, now); return; }
+    if (this.offset === null) { this.firstPts = pts; this.firstTransit = transit; }
+    if (this.firstPts !== null) {  // not presented yet: the start's buffer from the frames so far (see above)
+      const expected = Math.max(this.firstTransit, transit + this.burstS);
+      this.move(expected + this.marginS + Math.min(this.pageS, MARGIN_MAX_S), now);
+      return;
+    }
     if (this.holdAt !== null) return;
     const ahead = pts - (now - this.offset);
     if (ahead > this.marginS + AHEAD_S) { this.move(transit + this.marginS, now); this.catchUps++; return; }

@@ -318,12 +318,18 @@ let followFrom = null;  // where the hips were when the view was last framed: th
 let faceFollow = true;  // the camera keeps in front of the avatar as it turns, until the user moves the view
 const FACE_FOLLOW_S = 0.8;
 let lastRender = performance.now();
+const PAGE_FRAMES_MS = 2000;
+const pageFrames = [];  // [time, interval] of the page's frames in the last PAGE_FRAMES_MS
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
+  // The clock's start holds the page's longest frame of late (a busy page stamps arrivals up to that late).
+  pageFrames.push([t, t - lastRender]);
+  while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
+  clock.pageS = Math.max(...pageFrames.map(([, d]) => d)) / 1000;
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
@@ -490,6 +496,7 @@ function onMessage(data) {
       // Buffer one inference window (frames come in bursts of that length) plus some network jitter.
       playout.delayS = (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
       clock.setBaseMargin(playout.delayS);
+      clock.setBursts(msg.window_ms ? msg.window_ms / 1000 : 0.2, 1 / (msg.fps || 20));
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
       ui.sound.disabled = !msg.source_audio || mode === 'talk';
