@@ -138,6 +138,29 @@ def test_a_backlog_cycle_is_short_so_real_time_windows_do_not_wait_behind_it(bun
         batcher.shutdown()
 
 
+def test_tied_backlog_windows_take_turns_in_the_order_they_were_queued(bundle):
+    """Six fast senders all beyond the lead cap (one backlog rank), one window per cycle: they run in the
+    order they were queued, not by session, so one that has just been served waits for the others' turn only."""
+    ticks = itertools.count()
+    batcher = StreamBatcher(backlog_s=0.6, cycle_s=0.1, clock=lambda: 0.1 * ((next(ticks) + 1) // 2))
+    gate, order = threading.Event(), []
+    try:
+        batcher.submit(gate.wait, 30)
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(6)]
+        audio = synthetic_speech(0.6, seed=3)
+        queued = [3, 0, 5, 1, 4, 2]
+        futures = [batcher.submit_push(sessions[i], audio, rank=5.0) for i in queued]
+        for i, f in zip(queued, futures):
+            f.add_done_callback(lambda _, i=i: order.append(i))
+        gate.set()
+        for f in futures:
+            f.result(60)
+        assert batcher.stats.peak == 1 and order == queued, (order, batcher.stats.peak)
+    finally:
+        gate.set()
+        batcher.shutdown()
+
+
 def test_batcher_isolates_a_failing_stream(bundle):
     """A window that fails (a finished stream) fails its own future only; the batch's others get frames."""
     batcher = StreamBatcher()

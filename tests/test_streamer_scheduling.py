@@ -240,3 +240,26 @@ def test_backlogs_rank_by_service_not_by_queue():
     t[0] = 2.0
     assert 0 < b.rank(1.0, 62.0) < a.rank(1.0, 30.0)
     assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0  # (a talker's window, its next packet behind it)
+
+
+def test_fast_senders_far_ahead_take_turns_instead_of_waiting_for_the_others_to_catch_up():
+    """One fast sender served alone at a flood's start (40 s ahead of real time) and one that joined later
+    (1 s ahead): beyond the lead cap (2 s) they tie, so they take turns in arrival order; the early one no
+    longer waits for every other to catch up 40 s (no frame for 40 s, closed by the keepalive: measured).
+    Below the cap the one served less still goes first, and a real-time call before both."""
+    from streamer.sessions import AudioClock
+
+    t = [0.0]
+    early, late = AudioClock(now=lambda: t[0]), AudioClock(now=lambda: t[0])
+    early.rank(1.0, 30.0)
+    early.audio_s = 41.0  # served 41 s of audio in its first second
+    t[0] = 1.0
+    late.rank(1.0, 30.0)
+    late.audio_s = 1.0
+    t[0] = 1.5
+    assert late.rank(1.0, 30.0) < early.rank(1.0, 30.0)  # 0.5 s ahead: served less, first
+    late.audio_s = 4.0
+    t[0] = 2.0
+    assert late.rank(1.0, 30.0) == early.rank(1.0, 30.0) > 0  # both beyond the cap: a tie
+    assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0 < late.rank(1.0, 30.0)
+    # (tied windows run in the order they were queued: test_streamer_batching)
