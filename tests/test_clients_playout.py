@@ -165,6 +165,19 @@ def test_playout_is_the_same_in_every_client(frames_dir, schedule, tmp_path):
                 np.testing.assert_allclose(x["rotations"], y["rotations"], atol=1e-9)
 
 
+def run_clock(tmp_path, head: list[str], arrivals, display) -> tuple[list[dict], dict]:
+    """av_clock_check.mjs on `head` then the arrivals [(t, pts)] and display refreshes in time order."""
+    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
+                    [(t, 1, 0, f"time {t:.6f}") for t in display])
+    sched = tmp_path / "clock.txt"
+    sched.write_text("\n".join(head + [e[3] for e in events]) + "\n")
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    return out[:-1], out[-1]
+
+
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
 def test_web_av_clock_holds_picture_and_sound_together_and_sizes_its_buffer_from_lateness(tmp_path):
     """The web viewer's one clock of picture and sound (clients/web/av-clock.js) on bursts of 4 frames every
@@ -182,16 +195,8 @@ def test_web_av_clock_holds_picture_and_sound_together_and_sizes_its_buffer_from
         at = max(at, arrivals[-1][0] if arrivals else 0)  # in order, as one server sends them
         arrivals += [(at, pts0 + 0.05 * k) for k in range(4)]
     display = np.arange(0.3, 30.0, 1 / DISPLAY_HZ)
-    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
-                    [(t, 1, 0, f"time {t:.6f}") for t in display])
-    lines += [e[3] for e in events]
-    sched = tmp_path / "clock.txt"
-    sched.write_text("\n".join(lines) + "\n")
-    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    counters, shown = out[-1], [s for s in out[:-1] if s["pts"] is not None]
+    out, counters = run_clock(tmp_path, lines, arrivals, display)
+    shown = [s for s in out if s["pts"] is not None]
     t = np.array([s["t"] for s in shown])
     pts = np.array([s["pts"] for s in shown])
     arrived = np.array([max([p for a, p in arrivals if a <= ti], default=-1) for ti in t])
@@ -220,30 +225,10 @@ def test_web_av_clock_starts_at_the_first_frame_when_the_page_was_busy(tmp_path)
     lines = [f"margin {DELAY_S}"]
     arrivals = [(0.2 * w + 0.4, 0.2 * w + 0.05 * k) for w in range(60) for k in range(4)]
     display = np.arange(4.5, 12.0, 1 / DISPLAY_HZ)
-    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
-                    [(t, 1, 0, f"time {t:.6f}") for t in display])
-    sched = tmp_path / "clock.txt"
-    sched.write_text("\n".join(lines + [e[3] for e in events]) + "\n")
-    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    pts = np.array([s["pts"] for s in out[:-1]])
-    assert pts[0] == 0.0 and out[-1]["underruns"] == 0 and out[-1]["catchUps"] == 0, out[-1]
+    out, counters = run_clock(tmp_path, lines, arrivals, display)
+    pts = np.array([s["pts"] for s in out])
+    assert pts[0] == 0.0 and counters["underruns"] == 0 and counters["catchUps"] == 0, counters
     np.testing.assert_allclose(np.diff(pts), 1 / DISPLAY_HZ, atol=1e-6)
-
-
-def run_clock(tmp_path, head: list[str], arrivals, display) -> tuple[list[dict], dict]:
-    """av_clock_check.mjs on `head` then the arrivals [(t, pts)] and display refreshes in time order."""
-    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
-                    [(t, 1, 0, f"time {t:.6f}") for t in display])
-    sched = tmp_path / "clock.txt"
-    sched.write_text("\n".join(head + [e[3] for e in events]) + "\n")
-    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    return out[:-1], out[-1]
 
 
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
@@ -280,16 +265,9 @@ def test_web_av_clock_holds_for_frames_that_came_late_while_the_page_was_busy(tm
     arrivals = [(0.4, 0.0)] + [(0.9, 0.05 * k) for k in range(1, 11)] + \
                [(0.9 + 0.2 * w, 0.5 + 0.2 * (w - 1) + 0.05 * k) for w in range(1, 30) for k in range(1, 5)]
     display = np.concatenate([[0.41], np.arange(1.0, 6.0, 1 / DISPLAY_HZ)])
-    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
-                    [(t, 1, 0, f"time {t:.6f}") for t in display])
-    sched = tmp_path / "clock.txt"
-    sched.write_text("\n".join([f"margin {DELAY_S}"] + [e[3] for e in events]) + "\n")
-    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    pts = np.array([s["pts"] for s in out[:-1]])
-    assert out[-1]["underruns"] == 1 and out[-1]["catchUps"] == 0, out[-1]
+    out, counters = run_clock(tmp_path, [f"margin {DELAY_S}"], arrivals, display)
+    pts = np.array([s["pts"] for s in out])
+    assert counters["underruns"] == 1 and counters["catchUps"] == 0, counters
     assert pts[1] == 0.0, f"the clock skipped the start: {pts[1]}"
     steps = np.diff(pts[1:])
     assert (steps >= -1e-9).all() and steps.max() <= 1 / DISPLAY_HZ + 1e-6 and pts[-1] > 4
