@@ -1,5 +1,6 @@
 """clients/python/client.py against a live `streamer serve` (helpers in tests/helpers/clients.py)."""
 
+import contextlib
 import signal
 import subprocess
 import sys
@@ -172,6 +173,29 @@ def vmic(tmp_path_factory):
         yield mic
 
 
+@contextlib.contextmanager
+def mic_client(vmic, url: str, *args: str):
+    """The Python client on `--mic` (the virtual sound card's 44.1 kHz device); afterwards the card's players
+    are stopped and the client killed if it is still running."""
+    proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", url, "--mic", "--device", "vmic44", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=vmic.env, cwd=REPO)
+    try:
+        yield proc
+    finally:
+        vmic.stop_players()
+        if proc.poll() is None:
+            proc.kill()
+
+
+def ctrl_c(proc: subprocess.Popen) -> tuple[str, str]:
+    """The first Ctrl-C, then what the client writes until it exits: (stdout, stderr). Read through the same
+    buffered pipes (communicate() would skip what readline buffered)."""
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.stdout.read(), proc.stderr.read()
+    proc.wait(60)
+    return out, err
+
+
 def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic):
     """`--mic` through real PortAudio at the device's 44.1 kHz: speech played into a virtual sound card comes
     back as gestures (the embedded default model) that move faster than in the silence played after it;
@@ -182,10 +206,7 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic
     saved = tmp_path / "saved"
     arrival: dict[int, float] = {}
     with live_server(tmp_path, "ws", None) as server:
-        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", server.ws_url, "--mic", "--device", "vmic44",
-                                 "--save", str(saved)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=vmic.env, cwd=REPO)
-        try:
+        with mic_client(vmic, server.ws_url, "--save", str(saved)) as proc:
             t_play = None
             while t_play is None or time.monotonic() < t_play + 8.5:  # gestures come back while we talk
                 line = proc.stdout.readline()
@@ -195,14 +216,7 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic
                     if t_play is None:
                         vmic.play(talk, "mic44")
                         t_play = time.monotonic()
-            proc.send_signal(signal.SIGINT)  # first Ctrl-C: audio_end, then wait for the last frames
-            # Keep reading through the same buffered pipe (communicate() would skip what readline buffered).
-            out, err = proc.stdout.read(), proc.stderr.read()
-            proc.wait(60)
-        finally:
-            vmic.stop_players()
-            if proc.poll() is None:
-                proc.kill()
+            out, err = ctrl_c(proc)  # audio_end, then wait for the last frames
     assert proc.returncode == 0, err
     assert "microphone: 44100 Hz" in err and "end:" in out
     total = len(arrival) + sum(line.startswith("frame") for line in out.splitlines())
@@ -228,10 +242,7 @@ def test_python_client_mic_holds_its_audio_at_slow_down_and_sends_it_at_resume(t
     ws = make_server(bundle, max_backlog_s=0.5, files=None)
     ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
     with running(ws):
-        proc = subprocess.Popen([sys.executable, "-u", str(CLIENT), "--url", ws.url, "--mic", "--device", "vmic44",
-                                 "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=vmic.env,
-                                cwd=REPO)
-        try:
+        with mic_client(vmic, ws.url, "--quiet") as proc:
             lines = []
             while not any(line.startswith("resume: ") for line in lines):
                 line = proc.stdout.readline()
@@ -239,13 +250,7 @@ def test_python_client_mic_holds_its_audio_at_slow_down_and_sends_it_at_resume(t
                 lines.append(line)
                 if line.startswith("hello:"):
                     vmic.play(talk, "mic44")
-            proc.send_signal(signal.SIGINT)  # first Ctrl-C: held audio, audio_end, the last frames
-            out, err = proc.stdout.read(), proc.stderr.read()
-            proc.wait(60)
-        finally:
-            vmic.stop_players()
-            if proc.poll() is None:
-                proc.kill()
+            out, err = ctrl_c(proc)  # held audio, audio_end, the last frames
     executor.shutdown()
     out = "".join(lines) + out
     assert proc.returncode == 0, err
