@@ -581,6 +581,7 @@ class WsServer:
         session.clock = client.clock
         session.on_window = session.on_window or self.metrics.window_done
         self.metrics.sessions_started.inc()
+        client.refused = False
         client.session_frames = 0
         loop = asyncio.get_running_loop()
 
