@@ -15,13 +15,15 @@ import urllib.request
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.health import Readiness, RealtimeLoad
+from streamer.health import Readiness, RealtimeLoad, answer
 from streamer.metrics import ServerMetrics
 from streamer.scheduling import StreamBatcher
 from streamer.sessions import Session
@@ -158,6 +160,21 @@ def test_health_paths_answer_without_the_token_get_and_head_only(bundle):
         assert asyncio.run(handshake(ws.url + "?token=s3cret")) == "hello"
     with running(make_server(bundle, serve_metrics=False)) as ws:  # --no-metrics
         assert get(ws.port, "/metrics")[0] == 404 and get(ws.port, "/readyz")[0] == 200
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(["GET", "HEAD", "POST", "get", "", "OPTIONS"]),
+       st.tuples(st.sampled_from(["/healthz", "/readyz", "/metrics", "//metrics", "/metrics/", "metrics", ""]),
+                 st.text(max_size=12)).map("".join))
+def test_the_three_paths_never_raise_and_answer_only_their_own_targets(method, target):
+    ready = Readiness()
+    a = answer(method, target, ready, ServerMetrics(ready))
+    path = target.split("?", 1)[0]
+    if a is None:  # (left to the viewer or the handshake, as any other target)
+        assert path not in ("/healthz", "/readyz", "/metrics") or "#" in target or any(c in target for c in " \t\r\n\0")
+    else:
+        assert path in ("/healthz", "/readyz", "/metrics")
+        assert a.status == (200 if method in ("GET", "HEAD") else 405)
 
 
 def test_servers_in_one_process_keep_their_own_counts():
