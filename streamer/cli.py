@@ -181,6 +181,9 @@ def _server_flags(s: argparse.ArgumentParser) -> None:
     _flag(s, "--ping-timeout", type=float, metavar="S",
               help="WebSocket keepalive: close a client not heard from for --ping-interval + S seconds (time "
                    "while the server itself holds the client's audio unread, and its frames flow, does not count)")
+    _flag(s, "--no-metrics", action="store_true",
+              help="do not serve /metrics (Prometheus text format, no token needed) on the --ws port; /healthz "
+                   "and /readyz (also without the token) are always served")
 
 
 def _devices() -> int:

@@ -60,6 +60,7 @@ class ServeOptions(BaseModel):
     wait_client: bool = False
     ping_interval: float = Field(PING_INTERVAL_S, ge=0, le=3600)  # 0: no keepalive
     ping_timeout: float = Field(PING_TIMEOUT_S, gt=0, le=3600)
+    no_metrics: bool = False  # /metrics not served (/healthz and /readyz always are)
     # VMC/OSC
     osc: HostPort | None = None
     vmc_positions: Literal["hips", "all"] = "hips"

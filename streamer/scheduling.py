@@ -95,6 +95,7 @@ class _Job:
     fn: Callable = field(compare=False)
     args: tuple = field(compare=False, default=())
     kwargs: dict = field(compare=False, default_factory=dict)
+    windows: int = field(compare=False, default=0)  # windows it computes (for the metrics): 1 for a push
 
 
 @dataclass
@@ -119,7 +120,12 @@ def _stop_all() -> None:
 
 class _Threads(Scheduler):
     """The worker threads, queue lock and shutdown shared by the threaded schedulers; a subclass says how jobs
-    queue (`_put`, `_take`, `_queued`, `_drain`) and run (`_run`)."""
+    queue (`_put`, `_take`, `_queued`, `_drain`) and run (`_run`).
+
+    observer: None, or what sees every inference call (`streamer.metrics.ServerMetrics`): `began(realtime)`
+    before it and `ended(windows)` after it, on the thread that runs it."""
+
+    observer = None
 
     def __init__(self, names: list[str]):
         self._seq = itertools.count()
@@ -140,6 +146,20 @@ class _Threads(Scheduler):
             self._put(job)
             self._cv.notify()
         return job.future
+
+    @property
+    def workers(self) -> int:
+        """How many threads run jobs."""
+        return len(self._threads)
+
+    def _observed(self, realtime: bool, windows: int, run: Callable[[], None]) -> None:
+        if self.observer is None:
+            return run()
+        self.observer.began(realtime)
+        try:
+            run()
+        finally:
+            self.observer.ended(windows)
 
     def _work(self) -> None:
         while True:
@@ -197,7 +217,10 @@ class RankedExecutor(_Threads):
         super().__init__([f"{thread_name_prefix}_{i}" for i in range(max_workers)])
 
     def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        return self.submit_ranked(rank, session.infer, samples)
+        return self._enqueue(_Job(rank, next(self._seq), Future(), session.infer, (samples,), windows=1))
+
+    def queued_jobs(self) -> int:
+        return len(self._jobs)
 
     def _put(self, job: _Job) -> None:
         heapq.heappush(self._jobs, job)
@@ -218,7 +241,7 @@ class RankedExecutor(_Threads):
 
     def _run(self, job: _Job) -> None:
         try:
-            _settle(job.future, job.fn, job.args, job.kwargs)
+            self._observed(job.rank <= 0, job.windows, lambda: _settle(job.future, job.fn, job.args, job.kwargs))
         finally:
             with self._cv:
                 self._running_realtime -= job.rank <= 0
@@ -297,6 +320,9 @@ class StreamBatcher(_Threads):
     def _queued(self) -> bool:
         return bool(self._pushes or self._jobs)
 
+    def queued_jobs(self) -> int:
+        return len(self._pushes) + len(self._jobs)
+
     def _drain(self) -> list[Future]:
         futures = [j.future for j in self._pushes] + [j.future for j in self._jobs]
         self._pushes, self._jobs = [], deque()
@@ -328,10 +354,10 @@ class StreamBatcher(_Threads):
     def _run(self, cycle: tuple[list[_PushJob], list[_Job]]) -> None:
         pushes, jobs = cycle
         pushes = [j for j in pushes if j.future.set_running_or_notify_cancel()]
-        if pushes:
-            self._batch(pushes)
-        for job in jobs:
-            _settle(job.future, job.fn, job.args, job.kwargs)
+        if pushes:  # (a cycle is all real time or all backlog: `_take`)
+            self._observed(pushes[0].rank <= 0, len(pushes), lambda: self._batch(pushes))
+        for job in jobs:  # (a stream's finish: real-time work, whatever its rank)
+            self._observed(True, 0, lambda: _settle(job.future, job.fn, job.args, job.kwargs))
 
     def _batch(self, pushes: list[_PushJob]) -> None:
         """One batched push of every taken window; a window that fails fails its own future only."""

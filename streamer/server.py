@@ -18,6 +18,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
 
 from streamer.frames import Frame
+from streamer.health import Readiness, RealtimeLoad
+from streamer.metrics import ServerMetrics
 from streamer.scheduling import RankedExecutor, StreamBatcher
 from streamer.sessions import Session
 from streamer.options import ServeError, ServeOptions
@@ -47,6 +49,7 @@ class Pipeline:
     executor: StreamBatcher | RankedExecutor  # where every session's inference runs
     sinks: list[Sink]  # where the source's frames go, in the order they open
     ws: WsServer | None = None  # the WebSocket server (also among the sinks): clients bring their own audio too
+    metrics: ServerMetrics = field(default_factory=ServerMetrics)  # served by `ws` (/metrics, /readyz)
     t0: float = field(default_factory=time.monotonic)
 
 
@@ -77,13 +80,23 @@ def build(options: ServeOptions) -> Pipeline:
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     executor = _executor(options.no_batch)
+    metrics = _metrics(executor)
     make_session = functools.partial(_session, bundle, options, executor, steps, guidance)
     session = make_session("source") if source is not None else None
+    if session is not None:
+        session.on_window = metrics.window_done
+        metrics.streams.append(lambda: int(not session.stats.ended))
     sk = bundle.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
-    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token)
-    sinks = [s for s in (ws, _vmc(options, rig), _recording(options, bundle, source)) if s is not None]
-    return Pipeline(options, bundle, steps, guidance, source, session, make_session, executor, sinks, ws, t0)
+    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics)
+    vmc, recording = _vmc(options, rig), _recording(options, bundle, source)
+    if vmc is not None:
+        metrics.sinks["vmc"] = lambda: (vmc.sent, vmc.dropped)
+    if recording is not None:  # (frames on disk; after a write error the rest are not counted anywhere)
+        metrics.sinks["record"] = lambda: (recording.recorder.frames if recording.recorder else 0, None)
+    sinks = [s for s in (ws, vmc, recording) if s is not None]
+    return Pipeline(options, bundle, steps, guidance, source, session, make_session, executor, sinks, ws, t0=t0,
+                    metrics=metrics)
 
 
 def _source(options: ServeOptions):
@@ -123,13 +136,22 @@ def _executor(no_batch: bool):
     return StreamBatcher()
 
 
+def _metrics(executor: StreamBatcher | RankedExecutor) -> ServerMetrics:
+    """The worker's metrics, fed by every inference call of `executor` (its real-time load decides /readyz)."""
+    metrics = ServerMetrics(Readiness(RealtimeLoad(threads=executor.workers)))
+    executor.observer = metrics
+    metrics.queues["dimgestor_inference_queue_jobs"] = executor.queued_jobs
+    return metrics
+
+
 def _session(bundle, options: ServeOptions, executor, steps: int, guidance: float, name: str = "client") -> Session:
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
                                window_ms=options.window_ms, executor=executor, name=name)
 
 
-def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None):
+def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
+        metrics: ServerMetrics):
     from streamer import protocol as P
     from streamer.ws import WsServer
 
@@ -146,7 +168,8 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     token=token, broadcast_stats=session.stats if session else None,
                     source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
                     origins=options.allow_origin, also=also, max_sessions=options.max_sessions,
-                    ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout)
+                    ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
+                    metrics=metrics, serve_metrics=not options.no_metrics)
 
 
 def _vmc(options: ServeOptions, rig):
@@ -195,8 +218,13 @@ async def run(p: Pipeline) -> int:
     await _open(p.sinks)
     print(_banner(p), file=sys.stderr, flush=True)
     stop, loop = asyncio.Event(), asyncio.get_running_loop()
+
+    def on_signal() -> None:  # from now on /readyz says 503: a balancer sends new sessions elsewhere
+        p.metrics.readiness.draining = True
+        stop.set()
+
     for sig in SIGNALS:
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, on_signal)
     if p.options.max_seconds is not None:
         loop.call_later(p.options.max_seconds, stop.set)
     status = asyncio.create_task(_report(p))

@@ -136,6 +136,7 @@ class Session:
         self.fps, self.name = fps, name
         self.stats = Stats()
         self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
+        self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -221,7 +222,10 @@ class Session:
             infer_s += time.perf_counter() - t0
             n += len(frames)
             await _emit(emit, frames)
-        self.stats.update(len(samples) / SAMPLE_RATE, infer_s, time.monotonic() - chunks[-1].arrival, n)
+        latency_s = time.monotonic() - chunks[-1].arrival
+        self.stats.update(len(samples) / SAMPLE_RATE, infer_s, latency_s, n)
+        if self.on_window is not None:
+            self.on_window(latency_s)
 
 
 async def _emit(emit: Callable[[list[Frame]], object], frames: list[Frame]) -> None:

@@ -25,6 +25,7 @@ import socket
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from http import HTTPStatus
 from typing import Callable, Iterable
 
@@ -33,10 +34,12 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
 from dimgestor.audio import SAMPLE_RATE
+from streamer import health
 from streamer import protocol as P
 from streamer import request_checks as RC
 from streamer.frames import Frame
 from streamer.log_limit import ErrorLog
+from streamer.metrics import ServerMetrics
 from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
 from streamer.sessions import AudioClock, Session
 from streamer.sources import PushSource, make_resampler
@@ -67,10 +70,18 @@ class MessageBudget:
         return max(0.0, -self.tokens / self.rate)
 
 
+@dataclass
+class FrameTotals:
+    """Frames sent and dropped over all clients, past and present (the metrics' `sink="ws"` counts)."""
+
+    sent: int = 0
+    dropped: int = 0
+
+
 class Client:
     """One connection: its encoding, its outgoing queue and counters, and its own audio session if any."""
 
-    def __init__(self, ws: ServerConnection, max_queue: int):
+    def __init__(self, ws: ServerConnection, max_queue: int, totals: FrameTotals | None = None):
         self.ws = ws
         self.encoding = "json"
         self.audio = P.AudioFormat()
@@ -80,6 +91,7 @@ class Client:
         self.room = asyncio.Event()  # the queue has room
         self.frames_sent = 0
         self.dropped = 0
+        self.totals = totals if totals is not None else FrameTotals()  # the server's, shared by all its clients
         self.own = False  # true once it sent audio: from then on it gets its own frames, not the broadcast
         self.source_audio = False  # asked for the server source's audio (hello "source_audio": true)
         self.source: PushSource | None = None
@@ -91,6 +103,7 @@ class Client:
         self.heard = time.monotonic()  # when the last message or pong came from it
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
         self.after_session: list[str] = []  # replies due once the running session has sent its `end`
+        self.refused = False  # its current audio was refused a session (counted once in the metrics)
         peer = ws.remote_address
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.errors = ErrorLog(f"client {self.who}")
@@ -102,10 +115,11 @@ class Client:
         "note") finds a full queue -> the oldest droppable message goes (itself if none is older)."""
         if len(self.queue) >= self.max_queue and kind in DROPPABLE:
             victim = next((i for i, (k, _) in enumerate(self.queue) if k in DROPPABLE), None)
+            lost = kind == "frame" if victim is None else self.queue[victim][0] == "frame"
+            self.dropped += lost
+            self.totals.dropped += lost
             if victim is None:
-                self.dropped += kind == "frame"
                 return
-            self.dropped += self.queue[victim][0] == "frame"
             del self.queue[victim]
         self.queue.append((kind, message))
         self.ready.set()
@@ -133,7 +147,9 @@ class Client:
             kind, message = self.queue.popleft()
             self.room.set()
             await self.ws.send(message)
-            self.frames_sent += kind in ("frame", "own")
+            sent = kind in ("frame", "own")
+            self.frames_sent += sent
+            self.totals.sent += sent
 
     async def drained(self, deadline: float) -> None:
         """Wait until everything queued so far has been handed to the socket, or the loop time `deadline`."""
@@ -168,6 +184,8 @@ class WsServer:
     --http). ping_interval, ping_timeout: the keepalive (seconds; None: none): a client from which nothing
     was heard for their sum, while the server was reading it or while nothing moved, is closed (1011).
     max_waiting, request_timeout_s: connections that have not sent a whole request (`WaitingRoom`).
+    metrics: the worker's `ServerMetrics` (None: a registry of its own); `/healthz` and `/readyz` are always
+    answered, `/metrics` unless serve_metrics is false (`streamer.health`).
     """
 
     def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
@@ -176,7 +194,8 @@ class WsServer:
                  origins: Iterable[str] = (), max_backlog_s: float = 30.0,
                  ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
                  files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
-                 max_waiting: int = 64, request_timeout_s: float = 10.0):
+                 max_waiting: int = 64, request_timeout_s: float = 10.0, metrics: ServerMetrics | None = None,
+                 serve_metrics: bool = True):
         self.host, self.port = host, port
         self.addresses = [(host, port), *also]  # (the real ports once open)
         self.files = files
@@ -203,6 +222,15 @@ class WsServer:
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []
         self._status_task: asyncio.Task | None = None
+        self.totals = FrameTotals()
+        self.metrics = metrics if metrics is not None else ServerMetrics()
+        self.serve_metrics = serve_metrics
+        self.metrics.streams.append(lambda: self.live_sessions)
+        self.metrics.clients = lambda: len(self.clients)
+        self.metrics.sinks["ws"] = lambda: (self.totals.sent, self.totals.dropped)
+        self.metrics.queues["dimgestor_client_queue_messages"] = lambda: sum(len(c.queue) for c in self.clients)
+        self.metrics.queues["dimgestor_audio_backlog_seconds"] = lambda: sum(
+            c.source.backlog_s for c in self.clients if c.source is not None)
 
     # ---- lifecycle -------------------------------------------------------------------------------
 
@@ -260,6 +288,7 @@ class WsServer:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + within_s * 0.6
         self.closing = True
+        self.metrics.readiness.draining = True
         own = [c for c in self.clients if c.session_task is not None and not c.session_task.done()]
         for c in own:
             c.session_task.cancel()
@@ -284,13 +313,19 @@ class WsServer:
         self.prep.shutdown(wait=False, cancel_futures=True)
 
     def _process_request(self, connection, request):
-        """A page of the viewer is answered here; a WebSocket handshake is checked (origin, then token: a
-        refusal is a 4xx and at most one log line per 10 s). Never raises (a raise would be a 500 and a
-        traceback in the log)."""
+        """`/healthz`, `/readyz`, `/metrics` and the pages of the viewer are answered here; a WebSocket
+        handshake is checked (origin, then token: a refusal is a 4xx and at most one log line per 10 s). Never
+        raises (a raise would be a 500 and a traceback in the log)."""
         self.waiting_room.requested(connection)
-        if self.files is not None and not is_upgrade(request.headers.get_all("Upgrade")):
-            try:  # (websockets < 17 passes GET requests only: it closes the others unanswered)
-                return self.files.answer(getattr(request, "method", "GET"), request.path).response()
+        if not is_upgrade(request.headers.get_all("Upgrade")):
+            method = getattr(request, "method", "GET")  # (websockets < 17 passes GET requests only)
+            try:
+                ops = health.answer(method, request.path, self.metrics.readiness,
+                                    self.metrics if self.serve_metrics else None)
+                if ops is not None:  # (no token asked: see streamer.health)
+                    return ops.response()
+                if self.files is not None:
+                    return self.files.answer(method, request.path).response()
             except Exception as e:  # a bug: one line (rate-limited), no traceback, and an answer all the same
                 self.file_failures(logging.ERROR, f"failed on a request: {type(e).__name__}: {e}")
                 return Answer(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n").response()
@@ -371,7 +406,7 @@ class WsServer:
     # ---- one connection --------------------------------------------------------------------------
 
     async def _handle(self, ws: ServerConnection) -> None:
-        client = Client(ws, self.max_queue)
+        client = Client(ws, self.max_queue, self.totals)
         self.clients.add(client)
         client.put(json.dumps(self.hello))
         tasks = [asyncio.create_task(client.send_loop(), name="ws-sender"),
@@ -483,6 +518,7 @@ class WsServer:
                 await self._end_session(client)  # later audio starts a session at the new rate
                 client.audio = msg["audio"]
         elif msg["type"] == "audio_end":
+            client.refused = False  # its next audio is another attempt
             if client.source is not None:
                 await self._end_session(client)
             elif client.session_task is None or client.session_task.done():
@@ -492,8 +528,10 @@ class WsServer:
 
     async def _on_audio(self, client: Client, data: bytes) -> None:
         if self.make_session is None:
+            self._refused(client, "audio_disabled")
             raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
         if self.closing:
+            self._refused(client, "draining")
             raise P.ProtocolError("busy", "the server is shutting down")
         fmt = client.audio
         P.check_audio(data, fmt)
@@ -504,6 +542,7 @@ class WsServer:
                 await asyncio.shield(client.session_task)  # the previous session is still finishing
                 await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
             if self.live_sessions >= self.max_sessions:
+                self._refused(client, "busy")
                 raise P.ProtocolError("busy", f"at most {self.max_sessions} client audio sessions at once")
             self._start_session(client)
         source = client.source
@@ -519,6 +558,13 @@ class WsServer:
             if client.source is not source:  # the session failed meanwhile
                 return
 
+    def _refused(self, client: Client, reason: str) -> None:
+        """Count a session refused: once per stream the client tries (its audio messages until `audio_end`
+        are one attempt), not once per message."""
+        if not client.refused:
+            client.refused = True
+            self.metrics.refused(reason)
+
     @staticmethod
     def _resample(client: Client, x: np.ndarray) -> np.ndarray:  # worker thread
         if client.audio.rate == SAMPLE_RATE:
@@ -533,6 +579,9 @@ class WsServer:
         client.resampler = None
         client.session = session = self.make_session()
         session.clock = client.clock
+        session.on_window = session.on_window or self.metrics.window_done
+        self.metrics.sessions_started.inc()
+        client.refused = False
         client.session_frames = 0
         loop = asyncio.get_running_loop()
 

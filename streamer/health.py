@@ -1,0 +1,116 @@
+"""Liveness and readiness of a worker: `/healthz`, `/readyz` and where `/metrics` is answered.
+
+`/healthz` says the process is alive and its event loop answers (200, always). `/readyz` says whether a load
+balancer or an orchestrator should send it new sessions: 503 while draining (after SIGTERM, until it exits) and
+while its inference cannot keep real time, by this rule (`Readiness`):
+
+    not ready  <=>  real-time load > max_load (0.9),
+    real-time load = seconds the inference thread(s) spent computing real-time work (a cycle of windows ranked
+                     real time, or a stream's finish) within the last window_s (10 s) of wall time,
+                     / (window_s x threads); a call still running counts up to now.
+
+A batch cycle of only backlog windows (fast senders ahead of real time, `streamer.sessions.AudioClock`) does
+not count: a backlog takes whatever real time leaves, so a worker busy with one still serves a new talker in
+real time. Time before the worker started counts as idle (no false alarm at start). Above 0.9 the windows of
+real-time streams are computed back to back: one more stream and each would fall behind its audio.
+
+The three paths are answered without the token (probes and Prometheus scrape without one; they reveal counts,
+never audio, frames, addresses or the token), GET and HEAD only, after the same checks of the request target
+as the viewer's files (`streamer.request_checks`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from http import HTTPStatus
+from typing import Callable
+
+from streamer import request_checks as RC
+from streamer.viewer import Answer
+
+HEALTH, READY, METRICS = "/healthz", "/readyz", "/metrics"
+READY_WINDOW_S = 10.0
+READY_MAX_LOAD = 0.9
+
+
+class RealtimeLoad:
+    """Busy time of the inference thread(s) on real-time work over a recent window of wall time.
+
+    `began(realtime)` and `ended()` bracket each inference call on the thread that runs it (any thread; a lock
+    guards the intervals). `now` is the clock (a fake one in tests)."""
+
+    def __init__(self, window_s: float = READY_WINDOW_S, threads: int = 1, now: Callable[[], float] = time.monotonic):
+        self.window_s, self.threads, self.now = window_s, threads, now
+        self._done: deque[tuple[float, float]] = deque()  # (start, end) of finished real-time calls, oldest first
+        self._running: dict[int, tuple[float, bool]] = {}  # thread id -> (start, realtime) of its call under way
+        self._lock = threading.Lock()
+
+    def began(self, realtime: bool) -> None:
+        with self._lock:
+            self._running[threading.get_ident()] = (self.now(), realtime)
+
+    def ended(self) -> tuple[float, bool]:
+        """The call on this thread is done -> (how long it took in seconds, whether it was real-time work)."""
+        with self._lock:
+            now = self.now()
+            start, realtime = self._running.pop(threading.get_ident(), (now, False))
+            if realtime:
+                self._done.append((start, now))
+            self._forget(now)
+            return now - start, realtime
+
+    def value(self) -> float:
+        """The real-time load: busy seconds on real-time work per second and thread, over the last window."""
+        with self._lock:
+            now = self.now()
+            self._forget(now)
+            since = now - self.window_s
+            calls = [*self._done, *((s, now) for s, rt in self._running.values() if rt)]
+            busy = sum(max(0.0, end - max(start, since)) for start, end in calls)
+            return busy / (self.window_s * self.threads)
+
+    def _forget(self, now: float) -> None:
+        while self._done and self._done[0][1] <= now - self.window_s:
+            self._done.popleft()
+
+
+class Readiness:
+    """Whether the worker takes new sessions: not while `draining`, nor while its real-time load is over
+    `max_load` (the module's rule)."""
+
+    def __init__(self, load: RealtimeLoad | None = None, max_load: float = READY_MAX_LOAD):
+        self.load = load if load is not None else RealtimeLoad()
+        self.max_load = max_load
+        self.draining = False  # set once on SIGTERM / shutdown; never cleared (the process is on its way out)
+
+    def check(self) -> tuple[bool, str]:
+        """(ready, why): the reason is one line, the body of the `/readyz` answer."""
+        if self.draining:
+            return False, "not ready: draining (shutting down)"
+        load = self.load.value()
+        if load > self.max_load:
+            return False, (f"not ready: real-time load {load:.2f} over the last {self.load.window_s:g} s "
+                           f"(limit {self.max_load:g}): inference cannot keep real time")
+        return True, f"ready: real-time load {load:.2f}"
+
+
+def answer(method: str, target: str, readiness: Readiness, metrics=None) -> Answer | None:
+    """The answer to a request for one of the three paths, or None when `target` is not one of them (the viewer's
+    files answer it then). `metrics`: a `streamer.metrics.ServerMetrics`, or None: `/metrics` is not served."""
+    parts = RC.split_target(target) if isinstance(target, str) else None
+    path = parts[0] if parts is not None else None
+    if path not in (HEALTH, READY) and not (path == METRICS and metrics is not None):
+        return None
+    head_only = method == "HEAD"
+    if method not in ("GET", "HEAD"):
+        return Answer(HTTPStatus.METHOD_NOT_ALLOWED, b"only GET and HEAD\n")
+    if path == HEALTH:
+        return Answer(HTTPStatus.OK, b"ok\n", head_only=head_only)
+    if path == READY:
+        ready, why = readiness.check()
+        return Answer(HTTPStatus.OK if ready else HTTPStatus.SERVICE_UNAVAILABLE, why.encode() + b"\n",
+                      head_only=head_only)
+    body, content_type = metrics.exposition()
+    return Answer(HTTPStatus.OK, body, content_type, head_only)
