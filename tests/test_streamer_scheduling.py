@@ -95,14 +95,15 @@ def test_the_interpreter_exits_with_schedulers_left_running():
     """Never shut down, jobs inside torch calls: the exit hook lets them end and the process exits cleanly
     (without it the daemon workers die mid-call and the process aborts: "terminate called ...")."""
     code = """if True:
-        import time, torch
+        import sys, time, torch
         from streamer.scheduling import RankedExecutor, StreamBatcher
         ex, b = RankedExecutor(1), StreamBatcher()
         def job(name):
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.5:
                 torch.randn(200, 200).matmul(torch.randn(200, 200))
-            print("done", name, flush=True)
+            sys.stdout.write(f"done {name}\n")  # one write: print's pieces from two threads interleave
+            sys.stdout.flush()
         ex.submit(job, "ranked"), b.submit(job, "batcher")
         time.sleep(0.2)
         print("leaving", flush=True)
