@@ -12,6 +12,8 @@ from __future__ import annotations
 import asyncio
 
 from websockets.asyncio.server import ServerConnection
+from websockets.exceptions import InvalidMessage
+from websockets.protocol import State
 
 TIMEOUT_408 = (b"HTTP/1.1 408 Request Timeout\r\nContent-Type: text/plain\r\nContent-Length: 16\r\n"
                b"Connection: close\r\n\r\nrequest timeout\n")
@@ -53,10 +55,15 @@ class WaitingRoom:
         connection.transport.close()
 
 
+BAD_REQUEST_400 = (b"HTTP/1.1 400 Bad Request\r\nContent-Type: text/plain\r\nContent-Length: 24\r\n"
+                   b"Connection: close\r\n\r\nnot an HTTP/1.1 request\n")
+
+
 class _Watched(ServerConnection):
     def __init__(self, room: WaitingRoom, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.room = room
+        self.answered_400 = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -65,3 +72,12 @@ class _Watched(ServerConnection):
     def connection_lost(self, exc: Exception | None) -> None:
         self.room.left(self)
         super().connection_lost(exc)
+
+    def send_data(self) -> None:
+        """A request head websockets cannot parse (HTTP/1.0, a garbled request line or version) it only
+        half-closes, unanswered: answer 400 first, as an HTTP server does, so a client learns why."""
+        if (self.protocol.state is State.CONNECTING and isinstance(self.protocol.handshake_exc, InvalidMessage)
+                and not self.answered_400 and not self.transport.is_closing()):
+            self.answered_400 = True
+            self.transport.write(BAD_REQUEST_400)
+        super().send_data()
