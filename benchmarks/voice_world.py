@@ -12,7 +12,9 @@ the train voices at each data size (10, 30, 60 min) and scored at several traini
 Measures (dimgestor/metrics.py; every one beside its chance level): speech/silence wrist-speed contrast in
 natural pauses; loudness coupling beside circularly shifted audio; stroke alignment: the fraction of the
 rule's stroke onsets (computed from the held-out audio) with a wrist-speed peak from 0.1 s before to 0.3 s
-after, beside as many onsets shuffled inside speech; onset alignment to every speech onset (metrics.audio_onsets,
+after, beside as many onsets shuffled inside speech; stroke gain: the mean wrist speed in the 0.35 s after
+each stroke onset over the mean in speech (an event-locked average: how large the movement that follows is,
+where the alignment only asks whether some peak is near), beside shuffled onsets; onset alignment to every speech onset (metrics.audio_onsets,
 what a researcher measures without knowing the rule) and BeatAlign, each beside its shuffled level.
 Pass: stroke-alignment margin over shuffled >= half the rule's, contrast >= half the rule's.
 
@@ -138,6 +140,9 @@ def main() -> int:
         "notes": {"stroke_align": "fraction of the rule's stroke onsets (from the held-out audio) with a wrist-speed "
                                   "peak 0.1 s before to 0.3 s after (metrics.onset_alignment)",
                   "stroke_shuffled": "the same for as many onsets shuffled inside speech: chance",
+                  "stroke_gain": "mean wrist speed 0-0.35 s after the rule's stroke onsets / mean speed in speech "
+                                 "(metrics.onset_locked_speed): how large the movement after a stroke onset is; "
+                                 "stroke_gain_shuffled: the same after shuffled onsets (~1)",
                   "onset_align": "the same for every speech onset (metrics.audio_onsets)",
                   "contrast": "mean wrist speed in speech / in silence (0.75 s away from speech), natural pauses",
                   "coupling": "metrics.speech_coupling; coupling_shifted: the mean against shifted audio",
@@ -153,6 +158,7 @@ def plot(results: dict, truth: dict, path: Path, args) -> None:
     import matplotlib.pyplot as plt
 
     panels = [("contrast", "speech / silence wrist speed"), ("stroke_margin", "stroke alignment - shuffled"),
+              ("stroke_gain_margin", "speed after strokes - shuffled"),
               ("coupling_margin", "loudness coupling - shifted"), ("onset_margin", "all-onset alignment - shuffled")]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.4 * len(panels), 3.4))
     for ax, (metric, title) in zip(axes, panels):

@@ -508,6 +508,25 @@ def onset_alignment(onsets_s: np.ndarray, hand_speed: np.ndarray, fps: float,
     return float(hits.mean()) if hits.size else float("nan")
 
 
+def onset_locked_speed(onsets_s: np.ndarray, hand_speed: np.ndarray, fps: float, speech: np.ndarray,
+                       window_s: tuple[float, float] = (0.0, 0.35)) -> float:
+    """Mean hand speed from onset + window_s[0] to onset + window_s[1], over the onsets, relative to the mean
+    speed in speech (speech: (T,) bool): an event-locked average, the size of the movement that follows an
+    onset, where onset_alignment only asks whether some peak is near. Busy hands with many small peaks hit
+    most windows by chance but score ~1 here; strokes that start on the onsets score well above 1 (the voice
+    world's rule: 1.7). nan without onsets or speech."""
+    s = np.asarray(hand_speed, dtype=np.float64)
+    onsets = np.asarray(onsets_s, dtype=np.float64).reshape(-1)
+    if onsets.size == 0 or not np.any(speech):
+        return float("nan")
+    a, b = int(round(window_s[0] * fps)), int(round(window_s[1] * fps))
+    start = np.round(onsets * fps).astype(np.int64)
+    start = start[(start + a >= 0) & (start + b < len(s))]
+    if start.size == 0:
+        return float("nan")
+    return float(s[start[:, None] + np.arange(a, b + 1)].mean() / s[speech].mean())
+
+
 def shuffled_onsets(n_onsets: int, speech: np.ndarray, fps: float, rng: np.random.Generator) -> np.ndarray:
     """n_onsets times (s) drawn uniformly inside the speech frames (speech: (T,) bool), sorted."""
     frames = np.flatnonzero(speech)

@@ -387,7 +387,8 @@ def make_voice_world(out_dir, train_minutes: float, heldout_minutes: float, seed
 # ---------------------------------------------------------------------------------------------------
 
 SYSTEM_METRICS = ("contrast", "coupling", "coupling_shifted", "coupling_shifted_sd", "stroke_align",
-                  "stroke_shuffled", "onset_align", "onset_shuffled", "beat_align", "beat_align_shuffled")
+                  "stroke_shuffled", "stroke_gain", "stroke_gain_shuffled", "onset_align", "onset_shuffled",
+                  "beat_align", "beat_align_shuffled")
 
 
 def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0) -> dict:
@@ -396,7 +397,7 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
     from dimgestor import metrics
     from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
 
-    stats, hits, shuffled, n_strokes = [], 0.0, 0.0, 0
+    stats, hits, shuffled, gain, gain_shuffled, n_strokes = [], 0.0, 0.0, 0.0, 0.0, 0
     spf = int(round(RATE / spec.fps))
     for i, (raw, audio) in enumerate(zip(raws, audios)):
         n = min(len(raw), len(audio) // spf)
@@ -410,16 +411,24 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
             hits += metrics.onset_hits(strokes, st["hand_speed"], spec.fps).sum()
             shuffled += metrics.shuffled_onset_alignment(len(strokes), st["hand_speed"], spec.fps, speech,
                                                          seed=seed + i) * len(strokes)
+            rng = np.random.default_rng(seed + i)
+            gain += metrics.onset_locked_speed(strokes, st["hand_speed"], spec.fps, speech) * len(strokes)
+            gain_shuffled += np.mean([metrics.onset_locked_speed(
+                metrics.shuffled_onsets(len(strokes), speech, spec.fps, rng), st["hand_speed"], spec.fps, speech)
+                for _ in range(10)]) * len(strokes)
             n_strokes += len(strokes)
     row = {**pool_stats(stats), **pool_drive([voice_row([s]) for s in stats])}
     row["stroke_align"] = hits / n_strokes if n_strokes else float("nan")
     row["stroke_shuffled"] = shuffled / n_strokes if n_strokes else float("nan")
+    row["stroke_gain"] = gain / n_strokes if n_strokes else float("nan")
+    row["stroke_gain_shuffled"] = gain_shuffled / n_strokes if n_strokes else float("nan")
     return {m: float(row[m]) for m in SYSTEM_METRICS}
 
 
 def margins(row: dict) -> dict:
     """Each measure above its chance level."""
     return {"stroke_margin": row["stroke_align"] - row["stroke_shuffled"],
+            "stroke_gain_margin": row["stroke_gain"] - row["stroke_gain_shuffled"],
             "onset_margin": row["onset_align"] - row["onset_shuffled"],
             "coupling_margin": row["coupling"] - row["coupling_shifted"],
             "beat_margin": row["beat_align"] - row["beat_align_shuffled"]}

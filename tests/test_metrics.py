@@ -352,3 +352,19 @@ def test_stressed_onsets_are_the_strongest_onsets_in_time_order():
     weaker = np.setdiff1d(every, strong)
     assert at(strong).min() >= at(weaker).max()
     assert metrics.stressed_onsets(np.zeros(SR, np.float32), SR).size == 0
+
+
+def test_onset_locked_speed_sizes_the_movement_after_onsets_not_any_nearby_peak():
+    fps, T = 20.0, 400
+    speech = np.ones(T, dtype=bool)
+    onsets = np.arange(1.0, 19.0, 1.0)
+    busy = 1.0 + 0.2 * np.sin(np.arange(T) * 2 * np.pi / 4)  # a small peak every 0.2 s: near every onset
+    strokes = np.ones(T)
+    for t in onsets:
+        strokes[int(t * fps) : int(t * fps) + 6] = 3.0  # a large movement in the 0.3 s after each onset
+    assert metrics.onset_alignment(onsets, busy, fps) == 1.0  # the hit rate cannot tell them apart
+    assert abs(metrics.onset_locked_speed(onsets, busy, fps, speech) - 1.0) < 0.05
+    assert metrics.onset_locked_speed(onsets, strokes, fps, speech) > 1.5  # (2.5 / 1.54)
+    late = onsets + 0.5  # the same strokes 0.5 s before these onsets end before the window opens
+    assert metrics.onset_locked_speed(late, strokes, fps, speech) < 1.0
+    assert np.isnan(metrics.onset_locked_speed(np.zeros(0), strokes, fps, speech))

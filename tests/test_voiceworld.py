@@ -89,6 +89,7 @@ def test_the_rule_passes_the_measures_models_are_held_to(world):
     assert rule["contrast"] > 8.0, rule  # hands rest in pauses
     assert rule["stroke_margin"] > 0.15, rule  # strokes at the stressed onsets
     assert rule["coupling_margin"] > 0.1, rule  # hand speed follows loudness
+    assert rule["stroke_gain_margin"] > 0.5, rule  # and they are large: speed after a stroke onset, not any peak
     assert shuffled["contrast"] < 2.0 and shuffled["stroke_margin"] < 0.08, shuffled
-    assert shuffled["coupling_margin"] < 0.1, shuffled
+    assert shuffled["coupling_margin"] < 0.1 and abs(shuffled["stroke_gain_margin"]) < 0.15, shuffled
     assert vw.verdict(rule, rule)["passes"] and not vw.verdict(shuffled, rule)["passes"]
