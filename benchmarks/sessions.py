@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, describe_device, load_average, utc_now, write_json
+from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
 from dimgestor.audio import SAMPLE_RATE
 
 REPO = Path(__file__).resolve().parents[1]
@@ -260,7 +260,8 @@ def main() -> None:
     ws_url = server.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
     time.sleep(1.0)
     rss0 = server.rss_mb()
-    result = {"when": utc_now(), "device": describe_device("cpu"), "load_before": load_average()}
+    result = {"when": utc_now(), "code_version": code_version(), "device": describe_device("cpu"),
+              "load_before": load_average()}
     result["keepalive"] = asyncio.run(keepalive_part(ws_url, args.flooders, args.seconds, args.quiet_s))
     print(json.dumps(result["keepalive"]), flush=True)
     result["fuzz"] = fuzz_part(server, int(ws_url.rsplit(":", 1)[1].strip("/")), args.requests)
@@ -269,6 +270,9 @@ def main() -> None:
     result["sigterm_to_exit_s"] = round(server.stop(), 2)
     result["load_after"] = load_average()
     result["server_tracebacks"] = server.output.count("Traceback")
+    # what the server said of its clients (keepalive closes, departures): the first 20 such lines
+    result["server_client_lines"] = [line.strip() for line in server.output.splitlines()
+                                     if "client " in line and "[streamer" not in line][:20]
     write_json(Path(args.out), result)
 
 
