@@ -31,9 +31,9 @@ REPO = Path(__file__).resolve().parents[1]
 LOCAL_CLUSTER = REPO / "deploy" / "local-cluster"
 NGINX = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if os.access(p, os.X_OK)),
                                       None)
-pytestmark = [pytest.mark.timeout(120),
-              pytest.mark.skipif(NGINX is None, reason="nginx not installed (Debian: apt-get install nginx; .ci/run "
-                                                       "installs it): deploy/local-cluster runs a real nginx")]
+pytestmark = pytest.mark.timeout(120)
+needs_nginx = pytest.mark.skipif(NGINX is None, reason="nginx not installed (Debian: apt-get install nginx; .ci/run "
+                                                       "installs it): deploy/local-cluster runs a real nginx")
 FPS, SECONDS = 20, 2.0
 WORKER_ARGS = ["--max-sessions", "2", "--status-every", "0"]
 
@@ -131,6 +131,7 @@ async def hello(c) -> dict:
     return h
 
 
+@needs_nginx
 def test_the_cluster_spreads_streams_over_its_workers_serves_them_through_nginx_and_stops_on_sigterm():
     cluster = Cluster("--", *WORKER_ARGS)
     try:
@@ -225,6 +226,7 @@ def test_the_cluster_spreads_streams_over_its_workers_serves_them_through_nginx_
             cluster.proc.kill()
 
 
+@needs_nginx
 def test_a_dead_worker_is_passed_over_and_the_cluster_reports_it():
     """Passive health checks: after SIGKILL of a worker every new connection still reaches the other one."""
     cluster = Cluster("--", *WORKER_ARGS)
@@ -249,6 +251,7 @@ def test_a_dead_worker_is_passed_over_and_the_cluster_reports_it():
             cluster.proc.kill()
 
 
+@needs_nginx
 def test_a_worker_that_cannot_start_stops_the_cluster_and_says_why(tmp_path):
     cluster = Cluster("--", "--checkpoint", str(tmp_path / "missing"), workers=2)
     assert cluster.proc.wait(90) == 1
@@ -264,6 +267,7 @@ def test_local_cluster_refuses_worker_flags_it_owns():
     assert r.returncode == 2 and "--ws" in r.stderr
 
 
+@needs_nginx
 @pytest.mark.skipif(shutil.which("envsubst") is None, reason="envsubst not installed (Debian: gettext-base)")
 def test_the_compose_entrypoint_fills_the_template_as_local_cluster_does(tmp_path):
     """deploy/nginx-entrypoint.sh (envsubst, the compose nginx) and local-cluster fill deploy/nginx.conf alike,
@@ -281,3 +285,13 @@ def test_the_compose_entrypoint_fills_the_template_as_local_cluster_does(tmp_pat
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "nginx.conf").read_text() == ours
     assert "$http_upgrade" in ours and "least_conn;" in ours and "DIMGESTOR" not in ours.split("worker_processes")[1]
+
+
+def test_a_worker_takes_its_inference_threads_from_omp_num_threads(monkeypatch):
+    """N workers on one machine: each runs the threads it is given, not every core but one (N x the cores)."""
+    from streamer.server import inference_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert inference_threads() == 3
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert inference_threads() == max(1, (os.cpu_count() or 1) - 1)
