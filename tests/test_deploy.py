@@ -272,9 +272,7 @@ def test_local_cluster_refuses_worker_flags_it_owns():
 def test_the_compose_entrypoint_fills_the_template_as_local_cluster_does(tmp_path):
     """deploy/nginx-entrypoint.sh (envsubst, the compose nginx) and local-cluster fill deploy/nginx.conf alike,
     and nginx accepts the result."""
-    loader = SourceFileLoader("local_cluster", str(LOCAL_CLUSTER))
-    cluster = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
-    loader.exec_module(cluster)
+    cluster = _local_cluster_module()
     upstream = [f"127.0.0.1:{p}" for p in (9001, 9002)]
     ours = cluster.nginx_config((REPO / "deploy" / "nginx.conf").read_text(), str(tmp_path), "127.0.0.1:9000", upstream)
     servers = "\n        ".join(f"server {a} {cluster.UPSTREAM_PARAMS};" for a in upstream)
@@ -295,3 +293,27 @@ def test_a_worker_takes_its_inference_threads_from_omp_num_threads(monkeypatch):
     assert inference_threads() == 3
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert inference_threads() == max(1, (os.cpu_count() or 1) - 1)
+
+
+def _local_cluster_module():
+    loader = SourceFileLoader("local_cluster", str(LOCAL_CLUSTER))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    return module
+
+
+def test_the_compose_file_and_dockerfile_agree_with_what_is_tested_here():
+    """Docker cannot run here: check that deploy/compose.yaml fills the tested template with the tested passive
+    checks and mounts files that exist, and that the Dockerfile installs the torch pyproject.toml pins."""
+    yaml = pytest.importorskip("yaml")
+    deploy = REPO / "deploy"
+    compose = yaml.safe_load((deploy / "compose.yaml").read_text())["services"]
+    nginx, worker = compose["nginx"], compose["worker"]
+    upstream = nginx["environment"]["DIMGESTOR_UPSTREAM"]
+    assert upstream == f"server worker:8765 {_local_cluster_module().UPSTREAM_PARAMS};"
+    assert {v.split(":")[0] for v in nginx["volumes"]} == {"./nginx.conf", "./nginx-entrypoint.sh"}
+    assert all((deploy / v.split(":")[0]).is_file() for v in nginx["volumes"])
+    assert (deploy / worker["build"]["context"] / worker["build"]["dockerfile"]).resolve() == deploy / "Dockerfile"
+    assert "OMP_NUM_THREADS=1" in worker["environment"]
+    pin = re.search(r'"(torch==[\d.]+)"', (REPO / "pyproject.toml").read_text()).group(1)
+    assert f"pip install --no-cache-dir {pin} " in (deploy / "Dockerfile").read_text()
