@@ -130,10 +130,19 @@ def _executor(no_batch: bool):
         return RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     import torch
 
-    # one batched forward per sampler step for every session with a window due, all on the batcher's
-    # thread; one core stays with the event loop (poses, sockets, VMC)
-    torch.set_num_threads(max(1, (os.cpu_count() or 1) - 1))
+    # one batched forward per sampler step for every session with a window due, all on the batcher's thread
+    torch.set_num_threads(inference_threads())
     return StreamBatcher()
+
+
+def inference_threads() -> int:
+    """Torch threads of the batched inference: OMP_NUM_THREADS when set (several workers on one machine each
+    take their share, docs/deploy.md; torch.set_num_threads would otherwise override it), else every core but
+    one, which stays with the event loop (poses, sockets, VMC)."""
+    given = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if given.isdigit() and int(given) > 0:
+        return int(given)
+    return max(1, (os.cpu_count() or 1) - 1)
 
 
 def _metrics(executor: StreamBatcher | RankedExecutor) -> ServerMetrics:
