@@ -68,10 +68,13 @@ class Diffusion:
             betas = (1 - f[1:] / f[:-1]).clamp(max=0.999)
         self.betas = betas  # float64: the coefficients below are taken as Python floats
         self.alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)
+        # the sampler's coefficients as Python floats, read once here: a step reads no tensor element, so
+        # tracing it (the ONNX export) sees constants
+        self._a, self._betas = self.alphas_cumprod.tolist(), betas.tolist()
 
     def a(self, t: int) -> float:
         """alpha_bar_t, with alpha_bar_{-1} = 1."""
-        return 1.0 if t < 0 else float(self.alphas_cumprod[t])
+        return 1.0 if t < 0 else self._a[t]
 
     # ---- training ----
     def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -162,7 +165,7 @@ class Diffusion:
     def ddpm_step(self, x_t: torch.Tensor, x0: torch.Tensor, t: int, noise: torch.Tensor | None
                   ) -> torch.Tensor:
         """Ancestral step x_t -> x_{t-1} from the posterior q(x_{t-1} | x_t, x0) (Ho et al., eqs. 6-7)."""
-        a_t, a_prev, beta = self.a(t), self.a(t - 1), float(self.betas[t])
+        a_t, a_prev, beta = self.a(t), self.a(t - 1), self._betas[t]
         mean = (math.sqrt(a_prev) * beta / (1 - a_t)) * x0 + (math.sqrt(1 - beta) * (1 - a_prev) / (1 - a_t)) * x_t
         if t == 0:
             return mean

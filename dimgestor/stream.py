@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .batch import StepStates, denoise, runner_for
+from .config import ModelConfig
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor, ExtractorState
 from .smoothing import OneEuroFilter, OneEuroState
@@ -30,18 +31,21 @@ __all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
                   states: list[DenoiserState | None], pairs: list[tuple[int, int]], seed: int,
-                  sampler: str, eta: float, guidance: float = 1.0) -> tuple[torch.Tensor, list[DenoiserState]]:
+                  sampler: str, eta: float, guidance: float = 1.0, x: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, list[DenoiserState]]:
     """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step.
 
     guidance != 1: classifier-free guidance; the unconditional branch (the condition zeroed) is row 1 of
     every step's state and of the network's batch, beside the conditional row 0. At 1 it does not exist.
+    x: x_T (1, n, D) given instead of drawn here (the ONNX graph takes it as an input, `dimgestor.onnx_export`).
     """
     n, D, dev = cond.shape[1], model.config.motion_dim, cond.device
     L = model.config.noise_taps
     guided = guidance != 1.0
     if guided:
         cond = torch.cat([cond, torch.zeros_like(cond)])  # (2, n, H): conditional, unconditional
-    x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
+    if x is None:
+        x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
     new_states = []
     for i, ((t, t_prev), state) in enumerate(zip(pairs, states)):
         out, state = model(x.expand(2, -1, -1) if guided else x, t, cond, state)
@@ -67,10 +71,11 @@ def smoothing_from_flag(hz: float | None):
     return hz or None
 
 
-def make_smoother(model: DiMGestor, smoothing="config") -> OneEuroFilter | None:
+def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:
     """The output filter: "config" (the model config's smooth_hz/smooth_beta), None or 0 (off), a cutoff
-    in Hz (with the config's beta), or a (cutoff_hz, beta) pair."""
-    c = model.config
+    in Hz (with the config's beta), or a (cutoff_hz, beta) pair. A config, not a model: the ONNX Runtime
+    stream (`dimgestor.onnx_stream`) has no torch model."""
+    c = config
     if isinstance(smoothing, str):
         if smoothing != "config":
             raise ValueError(f"smoothing must be 'config', None, a cutoff in Hz or (cutoff_hz, beta), got {smoothing!r}")
@@ -128,7 +133,7 @@ class GestureStream:
         self.guidance = check_guidance(model.config.guidance if guidance is None else guidance)
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
-        self.smoother = make_smoother(model, smoothing)
+        self.smoother = make_smoother(model.config, smoothing)
         self.runner = runner_for(model, self.pairs, sampler, eta)  # shared: streams of one runner batch together
         self.state = self.initial_state()
 
@@ -244,5 +249,5 @@ def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: in
         frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta,
                                   guidance)
     out = frames.float().cpu().numpy()
-    smoother = make_smoother(model, smoothing)
+    smoother = make_smoother(c, smoothing)
     return smoother(out) if smoother is not None else out

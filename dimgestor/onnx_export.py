@@ -1,0 +1,256 @@
+"""The streaming step as one ONNX graph with explicit state: `dimgestor export-onnx`.
+
+The graph is one motion frame of a stream (`FrameStep`): 800 new audio samples (one frame's worth at
+16 kHz / 20 fps) and the noise x_T of one frame in, the denoised frame out, and every carried state in
+and out beside them:
+
+    samples (1, 800), noise (1, 1, D), state...  ->  frame (1, D), state_out...
+
+    front end    its tail of samples and, for the speech front end, the running statistics (float64, as in torch)
+    extractor    the style extractor's Mamba-2 state and the downsampler's buffer of k - stride columns
+    denoiser     for every sampler step k: the encoder tail and each block's Mamba-2 conv and SSM state,
+                 stacked (K, ...) with a row per branch (2 when guided: conditional, unconditional)
+
+Why this boundary (one graph a motion frame, the K-step DDIM loop inside it):
+- a fixed shape: a frame's audio is exactly 5 feature frames and one downsampler output, so the speech front
+  end's per-frame running statistics unroll into the graph (5 steps) and nothing in it loops over a length.
+  A variable window would need an ONNX Loop for those statistics and would trace other Mamba-2 scan forms;
+  fixed shapes are also what Unity Sentis, Unreal NNE, Triton and the browser run best;
+- one call a frame: the DDIM loop (K model passes, guidance, the DDIM updates with the schedule's constants)
+  is unrolled in the graph, so a frame costs one runtime call, not K (the per-call overhead is what a
+  small model pays for on CPU);
+- the noise is an input: x_T is `motion_noise(seed, frame, ...)`, a pure function of the frame index that
+  the Python driver computes for a whole window at once (`dimgestor.onnx_stream`); an engine may feed any
+  N(0, 1) noise, or the same hash for bit-equal frames. Only deterministic DDIM (eta = 0) exports: the
+  other samplers draw noise at every step;
+- warm-up stays outside: the downsampler's buffer always holds k - stride columns, so the first
+  lookahead / stride calls (6 for the default model) make a condition from the zeros before the start and
+  their frames are not real; the driver drops those frames and keeps the denoiser state it passed in
+  (zeros), which is exactly the torch stream's start. After them, call j returns frame j - warm-up.
+
+It is traced from the modules the torch path runs (`DiMGestor.frontend`, `.condition`, and
+`dimgestor.stream.sample_frames`, the reference sampler the fast path is tested against), so there is no
+second model. The exporter is torch.onnx's dynamo exporter (`torch.export` then onnxscript): the
+TorchScript one has no conversion for the front end's complex FFTs, the dynamo one writes them as ONNX DFT.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from .diffusion import Diffusion, check_guidance
+from .mamba2 import Mamba2State
+from .model import DenoiserState, DiMGestor, ExtractorState
+from .stream import sample_frames
+
+__all__ = ["FrameStep", "StateSpec", "export_onnx", "state_specs", "manifest_of", "OPSET", "register"]
+
+OPSET = 18
+GRAPH = "frame_step.onnx"
+MANIFEST = "manifest.json"
+
+
+class StateSpec(NamedTuple):
+    """One carried tensor: fed as input `name`, returned as output `name + "_out"`, starting at `init`."""
+
+    name: str
+    init: torch.Tensor  # its value before the first call (batch 1)
+
+    @property
+    def out(self) -> str:
+        return self.name + "_out"
+
+
+def _fill(t: torch.Tensor) -> float:
+    """The one value a state starts with (every initial state is a constant fill: zeros, NaN, a floor)."""
+    flat = t.flatten()
+    v = flat[:1]
+    if not (torch.equal(flat, v.expand_as(flat)) or bool(torch.isnan(flat).all())):
+        raise ValueError("an initial state that is not one constant cannot be written as a fill")
+    return float(v)
+
+
+def _warmup(model: DiMGestor) -> int:
+    c = model.config
+    if c.lookahead_feats % c.feats_per_frame:
+        raise ValueError(f"ONNX export needs a lookahead of whole motion frames: {c.lookahead_feats} feature frames "
+                         f"is not a multiple of {c.feats_per_frame}")
+    return c.lookahead_feats // c.feats_per_frame
+
+
+def state_specs(model: DiMGestor, steps: int, rows: int) -> list[StateSpec]:
+    """The graph's carried tensors in input order: front end, extractor, denoiser (K steps, `rows` branches)."""
+    if model.config.frontend == "pretrained":
+        raise ValueError("ONNX export supports the logmel and speech front ends, not a pretrained encoder")
+    fe = model.frontend.init_state(1)
+    specs = [StateSpec(f"frontend_{k}", v) for k, v in fe._asdict().items() if torch.is_tensor(v)]
+    ex = model.extractor
+    style = ex.style.zero_state(1)
+    specs += [StateSpec("extractor_style_conv", style.conv), StateSpec("extractor_style_ssm", style.ssm),
+              StateSpec("extractor_buf", torch.zeros(1, ex.feat_dim + ex.S, ex.k - ex.stride))]
+    d = model.init_state(rows)
+    specs += [StateSpec("denoiser_enc", d.enc[None].repeat(steps, 1, 1, 1)),
+              StateSpec("denoiser_conv", torch.stack([b.conv for b in d.blocks])[None].repeat(steps, 1, 1, 1, 1)),
+              StateSpec("denoiser_ssm", torch.stack([b.ssm for b in d.blocks])[None].repeat(steps, 1, 1, 1, 1, 1))]
+    return specs
+
+
+class FrameStep(nn.Module):
+    """One motion frame of a stream as a function of explicit tensors: what the ONNX graph is traced from, and
+    run in torch, the reference the graph is tested against (`forward(samples, noise, *state) -> (frame, *state)`)."""
+
+    def __init__(self, model: DiMGestor, steps: int, guidance: float):
+        super().__init__()
+        self.model, self.guidance = model, check_guidance(guidance)
+        self.diffusion = Diffusion(model.config)
+        self.pairs = self.diffusion.sampling_pairs("ddim", steps)
+        self.rows = 1 if self.guidance == 1.0 else 2
+        self.specs = state_specs(model, len(self.pairs), self.rows)
+        self._fe_type, self._fe_fixed = type(model.frontend.init_state(1)), model.frontend.init_state(1)._asdict()
+
+    def forward(self, samples: torch.Tensor, noise: torch.Tensor, *state: torch.Tensor):
+        m, named = self.model, dict(zip((s.name for s in self.specs), state))
+        fe = self._fe_type(**{k: named.get(f"frontend_{k}", v) for k, v in self._fe_fixed.items()})
+        ex = ExtractorState(Mamba2State(named["extractor_style_conv"], named["extractor_style_ssm"]),
+                            named["extractor_buf"])
+        feats, fe = m.frontend(samples, fe)  # (1, 5, F)
+        cond, ex = m.condition(feats, ex)  # (1, 1, H)
+        enc, conv, ssm = named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"]
+        steps = [DenoiserState(enc[k], tuple(Mamba2State(conv[k, j], ssm[k, j]) for j in range(conv.shape[1])))
+                 for k in range(len(self.pairs))]
+        frame, steps = sample_frames(m, self.diffusion, cond, 0, steps, self.pairs, 0, "ddim", 0.0, self.guidance,
+                                     x=noise)
+        new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
+        new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf,
+                "denoiser_enc": torch.stack([s.enc for s in steps]),
+                "denoiser_conv": torch.stack([torch.stack([b.conv for b in s.blocks]) for s in steps]),
+                "denoiser_ssm": torch.stack([torch.stack([b.ssm for b in s.blocks]) for s in steps])}
+        return (frame, *(new[s.name] for s in self.specs))
+
+    def example_inputs(self) -> tuple[torch.Tensor, ...]:
+        c = self.model.config
+        return (torch.zeros(1, c.samples_per_frame), torch.zeros(1, 1, c.motion_dim), *(s.init for s in self.specs))
+
+
+def _tensor_entry(name: str, t: torch.Tensor) -> dict:
+    return {"name": name, "shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")}
+
+
+def manifest_of(step: FrameStep, config_json: dict) -> dict:
+    """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value)."""
+    c = step.model.config
+    inputs = step.example_inputs()
+    frame = torch.zeros(1, c.motion_dim)
+    return {
+        "format": 1, "graph": GRAPH, "opset": OPSET,
+        "call": {"samples_per_call": c.samples_per_frame, "sample_rate": c.sample_rate, "fps": c.fps,
+                 "frames_per_call": 1, "warmup_calls": _warmup(step.model),
+                 "finish_pad_samples": "zeros until (T + warmup_calls) * samples_per_call samples, "
+                                       "T = samples_in * fps // sample_rate"},
+        "sampler": {"name": "ddim", "eta": 0.0, "steps": len(step.pairs), "pairs": step.pairs,
+                    "guidance": step.guidance, "rows": step.rows},
+        "noise": {"input": "noise", "function": "dimgestor.diffusion.motion_noise(seed, frame, 1, 0, motion_dim, "
+                                                "noise_taps): x_T of frame `frame`, N(0, 1)",
+                  "noise_taps": c.noise_taps},
+        "inputs": [_tensor_entry("samples", inputs[0]), _tensor_entry("noise", inputs[1]),
+                   *(_tensor_entry(s.name, s.init) for s in step.specs)],
+        "outputs": [_tensor_entry("frame", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
+        "state": [{"input": s.name, "output": s.out, "shape": list(s.init.shape),
+                   "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init)} for s in step.specs],
+        "model": config_json,
+    }
+
+
+def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
+                guidance: float | None = None) -> Path:
+    """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out."""
+    import onnx
+
+    from .checkpoint import load_checkpoint
+
+    bundle = load_checkpoint(checkpoint)
+    model = bundle.model.eval()
+    c = model.config
+    steps = steps or c.sample_steps
+    if not 1 <= steps <= c.n_steps:
+        raise ValueError(f"--steps must be in 1..{c.n_steps}, got {steps}")
+    step = FrameStep(model, steps, c.guidance if guidance is None else guidance).eval()
+    _warmup(model)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names_in = ["samples", "noise", *(s.name for s in step.specs)]
+    names_out = ["frame", *(s.out for s in step.specs)]
+    with torch.inference_mode(False), torch.no_grad():
+        program = torch.onnx.export(step, step.example_inputs(), input_names=names_in, output_names=names_out,
+                                    opset_version=OPSET, dynamo=True, external_data=False, optimize=False,
+                                    verbose=False)
+    _optimize(program.model)
+    program.save(str(out / GRAPH))
+    onnx.checker.check_model(str(out / GRAPH))
+    config_json = {"model": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist(),
+                   "checkpoint": str(bundle.path)}
+    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, config_json)), indent=1))
+    return out
+
+
+def _optimize(model) -> None:
+    """torch.onnx's own graph optimization (onnxscript's `optimize_ir`: constant folding, rewrites, clean-up;
+    without it ORT runs a frame 2.8x slower) minus its no-op rules: their `x + 0` matches any scalar within
+    1e-8 of 0, which removed the front end's `+ 1e-12` and made digital silence log10(0) = -inf."""
+    import onnx_ir as ir
+    import onnx_ir.passes.common as common
+    from onnxscript import rewriter
+    from onnxscript.optimizer import _constant_folding
+    from onnxscript.rewriter.rules.common import _no_op
+
+    rules = [r for r in rewriter._DEFAULT_REWRITE_RULES if r not in _no_op.rules]
+    ir.passes.Sequential(
+        common.InlinePass(),
+        ir.passes.PassManager([_constant_folding.FoldConstantsPass(
+            shape_inference=True, input_size_limit=_constant_folding.DEFAULT_CONSTANT_FOLD_INPUT_SIZE_LIMIT,
+            output_size_limit=_constant_folding.DEFAULT_CONSTANT_FOLD_OUTPUT_SIZE_LIMIT),
+            rewriter.RewritePass(rules), common.RemoveUnusedNodesPass(), common.RemoveUnusedFunctionsPass(),
+            common.RemoveUnusedOpsetsPass()], steps=2, early_stop=True),
+        common.RemoveUnusedNodesPass(),
+        common.LiftConstantsToInitializersPass(lift_all_constants=True, size_limit=0),
+        common.DeduplicateInitializersPass(),
+        common.CommonSubexpressionEliminationPass(),
+        common.NameFixPass(),
+    )(model)
+
+
+def _json_safe(v):
+    """NaN as the string "nan" (strict JSON has no NaN; the speech front end's noise floor starts there)."""
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("export-onnx", help="the streaming step as an ONNX graph with explicit state",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--checkpoint", default=None, help="checkpoint or run folder; default: the embedded model")
+    p.add_argument("--out", required=True, help="folder for frame_step.onnx and manifest.json")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps K in the graph; default: the checkpoint's")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale baked into the graph; default: the checkpoint's")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance)
+    m = json.loads((out / MANIFEST).read_text())
+    print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
+          f"{len(m['state'])} state tensors) and {out / MANIFEST}")
+    return 0
