@@ -209,10 +209,19 @@ def frame_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int,
     return frame_noise_rows([seed], [frame_start], n_frames, step, dim, device)[0]
 
 
+def _counters(values, device) -> torch.Tensor:
+    """Seeds or frame indices (B,) as int64: a sequence of ints, or a tensor (in a traced graph, its inputs)."""
+    if torch.is_tensor(values):
+        return values.to(device=device, dtype=torch.int64)
+    return torch.as_tensor(list(values), dtype=torch.int64, device=device)
+
+
 def frame_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, device=None) -> torch.Tensor:
-    """`frame_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
-    seed = torch.as_tensor(list(seeds), dtype=torch.int64, device=device)[:, None, None]  # (B, 1, 1)
-    start = torch.as_tensor(list(frame_starts), dtype=torch.int64, device=device)[:, None, None]
+    """`frame_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b]).
+
+    seeds, frame_starts: sequences of ints or int64 tensors (B,) (the ONNX graph's inputs)."""
+    seed = _counters(seeds, device)[:, None, None]  # (B, 1, 1)
+    start = _counters(frame_starts, device)[:, None, None]
     frames = start + torch.arange(n_frames, dtype=torch.int64, device=device)[None, :, None]  # (B, n, 1)
     chans = torch.arange(dim, dtype=torch.int64, device=device)[None, None, :]
     h = torch.full((1, 1, 1), 0x9E3779B9, dtype=torch.int64, device=device)
@@ -253,6 +262,6 @@ def motion_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int
 def motion_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, taps: int = 1,
                       device=None) -> torch.Tensor:
     """`motion_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
-    starts = [f - taps + 1 for f in frame_starts]
+    starts = frame_starts - (taps - 1) if torch.is_tensor(frame_starts) else [f - taps + 1 for f in frame_starts]
     white = frame_noise_rows(seeds, starts, n_frames + taps - 1, step, dim, device)
     return white if taps == 1 else correlate(white.double(), taps).float()

@@ -45,10 +45,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from .batch import StepStates, runner_for
 from .diffusion import Diffusion, check_guidance
 from .mamba2 import Mamba2State
-from .model import DenoiserState, DiMGestor, ExtractorState
-from .stream import sample_frames
+from .model import DiMGestor, ExtractorState
 
 __all__ = ["FrameStep", "StateSpec", "export_onnx", "state_specs", "manifest_of", "OPSET", "register"]
 
@@ -95,48 +95,72 @@ def state_specs(model: DiMGestor, steps: int, rows: int) -> list[StateSpec]:
     style = ex.style.zero_state(1)
     specs += [StateSpec("extractor_style_conv", style.conv), StateSpec("extractor_style_ssm", style.ssm),
               StateSpec("extractor_buf", torch.zeros(1, ex.feat_dim + ex.S, ex.k - ex.stride))]
-    d = model.init_state(rows)
-    specs += [StateSpec("denoiser_enc", d.enc[None].repeat(steps, 1, 1, 1)),
-              StateSpec("denoiser_conv", torch.stack([b.conv for b in d.blocks])[None].repeat(steps, 1, 1, 1, 1)),
-              StateSpec("denoiser_ssm", torch.stack([b.ssm for b in d.blocks])[None].repeat(steps, 1, 1, 1, 1, 1))]
-    return specs
+    d = StepStates.zeros(model, steps, rows)  # the torch stream's own layout (`StreamState.denoiser`)
+    return specs + [StateSpec("denoiser_enc", d.enc), StateSpec("denoiser_conv", d.conv),
+                    StateSpec("denoiser_ssm", d.ssm)]
+
+
+class _Slots:
+    """A `StepStates` field as the runner's `out=` sees it: `slots[k]` or `slots[k, j]` is its own new tensor.
+
+    The runner writes each step's and block's new state into `out.conv[k, j]` (copy_, out=); traced into
+    one stacked tensor, every such write becomes a scatter that copies the whole (K, blocks, ...) state (2 MB
+    at K = 8, ~2 ms each in ONNX Runtime). Written into separate tensors and stacked once at the end, the
+    graph holds plain values."""
+
+    def __init__(self, like: torch.Tensor):
+        self.like, self.parts = like, {}
+
+    def __getitem__(self, index) -> torch.Tensor:
+        if index not in self.parts:
+            self.parts[index] = torch.empty_like(self.like[index])
+        return self.parts[index]
+
+    def stacked(self) -> torch.Tensor:
+        def stack(prefix: tuple, depth: int) -> torch.Tensor:
+            if depth == 0:
+                return self.parts[prefix[0] if len(prefix) == 1 else prefix]
+            return torch.stack([stack(prefix + (i,), depth - 1) for i in range(self.like.shape[len(prefix)])])
+        depth = max(1 if isinstance(k, int) else len(k) for k in self.parts)
+        return stack((), depth)
 
 
 class FrameStep(nn.Module):
     """One motion frame of a stream as a function of explicit tensors: what the ONNX graph is traced from, and
     run in torch, the reference the graph is tested against (`forward(samples, noise, *state) -> (frame, *state)`)."""
 
-    def __init__(self, model: DiMGestor, steps: int, guidance: float):
+    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 1):
         super().__init__()
-        self.model, self.guidance = model, check_guidance(guidance)
-        self.diffusion = Diffusion(model.config)
-        self.pairs = self.diffusion.sampling_pairs("ddim", steps)
+        if frames < 1 or _warmup(model) % frames:
+            raise ValueError(f"frames per call must divide the {_warmup(model)} warm-up frames (the lookahead), "
+                             f"got {frames}")
+        self.model, self.guidance, self.frames = model, check_guidance(guidance), frames
+        self.pairs = Diffusion(model.config).sampling_pairs("ddim", steps)
+        self.runner = runner_for(model, self.pairs, "ddim", 0.0)  # the torch stream's sampler, shared with it
         self.rows = 1 if self.guidance == 1.0 else 2
         self.specs = state_specs(model, len(self.pairs), self.rows)
         self._fe_type, self._fe_fixed = type(model.frontend.init_state(1)), model.frontend.init_state(1)._asdict()
 
-    def forward(self, samples: torch.Tensor, noise: torch.Tensor, *state: torch.Tensor):
+    def forward(self, samples: torch.Tensor, seed: torch.Tensor, frame: torch.Tensor, *state: torch.Tensor):
         m, named = self.model, dict(zip((s.name for s in self.specs), state))
         fe = self._fe_type(**{k: named.get(f"frontend_{k}", v) for k, v in self._fe_fixed.items()})
         ex = ExtractorState(Mamba2State(named["extractor_style_conv"], named["extractor_style_ssm"]),
                             named["extractor_buf"])
-        feats, fe = m.frontend(samples, fe)  # (1, 5, F)
-        cond, ex = m.condition(feats, ex)  # (1, 1, H)
-        enc, conv, ssm = named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"]
-        steps = [DenoiserState(enc[k], tuple(Mamba2State(conv[k, j], ssm[k, j]) for j in range(conv.shape[1])))
-                 for k in range(len(self.pairs))]
-        frame, steps = sample_frames(m, self.diffusion, cond, 0, steps, self.pairs, 0, "ddim", 0.0, self.guidance,
-                                     x=noise)
+        feats, fe = m.frontend(samples, fe)  # (1, 5 M, F)
+        cond, ex = m.condition(feats, ex)  # (1, M, H)
+        states = StepStates(named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"])
+        out = StepStates(*(_Slots(t) for t in states))
+        frames = self.runner.sample(cond, frame, seed, states, [self.guidance], out=out)  # (1, M, D)
         new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
         new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf,
-                "denoiser_enc": torch.stack([s.enc for s in steps]),
-                "denoiser_conv": torch.stack([torch.stack([b.conv for b in s.blocks]) for s in steps]),
-                "denoiser_ssm": torch.stack([torch.stack([b.ssm for b in s.blocks]) for s in steps])}
-        return (frame, *(new[s.name] for s in self.specs))
+                "denoiser_enc": out.enc.stacked(), "denoiser_conv": out.conv.stacked(),
+                "denoiser_ssm": out.ssm.stacked()}
+        return (frames[0], *(new[s.name] for s in self.specs))
 
     def example_inputs(self) -> tuple[torch.Tensor, ...]:
         c = self.model.config
-        return (torch.zeros(1, c.samples_per_frame), torch.zeros(1, 1, c.motion_dim), *(s.init for s in self.specs))
+        seed, frame = torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64)  # distinct: not aliased
+        return (torch.zeros(1, c.samples_per_frame * self.frames), seed, frame, *(s.init for s in self.specs))
 
 
 def _tensor_entry(name: str, t: torch.Tensor) -> dict:
@@ -147,21 +171,21 @@ def manifest_of(step: FrameStep, config_json: dict) -> dict:
     """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value)."""
     c = step.model.config
     inputs = step.example_inputs()
-    frame = torch.zeros(1, c.motion_dim)
+    frame = torch.zeros(step.frames, c.motion_dim)
     return {
         "format": 1, "graph": GRAPH, "opset": OPSET,
-        "call": {"samples_per_call": c.samples_per_frame, "sample_rate": c.sample_rate, "fps": c.fps,
-                 "frames_per_call": 1, "warmup_calls": _warmup(step.model),
-                 "finish_pad_samples": "zeros until (T + warmup_calls) * samples_per_call samples, "
-                                       "T = samples_in * fps // sample_rate"},
+        "call": {"samples_per_call": c.samples_per_frame * step.frames, "sample_rate": c.sample_rate, "fps": c.fps,
+                 "frames_per_call": step.frames, "warmup_calls": _warmup(step.model) // step.frames,
+                 "finish": "pad with zeros to whole calls until frame T - 1 is made, T = samples_in * fps // "
+                           "sample_rate; keep frames < T"},
         "sampler": {"name": "ddim", "eta": 0.0, "steps": len(step.pairs), "pairs": step.pairs,
                     "guidance": step.guidance, "rows": step.rows},
-        "noise": {"input": "noise", "function": "dimgestor.diffusion.motion_noise(seed, frame, 1, 0, motion_dim, "
-                                                "noise_taps): x_T of frame `frame`, N(0, 1)",
-                  "noise_taps": c.noise_taps},
-        "inputs": [_tensor_entry("samples", inputs[0]), _tensor_entry("noise", inputs[1]),
+        "noise": "counter-based, in the graph: x_T of frame f is motion_noise(seed, f), so `frame` is the index of "
+                 "the call's first frame (the frames made so far) and `seed` the stream's",
+        "inputs": [_tensor_entry("samples", inputs[0]), _tensor_entry("seed", inputs[1]),
+                   _tensor_entry("frame", inputs[2]),
                    *(_tensor_entry(s.name, s.init) for s in step.specs)],
-        "outputs": [_tensor_entry("frame", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
+        "outputs": [_tensor_entry("frames", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
         "state": [{"input": s.name, "output": s.out, "shape": list(s.init.shape),
                    "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init)} for s in step.specs],
         "model": config_json,
@@ -169,7 +193,7 @@ def manifest_of(step: FrameStep, config_json: dict) -> dict:
 
 
 def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
-                guidance: float | None = None) -> Path:
+                guidance: float | None = None, frames: int = 1) -> Path:
     """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out."""
     import onnx
 
@@ -181,13 +205,13 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     steps = steps or c.sample_steps
     if not 1 <= steps <= c.n_steps:
         raise ValueError(f"--steps must be in 1..{c.n_steps}, got {steps}")
-    step = FrameStep(model, steps, c.guidance if guidance is None else guidance).eval()
-    _warmup(model)
+    step = FrameStep(model, steps, c.guidance if guidance is None else guidance, frames).eval()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    names_in = ["samples", "noise", *(s.name for s in step.specs)]
-    names_out = ["frame", *(s.out for s in step.specs)]
+    names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
+    names_out = ["frames", *(s.out for s in step.specs)]
     with torch.inference_mode(False), torch.no_grad():
+        step(*step.example_inputs())  # the runner prepares its stacked weights eagerly; traced, they are constants
         program = torch.onnx.export(step, step.example_inputs(), input_names=names_in, output_names=names_out,
                                     opset_version=OPSET, dynamo=True, external_data=False, optimize=False,
                                     verbose=False)
@@ -245,11 +269,13 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K in the graph; default: the checkpoint's")
     p.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale baked into the graph; default: the checkpoint's")
+    p.add_argument("--frames", type=int, default=1,
+                   help="motion frames per call (50 ms each): 1, or a divisor of the lookahead's frames (2 = 100 ms)")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
-    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance)
+    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames)
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
           f"{len(m['state'])} state tensors) and {out / MANIFEST}")

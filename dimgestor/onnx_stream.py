@@ -1,8 +1,8 @@
 """The exported frame step driven as a stream: audio chunks in, normalized frames out, in ONNX Runtime or torch.
 
 `FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (see `dimgestor.onnx_export` for
-why the graph is one motion frame): it buffers audio to whole frames (800 samples), draws each window's
-noise x_T with the same `motion_noise` the torch stream draws, skips the warm-up frames, pads the end
+why the graph is a fixed number of motion frames): it buffers audio to whole calls (800 samples a frame), passes the seed and
+frame index from which the graph draws the same noise x_T as the torch stream, skips the warm-up frames, pads the end
 with silence as `GestureStream.finish` does, and applies the same output filter. It calls the frame step
 through a `run(feeds) -> outputs` function: ONNX Runtime's session (`ort_runner`), or the traced module
 itself in torch (`torch_runner`, the graph's reference). Its state is a value, as `GestureStream`'s is:
@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from .config import ModelConfig
-from .diffusion import motion_noise
 from .smoothing import OneEuroState
 from .stream import _check_audio, make_smoother
 
@@ -55,9 +54,10 @@ class FrameStepStream:
 
     def __init__(self, manifest: dict, run: Runner, seed: int = 0, smoothing="config"):
         self.manifest, self.run, self.seed = manifest, run, int(seed)
+        self._seed = np.array([self.seed], np.int64)
         self.config = ModelConfig(**manifest["model"]["model"])
         call = manifest["call"]
-        self.chunk, self.warmup = call["samples_per_call"], call["warmup_calls"]
+        self.chunk, self.warmup, self.per_call = call["samples_per_call"], call["warmup_calls"], call["frames_per_call"]
         self.smoother = make_smoother(self.config, smoothing)
         self.state = self.initial_state()
 
@@ -70,23 +70,18 @@ class FrameStepStream:
 
     def _frames(self, state: OnnxStreamState, audio: np.ndarray) -> tuple[np.ndarray, OnnxStreamState]:
         """Whole frames of audio (a multiple of samples_per_call) after `state` -> frames, state."""
-        c, n = self.config, len(audio) // self.chunk
-        first = max(state.calls - self.warmup, 0)  # the first real frame these calls make
-        real = max(state.calls + n - self.warmup, 0) - first
-        noise = (motion_noise(self.seed, first, real, 0, c.motion_dim, c.noise_taps).numpy() if real
-                 else np.zeros((0, c.motion_dim), np.float32))
-        zeros = np.zeros((1, 1, c.motion_dim), np.float32)
+        c, n, M = self.config, len(audio) // self.chunk, self.per_call
         tensors, out = state.tensors, []
         for i in range(n):
-            j = state.calls + i - self.warmup  # the frame this call makes (< 0: warm-up)
-            feeds = {"samples": audio[None, i * self.chunk:(i + 1) * self.chunk],
-                     "noise": noise[None, j - first:j - first + 1] if j >= 0 else zeros, **tensors}
+            j = state.calls + i - self.warmup  # this call makes frames [j M, (j + 1) M) (j < 0: warm-up)
+            feeds = {"samples": audio[None, i * self.chunk:(i + 1) * self.chunk], "seed": self._seed,
+                     "frame": np.array([max(j, 0) * M], np.int64), **tensors}
             result = self.run(feeds)
             new = {s["input"]: result[s["output"]] for s in self.manifest["state"]}
             if j < 0:  # warm-up: the condition is not real yet; the denoiser keeps the state it started with
                 new |= {k: v for k, v in tensors.items() if k.startswith("denoiser_")}
             else:
-                out.append(result["frame"])
+                out.append(result["frames"])
             tensors = new
         frames = np.concatenate(out).astype(np.float32) if out else np.zeros((0, c.motion_dim), np.float32)
         smoothed = state.smoother
@@ -110,7 +105,7 @@ class FrameStepStream:
             return np.zeros((0, self.config.motion_dim), np.float32), state
         c = self.config
         T = state.samples_in * c.fps // c.sample_rate
-        need = (T + self.warmup) * self.chunk if T else 0  # samples after which frame T - 1 exists
+        need = (-(-T // self.per_call) + self.warmup) * self.chunk if T else 0  # samples until frame T - 1 exists
         pad = max(need - state.samples_in, 0)
         frames, end = self.step(state, np.zeros(pad, np.float32))
         out = frames[: max(T - state.frames_out, 0)]
@@ -146,8 +141,8 @@ def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
 
 def torch_runner(step) -> Runner:
     """The frame step module (`dimgestor.onnx_export.FrameStep`) in torch, with the graph's names."""
-    names_in = ["samples", "noise", *(s.name for s in step.specs)]
-    names_out = ["frame", *(s.out for s in step.specs)]
+    names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
+    names_out = ["frames", *(s.out for s in step.specs)]
 
     def run(feeds):
         with torch.inference_mode():

@@ -31,21 +31,18 @@ __all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
                   states: list[DenoiserState | None], pairs: list[tuple[int, int]], seed: int,
-                  sampler: str, eta: float, guidance: float = 1.0, x: torch.Tensor | None = None
-                  ) -> tuple[torch.Tensor, list[DenoiserState]]:
+                  sampler: str, eta: float, guidance: float = 1.0) -> tuple[torch.Tensor, list[DenoiserState]]:
     """Denoise frames [frame_start, frame_start + n) given cond (1, n, H); one carried state per step.
 
     guidance != 1: classifier-free guidance; the unconditional branch (the condition zeroed) is row 1 of
     every step's state and of the network's batch, beside the conditional row 0. At 1 it does not exist.
-    x: x_T (1, n, D) given instead of drawn here (the ONNX graph takes it as an input, `dimgestor.onnx_export`).
     """
     n, D, dev = cond.shape[1], model.config.motion_dim, cond.device
     L = model.config.noise_taps
     guided = guidance != 1.0
     if guided:
         cond = torch.cat([cond, torch.zeros_like(cond)])  # (2, n, H): conditional, unconditional
-    if x is None:
-        x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
+    x = motion_noise(seed, frame_start, n, 0, D, L, dev)[None]  # x_T, (1, n, D)
     new_states = []
     for i, ((t, t_prev), state) in enumerate(zip(pairs, states)):
         out, state = model(x.expand(2, -1, -1) if guided else x, t, cond, state)
