@@ -36,6 +36,7 @@ TorchScript one has no conversion for the front end's complex FFTs, the dynamo o
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -193,7 +194,7 @@ def manifest_of(step: FrameStep, config_json: dict) -> dict:
 
 
 def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
-                guidance: float | None = None, frames: int = 1) -> Path:
+                guidance: float | None = None, frames: int = 2) -> Path:
     """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out."""
     import onnx
 
@@ -219,7 +220,7 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     program.save(str(out / GRAPH))
     onnx.checker.check_model(str(out / GRAPH))
     config_json = {"model": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist(),
-                   "checkpoint": str(bundle.path)}
+                   "checkpoint": str(bundle.path), "weights_sha256": weights_sha256(bundle.path)}
     (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, config_json)), indent=1))
     return out
 
@@ -250,6 +251,11 @@ def _optimize(model) -> None:
     )(model)
 
 
+def weights_sha256(checkpoint: Path) -> str:
+    """The checkpoint's weights file hash: which model an export was made from."""
+    return hashlib.sha256((Path(checkpoint) / "model.safetensors").read_bytes()).hexdigest()
+
+
 def _json_safe(v):
     """NaN as the string "nan" (strict JSON has no NaN; the speech front end's noise floor starts there)."""
     if isinstance(v, float) and math.isnan(v):
@@ -269,8 +275,9 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K in the graph; default: the checkpoint's")
     p.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale baked into the graph; default: the checkpoint's")
-    p.add_argument("--frames", type=int, default=1,
-                   help="motion frames per call (50 ms each): 1, or a divisor of the lookahead's frames (2 = 100 ms)")
+    p.add_argument("--frames", type=int, default=2,
+                   help="motion frames per call, 50 ms each (2: 100 ms windows); a divisor of the lookahead's frames "
+                        "(1, 2, 3 or 6 for the default model)")
     p.set_defaults(func=_run)
 
 

@@ -119,3 +119,28 @@ def test_push_after_finish_raises(exported):
     assert len(s.finish()) == 0  # 100 samples: no whole frame
     with pytest.raises(RuntimeError):
         s.push(np.zeros(10, np.float32))
+
+
+def test_generate_backend_onnxruntime_writes_the_torch_backends_bvh(exported, audio, tmp_path, capsys):
+    from dimgestor.audio import save_wav
+    from dimgestor.bvh import read_bvh
+
+    save_wav(tmp_path / "speech.wav", audio, SAMPLE_RATE)
+    common = ["generate", "--audio", str(tmp_path / "speech.wav"), "--seed", str(SEED)]
+    assert main([*common, "--steps", str(STEPS), "--out", str(tmp_path / "torch.bvh")]) == 0
+    assert main([*common, "--backend", "onnxruntime", "--onnx", str(exported), "--out", str(tmp_path / "ort.bvh")]) == 0
+    a, b = read_bvh(tmp_path / "torch.bvh").values, read_bvh(tmp_path / "ort.bvh").values
+    assert a.shape == b.shape and a.shape[0] == len(audio) * 20 // SAMPLE_RATE
+    # < 1e-4 on the normalized features; in degrees and centimetres after denormalizing and integrating the root
+    assert np.abs(a - b).max() < 1e-2
+
+
+def test_generate_refuses_another_models_export(exported, tiny_checkpoint, audio, tmp_path, capsys):
+    from dimgestor.audio import save_wav
+
+    save_wav(tmp_path / "speech.wav", audio, SAMPLE_RATE)
+    assert main(["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "speech.wav"),
+                 "--backend", "onnxruntime", "--onnx", str(exported), "--out", str(tmp_path / "o.bvh")]) == 2
+    assert "export this checkpoint" in capsys.readouterr().err
+    assert main(["generate", "--audio", str(tmp_path / "speech.wav"), "--backend", "onnxruntime", "--eta", "0.5",
+                 "--onnx", str(exported), "--out", str(tmp_path / "o.bvh")]) == 2
