@@ -1,37 +1,39 @@
 """The streaming step as one ONNX graph with explicit state: `dimgestor export-onnx`.
 
-The graph is one motion frame of a stream (`FrameStep`): 800 new audio samples (one frame's worth at
-16 kHz / 20 fps) and the noise x_T of one frame in, the denoised frame out, and every carried state in
-and out beside them:
+The graph (`FrameStep`) is M motion frames of one stream (M = `--frames`, 2 by default: a 100 ms window):
+their 800 M new audio samples, the stream's seed and the index of the call's first frame in, the M denoised
+frames (normalized features) out, and every carried state in and out beside them:
 
-    samples (1, 800), noise (1, 1, D), state...  ->  frame (1, D), state_out...
+    samples (1, 800 M), seed (1,), frame (1,), <state>...  ->  frames (M, D), <state>_out...
 
     front end    its tail of samples and, for the speech front end, the running statistics (float64, as in torch)
     extractor    the style extractor's Mamba-2 state and the downsampler's buffer of k - stride columns
-    denoiser     for every sampler step k: the encoder tail and each block's Mamba-2 conv and SSM state,
-                 stacked (K, ...) with a row per branch (2 when guided: conditional, unconditional)
+    denoiser     `StepStates`, the torch stream's own layout: for every sampler step the encoder tail and each
+                 block's Mamba-2 conv and SSM state, stacked (K, ...), a row per branch (2 when guided)
 
-Why this boundary (one graph a motion frame, the K-step DDIM loop inside it):
-- a fixed shape: a frame's audio is exactly 5 feature frames and one downsampler output, so the speech front
-  end's per-frame running statistics unroll into the graph (5 steps) and nothing in it loops over a length.
-  A variable window would need an ONNX Loop for those statistics and would trace other Mamba-2 scan forms;
-  fixed shapes are also what Unity Sentis, Unreal NNE, Triton and the browser run best;
-- one call a frame: the DDIM loop (K model passes, guidance, the DDIM updates with the schedule's constants)
-  is unrolled in the graph, so a frame costs one runtime call, not K (the per-call overhead is what a
-  small model pays for on CPU);
-- the noise is an input: x_T is `motion_noise(seed, frame, ...)`, a pure function of the frame index that
-  the Python driver computes for a whole window at once (`dimgestor.onnx_stream`); an engine may feed any
-  N(0, 1) noise, or the same hash for bit-equal frames. Only deterministic DDIM (eta = 0) exports: the
-  other samplers draw noise at every step;
-- warm-up stays outside: the downsampler's buffer always holds k - stride columns, so the first
-  lookahead / stride calls (6 for the default model) make a condition from the zeros before the start and
-  their frames are not real; the driver drops those frames and keeps the denoiser state it passed in
-  (zeros), which is exactly the torch stream's start. After them, call j returns frame j - warm-up.
+Why this boundary (one graph for the whole window step, fixed shapes):
+- fixed shapes: a frame's audio is exactly 5 feature frames and one downsampler output, so the speech front
+  end's per-frame running statistics unroll into the graph and nothing in it loops over a length (a variable
+  window would need an ONNX Loop for them); fixed shapes are also what Unity Sentis, Unreal NNE, Triton and
+  the browser run best;
+- one call a window: the K sampler steps (with guidance and the DDIM updates, the schedule's numbers as
+  constants) are unrolled inside, so a window costs one runtime call, not K: on CPU a model this small pays
+  for the number of ops and calls, not for arithmetic. A graph per step (the DDIM loop in Python) would cost
+  K calls and K copies of the state a window;
+- the noise is made in the graph: x_T is `motion_noise(seed, frame)`, the counter-based hash the torch stream
+  draws (int64 ops, then Box-Muller in float64), so the frames equal torch's and an engine feeds two integers.
+  Only deterministic DDIM (eta = 0) is exported;
+- warm-up by the frame index: the downsampler's buffer always holds k - stride columns, so the first
+  lookahead / M calls (6 frames for the default model) make conditions from the zeros before the start. The
+  caller numbers those calls' frames below 0 (`frame` = (call - warm-up calls) M); the graph then returns
+  the denoiser state it was given (zeros), which is exactly the torch stream's start, and the caller drops
+  their frames. Every state is carried on every call, so an engine's implicit state (Triton) needs no
+  special case. M must divide the lookahead's frames (1, 2, 3 or 6 for the default model).
 
-It is traced from the modules the torch path runs (`DiMGestor.frontend`, `.condition`, and
-`dimgestor.stream.sample_frames`, the reference sampler the fast path is tested against), so there is no
-second model. The exporter is torch.onnx's dynamo exporter (`torch.export` then onnxscript): the
-TorchScript one has no conversion for the front end's complex FFTs, the dynamo one writes them as ONNX DFT.
+It is traced from what the torch stream runs (`DiMGestor.frontend`, `.condition`, and the stream's sampler
+`DenoiseRunner.sample` with its written-out blocks; run eagerly, `FrameStep` is the graph's reference), so
+there is no second model. The exporter is torch.onnx's dynamo one (`torch.export`, then onnxscript): the
+TorchScript exporter has no conversion for the front end's `aten::fft_rfft`; the dynamo one writes ONNX DFT.
 """
 from __future__ import annotations
 
@@ -153,9 +155,10 @@ class FrameStep(nn.Module):
         out = StepStates(*(_Slots(t) for t in states))
         frames = self.runner.sample(cond, frame, seed, states, [self.guidance], out=out)  # (1, M, D)
         new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
-        new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf,
-                "denoiser_enc": out.enc.stacked(), "denoiser_conv": out.conv.stacked(),
-                "denoiser_ssm": out.ssm.stacked()}
+        new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf}
+        warm = frame < 0  # a warm-up call: its condition is not real yet, so the denoiser keeps its start state
+        new |= {f"denoiser_{k}": torch.where(warm, old, slots.stacked())
+                for k, old, slots in zip(("enc", "conv", "ssm"), states, out)}
         return (frames[0], *(new[s.name] for s in self.specs))
 
     def example_inputs(self) -> tuple[torch.Tensor, ...]:
@@ -181,8 +184,9 @@ def manifest_of(step: FrameStep, config_json: dict) -> dict:
                            "sample_rate; keep frames < T"},
         "sampler": {"name": "ddim", "eta": 0.0, "steps": len(step.pairs), "pairs": step.pairs,
                     "guidance": step.guidance, "rows": step.rows},
-        "noise": "counter-based, in the graph: x_T of frame f is motion_noise(seed, f), so `frame` is the index of "
-                 "the call's first frame (the frames made so far) and `seed` the stream's",
+        "noise": "counter-based, in the graph: x_T of frame f is motion_noise(seed, f); `frame` is the index of the "
+                 "call's first frame, (call - warmup_calls) * frames_per_call: below 0 during the warm-up, whose "
+                 "frames are dropped (the graph keeps the denoiser state)",
         "inputs": [_tensor_entry("samples", inputs[0]), _tensor_entry("seed", inputs[1]),
                    _tensor_entry("frame", inputs[2]),
                    *(_tensor_entry(s.name, s.init) for s in step.specs)],

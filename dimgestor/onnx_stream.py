@@ -75,14 +75,11 @@ class FrameStepStream:
         for i in range(n):
             j = state.calls + i - self.warmup  # this call makes frames [j M, (j + 1) M) (j < 0: warm-up)
             feeds = {"samples": audio[None, i * self.chunk:(i + 1) * self.chunk], "seed": self._seed,
-                     "frame": np.array([max(j, 0) * M], np.int64), **tensors}
+                     "frame": np.array([j * M], np.int64), **tensors}
             result = self.run(feeds)
-            new = {s["input"]: result[s["output"]] for s in self.manifest["state"]}
-            if j < 0:  # warm-up: the condition is not real yet; the denoiser keeps the state it started with
-                new |= {k: v for k, v in tensors.items() if k.startswith("denoiser_")}
-            else:
+            tensors = {s["input"]: result[s["output"]] for s in self.manifest["state"]}
+            if j >= 0:  # a warm-up call's frames are not real (the graph kept the denoiser's start state)
                 out.append(result["frames"])
-            tensors = new
         frames = np.concatenate(out).astype(np.float32) if out else np.zeros((0, c.motion_dim), np.float32)
         smoothed = state.smoother
         if self.smoother is not None and len(frames):

@@ -144,3 +144,19 @@ def test_generate_refuses_another_models_export(exported, tiny_checkpoint, audio
     assert "export this checkpoint" in capsys.readouterr().err
     assert main(["generate", "--audio", str(tmp_path / "speech.wav"), "--backend", "onnxruntime", "--eta", "0.5",
                  "--onnx", str(exported), "--out", str(tmp_path / "o.bvh")]) == 2
+
+
+def test_warmup_calls_keep_the_denoiser_state(exported):
+    """frame < 0 (a warm-up call): the graph returns the denoiser states it was given; from frame 0 on, new ones."""
+    m = load_manifest(exported)
+    session = ort.InferenceSession(str(exported / m["graph"]), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    states = {s["input"]: rng.standard_normal(s["shape"]).astype(s["dtype"]) for s in m["state"]}
+    names = [o.name for o in session.get_outputs()]
+    for frame, kept in ((-FRAMES, True), (0, False)):
+        feeds = {"samples": rng.standard_normal((1, 800 * FRAMES)).astype(np.float32), "seed": np.array([1]),
+                 "frame": np.array([frame]), **states}
+        out = dict(zip(names, session.run(names, feeds)))
+        for k in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
+            assert np.array_equal(out[k + "_out"], states[k]) == kept
+        assert not np.array_equal(out["extractor_style_ssm_out"], states["extractor_style_ssm"])
