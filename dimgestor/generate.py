@@ -43,8 +43,8 @@ def check_export(manifest: dict, bundle: Bundle) -> None:
     """An ONNX export must be of this checkpoint's weights (`export-onnx --checkpoint` the same folder)."""
     from .onnx_export import weights_sha256
 
-    if manifest["model"].get("weights_sha256") != weights_sha256(bundle.path):
-        raise ValueError(f"the ONNX export was made from {manifest['model'].get('checkpoint')}, not from "
+    if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
+        raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
                          f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
 
 

@@ -44,7 +44,6 @@ import math
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -129,10 +128,10 @@ class _Slots:
 
 
 class FrameStep(nn.Module):
-    """One motion frame of a stream as a function of explicit tensors: what the ONNX graph is traced from, and
-    run in torch, the reference the graph is tested against (`forward(samples, noise, *state) -> (frame, *state)`)."""
+    """M motion frames of a stream as a function of explicit tensors: what the ONNX graph is traced from, and,
+    run in torch, the graph's reference (`forward(samples, seed, frame, *state) -> (frames, *state)`)."""
 
-    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 1):
+    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 2):
         super().__init__()
         if frames < 1 or _warmup(model) % frames:
             raise ValueError(f"frames per call must divide the {_warmup(model)} warm-up frames (the lookahead), "
@@ -171,7 +170,7 @@ def _tensor_entry(name: str, t: torch.Tensor) -> dict:
     return {"name": name, "shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")}
 
 
-def manifest_of(step: FrameStep, config_json: dict) -> dict:
+def manifest_of(step: FrameStep, checkpoint: dict) -> dict:
     """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value)."""
     c = step.model.config
     inputs = step.example_inputs()
@@ -193,7 +192,7 @@ def manifest_of(step: FrameStep, config_json: dict) -> dict:
         "outputs": [_tensor_entry("frames", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
         "state": [{"input": s.name, "output": s.out, "shape": list(s.init.shape),
                    "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init)} for s in step.specs],
-        "model": config_json,
+        "checkpoint": checkpoint,
     }
 
 
@@ -223,9 +222,9 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     _optimize(program.model)
     program.save(str(out / GRAPH))
     onnx.checker.check_model(str(out / GRAPH))
-    config_json = {"model": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist(),
-                   "checkpoint": str(bundle.path), "weights_sha256": weights_sha256(bundle.path)}
-    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, config_json)), indent=1))
+    checkpoint = {"path": str(bundle.path), "weights_sha256": weights_sha256(bundle.path),
+                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
+    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint)), indent=1))
     return out
 
 

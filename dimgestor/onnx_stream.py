@@ -55,7 +55,7 @@ class FrameStepStream:
     def __init__(self, manifest: dict, run: Runner, seed: int = 0, smoothing="config"):
         self.manifest, self.run, self.seed = manifest, run, int(seed)
         self._seed = np.array([self.seed], np.int64)
-        self.config = ModelConfig(**manifest["model"]["model"])
+        self.config = ModelConfig(**manifest["checkpoint"]["config"])
         call = manifest["call"]
         self.chunk, self.warmup, self.per_call = call["samples_per_call"], call["warmup_calls"], call["frames_per_call"]
         self.smoother = make_smoother(self.config, smoothing)
