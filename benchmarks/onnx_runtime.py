@@ -1,8 +1,11 @@
 """One stream's per-window cost, torch against ONNX Runtime: the embedded default model at K = 1, 4, 8, 1 thread.
 
 For each K the model is exported (`dimgestor export-onnx`, one window a call) and both backends stream the same
-audio window by window as fast as possible, in alternating rounds (torch, ONNX Runtime, torch, ...) so that a
-shared machine's load falls on both alike. Each push is timed; the result is the median and p90 per window, the
+audio window by window as fast as possible, interleaved so that a shared machine's load falls on both alike:
+`--interleave rounds` (default) alternates whole rounds (each backend streams the audio alone, its weights warm
+in the cache, as one stream in a process is), `windows` alternates single windows (window k of one backend, then
+of the other: the same load second by second, but each evicts the other's weights from the cache). Each push
+is timed; the result is the median and p90 per window, the
 real-time factor (mean cost / window length), the ONNX Runtime / torch ratio of the medians, and the largest
 difference between the two backends' frames (normalized features).
 
@@ -28,7 +31,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, nargs="+", default=[1, 4, 8], help="DDIM steps K")
     p.add_argument("--window-ms", type=int, default=100, help="audio pushed per call (a multiple of 50 ms)")
     p.add_argument("--audio-s", type=float, default=6.0, help="audio per round")
-    p.add_argument("--rounds", type=int, default=3, help="alternating torch / ONNX Runtime rounds per K")
+    p.add_argument("--rounds", type=int, default=4, help="rounds per K (fresh streams each)")
+    p.add_argument("--interleave", choices=("rounds", "windows"), default="rounds",
+                   help="alternate the backends by whole rounds (each cache-warm) or by single windows")
     p.add_argument("--exports", type=Path, default=None,
                    help="folder of the exported graphs (reused when present; default: a temporary folder)")
     p.add_argument("--out", type=Path, default=RESULTS / "onnx_runtime.json")
@@ -49,14 +54,17 @@ def export_for(folder: Path, steps: int, frames: int) -> Path:
     return out
 
 
-def timed_round(stream, audio: np.ndarray, window: int) -> tuple[list[float], np.ndarray]:
-    """Push the audio window by window -> (seconds per push, the frames)."""
-    times, frames = [], []
-    for k in range(0, len(audio), window):
-        t0 = time.perf_counter()
-        frames.append(stream.push(audio[k:k + window]))
-        times.append(time.perf_counter() - t0)
-    return times, np.concatenate(frames)
+def lockstep(streams: dict, audio: np.ndarray, window: int) -> tuple[dict, dict]:
+    """Push the audio window by window into every stream, window k of each before window k + 1 of any, the
+    order alternating -> (seconds per push, the frames), each by backend."""
+    names = list(streams)
+    times, frames = {b: [] for b in names}, {b: [] for b in names}
+    for k, a in enumerate(range(0, len(audio), window)):
+        for b in names if k % 2 == 0 else names[::-1]:
+            t0 = time.perf_counter()
+            frames[b].append(streams[b].push(audio[a:a + window]))
+            times[b].append(time.perf_counter() - t0)
+    return times, {b: np.concatenate(f) for b, f in frames.items()}
 
 
 def summary(times: list[float], window_s: float) -> dict:
@@ -74,13 +82,18 @@ def measure(bundle, folder: Path, steps: int, args) -> dict:
     audio = test_audio(args.audio_s, c.sample_rate)
     skip = int(np.ceil(1000 * bundle.model.lookahead_s / args.window_ms)) + 1  # warm-up windows make no frame
     make = {"torch": lambda: bundle.stream(steps=steps), "onnxruntime": lambda: ort_stream(export, threads=1)}
-    for backend in make:  # a throwaway stream each: first calls allocate and pick kernels
-        timed_round(make[backend](), audio[: window * (skip + 2)], window)
+    lockstep({b: new() for b, new in make.items()}, audio[: window * (skip + 2)], window)  # first calls allocate
     times, out = {b: [] for b in make}, {}
-    for _ in range(args.rounds):
-        for backend in make:
-            t, out[backend] = timed_round(make[backend](), audio, window)
-            times[backend] += t[skip:]
+    for r in range(args.rounds):
+        if args.interleave == "windows":
+            t, out = lockstep({b: new() for b, new in make.items()}, audio, window)
+        else:  # whole rounds, the first backend alternating
+            t = {}
+            for b in list(make) if r % 2 == 0 else list(make)[::-1]:
+                tb, fb = lockstep({b: make[b]()}, audio, window)
+                t[b], out[b] = tb[b], fb[b]
+        for b in make:
+            times[b] += t[b][skip:]
     window_s = args.window_ms / 1000
     row = {"steps": steps, "frames_per_call": frames, **{b: summary(times[b], window_s) for b in make}}
     row["ratio_p50"] = row["onnxruntime"]["ms_p50"] / row["torch"]["ms_p50"]
@@ -113,7 +126,8 @@ def plot(result: dict, path: Path) -> None:
     axes[1].axhline(0.5, color="k", lw=1, ls="--", label="target 0.5")
     axes[1].set_xlabel("K")
     axes[1].set_ylim(0, max(1.1, max(r["ratio_p50"] for r in rows) * 1.1))
-    save_panels(fig, axes, f"one stream, embedded default model, 1 thread: {result['device']}", path)
+    save_panels(fig, axes, f"one stream, default model, 1 thread, interleaved by {result['interleave']}: "
+                           f"{result['device']}", path)
     plt.close(fig)
 
 
@@ -134,6 +148,7 @@ def main(argv=None) -> int:
     result = {"benchmark": "onnx_runtime", "date": utc_now(), "code": code_version(), "argv": args.argv,
               "device": describe_device("cpu") + f", onnxruntime {onnxruntime.__version__}",
               "load_average": load_average(), "note": args.note, "window_ms": args.window_ms,
+              "interleave": args.interleave,
               "model": "embedded default (speech front end, guidance %g: 2 rows)" % bundle.config.guidance,
               "results": rows}
     write_json(args.out, result)
