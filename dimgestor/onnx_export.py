@@ -38,9 +38,12 @@ TorchScript exporter has no conversion for the front end's `aten::fft_rfft`; the
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
+import logging
 import math
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -214,7 +217,7 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     out.mkdir(parents=True, exist_ok=True)
     names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
     names_out = ["frames", *(s.out for s in step.specs)]
-    with torch.inference_mode(False), torch.no_grad():
+    with torch.inference_mode(False), torch.no_grad(), _quiet():
         step(*step.example_inputs())  # the runner prepares its stacked weights eagerly; traced, they are constants
         program = torch.onnx.export(step, step.example_inputs(), input_names=names_in, output_names=names_out,
                                     opset_version=OPSET, dynamo=True, external_data=False, optimize=False,
@@ -226,6 +229,20 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
                   "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
     (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint)), indent=1))
     return out
+
+
+@contextlib.contextmanager
+def _quiet():
+    """The exporter's warnings and log lines (deprecations inside torch, torchvision absent) off the console."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 def _optimize(model) -> None:

@@ -1,12 +1,12 @@
 """The exported frame step driven as a stream: audio chunks in, normalized frames out, in ONNX Runtime or torch.
 
-`FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (see `dimgestor.onnx_export` for
-why the graph is a fixed number of motion frames): it buffers audio to whole calls (800 samples a frame), passes the seed and
-frame index from which the graph draws the same noise x_T as the torch stream, skips the warm-up frames, pads the end
-with silence as `GestureStream.finish` does, and applies the same output filter. It calls the frame step
-through a `run(feeds) -> outputs` function: ONNX Runtime's session (`ort_runner`), or the traced module
-itself in torch (`torch_runner`, the graph's reference). Its state is a value, as `GestureStream`'s is:
-`step(state, samples) -> (frames, state)`.
+`FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (`dimgestor.onnx_export` says why the
+graph is a fixed number of motion frames): it buffers audio to whole calls (800 samples a frame), numbers the
+calls' frames (below 0 during the warm-up, whose frames it drops) and passes the seed, from which the graph
+draws the torch stream's noise; it pads the end with silence as `GestureStream.finish` does and applies the
+same output filter. It calls the frame step through a `run(feeds) -> outputs` function: ONNX Runtime's session
+(`ort_runner`), or the traced module itself in torch (`torch_runner`, the graph's reference). Its state is a
+value, as `GestureStream`'s is: `step(state, samples) -> (frames, state)`.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ class OnnxStreamState:
     pending: np.ndarray  # audio samples not yet a whole frame (< samples_per_call)
     smoother: OneEuroState | None = None
     samples_in: int = 0  # audio samples received (the audio clock)
-    calls: int = 0  # frame steps run (call j makes frame j - warmup_calls)
+    calls: int = 0  # graph calls made (call j makes frames (j - warmup_calls) M ... + M - 1)
     frames_out: int = 0
     finished: bool = False
 
