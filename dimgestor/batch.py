@@ -140,6 +140,8 @@ class DenoiseRunner:
         return [p for part in (m.t_embedder, m.encoder, m.blocks, m.final) for p in part.parameters()]
 
     def _prepare(self) -> None:
+        if self._version is not None and torch.compiler.is_exporting():
+            return  # traced (the ONNX export, after a first eager call): the prepared tensors are constants
         params = self._params()
         version = tuple(p._version for p in params) + tuple(p.data_ptr() for p in params)
         if version == self._version:

@@ -111,8 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_export)
 
     from . import eval as evaluation
-    from . import generate, render, train
-    for module in (train, generate, evaluation, render):
+    from . import generate, onnx_export, render, train
+    for module in (train, generate, evaluation, render, onnx_export):
         module.register(sub)
     return parser
 

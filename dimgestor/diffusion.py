@@ -68,10 +68,13 @@ class Diffusion:
             betas = (1 - f[1:] / f[:-1]).clamp(max=0.999)
         self.betas = betas  # float64: the coefficients below are taken as Python floats
         self.alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)
+        # the sampler's coefficients as Python floats, read once here: a step reads no tensor element, so
+        # tracing it (the ONNX export) sees constants
+        self._a, self._betas = self.alphas_cumprod.tolist(), betas.tolist()
 
     def a(self, t: int) -> float:
         """alpha_bar_t, with alpha_bar_{-1} = 1."""
-        return 1.0 if t < 0 else float(self.alphas_cumprod[t])
+        return 1.0 if t < 0 else self._a[t]
 
     # ---- training ----
     def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -162,7 +165,7 @@ class Diffusion:
     def ddpm_step(self, x_t: torch.Tensor, x0: torch.Tensor, t: int, noise: torch.Tensor | None
                   ) -> torch.Tensor:
         """Ancestral step x_t -> x_{t-1} from the posterior q(x_{t-1} | x_t, x0) (Ho et al., eqs. 6-7)."""
-        a_t, a_prev, beta = self.a(t), self.a(t - 1), float(self.betas[t])
+        a_t, a_prev, beta = self.a(t), self.a(t - 1), self._betas[t]
         mean = (math.sqrt(a_prev) * beta / (1 - a_t)) * x0 + (math.sqrt(1 - beta) * (1 - a_prev) / (1 - a_t)) * x_t
         if t == 0:
             return mean
@@ -206,10 +209,19 @@ def frame_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int,
     return frame_noise_rows([seed], [frame_start], n_frames, step, dim, device)[0]
 
 
+def _counters(values, device) -> torch.Tensor:
+    """Seeds or frame indices (B,) as int64: a sequence of ints, or a tensor (in a traced graph, its inputs)."""
+    if torch.is_tensor(values):
+        return values.to(device=device, dtype=torch.int64)
+    return torch.as_tensor(list(values), dtype=torch.int64, device=device)
+
+
 def frame_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, device=None) -> torch.Tensor:
-    """`frame_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
-    seed = torch.as_tensor(list(seeds), dtype=torch.int64, device=device)[:, None, None]  # (B, 1, 1)
-    start = torch.as_tensor(list(frame_starts), dtype=torch.int64, device=device)[:, None, None]
+    """`frame_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b]).
+
+    seeds, frame_starts: sequences of ints or int64 tensors (B,) (the ONNX graph's inputs)."""
+    seed = _counters(seeds, device)[:, None, None]  # (B, 1, 1)
+    start = _counters(frame_starts, device)[:, None, None]
     frames = start + torch.arange(n_frames, dtype=torch.int64, device=device)[None, :, None]  # (B, n, 1)
     chans = torch.arange(dim, dtype=torch.int64, device=device)[None, None, :]
     h = torch.full((1, 1, 1), 0x9E3779B9, dtype=torch.int64, device=device)
@@ -250,6 +262,6 @@ def motion_noise(seed: int, frame_start: int, n_frames: int, step: int, dim: int
 def motion_noise_rows(seeds, frame_starts, n_frames: int, step: int, dim: int, taps: int = 1,
                       device=None) -> torch.Tensor:
     """`motion_noise` of several streams at once: (B, n_frames, dim), row b that of (seeds[b], frame_starts[b])."""
-    starts = [f - taps + 1 for f in frame_starts]
+    starts = frame_starts - (taps - 1) if torch.is_tensor(frame_starts) else [f - taps + 1 for f in frame_starts]
     white = frame_noise_rows(seeds, starts, n_frames + taps - 1, step, dim, device)
     return white if taps == 1 else correlate(white.double(), taps).float()

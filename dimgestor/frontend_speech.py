@@ -67,31 +67,39 @@ class SpeechState(NamedTuple):
                                                             self.voiced, self.pitch, self.quiet, self.prev))
 
 
-def running_stats(energy, bands, periodicity, logf0, state: SpeechState, tau: float, pitch_tau: float,
-                  floor_rise: float):
-    """The running statistics over n new frames (numpy float64, frame by frame: any chunking gives the same
-    numbers) -> (floor, count, level, mean, voiced, pitch after the last frame; level (B, n), mean (B, n, M),
-    pitch (B, n) and `speech started` (B, n) after each frame)."""
-    floor, count, level, mean, nv, pitch, quiet = (t.numpy().copy() for t in (
-        state.floor, state.count, state.level, state.mean, state.voiced, state.pitch, state.quiet))
-    B, n = energy.shape
-    levels, pitches, quiets, started = np.empty((B, n)), np.empty((B, n)), np.empty((B, n)), np.empty((B, n), bool)
-    means = np.empty((B, n, mean.shape[1]))
-    for i in range(n):
+def running_stats(energy, bands, periodicity, logf0, carried, tau: float, pitch_tau: float, floor_rise: float,
+                  xp=np):
+    """The running statistics over n new frames, frame by frame in float64 (any chunking gives the same numbers).
+
+    energy, periodicity, logf0 (B, n), bands (B, n, M); carried: (floor, count, level, mean, voiced, pitch,
+    quiet) as `SpeechState` holds them. xp: numpy (at run time: the fewest ops per frame) or torch (while
+    exporting: a graph cannot hold numpy); the body uses only what both share, `where` and `isnan`, so the
+    two give the same float64 numbers. -> (the carried statistics after the last frame; level (B, n),
+    mean (B, n, M), pitch (B, n), frames since speech (B, n) and `speech started` (B, n) after each frame).
+    """
+    floor, count, level, mean, nv, pitch, quiet = carried
+    levels, means, pitches, quiets, started = [], [], [], [], []
+    for i in range(energy.shape[1]):
         e = energy[:, i]
-        floor = np.where(np.isnan(floor), e, np.minimum(e, floor + floor_rise))
+        floor = xp.where(xp.isnan(floor), e, xp.where(e < floor + floor_rise, e, floor + floor_rise))
         active = (e > floor + SNR_DB) & (e > FLOOR_DBFS) & ((count == 0) | (e > level - GATE_DB))
-        count += active
-        a = np.where(active, np.maximum(1.0 / np.maximum(count, 1.0), 1.0 / tau), 0.0)
-        level += a * (e - level)
-        mean += a[:, None] * (bands[:, i] - mean)
+        count = count + active
+        a = xp.where(active, _at_least(1.0 / _at_least(count, 1.0, xp), 1.0 / tau, xp), 0.0)
+        level = level + a * (e - level)
+        mean = mean + a[:, None] * (bands[:, i] - mean)
         voiced = active & (periodicity[:, i] > VOICED)
-        nv += voiced
-        ap = np.where(voiced, np.maximum(1.0 / np.maximum(nv, 1.0), 1.0 / pitch_tau), 0.0)
-        pitch += ap * (logf0[:, i] - pitch)
-        quiet = np.where(active, 0.0, quiet + 1.0)
-        levels[:, i], means[:, i], pitches[:, i], quiets[:, i], started[:, i] = level, mean, pitch, quiet, count > 0
-    return floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, started
+        nv = nv + voiced
+        ap = xp.where(voiced, _at_least(1.0 / _at_least(nv, 1.0, xp), 1.0 / pitch_tau, xp), 0.0)
+        pitch = pitch + ap * (logf0[:, i] - pitch)
+        quiet = xp.where(active, 0.0, quiet + 1.0)
+        levels.append(level), means.append(mean), pitches.append(pitch), quiets.append(quiet), started.append(count > 0)
+    return ((floor, count, level, mean, nv, pitch, quiet),
+            *(xp.stack(v, 1) for v in (levels, means, pitches, quiets, started)))
+
+
+def _at_least(x, lo: float, xp):
+    """max(x, lo) elementwise with `where` (numpy's and torch's maximum differ on a scalar bound)."""
+    return xp.where(x > lo, x, lo)
 
 
 class SpeechFrontEnd(nn.Module):
@@ -128,6 +136,16 @@ class SpeechFrontEnd(nn.Module):
     def samples_needed(self, n_feats: int) -> int:
         return n_feats * self.hop
 
+    def _stats(self, energy, bands, periodicity, logf0, state: SpeechState):
+        """`running_stats` on the frames' measures -> torch tensors: in numpy at run time, in torch while exporting."""
+        carried = (state.floor, state.count, state.level, state.mean, state.voiced, state.pitch, state.quiet)
+        measures = (energy.double(), bands.double(), periodicity, logf0.double())
+        if torch.compiler.is_exporting():
+            return running_stats(*measures, carried, self.tau, self.pitch_tau, self.floor_rise, torch)
+        carried, *per_frame = running_stats(*(t.numpy() for t in measures), tuple(t.numpy() for t in carried),
+                                            self.tau, self.pitch_tau, self.floor_rise)
+        return tuple(torch.from_numpy(a) for a in carried), *(torch.from_numpy(a) for a in per_frame)
+
     def frame_measures(self, frames: torch.Tensor):
         """Windowed frames (B, n, win) -> (band dB (B, n, M), frame dBFS (B, n), periodicity (B, n), log2 f0 (B, n))."""
         x = frames * self.window
@@ -148,10 +166,9 @@ class SpeechFrontEnd(nn.Module):
         if n == 0:
             return buf.new_zeros(buf.shape[0], 0, self.dim), state._replace(tail=buf)
         bands, energy, periodicity, logf0 = self.frame_measures(buf.unfold(1, self.win, self.hop)[:, :n])
-        stats = running_stats(energy.double().numpy(), bands.double().numpy(), periodicity.numpy(),
-                              logf0.double().numpy(), state, self.tau, self.pitch_tau, self.floor_rise)
-        floor, count, level, mean, nv, pitch, quiet, levels, means, pitches, quiets, speech = (
-            torch.from_numpy(a) for a in stats)
+        carried, *per_frame = self._stats(energy, bands, periodicity, logf0, state)
+        floor, count, level, mean, nv, pitch, quiet = carried
+        levels, means, pitches, quiets, speech = per_frame
         level_t, mean_t, pitch_t, started = levels.float(), means.float(), pitches.float(), speech  # (B, n), (B, n, M)
         rel = ((bands - mean_t).clamp(*BAND_RANGE) / DB_SCALE).where(started[..., None], BAND_RANGE[0] / DB_SCALE)  # (B, n, M)
         loud_db = (energy - level_t).clamp(*LOUD_RANGE)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,27 @@ def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None,
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
 
 
+def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int = 0, smoothing="config",
+                         root: str = "free", tether_s: float = 5.0) -> BvhMotion:
+    """`generate_motion` on ONNX Runtime: the exported frame step (`dimgestor export-onnx`) streamed over the audio
+    (its K and guidance are the export's). The same frames as the torch backend to < 1e-4 (tests/test_onnx.py)."""
+    from .onnx_stream import load_manifest, ort_stream
+
+    check_export(load_manifest(onnx_dir), bundle)
+    stream = ort_stream(onnx_dir, seed=seed, smoothing=smoothing)
+    features = bundle.denormalize(np.concatenate([stream.push(audio), stream.finish()]))
+    return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
+
+
+def check_export(manifest: dict, bundle: Bundle) -> None:
+    """An ONNX export must be of this checkpoint's weights (`export-onnx --checkpoint` the same folder)."""
+    from .onnx_export import weights_sha256
+
+    if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
+        raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
+                         f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("generate", help="generate a BVH for a WAV file (offline, whole file)",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -48,6 +70,12 @@ def register(subparsers) -> None:
                         "(as `streamer serve --root`)")
     p.add_argument("--tether-s", type=float, default=5.0, help="time constant of --root tether, seconds")
     p.add_argument("--device", default="cpu", help="cpu, cuda, ...")
+    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
+                   help="onnxruntime: the ONNX export streamed on ONNX Runtime's CPU provider (DDIM, eta 0; the "
+                        "`onnx` extra)")
+    p.add_argument("--onnx", default=None, metavar="DIR",
+                   help="with --backend onnxruntime: this checkpoint's `dimgestor export-onnx` folder (its K and "
+                        "guidance); default: export one into a temporary folder first (~30 s)")
     p.set_defaults(func=_run)
 
 
@@ -69,6 +97,7 @@ def _run(args) -> int:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
     bundle = load_checkpoint(args.checkpoint, device=args.device)
+    steps_given = args.steps is not None
     if args.steps is None:
         args.steps = bundle.config.sample_steps
     if args.steps > bundle.config.n_steps:
@@ -77,9 +106,31 @@ def _run(args) -> int:
     if len(audio) * bundle.feature_spec.fps // SAMPLE_RATE == 0:  # `streamer serve` refuses it too
         raise AudioError(f"{args.audio}: {len(audio)} audio samples, shorter than one motion frame "
                          f"({1000 / bundle.feature_spec.fps:g} ms): nothing to generate")
-    motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
-                             args.tether_s, args.guidance)
+    if args.backend == "onnxruntime":
+        motion = _onnx_motion(args, bundle, audio, smoothing, steps_given)
+    else:
+        motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
+                                 args.tether_s, args.guidance)
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
           f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")
     return 0
+
+
+def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given: bool) -> BvhMotion:
+    if args.sampler != "ddim" or args.eta != 0 or args.device != "cpu":
+        raise ValueError("--backend onnxruntime runs deterministic DDIM (--eta 0) on the CPU")
+    if args.onnx:
+        from .onnx_stream import load_manifest
+
+        sampler = load_manifest(args.onnx)["sampler"]
+        if (steps_given and args.steps != sampler["steps"]
+                or args.guidance is not None and args.guidance != sampler["guidance"]):
+            raise ValueError(f"--onnx {args.onnx} was exported with K={sampler['steps']} and guidance "
+                             f"{sampler['guidance']:g}; pass those (or export again)")
+        return generate_motion_onnx(bundle, audio, args.onnx, args.seed, smoothing, args.root, args.tether_s)
+    from .onnx_export import export_onnx
+
+    with tempfile.TemporaryDirectory(prefix="dimgestor-onnx-") as tmp:
+        export_onnx(args.checkpoint, tmp, args.steps, args.guidance)
+        return generate_motion_onnx(bundle, audio, tmp, args.seed, smoothing, args.root, args.tether_s)

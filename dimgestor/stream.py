@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .batch import StepStates, denoise, runner_for
+from .config import ModelConfig
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor, ExtractorState
 from .smoothing import OneEuroFilter, OneEuroState
@@ -67,10 +68,11 @@ def smoothing_from_flag(hz: float | None):
     return hz or None
 
 
-def make_smoother(model: DiMGestor, smoothing="config") -> OneEuroFilter | None:
+def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:
     """The output filter: "config" (the model config's smooth_hz/smooth_beta), None or 0 (off), a cutoff
-    in Hz (with the config's beta), or a (cutoff_hz, beta) pair."""
-    c = model.config
+    in Hz (with the config's beta), or a (cutoff_hz, beta) pair. A config, not a model: the ONNX Runtime
+    stream (`dimgestor.onnx_stream`) has no torch model."""
+    c = config
     if isinstance(smoothing, str):
         if smoothing != "config":
             raise ValueError(f"smoothing must be 'config', None, a cutoff in Hz or (cutoff_hz, beta), got {smoothing!r}")
@@ -128,7 +130,7 @@ class GestureStream:
         self.guidance = check_guidance(model.config.guidance if guidance is None else guidance)
         self.diffusion = Diffusion(model.config)
         self.pairs = self.diffusion.sampling_pairs(sampler, steps or model.config.sample_steps)
-        self.smoother = make_smoother(model, smoothing)
+        self.smoother = make_smoother(model.config, smoothing)
         self.runner = runner_for(model, self.pairs, sampler, eta)  # shared: streams of one runner batch together
         self.state = self.initial_state()
 
@@ -244,5 +246,5 @@ def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: in
         frames, _ = sample_frames(model, diffusion, cond[:, :T], 0, [None] * len(pairs), pairs, seed, sampler, eta,
                                   guidance)
     out = frames.float().cpu().numpy()
-    smoother = make_smoother(model, smoothing)
+    smoother = make_smoother(c, smoothing)
     return smoother(out) if smoother is not None else out

@@ -1,0 +1,309 @@
+"""The streaming step as one ONNX graph with explicit state: `dimgestor export-onnx`.
+
+The graph (`FrameStep`) is M motion frames of one stream (M = `--frames`, 2 by default: a 100 ms window):
+their 800 M new audio samples, the stream's seed and the index of the call's first frame in, the M denoised
+frames (normalized features) out, and every carried state in and out beside them:
+
+    samples (1, 800 M), seed (1,), frame (1,), <state>...  ->  frames (M, D), <state>_out...
+
+    front end    its tail of samples and, for the speech front end, the running statistics (float64, as in torch)
+    extractor    the style extractor's Mamba-2 state and the downsampler's buffer of k - stride columns
+    denoiser     `StepStates`, the torch stream's own layout: for every sampler step the encoder tail and each
+                 block's Mamba-2 conv and SSM state, stacked (K, ...), a row per branch (2 when guided)
+
+Why this boundary (one graph for the whole window step, fixed shapes):
+- fixed shapes: a frame's audio is exactly 5 feature frames and one downsampler output, so the speech front
+  end's per-frame running statistics unroll into the graph and nothing in it loops over a length (a variable
+  window would need an ONNX Loop for them); fixed shapes are also what Unity Sentis, Unreal NNE, Triton and
+  the browser run best;
+- one call a window: the K sampler steps (with guidance and the DDIM updates, the schedule's numbers as
+  constants) are unrolled inside, so a window costs one runtime call, not K: on CPU a model this small pays
+  for the number of ops and calls, not for arithmetic. A graph per step (the DDIM loop in Python) would cost
+  K calls and K copies of the state a window;
+- the noise is made in the graph: x_T is `motion_noise(seed, frame)`, the counter-based hash the torch stream
+  draws (int64 ops, then Box-Muller in float64), so the frames equal torch's and an engine feeds two integers.
+  Only deterministic DDIM (eta = 0) is exported;
+- warm-up by the frame index: the downsampler's buffer always holds k - stride columns, so the first
+  lookahead / M calls (6 frames for the default model) make conditions from the zeros before the start. The
+  caller numbers those calls' frames below 0 (`frame` = (call - warm-up calls) M); the graph then returns
+  the denoiser state it was given (zeros), which is exactly the torch stream's start, and the caller drops
+  their frames. Every state is carried on every call, so an engine's implicit state (Triton) needs no
+  special case. M must divide the lookahead's frames (1, 2, 3 or 6 for the default model).
+
+It is traced from what the torch stream runs (`DiMGestor.frontend`, `.condition`, and the stream's sampler
+`DenoiseRunner.sample` with its written-out blocks; run eagerly, `FrameStep` is the graph's reference), so
+there is no second model. The exporter is torch.onnx's dynamo one (`torch.export`, then onnxscript): the
+TorchScript exporter has no conversion for the front end's `aten::fft_rfft`; the dynamo one writes ONNX DFT.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import warnings
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from .batch import StepStates, runner_for
+from .diffusion import Diffusion, check_guidance
+from .mamba2 import Mamba2State
+from .model import DiMGestor, ExtractorState
+
+__all__ = ["FrameStep", "StateSpec", "export_onnx", "state_specs", "manifest_of", "OPSET", "register"]
+
+OPSET = 18
+GRAPH = "frame_step.onnx"
+MANIFEST = "manifest.json"
+
+
+class StateSpec(NamedTuple):
+    """One carried tensor: fed as input `name`, returned as output `name + "_out"`, starting at `init`."""
+
+    name: str
+    init: torch.Tensor  # its value before the first call (batch 1)
+
+    @property
+    def out(self) -> str:
+        return self.name + "_out"
+
+
+def _fill(t: torch.Tensor) -> float:
+    """The one value a state starts with (every initial state is a constant fill: zeros, NaN, a floor)."""
+    flat = t.flatten()
+    v = flat[:1]
+    if not (torch.equal(flat, v.expand_as(flat)) or bool(torch.isnan(flat).all())):
+        raise ValueError("an initial state that is not one constant cannot be written as a fill")
+    return float(v)
+
+
+def _warmup(model: DiMGestor) -> int:
+    c = model.config
+    if c.lookahead_feats % c.feats_per_frame:
+        raise ValueError(f"ONNX export needs a lookahead of whole motion frames: {c.lookahead_feats} feature frames "
+                         f"is not a multiple of {c.feats_per_frame}")
+    return c.lookahead_feats // c.feats_per_frame
+
+
+def state_specs(model: DiMGestor, steps: int, rows: int) -> list[StateSpec]:
+    """The graph's carried tensors in input order: front end, extractor, denoiser (K steps, `rows` branches)."""
+    if model.config.frontend == "pretrained":
+        raise ValueError("ONNX export supports the logmel and speech front ends, not a pretrained encoder")
+    fe = model.frontend.init_state(1)
+    specs = [StateSpec(f"frontend_{k}", v) for k, v in fe._asdict().items() if torch.is_tensor(v)]
+    ex = model.extractor
+    style = ex.style.zero_state(1)
+    specs += [StateSpec("extractor_style_conv", style.conv), StateSpec("extractor_style_ssm", style.ssm),
+              StateSpec("extractor_buf", torch.zeros(1, ex.feat_dim + ex.S, ex.k - ex.stride))]
+    d = StepStates.zeros(model, steps, rows)  # the torch stream's own layout (`StreamState.denoiser`)
+    return specs + [StateSpec("denoiser_enc", d.enc), StateSpec("denoiser_conv", d.conv),
+                    StateSpec("denoiser_ssm", d.ssm)]
+
+
+class _Slots:
+    """A `StepStates` field as the runner's `out=` sees it: `slots[k]` or `slots[k, j]` is its own new tensor.
+
+    The runner writes each step's and block's new state into `out.conv[k, j]` (copy_, out=); traced into
+    one stacked tensor, every such write becomes a scatter that copies the whole (K, blocks, ...) state (2 MB
+    at K = 8, ~2 ms each in ONNX Runtime). Written into separate tensors and stacked once at the end, the
+    graph holds plain values."""
+
+    def __init__(self, like: torch.Tensor):
+        self.like, self.parts = like, {}
+
+    def __getitem__(self, index) -> torch.Tensor:
+        if index not in self.parts:
+            self.parts[index] = torch.empty_like(self.like[index])
+        return self.parts[index]
+
+    def stacked(self) -> torch.Tensor:
+        def stack(prefix: tuple, depth: int) -> torch.Tensor:
+            if depth == 0:
+                return self.parts[prefix[0] if len(prefix) == 1 else prefix]
+            return torch.stack([stack(prefix + (i,), depth - 1) for i in range(self.like.shape[len(prefix)])])
+        depth = max(1 if isinstance(k, int) else len(k) for k in self.parts)
+        return stack((), depth)
+
+
+class FrameStep(nn.Module):
+    """M motion frames of a stream as a function of explicit tensors: what the ONNX graph is traced from, and,
+    run in torch, the graph's reference (`forward(samples, seed, frame, *state) -> (frames, *state)`)."""
+
+    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 2):
+        super().__init__()
+        if frames < 1 or _warmup(model) % frames:
+            raise ValueError(f"frames per call must divide the {_warmup(model)} warm-up frames (the lookahead), "
+                             f"got {frames}")
+        self.model, self.guidance, self.frames = model, check_guidance(guidance), frames
+        self.pairs = Diffusion(model.config).sampling_pairs("ddim", steps)
+        self.runner = runner_for(model, self.pairs, "ddim", 0.0)  # the torch stream's sampler, shared with it
+        self.rows = 1 if self.guidance == 1.0 else 2
+        self.specs = state_specs(model, len(self.pairs), self.rows)
+        self._fe_type, self._fe_fixed = type(model.frontend.init_state(1)), model.frontend.init_state(1)._asdict()
+
+    def forward(self, samples: torch.Tensor, seed: torch.Tensor, frame: torch.Tensor, *state: torch.Tensor):
+        m, named = self.model, dict(zip((s.name for s in self.specs), state))
+        fe = self._fe_type(**{k: named.get(f"frontend_{k}", v) for k, v in self._fe_fixed.items()})
+        ex = ExtractorState(Mamba2State(named["extractor_style_conv"], named["extractor_style_ssm"]),
+                            named["extractor_buf"])
+        feats, fe = m.frontend(samples, fe)  # (1, 5 M, F)
+        cond, ex = m.condition(feats, ex)  # (1, M, H)
+        states = StepStates(named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"])
+        out = StepStates(*(_Slots(t) for t in states))
+        frames = self.runner.sample(cond, frame, seed, states, [self.guidance], out=out)  # (1, M, D)
+        new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
+        new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf}
+        warm = frame < 0  # a warm-up call: its condition is not real yet, so the denoiser keeps its start state
+        new |= {f"denoiser_{k}": torch.where(warm, old, slots.stacked())
+                for k, old, slots in zip(("enc", "conv", "ssm"), states, out)}
+        return (frames[0], *(new[s.name] for s in self.specs))
+
+    def example_inputs(self) -> tuple[torch.Tensor, ...]:
+        c = self.model.config
+        seed, frame = torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64)  # distinct: not aliased
+        return (torch.zeros(1, c.samples_per_frame * self.frames), seed, frame, *(s.init for s in self.specs))
+
+
+def _tensor_entry(name: str, t: torch.Tensor) -> dict:
+    return {"name": name, "shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")}
+
+
+def manifest_of(step: FrameStep, checkpoint: dict) -> dict:
+    """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value)."""
+    c = step.model.config
+    inputs = step.example_inputs()
+    frame = torch.zeros(step.frames, c.motion_dim)
+    return {
+        "format": 1, "graph": GRAPH, "opset": OPSET,
+        "call": {"samples_per_call": c.samples_per_frame * step.frames, "sample_rate": c.sample_rate, "fps": c.fps,
+                 "frames_per_call": step.frames, "warmup_calls": _warmup(step.model) // step.frames,
+                 "finish": "pad with zeros to whole calls until frame T - 1 is made, T = samples_in * fps // "
+                           "sample_rate; keep frames < T"},
+        "sampler": {"name": "ddim", "eta": 0.0, "steps": len(step.pairs), "pairs": step.pairs,
+                    "guidance": step.guidance, "rows": step.rows},
+        "noise": "counter-based, in the graph: x_T of frame f is motion_noise(seed, f); `frame` is the index of the "
+                 "call's first frame, (call - warmup_calls) * frames_per_call: below 0 during the warm-up, whose "
+                 "frames are dropped (the graph keeps the denoiser state)",
+        "inputs": [_tensor_entry("samples", inputs[0]), _tensor_entry("seed", inputs[1]),
+                   _tensor_entry("frame", inputs[2]),
+                   *(_tensor_entry(s.name, s.init) for s in step.specs)],
+        "outputs": [_tensor_entry("frames", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
+        "state": [{"input": s.name, "output": s.out, "shape": list(s.init.shape),
+                   "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init)} for s in step.specs],
+        "checkpoint": checkpoint,
+    }
+
+
+def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
+                guidance: float | None = None, frames: int = 2) -> Path:
+    """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out."""
+    import onnx
+
+    from .checkpoint import load_checkpoint
+
+    bundle = load_checkpoint(checkpoint)
+    model = bundle.model.eval()
+    c = model.config
+    steps = steps or c.sample_steps
+    if not 1 <= steps <= c.n_steps:
+        raise ValueError(f"--steps must be in 1..{c.n_steps}, got {steps}")
+    step = FrameStep(model, steps, c.guidance if guidance is None else guidance, frames).eval()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
+    names_out = ["frames", *(s.out for s in step.specs)]
+    with torch.inference_mode(False), torch.no_grad(), _quiet():
+        step(*step.example_inputs())  # the runner prepares its stacked weights eagerly; traced, they are constants
+        program = torch.onnx.export(step, step.example_inputs(), input_names=names_in, output_names=names_out,
+                                    opset_version=OPSET, dynamo=True, external_data=False, optimize=False,
+                                    verbose=False)
+    _optimize(program.model)
+    program.save(str(out / GRAPH))
+    onnx.checker.check_model(str(out / GRAPH))
+    checkpoint = {"path": str(bundle.path), "weights_sha256": weights_sha256(bundle.path),
+                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
+    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint)), indent=1))
+    return out
+
+
+@contextlib.contextmanager
+def _quiet():
+    """The exporter's warnings and log lines (deprecations inside torch, torchvision absent) off the console."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def _optimize(model) -> None:
+    """torch.onnx's own graph optimization (onnxscript's `optimize_ir`: constant folding, rewrites, clean-up;
+    without it ORT runs a frame 2.8x slower) minus its no-op rules: their `x + 0` matches any scalar within
+    1e-8 of 0, which removed the front end's `+ 1e-12` and made digital silence log10(0) = -inf."""
+    import onnx_ir as ir
+    import onnx_ir.passes.common as common
+    from onnxscript import rewriter
+    from onnxscript.optimizer import _constant_folding
+    from onnxscript.rewriter.rules.common import _no_op
+
+    rules = [r for r in rewriter._DEFAULT_REWRITE_RULES if r not in _no_op.rules]
+    ir.passes.Sequential(
+        common.InlinePass(),
+        ir.passes.PassManager([_constant_folding.FoldConstantsPass(
+            shape_inference=True, input_size_limit=_constant_folding.DEFAULT_CONSTANT_FOLD_INPUT_SIZE_LIMIT,
+            output_size_limit=_constant_folding.DEFAULT_CONSTANT_FOLD_OUTPUT_SIZE_LIMIT),
+            rewriter.RewritePass(rules), common.RemoveUnusedNodesPass(), common.RemoveUnusedFunctionsPass(),
+            common.RemoveUnusedOpsetsPass()], steps=2, early_stop=True),
+        common.RemoveUnusedNodesPass(),
+        common.LiftConstantsToInitializersPass(lift_all_constants=True, size_limit=0),
+        common.DeduplicateInitializersPass(),
+        common.CommonSubexpressionEliminationPass(),
+        common.NameFixPass(),
+    )(model)
+
+
+def weights_sha256(checkpoint: Path) -> str:
+    """The checkpoint's weights file hash: which model an export was made from."""
+    return hashlib.sha256((Path(checkpoint) / "model.safetensors").read_bytes()).hexdigest()
+
+
+def _json_safe(v):
+    """NaN as the string "nan" (strict JSON has no NaN; the speech front end's noise floor starts there)."""
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("export-onnx", help="the streaming step as an ONNX graph with explicit state",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--checkpoint", default=None, help="checkpoint or run folder; default: the embedded model")
+    p.add_argument("--out", required=True, help="folder for frame_step.onnx and manifest.json")
+    p.add_argument("--steps", type=int, default=None, help="DDIM steps K in the graph; default: the checkpoint's")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale baked into the graph; default: the checkpoint's")
+    p.add_argument("--frames", type=int, default=2,
+                   help="motion frames per call, 50 ms each (2: 100 ms windows); a divisor of the lookahead's frames "
+                        "(1, 2, 3 or 6 for the default model)")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames)
+    m = json.loads((out / MANIFEST).read_text())
+    print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
+          f"{len(m['state'])} state tensors) and {out / MANIFEST}")
+    return 0

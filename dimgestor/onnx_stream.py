@@ -1,0 +1,154 @@
+"""The exported frame step driven as a stream: audio chunks in, normalized frames out, in ONNX Runtime or torch.
+
+`FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (`dimgestor.onnx_export` says why the
+graph is a fixed number of motion frames): it buffers audio to whole calls (800 samples a frame), numbers the
+calls' frames (below 0 during the warm-up, whose frames it drops) and passes the seed, from which the graph
+draws the torch stream's noise; it pads the end with silence as `GestureStream.finish` does and applies the
+same output filter. It calls the frame step through a `run(feeds) -> outputs` function: ONNX Runtime's session
+(`ort_runner`), or the traced module itself in torch (`torch_runner`, the graph's reference). Its state is a
+value, as `GestureStream`'s is: `step(state, samples) -> (frames, state)`.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .config import ModelConfig
+from .smoothing import OneEuroState
+from .stream import _check_audio, make_smoother
+
+__all__ = ["FrameStepStream", "OnnxStreamState", "load_manifest", "ort_runner", "torch_runner", "ort_stream"]
+
+Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
+
+
+def load_manifest(folder: str | Path) -> dict:
+    return json.loads((Path(folder) / "manifest.json").read_text())
+
+
+def _initial(entry: dict) -> np.ndarray:
+    fill = float(entry["init"])  # "nan" reads as NaN
+    return np.full(entry["shape"], fill, dtype=entry["dtype"])
+
+
+@dataclass(frozen=True)
+class OnnxStreamState:
+    """What the stream carries between pushes (a value: a step never writes into the arrays it was given)."""
+
+    tensors: dict[str, np.ndarray]  # the graph's state inputs by name
+    pending: np.ndarray  # audio samples not yet a whole frame (< samples_per_call)
+    smoother: OneEuroState | None = None
+    samples_in: int = 0  # audio samples received (the audio clock)
+    calls: int = 0  # graph calls made (call j makes frames (j - warmup_calls) M ... + M - 1)
+    frames_out: int = 0
+    finished: bool = False
+
+
+class FrameStepStream:
+    """A stream over the exported frame step; `run` is ONNX Runtime's session or the module in torch."""
+
+    def __init__(self, manifest: dict, run: Runner, seed: int = 0, smoothing="config"):
+        self.manifest, self.run, self.seed = manifest, run, int(seed)
+        self._seed = np.array([self.seed], np.int64)
+        self.config = ModelConfig(**manifest["checkpoint"]["config"])
+        call = manifest["call"]
+        self.chunk, self.warmup, self.per_call = call["samples_per_call"], call["warmup_calls"], call["frames_per_call"]
+        self.smoother = make_smoother(self.config, smoothing)
+        self.state = self.initial_state()
+
+    def initial_state(self) -> OnnxStreamState:
+        return OnnxStreamState({s["input"]: _initial(s) for s in self.manifest["state"]}, np.zeros(0, np.float32))
+
+    @property
+    def frames_out(self) -> int:
+        return self.state.frames_out
+
+    def _frames(self, state: OnnxStreamState, audio: np.ndarray) -> tuple[np.ndarray, OnnxStreamState]:
+        """Whole frames of audio (a multiple of samples_per_call) after `state` -> frames, state."""
+        c, n, M = self.config, len(audio) // self.chunk, self.per_call
+        tensors, out = state.tensors, []
+        for i in range(n):
+            j = state.calls + i - self.warmup  # this call makes frames [j M, (j + 1) M) (j < 0: warm-up)
+            feeds = {"samples": audio[None, i * self.chunk:(i + 1) * self.chunk], "seed": self._seed,
+                     "frame": np.array([j * M], np.int64), **tensors}
+            result = self.run(feeds)
+            tensors = {s["input"]: result[s["output"]] for s in self.manifest["state"]}
+            if j >= 0:  # a warm-up call's frames are not real (the graph kept the denoiser's start state)
+                out.append(result["frames"])
+        frames = np.concatenate(out).astype(np.float32) if out else np.zeros((0, c.motion_dim), np.float32)
+        smoothed = state.smoother
+        if self.smoother is not None and len(frames):
+            frames, smoothed = self.smoother.step(smoothed, frames)
+        return frames, replace(state, tensors=tensors, smoother=smoothed, calls=state.calls + n,
+                               frames_out=state.frames_out + len(frames))
+
+    def step(self, state: OnnxStreamState, samples) -> tuple[np.ndarray, OnnxStreamState]:
+        """Mono float32 16 kHz samples (any length) after `state` -> the frames that became final, the state."""
+        if state.finished:
+            raise RuntimeError("push() after finish(): start a new stream")
+        audio = np.concatenate([state.pending, _check_audio(samples)])
+        whole = len(audio) - len(audio) % self.chunk
+        frames, state = self._frames(state, audio[:whole])
+        return frames, replace(state, pending=audio[whole:], samples_in=state.samples_in + len(samples))
+
+    def finish_step(self, state: OnnxStreamState) -> tuple[np.ndarray, OnnxStreamState]:
+        """The end of the audio: silence up to the last frame's lookahead (as `GestureStream.finish_step`)."""
+        if state.finished:
+            return np.zeros((0, self.config.motion_dim), np.float32), state
+        c = self.config
+        T = state.samples_in * c.fps // c.sample_rate
+        need = (-(-T // self.per_call) + self.warmup) * self.chunk if T else 0  # samples until frame T - 1 exists
+        pad = max(need - state.samples_in, 0)
+        frames, end = self.step(state, np.zeros(pad, np.float32))
+        out = frames[: max(T - state.frames_out, 0)]
+        return out, replace(end, frames_out=state.frames_out + len(out), finished=True)
+
+    def push(self, samples) -> np.ndarray:
+        frames, self.state = self.step(self.state, samples)
+        return frames
+
+    def finish(self) -> np.ndarray:
+        frames, self.state = self.finish_step(self.state)
+        return frames
+
+
+def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
+    """ONNX Runtime's CPU session on the exported graph, `threads` intra-op threads (1: the real-time setting)."""
+    import onnxruntime as ort
+
+    folder = Path(folder)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    session = ort.InferenceSession(str(folder / load_manifest(folder)["graph"]), opts,
+                                   providers=["CPUExecutionProvider"])
+    names = [o.name for o in session.get_outputs()]
+
+    def run(feeds):
+        return dict(zip(names, session.run(names, feeds)))
+
+    return run
+
+
+def torch_runner(step) -> Runner:
+    """The frame step module (`dimgestor.onnx_export.FrameStep`) in torch, with the graph's names."""
+    names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
+    names_out = ["frames", *(s.out for s in step.specs)]
+
+    def run(feeds):
+        with torch.inference_mode():
+            out = step(*(torch.from_numpy(np.ascontiguousarray(feeds[k])) for k in names_in))
+        return {k: v.numpy() for k, v in zip(names_out, out)}
+
+    return run
+
+
+def ort_stream(folder: str | Path, seed: int = 0, smoothing="config", threads: int = 1) -> FrameStepStream:
+    """A stream on ONNX Runtime from an export folder (`dimgestor export-onnx --out folder`)."""
+    return FrameStepStream(load_manifest(folder), ort_runner(folder, threads), seed, smoothing)

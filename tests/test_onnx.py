@@ -1,0 +1,164 @@
+"""`dimgestor export-onnx` and its ONNX Runtime stream: the graph loads, the manifest is the graph's, the state
+shapes are the torch stream's, and ORT frames equal torch frames streamed in odd chunks with the state carried."""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+ort = pytest.importorskip("onnxruntime", reason="the `onnx` extra is not installed")
+pytest.importorskip("onnxscript", reason="the `onnx` extra is not installed")
+
+from dimgestor.audio import SAMPLE_RATE  # noqa: E402
+from dimgestor.checkpoint import load_checkpoint  # noqa: E402
+from dimgestor.cli import main, model_info  # noqa: E402
+from dimgestor.onnx_export import FrameStep  # noqa: E402
+from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
+from dimgestor.synthetic import synthetic_speech  # noqa: E402
+
+STEPS, FRAMES, SEED = 2, 2, 7  # a small graph: exporting it takes ~15 s
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    return load_checkpoint(None)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """The embedded default model exported through the command line."""
+    out = tmp_path_factory.mktemp("onnx")
+    assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def audio():
+    """Digital silence (log10 of a zero frame's energy needs its + 1e-12), then speech-like sound; 3.2 s."""
+    return np.concatenate([np.zeros(SAMPLE_RATE // 4, np.float32), synthetic_speech(2.95, seed=3)]).astype(np.float32)
+
+
+def pieces(audio, sizes):
+    i, k = 0, 0
+    while i < len(audio):
+        yield audio[i:i + sizes[k % len(sizes)]]
+        i += sizes[k % len(sizes)]
+        k += 1
+
+
+def streamed(stream, audio, sizes):
+    return np.concatenate([stream.push(c) for c in pieces(audio, sizes)] + [stream.finish()])
+
+
+def test_manifest_is_the_graph(exported):
+    m = load_manifest(exported)
+    session = ort.InferenceSession(str(exported / m["graph"]), providers=["CPUExecutionProvider"])
+    onnx_type = {"float32": "tensor(float)", "float64": "tensor(double)", "int64": "tensor(int64)"}
+    for entries, values in ((m["inputs"], session.get_inputs()), (m["outputs"], session.get_outputs())):
+        assert [(e["name"], e["shape"], onnx_type[e["dtype"]]) for e in entries] == [
+            (v.name, v.shape, v.type) for v in values]
+    names_in, names_out = {e["name"] for e in m["inputs"]}, {e["name"] for e in m["outputs"]}
+    assert names_in - {s["input"] for s in m["state"]} == {"samples", "seed", "frame"}
+    assert names_out - {s["output"] for s in m["state"]} == {"frames"}
+    assert m["opset"] >= 17 and m["call"] == {**m["call"], "samples_per_call": 800 * FRAMES, "frames_per_call": FRAMES,
+                                              "warmup_calls": 6 // FRAMES}
+    json.loads((exported / "manifest.json").read_text())  # strict JSON: NaN is written "nan"
+
+
+def test_state_shapes_are_the_torch_streams(exported, bundle):
+    m = load_manifest(exported)
+    shapes = {s["input"]: tuple(s["shape"]) for s in m["state"]}
+    torch_state = bundle.stream(steps=STEPS).state  # guided (the default model's 1.25): 2 denoiser rows
+    assert m["sampler"]["guidance"] == bundle.config.guidance != 1 and m["sampler"]["rows"] == 2
+    assert [shapes[f"denoiser_{k}"] for k in ("enc", "conv", "ssm")] == [tuple(t.shape) for t in torch_state.denoiser]
+    assert shapes["extractor_style_ssm"] == tuple(torch_state.extractor.style.ssm.shape)
+    info = model_info(bundle.config, STEPS)["stream_state_bytes"]
+    per_row_step = sum(4 * np.prod(shapes[f"denoiser_{k}"]) // (STEPS * 2) for k in ("enc", "conv", "ssm"))
+    assert per_row_step == info["denoiser_per_step"]
+
+
+def test_ort_frames_equal_torch_frames_in_odd_chunks(exported, bundle, audio):
+    torch_frames = streamed(bundle.stream(steps=STEPS, seed=SEED), audio, [1, 799, 1601, 333])
+    ort_frames = streamed(ort_stream(exported, seed=SEED), audio, [777, 5, 2001, 1600])
+    assert ort_frames.shape == torch_frames.shape == (len(audio) * 20 // SAMPLE_RATE, bundle.config.motion_dim)
+    assert np.abs(torch_frames).max() > 0.5  # real motion, not a constant
+    assert np.abs(ort_frames - torch_frames).max() < 1e-4
+    other_seed = streamed(ort_stream(exported, seed=SEED + 1), audio, [4000])
+    assert np.abs(other_seed - torch_frames).max() > 0.1  # the seed input reaches the graph's noise
+
+
+def test_state_must_be_carried(exported, bundle, audio):
+    """Every call from a fresh state (the audio clock kept) gives other frames: the equality above needs the
+    carried state, not just the graph."""
+    stream = ort_stream(exported, seed=SEED)
+    carried = streamed(stream, audio[:SAMPLE_RATE * 2], [800 * FRAMES])
+    fresh, state = [], stream.initial_state()
+    for i, chunk in enumerate(pieces(audio[:SAMPLE_RATE * 2], [800 * FRAMES])):
+        frames, _ = stream.step(replace(stream.initial_state(), calls=i, frames_out=len(fresh)), chunk)
+        fresh.extend(frames)
+    assert len(fresh) == len(carried) - stream.warmup * FRAMES
+    assert np.abs(np.array(fresh) - carried[:len(fresh)]).max() > 0.1
+
+
+def test_frame_step_in_torch_equals_the_graph(exported, bundle, audio):
+    """The traced module run in torch is the graph's reference: same driver, same frames."""
+    step = FrameStep(bundle.model, STEPS, bundle.config.guidance, FRAMES).eval()
+    m = load_manifest(exported)
+    a = streamed(FrameStepStream(m, torch_runner(step), seed=SEED), audio[:SAMPLE_RATE], [1234])
+    b = streamed(FrameStepStream(m, ort_runner(exported), seed=SEED), audio[:SAMPLE_RATE], [1234])
+    assert np.abs(a - b).max() < 1e-4
+
+
+def test_frames_per_call_must_divide_the_warmup(bundle):
+    with pytest.raises(ValueError, match="divide"):
+        FrameStep(bundle.model, 1, 1.0, frames=4)
+
+
+def test_push_after_finish_raises(exported):
+    s = ort_stream(exported)
+    s.push(np.zeros(100, np.float32))
+    assert len(s.finish()) == 0  # 100 samples: no whole frame
+    with pytest.raises(RuntimeError):
+        s.push(np.zeros(10, np.float32))
+
+
+def test_generate_backend_onnxruntime_writes_the_torch_backends_bvh(exported, audio, tmp_path, capsys):
+    from dimgestor.audio import save_wav
+    from dimgestor.bvh import read_bvh
+
+    save_wav(tmp_path / "speech.wav", audio, SAMPLE_RATE)
+    common = ["generate", "--audio", str(tmp_path / "speech.wav"), "--seed", str(SEED)]
+    assert main([*common, "--steps", str(STEPS), "--out", str(tmp_path / "torch.bvh")]) == 0
+    assert main([*common, "--backend", "onnxruntime", "--onnx", str(exported), "--out", str(tmp_path / "ort.bvh")]) == 0
+    a, b = read_bvh(tmp_path / "torch.bvh").values, read_bvh(tmp_path / "ort.bvh").values
+    assert a.shape == b.shape and a.shape[0] == len(audio) * 20 // SAMPLE_RATE
+    # < 1e-4 on the normalized features; in the BVH's degrees and centimetres the Euler conversion amplifies that
+    # (0.013 degrees on one channel of an espeak-ng clip at K = 4, the root within 3e-5 cm)
+    assert np.abs(a - b).max() < 0.05
+
+
+def test_generate_refuses_another_models_export(exported, tiny_checkpoint, audio, tmp_path, capsys):
+    from dimgestor.audio import save_wav
+
+    save_wav(tmp_path / "speech.wav", audio, SAMPLE_RATE)
+    assert main(["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "speech.wav"),
+                 "--backend", "onnxruntime", "--onnx", str(exported), "--out", str(tmp_path / "o.bvh")]) == 2
+    assert "export this checkpoint" in capsys.readouterr().err
+    assert main(["generate", "--audio", str(tmp_path / "speech.wav"), "--backend", "onnxruntime", "--eta", "0.5",
+                 "--onnx", str(exported), "--out", str(tmp_path / "o.bvh")]) == 2
+
+
+def test_warmup_calls_keep_the_denoiser_state(exported):
+    """frame < 0 (a warm-up call): the graph returns the denoiser states it was given; from frame 0 on, new ones."""
+    m = load_manifest(exported)
+    session = ort.InferenceSession(str(exported / m["graph"]), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    states = {s["input"]: rng.standard_normal(s["shape"]).astype(s["dtype"]) for s in m["state"]}
+    names = [o.name for o in session.get_outputs()]
+    for frame, kept in ((-FRAMES, True), (0, False)):
+        feeds = {"samples": rng.standard_normal((1, 800 * FRAMES)).astype(np.float32), "seed": np.array([1]),
+                 "frame": np.array([frame]), **states}
+        out = dict(zip(names, session.run(names, feeds)))
+        for k in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
+            assert np.array_equal(out[k + "_out"], states[k]) == kept
+        assert not np.array_equal(out["extractor_style_ssm_out"], states["extractor_style_ssm"])
