@@ -102,6 +102,7 @@ class Client:
         self.slowed = False  # told that its audio arrives faster than it is processed (until `resume`)
         self.heard = time.monotonic()  # when the last message or pong came from it
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
+        self.sending = False  # send_loop is handing a message to the socket
         self.after_session: list[str] = []  # replies due once the running session has sent its `end`
         self.refused = False  # its current audio was refused a session (counted once in the metrics)
         peer = ws.remote_address
@@ -146,10 +147,20 @@ class Client:
                 await self.ready.wait()
             kind, message = self.queue.popleft()
             self.room.set()
-            await self.ws.send(message)
+            self.sending = True
+            try:
+                await self.ws.send(message)
+            finally:
+                self.sending = False
             sent = kind in ("frame", "own")
             self.frames_sent += sent
             self.totals.sent += sent
+
+    @property
+    def awaits_reading(self) -> bool:
+        """Something waits for the client to read it: messages queued, or one being sent (blocked while the
+        client's socket is full)."""
+        return bool(self.queue) or self.sending
 
     async def drained(self, deadline: float) -> None:
         """Wait until everything queued so far has been handed to the socket, or the loop time `deadline`."""
@@ -450,11 +461,14 @@ class WsServer:
         """Ping every ping_interval; close (1011) a client not heard from for ping_interval + ping_timeout.
 
         While its handler holds one of its messages (its backlog is full: TCP back pressure), the server
-        reads none of its frames, pongs included, so it cannot be blamed for silence as long as its
-        frames go out or its audio is being processed; a client that neither reads nor is read is not.
+        reads none of its frames, pongs included, so it is blamed for silence only when it does not read:
+        frames wait for it (queued, or a send under way) and none went out in a whole ping interval. A client
+        whose session the server has not served meanwhile (nothing waits for it) is not blamed: a long wait
+        for inference under load is the server's doing, and closing for it left the client's audio unserved
+        (11 of 31 fast senders closed in one 60 s flood, where earlier rules counted frames made, not read).
         """
         pong: asyncio.Future | None = None
-        moved = None
+        sent = None
 
         def answered(f: asyncio.Future) -> None:
             if not f.cancelled() and f.exception() is None:
@@ -463,10 +477,9 @@ class WsServer:
         while True:
             await asyncio.sleep(self.ping_interval)
             now = time.monotonic()
-            progress = (client.frames_sent, client.session_frames)
-            if client.holding and progress != moved:
+            if client.holding and (client.frames_sent != sent or not client.awaits_reading):
                 client.heard = now
-            moved = progress
+            sent = client.frames_sent
             if now - client.heard > self.ping_interval + self.ping_timeout:
                 client.errors(logging.WARNING, f"nothing heard for {now - client.heard:.1f} s (keepalive): closing "
                                                f"({'holding its audio, ' if client.holding else ''}"

@@ -10,7 +10,9 @@ import asyncio
 import json
 import signal
 import socket
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 from websockets.asyncio.client import connect
@@ -229,6 +231,74 @@ def test_clients_throttled_by_back_pressure_are_not_closed_by_the_keepalive_and_
         assert "slow_down" in r["codes"] and set(r["codes"]) == {"slow_down"}, r["codes"]  # it was throttled
     assert results[0]["resumes"] >= 1 and results[0]["codes"].count("slow_down") == results[0]["resumes"]
     assert "Traceback" not in s.output, s.output[-3000:]
+
+
+class GatedExecutor(ThreadPoolExecutor):
+    """Inference that waits until `gate` opens: a server too busy to serve this session for a while."""
+
+    def __init__(self):
+        super().__init__(1)
+        self.gate = threading.Event()
+
+    def submit(self, fn, /, *args, **kwargs):
+        return super().submit(lambda: (self.gate.wait(60), fn(*args, **kwargs))[1])
+
+
+def test_a_held_back_client_is_not_closed_while_the_server_has_not_served_it(bundle):
+    """Its audio held (backlog full, its socket unread, its pongs too) and no frame made for it in five
+    keepalive periods: the wait is the server's, nothing waits for the client to read, so it stays; once
+    served it gets every frame. (Counting frames made rather than read closed it after two periods.)"""
+    executor = GatedExecutor()
+    audio = pcm(10.0)
+
+    async def run():
+        ws = make_server(bundle, ping_interval=0.2, ping_timeout=0.2, max_backlog_s=1.0)
+        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, executor=executor)
+        await ws.open()
+        frames, closed, end = 0, None, None
+        async with connect(ws.url, ping_interval=None) as c:
+            await recv_json(c)
+            for k in range(10):  # 1 s messages against a 1 s backlog (and 2 s the session buffers): the server
+                await c.send(audio[k * 32000 : (k + 1) * 32000])  # holds one and its library queues 4, so the
+            # socket is not read and the pongs to its pings wait behind the audio
+            await asyncio.sleep(2.0)  # five keepalive periods with no inference at all
+            executor.gate.set()
+            await c.send(json.dumps({"type": "audio_end"}))
+            try:
+                while end is None:
+                    d = await recv_json(c, timeout=30)
+                    frames += d["type"] == "frame"
+                    end = d if d["type"] == "end" else None
+            except ConnectionClosed as e:
+                closed = (e.rcvd.code, e.rcvd.reason) if e.rcvd else "no close frame"
+        await ws.close()
+        return frames, closed, end
+
+    frames, closed, end = asyncio.run(run())
+    executor.shutdown()
+    assert closed is None, closed
+    assert end == {"type": "end", "frames": 200} and frames == 200, (frames, end)
+
+
+def test_a_held_back_client_that_does_not_read_its_frames_is_closed_by_the_keepalive(bundle):
+    """The other side of the rule above: frames wait for it and none leave for two keepalive periods."""
+    audio = pcm(10.0)
+
+    async def run():
+        ws = make_server(bundle, ping_interval=0.2, ping_timeout=0.2, max_backlog_s=1.0)
+        await ws.open()
+        c = await stubborn(ws.url)
+        for k in range(10):
+            await c.send(audio[k * 32000 : (k + 1) * 32000])
+        t0 = time.monotonic()
+        while ws.clients and time.monotonic() - t0 < 30:
+            await asyncio.sleep(0.05)
+        left = len(ws.clients)
+        c.transport.abort()
+        await ws.close()
+        return left
+
+    assert asyncio.run(run()) == 0  # closed (1011) by the server
 
 
 # ---- small promises ------------------------------------------------------------------------------
