@@ -102,7 +102,7 @@ def test_the_interpreter_exits_with_schedulers_left_running():
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.5:
                 torch.randn(200, 200).matmul(torch.randn(200, 200))
-            sys.stdout.write(f"done {name}\n")  # one write: print's pieces from two threads interleave
+            sys.stdout.write(f"done {name}\\n")  # one write: print's pieces from two threads interleave
             sys.stdout.flush()
         ex.submit(job, "ranked"), b.submit(job, "batcher")
         time.sleep(0.2)
