@@ -68,6 +68,8 @@ def main() -> int:
     p.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale when scoring (default: the model's; needs --cond-drop in "
                         "--train-args)")
+    p.add_argument("--eta", type=float, default=0.0,
+                   help="DDIM eta when scoring (0: deterministic, as the engine samples; 1: stochastic)")
     p.add_argument("--seed", type=int, default=0, help="world seed (voices' clips, held-out set)")
     p.add_argument("--work", default="runs/voice_world", help="data and runs (reused when present)")
     p.add_argument("--out", default=str(RESULTS / "voice_world.json"))
@@ -118,7 +120,7 @@ def main() -> int:
                 bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": args.guidance})
             K = args.k or bundle.config.sample_steps
             started = time.time()
-            raws = [generate_raw(bundle, a, K, seed=i) for i, a in enumerate(audios)]
+            raws = [generate_raw(bundle, a, K, seed=i, eta=args.eta) for i, a in enumerate(audios)]
             row = score_motion(raws, audios, bundle.skeleton, spec)
             row.update(margins(row))
             row.update(verdict(row, truth["rule"]))
@@ -133,7 +135,7 @@ def main() -> int:
         "device": describe_device("cpu"), "load_average": load_average(),
         "command": " ".join(["python", "benchmarks/voice_world.py"] + sys.argv[1:]),
         "preset": args.preset, "recipe": args.recipe, "set": args.set or [], "train_args": args.train_args,
-        "guidance": args.guidance,
+        "guidance": args.guidance, "eta": args.eta,
         "train_steps": args.steps, "batch_size": args.batch_size, "heldout_minutes": args.heldout_minutes,
         "train_voices": [v.name for v in train_voices], "heldout_voices": [v.name for v in held_voices],
         "output_filter": "off", "timing_s": timing, "truth": truth, "results": results,

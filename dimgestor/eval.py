@@ -247,11 +247,11 @@ def pool_drive(rows: list[dict]) -> dict:
             "silence_ratio": speech / silence if silence > 0 else float("nan")}
 
 
-def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None) -> np.ndarray:
-    """Raw (denormalized) features (T, D) the model makes for a whole clip."""
+def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, eta: float = 0.0) -> np.ndarray:
+    """Raw (denormalized) features (T, D) the model makes for a whole clip (DDIM; eta > 0: stochastic)."""
     from .stream import generate_offline
 
-    gen = generate_offline(bundle.model, audio, steps=steps, seed=seed, smoothing=smoothing)
+    gen = generate_offline(bundle.model, audio, steps=steps, seed=seed, smoothing=smoothing, eta=eta)
     return np.asarray(bundle.denormalize(gen), np.float32)
 
 
