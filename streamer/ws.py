@@ -39,6 +39,7 @@ from streamer import protocol as P
 from streamer import request_checks as RC
 from streamer.frames import Frame
 from streamer.log_limit import ErrorLog
+from streamer.memory import Trimmer
 from streamer.metrics import ServerMetrics
 from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
 from streamer.sessions import AudioClock, Session
@@ -218,6 +219,8 @@ class WsServer:
         self.max_queue, self.max_sessions = max_queue, max_sessions
         self.max_backlog_s = max_backlog_s
         self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
+        self.trimmer = Trimmer()
+        self._trim_timer: asyncio.TimerHandle | None = None
         self.refusals = ErrorLog("refused handshakes", what="refusals")  # one line per 10 s, whatever the flood
         self.departures = ErrorLog("sessions", what="departures")
         self.file_failures = ErrorLog("viewer", what="failed requests")
@@ -300,6 +303,8 @@ class WsServer:
         deadline = loop.time() + within_s * 0.6
         self.closing = True
         self.metrics.readiness.draining = True
+        if self._trim_timer is not None:
+            self._trim_timer.cancel()
         own = [c for c in self.clients if c.session_task is not None and not c.session_task.done()]
         for c in own:
             c.session_task.cancel()
@@ -620,6 +625,7 @@ class WsServer:
                 await source.close()
 
         def done(task: asyncio.Task) -> None:
+            self._trim_later()  # its queued audio is free: give the pages back (streamer/memory.py)
             if client.slowed and client.source is not source:  # ended while the client was paused: let it go on
                 client.slowed = False
                 client.put(P.resume(0.0))
@@ -630,6 +636,18 @@ class WsServer:
 
         client.session_task = asyncio.create_task(run(), name="ws-session")
         client.session_task.add_done_callback(done)
+
+    def _trim_later(self) -> None:
+        """Trim the allocator a second after a session ended, or once the last trim is every_s old (one
+        pending at a time, so the sessions of a flood that end over minutes are all given back)."""
+        if self._trim_timer is None and self.trimmer.available and not self.closing:
+            wait = max(1.0, self.trimmer.wait_s())
+            self._trim_timer = asyncio.get_running_loop().call_later(wait, self._trim_now)
+
+    def _trim_now(self) -> None:
+        self._trim_timer = None
+        if not self.closing:
+            asyncio.get_running_loop().run_in_executor(self.prep, self.trimmer.trim)
 
     async def _end_session(self, client: Client) -> None:
         """Flush the client's session (audio_end): it sends its last frames and `end` by itself."""

@@ -331,3 +331,42 @@ def test_audio_end_while_the_previous_session_finishes_gets_an_empty_end_after_t
     ends, frames_before = asyncio.run(run())
     executor.shutdown()
     assert ends == [{"type": "end", "frames": 40}, {"type": "end", "frames": 0}] and frames_before == [40, 40]
+
+
+def test_the_allocator_is_trimmed_after_sessions_end_at_most_once_per_period(bundle):
+    """Freed audio goes back to the system (streamer/memory.py): a second after a session ends, then at
+    most once per `every_s`, and a trim due later still runs (the last sessions of a flood)."""
+    from streamer.memory import Trimmer
+
+    calls = []
+
+    async def run():
+        ws = make_server(bundle)
+        ws.trimmer = Trimmer(every_s=2.0, release=lambda: calls.append(time.monotonic()))
+        await ws.open()
+        for _ in range(3):  # three sessions ending in turn within ~2 s
+            async with connect(ws.url) as c:
+                await recv_json(c)
+                await c.send(pcm(0.5))
+                await c.send(json.dumps({"type": "audio_end"}))
+                while (await recv_json(c, timeout=30))["type"] != "end":
+                    pass
+            await asyncio.sleep(0.6)
+        await asyncio.sleep(3.0)
+        await ws.close()
+
+    t0 = time.monotonic()
+    asyncio.run(run())
+    assert len(calls) == 2, [round(t - t0, 2) for t in calls]  # one after the first end, one 2 s later
+    assert calls[1] - calls[0] >= 2.0 - 0.05
+
+
+def test_malloc_trim_is_found_here_or_trimming_says_it_is_unavailable():
+    from streamer.memory import Trimmer, _malloc_trim
+
+    release = _malloc_trim()
+    if release is None:
+        assert not Trimmer().available
+    else:
+        release()  # returns, whatever the allocator had to give back
+        assert Trimmer().available
