@@ -8,6 +8,14 @@ the train voices at each data size (10, 30, 60 min) and scored at several traini
 
   rule                 the rule's own motion on the held-out clips: the truth, what a perfect model scores
   rule_shuffled_audio  the rule's motion of clip i scored against the audio of clip i + 1: no relation
+  rule_heard           the rule as a perfect streaming listener makes it: each stress decided on the audio
+                       heard by the time its stroke starts with the model's lookahead (`rule_events(heard_s=)`),
+                       scored against the world's rule: the most a model with that lookahead can score
+
+The world's rule decides a stress on its whole phrase (`--rule-heard` unset: the phrase's median loudness, the
+spacing against louder syllables on both sides), which no streaming model can hear; `--rule-heard S` writes a
+world whose rule decides each stress on what is heard S seconds past its onset (0.25: what a model with 300 ms
+of lookahead hears when the stroke starts, 0.05 s before the onset), so that everything it asks is learnable.
 
 Measures (dimgestor/metrics.py; every one beside its chance level): speech/silence wrist-speed contrast in
 natural pauses; loudness coupling beside circularly shifted audio; stroke alignment: the fraction of the
@@ -71,6 +79,9 @@ def main() -> int:
     p.add_argument("--eta", type=float, default=0.0,
                    help="DDIM eta when scoring (0: deterministic, as the engine samples; 1: stochastic)")
     p.add_argument("--seed", type=int, default=0, help="world seed (voices' clips, held-out set)")
+    p.add_argument("--rule-heard", type=float, default=None, metavar="S",
+                   help="the world's rule decides each stress on the audio heard S s past its onset (default: on "
+                        "its whole phrase); a new world is written (another --work)")
     p.add_argument("--work", default="runs/voice_world", help="data and runs (reused when present)")
     p.add_argument("--out", default=str(RESULTS / "voice_world.json"))
     p.add_argument("--quick", action="store_true", help="1 and 2 min, 1 min held out, 60 steps: a smoke run")
@@ -83,7 +94,9 @@ def main() -> int:
     from dimgestor.checkpoint import load_checkpoint
     from dimgestor.dataset import GestureDataset
     from dimgestor.eval import generate_raw, valid_clips
-    from dimgestor.voiceworld import make_voice_world, margins, score_motion, verdict, voice_split
+    from dimgestor.features import motion_to_features
+    from dimgestor.voiceworld import (make_voice_world, margins, rule_motion, score_motion, verdict, voice_split,
+                                      world_rule)
 
     work = Path(args.work)
     cache = work / "cache"
@@ -94,7 +107,10 @@ def main() -> int:
         data, run = work / f"world_{m:g}min", work / f"run_{m:g}min_{tag}"
         if not (data / "split.json").is_file():
             started = time.time()
-            make_voice_world(data, m, args.heldout_minutes, seed=args.seed)
+            make_voice_world(data, m, args.heldout_minutes, seed=args.seed, heard_s=args.rule_heard)
+        heard = world_rule(data)
+        if heard != args.rule_heard:
+            raise SystemExit(f"{data} was written with rule_heard {heard}, not {args.rule_heard}: use another --work")
             timing[f"make_{m:g}min_s"] = round(time.time() - started, 1)
         if not (run / f"ckpt_{args.steps:07d}").is_dir():
             wall = train_run(data, run, args, cache)
@@ -110,9 +126,14 @@ def main() -> int:
             clips = valid_clips(valid)
             audios = [a for a, _ in clips]
             if truth is None:  # the held-out set is the same in every world (same seed)
-                truth = {"rule": score_motion([r for _, r in clips], audios, bundle.skeleton, spec),
+                listener_s = bundle.config.lookahead_ms / 1000.0 - 0.05  # heard when the stroke starts
+                heard_raws = [motion_to_features(rule_motion(a, 30.0, heard_s=listener_s)[0], spec)[: len(r)]
+                              for a, r in clips]
+                truth = {"rule": score_motion([r for _, r in clips], audios, bundle.skeleton, spec, heard_s=heard),
                          "rule_shuffled_audio": score_motion([r for _, r in clips], audios[1:] + audios[:1],
-                                                            bundle.skeleton, spec)}
+                                                            bundle.skeleton, spec, heard_s=heard),
+                         "rule_heard": score_motion(heard_raws, audios, bundle.skeleton, spec, heard_s=heard)}
+                truth["rule_heard"]["heard_s"] = round(listener_s, 3)
                 for name, row in truth.items():
                     row.update(margins(row))
                     print(f"{name}: " + ", ".join(f"{k} {v:.3g}" for k, v in row.items()))
@@ -121,9 +142,12 @@ def main() -> int:
             K = args.k or bundle.config.sample_steps
             started = time.time()
             raws = [generate_raw(bundle, a, K, seed=i, eta=args.eta) for i, a in enumerate(audios)]
-            row = score_motion(raws, audios, bundle.skeleton, spec)
+            row = score_motion(raws, audios, bundle.skeleton, spec, heard_s=heard)
             row.update(margins(row))
             row.update(verdict(row, truth["rule"]))
+            heard_verdict = verdict(row, truth["rule_heard"])  # against what a streaming listener can know
+            row["stroke_margin_vs_heard"] = heard_verdict["stroke_margin_vs_rule"]
+            row["stroke_gain_margin_vs_heard"] = heard_verdict["stroke_gain_margin_vs_rule"]
             row["generate_s"] = round(time.time() - started, 1)
             step = int(ckpt.name.split("_")[1])
             results[f"{m:g}"][str(step)] = row
@@ -135,7 +159,7 @@ def main() -> int:
         "device": describe_device("cpu"), "load_average": load_average(),
         "command": " ".join(["python", "benchmarks/voice_world.py"] + sys.argv[1:]),
         "preset": args.preset, "recipe": args.recipe, "set": args.set or [], "train_args": args.train_args,
-        "guidance": args.guidance, "eta": args.eta,
+        "guidance": args.guidance, "eta": args.eta, "rule_heard_s": args.rule_heard,
         "train_steps": args.steps, "batch_size": args.batch_size, "heldout_minutes": args.heldout_minutes,
         "train_voices": [v.name for v in train_voices], "heldout_voices": [v.name for v in held_voices],
         "output_filter": "off", "timing_s": timing, "truth": truth, "results": results,
@@ -170,6 +194,8 @@ def plot(results: dict, truth: dict, path: Path, args) -> None:
         ax.axhline(truth["rule"][metric], color="k", lw=1, label="rule (truth)")
         ax.axhline(0.5 * truth["rule"][metric], color="k", lw=1, ls="--", label="half the rule")
         ax.axhline(truth["rule_shuffled_audio"][metric], color="0.6", lw=1, ls=":", label="rule, shuffled audio")
+        ax.axhline(truth["rule_heard"][metric], color="tab:red", lw=1, ls="-.",
+                   label=f"rule heard {truth['rule_heard']['heard_s']:g} s past onsets")
         ax.set_xlabel("training steps")
         ax.set_title(title, fontsize=9)
     extra = " ".join(args.set or []) + (f" {args.train_args}" if args.train_args else "")

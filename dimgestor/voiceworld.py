@@ -11,7 +11,10 @@ audio alone, so whatever voice speaks, the right motion is known:
   * strokes: syllable nuclei (peaks of the loudness envelope smoothed over ~50 ms) that stand above their
     phrase's median loudness by STRESS_MARGIN_DB are stressed; each launches a beat stroke at its syllable's
     onset (where the envelope rises through half-way from the valley before it), sized by how far the
-    nucleus stands above the phrase median (relative loudness, so the microphone level does not matter);
+    nucleus stands above the phrase median (relative loudness, so the microphone level does not matter).
+    That decision needs the whole phrase, which no streaming listener has; `rule_events(heard_s=S)` decides
+    each stress on what is heard S seconds past its onset instead (the median so far), and a world can be
+    written with that rule (`make_voice_world(heard_s=)`, named in its world.json);
   * the body machinery is `synthetic.gesture_motion` (the same as `speech_and_gestures`), its random choices
     (which hand, stroke length, idle-sway phases) seeded by a hash of the events.
 
@@ -283,10 +286,13 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
 
 
-def rule_events(audio: np.ndarray, rate: int = RATE) -> dict:
-    """{"phrases": [(start, end)], "stresses": [(onset t, size)]} (seconds) of speech, from its audio alone."""
-    from scipy.signal import find_peaks
+def rule_events(audio: np.ndarray, rate: int = RATE, heard_s: float | None = None) -> dict:
+    """{"phrases": [(start, end)], "stresses": [(onset t, size)]} (seconds) of speech, from its audio alone.
 
+    heard_s: None, each stress is decided on its whole phrase (its median loudness, the 0.6 s spacing against
+    louder nuclei on both sides); a number, on what a listener has heard by heard_s past the syllable's onset
+    (the phrase's median so far, nuclei heard by then), as a model streaming with that much lookahead hears
+    it. With heard_s past every phrase's end the two agree."""
     env = loudness_envelope_db(audio, rate)
     if env.size == 0:
         return {"phrases": [], "stresses": []}
@@ -298,16 +304,8 @@ def rule_events(audio: np.ndarray, rate: int = RATE) -> dict:
     stresses = []
     for a, b in phrases:
         seg = env[a:b]
-        median = float(np.median(seg))
-        peaks, _ = find_peaks(seg, height=median + STRESS_MARGIN_DB, prominence=3.0,
-                              distance=int(MIN_STROKE_GAP_S * ENV_RATE))
-        for p in peaks:
-            lo = max(0, p - int(0.25 * ENV_RATE))
-            valley = lo + int(np.argmin(seg[lo:p + 1]))
-            half = 0.5 * (seg[valley] + seg[p])
-            onset = valley + int(np.flatnonzero(seg[valley:p + 1] >= half)[0])  # rising through half-way
-            size = SIZE_MIN + (SIZE_MAX - SIZE_MIN) * float(np.clip((seg[p] - median - STRESS_MARGIN_DB) / 12.0, 0, 1))
-            stresses.append(((a + onset) / ENV_RATE, round(size, 4)))
+        stresses += [((a + onset) / ENV_RATE, size) for onset, size in
+                     (_phrase_stresses(seg) if heard_s is None else _heard_stresses(seg, heard_s))]
     held = []  # the arms stay in gesture space over pauses shorter than HOLD_S
     for a, b in phrases:
         if held and a - held[-1][1] < HOLD_S * ENV_RATE:
@@ -315,6 +313,53 @@ def rule_events(audio: np.ndarray, rate: int = RATE) -> dict:
         else:
             held.append((a, b))
     return {"phrases": [(a / ENV_RATE, b / ENV_RATE) for a, b in held], "stresses": stresses}
+
+
+def _onset(seg: np.ndarray, p: int) -> int:
+    """The onset of the syllable whose nucleus is p: where the envelope rises through half-way from the valley
+    in the 0.25 s before it."""
+    lo = max(0, p - int(0.25 * ENV_RATE))
+    valley = lo + int(np.argmin(seg[lo:p + 1]))
+    half = 0.5 * (seg[valley] + seg[p])
+    return valley + int(np.flatnonzero(seg[valley:p + 1] >= half)[0])
+
+
+def _stroke_size(peak_db: float, median: float) -> float:
+    return round(SIZE_MIN + (SIZE_MAX - SIZE_MIN) * float(np.clip((peak_db - median - STRESS_MARGIN_DB) / 12.0, 0, 1)), 4)
+
+
+def _phrase_stresses(seg: np.ndarray) -> list[tuple[int, float]]:
+    """[(onset frame, size)] of a phrase's envelope, decided on the whole phrase."""
+    from scipy.signal import find_peaks
+
+    median = float(np.median(seg))
+    peaks, _ = find_peaks(seg, height=median + STRESS_MARGIN_DB, prominence=3.0,
+                          distance=int(MIN_STROKE_GAP_S * ENV_RATE))
+    return [(_onset(seg, p), _stroke_size(seg[p], median)) for p in peaks]
+
+
+def _heard_stresses(seg: np.ndarray, heard_s: float) -> list[tuple[int, float]]:
+    """[(onset frame, size)] of a phrase's envelope, each stress decided on the envelope up to heard_s past its
+    onset, as _phrase_stresses decides on all of it: the nucleus is a peak there, stands STRESS_MARGIN_DB above
+    the median so far, no louder such nucleus heard by then lies within MIN_STROKE_GAP_S (louder ones first,
+    find_peaks' spacing), and its prominence over what is heard is 3 dB."""
+    from scipy.signal import find_peaks, peak_prominences
+
+    ahead = int(round(heard_s * ENV_RATE))
+    candidates = []  # (nucleus, onset, frames heard, median heard)
+    for p in find_peaks(seg)[0]:
+        onset = _onset(seg, p)
+        known = min(onset + ahead, len(seg))
+        if p + 1 < known or known == len(seg):  # the nucleus is heard to be a peak
+            median = float(np.median(seg[:known]))
+            if seg[p] >= median + STRESS_MARGIN_DB:
+                candidates.append((p, onset, known, median))
+    spaced: list[tuple[int, int, int, float]] = []
+    for c in sorted(candidates, key=lambda c: -seg[c[0]]):
+        if not any(abs(c[0] - q[0]) < MIN_STROKE_GAP_S * ENV_RATE and q[0] < c[2] for q in spaced):
+            spaced.append(c)
+    return [(onset, _stroke_size(seg[p], median)) for p, onset, known, median in sorted(spaced)
+            if peak_prominences(seg[:known], [p])[0][0] >= 3.0]
 
 
 def events_seed(events: dict) -> int:
@@ -325,9 +370,10 @@ def events_seed(events: dict) -> int:
     return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "little")
 
 
-def rule_motion(audio: np.ndarray, fps: float = 30.0, rate: int = RATE) -> tuple[BvhMotion, dict]:
-    """(the rule's motion for `audio`, its events): a function of the audio alone."""
-    events = rule_events(audio, rate)
+def rule_motion(audio: np.ndarray, fps: float = 30.0, rate: int = RATE, heard_s: float | None = None
+                ) -> tuple[BvhMotion, dict]:
+    """(the rule's motion for `audio`, its events): a function of the audio alone (heard_s: rule_events')."""
+    events = rule_events(audio, rate, heard_s)
     n = int(round(len(audio) / rate * fps))
     return gesture_motion(events, n, fps, np.random.default_rng(events_seed(events)), ENGAGE_TAU_S), events
 
@@ -338,7 +384,8 @@ def rule_motion(audio: np.ndarray, fps: float = 30.0, rate: int = RATE) -> tuple
 
 
 def make_voice_corpus(out_dir, minutes: float, voices: list[Voice], seed: int = 0, clip_s: float = 30.0,
-                      fps: float = 30.0, prefix: str = "clip") -> list[tuple[Path, Path]]:
+                      fps: float = 30.0, prefix: str = "clip", heard_s: float | None = None
+                      ) -> list[tuple[Path, Path]]:
     """Write `minutes` of speech by `voices` (cycled in a seeded order) as PREFIX_NNN.bvh/.wav pairs of
     `clip_s` seconds (the last shorter) with the rule's motion, and voices.json naming each clip's voice
     (merged into one already there)."""
@@ -356,7 +403,7 @@ def make_voice_corpus(out_dir, minutes: float, voices: list[Voice], seed: int = 
         length = min(clip_s, total)
         voice = order[i % len(order)]
         audio, info = voice_clip(length, voice, seed=seed * 100003 + i)
-        motion, events = rule_motion(audio, fps)
+        motion, events = rule_motion(audio, fps, heard_s=heard_s)
         name = f"{prefix}_{i:03d}"
         write_bvh(out_dir / f"{name}.bvh", motion)
         save_wav(out_dir / f"{name}.wav", audio, RATE)
@@ -370,16 +417,26 @@ def make_voice_corpus(out_dir, minutes: float, voices: list[Voice], seed: int = 
 
 
 def make_voice_world(out_dir, train_minutes: float, heldout_minutes: float, seed: int = 0,
-                     clip_s: float = 30.0, fps: float = 30.0) -> dict[str, list[str]]:
+                     clip_s: float = 30.0, fps: float = 30.0, heard_s: float | None = None) -> dict[str, list[str]]:
     """Train clips (train_NNN: train voices) and held-out clips (heldout_NNN: held-out voices and language) in
-    one folder, with split.json naming the held-out clips `valid` (dataset.read_split) and voices.json."""
+    one folder, with split.json naming the held-out clips `valid` (dataset.read_split), voices.json, and
+    world.json naming the rule (heard_s: rule_events'; world_rule reads it back)."""
     out_dir = Path(out_dir)
     train_voices, held_voices = voice_split()
-    train = make_voice_corpus(out_dir, train_minutes, train_voices, seed, clip_s, fps, prefix="train")
-    held = make_voice_corpus(out_dir, heldout_minutes, held_voices, seed + 7777, clip_s, fps, prefix="heldout")
+    train = make_voice_corpus(out_dir, train_minutes, train_voices, seed, clip_s, fps, prefix="train", heard_s=heard_s)
+    held = make_voice_corpus(out_dir, heldout_minutes, held_voices, seed + 7777, clip_s, fps, prefix="heldout",
+                             heard_s=heard_s)
     split = {"train": [b.stem for b, _ in train], "valid": [b.stem for b, _ in held]}
     (out_dir / "split.json").write_text(json.dumps(split, indent=1) + "\n")
+    (out_dir / "world.json").write_text(json.dumps({"seed": seed, "rule_heard_s": heard_s}, indent=1) + "\n")
     return split
+
+
+def world_rule(world_dir) -> float | None:
+    """The rule a world was written with: its heard_s (None: stresses decided on whole phrases; also for worlds
+    written before world.json existed)."""
+    path = Path(world_dir) / "world.json"
+    return json.loads(path.read_text()).get("rule_heard_s") if path.is_file() else None
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -391,9 +448,10 @@ SYSTEM_METRICS = ("contrast", "coupling", "coupling_shifted", "coupling_shifted_
                   "beat_align", "beat_align_shuffled")
 
 
-def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0) -> dict:
+def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0,
+                 heard_s: float | None = None) -> dict:
     """SYSTEM_METRICS of motion (raw features (T, D) per clip, at spec.fps) against the audio (16 kHz) it is scored
-    with, pooled over the clips; strokes are the rule's (rule_events) of that audio."""
+    with, pooled over the clips; strokes are the rule's (rule_events with heard_s: the world's rule) of that audio."""
     from dimgestor import metrics
     from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
 
@@ -404,7 +462,7 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
         raw, audio = raw[:n], audio[: n * spf]
         st = clip_stats(raw, audio, skeleton, spec, seed=seed + i)
         stats.append(st)
-        strokes = np.array([t for t, _ in rule_events(audio)["stresses"]])
+        strokes = np.array([t for t, _ in rule_events(audio, heard_s=heard_s)["stresses"]])
         strokes = strokes[strokes < n / spec.fps]
         if strokes.size:
             speech = st["mask"] == 1
@@ -438,6 +496,7 @@ def verdict(model: dict, rule: dict) -> dict:
     """Issue 20's bar: stroke-alignment margin and contrast each at least half the rule's."""
     m, r = margins(model), margins(rule)
     return {"stroke_margin_vs_rule": m["stroke_margin"] / r["stroke_margin"],
+            "stroke_gain_margin_vs_rule": m["stroke_gain_margin"] / r["stroke_gain_margin"],
             "contrast_vs_rule": model["contrast"] / rule["contrast"],
             "coupling_margin_vs_rule": m["coupling_margin"] / r["coupling_margin"],
             "passes": bool(m["stroke_margin"] >= 0.5 * r["stroke_margin"] and model["contrast"] >= 0.5 * rule["contrast"])}

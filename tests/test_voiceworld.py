@@ -93,3 +93,42 @@ def test_the_rule_passes_the_measures_models_are_held_to(world):
     assert shuffled["contrast"] < 2.0 and shuffled["stroke_margin"] < 0.08, shuffled
     assert shuffled["coupling_margin"] < 0.1 and abs(shuffled["stroke_gain_margin"]) < 0.15, shuffled
     assert vw.verdict(rule, rule)["passes"] and not vw.verdict(shuffled, rule)["passes"]
+
+
+def test_the_heard_rule_is_the_whole_phrase_rule_when_everything_is_heard():
+    train, held = vw.voice_split()
+    for k, voice in enumerate(train[:3] + held[:2]):
+        audio, _ = vw.voice_clip(15.0, voice, seed=k)
+        assert vw.rule_events(audio, heard_s=100.0) == vw.rule_events(audio), voice
+        assert vw.rule_events(audio, heard_s=0.25) != vw.rule_events(audio), voice  # a listener decides otherwise
+
+
+def test_the_heard_rule_decides_each_stress_on_what_is_heard_by_then():
+    """A stress whose onset is heard_s before a cut is the same whatever the phrase says after the cut; the
+    whole-phrase rule changes its earlier stresses when the phrase goes on louder (it is not causal)."""
+    voice = vw.voice_split()[0][1]
+    audio, _ = vw.voice_clip(20.0, voice, seed=3)
+    env = vw.loudness_envelope_db(audio)
+    longest = max(vw._runs(env > np.percentile(env, 95) - 35.0), key=lambda r: r[1] - r[0])
+    seg = env[longest[0]:longest[1]]
+    assert len(seg) > 150, len(seg)
+    rng = np.random.default_rng(0)
+    ahead, changed_whole = int(0.25 * vw.ENV_RATE), 0
+    for cut in range(60, len(seg) - 20, 15):
+        for tail in (seg[cut:] + 8.0, seg[cut:] - 8.0, rng.permutation(seg[cut:])):
+            other = np.concatenate([seg[:cut], tail])
+            before = [s for s in vw._heard_stresses(seg, 0.25) if s[0] + ahead <= cut]
+            after = [s for s in vw._heard_stresses(other, 0.25) if s[0] + ahead <= cut]
+            assert before == after, cut
+            changed_whole += [s for s in vw._phrase_stresses(seg) if s[0] + ahead <= cut] != \
+                [s for s in vw._phrase_stresses(other) if s[0] + ahead <= cut]
+    assert changed_whole > 0
+
+
+def test_a_world_names_its_rule(tmp_path):
+    vw.make_voice_world(tmp_path / "heard", 0.1, 0.1, seed=2, clip_s=6.0, heard_s=0.25)
+    assert vw.world_rule(tmp_path / "heard") == 0.25
+    clip = tmp_path / "heard" / "train_000"
+    motion, events = vw.rule_motion(load_wav(clip.with_suffix(".wav")), fps=30, heard_s=0.25)
+    np.testing.assert_allclose(motion.values, read_bvh(clip.with_suffix(".bvh")).values, atol=1e-4)
+    assert vw.world_rule(tmp_path) is None  # a folder without world.json: the whole-phrase rule
