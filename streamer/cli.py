@@ -181,6 +181,12 @@ def _server_flags(s: argparse.ArgumentParser) -> None:
     _flag(s, "--ping-timeout", type=float, metavar="S",
               help="WebSocket keepalive: close a client not heard from for --ping-interval + S seconds (time "
                    "while the server itself holds the client's audio unread, and its frames flow, does not count)")
+    _flag(s, "--state-store", metavar="URL",
+              help="where sessions are saved when this worker stops (SIGTERM), for the client to resume on any "
+                   "worker: redis://HOST:PORT/DB (a cluster; pip install 'dimgestor[cluster]') or memory (this "
+                   "process). Without it a stopping worker ends its sessions (docs/protocol.md, goaway)")
+    _flag(s, "--state-ttl", type=float, metavar="S",
+              help="seconds a saved session waits to be resumed")
     _flag(s, "--no-metrics", action="store_true",
               help="do not serve /metrics (Prometheus text format, no token needed) on the --ws port; /healthz "
                    "and /readyz (also without the token) are always served")

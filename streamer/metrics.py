@@ -37,6 +37,11 @@ class ServerMetrics:
         self.readiness = readiness if readiness is not None else Readiness()
         self.registry = r = CollectorRegistry()
         self.sessions_started = Counter("dimgestor_sessions_started", "Client audio sessions started", registry=r)
+        self.sessions_handed_over = Counter("dimgestor_sessions_handed_over",
+                                            "Client sessions saved to the state store when the worker stopped",
+                                            registry=r)
+        self.sessions_resumed = Counter("dimgestor_sessions_resumed",
+                                        "Client sessions resumed from the state store", registry=r)
         self.sessions_refused = Counter(
             "dimgestor_sessions_refused", "Client audio refused a session: busy (--max-sessions reached), "
             "draining (shutting down) or audio_disabled (--no-client-audio)", ["reason"], registry=r)

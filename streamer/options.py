@@ -61,6 +61,8 @@ class ServeOptions(BaseModel):
     ping_interval: float = Field(PING_INTERVAL_S, ge=0, le=3600)  # 0: no keepalive
     ping_timeout: float = Field(PING_TIMEOUT_S, gt=0, le=3600)
     no_metrics: bool = False  # /metrics not served (/healthz and /readyz always are)
+    state_store: str | None = None  # "memory" or redis://...: sessions are handed over on SIGTERM (handover.py)
+    state_ttl: float = Field(300.0, gt=0, le=86400)
     # VMC/OSC
     osc: HostPort | None = None
     vmc_positions: Literal["hips", "all"] = "hips"

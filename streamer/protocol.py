@@ -25,7 +25,7 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
-REVISION = 2  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 3  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
@@ -140,6 +140,17 @@ def resume(backlog_s: float) -> str:
     return json.dumps({"type": "resume", "backlog_s": round(float(backlog_s), 3)})
 
 
+def goaway(token: str, samples: int, frames: int, rate: int) -> str:
+    """The worker is stopping: the session's state is saved under `token`; reconnect, send resume_session and
+    re-send the audio from sample `samples` (at the client's `rate`), the frames going on from `frames`."""
+    return json.dumps({"type": "goaway", "reason": "restart", "resume_token": token, "samples": int(samples),
+                       "rate": int(rate), "frames": int(frames)})
+
+
+def session_resumed(samples: int, frames: int, rate: int) -> str:
+    return json.dumps({"type": "session_resumed", "samples": int(samples), "rate": int(rate), "frames": int(frames)})
+
+
 def _number(kind):
     def parse(text: str):
         if len(text) > MAX_NUMBER_CHARS:
@@ -184,7 +195,13 @@ def parse_text(text: str) -> dict:
         return {"type": "hello", **_parse_hello(msg)}
     if kind in ("ping", "audio_end"):
         return msg
-    raise ProtocolError("bad_message", f"unknown message type {kind!r} (expected hello, ping or audio_end)")
+    if kind == "resume_session":
+        token = msg.get("token")
+        if not isinstance(token, str) or not 0 < len(token) <= 128:
+            raise ProtocolError("bad_message", "resume_session needs the token of a goaway (a string)")
+        return {"type": kind, "token": token}
+    raise ProtocolError("bad_message", f"unknown message type {kind!r} (expected hello, ping, audio_end or "
+                                       "resume_session)")
 
 
 def _parse_hello(msg: dict) -> dict:

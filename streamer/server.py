@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
 
 from streamer.frames import Frame
+from streamer.handover import open_store
 from streamer.health import Readiness, RealtimeLoad
 from streamer.metrics import ServerMetrics
 from streamer.scheduling import RankedExecutor, StreamBatcher
@@ -178,7 +179,8 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
                     origins=options.allow_origin, also=also, max_sessions=options.max_sessions,
                     ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
-                    metrics=metrics, serve_metrics=not options.no_metrics)
+                    metrics=metrics, serve_metrics=not options.no_metrics,
+                    store=open_store(options.state_store, options.state_ttl))
 
 
 def _vmc(options: ServeOptions, rig):

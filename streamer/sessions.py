@@ -137,6 +137,7 @@ class Session:
         self.stats = Stats()
         self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
         self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
+        self.handover = False  # set before the source closes: stop after its audio, unfinished (handover.py)
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -185,6 +186,8 @@ class Session:
         try:
             while chunks := await buffer.take(self.windows.window):
                 await self._window(chunks, emit, waiting_s)
+            if self.handover:  # the state goes on elsewhere: no silence padded, no last frames
+                return self.stream.frames_out
             finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)
             frames = await asyncio.wrap_future(finish)
             await _emit(emit, frames)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import json
+import dataclasses
 import logging
 import socket
 import time
@@ -106,6 +107,7 @@ class Client:
         self.sending = False  # send_loop is handing a message to the socket
         self.after_session: list[str] = []  # replies due once the running session has sent its `end`
         self.refused = False  # its current audio was refused a session (counted once in the metrics)
+        self.handing_over = False  # the server is stopping and saves its session (its audio is ignored meanwhile)
         peer = ws.remote_address
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.errors = ErrorLog(f"client {self.who}")
@@ -207,13 +209,14 @@ class WsServer:
                  ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
                  files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
                  max_waiting: int = 64, request_timeout_s: float = 10.0, metrics: ServerMetrics | None = None,
-                 serve_metrics: bool = True):
+                 serve_metrics: bool = True, store=None):
         self.host, self.port = host, port
         self.addresses = [(host, port), *also]  # (the real ports once open)
         self.files = files
         self.waiting_room = WaitingRoom(max_waiting, request_timeout_s)
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
+        self.store = store  # a streamer.handover store: sessions are handed over when the server stops (None: ended)
         self.token = token
         self.origins = {o for o in map(RC.allowed_origin, origins) if o is not None}
         self.max_queue, self.max_sessions = max_queue, max_sessions
@@ -306,15 +309,21 @@ class WsServer:
         if self._trim_timer is not None:
             self._trim_timer.cancel()
         own = [c for c in self.clients if c.session_task is not None and not c.session_task.done()]
+        handed = await self._hand_over(own, loop.time() + within_s * 0.4) if self.store and own else set()
         for c in own:
-            c.session_task.cancel()
+            if c not in handed:
+                c.session_task.cancel()
         await asyncio.gather(*(c.session_task for c in own), return_exceptions=True)
         for c in list(self.clients):
+            if c in handed:
+                continue
             if c in own:
                 c.put(P.end(c.session_frames))
             elif not c.own and not self.broadcast_ended:
                 c.put(P.end(self.broadcast_frames))
         await asyncio.gather(*(c.drained(deadline) for c in list(self.clients)))
+        await asyncio.gather(*(c.ws.close(1012, "restart: resume_session with the goaway's token") for c in handed),
+                             return_exceptions=True)
         if self._status_task:
             self._status_task.cancel()
         if self._servers:
@@ -327,6 +336,80 @@ class WsServer:
                 for c in list(self.clients):
                     c.ws.transport.abort()
         self.prep.shutdown(wait=False, cancel_futures=True)
+
+    async def _hand_over(self, own: list[Client], deadline: float) -> set[Client]:
+        """Each session finishes the audio it holds (until `deadline`), then its state goes to the store and the
+        client gets `goaway` with the token (streamer/handover.py). Returns the clients handed over; the others
+        (not done in time, a store that failed) are ended as without a store."""
+        from dimgestor import savestate
+
+        from .handover import new_token
+
+        loop = asyncio.get_running_loop()
+        for c in own:
+            c.handing_over = c.session.handover = True
+            source, c.source = c.source, None
+            if source is not None:
+                await source.close()
+        done, _ = await asyncio.wait([c.session_task for c in own], timeout=max(0.0, deadline - loop.time()))
+        handed = set()
+        for c in own:
+            if c.session_task not in done or c.session_task.cancelled() or c.session_task.exception() is not None:
+                continue
+            session, rate = c.session, c.audio.rate
+            state = session.stream.state
+            meta = {"frames": c.session_frames, "decoder": dataclasses.asdict(session.decoder.state), "rate": rate,
+                    "encoding": c.encoding}
+            token = new_token()
+            try:
+                data = await loop.run_in_executor(self.prep, savestate.dumps, session.stream, state, meta)
+                await loop.run_in_executor(self.prep, self.store.put, token, data)
+            except Exception as e:  # the store is down: this client's session ends as without one
+                self.departures(logging.WARNING, f"session of {c.who} not saved ({type(e).__name__}: {e}): ended")
+                continue
+            samples = state.samples_in * rate // SAMPLE_RATE
+            c.put(P.goaway(token, samples, c.session_frames, rate))
+            handed.add(c)
+            self.metrics.sessions_handed_over.inc()
+        return handed
+
+    async def _resume(self, client: Client, token: str) -> None:
+        """resume_session: the state saved under `token` (by any worker) becomes this client's session; its
+        audio goes on from the sample the state covers."""
+        from dimgestor import savestate
+        from dimgestor.features import RootState
+
+        if self.store is None:
+            raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
+        if client.source is not None or (client.session_task is not None and not client.session_task.done()):
+            raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
+        if self.make_session is None:
+            raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
+        if self.live_sessions >= self.max_sessions:
+            self._refused(client, "busy")
+            raise P.ProtocolError("busy", f"at most {self.max_sessions} client audio sessions at once")
+        loop = asyncio.get_running_loop()
+        try:
+            data = await loop.run_in_executor(self.prep, self.store.take, token)
+        except Exception as e:
+            raise P.ProtocolError("resume_failed", f"the state store failed: {type(e).__name__}: {e}") from None
+        if data is None:
+            raise P.ProtocolError("resume_failed", "unknown or expired resume token: start a new stream")
+        self._start_session(client)
+        session = client.session
+        try:
+            state, meta = await loop.run_in_executor(self.prep, savestate.loads, session.stream, data)
+        except savestate.StateError as e:
+            await self._end_session(client)
+            raise P.ProtocolError("resume_failed", str(e)) from None
+        session.stream.state = state
+        root = dict(meta["decoder"])
+        session.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
+        client.session_frames = int(meta["frames"])
+        session.clock.audio_s = state.samples_in / SAMPLE_RATE
+        self.metrics.sessions_resumed.inc()
+        client.put(P.session_resumed(state.samples_in * client.audio.rate // SAMPLE_RATE, client.session_frames,
+                                     client.audio.rate))
 
     def _process_request(self, connection, request):
         """`/healthz`, `/readyz`, `/metrics` and the pages of the viewer are answered here; a WebSocket
@@ -535,6 +618,8 @@ class WsServer:
                 client.budget.tokens -= 25  # a new resampler is designed: costs as much as 25 messages
                 await self._end_session(client)  # later audio starts a session at the new rate
                 client.audio = msg["audio"]
+        elif msg["type"] == "resume_session":
+            await self._resume(client, msg["token"])
         elif msg["type"] == "audio_end":
             client.refused = False  # its next audio is another attempt
             if client.source is not None:
@@ -549,6 +634,8 @@ class WsServer:
             self._refused(client, "audio_disabled")
             raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
         if self.closing:
+            if client.handing_over:  # its state is being saved: the client re-sends from the goaway's sample
+                return
             self._refused(client, "draining")
             raise P.ProtocolError("busy", "the server is shutting down")
         fmt = client.audio
@@ -614,7 +701,8 @@ class WsServer:
         async def run() -> None:
             try:
                 n = await session.run(source, emit)
-                client.put(P.end(n))
+                if not session.handover:  # handed over: goaway instead (_hand_over)
+                    client.put(P.end(n))
             except asyncio.CancelledError:
                 raise
             except Exception as e:  # the model failed on this audio: tell the client, keep the server up

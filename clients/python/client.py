@@ -103,6 +103,11 @@ class AudioFlow:
             return
         self.changed.set()
 
+    def on_resumed(self, sent_s: float, heard_s: float) -> None:
+        """A new connection after a goaway: our audio goes on from sent_s, the frames from heard_s."""
+        self.sent_s, self.heard_s, self.paused, self.refused = sent_s, heard_s, False, None
+        self.changed.set()
+
     def may_send(self) -> bool:
         return self.refused is not None or (not self.paused and self.sent_s - self.heard_s < self.ahead_s)
 
@@ -116,7 +121,7 @@ class Printer:
     """Prints messages (and saves them verbatim with --save); counts frames."""
 
     def __init__(self, args):
-        self.args, self.frames, self.count, self.skeleton = args, 0, 0, None
+        self.args, self.frames, self.count, self.skeleton, self.fps = args, 0, 0, None, 20.0
         self.save = Path(args.save) if args.save else None
         if self.save:
             self.save.mkdir(parents=True, exist_ok=True)
@@ -138,7 +143,7 @@ class Printer:
                 q = ", ".join(f"{v:+.3f}" for v in msg["rotations"][min(1, len(msg["rotations"]) - 1)])
                 print(f"frame {msg['index']:5d}  pts {msg['pts']:7.3f}  root [{root}]  {name} [{q}]")
         elif kind == "hello":
-            self.skeleton = msg["skeleton"]["joints"]
+            self.skeleton, self.fps = msg["skeleton"]["joints"], float(msg.get("fps", self.fps))
             print(f"hello: {msg.get('server')} protocol {msg.get('protocol')}, {len(self.skeleton)} joints "
                   f"({msg['skeleton'].get('units')}), {msg.get('fps')} fps, lookahead {msg.get('lookahead_s')} s, "
                   f"audio {msg.get('audio')}")
@@ -162,10 +167,13 @@ def client_hello(binary: bool, audio: dict | None = None) -> str:
     return json.dumps(hello)
 
 
-async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, flow: AudioFlow) -> None:
-    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": audio.shape[1]}))
+async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, flow: AudioFlow, start: int = 0,
+                   hello: bool = True) -> None:
+    """Send audio[start:] (paced like a talker unless not pace), then audio_end."""
+    if hello:
+        await ws.send(client_hello(binary, wav_format(audio, rate)))
     step = max(1, int(rate * (CHUNK_S if pace else FAST_CHUNK_S)))
-    for i in range(0, len(audio), step):
+    for i in range(start, len(audio), step):
         await flow.ready()  # paused by slow_down, or too far ahead of the frames we got back
         if flow.refused:
             break  # (audio_end below: the server answers `end`)
@@ -175,6 +183,28 @@ async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, f
         if pace:  # like a live talker
             await asyncio.sleep(CHUNK_S)
     await ws.send(json.dumps({"type": "audio_end"}))
+
+
+def wav_format(audio: np.ndarray, rate: int) -> dict:
+    return {"rate": rate, "format": "float32", "channels": audio.shape[1]}
+
+
+async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate: int) -> int:
+    """After a `goaway`: on a new connection, hello and resume_session with its token; returns the audio sample
+    to send from (the server's `session_resumed`). Raises ResumeFailed when the server cannot resume it."""
+    await ws.send(client_hello(binary, wav_format(audio, rate)))
+    await ws.send(json.dumps({"type": "resume_session", "token": goaway["resume_token"]}))
+    async for message in ws:
+        msg = json.loads(message) if isinstance(message, str) else {}
+        if msg.get("type") == "session_resumed":
+            return int(msg["samples"])
+        if msg.get("type") == "error":
+            raise ResumeFailed(f"{msg.get('code')}: {msg.get('message')}")
+    raise ResumeFailed("the connection closed before session_resumed")
+
+
+class ResumeFailed(Exception):
+    pass
 
 
 def open_mic(device: str | None, rate: int | None) -> tuple[int | str | None, int]:
@@ -270,41 +300,92 @@ async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicH
     return hold
 
 
+async def reconnect(urls: list[str], token: str | None, attempt: int, within_s: float = 10.0):
+    """A new connection after a goaway: the URLs in turn (a balancer's one URL, or workers named one by one),
+    retried with a short back-off for up to within_s."""
+    loop = asyncio.get_running_loop()
+    deadline, delay, last = loop.time() + within_s, 0.05, None
+    while loop.time() < deadline:
+        url = urls[attempt % len(urls)]
+        attempt += 1
+        try:
+            return await connect(with_token(url, token), max_size=8 * 2**20, open_timeout=2.0)
+        except (OSError, InvalidStatus, asyncio.TimeoutError) as e:
+            last = e
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, 0.5)
+    raise OSError(f"could not reconnect within {within_s:g} s: {last!r}")
+
+
 async def run(args) -> int:
     printer = Printer(args)
     wav = read_wav(args.wav) if args.wav else None  # a bad file or device fails before we connect
     mic = open_mic(args.device, args.rate) if args.mic else None
     flow = AudioFlow(AHEAD_S if args.wav else float("inf"))  # a microphone is clocked by the talker
-    async with connect(with_token(args.url, args.token), max_size=8 * 2**20) as ws:
-        sender = None
-        if args.wav:
-            sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow))
-        elif args.mic:
-            sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow))
-            loop = asyncio.get_running_loop()
+    urls = args.url if isinstance(args.url, list) else [args.url]
+    ws = await connect(with_token(urls[0], args.token), max_size=8 * 2**20)
+    start, hello, resumes = 0, True, 0
+    try:
+        while True:  # one connection; a goaway with a resume token (the worker is stopping) goes on on another
+            result = await _connection(ws, args, printer, flow, wav, mic, start, hello)
+            if not isinstance(result, dict):
+                return result
+            goaway = result
+            await ws.close()
+            resumes += 1
+            ws = await reconnect(urls, args.token, resumes)
+            try:
+                start = await resume_session(ws, goaway, args.binary, *wav)
+                print(f"resumed from sample {start} (frame {goaway.get('frames')})", file=sys.stderr)
+            except ResumeFailed as e:
+                print(f"resume failed ({e}): the stream starts again from the beginning", file=sys.stderr)
+                start = 0
+            flow.on_resumed(start / wav[1], goaway.get("frames", 0) / printer.fps if start else 0.0)
+            hello = False  # resume_session sent it
+    finally:
+        await ws.close()
 
-            def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
-                loop.remove_signal_handler(signal.SIGINT)
-                sender.cancel()
-            loop.add_signal_handler(signal.SIGINT, stop_talking)
-        elif args.binary:
-            await ws.send(client_hello(True))
 
-        async def receive():
-            fps = 20.0
-            async for message in ws:
-                msg = printer.handle(message)
-                fps = msg.get("fps", fps) if msg.get("type") == "hello" else fps
-                flow.on_message(msg, fps)
-                if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
-                    return
-        try:
-            await asyncio.wait_for(receive(), args.seconds or None)
-        except asyncio.TimeoutError:
-            pass  # --seconds elapsed
-        finally:
-            if sender and not sender.done():
-                sender.cancel()
+async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: bool = True):
+    """One connection: send our audio (a WAV from sample `start`), print what comes. Returns the exit status,
+    or the `goaway` message when the server hands our session over (only with --wav, which can re-send)."""
+    sender = None
+    if args.wav:
+        sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow, start, hello))
+    elif args.mic:
+        sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow))
+        loop = asyncio.get_running_loop()
+
+        def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
+            loop.remove_signal_handler(signal.SIGINT)
+            sender.cancel()
+        loop.add_signal_handler(signal.SIGINT, stop_talking)
+    elif args.binary:
+        await ws.send(client_hello(True))
+    goaway = None
+
+    async def receive():
+        nonlocal goaway
+        fps = 20.0
+        async for message in ws:
+            msg = printer.handle(message)
+            fps = msg.get("fps", fps) if msg.get("type") == "hello" else fps
+            flow.on_message(msg, fps)
+            if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:
+                goaway = msg
+                return
+            if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
+                return
+    try:
+        await asyncio.wait_for(receive(), args.seconds or None)
+    except asyncio.TimeoutError:
+        pass  # --seconds elapsed
+    finally:
+        if sender and not sender.done():
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+    if goaway is not None:
+        return goaway
     if sender and sender.done() and not sender.cancelled() and sender.exception():
         print(f"sending audio failed: {sender.exception()!r}", file=sys.stderr)
         return 1
@@ -318,7 +399,8 @@ async def run(args) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--url", default="ws://127.0.0.1:8765/", help="server WebSocket URL")
+    p.add_argument("--url", action="append", help="server WebSocket URL (default ws://127.0.0.1:8765/); repeat it "
+                   "to name workers without a balancer: after a goaway the next one is tried")
     p.add_argument("--token", help="access token, when the server was started with --token")
     p.add_argument("--binary", action="store_true", help="ask for DGF1 binary frames instead of JSON")
     src = p.add_mutually_exclusive_group()
@@ -332,6 +414,7 @@ def main(argv=None) -> int:
     p.add_argument("--save", help="write every received message verbatim into this folder")
     p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
     args = p.parse_args(argv)
+    args.url = args.url or ["ws://127.0.0.1:8765/"]
     try:
         return asyncio.run(run(args))
     except KeyboardInterrupt:
@@ -339,10 +422,10 @@ def main(argv=None) -> int:
     except InvalidStatus as e:
         code = e.response.status_code
         hint = " (wrong or missing --token)" if code == 401 else ""
-        print(f"{args.url} refused the connection: HTTP {code}{hint}", file=sys.stderr)
+        print(f"{args.url[0]} refused the connection: HTTP {code}{hint}", file=sys.stderr)
         return 1
     except OSError as e:
-        print(f"cannot connect to {args.url}: {e}", file=sys.stderr)
+        print(f"cannot connect to {args.url[0]}: {e}", file=sys.stderr)
         return 1
 
 

@@ -1,0 +1,115 @@
+"""Sessions that outlive their worker (issue 22, item 3): a worker given SIGTERM saves each client session to the
+state store and sends `goaway` with a resume token; the client resumes on another worker, and the frames go on
+as in an uninterrupted run."""
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from streamer import protocol as P
+from streamer.handover import MemoryStore, open_store
+
+from helpers.clients import CLIENT, REPO, free_port, live_server, reference_decode, run_client
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def test_a_memory_store_gives_a_state_once_and_forgets_it_after_its_ttl():
+    now = [0.0]
+    store = MemoryStore(ttl_s=10.0, now=lambda: now[0])
+    store.put("a", b"state a")
+    store.put("b", b"state b")
+    assert store.take("a") == b"state a" and store.take("a") is None  # a token resumes once
+    now[0] = 10.5
+    assert store.take("b") is None  # expired
+    assert open_store(None) is None and isinstance(open_store("memory"), MemoryStore)
+    with pytest.raises(SystemExit, match="redis://"):
+        open_store("postgres://x")
+
+
+def test_resume_session_is_parsed_and_checked():
+    assert P.parse_text('{"type": "resume_session", "token": "abc"}') == {"type": "resume_session", "token": "abc"}
+    for bad in ('{"type": "resume_session"}', '{"type": "resume_session", "token": 5}',
+                '{"type": "resume_session", "token": "%s"}' % ("x" * 200)):
+        with pytest.raises(P.ProtocolError, match="token"):
+            P.parse_text(bad)
+
+
+def _wav(path, seconds: float) -> None:
+    import wave
+
+    from dimgestor.synthetic import synthetic_speech
+
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
+        w.writeframes((synthetic_speech(seconds, rate=16000, seed=5) * 20000).astype("<i2").tobytes())
+
+
+def _frames(folder):
+    msgs = [reference_decode(p) for p in sorted(folder.iterdir())]
+    return msgs, [m for m in msgs if m["type"] == "frame"]
+
+
+@pytest.fixture
+def redis_url(tmp_path):
+    pytest.importorskip("redis", reason="the redis client is not installed (pip install 'dimgestor[cluster]')")
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.skip("redis-server is not installed (Debian: apt-get install redis-server)")
+    port = free_port()
+    proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                             "--dir", str(tmp_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import redis
+
+    client = redis.Redis(port=port)
+    for _ in range(100):
+        try:
+            client.ping()
+            break
+        except redis.ConnectionError:
+            time.sleep(0.05)
+    yield f"redis://127.0.0.1:{port}/0"
+    proc.terminate()
+    proc.wait(10)
+
+
+def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(tmp_path, checkpoint, redis_url):
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    store = ("--state-store", redis_url, "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
+                                                                              extra=store) as b:
+        moved = tmp_path / "moved"
+        client = subprocess.Popen([sys.executable, str(CLIENT), "--url", a.ws_url, "--url", b.ws_url, "--wav", str(wav),
+                                   "--save", str(moved), "--quiet"], cwd=REPO, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # mid-sentence: once some frames have come back
+            if moved.is_dir() and sum(1 for p in moved.iterdir()) > 40:
+                break
+            time.sleep(0.05)
+        a.proc.send_signal(signal.SIGTERM)
+        out, err = client.communicate(timeout=60)
+        assert client.returncode == 0, err[-2000:]
+        assert a.proc.wait(20) == 0, a.log_tail()
+        assert "resumed from sample" in err, err
+        whole = tmp_path / "whole"
+        run_client("--url", b.ws_url, "--wav", str(wav), "--save", str(whole), "--quiet", "--fast")
+    msgs, frames = _frames(moved)
+    goaway = [m for m in msgs if m["type"] == "goaway"]
+    resumed = [m for m in msgs if m["type"] == "error"]
+    assert len(goaway) == 1 and not resumed, msgs[-5:]
+    assert 0 < goaway[0]["frames"] < len(frames) and goaway[0]["samples"] > 0
+    assert [f["index"] for f in frames] == list(range(len(frames)))  # none lost, none twice
+    assert msgs[-1] == {"type": "end", "frames": len(frames)}
+    _, reference = _frames(whole)
+    assert len(reference) == len(frames) == 8 * 20
+    rot = np.array([f["rotations"] for f in frames])
+    ref = np.array([f["rotations"] for f in reference])
+    assert np.abs(rot - ref).max() < 1e-3  # the streaming = offline tolerance, after the resume too
+    root = np.array([f["root"] for f in frames])
+    assert np.abs(root - np.array([f["root"] for f in reference])).max() < 1e-2
