@@ -113,3 +113,25 @@ def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(t
     assert np.abs(rot - ref).max() < 1e-3  # the streaming = offline tolerance, after the resume too
     root = np.array([f["root"] for f in frames])
     assert np.abs(root - np.array([f["root"] for f in reference])).max() < 1e-2
+
+
+def test_an_unknown_token_gets_resume_failed_and_the_connection_goes_on(tmp_path, checkpoint):
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    async def talk(url):
+        async with connect(url) as ws:
+            assert json.loads(await ws.recv())["type"] == "hello"
+            await ws.send(json.dumps({"type": "resume_session", "token": "no-such-token"}))
+            reply = json.loads(await ws.recv())
+            await ws.send(json.dumps({"type": "ping", "t": 1}))
+            while (pong := json.loads(await ws.recv()))["type"] != "pong":
+                pass
+            return reply, pong
+
+    with live_server(tmp_path, "ws", checkpoint, extra=("--state-store", "memory")) as server:
+        reply, pong = asyncio.run(talk(server.ws_url))
+    assert reply["type"] == "error" and reply["code"] == "resume_failed" and "unknown or expired" in reply["message"]
+    assert pong["t"] == 1  # the same connection still serves
