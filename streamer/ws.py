@@ -308,12 +308,13 @@ class WsServer:
         self.metrics.readiness.draining = True
         if self._trim_timer is not None:
             self._trim_timer.cancel()
-        own = [c for c in self.clients if c.session_task is not None and not c.session_task.done()]
+        # (a session that ends meanwhile clears its client's session_task: keep the tasks as they are now)
+        own = {c: c.session_task for c in self.clients if c.session_task is not None and not c.session_task.done()}
         handed = await self._hand_over(own, loop.time() + within_s * 0.4) if self.store and own else set()
-        for c in own:
+        for c, task in own.items():
             if c not in handed:
-                c.session_task.cancel()
-        await asyncio.gather(*(c.session_task for c in own), return_exceptions=True)
+                task.cancel()
+        await asyncio.gather(*own.values(), return_exceptions=True)
         for c in list(self.clients):
             if c in handed:
                 continue
@@ -337,7 +338,7 @@ class WsServer:
                     c.ws.transport.abort()
         self.prep.shutdown(wait=False, cancel_futures=True)
 
-    async def _hand_over(self, own: list[Client], deadline: float) -> set[Client]:
+    async def _hand_over(self, own: dict[Client, asyncio.Task], deadline: float) -> set[Client]:
         """Each session finishes the audio it holds (until `deadline`), then its state goes to the store and the
         client gets `goaway` with the token (streamer/handover.py). Returns the clients handed over; the others
         (not done in time, a store that failed) are ended as without a store."""
@@ -347,15 +348,17 @@ class WsServer:
 
         loop = asyncio.get_running_loop()
         for c in own:
+            if c.session is None:  # (left meanwhile)
+                continue
             c.handing_over = c.session.handover = True
             source, c.source = c.source, None
             if source is not None:
                 await source.close()
-        done, _ = await asyncio.wait([c.session_task for c in own], timeout=max(0.0, deadline - loop.time()))
+        done, _ = await asyncio.wait(own.values(), timeout=max(0.0, deadline - loop.time()))
         handed = set()
-        for c in own:
-            if c.session_task not in done or c.session_task.cancelled() or c.session_task.exception() is not None:
-                continue
+        for c, task in own.items():
+            if task not in done or task.cancelled() or task.exception() is not None or c.session is None:
+                continue  # (not finished in time, failed, or its client left)
             session, rate = c.session, c.audio.rate
             state = session.stream.state
             meta = {"frames": c.session_frames, "decoder": dataclasses.asdict(session.decoder.state), "rate": rate,
@@ -381,6 +384,8 @@ class WsServer:
 
         if self.store is None:
             raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
+        if self.closing:  # the token is not taken: it resumes on another worker
+            raise P.ProtocolError("busy", "this worker is stopping: resume_session on another (the token stays valid)")
         if client.source is not None or (client.session_task is not None and not client.session_task.done()):
             raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
         if self.make_session is None:
@@ -433,6 +438,11 @@ class WsServer:
                                        getattr(request, "protocol", "HTTP/1.1"))  # (websockets >= 15 parses it)
         except Exception as e:  # a bug here must not become a 500 with a traceback per request
             status, why = HTTPStatus.BAD_REQUEST, f"malformed request ({type(e).__name__})"
+        if status is None and self.metrics.readiness.draining:
+            # A new session here would end within a second: 503, so a balancer passes the handshake on to another
+            # worker (deploy/nginx.conf: proxy_next_upstream http_503) and a client retries elsewhere.
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "draining: this worker is stopping; connect "
+                                                                      "to another\n")
         if status is None:
             return None
         self.refusals(logging.INFO, f"{why}")

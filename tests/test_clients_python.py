@@ -19,8 +19,9 @@ pytestmark = pytest.mark.timeout(180)
 
 def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkpoint):
     with live_server(tmp_path, "ws", checkpoint) as server:
-        saved = tmp_path / "own"
-        r = run_client("--url", server.ws_url, "--wav", str(SPEECH_WAV), "--fast", "--binary", "--save", str(saved))
+        saved, bvh = tmp_path / "own", tmp_path / "own.bvh"
+        r = run_client("--url", server.ws_url, "--wav", str(SPEECH_WAV), "--fast", "--binary", "--save", str(saved),
+                       "--bvh", str(bvh))
     msgs = [reference_decode(p) for p in sorted(saved.iterdir())]
     assert msgs[0]["type"] == "hello"
     frames = [m for m in msgs if m["type"] == "frame"]
@@ -35,6 +36,22 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
     assert all(p.suffix == ".bin" for p in sorted(saved.iterdir()) if reference_decode(p)["type"] == "frame")
     assert f"received {len(frames)} frames" in r.stderr
     assert "frame" in r.stdout and "end:" in r.stdout
+
+    # --bvh OUT: the same motion as `dimgestor generate` on the same audio, checkpoint, steps, seed and root mode
+    # (serve's defaults: seed 0, root tethered), every joint within 1e-3 cm (FK of the two files)
+    from dimgestor.bvh import forward_kinematics, read_bvh
+
+    assert f"wrote {len(frames)} frames to {bvh}" in r.stderr
+    offline = tmp_path / "offline.bvh"
+    g = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint), "--audio",
+                        str(SPEECH_WAV), "--out", str(offline), "--steps", "2", "--seed", "0", "--root", "tether"],
+                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert g.returncode == 0, g.stderr
+    got, want = read_bvh(bvh), read_bvh(offline)
+    assert got.skeleton.names == want.skeleton.names and got.num_frames == want.num_frames == len(frames)
+    assert np.allclose(got.skeleton.offsets, want.skeleton.offsets, atol=1e-5)
+    assert got.frame_time == pytest.approx(want.frame_time)
+    assert np.abs(forward_kinematics(got) - forward_kinematics(want)).max() < 1e-3
 
 
 def write_wav(path, seconds: float, rate: int = 16000) -> None:

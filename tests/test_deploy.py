@@ -24,6 +24,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
+from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer import protocol as P
 from helpers.clients import SPEECH_WAV, free_port
 
@@ -133,7 +134,7 @@ async def hello(c) -> dict:
 
 @needs_nginx
 def test_the_cluster_spreads_streams_over_its_workers_serves_them_through_nginx_and_stops_on_sigterm():
-    cluster = Cluster("--", *WORKER_ARGS)
+    cluster = Cluster("--no-state-store", "--", *WORKER_ARGS)  # (sessions end with their worker: `end`, no goaway)
     try:
         cluster.wait_for(r"^ready: ws://127\.0\.0\.1:\d+/ \(2 workers\)")
         workers = cluster.workers()
@@ -226,14 +227,141 @@ def test_the_cluster_spreads_streams_over_its_workers_serves_them_through_nginx_
             cluster.proc.kill()
 
 
+def example_client():
+    """clients/python/client.py as a module (its own file, as users run it)."""
+    loader = SourceFileLoader("dimgestor_example_client", str(REPO / "clients" / "python" / "client.py"))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    return module
+
+
+needs_redis = pytest.mark.skipif(shutil.which("redis-server") is None or importlib.util.find_spec("redis") is None,
+                                 reason="redis-server or the redis client is missing (Debian: apt-get install "
+                                        "redis-server; pip install 'dimgestor[cluster]'): sessions move through it")
+
+
 @needs_nginx
-def test_a_dead_worker_is_passed_over_and_the_cluster_reports_it():
-    """Passive health checks: after SIGKILL of a worker every new connection still reaches the other one."""
-    cluster = Cluster("--", *WORKER_ARGS)
+@needs_redis
+def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_see_no_gap(tmp_path):
+    """Issue 22's rolling-restart test: 2 workers + nginx + Redis (local-cluster), 8 clients (the example Python
+    client, as users run it) send real-time speech; SIGTERM the worker serving half of them mid-sentence: those
+    resume on the other worker within 1 s and their BVH equals `dimgestor generate` on the same audio, seed, K
+    and root mode; the other clients' largest frame gap stays under 500 ms."""
+    seconds, clients, sampling = 6.0, 8, ("--steps", "4", "--seed", "3")
+    wav = tmp_path / "speech.wav"
+    with wave.open(str(wav), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
+        w.writeframes(speech_pcm16(seconds))
+    offline = tmp_path / "offline.bvh"
+    generate = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
+                                 str(offline), "--root", "tether", *sampling], cwd=REPO,
+                                env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+    client = example_client()
+    arrivals: dict[str, list[float]] = {}  # --bvh path -> arrival time of each frame
+    goaway_at: dict[str, float] = {}  # resume token -> when its goaway arrived
+    moved: set[str] = set()  # --bvh paths of the clients that got a goaway
+    resumed_in: list[float] = []  # goaway -> session_resumed, seconds
+
+    class TimedPrinter(client.Printer):
+        def handle(self, message):
+            msg = super().handle(message)
+            if msg.get("type") == "frame":
+                arrivals.setdefault(self.args.bvh, []).append(time.monotonic())
+            elif msg.get("type") == "goaway":
+                goaway_at[msg["resume_token"]] = time.monotonic()
+                moved.add(self.args.bvh)
+            return msg
+
+    resume_session = client.resume_session
+
+    async def timed_resume(ws, goaway, *args):
+        sample = await resume_session(ws, goaway, *args)
+        resumed_in.append(time.monotonic() - goaway_at[goaway["resume_token"]])
+        return sample
+
+    client.Printer, client.resume_session = TimedPrinter, timed_resume
+    cluster = Cluster("--", "--window-ms", "100", "--status-every", "0", *sampling)
+    try:
+        cluster.wait_for(r"^ready: .*handed over through the state store")
+        workers = cluster.workers()
+        bvh = [tmp_path / f"client{i}.bvh" for i in range(clients)]
+
+        async def everyone():
+            runs = []
+            for path in bvh:  # one after another: least connections puts every other one on each worker
+                args = client.parse_args(["--url", cluster.url, "--wav", str(wav), "--binary", "--quiet",
+                                          "--bvh", str(path)])
+                runs.append(asyncio.create_task(client.run(args)))
+                await asyncio.sleep(0.2)
+            while min(len(arrivals.get(str(p), ())) for p in bvh) < 40:  # mid-sentence: 2 s of frames each
+                await asyncio.sleep(0.05)
+            os.kill(workers[1][1], signal.SIGTERM)
+            return await asyncio.wait_for(asyncio.gather(*runs), 60)
+
+        codes = asyncio.run(everyone())
+        assert codes == [0] * clients
+        cluster.wait_for(r"worker 1 exited while serving \(exit status 0\)")
+    finally:
+        cluster.stop()
+    assert generate.wait(120) == 0, generate.stdout.read()
+    assert len(resumed_in) == len(moved) == clients // 2, (resumed_in, moved, cluster.output[-3000:])
+    assert max(resumed_in) < 1.0, resumed_in
+    want = read_bvh(offline)
+    gaps = {}
+    for path in bvh:
+        got = read_bvh(path)
+        assert got.num_frames == want.num_frames == int(seconds * FPS), path
+        assert np.abs(forward_kinematics(got) - forward_kinematics(want)).max() < 1e-3, path  # cm
+        gaps[str(path)] = np.diff(arrivals[str(path)]).max()
+    # the moved clients' gap holds their goaway and resume; the others must not notice
+    stayed = [gap for path, gap in gaps.items() if path not in moved]
+    print(f"resumed in {max(resumed_in):.3f} s at most; largest frame gap "
+          f"{max(gaps[p] for p in moved):.3f} s (moved), {max(stayed):.3f} s (stayed)")
+    assert max(stayed) < 0.5, gaps
+
+
+@needs_nginx
+def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_the_cluster_reports_it(tmp_path):
+    """Passive health checks: after SIGKILL of a worker its clients (the example Python client) reconnect through
+    nginx and go on with a fresh stream within 2 s; the other worker's clients see nothing; every new connection
+    reaches the live worker."""
+    seconds, clients = 5.0, 4
+    wav = tmp_path / "speech.wav"
+    with wave.open(str(wav), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
+        w.writeframes(speech_pcm16(seconds))
+    client = example_client()
+    arrivals: dict[str, list[tuple[float, int]]] = {}  # --bvh path -> (arrival time, index) of each frame
+
+    class TimedPrinter(client.Printer):
+        def handle(self, message):
+            msg = super().handle(message)
+            if msg.get("type") == "frame":
+                arrivals.setdefault(self.args.bvh, []).append((time.monotonic(), msg["index"]))
+            return msg
+
+    client.Printer = TimedPrinter
+    cluster = Cluster("--no-state-store", "--", "--window-ms", "100", "--status-every", "0")
     try:
         cluster.wait_for(r"^ready:")
         port, pid = cluster.workers()[1]
-        os.kill(pid, signal.SIGKILL)
+        bvh = [str(tmp_path / f"client{i}.bvh") for i in range(clients)]
+
+        async def everyone():
+            runs = []
+            for path in bvh:
+                args = client.parse_args(["--url", cluster.url, "--wav", str(wav), "--binary", "--quiet", "--bvh", path])
+                runs.append(asyncio.create_task(client.run(args)))
+                await asyncio.sleep(0.2)
+            while min(len(arrivals.get(p, ())) for p in bvh) < 30:
+                await asyncio.sleep(0.05)
+            os.kill(pid, signal.SIGKILL)
+            killed = time.monotonic()
+            return killed, await asyncio.wait_for(asyncio.gather(*runs), 60)
+
+        killed, codes = asyncio.run(everyone())
+        assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving")
 
         async def connections():
@@ -249,6 +377,15 @@ def test_a_dead_worker_is_passed_over_and_the_cluster_reports_it():
     finally:
         if cluster.proc.poll() is None:
             cluster.proc.kill()
+    restarted = {p for p in bvh if any(i == 0 for _, i in arrivals[p][1:])}  # a fresh stream: index 0 again
+    assert len(restarted) == clients // 2, {p: [i for _, i in a][:5] for p, a in arrivals.items()}
+    for path in bvh:
+        times = np.array([t for t, _ in arrivals[path]])
+        if path in restarted:  # streaming again within 2 s of the kill
+            assert times[times > killed].min() - killed < 2.0, path
+        else:
+            assert np.diff(times).max() < 0.5, path
+        assert read_bvh(path).num_frames == seconds * FPS  # the whole timeline, the fresh stream's after the rest
 
 
 @needs_nginx
@@ -258,7 +395,7 @@ def test_a_worker_that_cannot_start_stops_the_cluster_and_says_why(tmp_path):
     cluster.reader.join(5)
     assert re.search(r"worker \d exited while starting \(exit status 2\); its last lines:\n.*cannot load", cluster.output), \
         cluster.output
-    assert "ready" not in cluster.output
+    assert not re.search(r"^ready:", cluster.output, re.M)
 
 
 def test_local_cluster_refuses_worker_flags_it_owns():

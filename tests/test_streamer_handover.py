@@ -135,3 +135,37 @@ def test_an_unknown_token_gets_resume_failed_and_the_connection_goes_on(tmp_path
         reply, pong = asyncio.run(talk(server.ws_url))
     assert reply["type"] == "error" and reply["code"] == "resume_failed" and "unknown or expired" in reply["message"]
     assert pong["t"] == 1  # the same connection still serves
+
+
+def test_a_stopping_worker_refuses_new_handshakes_with_503_and_leaves_tokens_for_another(bundle):
+    """While it drains, a worker answers a new WebSocket handshake with 503 (nginx passes it on to another worker)
+    and a resume_session on a connection it still holds with `busy`, without taking the token."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import InvalidStatus
+
+    from helpers.ws import make_server, recv_json, running
+
+    store = MemoryStore()
+    store.put("saved-elsewhere", b"a session's state")
+
+    async def talk(url, server):
+        async with connect(url) as ws:
+            assert (await recv_json(ws))["type"] == "hello"
+            server.closing = server.metrics.readiness.draining = True  # as close() sets them on SIGTERM
+            try:
+                with pytest.raises(InvalidStatus) as refused:
+                    async with connect(url):
+                        pass
+                await ws.send(json.dumps({"type": "resume_session", "token": "saved-elsewhere"}))
+                return refused.value.response, await recv_json(ws)
+            finally:
+                server.closing = server.metrics.readiness.draining = False
+
+    with running(make_server(bundle, store=store)) as server:
+        response, reply = asyncio.run(talk(f"ws://127.0.0.1:{server.port}/", server))
+    assert response.status_code == 503 and b"draining" in response.body
+    assert reply["type"] == "error" and reply["code"] == "busy" and "token stays valid" in reply["message"]
+    assert store.take("saved-elsewhere") == b"a session's state"

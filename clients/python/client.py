@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
-"""Example dimgestor client (protocol v1 revision 2, docs/protocol.md): print frames, optionally send a WAV or the mic.
+"""Example dimgestor client (protocol v1 revision 3, docs/protocol.md): print frames, optionally send a WAV or the mic.
 
     python clients/python/client.py                                # watch the server's source
     python clients/python/client.py --wav speech.wav --binary      # own session from a WAV file
     python clients/python/client.py --mic                          # own session from the microphone (Ctrl-C ends)
     python clients/python/client.py --save DIR --frames 50         # keep every message verbatim (NNNNNN.json/.bin)
+    python clients/python/client.py --wav speech.wav --bvh out.bvh  # the frames received, as a BVH file
 
 Needs `websockets` and `numpy`; `--mic` also needs `sounddevice`.
 """
@@ -23,12 +24,13 @@ from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import numpy as np
 from websockets.asyncio.client import connect
-from websockets.exceptions import InvalidStatus
+from websockets.exceptions import ConnectionClosedError, InvalidStatus
 
 BINARY_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then J*4 float32 wxyz
 CHUNK_S = 0.02  # audio message length: small enough for latency, large enough for little overhead
 FAST_CHUNK_S = 1.0  # --fast: messages of about a second (docs/protocol.md, Audio), few and small enough to pause
 AHEAD_S = 10.0  # a file is sent at most this far ahead of the pts of the last frame back (self-clocked)
+RESUME_WITHIN_S = 10.0  # after a goaway: connections tried for this long before the stream starts again
 MIC_HOLD_S = 10.0  # microphone audio held while the server has us paused; beyond it the oldest is dropped, counted
 
 
@@ -80,6 +82,8 @@ class AudioFlow:
         self.ahead_s = ahead_s
         self.sent_s = 0.0  # audio sent in this session, seconds
         self.heard_s = 0.0  # pts of the last frame of our own session, plus one frame
+        self.frames = 0  # frames of our own session received (after a fresh restart: counted on from before)
+        self.offset_s = 0.0  # a fresh stream after a lost worker starts at pts 0 this far into our audio
         self.own = False  # our session's frames have begun (a frame with index 0 after our first audio)
         self.paused = False
         self.pauses = 0
@@ -98,7 +102,8 @@ class AudioFlow:
             # Frames of the broadcast we followed before our audio may still come; ours start at index 0.
             self.own = self.own or msg["index"] == 0
             if self.own:
-                self.heard_s = max(self.heard_s, msg["pts"] + 1.0 / fps)
+                self.heard_s = max(self.heard_s, self.offset_s + msg["pts"] + 1.0 / fps)
+                self.frames = max(self.frames, round(self.offset_s * fps) + msg["index"] + 1)
         else:
             return
         self.changed.set()
@@ -108,6 +113,11 @@ class AudioFlow:
         self.sent_s, self.heard_s, self.paused, self.refused = sent_s, heard_s, False, None
         self.changed.set()
 
+    def on_restarted(self, at_s: float) -> None:
+        """A new connection after the worker was lost: a fresh stream of our audio from at_s, its pts from 0."""
+        self.offset_s, self.own = at_s, False
+        self.on_resumed(at_s, at_s)
+
     def may_send(self) -> bool:
         return self.refused is not None or (not self.paused and self.sent_s - self.heard_s < self.ahead_s)
 
@@ -115,6 +125,80 @@ class AudioFlow:
         while not self.may_send():
             self.changed.clear()
             await self.changed.wait()
+
+
+def quat_to_euler_zxy(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) wxyz -> BVH "Zrotation Xrotation Yrotation" angles in degrees (..., 3), z x y:
+    the rotation is Rz(z) Rx(x) Ry(y), as a BVH reader composes the channels in the order they are listed."""
+    w, x, y, z = np.moveaxis(np.asarray(q, np.float64), -1, 0)
+    r01 = 2 * (x * y - w * z)
+    r11 = 1 - 2 * (x * x + z * z)
+    r20 = 2 * (x * z - w * y)
+    r21 = 2 * (y * z + w * x)
+    r22 = 1 - 2 * (x * x + y * y)
+    ax = np.arcsin(np.clip(r21, -1.0, 1.0))
+    ay = np.arctan2(-r20, r22)
+    az = np.arctan2(-r01, r11)
+    return np.degrees(np.stack([az, ax, ay], axis=-1))
+
+
+class BvhWriter:
+    """--bvh OUT: the frames of our own session, by index (a resumed session goes on at the next index), written
+    as a BVH file of the hello's skeleton (its units, 20 fps) when the client stops."""
+
+    def __init__(self, path: str):
+        self.path = Path(path)
+        self.skeleton: dict | None = None
+        self.fps = 20.0
+        self.frames: dict[int, tuple[list, list]] = {}
+
+    def add(self, msg: dict, offset: int = 0) -> None:
+        self.frames[offset + msg["index"]] = (msg["root"], msg["rotations"])
+
+    def write(self) -> int:
+        """Write the file (frames in index order, a gap filled with the frame before it) -> frames written."""
+        if not self.frames or self.skeleton is None:
+            return 0
+        names, parents = self.skeleton["joints"], self.skeleton["parents"]
+        offsets = np.asarray(self.skeleton["offsets"], np.float64)
+        children = {j: [k for k, p in enumerate(parents) if p == j] for j in range(len(names))}
+        lines = ["HIERARCHY"]
+
+        order: list[int] = []
+
+        def joint(j: int, depth: int) -> None:
+            order.append(j)
+            pad = "\t" * depth
+            lines.append(f"{pad}{'ROOT' if parents[j] < 0 else 'JOINT'} {names[j]}")
+            lines.append(f"{pad}{{")
+            lines.append(f"{pad}\tOFFSET " + " ".join(f"{v:.6f}" for v in offsets[j]))
+            lines.append(f"{pad}\tCHANNELS " + ("6 Xposition Yposition Zposition " if parents[j] < 0 else "3 ")
+                         + "Zrotation Xrotation Yrotation")
+            for k in children[j]:
+                joint(k, depth + 1)
+            if not children[j]:
+                lines.extend([f"{pad}\tEnd Site", f"{pad}\t{{", f"{pad}\t\tOFFSET 0.000000 0.000000 0.000000",
+                              f"{pad}\t}}"])
+            lines.append(f"{pad}}}")
+
+        joint(parents.index(-1), 0)
+        if order != list(range(len(names))):  # a BVH lists channels in hierarchy order: it must be the joints'
+            raise ValueError("the hello's joints are not in depth-first order: cannot write them as BVH")
+        last = max(self.frames)
+        roots, rotations, previous = [], [], self.frames[min(self.frames)]
+        for i in range(last + 1):
+            previous = self.frames.get(i, previous)
+            roots.append(previous[0])
+            rotations.append(previous[1])
+        angles = quat_to_euler_zxy(np.asarray(rotations))  # (T, J, 3)
+        angles = np.degrees(np.unwrap(np.radians(angles), axis=0))  # no 360-degree jumps between frames
+        # channel order: parents come first in the hello's joint order, which is the file's depth-first order
+        values = np.concatenate([np.asarray(roots, np.float64), angles.reshape(len(angles), -1)], axis=1)
+        lines += ["MOTION", f"Frames: {len(values)}", f"Frame Time: {1.0 / self.fps!r}"]
+        lines += [" ".join(f"{v:.6f}" for v in row) for row in values]
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text("\n".join(lines) + "\n")
+        return len(values)
 
 
 class Printer:
@@ -199,12 +283,14 @@ async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate
         if msg.get("type") == "session_resumed":
             return int(msg["samples"])
         if msg.get("type") == "error":
-            raise ResumeFailed(f"{msg.get('code')}: {msg.get('message')}")
-    raise ResumeFailed("the connection closed before session_resumed")
+            raise ResumeFailed(f"{msg.get('code')}: {msg.get('message')}", retry=msg.get("code") == "busy")
+    raise ResumeFailed("the connection closed before session_resumed", retry=True)
 
 
 class ResumeFailed(Exception):
-    pass
+    def __init__(self, message: str, retry: bool = False):
+        super().__init__(message)
+        self.retry = retry  # the token is still good: another worker (or this one, later) may resume it
 
 
 def open_mic(device: str | None, rate: int | None) -> tuple[int | str | None, int]:
@@ -319,34 +405,63 @@ async def reconnect(urls: list[str], token: str | None, attempt: int, within_s: 
 
 async def run(args) -> int:
     printer = Printer(args)
+    bvh = BvhWriter(args.bvh) if args.bvh else None
     wav = read_wav(args.wav) if args.wav else None  # a bad file or device fails before we connect
     mic = open_mic(args.device, args.rate) if args.mic else None
     flow = AudioFlow(AHEAD_S if args.wav else float("inf"))  # a microphone is clocked by the talker
     urls = args.url if isinstance(args.url, list) else [args.url]
     ws = await connect(with_token(urls[0], args.token), max_size=8 * 2**20)
-    start, hello, resumes = 0, True, 0
+    start, hello, resumes, lost = 0, True, 0, 0
     try:
         while True:  # one connection; a goaway with a resume token (the worker is stopping) goes on on another
-            result = await _connection(ws, args, printer, flow, wav, mic, start, hello)
+            try:
+                result = await _connection(ws, args, printer, flow, wav, mic, start, hello, bvh)
+            except ConnectionClosedError as e:  # no goaway, no close frame: the worker died (or the network)
+                if not args.wav:
+                    raise
+                lost += 1
+                ws = await reconnect(urls, args.token, resumes + lost)
+                start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
+                print(f"connection lost ({e.rcvd.code if e.rcvd else 'no close frame'}): a fresh stream from sample "
+                      f"{start} (frame {flow.frames})", file=sys.stderr)
+                flow.on_restarted(start / wav[1])
+                hello = True
+                continue
             if not isinstance(result, dict):
                 return result
             goaway = result
             await ws.close()
-            resumes += 1
-            ws = await reconnect(urls, args.token, resumes)
-            try:
-                start = await resume_session(ws, goaway, args.binary, *wav)
-                print(f"resumed from sample {start} (frame {goaway.get('frames')})", file=sys.stderr)
-            except ResumeFailed as e:
-                print(f"resume failed ({e}): the stream starts again from the beginning", file=sys.stderr)
-                start = 0
-            flow.on_resumed(start / wav[1], goaway.get("frames", 0) / printer.fps if start else 0.0)
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + RESUME_WITHIN_S
+            base = round(flow.offset_s * wav[1])  # where this session's audio began in the file
+            while True:  # a worker that is stopping too (or full) answers busy: the token stays good elsewhere
+                resumes += 1
+                ws = await reconnect(urls, args.token, resumes, max(0.5, deadline - loop.time()))
+                try:
+                    start = base + await resume_session(ws, goaway, args.binary, *wav)
+                    print(f"resumed from sample {start} (frame {flow.frames})", file=sys.stderr)
+                    flow.on_resumed(start / wav[1], base / wav[1] + goaway.get("frames", 0) / printer.fps)
+                    break
+                except ResumeFailed as e:
+                    if e.retry and loop.time() < deadline:
+                        await ws.close()
+                        await asyncio.sleep(0.1)
+                        continue
+                    start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
+                    print(f"resume failed ({e}): a fresh stream from sample {start} (frame {flow.frames})",
+                          file=sys.stderr)
+                    flow.on_restarted(start / wav[1])
+                    break
             hello = False  # resume_session sent it
     finally:
         await ws.close()
+        if bvh is not None:
+            written = bvh.write()
+            print(f"wrote {written} frames to {bvh.path}" if written else f"no frames came: {bvh.path} not written",
+                  file=sys.stderr)
 
 
-async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: bool = True):
+async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: bool = True, bvh=None):
     """One connection: send our audio (a WAV from sample `start`), print what comes. Returns the exit status,
     or the `goaway` message when the server hands our session over (only with --wav, which can re-send)."""
     sender = None
@@ -371,6 +486,11 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
             msg = printer.handle(message)
             fps = msg.get("fps", fps) if msg.get("type") == "hello" else fps
             flow.on_message(msg, fps)
+            if bvh is not None:
+                if msg.get("type") == "hello":
+                    bvh.skeleton, bvh.fps = msg["skeleton"], float(msg.get("fps", bvh.fps))
+                elif msg.get("type") == "frame" and (flow.own or not (args.wav or args.mic)):
+                    bvh.add(msg, round(flow.offset_s * fps))  # our own session's (or the broadcast we follow)
             if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:
                 goaway = msg
                 return
@@ -397,7 +517,7 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
     return 0
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--url", action="append", help="server WebSocket URL (default ws://127.0.0.1:8765/); repeat it "
                    "to name workers without a balancer: after a goaway the next one is tried")
@@ -412,9 +532,16 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: until end)")
     p.add_argument("--seconds", type=float, default=0, help="stop after this many seconds (0: no limit)")
     p.add_argument("--save", help="write every received message verbatim into this folder")
+    p.add_argument("--bvh", metavar="OUT", help="write the frames received as a BVH file (the hello's skeleton; "
+                   "a resumed session's frames go on in the same file)")
     p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
     args = p.parse_args(argv)
     args.url = args.url or ["ws://127.0.0.1:8765/"]
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     try:
         return asyncio.run(run(args))
     except KeyboardInterrupt:
