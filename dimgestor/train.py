@@ -266,7 +266,7 @@ def _device(name: str) -> torch.device:
 
 
 def _batch_indices(sampler: DistributedSampler, step: int, B: int) -> list[int]:
-    """This rank's batch for `step`: epochs of the (distributed) shuffled order, wrapped when short."""
+    """The global batch for `step`: epochs of the shuffled order, wrapped when short."""
     n = len(sampler)
     per_epoch = max(1, n // B)
     epoch, pos = divmod(step, per_epoch)
@@ -312,7 +312,7 @@ class Run:
     diffusion: Diffusion
     optimizer: torch.optim.Optimizer
     objective: nn.Module  # the loss (wrapped in DDP when world > 1)
-    g: torch.Generator  # this rank's diffusion steps, noise, augmented versions and dropout
+    g: torch.Generator  # the global batch's diffusion steps, noise, augmented versions and dropout (same on every rank)
     train_bank: WindowBank
     valid_bank: WindowBank
     sampler: DistributedSampler
@@ -331,6 +331,9 @@ def _init_distributed(opts: TrainConfig) -> tuple[int, int, torch.device]:
     """(world size, rank, device); joins the process group when launched by torchrun."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
+    if opts.batch_size % world:  # (before joining: every rank refuses alike)
+        raise ValueError(f"--batch-size {opts.batch_size} does not split evenly over {world} processes: give a "
+                         f"multiple of {world} (the global batch; each process trains on an equal share)")
     device = _device(opts.device)
     if world > 1:
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
@@ -387,7 +390,9 @@ def setup(opts: TrainConfig) -> Run:
     ema = DiMGestor(config).to(device).requires_grad_(False)
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=opts.lr,
                                   weight_decay=opts.weight_decay)
-    g = torch.Generator().manual_seed(opts.seed * 1000 + rank)  # t and noise; batches come from the sampler
+    # Every rank draws the whole global batch (windows, versions, t, noise, dropout) from the same generator and
+    # trains on its slice: N processes take the same steps as one process with the same --batch-size.
+    g = torch.Generator().manual_seed(opts.seed * 1000)
     step, history = 0, []
     if resume_from is not None:
         ts = torch.load(resume_from / "train_state.pt", map_location="cpu", weights_only=False)
@@ -405,7 +410,7 @@ def setup(opts: TrainConfig) -> Run:
                             aug_config=AugmentConfig(**(opts.aug_config or {})), seed=opts.seed)
     t_bank = time.time() - t_bank
     valid_bank = WindowBank(valid_ds, model, mean, std, device)
-    sampler = DistributedSampler(range(len(train_bank)), num_replicas=world, rank=rank, shuffle=True,
+    sampler = DistributedSampler(range(len(train_bank)), num_replicas=1, rank=0, shuffle=True,  # the global order
                                  seed=opts.seed, drop_last=False)
     diffusion = Diffusion(config)
     run = Run(opts, Path(opts.out), world, rank, device, resume_from, config, train_ds, model, ema, diffusion,
@@ -441,7 +446,8 @@ def _describe(run: Run, t_bank: float) -> str:
 
 
 def train_step(run: Run, B: int) -> float:
-    """One optimizer step on this rank's batch for `run.step`, then the EMA update; returns the loss."""
+    """One optimizer step on the global batch of B windows for `run.step` (this rank's slice of it, when
+    several processes train), then the EMA update; returns the loss (over the global batch)."""
     c, g = run.config, run.g
     idx = _batch_indices(run.sampler, run.step, B)
     versions = run.train_bank.draw_versions(len(idx), g)  # from g, so --resume stays exact
@@ -450,6 +456,10 @@ def train_step(run: Run, B: int) -> float:
     noise = run.diffusion.noise_like(x0, g)
     # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
     drop = torch.rand(len(idx), generator=g) < run.cond_drop if run.cond_drop > 0 else None
+    if run.world > 1:  # this rank's equal share; DDP averages the gradients, so the step is the global batch's
+        part = slice(run.rank * B // run.world, (run.rank + 1) * B // run.world)
+        x0, feats, t, noise = x0[part], feats[part], t[part], noise[part]
+        drop = None if drop is None else drop[part]
     for group in run.optimizer.param_groups:
         group["lr"] = _lr(run.opts, run.step)
     d = run.device
@@ -464,7 +474,11 @@ def train_step(run: Run, B: int) -> float:
     with torch.no_grad():
         for pe, pm in zip(run.ema.parameters(), run.model.parameters()):
             pe.lerp_(pm, 1 - decay)
-    return loss.item()
+    value = loss.detach()
+    if run.world > 1:  # the mean of the ranks' means: the global batch's loss
+        dist.all_reduce(value)
+        value /= run.world
+    return value.item()
 
 
 def evaluate(run: Run) -> float:
@@ -512,7 +526,7 @@ def train(opts: TrainConfig) -> Path:
     bar = tqdm(total=opts.max_steps, initial=run.step, disable=not (run.main and opts.progress), dynamic_ncols=True,
                desc="train")
     smooth, last = None, run.resume_from or run.out
-    B = max(1, opts.batch_size // run.world)
+    B = opts.batch_size  # the global batch; each of the run.world processes trains on B / world of it
     t0 = time.time()
     run.model.train()
     while run.step < opts.max_steps:
