@@ -148,3 +148,22 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
     meta = json.loads((run_dir / "ckpt_0000004" / "config.json").read_text())
     assert meta["model"]["n_mels"] == 16 and meta["info"]["options"]["seed"] == 3
     assert (tmp_path / "voice_world.png").is_file()
+
+
+@pytest.mark.skipif(not (Path("/usr/sbin/nginx").exists() or __import__("shutil").which("nginx"))
+                    or __import__("shutil").which("redis-server") is None,
+                    reason="nginx or redis-server not installed (.ci/run installs both)")
+def test_cluster_load_benchmark_runs_a_rolling_restart_and_writes_its_schema(tmp_path):
+    from helpers.clients import make_tiny_checkpoint
+
+    ckpt = make_tiny_checkpoint(tmp_path)
+    out = tmp_path / "cluster_load.json"
+    run("cluster_load.py", "--workers", "2", "--clients", "3", "--seconds", "6", "--restart-at", "1",
+        "--fail-timeout", "1", "--worker-args", f"--checkpoint {ckpt} --steps 2 --window-ms 100 --status-every 0",
+        "--out", str(out))
+    r = json.loads(out.read_text())
+    s = r["summary"]
+    assert s["sessions_failed"] == 0 and s["sessions_started"] >= 3, s
+    assert s["finished_complete"] == s["sessions_finished"] > 0, s  # every frame once, in order, moved or not
+    assert r["cost"]["session_state_bytes"] > 0 and finite(r["cost"]["cpu_s_workers"])
+    assert (tmp_path / "cluster_load.png").is_file()

@@ -412,7 +412,7 @@ def test_the_compose_entrypoint_fills_the_template_as_local_cluster_does(tmp_pat
     cluster = _local_cluster_module()
     upstream = [f"127.0.0.1:{p}" for p in (9001, 9002)]
     ours = cluster.nginx_config((REPO / "deploy" / "nginx.conf").read_text(), str(tmp_path), "127.0.0.1:9000", upstream)
-    servers = "\n        ".join(f"server {a} {cluster.UPSTREAM_PARAMS};" for a in upstream)
+    servers = "\n        ".join(f"server {a} max_fails=1 fail_timeout={cluster.FAIL_TIMEOUT_S}s;" for a in upstream)
     env = {**os.environ, "DIMGESTOR_NGINX_DIR": str(tmp_path), "DIMGESTOR_LISTEN": "127.0.0.1:9000",
            "DIMGESTOR_UPSTREAM": servers, "PATH": f"{Path(NGINX).parent}:{os.environ['PATH']}"}
     r = subprocess.run(["sh", str(REPO / "deploy" / "nginx-entrypoint.sh"), "-t", "-q"], env=env,
@@ -447,7 +447,7 @@ def test_the_compose_file_and_dockerfile_agree_with_what_is_tested_here():
     compose = yaml.safe_load((deploy / "compose.yaml").read_text())["services"]
     nginx, worker = compose["nginx"], compose["worker"]
     upstream = nginx["environment"]["DIMGESTOR_UPSTREAM"]
-    assert upstream == f"server worker:8765 {_local_cluster_module().UPSTREAM_PARAMS};"
+    assert upstream == f"server worker:8765 max_fails=1 fail_timeout={_local_cluster_module().FAIL_TIMEOUT_S}s;"
     assert {v.split(":")[0] for v in nginx["volumes"]} == {"./nginx.conf", "./nginx-entrypoint.sh"}
     assert all((deploy / v.split(":")[0]).is_file() for v in nginx["volumes"])
     assert (deploy / worker["build"]["context"] / worker["build"]["dockerfile"]).resolve() == deploy / "Dockerfile"

@@ -386,6 +386,26 @@ async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicH
     return hold
 
 
+RETRY_STATUS = (502, 503, 504)  # a balancer with no worker free right now, a worker that is stopping
+
+
+async def first_connection(urls: list[str], token: str | None, within_s: float = 10.0):
+    """Our first connection: a refused connection or a 502/503/504 (a rolling restart under way) is tried again,
+    the URLs in turn, for up to within_s; any other refusal (401, 403, ...) at once is final."""
+    loop = asyncio.get_running_loop()
+    deadline, delay, attempt = loop.time() + within_s, 0.05, 0
+    while True:
+        try:
+            return await connect(with_token(urls[attempt % len(urls)], token), max_size=8 * 2**20, open_timeout=5.0)
+        except (OSError, InvalidStatus) as e:
+            retry = not isinstance(e, InvalidStatus) or e.response.status_code in RETRY_STATUS
+            if not retry or loop.time() + delay > deadline:
+                raise
+        attempt += 1
+        await asyncio.sleep(delay)
+        delay = min(delay * 2, 0.5)
+
+
 async def reconnect(urls: list[str], token: str | None, attempt: int, within_s: float = 10.0):
     """A new connection after a goaway: the URLs in turn (a balancer's one URL, or workers named one by one),
     retried with a short back-off for up to within_s."""
@@ -410,7 +430,7 @@ async def run(args) -> int:
     mic = open_mic(args.device, args.rate) if args.mic else None
     flow = AudioFlow(AHEAD_S if args.wav else float("inf"))  # a microphone is clocked by the talker
     urls = args.url if isinstance(args.url, list) else [args.url]
-    ws = await connect(with_token(urls[0], args.token), max_size=8 * 2**20)
+    ws = await first_connection(urls, args.token)
     start, hello, resumes, lost = 0, True, 0, 0
     try:
         while True:  # one connection; a goaway with a resume token (the worker is stopping) goes on on another
