@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextvars
 import importlib.util
 import os
 import random
@@ -165,6 +166,7 @@ async def simulate(args, cluster: Cluster, clips, rng: random.Random) -> tuple[l
                 s["indices"].append(msg["index"])
             elif kind == "goaway":
                 s["goaways"].append(time.monotonic() - t0)
+                s["notes"].append(f"goaway: samples {msg['samples']}, frames {msg['frames']}")
                 tokens[msg["resume_token"]] = self.args.session_id
             return msg
 
@@ -176,6 +178,13 @@ async def simulate(args, cluster: Cluster, clips, rng: random.Random) -> tuple[l
         return sample
 
     client.Printer, client.resume_session = TimedPrinter, timed_resume
+    current = contextvars.ContextVar("session_id")  # each session's task runs in its own copy of the context
+
+    def notes(*values, file=None, **_):  # the client's own lines on stderr, kept with the session that said them
+        if file is sys.stderr:
+            sessions[current.get()]["notes"].append(" ".join(map(str, values)))
+
+    client.print = notes
     timeline: list[tuple[float, int]] = []
     running: set[asyncio.Task] = set()
 
@@ -183,7 +192,9 @@ async def simulate(args, cluster: Cluster, clips, rng: random.Random) -> tuple[l
         path, seconds = clips[rng.randrange(len(clips))]
         leave_after = rng.uniform(1.0, seconds) if rng.random() < args.leave_fraction else None
         s = sessions[f"s{i}"] = {"id": f"s{i}", "clip_s": seconds, "start": time.monotonic() - t0, "times": [],
-                                 "indices": [], "goaways": [], "resumed": [], "left_early": leave_after is not None}
+                                 "indices": [], "goaways": [], "resumed": [], "notes": [],
+                                 "left_early": leave_after is not None}
+        current.set(s["id"])
         cargs = client.parse_args(["--url", cluster.url, "--wav", str(path), "--binary", "--quiet"])
         cargs.session_id = s["id"]
         try:
@@ -210,6 +221,17 @@ async def simulate(args, cluster: Cluster, clips, rng: random.Random) -> tuple[l
         timeline.append((round(time.monotonic() - t0, 2), len(running)))
     await asyncio.gather(*running)
     return list(sessions.values()), timeline
+
+
+def runs(indices: list[int]) -> list[list[int]]:
+    """Frame indices as [first, last] runs of consecutive ones: [[0, 177]] for a whole 178-frame session."""
+    out: list[list[int]] = []
+    for i in indices:
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
 
 
 def summarize(sessions: list[dict]) -> dict:
@@ -328,7 +350,8 @@ def main() -> int:
               "summary": summary, "cost": cost, "timeline": timeline[:: max(1, len(timeline) // 400)],
               "sessions": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in s.items()
                             if k not in ("times", "indices", "goaways", "resumed")}
-                           | {"frames": len(s["indices"]), "moved": len(s["goaways"])} for s in sessions]}
+                           | {"frames": len(s["indices"]), "moved": len(s["goaways"]), "index_runs": runs(s["indices"])}
+                           for s in sessions]}
     write_json(Path(args.out), result)
     print(f"wrote {args.out}")
     for k, v in {**summary, **cost}.items():

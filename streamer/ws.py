@@ -188,6 +188,9 @@ def own_origins(host: str, port: int) -> list[str]:
     return [f"http://{f'[{n}]' if ':' in n else n}:{port}" for n in sorted(names)]
 
 
+HANDOVER_S = 5.0  # on SIGTERM with a state store: how long sessions may take to finish the audio held and be saved
+
+
 class WsServer:
     """Serves hello/frames/status to clients; a `Sink` (streamer/sink.py) of the server's source. A request
     that is not a WebSocket upgrade gets a file of the web viewer (`files`; None: no files) on the same port.
@@ -299,29 +302,38 @@ class WsServer:
                 f"own sessions {sum(1 for c in self.clients if c.session is not None)}")
 
     async def close(self, drain: bool = True, within_s: float = 1.5) -> None:
-        """End every client's stream (`end` to each), deliver what is queued and close, all within ~within_s
-        (whether the source ended or was stopped: `drain` makes no difference here)."""
+        """End every client's stream, deliver what is queued and close, all within ~within_s (whether the source
+        ended or was stopped: `drain` makes no difference here). A session whose audio has all come (after its
+        `audio_end`) finishes as usual, its last frames and `end`, if it can within 0.4 within_s (HANDOVER_S
+        with a state store); with a store the others are handed over (`goaway`, _hand_over), without one they
+        get `end` at once."""
         self._flush_audio()  # the source's last audio before its `end`
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + within_s * 0.6
         self.closing = True
         self.metrics.readiness.draining = True
         if self._trim_timer is not None:
             self._trim_timer.cancel()
         # (a session that ends meanwhile clears its client's session_task: keep the tasks as they are now)
         own = {c: c.session_task for c in self.clients if c.session_task is not None and not c.session_task.done()}
-        handed = await self._hand_over(own, loop.time() + within_s * 0.4) if self.store and own else set()
+        finishing = {c: task for c, task in own.items() if c.source is None}  # past audio_end: nothing to move
+        moving = {c: task for c, task in own.items() if c not in finishing}
+        until = loop.time() + (HANDOVER_S if self.store else within_s * 0.4)
+        handed = await self._hand_over(moving, until) if self.store and moving else set()
+        if finishing:
+            await asyncio.wait(finishing.values(), timeout=max(0.0, until - loop.time()))
         for c, task in own.items():
             if c not in handed:
-                task.cancel()
+                task.cancel()  # (a finished one stays as it is)
         await asyncio.gather(*own.values(), return_exceptions=True)
+        ended = {c for c, task in finishing.items() if not task.cancelled() and task.exception() is None}
         for c in list(self.clients):
-            if c in handed:
+            if c in handed or c in ended:  # (goaway sent; or its own `end`, after its last frames)
                 continue
             if c in own:
                 c.put(P.end(c.session_frames))
             elif not c.own and not self.broadcast_ended:
                 c.put(P.end(self.broadcast_frames))
+        deadline = loop.time() + within_s * 0.6
         await asyncio.gather(*(c.drained(deadline) for c in list(self.clients)))
         await asyncio.gather(*(c.ws.close(1012, "restart: resume_session with the goaway's token") for c in handed),
                              return_exceptions=True)
@@ -347,11 +359,14 @@ class WsServer:
         from .handover import new_token
 
         loop = asyncio.get_running_loop()
-        for c in own:
+        sources = []
+        for c in own:  # all of them before any await: audio that arrives meanwhile is ignored, never refused
             if c.session is None:  # (left meanwhile)
                 continue
             c.handing_over = c.session.handover = True
-            source, c.source = c.source, None
+            sources.append(c.source)
+            c.source = None
+        for source in sources:
             if source is not None:
                 await source.close()
         done, _ = await asyncio.wait(own.values(), timeout=max(0.0, deadline - loop.time()))
@@ -656,6 +671,11 @@ class WsServer:
             if client.session_task is not None and not client.session_task.done():
                 await asyncio.shield(client.session_task)  # the previous session is still finishing
                 await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
+            if self.closing:  # began during the awaits: a session detached for hand-over must not start anew
+                if client.handing_over:
+                    return
+                self._refused(client, "draining")
+                raise P.ProtocolError("busy", "the server is shutting down")
             if self.live_sessions >= self.max_sessions:
                 self._refused(client, "busy")
                 raise P.ProtocolError("busy", f"at most {self.max_sessions} client audio sessions at once")

@@ -169,3 +169,45 @@ def test_a_stopping_worker_refuses_new_handshakes_with_503_and_leaves_tokens_for
     assert response.status_code == 503 and b"draining" in response.body
     assert reply["type"] == "error" and reply["code"] == "busy" and "token stays valid" in reply["message"]
     assert store.take("saved-elsewhere") == b"a session's state"
+
+
+def test_audio_decoded_while_the_worker_starts_to_stop_does_not_start_a_new_session(bundle):
+    """A race seen under load (benchmarks/cluster_load.py): an audio message whose decoding began before SIGTERM
+    and ended after the hand-over had detached the session started a fresh one, and that empty session was what
+    got saved (goaway with samples 0, frames 0): the client then sent its whole file again. It is ignored now,
+    like any audio that comes while the session is saved, and the goaway covers what the session had."""
+    import asyncio
+    import json
+
+    import numpy as np
+    from websockets.asyncio.client import connect
+
+    from helpers.ws import SlowExecutor, make_server, recv_json
+
+    async def scenario():
+        server = make_server(bundle, store=MemoryStore())
+        server.prep = SlowExecutor(1, delay_s=0.3)  # decoding (and every other prep job) takes 0.3 s
+        await server.open()
+        try:
+            async with connect(f"ws://127.0.0.1:{server.port}/") as ws:
+                assert (await recv_json(ws))["type"] == "hello"
+                await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                                          "audio": {"rate": 16000, "format": "float32", "channels": 1}}))
+                speech = (0.1 * np.sin(np.arange(16000) * 0.05)).astype("<f4")
+                await ws.send(speech.tobytes())
+                while (await recv_json(ws))["type"] != "frame":  # the session runs
+                    pass
+                await ws.send(speech[:3200].tobytes())  # decoded from now until 0.3 s later ...
+                await asyncio.sleep(0.1)
+                closing = asyncio.create_task(server.close())  # ... while the worker starts to stop
+                while (msg := await recv_json(ws))["type"] != "goaway":
+                    pass
+                await closing
+                await asyncio.sleep(0.5)  # (the message decoded meanwhile has been handled by now)
+                return msg, server.metrics.sessions_started._value.get()
+        finally:
+            server.prep.shutdown(wait=False)
+
+    goaway, started = asyncio.run(scenario())
+    assert goaway["samples"] == 16000 and goaway["frames"] > 0, goaway
+    assert started == 1  # no second session began on the stopping worker
