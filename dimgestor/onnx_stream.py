@@ -52,8 +52,9 @@ class OnnxStreamState:
 class FrameStepStream:
     """A stream over the exported frame step; `run` is ONNX Runtime's session or the module in torch."""
 
-    def __init__(self, manifest: dict, run: Runner, seed: int = 0, smoothing="config"):
+    def __init__(self, manifest: dict, run: Runner, seed: int = 0, smoothing="config", lookahead_s: float | None = None):
         self.manifest, self.run, self.seed = manifest, run, int(seed)
+        self.lookahead_s = lookahead_s  # the model's algorithmic latency (GestureStream.lookahead_s), when given
         self._seed = np.array([self.seed], np.int64)
         self.config = ModelConfig(**manifest["checkpoint"]["config"])
         call = manifest["call"]
@@ -149,6 +150,7 @@ def torch_runner(step) -> Runner:
     return run
 
 
-def ort_stream(folder: str | Path, seed: int = 0, smoothing="config", threads: int = 1) -> FrameStepStream:
+def ort_stream(folder: str | Path, seed: int = 0, smoothing="config", threads: int = 1,
+               lookahead_s: float | None = None) -> FrameStepStream:
     """A stream on ONNX Runtime from an export folder (`dimgestor export-onnx --out folder`)."""
-    return FrameStepStream(load_manifest(folder), ort_runner(folder, threads), seed, smoothing)
+    return FrameStepStream(load_manifest(folder), ort_runner(folder, threads), seed, smoothing, lookahead_s)

@@ -150,6 +150,12 @@ def _model_flags(s: argparse.ArgumentParser) -> None:
     _flag(s, "--no-batch", action="store_true",
               help="infer each stream's windows alone (default: the windows of all streams due at once run "
                    "as one batched forward per sampler step)")
+    _flag(s, "--backend", choices=("torch", "onnxruntime"),
+              help="torch (default), or onnxruntime: the model's ONNX export (dimgestor export-onnx) on ONNX "
+                   "Runtime's CPU provider, each stream's windows alone; the same frames to < 1e-4")
+    _flag(s, "--onnx", metavar="DIR",
+              help="with --backend onnxruntime: the checkpoint's export-onnx folder (its K and guidance); "
+                   "default: export it at start")
 
 
 def _server_flags(s: argparse.ArgumentParser) -> None:
@@ -187,6 +193,10 @@ def _server_flags(s: argparse.ArgumentParser) -> None:
                    "process). Without it a stopping worker ends its sessions (docs/protocol.md, goaway)")
     _flag(s, "--state-ttl", type=float, metavar="S",
               help="seconds a saved session waits to be resumed")
+    _flag(s, "--save-state-every", type=float, metavar="S",
+              help="also save each session to the state store every S seconds of its audio (between two windows; "
+                   "the client is told with session_saved): after a crash (SIGKILL, a lost machine) the client "
+                   "resumes from the last save, exactly. Needs --state-store")
     _flag(s, "--no-metrics", action="store_true",
               help="do not serve /metrics (Prometheus text format, no token needed) on the --ws port; /healthz "
                    "and /readyz (also without the token) are always served")

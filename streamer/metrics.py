@@ -42,6 +42,9 @@ class ServerMetrics:
                                             registry=r)
         self.sessions_resumed = Counter("dimgestor_sessions_resumed",
                                         "Client sessions resumed from the state store", registry=r)
+        self.sessions_saved = Counter("dimgestor_sessions_saved",
+                                      "Periodic saves of client sessions to the state store (--save-state-every)",
+                                      registry=r)
         self.sessions_refused = Counter(
             "dimgestor_sessions_refused", "Client audio refused a session: busy (--max-sessions reached), "
             "draining (shutting down) or audio_disabled (--no-client-audio)", ["reason"], registry=r)

@@ -48,6 +48,8 @@ class ServeOptions(BaseModel):
     smooth: float | None = None  # One Euro cutoff in Hz, 0 = off; None: the checkpoint's setting
     window_ms: int = Field(200, ge=10, le=5000)
     no_batch: bool = False
+    backend: Literal["torch", "onnxruntime"] = "torch"  # onnxruntime: the ONNX export, one stream per call
+    onnx: str | None = None  # with backend onnxruntime: an export folder of the checkpoint (else exported at start)
     # the WebSocket server (and the viewer on its port)
     ws: HostPort = ("127.0.0.1", 8765)
     no_ws: bool = False
@@ -63,6 +65,7 @@ class ServeOptions(BaseModel):
     no_metrics: bool = False  # /metrics not served (/healthz and /readyz always are)
     state_store: str | None = None  # "memory" or redis://...: sessions are handed over on SIGTERM (handover.py)
     state_ttl: float = Field(300.0, gt=0, le=86400)
+    save_state_every: float | None = Field(None, gt=0, le=3600)  # s of audio between a session's periodic saves
     # VMC/OSC
     osc: HostPort | None = None
     vmc_positions: Literal["hips", "all"] = "hips"
@@ -146,6 +149,13 @@ class ServeOptions(BaseModel):
             raise ValueError("--record records the server's own source; --source ws has none")
         if self.record and not Path(self.record).resolve().parent.is_dir():
             raise ValueError(f"--record {self.record}: folder {Path(self.record).resolve().parent} does not exist")
+        if self.onnx is not None and self.backend != "onnxruntime":
+            raise ValueError("--onnx is an export for --backend onnxruntime: give that too")
+        if self.backend == "onnxruntime" and self.state_store is not None:
+            raise ValueError("--state-store saves torch stream states: sessions on --backend onnxruntime are not "
+                             "handed over yet (use --backend torch)")
+        if self.save_state_every is not None and self.state_store is None:
+            raise ValueError("--save-state-every saves sessions to the state store: give --state-store too")
         if self.osc is not None:
             try:
                 self.vmc()

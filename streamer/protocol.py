@@ -25,7 +25,7 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
-REVISION = 3  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 4  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
@@ -145,6 +145,13 @@ def goaway(token: str, samples: int, frames: int, rate: int) -> str:
     re-send the audio from sample `samples` (at the client's `rate`), the frames going on from `frames`."""
     return json.dumps({"type": "goaway", "reason": "restart", "resume_token": token, "samples": int(samples),
                        "rate": int(rate), "frames": int(frames)})
+
+
+def session_saved(token: str, samples: int, frames: int, rate: int) -> str:
+    """A periodic save (--save-state-every): after a lost connection, resume_session with `token` goes on from
+    sample `samples` (at `rate`) and frame `frames` of this session."""
+    return json.dumps({"type": "session_saved", "resume_token": token, "samples": int(samples), "rate": int(rate),
+                       "frames": int(frames)})
 
 
 def session_resumed(samples: int, frames: int, rate: int) -> str:

@@ -80,9 +80,10 @@ def build(options: ServeOptions) -> Pipeline:
     bundle = _load(options.checkpoint)
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
-    executor = _executor(options.no_batch)
+    onnx = _onnx_export(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
+    executor = _executor(options.no_batch or onnx is not None)  # (ONNX Runtime runs each stream's call alone)
     metrics = _metrics(executor)
-    make_session = functools.partial(_session, bundle, options, executor, steps, guidance)
+    make_session = functools.partial(_session, bundle, options, executor, steps, guidance, onnx=onnx)
     session = make_session("source") if source is not None else None
     if session is not None:
         session.on_window = metrics.window_done
@@ -154,10 +155,54 @@ def _metrics(executor: StreamBatcher | RankedExecutor) -> ServerMetrics:
     return metrics
 
 
-def _session(bundle, options: ServeOptions, executor, steps: int, guidance: float, name: str = "client") -> Session:
+def _session(bundle, options: ServeOptions, executor, steps: int, guidance: float, name: str = "client",
+             onnx: str | None = None) -> Session:
+    if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime
+        from dimgestor.features import PoseDecoder
+        from dimgestor.onnx_stream import ort_stream
+
+        stream = ort_stream(onnx, seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
+        decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
+        return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
+                       executor=executor, name=name)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
                                window_ms=options.window_ms, executor=executor, name=name)
+
+
+def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
+    """--backend onnxruntime: the --onnx folder (checked against the checkpoint, K and guidance), or the
+    checkpoint exported now into a folder that lives as long as the process."""
+    from dimgestor.generate import check_export
+    from dimgestor.onnx_stream import load_manifest
+
+    if options.onnx is not None:
+        try:
+            manifest = load_manifest(options.onnx)
+            check_export(manifest, bundle)
+        except (OSError, ValueError, KeyError) as e:
+            raise ServeError(f"--onnx {options.onnx}: {e}") from None
+        sampler = manifest["sampler"]
+        if (options.steps is not None and options.steps != sampler["steps"]
+                or options.guidance is not None and options.guidance != sampler["guidance"]):
+            raise ServeError(f"--onnx {options.onnx} was exported with K={sampler['steps']} and guidance "
+                             f"{sampler['guidance']:g}: pass those (or export again)")
+        return options.onnx
+    import atexit
+    import shutil
+    import tempfile
+
+    from dimgestor.onnx_export import export_onnx
+
+    folder = tempfile.mkdtemp(prefix="dimgestor-onnx-")
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}) ...", file=sys.stderr, flush=True)
+    try:
+        export_onnx(options.checkpoint, folder, steps, guidance)
+    except ValueError as e:
+        raise ServeError(f"--backend onnxruntime: cannot export {options.checkpoint or 'the embedded model'}: {e}"
+                         ) from None
+    return folder
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
@@ -180,7 +225,8 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     origins=options.allow_origin, also=also, max_sessions=options.max_sessions,
                     ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
                     metrics=metrics, serve_metrics=not options.no_metrics,
-                    store=open_store(options.state_store, options.state_ttl))
+                    store=open_store(options.state_store, options.state_ttl),
+                    save_every_s=options.save_state_every)
 
 
 def _vmc(options: ServeOptions, rig):
@@ -332,7 +378,8 @@ def _banner(p: Pipeline) -> str:
     lines = [f"model {o.checkpoint or 'default (embedded)'}, K={p.steps}, seed={o.seed}, "
              + (f"guidance {p.guidance:g}, " if p.guidance != 1.0 else "") + f"{smooth}, "
              f"{int(fps) if float(fps).is_integer() else fps} fps, window {o.window_ms} ms, "
-             f"lookahead {session.lookahead_s * 1000:.0f} ms; source: {what}"]
+             f"lookahead {session.lookahead_s * 1000:.0f} ms"
+             + (", backend onnxruntime" if o.backend == "onnxruntime" else "") + f"; source: {what}"]
     lines += [line for sink in p.sinks for line in sink.describe().splitlines()]
     if o.http is not None:
         lines.append(f"--http is deprecated: the viewer is served on the WebSocket port ({p.ws.viewer_urls[0]}); "

@@ -138,6 +138,7 @@ class Session:
         self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
         self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
         self.handover = False  # set before the source closes: stop after its audio, unfinished (handover.py)
+        self.on_boundary: Callable[[], None] | None = None  # after each window: state, decoder and frames agree
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -186,6 +187,8 @@ class Session:
         try:
             while chunks := await buffer.take(self.windows.window):
                 await self._window(chunks, emit, waiting_s)
+                if self.on_boundary is not None:
+                    self.on_boundary()
             if self.handover:  # the state goes on elsewhere: no silence padded, no last frames
                 return self.stream.frames_out
             finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)

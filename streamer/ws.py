@@ -108,6 +108,8 @@ class Client:
         self.after_session: list[str] = []  # replies due once the running session has sent its `end`
         self.refused = False  # its current audio was refused a session (counted once in the metrics)
         self.handing_over = False  # the server is stopping and saves its session (its audio is ignored meanwhile)
+        self.saved_token: str | None = None  # its session's periodic saves go under this token (--save-state-every)
+        self.saved_audio_s = 0.0  # the audio its last periodic save covers
         peer = ws.remote_address
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.errors = ErrorLog(f"client {self.who}")
@@ -212,7 +214,7 @@ class WsServer:
                  ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
                  files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
                  max_waiting: int = 64, request_timeout_s: float = 10.0, metrics: ServerMetrics | None = None,
-                 serve_metrics: bool = True, store=None):
+                 serve_metrics: bool = True, store=None, save_every_s: float | None = None):
         self.host, self.port = host, port
         self.addresses = [(host, port), *also]  # (the real ports once open)
         self.files = files
@@ -220,6 +222,8 @@ class WsServer:
         self.hello = hello
         self.make_session = make_session  # None: clients may not send audio
         self.store = store  # a streamer.handover store: sessions are handed over when the server stops (None: ended)
+        self.save_every_s = save_every_s if store is not None else None  # periodic saves (_save_between_windows)
+        self._saving: set[asyncio.Task] = set()
         self.token = token
         self.origins = {o for o in map(RC.allowed_origin, origins) if o is not None}
         self.max_queue, self.max_sessions = max_queue, max_sessions
@@ -376,8 +380,7 @@ class WsServer:
                 continue  # (not finished in time, failed, or its client left)
             session, rate = c.session, c.audio.rate
             state = session.stream.state
-            meta = {"frames": c.session_frames, "decoder": dataclasses.asdict(session.decoder.state), "rate": rate,
-                    "encoding": c.encoding}
+            meta = self._session_meta(c, session)
             token = new_token()
             try:
                 data = await loop.run_in_executor(self.prep, savestate.dumps, session.stream, state, meta)
@@ -390,6 +393,45 @@ class WsServer:
             handed.add(c)
             self.metrics.sessions_handed_over.inc()
         return handed
+
+    @staticmethod
+    def _session_meta(client: Client, session) -> dict:
+        """What a saved state needs beside the stream's: the pose decoder's root, the frame count, the format."""
+        return {"frames": client.session_frames, "decoder": dataclasses.asdict(session.decoder.state),
+                "rate": client.audio.rate, "encoding": client.encoding}
+
+    def _save_between_windows(self, client: Client, session) -> None:
+        """--save-state-every: between two windows (the state, the decoder and the frames sent agree), once the
+        session's audio is save_every_s past its last save, its state goes to the store under the client's
+        standing token (one key per session, overwritten) and the client gets `session_saved`. A crash loses
+        at most that much: the client resumes from the save."""
+        from dimgestor import savestate
+
+        state = session.stream.state
+        audio_s = state.samples_in / SAMPLE_RATE
+        if client.handing_over or client.session is not session or audio_s - client.saved_audio_s < self.save_every_s:
+            return
+        client.saved_audio_s = audio_s
+        # copied now (a few ms for a megabyte): the next window moves the state on
+        data = savestate.dumps(session.stream, state, self._session_meta(client, session))
+        samples, frames, token = state.samples_in * client.audio.rate // SAMPLE_RATE, client.session_frames, \
+            client.saved_token
+        loop = asyncio.get_running_loop()
+
+        async def store() -> None:
+            try:
+                await loop.run_in_executor(self.prep, self.store.put, token, data)
+            except Exception as e:  # the store is down: the session goes on unsaved, said (rate-limited)
+                self.departures(logging.WARNING, f"periodic save of {client.who}'s session failed "
+                                                 f"({type(e).__name__}: {e})")
+                return
+            if client.session is session and not client.handing_over:
+                client.put(P.session_saved(token, samples, frames, client.audio.rate))
+                self.metrics.sessions_saved.inc()
+
+        task = loop.create_task(store())
+        self._saving.add(task)
+        task.add_done_callback(self._saving.discard)
 
     async def _resume(self, client: Client, token: str) -> None:
         """resume_session: the state saved under `token` (by any worker) becomes this client's session; its
@@ -426,6 +468,7 @@ class WsServer:
         root = dict(meta["decoder"])
         session.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
         client.session_frames = int(meta["frames"])
+        client.saved_audio_s = state.samples_in / SAMPLE_RATE  # (its periodic saves go on from here)
         session.clock.audio_s = state.samples_in / SAMPLE_RATE
         self.metrics.sessions_resumed.inc()
         client.put(P.session_resumed(state.samples_in * client.audio.rate // SAMPLE_RATE, client.session_frames,
@@ -718,6 +761,11 @@ class WsServer:
         self.metrics.sessions_started.inc()
         client.refused = False
         client.session_frames = 0
+        if self.save_every_s is not None:
+            from .handover import new_token
+
+            client.saved_token, client.saved_audio_s = new_token(), 0.0
+            session.on_boundary = lambda: self._save_between_windows(client, session)
         loop = asyncio.get_running_loop()
 
         async def emit(frames: list[Frame]) -> None:
@@ -751,6 +799,15 @@ class WsServer:
                 for m in client.after_session:
                     client.put(m)
             client.after_session.clear()
+            if self.save_every_s is not None and not task.cancelled() and not session.handover:
+                token = client.saved_token  # ended: its periodic save will not be resumed (else the TTL drops it)
+                if token is not None and not self.closing:
+                    def forget():
+                        try:
+                            self.store.take(token)
+                        except Exception:  # (a store that is down forgets it by its TTL)
+                            pass
+                    loop.run_in_executor(self.prep, forget)
 
         client.session_task = asyncio.create_task(run(), name="ws-session")
         client.session_task.add_done_callback(done)

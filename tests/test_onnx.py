@@ -162,3 +162,43 @@ def test_warmup_calls_keep_the_denoiser_state(exported):
         for k in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
             assert np.array_equal(out[k + "_out"], states[k]) == kept
         assert not np.array_equal(out["extractor_style_ssm_out"], states["extractor_style_ssm"])
+
+
+def test_serve_on_onnxruntime_records_what_the_torch_backend_records(exported, audio, tmp_path):
+    """`streamer serve --backend onnxruntime --onnx DIR` (the export's K and guidance) records the same motion as
+    the torch backend with the same settings: every joint within 1e-3 cm."""
+    import subprocess
+    import sys
+
+    from dimgestor.audio import save_wav
+    from dimgestor.bvh import forward_kinematics, read_bvh
+
+    wav = tmp_path / "speech.wav"
+    save_wav(wav, audio, SAMPLE_RATE)
+    guidance = load_manifest(exported)["sampler"]["guidance"]
+    out = {}
+    for backend in ("torch", "onnxruntime"):
+        out[backend] = tmp_path / f"{backend}.bvh"
+        extra = ["--onnx", str(exported)] if backend == "onnxruntime" else ["--guidance", str(guidance)]
+        r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
+                            "--record", str(out[backend]), "--steps", str(STEPS), "--seed", str(SEED), "--backend",
+                            backend, "--window-ms", "100", *extra], capture_output=True, text=True, timeout=180,
+                           env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert "backend onnxruntime" in r.stderr
+    a, b = read_bvh(out["torch"]), read_bvh(out["onnxruntime"])
+    assert a.num_frames == b.num_frames == len(audio) * 20 // SAMPLE_RATE
+    assert np.abs(forward_kinematics(a) - forward_kinematics(b)).max() < 1e-3
+
+
+def test_serve_refuses_an_onnx_export_with_other_settings_or_a_state_store(exported):
+    from streamer.options import ServeError, ServeOptions
+
+    with pytest.raises(ServeError, match="--state-store saves torch stream states"):
+        ServeOptions.parse(backend="onnxruntime", state_store="memory")
+    with pytest.raises(ServeError, match="--onnx is an export for --backend onnxruntime"):
+        ServeOptions.parse(onnx=str(exported))
+    from streamer.server import build
+
+    with pytest.raises(ServeError, match=f"exported with K={STEPS}"):
+        build(ServeOptions.parse(backend="onnxruntime", onnx=str(exported), steps=STEPS + 1, source="ws"))

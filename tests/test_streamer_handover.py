@@ -211,3 +211,42 @@ def test_audio_decoded_while_the_worker_starts_to_stop_does_not_start_a_new_sess
     goaway, started = asyncio.run(scenario())
     assert goaway["samples"] == 16000 and goaway["frames"] > 0, goaway
     assert started == 1  # no second session began on the stopping worker
+
+
+def test_after_sigkill_a_session_resumes_from_its_last_periodic_save_exactly(tmp_path, checkpoint, redis_url):
+    """Issue 22 item 4 with --save-state-every: the worker is killed (no goaway, no close frame); the client
+    reconnects to another worker and resumes from the last `session_saved`, and the motion it ends with is the
+    uninterrupted run's (the frames after the save come twice, equal; --bvh keeps one per index)."""
+    from dimgestor.bvh import forward_kinematics, read_bvh
+
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    store = ("--state-store", redis_url, "--save-state-every", "1", "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
+                                                                              extra=store) as b:
+        moved, bvh = tmp_path / "moved", tmp_path / "moved.bvh"
+        client = subprocess.Popen([sys.executable, str(CLIENT), "--url", a.ws_url, "--url", b.ws_url, "--wav", str(wav),
+                                   "--save", str(moved), "--bvh", str(bvh), "--quiet"], cwd=REPO,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # mid-sentence, after a few saves
+            if moved.is_dir() and sum(1 for p in moved.iterdir()) > 70:
+                break
+            time.sleep(0.05)
+        a.proc.send_signal(signal.SIGKILL)
+        out, err = client.communicate(timeout=60)
+        assert client.returncode == 0, err[-2000:]
+        whole = tmp_path / "whole.bvh"
+        run_client("--url", b.ws_url, "--wav", str(wav), "--bvh", str(whole), "--quiet", "--fast")
+    assert "resuming from the last saved state" in err and "resumed from sample" in err, err
+    msgs, frames = _frames(moved)
+    saved = [m for m in msgs if m["type"] == "session_saved"]
+    gaps = np.diff([0] + [s["samples"] for s in saved])
+    assert saved and (gaps >= 16000).all() and (gaps < 16000 + 3200).all(), gaps  # each 1 s of audio (+ a window)
+    assert all(0 < s["frames"] * 800 <= s["samples"] for s in saved), saved  # (frames lag by the lookahead)
+    indices = [f["index"] for f in frames]
+    assert sorted(set(indices)) == list(range(8 * 20))  # every frame, some twice (after the last save)
+    assert msgs[-1] == {"type": "end", "frames": 8 * 20}
+    got, want = read_bvh(bvh), read_bvh(whole)
+    assert got.num_frames == want.num_frames == 8 * 20
+    assert np.abs(forward_kinematics(got) - forward_kinematics(want)).max() < 1e-3  # cm (bit-exact here)

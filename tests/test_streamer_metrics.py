@@ -157,6 +157,9 @@ def test_health_paths_answer_without_the_token_get_and_head_only(bundle):
 
         with pytest.raises(Exception, match="401"):  # the WebSocket still needs its token
             asyncio.run(handshake(ws.url))
+        with pytest.raises(Exception, match="503"):  # and a draining worker takes no new one (a balancer retries)
+            asyncio.run(handshake(ws.url + "?token=s3cret"))
+        ws.metrics.readiness.draining = False
         assert asyncio.run(handshake(ws.url + "?token=s3cret")) == "hello"
     with running(make_server(bundle, serve_metrics=False)) as ws:  # --no-metrics
         assert get(ws.port, "/metrics")[0] == 404 and get(ws.port, "/readyz")[0] == 200

@@ -57,6 +57,7 @@ def test_options_are_frozen_and_refuse_unknown_names():
     ({"no_ws": True, "http": (None, 8080)}, "--http serves the viewer from the WebSocket server (drop --no-ws)"),
     ({"record": "x.bvh", "source": "ws"}, "--record records the server's own source"),
     ({"allow_origin": ["http://a.example/x"]}, "is not an origin"),
+    ({"save_state_every": 5.0}, "--save-state-every saves sessions to the state store: give --state-store too"),
 ])
 def test_a_bad_option_is_one_message_naming_its_flag(values, message):
     with pytest.raises(ServeError) as e:

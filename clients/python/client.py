@@ -84,6 +84,7 @@ class AudioFlow:
         self.heard_s = 0.0  # pts of the last frame of our own session, plus one frame
         self.frames = 0  # frames of our own session received (after a fresh restart: counted on from before)
         self.offset_s = 0.0  # a fresh stream after a lost worker starts at pts 0 this far into our audio
+        self.saved: dict | None = None  # the server's last `session_saved` (--save-state-every): resumable
         self.own = False  # our session's frames have begun (a frame with index 0 after our first audio)
         self.paused = False
         self.pauses = 0
@@ -98,6 +99,9 @@ class AudioFlow:
             self.paused = False
         elif kind == "error" and msg.get("code") in ("busy", "audio_disabled", "internal"):
             self.refused = msg["code"]
+        elif kind == "session_saved":
+            self.saved = msg
+            return
         elif kind == "frame" and self.sent_s > 0:
             # Frames of the broadcast we followed before our audio may still come; ours start at index 0.
             self.own = self.own or msg["index"] == 0
@@ -115,7 +119,7 @@ class AudioFlow:
 
     def on_restarted(self, at_s: float) -> None:
         """A new connection after the worker was lost: a fresh stream of our audio from at_s, its pts from 0."""
-        self.offset_s, self.own = at_s, False
+        self.offset_s, self.own, self.saved = at_s, False, None
         self.on_resumed(at_s, at_s)
 
     def may_send(self) -> bool:
@@ -440,16 +444,23 @@ async def run(args) -> int:
                 if not args.wav:
                     raise
                 lost += 1
-                ws = await reconnect(urls, args.token, resumes + lost)
-                start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
-                print(f"connection lost ({e.rcvd.code if e.rcvd else 'no close frame'}): a fresh stream from sample "
-                      f"{start} (frame {flow.frames})", file=sys.stderr)
-                flow.on_restarted(start / wav[1])
-                hello = True
-                continue
+                why = e.rcvd.code if e.rcvd else "no close frame"
+                if flow.saved is None:
+                    ws = await reconnect(urls, args.token, resumes + lost)
+                    start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
+                    print(f"connection lost ({why}): a fresh stream from sample {start} (frame {flow.frames})",
+                          file=sys.stderr)
+                    flow.on_restarted(start / wav[1])
+                    hello = True
+                    continue
+                # the server saved our session lately (--save-state-every): resume from there, exactly; the
+                # frames after the save come again (the same ones: --bvh keeps one per index)
+                print(f"connection lost ({why}): resuming from the last saved state (frame "
+                      f"{flow.saved['frames']})", file=sys.stderr)
+                result = flow.saved
             if not isinstance(result, dict):
                 return result
-            goaway = result
+            goaway, flow.saved = result, None
             await ws.close()
             loop = asyncio.get_running_loop()
             deadline = loop.time() + RESUME_WITHIN_S
@@ -511,7 +522,7 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
                     bvh.skeleton, bvh.fps = msg["skeleton"], float(msg.get("fps", bvh.fps))
                 elif msg.get("type") == "frame" and (flow.own or not (args.wav or args.mic)):
                     bvh.add(msg, round(flow.offset_s * fps))  # our own session's (or the broadcast we follow)
-            if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:
+            if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:  # (the worker stops)
                 goaway = msg
                 return
             if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
