@@ -10,7 +10,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 import urllib.error
 import urllib.request
@@ -26,61 +25,15 @@ from websockets.exceptions import InvalidStatus
 
 from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer import protocol as P
-from helpers.clients import SPEECH_WAV, free_port
+from helpers.clients import SPEECH_WAV
+from helpers.cluster import LOCAL_CLUSTER, NGINX, Cluster
 
 REPO = Path(__file__).resolve().parents[1]
-LOCAL_CLUSTER = REPO / "deploy" / "local-cluster"
-NGINX = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if os.access(p, os.X_OK)),
-                                      None)
 pytestmark = pytest.mark.timeout(120)
 needs_nginx = pytest.mark.skipif(NGINX is None, reason="nginx not installed (Debian: apt-get install nginx; .ci/run "
                                                        "installs it): deploy/local-cluster runs a real nginx")
 FPS, SECONDS = 20, 2.0
 WORKER_ARGS = ["--max-sessions", "2", "--status-every", "0"]
-
-
-class Cluster:
-    """deploy/local-cluster as a user runs it, its output (stdout and stderr) read line by line in a thread."""
-
-    def __init__(self, *args: str, workers: int = 2):
-        self.port = free_port()
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen([sys.executable, str(LOCAL_CLUSTER), "--workers", str(workers), "--port",
-                                      str(self.port), *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True)
-        self.lines: list[str] = []
-        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
-        self.reader.start()
-        self.url, self.http = f"ws://127.0.0.1:{self.port}/", f"http://127.0.0.1:{self.port}"
-
-    @property
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for(self, pattern: str, timeout: float = 90.0) -> re.Match:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if m := re.search(pattern, self.output, re.M):
-                return m
-            if self.proc.poll() is not None and not self.reader.is_alive():
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"{pattern!r} never printed; local-cluster's output:\n{self.output}")
-
-    def workers(self) -> dict[int, tuple[int, int]]:
-        """worker number -> (its own port, its pid), from the lines local-cluster prints before `ready`."""
-        return {int(n): (int(port), int(pid)) for n, port, pid in
-                re.findall(r"^worker (\d+): http://127\.0\.0\.1:(\d+)/ \(pid (\d+)\)$", self.output, re.M)}
-
-    def stop(self, timeout: float = 30.0) -> int:
-        """SIGTERM, as a service manager or Ctrl-C would; -> its exit status (a bound, not a measured time)."""
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(timeout)
-        finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-            self.reader.join(5)
 
 
 def get(url: str) -> tuple[int, str]:

@@ -21,6 +21,8 @@ const ENCODING = params.get('encoding') === 'binary' ? 'binary' : 'json';
 const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
 const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
+const RESEND_S = 15;  // our audio kept after it is sent: a hand-over re-sends it from the sample the state covers
+const RESUME_WITHIN_MS = 10000;  // after a goaway: tries to resume this long before a fresh session
 const FPS_WINDOW_MS = 5000;       // received fps is averaged over this long (frames come in bursts)
 
 const $ = (id) => document.getElementById(id);
@@ -39,6 +41,7 @@ const api = window.dimgestor = {
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
   audioFlow: null,  // the microphone's AudioFlow while talking: paused, pauses, resumes, heldS, droppedS
   notices: [],      // slow_down / resume: the server's flow control, not errors
+  handovers: 0, resumed: 0,  // goaway (the worker stopped) while talking; sessions resumed on another worker
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -435,19 +438,49 @@ function socketUrl() {
   return u.toString();
 }
 
-function connect(audio = null) {
+// ---- hand-over (protocol revision 3): a worker that stops sends `goaway` with a resume token; our session goes
+// on on another worker (the same URL: a balancer picks one) from the sample its state covers, so we keep the
+// audio we sent lately (`sent`) and hold the microphone meanwhile (AudioFlow, as at slow_down).
+let handover = null;  // {token, since (ms)} from a goaway until session_resumed (or a fresh session)
+const sent = { chunks: [], samples: 0 };  // [first sample, buffer, samples] of our recent audio; samples sent
+
+function keepSent(buf, n) {
+  sent.chunks.push([sent.samples, buf, n]);
+  sent.samples += n;
+  const keep = RESEND_S * (api.audioRate || 48000);
+  while (sent.chunks.length > 1 && sent.samples - sent.chunks[0][0] - sent.chunks[0][2] > keep) sent.chunks.shift();
+}
+
+function resendFrom(sample) {
+  // The audio after `sample` again, in order (the chunk that straddles it cut), then what was held meanwhile.
+  const bytes = AUDIO_FORMAT === 'float32' ? 4 : 2;
+  for (const [first, buf, n] of sent.chunks) {
+    if (first + n <= sample) continue;
+    const skip = Math.max(0, sample - first);
+    ws.send(skip ? buf.slice(skip * bytes) : buf);
+    api.audioChunksSent++;
+  }
+  for (const b of api.audioFlow.resume()) sendNow(b);
+}
+
+function connect(audio = null, resume = null) {
   clearTimeout(reconnectTimer);
   endPending = false;
   if (ws) { const old = ws; ws = null; old.close(1000, 'reconnect'); }
   mode = audio ? 'talk' : 'view';
-  lastIndex = -1;
-  playout.offset = null;  // whatever this connection sends starts a new playout clock
-  playout.queue = [];
-  clock.reset();
-  sourceAudio.clear();
-  spoken.length = 0;
-  arrivals.length = 0;
   pingSentAt = null;
+  if (!resume) {  // a resumed session goes on: its frames, clocks and audio continue where they were
+    handover = null;
+    sent.chunks.length = 0;
+    sent.samples = 0;
+    lastIndex = -1;
+    playout.offset = null;  // whatever this connection sends starts a new playout clock
+    playout.queue = [];
+    clock.reset();
+    sourceAudio.clear();
+    spoken.length = 0;
+    arrivals.length = 0;
+  }
   const sock = new WebSocket(api.url);
   sock.binaryType = 'arraybuffer';
   ws = sock;
@@ -461,6 +494,7 @@ function connect(audio = null) {
     const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio };
     if (audio) hello.audio = audio;
     sock.send(JSON.stringify(hello));
+    if (resume) sock.send(JSON.stringify({ type: 'resume_session', token: resume.token }));
     reconnectDelay = 1000;
     setState('open');
   };
@@ -468,6 +502,11 @@ function connect(audio = null) {
   sock.onclose = (ev) => {
     if (sock !== ws) return;  // a socket we replaced on purpose
     ws = null;
+    if (handover && api.talking) {  // the worker stopped (1012 after goaway): resume on another, at once
+      setState('moving');
+      reconnectTimer = setTimeout(() => resumeOrRestart(), 50);
+      return;
+    }
     setState('closed', ev.code === 1000 ? '' : ` (code ${ev.code}${ev.reason ? ': ' + ev.reason : ''})`);
     // A refused handshake (a 401 for a missing token) reaches a page only as a close before open.
     if (!opened && !params.get('token')) say('cannot connect: if the server requires a token, open this page with ?token=...');
@@ -476,6 +515,15 @@ function connect(audio = null) {
     reconnectTimer = setTimeout(() => connect(null), reconnectDelay);
     reconnectDelay = Math.min(reconnectDelay * 2, 10000);
   };
+}
+
+function resumeOrRestart() {
+  if (!api.talking) { handover = null; connect(null); return; }
+  if (performance.now() - handover.since < RESUME_WITHIN_MS) { connect(api.talkFormat, handover); return; }
+  say('could not resume our session on another worker: a fresh one starts');
+  api.audioFlow.take();  // what was held belongs to the old session
+  api.audioFlow.paused = false;
+  connect(api.talkFormat);
 }
 
 function onMessage(data) {
@@ -509,7 +557,33 @@ function onMessage(data) {
     case 'frame': onFrame(msg); break;
     case 'status': api.status = msg; break;
     case 'pong': if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; } break;
+    case 'goaway':  // revision 3: this worker is stopping; our session's state is saved under the token
+      if (mode === 'talk' && api.talking && msg.resume_token) {
+        handover = { token: msg.resume_token, since: performance.now() };
+        api.handovers++;
+        api.audioFlow.slowDown();  // hold the microphone until session_resumed
+        say('the server is restarting: moving our session to another worker');
+      }
+      break;
+    case 'session_resumed':
+      if (mode === 'talk' && handover) {
+        handover = null;
+        api.resumed++;
+        resendFrom(msg.samples);
+        setState('open');
+        say('our session moved to another worker: talking again');
+      }
+      break;
     case 'error':
+      if (handover && ['busy', 'resume_failed'].includes(msg.code)) {  // during a hand-over
+        api.notices.push(msg);
+        if (msg.code === 'resume_failed') handover.since = -Infinity;  // the token is spent: a fresh session
+        const sock = ws;
+        ws = null;  // (its close is ours: no reconnect from onclose)
+        if (sock) sock.close(1000, 'resume elsewhere');
+        reconnectTimer = setTimeout(() => resumeOrRestart(), msg.code === 'busy' ? 200 : 0);
+        break;
+      }
       if (msg.code === 'slow_down') {  // a notice, nothing was lost: hold the microphone until `resume`
         api.notices.push(msg);
         if (mode === 'talk' && api.audioFlow) {
@@ -640,7 +714,8 @@ async function startTalk() {
     api.audioRate = ctx.sampleRate;
     api.audioFlow = new AudioFlow(ctx.sampleRate);
     // Our own session: a fresh connection whose hello declares the audio we will send.
-    connect({ rate: ctx.sampleRate, format: AUDIO_FORMAT, channels: 1 });
+    api.talkFormat = { rate: ctx.sampleRate, format: AUDIO_FORMAT, channels: 1 };
+    connect(api.talkFormat);
     ui.talk.textContent = 'Stop';
     ui.talk.classList.add('on');
     updateSoundButton();
@@ -687,7 +762,8 @@ function stopMic() {
 }
 
 function sendAudio(f32) {
-  if (!api.talking || mode !== 'talk' || !ws || ws.readyState !== WebSocket.OPEN) return;
+  if (!api.talking || mode !== 'talk') return;
+  if (!handover && (!ws || ws.readyState !== WebSocket.OPEN)) return;  // (moving: held below, sent at resume)
   const flow = api.audioFlow;
   if (!flow.paused && ws.bufferedAmount > MAX_SEND_BUFFER) { api.audioChunksDropped++; return; }  // bounded, counted
   let buf;
@@ -714,6 +790,7 @@ function sendNow(buf) {
   if (!ws || ws.readyState !== WebSocket.OPEN) return;
   ws.send(buf);
   api.audioChunksSent++;
+  keepSent(buf, buf.byteLength / (AUDIO_FORMAT === 'float32' ? 4 : 2));
 }
 
 ui.talk.addEventListener('click', () => startTalk());
