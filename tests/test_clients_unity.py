@@ -4,6 +4,7 @@ MonoBehaviour, built against stand-ins of the UnityEngine types it uses, retarge
 bone axes like the server's FK, and really connects to a live server, talks and gestures."""
 
 import json
+import os
 import shutil
 import subprocess
 
@@ -179,6 +180,52 @@ def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path
     assert out["sent"] and out["error"] == "", out
     assert out["pauses"] >= 1 and out["resumes"] == out["pauses"] and not out["paused"], out
     assert out["dropped_s"] == 0 and out["frames"] >= seconds * 20 - 2, out
+
+
+@pytest.mark.skipif(not (shutil.which("redis-server") and (shutil.which("nginx") or os.path.exists("/usr/sbin/nginx"))),
+                    reason="nginx and redis-server are needed (.ci/run installs both): the cluster's balancer and store")
+def test_unity_client_moves_with_its_session_when_its_worker_stops(tmp_path, checkpoint):  # noqa: F811
+    """Issue 22: DimgestorClient talking through nginx (deploy/local-cluster: 2 workers + Redis) gets `goaway`
+    when its worker is stopped (SIGTERM) mid-talk, resumes on the other worker (re-sending its audio from the
+    sample the saved state covers, holding SendAudio's chunks meanwhile) and every second of its audio comes back
+    as frames, with no error."""
+    import re
+    import signal
+    import time
+    import urllib.request
+
+    from helpers.cluster import Cluster
+
+    exe = tmp_path / "LiveCheck.exe"
+    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
+                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs",
+                                   "tests/StubAvatar.cs", "tests/LiveCheck.cs")))
+    seconds = 6
+
+    def streams(port: int) -> float:
+        text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+        return float(re.search(r"^dimgestor_streams (\S+)$", text, re.M).group(1))
+
+    cluster = Cluster("--", "--checkpoint", str(checkpoint), "--steps", "2", "--window-ms", "100", "--status-every", "0")
+    try:
+        cluster.wait_for(r"^ready: ")
+        workers = cluster.workers()
+        client = subprocess.Popen([MONO, str(exe), cluster.url, str(SPEECH_WAV), str(seconds)], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        deadline, ours = time.monotonic() + 60, []
+        while not ours and time.monotonic() < deadline:
+            ours = [pid for port, pid in workers.values() if streams(port) >= 1]
+            time.sleep(0.2)
+        time.sleep(2.0)  # mid-talk
+        os.kill(ours[0], signal.SIGTERM)
+        out, err = client.communicate(timeout=120)
+    finally:
+        cluster.stop()
+    assert client.returncode == 0, err
+    out = json.loads(out)
+    assert out["handovers"] == 1 and out["resumed"] == 1, out
+    assert out["sent"] and out["error"] == "" and out["dropped_s"] == 0, out
+    assert out["frames"] >= seconds * 20 - 2 and out["moved"] > 1e-3, out
 
 
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):

@@ -1,4 +1,4 @@
-// Unity client for dimgestor (protocol v1 revision 2): receives gesture frames over a WebSocket and drives a Humanoid
+// Unity client for dimgestor (protocol v1 revision 3): receives gesture frames over a WebSocket and drives a Humanoid
 // avatar through Animator.GetBoneTransform. No third-party package: System.Net.WebSockets.ClientWebSocket.
 //
 // Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
@@ -40,6 +40,8 @@ namespace Dimgestor
         public bool audioPaused;                  // between the server's slow_down and its resume
         public float heldAudioS;                  // audio waiting for resume
         public float droppedAudioS;               // held beyond maxHeldAudioS: dropped (oldest first)
+        public int handovers;                     // goaways while we had our own session (the worker stopped)
+        public int resumed;                       // sessions resumed on another worker after a goaway
 
         class Binding { public Transform bone; public int joint; public Quaternion rest; }
 
@@ -54,6 +56,7 @@ namespace Dimgestor
         Transform hips;
         Vector3 hipsRest;
         Vec3? rootReference;                      // first root of a stream: root motion is relative to it
+        bool keepStream;                          // the next hello is a resumed session's: its stream goes on
         long lastIndex = -1;
         float hipsScale = 1f;
 
@@ -62,6 +65,17 @@ namespace Dimgestor
         readonly SemaphoreSlim sendLock = new SemaphoreSlim(1, 1);  // ClientWebSocket allows one send at a time
         int audioFormatKey;                       // rate * 16 + channels declared in our last hello (0: none yet)
         readonly AudioFlow flow = new AudioFlow();  // slow_down / resume (protocol revision 2)
+
+        // Hand-over (revision 3): a stopping worker sends goaway with a token; we connect again (a balancer picks
+        // another worker), resume_session, and re-send our audio from the sample the saved state covers: so the
+        // last ResendS seconds we sent are kept, and SendAudio holds its chunks meanwhile (as at slow_down).
+        const double ResendS = 15, ResumeWithinS = 10;
+        class SentChunk { public long First; public byte[] Bytes; public int Samples; }
+        readonly List<SentChunk> sent = new List<SentChunk>();
+        long sentSamples;
+        int audioRate, audioChannels = 1;
+        string resumeToken;                       // from a goaway until session_resumed
+        DateTime resumeSince;
 
         void OnEnable()
         {
@@ -90,19 +104,39 @@ namespace Dimgestor
                         connectionState = "connecting";
                         await ws.ConnectAsync(uri, ct).ConfigureAwait(false);
                         socket = ws;
-                        audioFormatKey = 0;
-                        flow.Reset();
-                        audioPaused = false;
-                        connectionState = "open";
-                        await SendText(Protocol.ClientHello(binaryFrames), ct).ConfigureAwait(false);
+                        if (resumeToken != null && (DateTime.UtcNow - resumeSince).TotalSeconds > ResumeWithinS)
+                        {
+                            resumeToken = null;  // could not resume in time: a fresh session (what was held is dropped)
+                            lastError = "could not resume our session after a goaway: a fresh one starts";
+                        }
+                        if (resumeToken != null)  // our session goes on here: its format, then the token
+                        {
+                            connectionState = "resuming";
+                            audioFormatKey = audioRate * 16 + audioChannels;
+                            await SendText(Protocol.ClientHello(binaryFrames, audioRate, "float32", audioChannels), ct).ConfigureAwait(false);
+                            await SendText(Protocol.ResumeSession(resumeToken), ct).ConfigureAwait(false);
+                        }
+                        else
+                        {
+                            audioFormatKey = 0;
+                            flow.Reset();
+                            audioPaused = false;
+                            lock (sent) { sent.Clear(); sentSamples = 0; }
+                            connectionState = "open";
+                            await SendText(Protocol.ClientHello(binaryFrames), ct).ConfigureAwait(false);
+                        }
                         await ReceiveLoop(ws, ct).ConfigureAwait(false);
                     }
                 }
                 catch (OperationCanceledException) { break; }
-                catch (Exception e) { lastError = e.Message; }  // refused (e.g. 401: wrong token), dropped, bad data
+                catch (Exception e)  // refused (e.g. 401: wrong token), dropped, bad data
+                {
+                    if (resumeToken == null) lastError = e.Message;  // (after a goaway the worker closes: expected)
+                }
                 socket = null;
-                connectionState = "closed, retrying";
-                try { await Task.Delay(2000, ct).ConfigureAwait(false); } catch (OperationCanceledException) { break; }
+                connectionState = resumeToken != null ? "moving" : "closed, retrying";
+                try { await Task.Delay(resumeToken != null ? 100 : 2000, ct).ConfigureAwait(false); }
+                catch (OperationCanceledException) { break; }
             }
             connectionState = "stopped";
         }
@@ -138,7 +172,8 @@ namespace Dimgestor
                 lock (gate)
                 {
                     pendingHello = h;
-                    playout.Reset();
+                    keepStream = resumeToken != null;  // a resumed session: its frames and root go on
+                    if (!keepStream) playout.Reset();
                     // Buffer one inference window (the burst length) plus some network jitter.
                     playout.DelayS = (h.WindowMs > 0 ? h.WindowMs / 1000.0 : 0.25) + 0.06;
                 }
@@ -146,14 +181,41 @@ namespace Dimgestor
             }
             var s = m as Status;
             if (s != null) { latencyMs = (float)s.LatencyMs; droppedFrames = s.Dropped; return; }
+            var g = m as GoAway;
+            if (g != null && audioFormatKey != 0 && !string.IsNullOrEmpty(g.Token))  // our session moves: hold our audio
+            {
+                resumeSince = DateTime.UtcNow;
+                resumeToken = g.Token;
+                handovers++;
+                flow.SlowDown();
+                audioPaused = true;
+                return;
+            }
+            var r = m as SessionResumed;
+            if (r != null && resumeToken != null)
+            {
+                resumeToken = null;
+                resumed++;
+                connectionState = "open";
+                audioPaused = false;
+                SendHeld(r.Samples);  // (not awaited: the receive loop goes on)
+                return;
+            }
             var e = m as ErrorMessage;
+            if (e != null && resumeToken != null && (e.Code == "busy" || e.Code == "resume_failed"))
+            {
+                if (e.Code == "resume_failed") { resumeToken = null; lastError = e.Code + ": " + e.Text; audioPaused = false; SendHeld(); }
+                else { var sock = socket; if (sock != null) sock.Abort(); }  // a worker stopping too: another one (the token stays good)
+                return;
+            }
             if (e != null && e.IsSlowDown) { flow.SlowDown(); audioPaused = true; return; }  // a notice, not an error
             if (e != null) { lastError = e.Code + ": " + e.Text; return; }
             if (m is Resume) { audioPaused = false; SendHeld(); }  // (not awaited: the receive loop goes on)
         }
 
-        /// <summary>After `resume`: what was held while paused goes first, in order, then a pending audio_end.</summary>
-        async void SendHeld()  // (async void: every exception is caught inside)
+        /// <summary>After `resume`: what was held while paused goes first, in order, then a pending audio_end. After
+        /// `session_resumed` (resendFrom >= 0): first our audio again from that sample on.</summary>
+        async void SendHeld(long resendFrom = -1)  // (async void: every exception is caught inside)
         {
             var ws = socket;
             if (ws == null || cts == null) return;
@@ -163,7 +225,22 @@ namespace Dimgestor
                 await sendLock.WaitAsync(ct).ConfigureAwait(false);
                 try
                 {
-                    foreach (var chunk in flow.Resume()) await Send(ws, chunk, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                    if (resendFrom >= 0)
+                    {
+                        List<SentChunk> again;
+                        lock (sent) again = sent.FindAll(c => c.First + c.Samples > resendFrom);
+                        foreach (var c in again)
+                        {
+                            int skip = (int)Math.Max(0, resendFrom - c.First) * 4 * audioChannels;
+                            var bytes = skip == 0 ? c.Bytes : new ArraySegment<byte>(c.Bytes, skip, c.Bytes.Length - skip).ToArray();
+                            await Send(ws, bytes, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                        }
+                    }
+                    foreach (var chunk in flow.Resume())
+                    {
+                        await Send(ws, chunk, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                        KeepSent(chunk);
+                    }
                     if (flow.TakeEndPending()) await Send(ws, Encoding.UTF8.GetBytes(AudioEnd), WebSocketMessageType.Text, ct).ConfigureAwait(false);
                     heldAudioS = (float)flow.HeldS;
                 }
@@ -201,8 +278,8 @@ namespace Dimgestor
             bindings.Sort((a, b) => a.joint.CompareTo(b.joint));  // parents before children
             hips = animator.GetBoneTransform(HumanBodyBones.Hips);
             if (hips != null) hipsRest = hips.localPosition;
-            rootReference = null;
-            lastIndex = -1;
+            if (!keepStream) { rootReference = null; lastIndex = -1; }
+            keepStream = false;
         }
 
         void RestoreRest()
@@ -254,22 +331,29 @@ namespace Dimgestor
         public async Task<bool> SendAudio(float[] samples, int sampleRate, int channels = 1)
         {
             var ws = socket;
-            if (ws == null || ws.State != WebSocketState.Open || cts == null) return false;
+            bool moving = resumeToken != null;  // our session is moving to another worker: held meanwhile
+            if (!moving && (ws == null || ws.State != WebSocketState.Open) || cts == null) return false;
             var ct = cts.Token;
             var bytes = Protocol.EncodeFloat32(samples, 0, samples.Length);
             await sendLock.WaitAsync(ct).ConfigureAwait(false);
             try
             {
-                if (sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
+                if (!moving && sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
                 {
                     flow.DropHeld();  // (held audio of another format cannot follow the new hello)
                     await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels)),
                                WebSocketMessageType.Text, ct).ConfigureAwait(false);
                     audioFormatKey = sampleRate * 16 + channels;
+                    audioRate = sampleRate;
+                    audioChannels = channels;
+                    lock (sent) { sent.Clear(); sentSamples = 0; }
                 }
                 flow.MaxHeldS = maxHeldAudioS;
                 foreach (var chunk in flow.Offer(bytes, samples.Length / (double)(channels * sampleRate)))
+                {
                     await Send(ws, chunk, WebSocketMessageType.Binary, ct).ConfigureAwait(false);
+                    KeepSent(chunk);
+                }
                 heldAudioS = (float)flow.HeldS;
                 if (flow.DroppedS > 0 && droppedAudioS == 0)
                     Debug.LogWarning("dimgestor: paused by the server for over " + maxHeldAudioS + " s: dropping the oldest audio (droppedAudioS)");
@@ -283,11 +367,23 @@ namespace Dimgestor
         public async Task EndAudio()
         {
             var ws = socket;
-            if (ws == null || ws.State != WebSocketState.Open || cts == null) return;
+            if (resumeToken == null && (ws == null || ws.State != WebSocketState.Open) || cts == null) return;
             var ct = cts.Token;
             await sendLock.WaitAsync(ct).ConfigureAwait(false);
             try { if (flow.End()) await Send(ws, Encoding.UTF8.GetBytes(AudioEnd), WebSocketMessageType.Text, ct).ConfigureAwait(false); }
             finally { sendLock.Release(); }
+        }
+
+        /// <summary>A chunk of our audio went out: kept (the last ResendS seconds) to be sent again after a goaway.</summary>
+        void KeepSent(byte[] chunk)
+        {
+            int n = chunk.Length / (4 * audioChannels);
+            lock (sent)
+            {
+                sent.Add(new SentChunk { First = sentSamples, Bytes = chunk, Samples = n });
+                sentSamples += n;
+                while (sent.Count > 1 && sentSamples - sent[0].First - sent[0].Samples > ResendS * audioRate) sent.RemoveAt(0);
+            }
         }
 
         async Task SendText(string text, CancellationToken ct)

@@ -95,6 +95,11 @@ namespace Dimgestor
     }
     /// <summary>Revision 2: after a `slow_down`, the server's backlog of our audio is down to BacklogS: send again.</summary>
     public class Resume : Message { public double BacklogS; }
+    /// <summary>Revision 3: the worker is stopping; our session's state is saved under Token (Samples of our audio at
+    /// Rate, Frames made). Connect again, send resume_session with it, and re-send the audio from Samples on.</summary>
+    public class GoAway : Message { public string Token; public long Samples, Frames; public int Rate; }
+    /// <summary>Revision 3: resume_session worked; send our audio from Samples on (frames go on at Frames).</summary>
+    public class SessionResumed : Message { public long Samples, Frames; public int Rate; }
     public class End : Message { public long Frames; }
     public class Pong : Message { }
     /// <summary>A type this client does not know; the protocol says to ignore it.</summary>
@@ -108,7 +113,7 @@ namespace Dimgestor
     public static class Protocol
     {
         public const int Version = 1;
-        public const int Revision = 2;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+        public const int Revision = 3;  // the optional additions this client knows (docs/protocol.md, "Revisions")
         public const int BinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
         /// <summary>Parse one text message. Throws ProtocolException (with the position) on bad input.</summary>
@@ -133,6 +138,18 @@ namespace Dimgestor
                 case "end": return new End { Type = type, Frames = (long)Json.Num(o, "frames", 0) };
                 case "pong": return new Pong { Type = type };
                 case "resume": return new Resume { Type = type, BacklogS = Json.Num(o, "backlog_s", 0) };
+                case "goaway":
+                    return new GoAway
+                    {
+                        Type = type, Token = Json.Str(o, "resume_token", ""), Samples = (long)Json.Num(o, "samples", 0),
+                        Frames = (long)Json.Num(o, "frames", 0), Rate = (int)Json.Num(o, "rate", 0),
+                    };
+                case "session_resumed":
+                    return new SessionResumed
+                    {
+                        Type = type, Samples = (long)Json.Num(o, "samples", 0), Frames = (long)Json.Num(o, "frames", 0),
+                        Rate = (int)Json.Num(o, "rate", 0),
+                    };
                 case null: throw new ProtocolException("message has no \"type\" field");
                 default: return new UnknownMessage { Type = type };
             }
@@ -256,6 +273,14 @@ namespace Dimgestor
                   .Append(",\"format\":\"").Append(audioFormat).Append("\",\"channels\":")
                   .Append(channels.ToString(CultureInfo.InvariantCulture)).Append('}');
             return sb.Append('}').ToString();
+        }
+
+        /// <summary>resume_session with a goaway's token (URL-safe base64: nothing to escape).</summary>
+        public static string ResumeSession(string token)
+        {
+            foreach (char c in token)
+                if (!(char.IsLetterOrDigit(c) || c == '-' || c == '_')) throw new ProtocolException("resume token " + token + " is not URL-safe base64");
+            return "{\"type\":\"resume_session\",\"token\":\"" + token + "\"}";
         }
 
         /// <summary>Float samples (-1..1) to the float32 little-endian wire format.</summary>

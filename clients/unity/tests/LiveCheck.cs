@@ -111,7 +111,8 @@ static class LiveCheck
             + ",\"changed\":" + changed + ",\"moved\":" + moved.ToString("R", CultureInfo.InvariantCulture) + ",\"sent\":"
             + (sender != null && sender.Status == TaskStatus.RanToCompletion ? "true" : "false")
             + ",\"pauses\":" + flow.Pauses + ",\"resumes\":" + flow.Resumes + ",\"paused\":" + (client.audioPaused ? "true" : "false")
-            + ",\"dropped_s\":" + flow.DroppedS.ToString("R", CultureInfo.InvariantCulture) + ",\"error\":\""
+            + ",\"dropped_s\":" + flow.DroppedS.ToString("R", CultureInfo.InvariantCulture)
+            + ",\"handovers\":" + client.handovers + ",\"resumed\":" + client.resumed + ",\"error\":\""
             + (error ?? "").Replace("\\", "\\\\").Replace("\"", "\\\"") + "\"}");
         return 0;
     }
