@@ -114,6 +114,29 @@ def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path)
     assert out["dropped_s"] == pytest.approx(1.2) and "slow down" in out["notice"], out
 
 
+def test_unreal_component_moves_with_its_session_at_goaway(tmp_path):
+    """UDimgestorComponent (engine stand-ins) talking when its worker stops (protocol revision 3): goaway, the
+    socket closes, the component connects again at once with its audio format and resume_session, holds what
+    SendAudio gets, and at session_resumed re-sends its audio from the sample the saved state covers (chunk 2 on),
+    then what it held (3, 4), and goes on (5, audio_end). No error."""
+    exe = tmp_path / "component_handover_check"
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
+           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "component_handover_check.cpp"),
+           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["ok"] and out["moving"] == "moving" and out["reconnected"], out
+    assert out["handovers"] == 1 and out["resumed"] == 1 and not out["paused_after"] and out["last_error"] == "", out
+    hello = 'text:{"type":"hello","encoding":"binary"}'  # (the stubs' JSON writer keeps the string fields only)
+    assert out["first"] == [hello, "binary:1:1600", "binary:2:1600"], out["first"]  # 3 held from the goaway on
+    assert out["held_until_resumed"] == 2  # the new connection's hello (with the audio format) and resume_session
+    assert out["second"] == [hello, 'text:{"type":"resume_session","token":"k3J-x_9"}', "binary:2:1600",
+                             "binary:3:1600", "binary:4:1600", "binary:5:1600", 'text:{"type":"audio_end"}'], out["second"]
+
+
 @pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])
 def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(retarget_check, recordings, encoding, yaw):
     """UDimgestorComponent (on engine stand-ins) fed the recorded messages through its WebSocket events poses a

@@ -5,6 +5,8 @@
 // same pose (a T-pose for ZEGGS/BEAT skeletons; set the mesh's reference pose or an A-pose offset accordingly).
 #include "DimgestorComponent.h"
 
+#include <algorithm>
+
 #include "Components/PoseableMeshComponent.h"
 #include "Dom/JsonObject.h"
 #include "IWebSocket.h"
@@ -122,12 +124,28 @@ void UDimgestorComponent::Connect()
 	Socket->Connect();
 }
 
+static constexpr double ResendS = 15, ResumeWithinS = 10;
+
 void UDimgestorComponent::HandleConnected()
 {
+	if (!ResumeToken.empty() && FPlatformTime::Seconds() - ResumeSince > ResumeWithinS)
+	{
+		ResumeToken.clear();  // could not resume in time: a fresh session (what was held is dropped)
+		LastError = TEXT("could not resume our session after a goaway: a fresh one starts");
+	}
+	if (!ResumeToken.empty())  // our session goes on here: its audio format, then the token
+	{
+		ConnectionState = TEXT("resuming");
+		SendAudioHello();
+		SendText(UTF8_TO_TCHAR(dimgestor::ResumeSession(ResumeToken).c_str()));
+		return;
+	}
 	ConnectionState = TEXT("open");
 	AudioFormatKey = 0;
 	Flow.Reset();
 	bAudioPaused = false;
+	Sent.clear();
+	SentSamples = 0;
 	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
 	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
 	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
@@ -145,6 +163,12 @@ void UDimgestorComponent::HandleConnectionError(const FString& Error)
 
 void UDimgestorComponent::HandleClosed(int32 StatusCode, const FString& Reason, bool bWasClean)
 {
+	if (!ResumeToken.empty())  // after a goaway (1012): on to another worker at once
+	{
+		ConnectionState = TEXT("moving");
+		ReconnectIn = 0.05f;
+		return;
+	}
 	ConnectionState = FString::Printf(TEXT("closed (%d %s), retrying"), StatusCode, *Reason);
 	ReconnectIn = 2.f;
 }
@@ -183,7 +207,8 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 		Hello = Message.hello;
 		bHaveHello = true;
 		bNeedBind = true;
-		Playout.Reset();
+		bKeepStream = !ResumeToken.empty();  // a resumed session: its frames and root go on
+		if (!bKeepStream) Playout.Reset();
 		// Buffer one inference window (the burst length) plus some network jitter.
 		Playout.delay_s = (Hello.window_ms > 0 ? Hello.window_ms / 1000.0 : 0.25) + 0.06;
 		break;
@@ -191,7 +216,50 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 		LatencyMs = float(Message.status.latency_ms);
 		DroppedFrames = Message.status.dropped;
 		break;
+	case dimgestor::MessageType::GoAway:
+		if (AudioFormatKey != 0 && !Message.resume_token.empty())  // our session moves: hold our audio meanwhile
+		{
+			ResumeToken = Message.resume_token;
+			ResumeSince = FPlatformTime::Seconds();
+			++Handovers;
+			Flow.SlowDown();
+			bAudioPaused = true;
+			AudioNotice = TEXT("the server is restarting: moving our session to another worker");
+		}
+		break;
+	case dimgestor::MessageType::SessionResumed:
+		if (!ResumeToken.empty())
+		{
+			ResumeToken.clear();
+			++Resumed;
+			ConnectionState = TEXT("open");
+			bAudioPaused = false;
+			AudioNotice = TEXT("our session moved to another worker");
+			if (Socket && Socket->IsConnected())
+				for (const FSentChunk& C : Sent)  // our audio again from the sample the saved state covers
+				{
+					if (C.First + C.Samples <= Message.handover_samples) continue;
+					const size_t Skip = size_t(std::max<int64>(0, Message.handover_samples - C.First)) * 4 * AudioChannels;
+					Socket->Send(C.Bytes.data() + Skip, C.Bytes.size() - Skip, true);
+				}
+			for (const auto& Chunk : Flow.Resume()) { SendChunks({Chunk}); KeepSent(Chunk); }  // then what was held
+			if (Flow.TakeEndPending()) SendAudioEnd();
+		}
+		break;
 	case dimgestor::MessageType::Error:
+		if (!ResumeToken.empty() && (Message.error_code == "busy" || Message.error_code == "resume_failed"))
+		{
+			if (Message.error_code == "busy")  // a worker stopping too: another one (the token stays good)
+			{
+				if (Socket) Socket->Close();
+				break;
+			}
+			ResumeToken.clear();  // a fresh session from here: what was held starts it
+			ConnectionState = TEXT("open");
+			bAudioPaused = false;
+			for (const auto& Chunk : Flow.Resume()) { SendChunks({Chunk}); KeepSent(Chunk); }
+			if (Flow.TakeEndPending()) SendAudioEnd();
+		}
 		if (Message.error_code == "slow_down")  // a notice, nothing lost: hold our audio until resume
 		{
 			Flow.SlowDown();
@@ -204,7 +272,7 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 	case dimgestor::MessageType::Resume:
 		bAudioPaused = false;
 		AudioNotice = FString::Printf(TEXT("resumed (server backlog %.1f s)"), Message.resume_backlog_s);
-		SendChunks(Flow.Resume());  // what was held goes first, in order
+		for (const auto& Chunk : Flow.Resume()) { SendChunks({Chunk}); KeepSent(Chunk); }  // what was held, in order
 		if (Flow.TakeEndPending()) SendAudioEnd();
 		break;
 	default:
@@ -248,8 +316,12 @@ void UDimgestorComponent::Bind()
 	for (const FBinding& B : Bindings)
 		if (Hello.skeleton.parents[B.Joint] < 0) RootBone = B.Bone;
 	if (RootBone != NAME_None) RootRestLocation = RestPose[RootBone].GetLocation();
-	bHaveRootReference = false;
-	LastIndex = -1;
+	if (!bKeepStream)
+	{
+		bHaveRootReference = false;
+		LastIndex = -1;
+	}
+	bKeepStream = false;
 	if (Bindings.Num() == 0) LastError = TEXT("no mesh bone matched: check HumanoidToBone / bMatchJointNames");
 }
 
@@ -285,30 +357,53 @@ void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
 	}
 }
 
+void UDimgestorComponent::SendAudioHello()
+{
+	TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();
+	Audio->SetNumberField(TEXT("rate"), AudioRate);
+	Audio->SetStringField(TEXT("format"), TEXT("float32"));
+	Audio->SetNumberField(TEXT("channels"), AudioChannels);
+	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
+	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
+	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
+	ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
+	ClientHello->SetObjectField(TEXT("audio"), Audio);
+	SendText(Condensed(ClientHello));
+	AudioFormatKey = AudioRate * 16 + AudioChannels;
+}
+
+void UDimgestorComponent::KeepSent(const dimgestor::AudioFlow::Chunk& Chunk)
+{
+	const int64 N = int64(Chunk.size() / (4 * size_t(AudioChannels)));
+	Sent.push_back(FSentChunk{SentSamples, Chunk, N});
+	SentSamples += N;
+	while (Sent.size() > 1 && double(SentSamples - Sent.front().First - Sent.front().Samples) > ResendS * AudioRate)
+		Sent.erase(Sent.begin());
+}
+
 bool UDimgestorComponent::SendAudio(const TArray<float>& Samples, int32 SampleRate, int32 Channels)
 {
-	if (!Socket || !Socket->IsConnected()) return false;
-	if (SampleRate * 16 + Channels != AudioFormatKey)  // declare the format before the first chunk
+	const bool bMoving = !ResumeToken.empty();  // our session is moving to another worker: held meanwhile
+	if (!bMoving && (!Socket || !Socket->IsConnected())) return false;
+	if (!bMoving && SampleRate * 16 + Channels != AudioFormatKey)  // declare the format before the first chunk
 	{
-		TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();
-		Audio->SetNumberField(TEXT("rate"), SampleRate);
-		Audio->SetStringField(TEXT("format"), TEXT("float32"));
-		Audio->SetNumberField(TEXT("channels"), Channels);
-		TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
-		ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
-		ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
-		ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
-		ClientHello->SetObjectField(TEXT("audio"), Audio);
 		Flow.DropHeld();  // (held audio of another format cannot follow the new hello)
-		SendText(Condensed(ClientHello));
-		AudioFormatKey = SampleRate * 16 + Channels;
+		AudioRate = SampleRate;
+		AudioChannels = Channels;
+		Sent.clear();
+		SentSamples = 0;
+		SendAudioHello();
 	}
 	// float32 little-endian on the wire; every platform Unreal ships on is little-endian.
 	const uint8* Bytes = reinterpret_cast<const uint8*>(Samples.GetData());
 	Flow.max_held_s = MaxHeldAudioS;
 	const bool bWasDropping = Flow.dropped_chunks() > 0;
-	SendChunks(Flow.Offer(dimgestor::AudioFlow::Chunk(Bytes, Bytes + Samples.Num() * sizeof(float)),
-	                      double(Samples.Num()) / (double(Channels) * SampleRate)));
+	for (const auto& Chunk : Flow.Offer(dimgestor::AudioFlow::Chunk(Bytes, Bytes + Samples.Num() * sizeof(float)),
+	                                    double(Samples.Num()) / (double(Channels) * SampleRate)))
+	{
+		SendChunks({Chunk});
+		KeepSent(Chunk);
+	}
 	DroppedAudioS = float(Flow.dropped_s());
 	if (!bWasDropping && Flow.dropped_chunks() > 0)
 		AudioNotice = FString::Printf(TEXT("paused by the server for over %.0f s: dropping the oldest audio (DroppedAudioS)"), MaxHeldAudioS);

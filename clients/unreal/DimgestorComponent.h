@@ -82,6 +82,12 @@ public:
 	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
 	float DroppedAudioS = 0.f;
 
+	/** Hand-overs (protocol revision 3): goaways while we had our own session, and sessions resumed elsewhere. */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	int32 Handovers = 0;
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
+	int32 Resumed = 0;
+
 	/** What flow control is doing (paused, resumed, dropping); not an error. */
 	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
 	FString AudioNotice;
@@ -119,12 +125,23 @@ private:
 	void SendText(const FString& Text);
 	void SendChunks(const std::vector<dimgestor::AudioFlow::Chunk>& Chunks);
 	void SendAudioEnd();
+	void SendAudioHello();
+	void KeepSent(const dimgestor::AudioFlow::Chunk& Chunk);
 
 	TSharedPtr<IWebSocket> Socket;
 	TArray<uint8> BinaryBuffer;  // fragments of the binary message being received
 	float ReconnectIn = 0.f;
 	int32 AudioFormatKey = 0;    // SampleRate * 16 + Channels declared in our last hello
 	dimgestor::AudioFlow Flow;   // slow_down / resume (protocol revision 2); all on the game thread
+	// Hand-over (revision 3): after a goaway our audio is held and the last ResendS seconds we sent are kept, to
+	// be sent again from the sample the saved state covers once the session is resumed on another worker.
+	struct FSentChunk { int64 First; dimgestor::AudioFlow::Chunk Bytes; int64 Samples; };
+	std::vector<FSentChunk> Sent;
+	int64 SentSamples = 0;
+	int32 AudioRate = 0, AudioChannels = 1;
+	std::string ResumeToken;     // from a goaway until session_resumed
+	double ResumeSince = 0;      // FPlatformTime::Seconds() of the goaway
+	bool bKeepStream = false;    // the next hello is the resumed session's: its frames and root go on
 
 	bool bHaveHello = false;
 	bool bNeedBind = false;

@@ -2,6 +2,7 @@
 #include "DimgestorProtocol.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cstring>
 
 #include "DimgestorJson.h"
@@ -208,8 +209,22 @@ bool ParseMessage(const std::string& text, Message& out, std::string& error) {
     out.type = MessageType::Resume;
     return f.Num(v, "backlog_s", 0, out.resume_backlog_s);
   }
+  if (t == "goaway" || t == "session_resumed") {
+    out.type = t == "goaway" ? MessageType::GoAway : MessageType::SessionResumed;
+    double samples, frames;
+    if (!f.Num(v, "samples", 0, samples) || !f.Num(v, "frames", 0, frames)) return false;
+    out.handover_samples = int64_t(samples);
+    out.handover_frames = int64_t(frames);
+    return t == "session_resumed" || f.Str(v, "resume_token", "", out.resume_token);
+  }
   out.type = t == "pong" ? MessageType::Pong : MessageType::Unknown;
   return true;
+}
+
+std::string ResumeSession(const std::string& token) {
+  for (char c : token)
+    if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_')) return std::string();
+  return "{\"type\":\"resume_session\",\"token\":\"" + token + "\"}";
 }
 
 bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error) {

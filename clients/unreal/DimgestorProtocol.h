@@ -67,7 +67,9 @@ struct Status {
 };
 
 // Resume (revision 2): after a `slow_down` error (a notice, not a failure), the server takes our audio again.
-enum class MessageType { Hello, Frame, Status, Error, End, Pong, Resume, Unknown };
+// GoAway / SessionResumed (revision 3): the worker stops and saves our session under a token; we resume it on
+// another worker and re-send our audio from `handover_samples` on.
+enum class MessageType { Hello, Frame, Status, Error, End, Pong, Resume, GoAway, SessionResumed, Unknown };
 
 // One decoded server message; only the member named by `type` is filled.
 struct Message {
@@ -79,10 +81,12 @@ struct Message {
   std::string error_code, error_message;  // error_code "slow_down": pause sending audio until Resume
   int64_t end_frames = 0;
   double resume_backlog_s = 0;  // Resume: seconds of our audio the server still has queued
+  std::string resume_token;     // GoAway: the token for resume_session
+  int64_t handover_samples = 0, handover_frames = 0;  // GoAway, SessionResumed: our audio (at our rate) / frames covered
 };
 
 constexpr int kProtocolVersion = 1;
-constexpr int kProtocolRevision = 2;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+constexpr int kProtocolRevision = 3;  // the optional additions this client knows (docs/protocol.md, "Revisions")
 constexpr size_t kBinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
 // Parse one text message. On bad input returns false and says what and where in `error`.
@@ -94,6 +98,9 @@ bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string
 // The client's hello; with audio_rate > 0 it also declares the audio format that will be sent.
 std::string ClientHello(bool binary_frames, int audio_rate = 0, const std::string& audio_format = "float32",
                         int channels = 1);
+
+// resume_session with a goaway's token (URL-safe base64; anything else is refused: empty result).
+std::string ResumeSession(const std::string& token);
 
 // Global (model-space) rotations from local ones: G[j] = G[parent] * L[j]. Empty if the count is wrong.
 std::vector<Quat> GlobalRotations(const Skeleton& skeleton, const std::vector<Quat>& local);
