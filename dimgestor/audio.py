@@ -175,6 +175,29 @@ class StreamingResampler:
         self._buf, self._buf_start = self._buf[drop:], self._buf_start + drop
         return y.astype(np.float32)
 
+    @property
+    def inputs(self) -> int:
+        """Input samples taken so far."""
+        return self._n_in
+
+    @property
+    def outputs(self) -> int:
+        """Output samples given so far."""
+        return self._m_out
+
+    def get_state(self) -> dict:
+        """What the next outputs depend on besides the filter: JSON-ready (the input history as float64 hex)."""
+        return {"up": self.up, "down": self.down, "buf": self._buf.astype("<f8").tobytes().hex(),
+                "buf_start": int(self._buf_start), "n_in": int(self._n_in), "m_out": int(self._m_out)}
+
+    def set_state(self, state: dict) -> None:
+        """A state from `get_state` of a resampler with the same rates: it goes on exactly as that one would."""
+        if (state["up"], state["down"]) != (self.up, self.down):
+            raise ValueError(f"a resampler state for {state['down']} -> {state['up']} does not fit "
+                             f"{self.down} -> {self.up}")
+        self._buf = np.frombuffer(bytes.fromhex(state["buf"]), "<f8").astype(np.float64)
+        self._buf_start, self._n_in, self._m_out = int(state["buf_start"]), int(state["n_in"]), int(state["m_out"])
+
     def flush(self) -> np.ndarray:
         """The remaining outputs (input padded with zeros); total length ceil(n_in * up / down)."""
         total = -((-self._n_in * self.up) // self.down)

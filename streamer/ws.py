@@ -382,13 +382,23 @@ class WsServer:
             state = session.stream.state
             meta = self._session_meta(c, session)
             token = new_token()
+
+            def save(c=c, meta=meta, state=state, session=session) -> tuple[bytes, int]:
+                # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz
+                # goes on exactly when the resampler is saved too, and every output it gave reached the stream:
+                # the client then re-sends from the resampler's own input count.
+                samples = state.samples_in * rate // SAMPLE_RATE
+                r = c.resampler
+                if r is not None and r.outputs == state.samples_in:
+                    meta["resampler"], samples = r.get_state(), r.inputs
+                return savestate.dumps(session.stream, state, meta), samples
+
             try:
-                data = await loop.run_in_executor(self.prep, savestate.dumps, session.stream, state, meta)
+                data, samples = await loop.run_in_executor(self.prep, save)
                 await loop.run_in_executor(self.prep, self.store.put, token, data)
             except Exception as e:  # the store is down: this client's session ends as without one
                 self.departures(logging.WARNING, f"session of {c.who} not saved ({type(e).__name__}: {e}): ended")
                 continue
-            samples = state.samples_in * rate // SAMPLE_RATE
             c.put(P.goaway(token, samples, c.session_frames, rate))
             handed.add(c)
             self.metrics.sessions_handed_over.inc()
@@ -470,9 +480,14 @@ class WsServer:
         client.session_frames = int(meta["frames"])
         client.saved_audio_s = state.samples_in / SAMPLE_RATE  # (its periodic saves go on from here)
         session.clock.audio_s = state.samples_in / SAMPLE_RATE
+        samples = state.samples_in * client.audio.rate // SAMPLE_RATE
+        saved = meta.get("resampler")
+        if saved is not None and int(meta.get("rate", 0)) == client.audio.rate:  # its rate converter goes on too
+            client.resampler = make_resampler(client.audio.rate)
+            client.resampler.set_state(saved)
+            samples = client.resampler.inputs
         self.metrics.sessions_resumed.inc()
-        client.put(P.session_resumed(state.samples_in * client.audio.rate // SAMPLE_RATE, client.session_frames,
-                                     client.audio.rate))
+        client.put(P.session_resumed(samples, client.session_frames, client.audio.rate))
 
     def _process_request(self, connection, request):
         """`/healthz`, `/readyz`, `/metrics` and the pages of the viewer are answered here; a WebSocket

@@ -145,3 +145,24 @@ def test_align_trims_to_the_shorter_and_warns_on_a_large_mismatch():
     with pytest.warns(UserWarning, match=r"far: motion is 12\.00 s but audio is 10\.00 s"):
         seconds, trimmed = align(12.0, audio, name="far")
     assert seconds == 10.0 and len(trimmed) == len(audio)
+
+
+def test_a_resampler_state_carried_to_another_resampler_goes_on_exactly():
+    """StreamingResampler.get_state / set_state (a session handed over at 48 kHz): a new resampler given the
+    state after the first part makes exactly the outputs the first one would have made."""
+    import json
+
+    from dimgestor.audio import StreamingResampler
+
+    x = np.random.default_rng(3).standard_normal(48000).astype(np.float32) * 0.3
+    whole = StreamingResampler(48000, 16000)
+    expected = np.concatenate([whole.process(x[:17011]), whole.process(x[17011:])])
+    first = StreamingResampler(48000, 16000)
+    part = first.process(x[:17011])
+    state = json.loads(json.dumps(first.get_state()))  # (it travels as JSON)
+    second = StreamingResampler(48000, 16000)
+    second.set_state(state)
+    assert second.inputs == 17011 and second.outputs == len(part)
+    assert np.array_equal(np.concatenate([part, second.process(x[17011:])]), expected)
+    with pytest.raises(ValueError, match="does not fit"):
+        StreamingResampler(44100, 16000).set_state(state)

@@ -39,14 +39,16 @@ def test_resume_session_is_parsed_and_checked():
             P.parse_text(bad)
 
 
-def _wav(path, seconds: float) -> None:
+def _wav(path, seconds: float, rate: int = 16000) -> None:
     import wave
 
+    from dimgestor.audio import resample
     from dimgestor.synthetic import synthetic_speech
 
+    x = resample(synthetic_speech(seconds, rate=16000, seed=5), 16000, rate)
     with wave.open(str(path), "wb") as w:
-        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
-        w.writeframes((synthetic_speech(seconds, rate=16000, seed=5) * 20000).astype("<i2").tobytes())
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(rate)
+        w.writeframes((np.clip(x, -1, 1) * 20000).astype("<i2").tobytes())
 
 
 def _frames(folder):
@@ -77,9 +79,10 @@ def redis_url(tmp_path):
     proc.wait(10)
 
 
-def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(tmp_path, checkpoint, redis_url):
+@pytest.mark.parametrize("rate", [16000, 48000])  # 48 kHz: the worker's resampler is handed over too
+def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(tmp_path, checkpoint, redis_url, rate):
     wav = tmp_path / "speech.wav"
-    _wav(wav, 8.0)
+    _wav(wav, 8.0, rate)
     store = ("--state-store", redis_url, "--window-ms", "100")
     with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
                                                                               extra=store) as b:
