@@ -77,6 +77,20 @@ COMPONENT_SOURCES = ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "Dimgest
                      "DimgestorAudioFlow.cpp")
 
 
+def run_component_check(tmp_path, name: str) -> dict:
+    """tests/NAME.cpp with the component on the engine stand-ins, compiled as the component is (-Werror, no
+    exceptions) and run -> the JSON object it prints."""
+    exe = tmp_path / name
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
+           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / f"{name}.cpp"),
+           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
 def test_unreal_audio_flow_pauses_at_slow_down_and_resumes_with_bounded_holding(tmp_path):
     """ParseMessage + AudioFlow (DimgestorAudioFlow.h) on the server's slow_down / resume (revision 2): chunks
     are held in order while paused, at most 1 s of them (the oldest dropped and counted), sent at `resume`,
@@ -98,15 +112,7 @@ def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path)
     """UDimgestorComponent (engine stand-ins) talking: after the server's slow_down nothing more goes out, what
     SendAudio gets is held (at most MaxHeldAudioS = 1 s: the oldest dropped and counted), an EndAudio waits;
     at resume the held chunks go in order, then audio_end. slow_down is no error."""
-    exe = tmp_path / "component_flow_check"
-    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
-           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "component_flow_check.cpp"),
-           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
-    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = json.loads(r.stdout)
+    out = run_component_check(tmp_path, "component_flow_check")
     assert out["ok"] and out["paused"] and not out["paused_after"] and out["last_error"] == "", out
     assert out["sent_while_paused"] == 2, out  # the audio hello and chunk 1, before the slow_down
     assert out["log"] == ['text:{"type":"hello","encoding":"binary"}', "binary:1:1600", "binary:5:1600",
@@ -119,15 +125,7 @@ def test_unreal_component_moves_with_its_session_at_goaway(tmp_path):
     socket closes, the component connects again at once with its audio format and resume_session, holds what
     SendAudio gets, and at session_resumed re-sends its audio from the sample the saved state covers (chunk 2 on),
     then what it held (3, 4), and goes on (5, audio_end). No error."""
-    exe = tmp_path / "component_handover_check"
-    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
-           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "component_handover_check.cpp"),
-           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
-    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = json.loads(r.stdout)
+    out = run_component_check(tmp_path, "component_handover_check")
     assert out["ok"] and out["moving"] == "moving" and out["reconnected"], out
     assert out["handovers"] == 1 and out["resumed"] == 1 and not out["paused_after"] and out["last_error"] == "", out
     hello = 'text:{"type":"hello","encoding":"binary"}'  # (the stubs' JSON writer keeps the string fields only)

@@ -56,6 +56,21 @@ def _frames(folder):
     return msgs, [m for m in msgs if m["type"] == "frame"]
 
 
+def _interrupted_client(a, b, wav, moved, signum: int, after: int, *extra: str) -> str:
+    """The Python client sending `wav` to worker `a` (then `b`), its messages saved in `moved`; once `after`
+    messages have come (mid-sentence), `signum` goes to `a`. -> the client's stderr, after it exits 0."""
+    client = subprocess.Popen([sys.executable, str(CLIENT), "--url", a.ws_url, "--url", b.ws_url, "--wav", str(wav),
+                               "--save", str(moved), "--quiet", *extra], cwd=REPO, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (moved.is_dir() and sum(1 for _ in moved.iterdir()) > after):
+        time.sleep(0.05)
+    a.proc.send_signal(signum)
+    _, err = client.communicate(timeout=60)
+    assert client.returncode == 0, err[-2000:]
+    return err
+
+
 @pytest.fixture
 def redis_url(tmp_path):
     pytest.importorskip("redis", reason="the redis client is not installed (pip install 'dimgestor[cluster]')")
@@ -87,17 +102,7 @@ def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(t
     with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
                                                                               extra=store) as b:
         moved = tmp_path / "moved"
-        client = subprocess.Popen([sys.executable, str(CLIENT), "--url", a.ws_url, "--url", b.ws_url, "--wav", str(wav),
-                                   "--save", str(moved), "--quiet"], cwd=REPO, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:  # mid-sentence: once some frames have come back
-            if moved.is_dir() and sum(1 for p in moved.iterdir()) > 40:
-                break
-            time.sleep(0.05)
-        a.proc.send_signal(signal.SIGTERM)
-        out, err = client.communicate(timeout=60)
-        assert client.returncode == 0, err[-2000:]
+        err = _interrupted_client(a, b, wav, moved, signal.SIGTERM, 40)
         assert a.proc.wait(20) == 0, a.log_tail()
         assert "resumed from sample" in err, err
         whole = tmp_path / "whole"
@@ -228,17 +233,7 @@ def test_after_sigkill_a_session_resumes_from_its_last_periodic_save_exactly(tmp
     with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
                                                                               extra=store) as b:
         moved, bvh = tmp_path / "moved", tmp_path / "moved.bvh"
-        client = subprocess.Popen([sys.executable, str(CLIENT), "--url", a.ws_url, "--url", b.ws_url, "--wav", str(wav),
-                                   "--save", str(moved), "--bvh", str(bvh), "--quiet"], cwd=REPO,
-                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:  # mid-sentence, after a few saves
-            if moved.is_dir() and sum(1 for p in moved.iterdir()) > 70:
-                break
-            time.sleep(0.05)
-        a.proc.send_signal(signal.SIGKILL)
-        out, err = client.communicate(timeout=60)
-        assert client.returncode == 0, err[-2000:]
+        err = _interrupted_client(a, b, wav, moved, signal.SIGKILL, 70, "--bvh", str(bvh))  # after a few saves
         whole = tmp_path / "whole.bvh"
         run_client("--url", b.ws_url, "--wav", str(wav), "--bvh", str(whole), "--quiet", "--fast")
     assert "resuming from the last saved state" in err and "resumed from sample" in err, err

@@ -10,14 +10,8 @@
 #include "../DimgestorComponent.h"
 #include "Components/PoseableMeshComponent.h"
 #include "WebSocketsModule.h"
+#include "check_util.h"
 
-static FString Wide(const std::string& s) { std::wstring w(s.begin(), s.end()); return FString(w.c_str()); }
-static std::string Narrow(const FString& s) { std::wstring w(*s); return std::string(w.begin(), w.end()); }
-static std::string Quoted(const std::string& s) {
-  std::string o = "\"";
-  for (char c : s) { if (c == '"' || c == '\\') o += '\\'; o += c; }
-  return o + "\"";
-}
 static std::string Log(const TSharedPtr<IWebSocket>& socket, size_t from) {
   std::string log;
   for (size_t i = from; i < socket->StubSent.size(); ++i) log += (log.empty() ? "" : ",") + Quoted(socket->StubSent[i]);
@@ -26,9 +20,7 @@ static std::string Log(const TSharedPtr<IWebSocket>& socket, size_t from) {
 
 int main() {
   UPoseableMeshComponent mesh;
-  mesh.StubNames.push_back(FName(TEXT("root")));
-  mesh.StubParents.push_back(-1);
-  mesh.StubLocal.emplace_back();
+  OneBoneMesh(mesh);
   UDimgestorComponent component;
   component.TargetMesh = &mesh;
   component.BeginPlay();
