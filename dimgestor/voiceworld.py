@@ -445,7 +445,33 @@ def world_rule(world_dir) -> float | None:
 
 SYSTEM_METRICS = ("contrast", "coupling", "coupling_shifted", "coupling_shifted_sd", "stroke_align",
                   "stroke_shuffled", "stroke_gain", "stroke_gain_shuffled", "onset_align", "onset_shuffled",
-                  "beat_align", "beat_align_shuffled")
+                  "beat_align", "beat_align_shuffled", "stress_peak", "unstressed_peak", "stress_discrimination")
+PEAK_WINDOW_S = 0.35  # after a syllable's onset: where its stroke (if any) makes the hands fastest
+
+
+def syllable_onsets(audio: np.ndarray, rate: int = RATE, heard_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(onsets of the stressed syllables, onsets of the others) in seconds: every nucleus (a loudness peak of 3 dB
+    prominence inside speech) is one or the other, by the rule (rule_events with heard_s)."""
+    from scipy.signal import find_peaks
+
+    events = rule_events(audio, rate, heard_s)
+    stressed = np.array([t for t, _ in events["stresses"]])
+    env, onsets = loudness_envelope_db(audio, rate), []
+    for a, b in events["phrases"]:
+        seg = env[int(a * ENV_RATE):int(b * ENV_RATE)]
+        if len(seg) > 2:
+            onsets += [a + _onset(seg, p) / ENV_RATE for p in find_peaks(seg, prominence=3.0)[0]]
+    others = np.array([t for t in onsets if not stressed.size or np.abs(stressed - t).min() > 0.1])
+    return stressed, others
+
+
+def onset_peaks(onsets: np.ndarray, speed: np.ndarray, fps: float, speech: np.ndarray) -> np.ndarray:
+    """Per onset: the largest hand speed in the PEAK_WINDOW_S after it, over the mean speed in speech."""
+    scale = speed[speech].mean() if speech.any() else 1.0
+    frames = np.round(onsets * fps).astype(int)
+    width = int(round(PEAK_WINDOW_S * fps))
+    frames = frames[(frames >= 0) & (frames + width < len(speed))]
+    return np.array([speed[f:f + width + 1].max() / scale for f in frames])
 
 
 def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spec, seed: int = 0,
@@ -456,6 +482,7 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
     from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
 
     stats, hits, shuffled, gain, gain_shuffled, n_strokes = [], 0.0, 0.0, 0.0, 0.0, 0
+    peaks: dict[str, list[np.ndarray]] = {"stressed": [], "unstressed": []}
     spf = int(round(RATE / spec.fps))
     for i, (raw, audio) in enumerate(zip(raws, audios)):
         n = min(len(raw), len(audio) // spf)
@@ -464,6 +491,8 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
         stats.append(st)
         strokes = np.array([t for t, _ in rule_events(audio, heard_s=heard_s)["stresses"]])
         strokes = strokes[strokes < n / spec.fps]
+        for kind, onsets in zip(peaks, syllable_onsets(audio, heard_s=heard_s)):
+            peaks[kind].append(onset_peaks(onsets, st["hand_speed"], spec.fps, st["mask"] == 1))
         if strokes.size:
             speech = st["mask"] == 1
             hits += metrics.onset_hits(strokes, st["hand_speed"], spec.fps).sum()
@@ -480,6 +509,12 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
     row["stroke_shuffled"] = shuffled / n_strokes if n_strokes else float("nan")
     row["stroke_gain"] = gain / n_strokes if n_strokes else float("nan")
     row["stroke_gain_shuffled"] = gain_shuffled / n_strokes if n_strokes else float("nan")
+    # Stress discrimination: does a stroke-sized movement follow the stressed syllables rather than any syllable?
+    # Median over syllables of the hands' peak speed after the onset, stressed against unstressed.
+    for kind, key in (("stressed", "stress_peak"), ("unstressed", "unstressed_peak")):
+        values = np.concatenate(peaks[kind]) if peaks[kind] else np.zeros(0)
+        row[key] = float(np.median(values)) if values.size else float("nan")
+    row["stress_discrimination"] = row["stress_peak"] / row["unstressed_peak"]
     return {m: float(row[m]) for m in SYSTEM_METRICS}
 
 
@@ -489,13 +524,15 @@ def margins(row: dict) -> dict:
             "stroke_gain_margin": row["stroke_gain"] - row["stroke_gain_shuffled"],
             "onset_margin": row["onset_align"] - row["onset_shuffled"],
             "coupling_margin": row["coupling"] - row["coupling_shifted"],
-            "beat_margin": row["beat_align"] - row["beat_align_shuffled"]}
+            "beat_margin": row["beat_align"] - row["beat_align_shuffled"],
+            "stress_margin": row["stress_discrimination"] - 1.0}  # (1: stressed syllables no different)
 
 
 def verdict(model: dict, rule: dict) -> dict:
     """Issue 20's bar: stroke-alignment margin and contrast each at least half the rule's."""
     m, r = margins(model), margins(rule)
     return {"stroke_margin_vs_rule": m["stroke_margin"] / r["stroke_margin"],
+            "stress_margin_vs_rule": m["stress_margin"] / r["stress_margin"],
             "stroke_gain_margin_vs_rule": m["stroke_gain_margin"] / r["stroke_gain_margin"],
             "contrast_vs_rule": model["contrast"] / rule["contrast"],
             "coupling_margin_vs_rule": m["coupling_margin"] / r["coupling_margin"],

@@ -90,8 +90,10 @@ def test_the_rule_passes_the_measures_models_are_held_to(world):
     assert rule["stroke_margin"] > 0.15, rule  # strokes at the stressed onsets
     assert rule["coupling_margin"] > 0.1, rule  # hand speed follows loudness
     assert rule["stroke_gain_margin"] > 0.5, rule  # and they are large: speed after a stroke onset, not any peak
+    assert rule["stress_discrimination"] > 1.25, rule  # after stressed syllables, not after any syllable
     assert shuffled["contrast"] < 2.0 and shuffled["stroke_margin"] < 0.08, shuffled
     assert shuffled["coupling_margin"] < 0.1 and abs(shuffled["stroke_gain_margin"]) < 0.15, shuffled
+    assert abs(shuffled["stress_margin"]) < 0.15, shuffled
     assert vw.verdict(rule, rule)["passes"] and not vw.verdict(shuffled, rule)["passes"]
 
 
