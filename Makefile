@@ -29,7 +29,7 @@ $(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.
 setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
 
 test: setup $(VMC_CHECK)/node_modules/.package-lock.json
-	$(BIN)/python -m pytest -q -rs
+	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile
 
 # Ports of `make demo`, e.g. `make demo WS_PORT=9000 OSC_PORT=39540` (the viewer: http://127.0.0.1:WS_PORT/).
 WS_PORT ?= 8765
