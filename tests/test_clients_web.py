@@ -510,13 +510,20 @@ def test_web_a_dropped_vrm_follows_the_stream(tmp_path, default_model_server, ve
     assert skin.sum() > 100, f"{png}: the VRM is not visible ({skin.sum()} pixels)"
 
 
+def worker_streams(port: int) -> float:
+    """A worker's live streams, from its own /metrics (behind nginx: which worker holds our session)."""
+    import re
+
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
+    return float(re.search(r"^dimgestor_streams (\S+)$", text, re.M).group(1))
+
+
 @pytest.mark.skipif(not (shutil.which("redis-server") and shutil.which("nginx") or os.path.exists("/usr/sbin/nginx")),
                     reason="nginx and redis-server are needed (.ci/run installs both): the cluster's balancer and store")
 def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkpoint):  # noqa: F811
     """Issue 22: the viewer, talking through nginx (deploy/local-cluster, 2 workers + Redis), gets `goaway` when
     its worker is stopped (SIGTERM), resumes its session on the other one and goes on: no frame index skipped,
     no error, the microphone held meanwhile and re-sent from the sample the saved state covers."""
-    import re
     import signal
 
     from helpers.cluster import Cluster
@@ -534,22 +541,56 @@ def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkp
         browser.eval("document.getElementById('talk').click()", user_gesture=True)
         browser.wait_for("window.dimgestor.framesReceived >= 30", 90, "gestures from our own audio")
 
-        def streams(port: int) -> float:
-            text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read().decode()
-            return float(re.search(r"^dimgestor_streams (\S+)$", text, re.M).group(1))
-
         workers = cluster.workers()
-        (port, pid), = [w for w in workers.values() if streams(w[0]) >= 1]  # ours
+        (port, pid), = [w for w in workers.values() if worker_streams(w[0]) >= 1]  # ours
         os.kill(pid, signal.SIGTERM)
         browser.wait_for("window.dimgestor.resumed === 1", 30, "our session resumed on the other worker")
         before = browser.eval("window.dimgestor.framesReceived")
         browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on after the move")
         other = next(p for p, _ in workers.values() if p != port)
-        assert streams(other) >= 1  # the session lives there now
+        assert worker_streams(other) >= 1  # the session lives there now
         api = browser.eval("({handovers: dimgestor.handovers, gaps: dimgestor.gaps, errors: dimgestor.errors, "
                            "dropped: dimgestor.audioChunksDropped, state: dimgestor.state})")
         assert api == {"handovers": 1, "gaps": 0, "errors": [], "dropped": 0, "state": "open"}, api
         assert moving_joints(browser) > 1e-3
+    finally:
+        if browser is not None:
+            browser.close()
+        cluster.stop()
+
+
+@pytest.mark.skipif(not (shutil.which("nginx") or os.path.exists("/usr/sbin/nginx")),
+                    reason="nginx is needed (.ci/run installs it): the cluster's balancer")
+def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path, checkpoint):  # noqa: F811
+    """Issue 22 item 4: the viewer talking through nginx (two workers) loses its worker to SIGKILL (no goaway):
+    it reconnects within 2 s and talks on in a fresh session on the other worker, the microphone never stopped."""
+    import signal
+
+    from helpers.cluster import Cluster
+
+    cluster = Cluster("--no-state-store", "--", "--checkpoint", str(checkpoint), "--steps", "2", "--window-ms", "100",
+                      "--status-every", "0")
+    browser = None
+    try:
+        cluster.wait_for(r"^ready: ")
+        browser = Browser(tmp_path, cluster.http + "/?audio=pcm16", (
+            "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+            f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
+        browser.wait_for("window.dimgestor && window.dimgestor.hello && "
+                         "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
+        browser.eval("document.getElementById('talk').click()", user_gesture=True)
+        browser.wait_for("window.dimgestor.framesReceived >= 30", 90, "gestures from our own audio")
+
+        (port, pid), = [w for w in cluster.workers().values() if worker_streams(w[0]) >= 1]  # ours
+        before = browser.eval("window.dimgestor.framesReceived")
+        os.kill(pid, signal.SIGKILL)
+        killed = time.monotonic()
+        browser.wait_for(f"window.dimgestor.reconnects === 1 && window.dimgestor.framesReceived > {before + 2}", 30,
+                         "frames again, from a fresh session")
+        assert time.monotonic() - killed < 2.0 + 1.0  # (within 2 s, plus this check's own polling)
+        browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on")
+        api = browser.eval("({talking: dimgestor.talking, errors: dimgestor.errors, state: dimgestor.state})")
+        assert api == {"talking": True, "errors": [], "state": "open"}, api
     finally:
         if browser is not None:
             browser.close()

@@ -42,6 +42,7 @@ const api = window.dimgestor = {
   audioFlow: null,  // the microphone's AudioFlow while talking: paused, pauses, resumes, heldS, droppedS
   notices: [],      // slow_down / resume: the server's flow control, not errors
   handovers: 0, resumed: 0,  // goaway (the worker stopped) while talking; sessions resumed on another worker
+  reconnects: 0,    // talk connections lost without a goaway, talked on in a fresh session
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -508,6 +509,14 @@ function connect(audio = null, resume = null) {
       return;
     }
     setState('closed', ev.code === 1000 ? '' : ` (code ${ev.code}${ev.reason ? ': ' + ev.reason : ''})`);
+    if (api.talking && opened) {  // our worker went away (killed, or stopped without a state store): talk on in
+      api.reconnects++;           // a fresh session on whichever worker answers (a failed try stops the mic below)
+      say('connection lost: talking on in a fresh session');
+      api.audioFlow.take();
+      api.audioFlow.paused = false;
+      reconnectTimer = setTimeout(() => connect(api.talkFormat), 250);
+      return;
+    }
     // A refused handshake (a 401 for a missing token) reaches a page only as a close before open.
     if (!opened && !params.get('token')) say('cannot connect: if the server requires a token, open this page with ?token=...');
     if (api.talking) stopMic();
