@@ -14,7 +14,7 @@ import shutil
 import subprocess
 import time
 import urllib.request
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -518,17 +518,13 @@ def worker_streams(port: int) -> float:
     return float(re.search(r"^dimgestor_streams (\S+)$", text, re.M).group(1))
 
 
-@pytest.mark.skipif(not (shutil.which("redis-server") and shutil.which("nginx") or os.path.exists("/usr/sbin/nginx")),
-                    reason="nginx and redis-server are needed (.ci/run installs both): the cluster's balancer and store")
-def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkpoint):  # noqa: F811
-    """Issue 22: the viewer, talking through nginx (deploy/local-cluster, 2 workers + Redis), gets `goaway` when
-    its worker is stopped (SIGTERM), resumes its session on the other one and goes on: no frame index skipped,
-    no error, the microphone held meanwhile and re-sent from the sample the saved state covers."""
-    import signal
-
+@contextmanager
+def talking_through_a_cluster(tmp_path, checkpoint, *cluster_args: str):
+    """deploy/local-cluster (2 workers on the tiny checkpoint, `cluster_args` before `--`) and the viewer loaded
+    through its nginx, talking with Chromium's fake microphone until 30 frames came back -> (cluster, browser)."""
     from helpers.cluster import Cluster
 
-    cluster = Cluster("--", "--checkpoint", str(checkpoint), "--steps", "2", "--window-ms", "100",
+    cluster = Cluster(*cluster_args, "--", "--checkpoint", str(checkpoint), "--steps", "2", "--window-ms", "100",
                       "--status-every", "0")
     browser = None
     try:
@@ -540,7 +536,22 @@ def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkp
                          "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
         browser.eval("document.getElementById('talk').click()", user_gesture=True)
         browser.wait_for("window.dimgestor.framesReceived >= 30", 90, "gestures from our own audio")
+        yield cluster, browser
+    finally:
+        if browser is not None:
+            browser.close()
+        cluster.stop()
 
+
+@pytest.mark.skipif(not (shutil.which("redis-server") and shutil.which("nginx") or os.path.exists("/usr/sbin/nginx")),
+                    reason="nginx and redis-server are needed (.ci/run installs both): the cluster's balancer and store")
+def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkpoint):  # noqa: F811
+    """Issue 22: the viewer, talking through nginx (deploy/local-cluster, 2 workers + Redis), gets `goaway` when
+    its worker is stopped (SIGTERM), resumes its session on the other one and goes on: no frame index skipped,
+    no error, the microphone held meanwhile and re-sent from the sample the saved state covers."""
+    import signal
+
+    with talking_through_a_cluster(tmp_path, checkpoint) as (cluster, browser):
         workers = cluster.workers()
         (port, pid), = [w for w in workers.values() if worker_streams(w[0]) >= 1]  # ours
         os.kill(pid, signal.SIGTERM)
@@ -553,10 +564,7 @@ def test_web_talk_moves_to_another_worker_when_its_worker_stops(tmp_path, checkp
                            "dropped: dimgestor.audioChunksDropped, state: dimgestor.state})")
         assert api == {"handovers": 1, "gaps": 0, "errors": [], "dropped": 0, "state": "open"}, api
         assert moving_joints(browser) > 1e-3
-    finally:
-        if browser is not None:
-            browser.close()
-        cluster.stop()
+        assert_figure_drawn(browser.screenshot(tmp_path / "web_talk_moved.png"))
 
 
 @pytest.mark.skipif(not (shutil.which("nginx") or os.path.exists("/usr/sbin/nginx")),
@@ -566,21 +574,7 @@ def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path,
     it reconnects within 2 s and talks on in a fresh session on the other worker, the microphone never stopped."""
     import signal
 
-    from helpers.cluster import Cluster
-
-    cluster = Cluster("--no-state-store", "--", "--checkpoint", str(checkpoint), "--steps", "2", "--window-ms", "100",
-                      "--status-every", "0")
-    browser = None
-    try:
-        cluster.wait_for(r"^ready: ")
-        browser = Browser(tmp_path, cluster.http + "/?audio=pcm16", (
-            "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
-            f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
-        browser.wait_for("window.dimgestor && window.dimgestor.hello && "
-                         "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
-        browser.eval("document.getElementById('talk').click()", user_gesture=True)
-        browser.wait_for("window.dimgestor.framesReceived >= 30", 90, "gestures from our own audio")
-
+    with talking_through_a_cluster(tmp_path, checkpoint, "--no-state-store") as (cluster, browser):
         (port, pid), = [w for w in cluster.workers().values() if worker_streams(w[0]) >= 1]  # ours
         before = browser.eval("window.dimgestor.framesReceived")
         os.kill(pid, signal.SIGKILL)
@@ -591,7 +585,3 @@ def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path,
         browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on")
         api = browser.eval("({talking: dimgestor.talking, errors: dimgestor.errors, state: dimgestor.state})")
         assert api == {"talking": True, "errors": [], "state": "open"}, api
-    finally:
-        if browser is not None:
-            browser.close()
-        cluster.stop()
