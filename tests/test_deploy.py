@@ -27,6 +27,7 @@ from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer import protocol as P
 from helpers.clients import SPEECH_WAV
 from helpers.cluster import LOCAL_CLUSTER, NGINX, Cluster
+from helpers.stalls import LoopStalls
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(120)
@@ -206,10 +207,12 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
         w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
         w.writeframes(speech_pcm16(seconds))
     offline = tmp_path / "offline.bvh"
-    generate = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
-                                 str(offline), "--root", "tether", *sampling], cwd=REPO,
-                                env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True)
+    # the reference first: beside the cluster it would compete with the surviving worker at the move
+    generate = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
+                               str(offline), "--root", "tether", *sampling], cwd=REPO,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, timeout=120)
+    assert generate.returncode == 0, generate.stdout
     client = example_client()
     arrivals: dict[str, list[float]] = {}  # --bvh path -> arrival time of each frame
     goaway_at: dict[str, float] = {}  # resume token -> when its goaway arrived
@@ -241,7 +244,7 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
         bvh = [tmp_path / f"client{i}.bvh" for i in range(clients)]
 
         async def everyone():
-            runs = []
+            watch, runs = asyncio.create_task(stalls.watch()), []
             for path in bvh:  # one after another: least connections puts every other one on each worker
                 args = client.parse_args(["--url", cluster.url, "--wav", str(wav), "--binary", "--quiet",
                                           "--bvh", str(path)])
@@ -250,14 +253,17 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
             while min(len(arrivals.get(str(p), ())) for p in bvh) < 40:  # mid-sentence: 2 s of frames each
                 await asyncio.sleep(0.05)
             os.kill(workers[1][1], signal.SIGTERM)
-            return await asyncio.wait_for(asyncio.gather(*runs), 60)
+            try:
+                return await asyncio.wait_for(asyncio.gather(*runs), 60)
+            finally:
+                watch.cancel()
 
+        stalls = LoopStalls()  # this process's own stalls (CI shares its cores): not the cluster's doing
         codes = asyncio.run(everyone())
         assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving \(exit status 0\)")
     finally:
         cluster.stop()
-    assert generate.wait(120) == 0, generate.stdout.read()
     assert len(resumed_in) == len(moved) == clients // 2, (resumed_in, moved, cluster.output[-3000:])
     assert max(resumed_in) < 1.0, resumed_in
     want = read_bvh(offline)
@@ -270,8 +276,9 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
     # the moved clients' gap holds their goaway and resume; the others must not notice
     stayed = [gap for path, gap in gaps.items() if path not in moved]
     print(f"resumed in {max(resumed_in):.3f} s at most; largest frame gap "
-          f"{max(gaps[p] for p in moved):.3f} s (moved), {max(stayed):.3f} s (stayed)")
-    assert max(stayed) < 0.5, gaps
+          f"{max(gaps[p] for p in moved):.3f} s (moved), {max(stayed):.3f} s (stayed); "
+          f"this process stalled {stalls.worst:.3f} s at most")
+    assert max(stayed) < 0.5 + stalls.worst, (gaps, stalls.worst)
 
 
 @needs_nginx
@@ -302,7 +309,7 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
         bvh = [str(tmp_path / f"client{i}.bvh") for i in range(clients)]
 
         async def everyone():
-            runs = []
+            watch, runs = asyncio.create_task(stalls.watch()), []
             for path in bvh:
                 args = client.parse_args(["--url", cluster.url, "--wav", str(wav), "--binary", "--quiet", "--bvh", path])
                 runs.append(asyncio.create_task(client.run(args)))
@@ -311,8 +318,12 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
                 await asyncio.sleep(0.05)
             os.kill(pid, signal.SIGKILL)
             killed = time.monotonic()
-            return killed, await asyncio.wait_for(asyncio.gather(*runs), 60)
+            try:
+                return killed, await asyncio.wait_for(asyncio.gather(*runs), 60)
+            finally:
+                watch.cancel()
 
+        stalls = LoopStalls()  # this process's own stalls (CI shares its cores): not the cluster's doing
         killed, codes = asyncio.run(everyone())
         assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving")
@@ -337,7 +348,7 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
         if path in restarted:  # streaming again within 2 s of the kill
             assert times[times > killed].min() - killed < 2.0, path
         else:
-            assert np.diff(times).max() < 0.5, path
+            assert np.diff(times).max() < 0.5 + stalls.worst, (path, stalls.worst)
         assert read_bvh(path).num_frames == seconds * FPS  # the whole timeline, the fresh stream's after the rest
 
 
