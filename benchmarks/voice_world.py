@@ -11,6 +11,10 @@ the train voices at each data size (10, 30, 60 min) and scored at several traini
   rule_heard           the rule as a perfect streaming listener makes it: each stress decided on the audio
                        heard by the time its stroke starts with the model's lookahead (`rule_events(heard_s=)`),
                        scored against the world's rule: the most a model with that lookahead can score
+  rule_learnt_listener the rule's strokes (full size, on time) on the syllables a small MLP trained on the train
+                       clips' syllables calls stressed (`voiceworld.StressListener`, the envelope 1 s before to
+                       0.25 s after each onset): what a perfect stroke generator with a learnt listener scores;
+                       `stress_accuracy` is its balanced accuracy on the held-out syllables
 
 The world's rule decides a stress on its whole phrase (`--rule-heard` unset: the phrase's median loudness, the
 spacing against louder syllables on both sides), which no streaming model can hear; `--rule-heard S` writes a
@@ -34,12 +38,36 @@ Pass: stroke-alignment margin over shuffled >= half the rule's, contrast >= half
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from common import RESULTS, code_version, describe_device, load_average, save_panels, utc_now, write_json
+
+def learnt_listener(data: Path, clips, bundle, heard: float | None, seed: int) -> dict:
+    """The rule's motion on the held-out clips with its stresses decided by a StressListener trained on the train
+    clips' syllables: full, on-time strokes after a learnt decision, so what a generator with that listening could
+    score (its balanced accuracy on the held-out syllables beside it)."""
+    from dimgestor.audio import load_wav
+    from dimgestor.features import motion_to_features
+    from dimgestor.voiceworld import StressListener, balanced_accuracy, listener_motion, score_motion, syllables
+
+    train = [syllables(load_wav(data / f"{name}.wav"), heard_s=heard)
+             for name in json.loads((data / "split.json").read_text())["train"]]
+    listener = StressListener(seed=seed).fit(np.concatenate([s.windows for s in train]),
+                                             np.concatenate([s.stressed for s in train]))
+    held = [syllables(a, heard_s=heard) for a, _ in clips]
+    raws = [motion_to_features(listener_motion(a, listener, 30.0, heard_s=heard)[0], bundle.feature_spec)[: len(r)]
+            for a, r in clips]
+    row = score_motion(raws, [a for a, _ in clips], bundle.skeleton, bundle.feature_spec, heard_s=heard)
+    row["stress_accuracy"] = balanced_accuracy(np.concatenate([s.stressed for s in held]),
+                                               np.concatenate([listener(s.windows) for s in held]))
+    return row
+
 
 def train_run(data: Path, run: Path, args, cache: Path) -> float:
     """`dimgestor train` on the world's train split (its split.json holds the held-out voices out); wall s."""
@@ -132,7 +160,8 @@ def main() -> int:
                 truth = {"rule": score_motion([r for _, r in clips], audios, bundle.skeleton, spec, heard_s=heard),
                          "rule_shuffled_audio": score_motion([r for _, r in clips], audios[1:] + audios[:1],
                                                             bundle.skeleton, spec, heard_s=heard),
-                         "rule_heard": score_motion(heard_raws, audios, bundle.skeleton, spec, heard_s=heard)}
+                         "rule_heard": score_motion(heard_raws, audios, bundle.skeleton, spec, heard_s=heard),
+                         "rule_learnt_listener": learnt_listener(data, clips, bundle, heard, args.seed)}
                 truth["rule_heard"]["heard_s"] = round(listener_s, 3)
                 for name, row in truth.items():
                     row.update(margins(row))

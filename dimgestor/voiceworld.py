@@ -296,11 +296,7 @@ def rule_events(audio: np.ndarray, rate: int = RATE, heard_s: float | None = Non
     env = loudness_envelope_db(audio, rate)
     if env.size == 0:
         return {"phrases": [], "stresses": []}
-    speech = env > np.percentile(env, 95) + SPEECH_REL_DB
-    for a, b in _runs(~speech):  # bridge short gaps inside speech
-        if a > 0 and b < len(speech) and (b - a) < BRIDGE_S * ENV_RATE:
-            speech[a:b] = True
-    phrases = [(a, b) for a, b in _runs(speech) if b - a >= MIN_PHRASE_S * ENV_RATE]
+    phrases = _phrase_spans(env)
     stresses = []
     for a, b in phrases:
         seg = env[a:b]
@@ -313,6 +309,16 @@ def rule_events(audio: np.ndarray, rate: int = RATE, heard_s: float | None = Non
         else:
             held.append((a, b))
     return {"phrases": [(a / ENV_RATE, b / ENV_RATE) for a, b in held], "stresses": stresses}
+
+
+def _phrase_spans(env: np.ndarray) -> list[tuple[int, int]]:
+    """[(start, end)) envelope frames of each phrase (before holding over short pauses): what stresses are
+    decided within."""
+    speech = env > np.percentile(env, 95) + SPEECH_REL_DB
+    for a, b in _runs(~speech):  # bridge short gaps inside speech
+        if a > 0 and b < len(speech) and (b - a) < BRIDGE_S * ENV_RATE:
+            speech[a:b] = True
+    return [(a, b) for a, b in _runs(speech) if b - a >= MIN_PHRASE_S * ENV_RATE]
 
 
 def _onset(seg: np.ndarray, p: int) -> int:
@@ -537,3 +543,115 @@ def verdict(model: dict, rule: dict) -> dict:
             "contrast_vs_rule": model["contrast"] / rule["contrast"],
             "coupling_margin_vs_rule": m["coupling_margin"] / r["coupling_margin"],
             "passes": bool(m["stroke_margin"] >= 0.5 * r["stroke_margin"] and model["contrast"] >= 0.5 * rule["contrast"])}
+
+
+# ---------------------------------------------------------------------------------------------------
+# A learnt listener: how well the rule's stress decision can be learnt from the audio at all. Its strokes
+# are the rule's own (full size, on time), so what it loses against the rule is the listening alone.
+# ---------------------------------------------------------------------------------------------------
+
+LISTEN_BACK_S = 1.0  # a listener's window: the envelope from this long before a syllable's onset ...
+LISTEN_AHEAD_S = 0.25  # ... to this long after it (a 300 ms lookahead less the stroke's 0.05 s lead)
+
+
+@dataclass(frozen=True)
+class Syllables:
+    """Every syllable of a clip's phrases, as a listener meets them (the partition of `syllable_onsets`)."""
+
+    onsets: np.ndarray  # (n,) seconds, in time order
+    stressed: np.ndarray  # (n,) bool: the rule strokes here
+    windows: np.ndarray  # (n, W) dB: the envelope LISTEN_BACK_S before to LISTEN_AHEAD_S after the onset, relative
+    # to the phrase's median heard by then (outside the phrase: its quietest frame)
+    strokes: list  # (n,) the rule's (onset, size) stress where stressed, else the size a stroke here would have
+
+
+def syllables(audio: np.ndarray, rate: int = RATE, heard_s: float | None = None) -> Syllables:
+    """The syllables (nuclei of 3 dB prominence inside each phrase, and every stress of the rule with heard_s)
+    with the listening window of each; syllables within 0.1 s of a stress are left out, as in syllable_onsets."""
+    from scipy.signal import find_peaks
+
+    env = loudness_envelope_db(audio, rate)
+    stresses = rule_events(audio, rate, heard_s)["stresses"] if env.size else []
+    times = np.array([t for t, _ in stresses])
+    back, ahead = int(round(LISTEN_BACK_S * ENV_RATE)), int(round(LISTEN_AHEAD_S * ENV_RATE))
+    rows = []  # (onset s, stressed, window, stroke)
+    for a, b in (_phrase_spans(env) if env.size else []):
+        seg = env[a:b]
+
+        def window(o: int) -> np.ndarray:
+            median = float(np.median(seg[:min(o + ahead, len(seg))]))
+            w = np.full(back + ahead, float(seg.min()) - median)
+            lo, hi = max(o - back, 0), min(o + ahead, len(seg))
+            w[lo - (o - back):hi - (o - back)] = seg[lo:hi] - median
+            return w
+
+        for stress in stresses:
+            o = int(round(stress[0] * ENV_RATE)) - a
+            if 0 <= o < len(seg):
+                rows.append((stress[0], True, window(o), stress))
+        if len(seg) > 2:
+            for p in find_peaks(seg, prominence=3.0)[0]:
+                o = _onset(seg, p)
+                t = (a + o) / ENV_RATE
+                if not times.size or np.abs(times - t).min() > 0.1:
+                    median = float(np.median(seg[:min(o + ahead, len(seg))]))
+                    rows.append((t, False, window(o), (t, _stroke_size(seg[p], median))))
+    rows.sort(key=lambda r: r[0])
+    return Syllables(np.array([r[0] for r in rows], dtype=np.float64), np.array([r[1] for r in rows], dtype=bool),
+                     np.array([r[2] for r in rows]).reshape(len(rows), back + ahead), [r[3] for r in rows])
+
+
+def listener_motion(audio: np.ndarray, decide, fps: float = 30.0, rate: int = RATE, heard_s: float | None = None
+                    ) -> tuple[BvhMotion, dict]:
+    """The rule's motion with its stresses decided by `decide` (windows (n, W) -> bool (n,)) instead of the rule:
+    with the rule's own decisions it is the rule's motion exactly."""
+    events = rule_events(audio, rate, heard_s)
+    syl = syllables(audio, rate, heard_s)
+    chosen = np.asarray(decide(syl.windows), dtype=bool) if len(syl.onsets) else np.zeros(0, bool)
+    events = {"phrases": events["phrases"], "stresses": [s for s, c in zip(syl.strokes, chosen) if c]}
+    n = int(round(len(audio) / rate * fps))
+    return gesture_motion(events, n, fps, np.random.default_rng(events_seed(events)), ENGAGE_TAU_S), events
+
+
+class StressListener:
+    """A small MLP that learns the rule's stress decision from listening windows (`syllables`): a generic learner
+    given the rule's own input (its loudness envelope, relative to the phrase's median), trained with the
+    classes weighted equally."""
+
+    def __init__(self, hidden: int = 128, epochs: int = 300, seed: int = 0):
+        self.hidden, self.epochs, self.seed = hidden, epochs, seed
+
+    def fit(self, windows: np.ndarray, stressed: np.ndarray) -> "StressListener":
+        import torch
+
+        self.mean, self.sd = windows.mean(0), windows.std(0) + 1e-6
+        x = torch.tensor((windows - self.mean) / self.sd, dtype=torch.float32)
+        y = torch.tensor(stressed, dtype=torch.float32)
+        pos = float(np.clip(stressed.mean(), 1e-3, 1 - 1e-3))
+        weight = torch.tensor(np.where(stressed, 0.5 / pos, 0.5 / (1 - pos)), dtype=torch.float32)
+        with torch.random.fork_rng():  # seeded here, whatever the caller's generator holds
+            torch.manual_seed(self.seed)
+            self.net = torch.nn.Sequential(torch.nn.Linear(x.shape[1], self.hidden), torch.nn.GELU(),
+                                           torch.nn.Dropout(0.2), torch.nn.Linear(self.hidden, self.hidden),
+                                           torch.nn.GELU(), torch.nn.Linear(self.hidden, 1))
+            opt = torch.optim.AdamW(self.net.parameters(), 1e-3, weight_decay=1e-2)
+            self.net.train()
+            for _ in range(self.epochs):  # full batch: a few thousand syllables
+                loss = torch.nn.functional.binary_cross_entropy_with_logits(self.net(x)[:, 0], y, reduction="none")
+                opt.zero_grad()
+                (loss * weight).mean().backward()
+                opt.step()
+        self.net.eval()
+        return self
+
+    def __call__(self, windows: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            x = torch.tensor((windows - self.mean) / self.sd, dtype=torch.float32)
+            return self.net(x)[:, 0].numpy() > 0
+
+
+def balanced_accuracy(truth: np.ndarray, guess: np.ndarray) -> float:
+    """Mean of the hit rates on stressed and on unstressed syllables (0.5: chance)."""
+    return 0.5 * (float(guess[truth].mean()) + float((~guess[~truth]).mean()))

@@ -140,6 +140,8 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
     r = json.loads(out.read_text())
     rule, shuffled = r["truth"]["rule"], r["truth"]["rule_shuffled_audio"]
     assert rule["contrast"] > 3 * shuffled["contrast"] and rule["stroke_margin"] > shuffled["stroke_margin"] + 0.1
+    listener = r["truth"]["rule_learnt_listener"]  # the rule's strokes on a learnt listener's calls
+    assert 0.0 <= listener["stress_accuracy"] <= 1.0 and finite(listener["stroke_margin"])
     assert sorted(r["results"]["0.25"], key=int) == ["2", "4"]
     row = r["results"]["0.25"]["4"]
     assert all(finite(row[k]) for k in ("contrast", "stroke_margin", "coupling_margin", "stroke_margin_vs_rule"))

@@ -134,3 +134,39 @@ def test_a_world_names_its_rule(tmp_path):
     motion, events = vw.rule_motion(load_wav(clip.with_suffix(".wav")), fps=30, heard_s=0.25)
     np.testing.assert_allclose(motion.values, read_bvh(clip.with_suffix(".bvh")).values, atol=1e-4)
     assert vw.world_rule(tmp_path) is None  # a folder without world.json: the whole-phrase rule
+
+
+@pytest.mark.parametrize("heard_s", [None, 0.25])
+def test_the_listener_motion_with_the_rules_own_decisions_is_the_rules_motion(world, heard_s):
+    """Every stress of the rule is one of `syllables` (marked stressed, with its own onset and size), so a listener
+    that decides as the rule does moves exactly as the rule; one that never stresses makes no stroke."""
+    split = json.loads((world / "split.json").read_text())
+    for name in split["valid"][:2]:
+        audio = load_wav(world / f"{name}.wav")
+        motion, events = vw.rule_motion(audio, heard_s=heard_s)
+        syl = vw.syllables(audio, heard_s=heard_s)
+        assert syl.stressed.sum() == len(events["stresses"]) > 0 and (~syl.stressed).sum() > syl.stressed.sum()
+        assert np.all(np.diff(syl.onsets) >= 0) and syl.windows.shape == (len(syl.onsets), 125)
+        same, same_events = vw.listener_motion(audio, lambda w: syl.stressed, heard_s=heard_s)
+        assert same_events == events and np.array_equal(same.values, motion.values)
+        _, none = vw.listener_motion(audio, lambda w: np.zeros(len(w), bool), heard_s=heard_s)
+        assert none == {"phrases": events["phrases"], "stresses": []}
+
+
+def test_a_learnt_listener_tells_stressed_syllables_on_voices_it_never_heard(tmp_path):
+    """Trained on 6 min of train voices' syllables (a heard-rule world), the StressListener picks out the rule's
+    stresses on 2 min of held-out voices well above chance (balanced accuracy 0.5; 0.67 here, 0.81 with 30 min),
+    and the same seed learns the same listener."""
+    world = tmp_path / "world"
+    split = vw.make_voice_world(world, 6.0, 2.0, seed=5, clip_s=20.0, heard_s=0.25)
+    train = [vw.syllables(load_wav(world / f"{n}.wav"), heard_s=0.25) for n in split["train"]]
+    held = [vw.syllables(load_wav(world / f"{n}.wav"), heard_s=0.25) for n in split["valid"]]
+    windows, stressed = np.concatenate([s.windows for s in train]), np.concatenate([s.stressed for s in train])
+    listener = vw.StressListener(epochs=200).fit(windows, stressed)
+    again = vw.StressListener(epochs=200).fit(windows, stressed)
+    test_windows, truth = np.concatenate([s.windows for s in held]), np.concatenate([s.stressed for s in held])
+    guess = listener(test_windows)
+    assert np.array_equal(guess, again(test_windows))
+    accuracy = vw.balanced_accuracy(truth, guess)
+    assert accuracy > 0.6, accuracy
+    assert vw.balanced_accuracy(truth, np.ones_like(truth)) == 0.5
