@@ -219,6 +219,35 @@ def test_web_av_clock_holds_picture_and_sound_together_and_sizes_its_buffer_from
 
 
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+def test_web_av_clock_gives_back_the_buffer_that_underruns_took_once_they_stop(tmp_path):
+    """Live use (issue 24): four stalls within 20 s, each longer than the last (a server falling behind), each hold
+    the clock and grow its margin (0.26 -> 0.88 s). Once the stream is on time again the buffer shrinks back, a
+    step every 20 s, to the usual lateness plus the base margin, never presenting a frame that has not come and
+    causing no underrun. Before, one catch-up took back a third of the grown margin and the rest stayed for good
+    (here +0.33 s; in the browser after a worker move, 1.2-1.9 s of buffer)."""
+    rng = np.random.default_rng(1)
+    arrivals = []
+    stalls = [(4.2, 4.8), (8.2, 9.4), (12.2, 14.2), (17.2, 20.2)]  # each longer than the buffer it meets
+    for w in range(500):  # 100 s of 200 ms windows
+        pts0 = 0.2 * w
+        at = pts0 + 0.15 + 0.2 + 0.05 * rng.random()
+        at = next((end for start, end in stalls if start <= at < end), at)
+        at = max(at, arrivals[-1][0] if arrivals else 0)
+        arrivals += [(at, pts0 + 0.05 * k) for k in range(4)]
+    display = np.arange(0.3, 100.0, 1 / DISPLAY_HZ)
+    out, counters = run_clock(tmp_path, [f"margin {DELAY_S}"], arrivals, display)
+    shown = [s for s in out if s["pts"] is not None]
+    t, pts = np.array([s["t"] for s in shown]), np.array([s["pts"] for s in shown])
+    arrived = np.array([max([p for a, p in arrivals if a <= ti], default=-1) for ti in t])
+    assert (np.diff(pts) >= -1e-9).all() and (pts <= arrived + 1e-9).all()
+    assert counters["underruns"] == len(stalls), counters  # one hold per stall; shrinking back caused none
+    offsets = np.array([s["offset"] for s in shown])
+    usual = 0.2 + 0.05 + 0.15 + DELAY_S  # a window's span + its latest arrival + the base margin
+    assert offsets[(t > 24) & (t < 28)].min() > usual + 3.0  # the last stall's lateness and the grown margin
+    assert offsets[t > 90].max() < usual + 0.05, (offsets[t > 90].max(), counters)
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
 def test_web_av_clock_starts_at_the_first_frame_when_the_page_was_busy(tmp_path):
     """A page busy for 4.5 s when the stream began (shaders compiling on a slow machine) still presents, and
     plays, the stream from its first frame on, without jumping ahead right after (the sound's start is heard)."""

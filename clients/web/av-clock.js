@@ -8,8 +8,10 @@
 // and resumes once the buffer is rebuilt to the new worst lateness plus the margin (also when the page was busy
 // and the clock passed its newest frame unseen: the next frame's arrival tells); underruns that keep coming
 // grow the margin. When the lateness has stayed far below the buffer for a whole window (a stall is over), the
-// clock catches up. Moves are rare, so the sound does not jump at every late burst, and while it holds nothing
-// plays: what is heard at audio time t is always the frame with pts t.
+// clock catches up; and once REPEAT_S pass without an underrun a grown margin shrinks a step (/ GROW) every
+// REPEAT_S back to its base, the buffer with it where the lateness of the last WINDOW_S allows: what underruns
+// took is given back, as live use needs. Moves are rare, so the sound does not jump at every late burst, and
+// while it holds nothing plays: what is heard at audio time t is always the frame with pts t.
 //
 // The stream starts at its first frame however long the page took to present it, with a buffer set from the
 // frames that came before that. A stream's first message may be the tail of a window (a model that looks ahead
@@ -46,6 +48,7 @@ export class PlayoutClock {
     this.holdAt = null;       // pts the clock stands at while it waits for late frames
     this.newestPts = null;
     this.lastUnderrun = -Infinity;
+    this.shrunkAt = -Infinity; // when the margin last shrank a step
     this.changedAt = null;    // when the offset last moved
     this.underruns = 0;
     this.catchUps = 0;
@@ -85,6 +88,14 @@ export class PlayoutClock {
     if (this.holdAt !== null) return;
     const ahead = pts - (now - this.offset);
     if (ahead > this.marginS + AHEAD_S) { this.move(transit + this.marginS, now); this.catchUps++; return; }
+    // No underrun for REPEAT_S: the margin shrinks a step towards its base, and the buffer with it.
+    if (this.marginS > this.baseMarginS && now - Math.max(this.lastUnderrun, this.shrunkAt) > REPEAT_S) {
+      this.marginS = Math.max(this.baseMarginS, this.marginS / GROW);
+      this.shrunkAt = now;
+      const target = this.lateness() + this.marginS;
+      if (target < this.offset) { this.move(target, now); this.catchUps++; }
+      return;
+    }
     // Caught up after a stall: lateness has stayed far below the buffer for a whole window.
     const spare = this.offset - this.lateness() - this.marginS;
     if (spare > Math.max(SLACK_S, this.marginS) && now - this.changedAt > WINDOW_S) {
