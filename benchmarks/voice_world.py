@@ -225,6 +225,10 @@ def plot(results: dict, truth: dict, path: Path, args) -> None:
         ax.axhline(truth["rule_shuffled_audio"][metric], color="0.6", lw=1, ls=":", label="rule, shuffled audio")
         ax.axhline(truth["rule_heard"][metric], color="tab:red", lw=1, ls="-.",
                    label=f"rule heard {truth['rule_heard']['heard_s']:g} s past onsets")
+        if "rule_learnt_listener" in truth:  # results written before it have no such row
+            ax.axhline(truth["rule_learnt_listener"][metric], color="tab:green", lw=1, ls="--",
+                       label=f"rule on a learnt listener's calls "
+                             f"({truth['rule_learnt_listener']['stress_accuracy']:.2f} right)")
         ax.set_xlabel("training steps")
         ax.set_title(title, fontsize=9)
     extra = " ".join(args.set or []) + (f" {args.train_args}" if args.train_args else "")
