@@ -578,24 +578,25 @@ def syllables(audio: np.ndarray, rate: int = RATE, heard_s: float | None = None)
     for a, b in (_phrase_spans(env) if env.size else []):
         seg = env[a:b]
 
-        def window(o: int) -> np.ndarray:
+        def window(o: int) -> tuple[np.ndarray, float]:
+            """(the listening window at onset frame o, the phrase's median heard by then)"""
             median = float(np.median(seg[:min(o + ahead, len(seg))]))
             w = np.full(back + ahead, float(seg.min()) - median)
             lo, hi = max(o - back, 0), min(o + ahead, len(seg))
             w[lo - (o - back):hi - (o - back)] = seg[lo:hi] - median
-            return w
+            return w, median
 
         for stress in stresses:
             o = int(round(stress[0] * ENV_RATE)) - a
             if 0 <= o < len(seg):
-                rows.append((stress[0], True, window(o), stress))
+                rows.append((stress[0], True, window(o)[0], stress))
         if len(seg) > 2:
             for p in find_peaks(seg, prominence=3.0)[0]:
                 o = _onset(seg, p)
                 t = (a + o) / ENV_RATE
                 if not times.size or np.abs(times - t).min() > 0.1:
-                    median = float(np.median(seg[:min(o + ahead, len(seg))]))
-                    rows.append((t, False, window(o), (t, _stroke_size(seg[p], median))))
+                    w, median = window(o)
+                    rows.append((t, False, w, (t, _stroke_size(seg[p], median))))
     rows.sort(key=lambda r: r[0])
     return Syllables(np.array([r[0] for r in rows], dtype=np.float64), np.array([r[1] for r in rows], dtype=bool),
                      np.array([r[2] for r in rows]).reshape(len(rows), back + ahead), [r[3] for r in rows])
