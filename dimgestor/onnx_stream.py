@@ -40,7 +40,7 @@ def _initial(entry: dict) -> np.ndarray:
 class OnnxStreamState:
     """What the stream carries between pushes (a value: a step never writes into the arrays it was given)."""
 
-    tensors: dict[str, np.ndarray]  # the graph's state inputs by name
+    tensors: dict  # the graph's state inputs by name: numpy arrays, or the runner's own values (OrtValue)
     pending: np.ndarray  # audio samples not yet a whole frame (< samples_per_call)
     smoother: OneEuroState | None = None
     samples_in: int = 0  # audio samples received (the audio clock)
@@ -119,20 +119,36 @@ class FrameStepStream:
 
 
 def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
-    """ONNX Runtime's CPU session on the exported graph, `threads` intra-op threads (1: the real-time setting)."""
+    """ONNX Runtime's CPU session on the exported graph, `threads` intra-op threads (1: the real-time setting).
+
+    The states stay ONNX Runtime's own values (`OrtValue`) from one call to the next, bound as the next call's
+    inputs where the last one wrote them: converting them to numpy and back copied every state twice a call
+    (the denoiser's SSM state alone is 2 MB at K = 8), 28% of a window's cost (benchmarks/onnx_runtime.py).
+    A state output is never written again, so a state stays a value. `frames` comes back as numpy."""
     import onnxruntime as ort
 
     folder = Path(folder)
+    manifest = load_manifest(folder)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    session = ort.InferenceSession(str(folder / load_manifest(folder)["graph"]), opts,
-                                   providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(str(folder / manifest["graph"]), opts, providers=["CPUExecutionProvider"])
     names = [o.name for o in session.get_outputs()]
+    states = {s["output"] for s in manifest["state"]}
 
     def run(feeds):
-        return dict(zip(names, session.run(names, feeds)))
+        io, held = session.io_binding(), []
+        for name, value in feeds.items():
+            if isinstance(value, ort.OrtValue):
+                io.bind_ortvalue_input(name, value)
+            else:
+                held.append(array := np.ascontiguousarray(value))  # bound by address: alive until the run
+                io.bind_cpu_input(name, array)
+        for name in names:
+            io.bind_output(name, "cpu")  # a fresh buffer each call: the inputs (last call's outputs) stay intact
+        session.run_with_iobinding(io)
+        return {n: v if n in states else v.numpy() for n, v in zip(names, io.get_outputs())}
 
     return run
 

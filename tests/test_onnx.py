@@ -100,6 +100,18 @@ def test_state_must_be_carried(exported, bundle, audio):
     assert np.abs(np.array(fresh) - carried[:len(fresh)]).max() > 0.1
 
 
+def test_a_state_on_onnx_runtime_is_a_value(exported, audio):
+    """The ONNX Runtime runner keeps the states as its own values between calls (no copy); stepping twice from
+    one state gives the same frames and state, so a call never writes into the state it was given."""
+    stream = ort_stream(exported, seed=SEED)
+    _, state = stream.step(stream.initial_state(), audio[:SAMPLE_RATE])
+    a, after_a = stream.step(state, audio[SAMPLE_RATE:SAMPLE_RATE * 2])
+    b, after_b = stream.step(state, audio[SAMPLE_RATE:SAMPLE_RATE * 2])
+    assert len(a) > 0 and np.array_equal(a, b)
+    for name in after_a.tensors:
+        assert np.array_equal(np.asarray(after_a.tensors[name].numpy()), np.asarray(after_b.tensors[name].numpy()))
+
+
 def test_frame_step_in_torch_equals_the_graph(exported, bundle, audio):
     """The traced module run in torch is the graph's reference: same driver, same frames."""
     step = FrameStep(bundle.model, STEPS, bundle.config.guidance, FRAMES).eval()
