@@ -8,7 +8,8 @@
       train_state.pt      (runs only) optimizer, raw weights, step and RNG states for --resume
 
 A run folder holds ckpt_XXXXXXX/ folders; the latest is used when a run folder is given.
-`load_checkpoint(None)` loads the embedded default model in dimgestor/default_model/.
+`load_checkpoint(None)` loads the embedded default model in dimgestor/default_model/; the names of the embedded
+models (`EMBEDDED`: "default", and "live", 150 ms sooner for talking live) load them where no such path exists.
 """
 from __future__ import annotations
 
@@ -31,10 +32,14 @@ from .model import DiMGestor
 from .stream import GestureStream, generate_offline
 
 __all__ = ["Bundle", "CheckpointError", "save_checkpoint", "load_checkpoint", "resolve_checkpoint",
-           "latest_checkpoint", "export_checkpoint", "DEFAULT_MODEL_DIR", "FORMAT"]
+           "latest_checkpoint", "export_checkpoint", "DEFAULT_MODEL_DIR", "LIVE_MODEL_DIR", "EMBEDDED", "FORMAT"]
 
 FORMAT = 1
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "default_model"
+# The same recipe with 150 ms of lookahead instead of 300 (200 ms of algorithmic latency, not 350): for a live
+# microphone (MODEL_CARD.md, "The live model").
+LIVE_MODEL_DIR = Path(__file__).resolve().parent / "live_model"
+EMBEDDED = {"default": "DEFAULT_MODEL_DIR", "live": "LIVE_MODEL_DIR"}  # --checkpoint NAME -> the module global
 _CKPT = re.compile(r"^ckpt_(\d+)$")
 
 
@@ -118,12 +123,15 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 
 
 def resolve_checkpoint(path: str | Path | None) -> Path:
-    """A checkpoint folder from a checkpoint folder, a file inside one, a run folder, or None (default)."""
-    if path is None:
-        if not (DEFAULT_MODEL_DIR / "model.safetensors").is_file():
-            raise CheckpointError(f"no embedded default model at {DEFAULT_MODEL_DIR}; train one with "
+    """A checkpoint folder from a checkpoint folder, a file inside one, a run folder, None (the embedded default)
+    or the name of an embedded model ("default", "live") where no such path exists."""
+    if path is None or (str(path) in EMBEDDED and not Path(path).exists()):
+        name = "default" if path is None else str(path)
+        folder = globals()[EMBEDDED[name]]
+        if not (folder / "model.safetensors").is_file():
+            raise CheckpointError(f"no embedded {name} model at {folder}; train one with "
                                   "`dimgestor train` and pass it with --checkpoint")
-        return DEFAULT_MODEL_DIR
+        return folder
     p = Path(path)
     if p.is_file() and p.parent.joinpath("config.json").is_file():
         p = p.parent  # e.g. .../ckpt_0001000/model.safetensors

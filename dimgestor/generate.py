@@ -52,7 +52,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("generate", help="generate a BVH for a WAV file (offline, whole file)",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--checkpoint", default=None,
-                   help="checkpoint folder, a file in it, or a run folder (its latest); default: the embedded model")
+                   help="checkpoint folder, a file in it, a run folder (its latest), or `live` (the embedded live "
+                        "model); default: the embedded default model")
     p.add_argument("--audio", required=True, help="speech WAV (any rate, mono or stereo)")
     p.add_argument("--out", required=True, help="output .bvh")
     p.add_argument("--steps", type=int, default=None,

@@ -130,7 +130,8 @@ def _output_flags(s: argparse.ArgumentParser) -> None:
 
 def _model_flags(s: argparse.ArgumentParser) -> None:
     _flag(s, "--checkpoint", metavar="PATH",
-              help="checkpoint folder or run folder (latest checkpoint); default: the embedded default model")
+              help="checkpoint folder or run folder (latest checkpoint), or `live`: the embedded live model (150 ms "
+                   "sooner, for a live microphone); default: the embedded default model")
     _flag(s, "--steps", type=int,
               help="DDIM denoising steps K, fewer is faster (default: the checkpoint's sample_steps)")
     _flag(s, "--seed", type=int, help="noise seed; same seed + audio + steps = same motion")
