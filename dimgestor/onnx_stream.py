@@ -22,7 +22,7 @@ from .config import ModelConfig
 from .smoothing import OneEuroState
 from .stream import _check_audio, make_smoother
 
-__all__ = ["FrameStepStream", "OnnxStreamState", "load_manifest", "ort_runner", "torch_runner", "ort_stream"]
+__all__ = ["FrameStepStream", "OnnxStreamState", "OnnxModel", "load_manifest", "ort_runner", "torch_runner", "ort_stream"]
 
 Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
 
@@ -166,7 +166,25 @@ def torch_runner(step) -> Runner:
     return run
 
 
+@dataclass(frozen=True)
+class OnnxModel:
+    """An export loaded once: its manifest and one ONNX Runtime session, shared by every stream made from it
+    (a session's run is thread-safe, and each call binds its own inputs): `streamer serve --backend onnxruntime`
+    loads the graph once for all its clients, not once per client."""
+
+    folder: Path
+    manifest: dict
+    run: Runner
+
+    @classmethod
+    def load(cls, folder: str | Path, threads: int = 1) -> "OnnxModel":
+        return cls(Path(folder), load_manifest(folder), ort_runner(folder, threads))
+
+    def stream(self, seed: int = 0, smoothing="config", lookahead_s: float | None = None) -> FrameStepStream:
+        return FrameStepStream(self.manifest, self.run, seed, smoothing, lookahead_s)
+
+
 def ort_stream(folder: str | Path, seed: int = 0, smoothing="config", threads: int = 1,
                lookahead_s: float | None = None) -> FrameStepStream:
-    """A stream on ONNX Runtime from an export folder (`dimgestor export-onnx --out folder`)."""
-    return FrameStepStream(load_manifest(folder), ort_runner(folder, threads), seed, smoothing, lookahead_s)
+    """A stream on ONNX Runtime from an export folder (`dimgestor export-onnx --out folder`), on its own session."""
+    return OnnxModel.load(folder, threads).stream(seed, smoothing, lookahead_s)

@@ -29,6 +29,7 @@ from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 if TYPE_CHECKING:
     from dimgestor.checkpoint import Bundle
+    from dimgestor.onnx_stream import OnnxModel
     from streamer.ws import WsServer
 
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_token", "run", "serve"]
@@ -80,7 +81,7 @@ def build(options: ServeOptions) -> Pipeline:
     bundle = _load(options.checkpoint)
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
-    onnx = _onnx_export(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
+    onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
     executor = _executor(options.no_batch or onnx is not None)  # (ONNX Runtime runs each stream's call alone)
     metrics = _metrics(executor)
     make_session = functools.partial(_session, bundle, options, executor, steps, guidance, onnx=onnx)
@@ -156,18 +157,24 @@ def _metrics(executor: StreamBatcher | RankedExecutor) -> ServerMetrics:
 
 
 def _session(bundle, options: ServeOptions, executor, steps: int, guidance: float, name: str = "client",
-             onnx: str | None = None) -> Session:
-    if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime
+             onnx: OnnxModel | None = None) -> Session:
+    if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
-        from dimgestor.onnx_stream import ort_stream
 
-        stream = ort_stream(onnx, seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
+        stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
                        executor=executor, name=name)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
                                window_ms=options.window_ms, executor=executor, name=name)
+
+
+def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:
+    """--backend onnxruntime: the export loaded once for every session (`_onnx_export`)."""
+    from dimgestor.onnx_stream import OnnxModel
+
+    return OnnxModel.load(_onnx_export(options, bundle, steps, guidance))
 
 
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:

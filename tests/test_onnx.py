@@ -112,6 +112,21 @@ def test_a_state_on_onnx_runtime_is_a_value(exported, audio):
         assert np.array_equal(np.asarray(after_a.tensors[name].numpy()), np.asarray(after_b.tensors[name].numpy()))
 
 
+def test_streams_sharing_one_session_from_two_threads_equal_streams_alone(exported, audio):
+    """`streamer serve --backend onnxruntime` loads the graph once (`OnnxModel`) and its inference threads run
+    several clients' streams on it at once: each stream's frames are those it makes alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dimgestor.onnx_stream import OnnxModel
+
+    model = OnnxModel.load(exported)
+    alone = [streamed(ort_stream(exported, seed=s), audio[:SAMPLE_RATE * 2], [1600]) for s in (1, 2)]
+    with ThreadPoolExecutor(2) as pool:
+        shared = list(pool.map(lambda s: streamed(model.stream(seed=s), audio[:SAMPLE_RATE * 2], [1600]), (1, 2)))
+    for a, b in zip(alone, shared):
+        assert len(a) > 0 and np.array_equal(a, b)
+
+
 def test_frame_step_in_torch_equals_the_graph(exported, bundle, audio):
     """The traced module run in torch is the graph's reference: same driver, same frames."""
     step = FrameStep(bundle.model, STEPS, bundle.config.guidance, FRAMES).eval()
