@@ -1,4 +1,5 @@
-"""One stream's per-window cost, torch against ONNX Runtime: the embedded default model at K = 1, 4, 8, 1 thread.
+"""One stream's per-window cost, torch against ONNX Runtime: the embedded default model at K = 1, 4, 8, 1 thread;
+and how many real-time streams one process keeps on each backend.
 
 For each K the model is exported (`dimgestor export-onnx`, one window a call) and both backends stream the same
 audio window by window as fast as possible, interleaved so that a shared machine's load falls on both alike:
@@ -9,7 +10,13 @@ is timed; the result is the median and p90 per window, the
 real-time factor (mean cost / window length), the ONNX Runtime / torch ratio of the medians, and the largest
 difference between the two backends' frames (normalized features).
 
-    python benchmarks/onnx_runtime.py                       # K = 1, 4, 8 at 100 ms windows
+Streams per process (`--streams K...`, default K = 8): `benchmarks/streams.py`'s serving trial (paced sessions
+on one executor, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
+torch batched (one StreamBatcher on every core: `streamer serve`'s default), torch unbatched and ONNX Runtime (one
+session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer serve
+--backend onnxruntime`), doubling then bisecting the count to 10 %.
+
+    python benchmarks/onnx_runtime.py                       # K = 1, 4, 8 at 100 ms windows; streams at K = 8
     python benchmarks/onnx_runtime.py --exports /tmp/onnx   # keep the exported graphs for the next run
 """
 
@@ -36,6 +43,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="alternate the backends by whole rounds (each cache-warm) or by single windows")
     p.add_argument("--exports", type=Path, default=None,
                    help="folder of the exported graphs (reused when present; default: a temporary folder)")
+    p.add_argument("--streams", type=int, nargs="*", default=[8], metavar="K",
+                   help="K values for the streams-per-process comparison (none: skip it)")
+    p.add_argument("--streams-s", type=float, default=8.0, help="audio per streams trial (s)")
+    p.add_argument("--streams-max", type=int, default=160, help="largest stream count tried")
     p.add_argument("--out", type=Path, default=RESULTS / "onnx_runtime.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
@@ -104,6 +115,29 @@ def measure(bundle, folder: Path, steps: int, args) -> dict:
     return row
 
 
+def streams(bundle, folder: Path, steps: int, args) -> dict:
+    """Real-time streams in one process at K = steps: torch batched and unbatched, ONNX Runtime (shared session)."""
+    import os
+
+    from dimgestor.onnx_stream import OnnxModel
+    from streams import max_streams
+
+    c = bundle.config
+    onnx = OnnxModel.load(export_for(folder, steps, args.window_ms * c.fps // 1000))
+    cores = os.cpu_count() or 1
+    common = dict(steps=steps, window_ms=args.window_ms, seconds=args.streams_s, cap=args.streams_max)
+    row = {"steps": steps, "cores": cores,
+           "torch_batched": max_streams(bundle, batched=True, threads=cores, **common),
+           "torch_unbatched": max_streams(bundle, batched=False, threads=1, **common),
+           "onnxruntime": max_streams(bundle, batched=False, threads=1, onnx=onnx, **common)}
+    n = {k: row[k]["max_realtime_streams"] for k in ("torch_batched", "torch_unbatched", "onnxruntime")}
+    row["max_realtime_streams"] = n
+    row["ratio_onnxruntime_to_torch_batched"] = n["onnxruntime"] / max(n["torch_batched"], 1)
+    print(f"K={steps} streams per process: torch batched {n['torch_batched']}, unbatched {n['torch_unbatched']}, "
+          f"ONNX Runtime {n['onnxruntime']} ({row['ratio_onnxruntime_to_torch_batched']:.2f}x torch batched)")
+    return row
+
+
 def plot(result: dict, path: Path) -> None:
     import matplotlib
 
@@ -114,7 +148,8 @@ def plot(result: dict, path: Path) -> None:
 
     rows = result["results"]
     x = np.arange(len(rows))
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    srows = result.get("streams") or []
+    fig, axes = plt.subplots(1, 3 if srows else 2, figsize=(13.5 if srows else 9, 3.4))
     for i, backend in enumerate(("torch", "onnxruntime")):
         p50 = [r[backend]["ms_p50"] for r in rows]
         p90 = [r[backend]["ms_p90"] for r in rows]
@@ -126,6 +161,14 @@ def plot(result: dict, path: Path) -> None:
     axes[1].axhline(0.5, color="k", lw=1, ls="--", label="target 0.5")
     axes[1].set_xlabel("K")
     axes[1].set_ylim(0, max(1.1, max(r["ratio_p50"] for r in rows) * 1.1))
+    if srows:
+        names = ("torch_batched", "torch_unbatched", "onnxruntime")
+        xs = np.arange(len(srows))
+        for i, name in enumerate(names):
+            axes[2].bar(xs + (i - 1) * 0.27, [r["max_realtime_streams"][name] for r in srows], 0.27,
+                        label=name.replace("_", " "))
+        axes[2].set_xticks(xs, [f"K={r['steps']}" for r in srows])
+        axes[2].set_ylabel(f"real-time streams, one process, {srows[0]['cores']} cores")
     save_panels(fig, axes, f"one stream, default model, 1 thread, interleaved by {result['interleave']}: "
                            f"{result['device']}", path)
     plt.close(fig)
@@ -143,6 +186,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="onnx-bench-") as tmp:
         folder = args.exports or Path(tmp)
         rows = [measure(bundle, folder, k, args) for k in args.steps]
+        srows = [streams(bundle, folder, k, args) for k in args.streams]
     import onnxruntime
 
     result = {"benchmark": "onnx_runtime", "date": utc_now(), "code": code_version(), "argv": args.argv,
@@ -150,7 +194,7 @@ def main(argv=None) -> int:
               "load_average": load_average(), "note": args.note, "window_ms": args.window_ms,
               "interleave": args.interleave,
               "model": "embedded default (speech front end, guidance %g: 2 rows)" % bundle.config.guidance,
-              "results": rows}
+              "results": rows, "streams": srows}
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))
     return 0

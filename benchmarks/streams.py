@@ -111,11 +111,13 @@ def make_executor(batched: bool, threads: int):
 
 
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
-                  aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0) -> dict:
+                  aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0,
+                  onnx=None) -> dict:
     """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
-    case for batching) instead of staggered over one window."""
+    case for batching) instead of staggered over one window. onnx: a `dimgestor.onnx_stream.OnnxModel`: the
+    sessions run on it, as `streamer serve --backend onnxruntime` builds them (each window alone, unbatched)."""
     from streamer.sessions import Session
 
     audio = test_audio(seconds, SAMPLE_RATE)
@@ -125,8 +127,15 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     window_s = window_ms / 1000
 
     async def one(j: int, t0: float) -> None:
-        session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, executor=executor,
-                                      name=f"bench{j}")
+        if onnx is None:
+            session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, executor=executor,
+                                          name=f"bench{j}")
+        else:
+            from dimgestor.features import PoseDecoder
+
+            session = Session(onnx.stream(seed=j, lookahead_s=bundle.model.lookahead_s),
+                              PoseDecoder(bundle.skeleton, bundle.feature_spec), bundle.denormalize,
+                              bundle.feature_spec.fps, window_ms=window_ms, executor=executor, name=f"bench{j}")
 
         def emit(fs) -> None:
             frames[j] += len(fs)
@@ -159,7 +168,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     end_worst = max(ends) * 1000
     stats = getattr(executor, "stats", None)
     return {
-        "streams": n, "batched": batched, "phases": "aligned" if aligned else "staggered", **how,
+        "streams": n, "batched": batched, "backend": "torch" if onnx is None else "onnxruntime", "phases": "aligned" if aligned else "staggered", **how,
         "lag_ms_p50": percentile_ms(late, 50) if late else float("inf"), "lag_ms_p95": p95,
         "end_lag_ms_max": end_worst, "windows": sum(len(x) for x in lags), "frames": sum(frames),
         "mean_batch": stats.total / stats.count if stats is not None and stats.count else 1.0,
@@ -170,15 +179,15 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
 
 def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
-                aligned: bool = False, log=print) -> dict:
+                aligned: bool = False, log=print, onnx=None) -> dict:
     """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail
     until they are within 10 % (the answer is the largest count that passed)."""
     trials, good, bad, n = [], 0, None, 1
 
     def trial(k: int) -> bool:
-        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned)
+        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned, onnx=onnx)
         trials.append(r)
-        log(f"  {'batched' if batched else 'unbatched':9s}{' aligned' if aligned else ''} K={steps} {k:3d} streams: lag p50/p95 "
+        log(f"  {'' if onnx is None else 'onnxruntime '}{'batched' if batched else 'unbatched':9s}{' aligned' if aligned else ''} K={steps} {k:3d} streams: lag p50/p95 "
             f"{r['lag_ms_p50']:.0f}/{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, "
             f"batch {r['mean_batch']:.1f} -> {'ok' if r['ok'] else 'falls behind'}")
         return r["ok"]
@@ -192,5 +201,6 @@ def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: boo
         mid = (good + bad) // 2
         good, bad = (mid, bad) if trial(mid) else (good, mid)
     return {"max_realtime_streams": good, "capped": bad is None, "batched": batched,
+            "backend": "torch" if onnx is None else "onnxruntime",
             "phases": "aligned" if aligned else "staggered", "steps": steps,
             "window_ms": window_ms, "trial_s": seconds, "trials": sorted(trials, key=lambda r: r["streams"])}

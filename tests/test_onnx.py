@@ -229,3 +229,34 @@ def test_serve_refuses_an_onnx_export_with_other_settings_or_a_state_store(expor
 
     with pytest.raises(ServeError, match=f"exported with K={STEPS}"):
         build(ServeOptions.parse(backend="onnxruntime", onnx=str(exported), steps=STEPS + 1, source="ws"))
+
+
+def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path):
+    """benchmarks/onnx_runtime.py on this module's export (K = 2, 100 ms windows): per-window times of both
+    backends with their frames compared, and the streams-per-process section for all three executors."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    shutil.copytree(exported, tmp_path / "exports" / f"default_k{STEPS}_f{FRAMES}")
+    out = tmp_path / "onnx_runtime.json"
+    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
+                           "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
+                           "--streams-max", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
+                          cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(out.read_text())
+    (row,) = r["results"]
+    assert row["steps"] == STEPS and row["max_abs_diff"] < 1e-4 and row["ratio_p50"] > 0
+    assert row["torch"]["windows"] == row["onnxruntime"]["windows"] > 0
+    (s,) = r["streams"]
+    for name, backend in (("torch_batched", "torch"), ("torch_unbatched", "torch"), ("onnxruntime", "onnxruntime")):
+        m = s[name]
+        assert m["backend"] == backend and 0 <= m["max_realtime_streams"] <= 2 and m["trials"]
+        assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
+        assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
+    assert out.with_suffix(".png").is_file()
