@@ -78,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
         group(s)
     s.add_argument("-v", "--verbose", action="store_true", help="log debug information")
     sub.add_parser("devices", help="list audio input devices (for --source mic --device N)")
+    from streamer import web
+
+    web.register(sub)
     return ap
 
 
@@ -226,6 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "devices":
         return _devices()
+    if args.command == "web":
+        from streamer import web
+
+        return web.run(args)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     for handler in logging.getLogger().handlers:

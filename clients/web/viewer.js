@@ -7,6 +7,7 @@
 //                  ?audio=float32       (microphone wire format; default pcm16)
 //                  ?avatar=skeleton     (start with the skeleton instead of the mannequin)
 //                  ?sound=off           (start muted)
+//                  ?local=model/        (no server: the model runs in this browser, local-engine.js)
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PlayoutClock } from './av-clock.js';
@@ -802,7 +803,7 @@ function sendNow(buf) {
   keepSent(buf, buf.byteLength / (AUDIO_FORMAT === 'float32' ? 4 : 2));
 }
 
-ui.talk.addEventListener('click', () => startTalk());
+ui.talk.addEventListener('click', () => (local ? local.toggleMic().catch((e) => say(`microphone: ${e.message}`)) : startTalk()));
 
 // ---------------------------------------------------------------- HUD
 function setState(s, detail = '') {
@@ -869,6 +870,16 @@ setInterval(() => {  // round trip on the same socket as the frames
   }
 }, 2000);
 
-api.url = socketUrl();
-ui.url.textContent = api.url.replace(/token=[^&]+/, 'token=…');
-connect(null);
+// Local mode (?local=MODEL_URL): no server; local-engine.js runs the model here and hands its frames to onMessage.
+let local = null;
+if (params.has('local')) {
+  import('./local-engine.js').then(async (m) => {
+    local = await m.startLocal(params.get('local'), { onMessage, say, fail, setState, api, talkButton: ui.talk });
+    api.talk = () => local.toggleMic();
+    api.stopTalk = () => local.stopMic();
+  }).catch((e) => fail(`local inference: ${e.message}`));
+} else {
+  api.url = socketUrl();
+  ui.url.textContent = api.url.replace(/token=[^&]+/, 'token=…');
+  connect(null);
+}

@@ -1,0 +1,82 @@
+// Web Worker of the local mode (local-engine.js): onnxruntime-web's WebAssembly backend runs the exported frame
+// step (`dimgestor export-onnx`: frame_step.onnx + manifest.json) off the page's thread, driven by
+// FrameStepStream (frame-step-stream.js, the mirror of Python's). Messages in, one at a time in order:
+//   {type: 'init', base, threads, seed}   load base + manifest.json and its graph -> {type: 'ready', ...}
+//   {type: 'push', samples}               16 kHz mono Float32Array -> {type: 'frames', frames, runMs, samples}
+//   {type: 'finish'}                      the end of the audio -> {type: 'frames', ..., final: true}
+//   {type: 'reset', seed}                 a new stream (same session) -> {type: 'reset'}
+//   {type: 'bench', calls}                `calls` calls on a fresh stream of noise -> {type: 'bench', ms: [...]}
+// Import maps do not reach workers: onnxruntime-web is imported by its path under node_modules/.
+import * as ort from './node_modules/onnxruntime-web/dist/ort.wasm.min.mjs';
+import { FrameStepStream } from './frame-step-stream.js';
+
+let session = null, manifest = null, stream = null, seed = 0;
+let queue = Promise.resolve();
+
+async function run(feeds) {
+  const tensors = {};
+  for (const [name, t] of Object.entries(feeds))
+    tensors[name] = t instanceof ort.Tensor ? t : new ort.Tensor(t.dtype, t.data, t.dims);
+  return session.run(tensors);
+}
+
+async function init({ base, threads, seed: s }) {
+  ort.env.wasm.numThreads = threads || 0;  // 0: onnxruntime-web's default (1 unless the page is cross-origin isolated)
+  const t0 = performance.now();
+  const get = async (name, as) => {
+    const r = await fetch(new URL(name, base));
+    if (!r.ok) throw new Error(`${new URL(name, base)}: HTTP ${r.status} (export the model there: streamer web)`);
+    return r[as]();
+  };
+  manifest = await get('manifest.json', 'json');
+  const graph = await get(manifest.graph, 'arrayBuffer');
+  session = await ort.InferenceSession.create(graph, { executionProviders: ['wasm'], graphOptimizationLevel: 'all' });
+  seed = s || 0;
+  stream = new FrameStepStream(manifest, run, seed);
+  return { type: 'ready', loadMs: performance.now() - t0, threads: ort.env.wasm.numThreads,
+           crossOriginIsolated: self.crossOriginIsolated, sampler: manifest.sampler, call: manifest.call };
+}
+
+async function push(samples) {
+  const runMs = stream.runMs;
+  const frames = await stream.push(samples);
+  return { type: 'frames', frames, runMs: stream.runMs - runMs, samples: samples.length };
+}
+
+async function finish() {
+  const runMs = stream.runMs;
+  const frames = await stream.finish();
+  return { type: 'frames', frames, runMs: stream.runMs - runMs, samples: 0, final: true };
+}
+
+async function bench(calls) {
+  // A fresh stream fed whole calls of noise: the time of every call, the warm-up ones included.
+  const s = new FrameStepStream(manifest, run, seed);
+  const samples = new Float32Array(s.chunk);
+  const ms = [];
+  for (let i = 0; i < calls; i++) {
+    for (let k = 0; k < samples.length; k++) samples[k] = 0.1 * Math.sin(0.05 * (k + i * samples.length)) * Math.random();
+    const t0 = performance.now();
+    await s.push(samples);
+    ms.push(performance.now() - t0);
+  }
+  return { type: 'bench', ms, samplesPerCall: s.chunk, sampleRate: manifest.call.sample_rate };
+}
+
+const handlers = {
+  init, push: (m) => push(m.samples), finish: () => finish(), bench: (m) => bench(m.calls),
+  reset: (m) => { seed = m.seed ?? seed; stream = new FrameStepStream(manifest, run, seed); return { type: 'reset' }; },
+};
+
+self.onmessage = (e) => {
+  const msg = e.data;
+  queue = queue.then(async () => {
+    try {
+      const handler = handlers[msg.type];
+      if (!handler) throw new Error(`unknown message ${msg.type}`);
+      self.postMessage({ id: msg.id, ...(await handler(msg)) });
+    } catch (err) {
+      self.postMessage({ id: msg.id, type: 'error', message: err.message || String(err) });
+    }
+  });
+};

@@ -1,0 +1,212 @@
+"""The viewer's local mode (`streamer web`, `?local=model/`): the model runs in the browser with onnxruntime-web
+(WebAssembly, in a Web Worker), no inference server. In real headless Chromium: a known WAV gives the frames
+Python's `FrameStepStream` on ONNX Runtime gives for the same audio, seed, K and M (normalized features within
+1e-4, decoded rotations within 1e-4 and root within 1e-3 cm), and the fake microphone gives moving frames at
+the stream's rate in real time with the page saying it runs locally and showing its real-time factor. The pose
+decoding (pose-decoder.js) and the output filter are also checked under node against Python's numbers.
+The page runs the embedded default model (K = 2 here, to export quickly); the node checks a tiny checkpoint."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers.clients import REPO, SPEECH_WAV, free_port
+from test_clients_web import CHROMIUM, Browser, assert_figure_drawn
+
+ORT_WEB = REPO / "clients" / "web" / "node_modules" / "onnxruntime-web" / "dist" / "ort.wasm.min.mjs"
+NODE = shutil.which("node")
+pytest.importorskip("onnxruntime", reason="the `onnx` extra is not installed")
+needs_chromium = pytest.mark.skipif(not CHROMIUM, reason="chromium not installed (Debian: apt-get install chromium)")
+needs_ort_web = pytest.mark.skipif(not ORT_WEB.exists(), reason="onnxruntime-web is not installed (make setup runs "
+                                   "npm ci in clients/web)")
+STEPS, FRAMES, SEED = 2, 2, 0  # the page's seed is 0 unless ?seed= says otherwise
+FEATURE_TOL, ROTATION_TOL, ROOT_TOL_CM = 1e-4, 1e-4, 1e-3
+
+
+SILENCE_S = 2.0  # the known WAV: this much digital silence, then the speech WAV
+
+
+@pytest.fixture(scope="module")
+def web_model(tmp_path_factory):
+    """The embedded default model exported for the page (graph, manifest, web.json; ~30 s) and the known WAV."""
+    from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav
+    from streamer.web import prepare_model
+
+    folder = prepare_model(tmp_path_factory.mktemp("web_model"), None, steps=STEPS, frames=FRAMES)
+    speech = load_wav(SPEECH_WAV)
+    save_wav(folder / "known.wav", np.concatenate([np.zeros(int(SILENCE_S * SAMPLE_RATE)), speech]), SAMPLE_RATE)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def web_server(web_model, tmp_path_factory):
+    """`streamer web` on a free port serving the page and the model folder; yields its base URL."""
+    port = free_port()
+    log = tmp_path_factory.mktemp("web_server") / "server.log"
+    cmd = [sys.executable, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "web",
+           "--model", str(web_model), "--port", str(port)]
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, f"streamer web exited:\n{log.read_text()}"
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, f"streamer web did not listen:\n{log.read_text()}"
+                time.sleep(0.2)
+        yield f"http://127.0.0.1:{port}/"
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def python_frames(folder: Path, audio: np.ndarray) -> np.ndarray:
+    """The reference: Python's FrameStepStream on ONNX Runtime, the whole audio pushed, then finish."""
+    from dimgestor.onnx_stream import ort_stream
+
+    stream = ort_stream(folder, seed=SEED)
+    return np.concatenate([stream.push(audio), stream.finish()])
+
+
+def python_poses(folder: Path, frames: np.ndarray):
+    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.features import PoseDecoder
+
+    web = json.loads((folder / "web.json").read_text())
+    bundle = load_checkpoint(json.loads((folder / "manifest.json").read_text())["checkpoint"]["path"])
+    decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=web["root"], tether_s=web["tether_s"])
+    return decoder.decode(bundle.denormalize(frames))
+
+
+def open_local(tmp_path: Path, url: str, extra: tuple[str, ...] = ()) -> Browser:
+    browser = Browser(tmp_path, url + "?local=model/", extra)
+    try:
+        deadline = time.monotonic() + 30
+        while True:  # the page may have no execution context yet just after Chromium starts
+            try:
+                browser.eval("document.readyState")
+                break
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        browser.wait_for("window.dimgestorLocal && window.dimgestorLocal.info", 120, "the local model to load")
+    except BaseException:
+        browser.close()
+        raise
+    return browser
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+@pytest.mark.parametrize("heading", ["velocity", "facing"])
+@pytest.mark.parametrize("root", ["free", "tether", "lock"])
+def test_pose_decoder_in_javascript_equals_python(tmp_path, checkpoint, root, heading):
+    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.features import PoseDecoder
+    from dimgestor.smoothing import OneEuroFilter
+
+    bundle = load_checkpoint(checkpoint)
+    sk, spec = bundle.skeleton, bundle.feature_spec.resolve(bundle.skeleton).model_copy(update={"heading": heading})
+    rows = np.random.default_rng(3).normal(size=(41, spec.dim)).astype(np.float32) * 2  # turns of a radian and more
+    feeds = {"spec": {"mean": bundle.mean.tolist(), "std": bundle.std.tolist(), "joints": spec.joint_indices(sk),
+                      "numJoints": sk.num_joints, "heading": heading, "fps": spec.fps},
+             "root": root, "tether_s": 0.5, "rows": rows.tolist(), "filter": {"fps": 20, "hz": 3.0, "beta": 0.7}}
+    (tmp_path / "in.json").write_text(json.dumps(feeds))
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/pose_decoder_check.mjs"), str(tmp_path / "in.json")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)
+    features = bundle.denormalize(rows)
+    np.testing.assert_array_equal(np.float32(got["features"]), features)  # f * std + mean, float32: exactly
+    pose = PoseDecoder(sk, spec, root=root, tether_s=0.5).decode(features)
+    np.testing.assert_allclose(got["root"], pose.root_pos, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got["rotations"], pose.rotations, rtol=0, atol=1e-12)
+    assert np.abs(pose.root_pos[:, [0, 2]]).max() > 0 if root != "lock" else True
+    for beta in (0.7,):  # the filter, split across two calls, as Python's over the whole
+        want = OneEuroFilter(20, 3.0, beta).step(None, rows.astype(np.float64))[0]
+        np.testing.assert_allclose(got["filtered"], want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.timeout(300)
+@needs_chromium
+@needs_ort_web
+def test_local_frames_for_a_wav_equal_python_onnx_runtime(tmp_path, web_model, web_server):
+    from dimgestor.audio import load_wav
+    from helpers.clients import joint_speed
+
+    browser = open_local(tmp_path, web_server)
+    try:
+        info = browser.eval("window.dimgestorLocal.info")
+        assert info["sampler"]["steps"] == STEPS and info["call"]["frames_per_call"] == FRAMES
+        got = browser.eval("window.dimgestorLocal.runWav('/model/known.wav')")
+        errors = browser.eval("window.dimgestor.errors")
+    finally:
+        browser.close()
+    assert errors == []
+    audio = load_wav(web_model / "known.wav")
+    want = python_frames(web_model, audio)
+    assert len(want) == len(audio) * 20 // 16000 and len(got["normalized"]) == len(want)
+    np.testing.assert_allclose(got["normalized"], want, rtol=0, atol=FEATURE_TOL)
+    pose = python_poses(web_model, want)
+    np.testing.assert_allclose(got["rotations"], pose.rotations, rtol=0, atol=ROTATION_TOL)
+    np.testing.assert_allclose(got["root"], pose.root_pos, rtol=0, atol=ROOT_TOL_CM)
+    assert 0 < got["rtf"] and got["samples"] == len(audio)
+    # The gestures follow the speech: joints turn faster while it speaks than in the silence before it.
+    speed = joint_speed([{"rotations": r} for r in got["rotations"]], 20)
+    silent, speaking = speed[5:int(SILENCE_S * 20) - 8].mean(), speed[int(SILENCE_S * 20) + 5:].mean()
+    assert speaking > 1.5 * silent, (silent, speaking)
+
+
+@pytest.mark.timeout(300)
+@needs_chromium
+@needs_ort_web
+def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_server):
+    browser = open_local(tmp_path, web_server, (
+        "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+        f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
+    try:
+        browser.eval("window.dimgestor.talk()", user_gesture=True)
+        browser.wait_for("window.dimgestorLocal.framesMade >= 20", 60, "20 frames from the microphone")
+        read = ("({t: performance.now() / 1000, frames: window.dimgestorLocal.framesMade, "
+                "audio: window.dimgestorLocal.audioS, dropped: window.dimgestorLocal.droppedS, "
+                "shown: window.dimgestor.shownFrame && window.dimgestor.shownFrame.index})")
+        a = browser.eval(read)
+        poses = []
+        for _ in range(8):
+            time.sleep(0.5)
+            poses.append(browser.eval("window.dimgestor.jointWorldPositions()"))
+        b = browser.eval(read)
+        hud = browser.eval("({state: document.getElementById('state').textContent, "
+                           "url: document.getElementById('url').textContent, "
+                           "rtf: document.getElementById('rtf').textContent})")
+        browser.screenshot(tmp_path / "web_local_mic.png")
+        png = tmp_path / "web_local_mic.png"
+        errors = browser.eval("window.dimgestor.errors")
+        browser.eval("window.dimgestor.stopTalk()")
+    finally:
+        browser.close()
+    assert errors == []
+    wall, audio = b["t"] - a["t"], b["audio"] - a["audio"]
+    # The fake microphone delivers audio in real time and all of it reaches the model (nothing dropped while the
+    # worker keeps up; what it drops is counted), and every 50 ms of audio makes one frame: 20 fps in real time.
+    assert audio + (b["dropped"] - a["dropped"]) == pytest.approx(wall, rel=0.25), (a, b)
+    made = b["frames"] - a["frames"]
+    assert made == pytest.approx(audio * 20, abs=2 * FRAMES + 1), (a, b)
+    assert b["shown"] is not None and b["shown"] > a["frames"] - 40, "the picture does not follow the frames made"
+    moves = np.abs(np.diff(np.asarray(poses), axis=0)).max(axis=(1, 2))
+    assert (moves > 1e-4).sum() >= 5, f"the avatar hardly moves: {moves}"
+    assert hud["state"] == "local" and "no server inference" in hud["url"]
+    assert 0 < float(hud["rtf"]) < 10, hud
+    assert_figure_drawn(png)
