@@ -25,7 +25,7 @@ $(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.
 	@if command -v npm >/dev/null; then cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error; \
 	else echo "npm not found: the browser viewer cannot load three.js and its tests will be skipped (Debian: apt install npm)" >&2; fi
 
-.PHONY: setup test demo default-model live-model
+.PHONY: setup test demo default-model live-model web
 setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
 
 test: setup $(VMC_CHECK)/node_modules/.package-lock.json
@@ -36,6 +36,12 @@ WS_PORT ?= 8765
 OSC_PORT ?= 39539
 demo: setup
 	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT)
+
+# The viewer with the model running in the browser (onnxruntime-web), no inference server: exports the default
+# model into web-model/ the first time; then open http://127.0.0.1:WEB_PORT/?local=model/
+WEB_PORT ?= 8766
+web: setup
+	$(BIN)/streamer web --model web-model --port $(WEB_PORT)
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset with the speech front end
 # (level-free bands and prosody), 300 ms of audio lookahead (downsampler kernel 41) and 15 % condition dropout,

@@ -4,6 +4,7 @@
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -169,3 +170,18 @@ def test_cluster_load_benchmark_runs_a_rolling_restart_and_writes_its_schema(tmp
     assert s["finished_complete"] == s["sessions_finished"] > 0, s  # every frame once, in order, moved or not
     assert r["cost"]["session_state_bytes"] > 0 and finite(r["cost"]["cpu_s_workers"])
     assert (tmp_path / "cluster_load.png").is_file()
+
+
+@pytest.mark.skipif(not (shutil.which("chromium") or shutil.which("chromium-browser")), reason="chromium not installed")
+@pytest.mark.skipif(not (REPO / "clients/web/node_modules/onnxruntime-web").is_dir(),
+                    reason="onnxruntime-web is not installed (make setup runs npm ci in clients/web)")
+def test_web_local_benchmark_writes_its_schema(tmp_path):
+    """One K (exported, ~30 s), one thread setting, a few windows in headless Chromium."""
+    out = tmp_path / "web_local.json"
+    run("web_local.py", "--steps", "1", "--threads", "1", "--calls", "8", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code"] and r["device"].startswith("CPU") and "onnxruntime-web" in r["browser"]
+    [x] = r["results"]
+    assert x["steps"] == 1 and x["threads"] == 1 and x["window_ms"] == 100 and x["windows"] == 8 - 3 - 2
+    assert all(finite(x[k]) and x[k] > 0 for k in ("ms_p50", "ms_p90", "ms_mean", "rtf", "load_ms"))
