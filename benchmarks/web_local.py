@@ -120,7 +120,9 @@ def plot(result: dict, path: Path) -> None:
     axes[1].set_xlabel("K")
     axes[1].set_ylabel("real-time factor (mean)")
     axes[1].set_ylim(0, max(1.1, max(r["rtf"] for r in rows) * 1.1))
-    save_panels(fig, axes, f"browser (onnxruntime-web WASM), one stream, default model: {result['browser']}", path)
+    browser = result["browser"].split(" built")[0]  # "Chromium N.N.N.N"
+    save_panels(fig, axes, f"local mode in headless {browser} (onnxruntime-web WASM), one stream, default model, "
+                           f"shared 2-core CPU (load {result['load_average'][0]})", path)
     plt.close(fig)
 
 

@@ -207,7 +207,9 @@ def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_serve
         browser.eval("window.dimgestor.talk()", user_gesture=True)
         browser.wait_for("window.dimgestorLocal.framesMade >= 20", 60, "20 frames from the microphone")
         read = ("({t: performance.now() / 1000, frames: window.dimgestorLocal.framesMade, "
-                "audio: window.dimgestorLocal.audioS, dropped: window.dimgestorLocal.droppedS, "
+                "audio: window.dimgestorLocal.audioS, captured: window.dimgestorLocal.capturedS, "
+                "backlog: window.dimgestorLocal.backlogS, dropped: window.dimgestorLocal.droppedS, "
+                "busy: window.dimgestorLocal.runMs / 1000, "
                 "shown: window.dimgestor.shownFrame && window.dimgestor.shownFrame.index})")
         a = browser.eval(read)
         poses = []
@@ -226,9 +228,22 @@ def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_serve
         browser.close()
     assert errors == []
     wall, audio = b["t"] - a["t"], b["audio"] - a["audio"]
-    # The fake microphone delivers audio in real time and all of it reaches the model (nothing dropped while the
-    # worker keeps up; what it drops is counted), and every 50 ms of audio makes one frame: 20 fps in real time.
-    assert audio + (b["dropped"] - a["dropped"]) == pytest.approx(wall, rel=0.25), (a, b)
+    # The fake microphone delivers audio in real time; every sample of it is answered by the model, waiting for
+    # it (backlog, bounded at 2 s) or dropped and counted; every 50 ms answered makes one frame.
+    assert b["captured"] - a["captured"] == pytest.approx(wall, rel=0.25), (a, b)
+    for r in (a, b):
+        assert r["audio"] + r["backlog"] + r["dropped"] == pytest.approx(r["captured"], abs=1e-6), r
+    # Keeping up: unless the shared machine starved the page, the backlog did not grow and nothing was dropped.
+    # Starved is what this test measures itself: the worker busy for 70% of the time or more (its calls' time
+    # includes any time the CPU was taken away), or the page's main thread (which answers the worker) so late
+    # that our 8 reads of half a second between sleeps took over 30% longer than the sleeps. A starved page falls
+    # behind by design (bounded, counted): then only the bookkeeping above is checked.
+    busy, stalled = b["busy"] - a["busy"], wall - 8 * 0.5
+    if busy < 0.7 * wall and stalled < 0.3 * wall:
+        assert b["backlog"] < a["backlog"] + 0.5 and b["dropped"] == a["dropped"], (busy, a, b)
+    else:
+        print(f"starved: the worker busy {busy:.1f} s, reads {stalled:.1f} s late, of {wall:.1f} s: keeping up "
+              "not checked")
     made = b["frames"] - a["frames"]
     assert made == pytest.approx(audio * 20, abs=2 * FRAMES + 1), (a, b)
     assert b["shown"] is not None and b["shown"] > a["frames"] - 40, "the picture does not follow the frames made"

@@ -8,7 +8,8 @@
 // The model folder holds what `streamer web` writes: frame_step.onnx + manifest.json (`dimgestor export-onnx`)
 // and web.json (the hello the server would send for this checkpoint, the feature layout, the root mode).
 //
-// window.dimgestorLocal (for scripts and tests): ready (a promise), info, rtf, runMs, audioS, droppedS,
+// window.dimgestorLocal (for scripts and tests): ready (a promise), info, rtf, runMs, audioS (answered by the
+// worker), capturedS (from the microphone), backlogS, droppedS,
 // framesMade, runWav(url | File, {realtime, seed}) -> {normalized, root, rotations, rtf}, startMic(),
 // stopMic(), bench(calls) -> per-call ms.
 import { PoseDecoder } from './pose-decoder.js';
@@ -39,7 +40,9 @@ class LocalEngine {
     this.audioS = 0;
     this.droppedS = 0;         // microphone audio dropped because the worker was MAX_BACKLOG_S behind
     this.backlog = 0;          // samples sent to the worker and not answered yet
+    this.capturedS = 0;        // microphone audio captured (the worklet's chunks), sent or dropped
     this.framesMade = 0;
+    this.lastCallMs = null;
     this.mic = null;
     this.record = null;        // {normalized, root, rotations} while runWav collects the frames it makes
     this.source = null;        // 'mic' | 'wav' | null
@@ -49,6 +52,9 @@ class LocalEngine {
     const { hooks } = this;
     hooks.setState('local', ': loading');
     document.getElementById('url').textContent = 'runs locally in this browser (WebAssembly): no server inference';
+    const latency = document.getElementById('latency');  // the HUD's "latency (server)" row: the model's time here
+    latency.previousElementSibling.textContent = 'inference (local)';
+    latency.previousElementSibling.title = 'the model\'s time for the last push of audio, in this browser';
     const get = async (name) => {
       const r = await fetch(new URL(name, this.base));
       if (!r.ok) throw new Error(`${new URL(name, this.base)}: HTTP ${r.status} (serve it with: streamer web)`);
@@ -118,7 +124,8 @@ class LocalEngine {
       this.rtf = run / audio;
     }
     for (const row of r.frames) this.emit(row);
-    this.hooks.onMessage(JSON.stringify({ type: 'status', rtf: this.rtf, latency_ms: r.runMs, local: true }));
+    if (r.runMs > 0) this.lastCallMs = r.runMs;  // (a push shorter than a call may complete none)
+    this.hooks.onMessage(JSON.stringify({ type: 'status', rtf: this.rtf, latency_ms: this.lastCallMs, local: true }));
     return r.frames.length;
   }
 
@@ -193,9 +200,12 @@ class LocalEngine {
     await this.newStream();
     await ctx.resume();
     await ctx.audioWorklet.addModule(new URL('./mic-worklet.js', import.meta.url));
-    const node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples: Math.round(this.rate * 0.02) } });
+    // 100 ms chunks, one call's audio: one message each way per call (the main thread also draws, often slowly).
+    const chunkSamples = this.info.call.samples_per_call;
+    const node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples } });
     let last = Promise.resolve();
     node.port.onmessage = (e) => {  // each chunk to the worker at once (it takes them in order, answers in order)
+      this.capturedS += e.data.length / this.rate;
       if (this.backlog / this.rate > MAX_BACKLOG_S) { this.droppedS += e.data.length / this.rate; return; }
       last = this.push(e.data).catch((err) => hooks.fail(`local inference: ${err.message}`));
     };
@@ -226,6 +236,8 @@ class LocalEngine {
     this.hooks.talkButton.textContent = 'Talk';
     this.hooks.talkButton.classList.remove('on');
   }
+
+  get backlogS() { return this.backlog / this.rate; }
 
   /** Per-call milliseconds of `calls` calls on a fresh stream (the benchmark's hook). */
   async bench(calls) {
