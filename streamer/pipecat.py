@@ -13,8 +13,9 @@ reports: `playout_observer` (add it to the PipelineWorker's observers) sees the 
 once written to its device, i.e. when it starts to be heard. An utterance's first frame waits for that report;
 an earlier report moves the clock at once, later ones when `LATER_AFTER` agree (the device really ran dry,
 e.g. the event loop stalled), so the picture pauses with the sound; a frame does not go out before the transport
-reported its audio playing (unless that report is `UNCONFIRMED_S` overdue). Without the observer, BotStartedSpeaking (from the transport) corrects the start.
-Utterance frame k is released at start + k / fps: when its audio is heard.
+reported its audio playing (unless that report is `UNCONFIRMED_S` overdue). Without the observer,
+BotStartedSpeaking (from the transport) corrects the start. Utterance frame k is released at start + k / fps:
+when its audio is heard.
 
 When a frame is not ready at its time. The model needs 350 ms of future audio (its lookahead) and an inference
 call for a frame, so an utterance that starts in silence would begin with its first frames late. Its audio is
@@ -68,7 +69,7 @@ from streamer.sources import PushSource, make_resampler
 __all__ = ["GestureProcessor", "GestureStats", "PlayoutObserver", "Released", "RestPose"]
 log = logging.getLogger("streamer.pipecat")
 LATER_AFTER = 3     # playout reports in a row later than the clock that move it later
-UNCONFIRMED_S = 0.5  # an utterance the transport has not reported playing by then counts as started anyway
+UNCONFIRMED_S = 0.1  # how long past its time a frame waits for the transport's report of its audio
 
 
 @dataclass(frozen=True)
@@ -155,13 +156,14 @@ class _Utterance:
     audio_s: float = 0.0         # of which audio
     gaps: list = field(default_factory=list)  # (audio_s before it, seconds): silence the transport plays
     heard_s: float = 0.0         # audio the transport reported playing (`playout_observer`)
+    last_chunk_s: float = 0.0    # the last reported chunk's length
     confirmed: bool = False      # the transport reported playing it (until then its start is an estimate)
     offsets: deque = field(default_factory=lambda: deque(maxlen=LATER_AFTER))  # reports later than `start`
     open: bool = True            # more of its audio may come
     done: bool = False           # its session ended: every frame is in `frames` or released
     frames: deque = field(default_factory=deque)
     first_ready: asyncio.Event = field(default_factory=asyncio.Event)
-    audio: list = field(default_factory=list)  # (local pts, 16 kHz samples) not yet given to on_audio
+    audio: list = field(default_factory=list)  # (local pts, 16 kHz samples) not yet heard: for on_audio
     task: asyncio.Task | None = None
     released: int = 0
 
@@ -171,14 +173,16 @@ class GestureProcessor(FrameProcessor):
 
     sinks: opened and closed by the caller (a `WsServer` must be listening before the viewer connects).
     bundle or checkpoint: the model (default: the embedded one). on_audio(pts, samples): the agent's audio at
-    16 kHz on the frames' clock (e.g. `WsServer.broadcast_audio`, so the web viewer plays it in sync).
+    16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
+    web viewer plays it in sync; audio an interruption cut is never given).
     on_release(Released): every frame sent, for measurements. executor: where inference runs (a
     `streamer.scheduling` scheduler or Executor; None: a shared pool).
     """
 
     def __init__(self, sinks: list[Sink], *, bundle=None, checkpoint: str | None = None, steps: int | None = None,
                  seed: int = 0, window_ms: int = 200, executor=None, max_hold_s: float = 0.3,
-                 blend_in_s: float = 0.5, rest_hz: float = 1.3, on_audio: Callable[[float, np.ndarray], None] | None = None,
+                 blend_in_s: float = 0.5, rest_hz: float = 1.3,
+                 on_audio: Callable[[float, np.ndarray], None] | None = None,
                  on_release: Callable[[Released], None] | None = None, **kwargs):
         super().__init__(**kwargs)
         if bundle is None:
@@ -230,8 +234,10 @@ class GestureProcessor(FrameProcessor):
         if direction == FrameDirection.UPSTREAM:
             if isinstance(frame, BotStartedSpeakingFrame):
                 self._bot_started(time.monotonic())
-            elif isinstance(frame, BotStoppedSpeakingFrame):
-                await self._end_utterance()
+            elif isinstance(frame, BotStoppedSpeakingFrame) and self._utterances:
+                u = self._utterances[-1]  # ended by the transport (a TTS that sends no TTSStopped), if all heard:
+                if u.start is not None and time.monotonic() >= u.start + u.pushed_s - 1 / self.fps:
+                    await self._end_utterance()  # (not the next answer, begun while the last one still played)
             await self.push_frame(frame, direction)
             return
         u = None
@@ -307,7 +313,6 @@ class GestureProcessor(FrameProcessor):
         if len(y):
             u.audio.append((u.source.samples_in / SAMPLE_RATE, y))
             await u.source.put(y)  # (waits only when an hour of audio is queued)
-        self._give_audio(u)
 
     def _schedule(self, u: _Utterance, seconds: float) -> float:
         """`seconds` of u's audio are pushed to the transport now: when they play. Returns the silence (s) the
@@ -329,12 +334,17 @@ class GestureProcessor(FrameProcessor):
         self._changed.set()
         return gap
 
-    def _give_audio(self, u: _Utterance) -> None:
-        if self.on_audio is None or u.start is None or self.origin is None:
-            return
-        for pts, y in u.audio:
-            self.on_audio(u.pts0 + pts, y)
-        u.audio.clear()
+    def _give_audio(self, u: _Utterance, until: float) -> None:
+        """u's audio up to local time `until` to on_audio, as it is heard (never what an interruption cut)."""
+        while u.audio and u.audio[0][0] < until:
+            pts, y = u.audio.pop(0)
+            n = len(y) if until == np.inf else min(len(y), int(round((until - pts) * SAMPLE_RATE)))
+            if n < len(y):  # the rest is heard later
+                u.audio.insert(0, (pts + n / SAMPLE_RATE, y[n:]))
+            if n <= 0:
+                break
+            if self.on_audio is not None:
+                self.on_audio(u.pts0 + pts, y[:n])
 
     async def _hold(self, u: _Utterance) -> None:
         t0 = time.monotonic()
@@ -348,7 +358,6 @@ class GestureProcessor(FrameProcessor):
             frame, direction, v = self._held.pop(0)
             if v is not None:
                 self._schedule(v, len(_mono(frame)) / frame.sample_rate)
-                self._give_audio(v)
             await self.push_frame(frame, direction)
         self._holding = self._hold_task = None
 
@@ -363,7 +372,6 @@ class GestureProcessor(FrameProcessor):
             if len(tail):
                 u.audio.append((u.source.samples_in / SAMPLE_RATE, tail))
                 await u.source.put(tail)
-                self._give_audio(u)
         await u.source.close()
 
     def _heard(self, wall: float, seconds: float) -> None:
@@ -377,6 +385,7 @@ class GestureProcessor(FrameProcessor):
         local = u.heard_s + sum(g for at, g in u.gaps if at <= u.heard_s + 1e-6)
         offset = wall - local  # when u's local time 0 was heard, by this report
         u.heard_s += seconds
+        u.last_chunk_s = seconds
         if not u.open and u.heard_s >= u.audio_s - 1e-6:  # (its last chunk may be padded with silence)
             self._playing.popleft()
         shift = 0.0
@@ -461,6 +470,7 @@ class GestureProcessor(FrameProcessor):
                         continue
                     self._release_speech(u, u.frames.popleft(), due, time.monotonic())
                 elif u.done:
+                    self._give_audio(u, np.inf)
                     self._utterances.popleft()
                     if self._last_due is not None:
                         self._next_rest_due = self._last_due + dt
@@ -474,11 +484,11 @@ class GestureProcessor(FrameProcessor):
 
     def _unheard(self, u: _Utterance, f: Frame, due: float) -> bool:
         """The transport has not reported playing f's audio yet (it ran late: the frame waits for it, up to
-        UNCONFIRMED_S past its due time, so a transport that stops reporting cannot stop the avatar)."""
+        UNCONFIRMED_S past its due time, so reports that come late or never cannot stop the avatar)."""
         if not self._observed or time.monotonic() > due + UNCONFIRMED_S:
             return False
-        moment = _audio_at(u, f.pts)
-        return moment is not None and moment >= u.heard_s
+        moment = _audio_at(u, f.pts)  # (the chunk after the last reported one follows it: report latency allowed)
+        return moment is not None and moment >= u.heard_s + u.last_chunk_s
 
     async def _wait(self, timeout: float | None) -> bool:
         """Sleep until `timeout` or until something changed; True: something changed (look again)."""
@@ -505,6 +515,7 @@ class GestureProcessor(FrameProcessor):
         self.stats.max_late_s = max(self.stats.max_late_s, late)
         self.stats.speech_frames += 1
         u.released += 1
+        self._give_audio(u, f.pts + 1 / self.fps)
         self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats), due, u.number, k, _audio_at(u, f.pts))
 
     def _release_rest(self, due: float) -> None:
@@ -538,12 +549,12 @@ class PlayoutObserver(BaseObserver):
     device that ran dry makes late."""
 
     def __init__(self, processor: "GestureProcessor"):
-        super().__init__(observe_every_push=True)  # (a re-chunked frame's first push is the transport's own)
+        super().__init__(observe_every_push=False)  # (the transport's chunks are its own frames: their first push)
         self.processor = processor
         self._clock_offset_ns: int | None = None
 
     async def on_push_frame(self, data: FramePushed):
-        self.processor._observed = True  # (the StartFrame's pushes come before any audio)
+        self.processor._observed = True  # (the StartFrame's push comes before any audio)
         if not (isinstance(data.source, BaseOutputTransport) and data.direction == FrameDirection.DOWNSTREAM
                 and isinstance(data.frame, OutputAudioRawFrame) and data.frame.audio):
             return
