@@ -30,7 +30,7 @@ from helpers.stalls import LoopStalls  # noqa: E402
 sys.path.insert(0, str(REPO / "examples"))
 from pipecat_avatar import PacedAudioOutput, WavTTS, load_speech  # noqa: E402
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 RATE = 24000     # a TTS's usual output rate (the model's is 16 kHz)
 SYNC_S = 0.05    # the target: a gesture within 50 ms of its audio being heard
 LOOKBACK_S = 1.0
@@ -271,6 +271,7 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
 
     from dimgestor.audio import load_wav, save_wav
     from streamer import protocol as P
+    from helpers.vmc import bundles, check_vmc_bundle
     from udp_capture import UdpCapture
 
     wav = tmp_path / "say.wav"
@@ -311,5 +312,10 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     assert sum(len(a["samples"]) for a in audio) >= int(2.95 * 16000), "the agent's audio did not reach the client"
     assert all(a["rate"] == 16000 for a in audio)
     assert frames[0]["pts"] <= audio[0]["pts"] <= frames[-1]["pts"]
-    assert len(vmc.datagrams) >= 2 * FPS
+    frames_vmc = [m for m in bundles(vmc.datagrams) if m[-1][0] == "/VMC/Ext/T"]  # one bundle per frame
+    assert len(frames_vmc) >= 3 * FPS
+    for msgs in frames_vmc:
+        check_vmc_bundle(msgs)
+    times = [m[-1][2][0] for m in frames_vmc]  # the frames' pts, in order: the receiver got the same clock
+    assert np.all(np.diff(times) > 0)
     assert "1 utterances" in proc.output
