@@ -68,7 +68,7 @@ from streamer.sources import PushSource, make_resampler
 
 __all__ = ["GestureProcessor", "GestureStats", "PlayoutObserver", "Released", "RestPose"]
 log = logging.getLogger("streamer.pipecat")
-LATER_AFTER = 3     # playout reports in a row later than the clock that move it later
+LATER_AFTER = 2     # playout reports in a row later than the clock that move it later (one late report: a busy loop)
 UNCONFIRMED_S = 0.1  # how long past its time a frame waits for the transport's report of its audio
 
 
