@@ -118,13 +118,10 @@ def hello_for(bundle, window_ms: int) -> dict:
                    source_audio={"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1})
 
 
-async def run(args) -> int:
-    from dimgestor.checkpoint import load_checkpoint
+async def run(args, speech: np.ndarray, bundle) -> int:
     from streamer.pipecat import GestureProcessor
     from streamer.ws import WsServer
 
-    speech = load_speech(args.wav, args.rate)
-    bundle = load_checkpoint(args.checkpoint)
     ws = WsServer(args.ws[0], args.ws[1], hello_for(bundle, args.window_ms), None, origins=["*"])
     sinks = [ws]
     if args.vmc is not None:
@@ -190,13 +187,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: the checkpoint's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--window-ms", type=int, default=200)
+    p.add_argument("-v", "--verbose", action="store_true", help="pipecat's debug log too")
     args = p.parse_args(argv)
+    from loguru import logger  # pipecat's logger (a dependency of pipecat-ai): its debug lines only with -v
+
+    logger.remove()
+    logger.add(sys.stderr, level="DEBUG" if args.verbose else "WARNING")
     if not Path(args.wav).is_file():
         p.error(f"--wav {args.wav}: no such file")
     if args.times < 1 or args.burst <= 0 or args.burst_s <= 0 or args.rate <= 0:
         p.error("--times, --burst, --burst-s and --rate must be positive")
+    from dimgestor.audio import AudioError
+    from dimgestor.checkpoint import CheckpointError, load_checkpoint
+
     try:
-        return asyncio.run(run(args))
+        speech = load_speech(args.wav, args.rate)
+        bundle = load_checkpoint(args.checkpoint)
+    except (AudioError, CheckpointError, OSError, ValueError) as e:
+        p.error(str(e))
+    if not len(speech):
+        p.error(f"--wav {args.wav}: no audio samples")
+    try:
+        return asyncio.run(run(args, speech, bundle))
+    except OSError as e:  # e.g. the WebSocket port is taken
+        print(f"pipecat_avatar: {e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 
