@@ -109,6 +109,18 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
         assert finite(x["ratio_p50"]) and finite(x["ratio_p50_unguided"]) and x["ratio_p50"] > 0
 
 
+def test_pipecat_sync_benchmark_writes_its_schema(tmp_path):
+    pytest.importorskip("pipecat", reason="pipecat-ai is not installed (pip install 'dimgestor[pipecat]')")
+    out = tmp_path / "pipecat_sync.json"
+    run("pipecat_sync.py", "--runs", "1", "--audio-s", "2", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code_version"] and r["device"].startswith("CPU") and r["speed"] == 5.0 and r["rate"] == 24000
+    assert len(r["runs"]) == 1 and r["runs"][0]["frames"] == len(r["runs"][0]["errors_ms"]) >= 30
+    for k in ("error_ms_p50", "error_ms_p99", "abs_error_ms_max", "frames_within_50ms", "held_ms_max"):
+        assert finite(r[k]), k
+
+
 def test_guidance_benchmark_writes_its_schema(tmp_path):
     out = tmp_path / "guidance.json"
     run("guidance.py", "--preset", "tiny", "--steps", "1", "2", "--audio-s", "1", "--batches", "2",

@@ -17,11 +17,12 @@ WAV_SECONDS = 3.0  # the length of the `wav` fixture (tests/conftest.py)
 
 
 class Serve:
-    """A running `streamer serve`; reads its stderr in a thread to find the addresses it prints."""
+    """A running `streamer serve` (or another `command`); reads its stderr in a thread to find the addresses it
+    prints."""
 
-    def __init__(self, *args: str, env: dict | None = None):
+    def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "streamer.cli", "serve")):
         env = {**(env or os.environ), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "serve", *args], cwd=REPO, env=env,
+        self.proc = subprocess.Popen([sys.executable, *command, *args], cwd=REPO, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         self.thread = threading.Thread(target=self._read, daemon=True)

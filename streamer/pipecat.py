@@ -1,0 +1,590 @@
+"""Voice agents: `GestureProcessor`, a pipecat frame processor that gives an agent's voice a gesturing avatar.
+
+Placed between the TTS and the output transport, it passes every frame on unchanged and listens to the agent's
+output audio (any rate, in bursts):
+
+    TTS -> GestureProcessor -> output transport          sinks (WsServer, VmcSink, any `streamer.sink.Sink`)
+              |  each utterance's audio -> its own engine `Session` -> frames, released by the playout clock
+
+Playout clock. The output transport plays the audio pushed to it back to back in real time, so audio pushed at
+wall time w starts playing at max(w, the end of the audio pushed before); a pause in a slow TTS's audio is
+silence in the utterance's timeline (the session hears it too). That estimate is corrected by what the transport
+reports: `playout_observer` (add it to the PipelineWorker's observers) sees the transport push each chunk on
+once written to its device, i.e. when it starts to be heard. An utterance's first frame waits for that report;
+an earlier report moves the clock at once, later ones when `LATER_AFTER` agree (the device really ran dry,
+e.g. the event loop stalled), so the picture pauses with the sound; a frame does not go out before the transport
+reported its audio playing (unless that report is `UNCONFIRMED_S` overdue). Without the observer,
+BotStartedSpeaking (from the transport) corrects the start. Utterance frame k is released at start + k / fps:
+when its audio is heard.
+
+When a frame is not ready at its time. The model needs 350 ms of future audio (its lookahead) and an inference
+call for a frame, so an utterance that starts in silence would begin with its first frames late. Its audio is
+then held back (with every frame behind it, in order) until its first frames are made, at most `max_hold_s`:
+the voice starts a few tens of milliseconds later (about one inference call) and the body moves with its first
+word, as a video avatar would rather have it than a body that starts late. Later frames are normally ready long
+before their audio plays (the TTS bursts ahead); one that is still late (a TTS slower than real time, a stalled
+machine) goes out as soon as it is made, counted in `stats.late` (the avatar catches up; no frame is dropped
+and the voice is never held again).
+
+Between utterances and after an interruption the avatar eases to rest: a critically damped spring (rate
+`rest_hz`) from the last pose, with its velocity, towards a rest pose (the model's own pose in silence), so it
+neither freezes nor snaps; the next utterance blends in from wherever the spring is over `blend_in_s`. Frames
+go out at `fps` all the time, speech or not. Their pts: seconds since the StartFrame, less the time playout
+paused; `on_audio` gets the agent's audio on the same clock (a viewer that plays it stays in sync).
+An interruption drops every frame whose audio will not be played, cancels the utterance's inference and drops
+audio still held; the transport drops the unplayed audio itself.
+
+Utterance i runs the model with seed + i from a fresh state: past the blend-in, its frames equal `dimgestor
+generate` on that utterance's audio (resampled to 16 kHz) with the same seed and K.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+try:
+    from pipecat.frames.frames import (BotStartedSpeakingFrame, BotStoppedSpeakingFrame, CancelFrame, EndFrame,
+                                       Frame as PipecatFrame, InterruptionFrame, OutputAudioRawFrame, StartFrame,
+                                       SystemFrame, TTSStartedFrame, TTSStoppedFrame)
+    from pipecat.observers.base_observer import BaseObserver, FramePushed
+    from pipecat.processors.frame_processor import FrameDirection, FrameProcessor
+    from pipecat.transports.base_output import BaseOutputTransport
+except ImportError as e:  # the engine works without pipecat; only this module needs it
+    raise ImportError("streamer.pipecat needs pipecat-ai: pip install 'dimgestor[pipecat]'") from e
+
+from dimgestor.audio import SAMPLE_RATE
+from dimgestor.rotations import expmap_to_quat, quat_conj, quat_mul, quat_to_expmap
+from streamer.frames import Frame
+from streamer.sessions import Session
+from streamer.sink import Sink
+from streamer.sources import PushSource, make_resampler
+
+__all__ = ["GestureProcessor", "GestureStats", "PlayoutObserver", "Released", "RestPose"]
+log = logging.getLogger("streamer.pipecat")
+LATER_AFTER = 2     # playout reports in a row later than the clock that move it later (one late report: a busy loop)
+UNCONFIRMED_S = 0.1  # how long past its time a frame waits for the transport's report of its audio
+
+
+@dataclass(frozen=True)
+class Released:
+    """One frame as it went to the sinks: when (monotonic), when it was due, and what made it."""
+
+    frame: Frame
+    wall: float
+    due: float
+    utterance: int  # -1: a rest frame the spring made
+    k: int          # the utterance's own frame index (-1 for rest frames)
+    audio_s: float | None  # the moment of the utterance's audio it shows (None: rest, or silence in a slow TTS)
+
+
+@dataclass
+class GestureStats:
+    utterances: int = 0
+    speech_frames: int = 0   # released frames of speech (blended in or exact)
+    rest_frames: int = 0     # frames the spring made (between utterances, after interruptions)
+    late: int = 0            # speech frames released more than a frame after their audio played
+    max_late_s: float = 0.0
+    held_s: float = 0.0      # total time the agent's audio was held back at utterance starts
+    dropped_unplayed: int = 0  # frames of audio an interruption cut (never sent)
+    interruptions: int = 0
+
+
+@dataclass(frozen=True)
+class RestPose:
+    """The pose the avatar eases to between utterances, and the tangent space the spring works in."""
+
+    root_pos: np.ndarray
+    rotations: np.ndarray  # (J, 4) wxyz
+    features: np.ndarray
+
+    def tangent(self, f: Frame) -> np.ndarray:
+        """A pose as one vector relative to rest: root offset, rotation vectors, feature offset."""
+        rel = quat_to_expmap(quat_mul(quat_conj(self.rotations), np.asarray(f.rotations, dtype=np.float64)))
+        return np.concatenate([np.asarray(f.root_pos) - self.root_pos, rel.ravel(), f.features - self.features])
+
+    def pose(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        j = len(self.rotations)
+        rot = quat_mul(self.rotations, expmap_to_quat(x[3:3 + 3 * j].reshape(j, 3)))
+        return self.root_pos + x[:3], rot, self.features + x[3 + 3 * j:]
+
+    @classmethod
+    def of_silence(cls, bundle, steps: int, seed: int, seconds: float = 2.0) -> "RestPose":
+        """The model's pose after `seconds` of silence (the root where a fresh stream starts)."""
+        from dimgestor.features import PoseDecoder
+
+        stream = bundle.stream(steps=steps, seed=seed)
+        normalized = np.concatenate([stream.push(np.zeros(int(seconds * SAMPLE_RATE), np.float32)), stream.finish()])
+        feats = np.asarray(bundle.denormalize(normalized), dtype=np.float64)
+        pose = PoseDecoder(bundle.skeleton, bundle.feature_spec).decode(feats)
+        return cls(np.asarray(pose.root_pos[0]), np.asarray(pose.rotations[-1]), feats[-1])
+
+
+class _Spring:
+    """A critically damped spring in the rest pose's tangent space: x'' = -w^2 x - 2 w x'."""
+
+    def __init__(self, dim: int, omega: float):
+        self.x, self.v, self.omega = np.zeros(dim), np.zeros(dim), omega
+
+    def follow(self, x: np.ndarray, dt: float) -> None:
+        """A pose the avatar showed (speech): the spring starts from it, with its velocity."""
+        self.v, self.x = (x - self.x) / dt, x
+
+    def step(self, dt: float) -> np.ndarray:
+        w, e = self.omega, np.exp(-self.omega * dt)
+        a = self.v + w * self.x
+        self.x, self.v = (self.x + a * dt) * e, (self.v - w * a * dt) * e
+        return self.x
+
+
+@dataclass
+class _Utterance:
+    number: int
+    session: Session
+    source: PushSource
+    resampler: object | None  # to 16 kHz (`StreamingResampler`); None: the TTS's rate is 16 kHz
+    rate: int
+    start: float | None = None   # monotonic time its first sample is heard
+    pts0: float = 0.0            # its first frame's pts (its frames' and its audio's clock: never moves)
+    pushed_s: float = 0.0        # audio (and transport gaps) handed to the transport so far
+    audio_s: float = 0.0         # of which audio
+    gaps: list = field(default_factory=list)  # (audio_s before it, seconds): silence the transport plays
+    heard_s: float = 0.0         # audio the transport reported playing (`playout_observer`)
+    last_chunk_s: float = 0.0    # the last reported chunk's length
+    confirmed: bool = False      # the transport reported playing it (until then its start is an estimate)
+    offsets: deque = field(default_factory=lambda: deque(maxlen=LATER_AFTER))  # reports later than `start`
+    open: bool = True            # more of its audio may come
+    done: bool = False           # its session ended: every frame is in `frames` or released
+    frames: deque = field(default_factory=deque)
+    first_ready: asyncio.Event = field(default_factory=asyncio.Event)
+    audio: list = field(default_factory=list)  # (local pts, 16 kHz samples) not yet heard: for on_audio
+    task: asyncio.Task | None = None
+    released: int = 0
+
+
+class GestureProcessor(FrameProcessor):
+    """Agent audio -> gesture frames to `sinks`, released when their audio is heard (see the module docstring).
+
+    sinks: opened and closed by the caller (a `WsServer` must be listening before the viewer connects).
+    bundle or checkpoint: the model (default: the embedded one). on_audio(pts, samples): the agent's audio at
+    16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
+    web viewer plays it in sync; audio an interruption cut is never given).
+    on_release(Released): every frame sent, for measurements. executor: where inference runs (a
+    `streamer.scheduling` scheduler or Executor; None: a shared pool).
+    """
+
+    def __init__(self, sinks: list[Sink], *, bundle=None, checkpoint: str | None = None, steps: int | None = None,
+                 seed: int = 0, window_ms: int = 200, executor=None, max_hold_s: float = 0.3,
+                 blend_in_s: float = 0.5, rest_hz: float = 1.3,
+                 on_audio: Callable[[float, np.ndarray], None] | None = None,
+                 on_release: Callable[[Released], None] | None = None, **kwargs):
+        super().__init__(**kwargs)
+        if bundle is None:
+            from dimgestor.checkpoint import load_checkpoint
+
+            bundle = load_checkpoint(checkpoint)
+        if max_hold_s < 0 or blend_in_s < 0 or rest_hz <= 0:
+            raise ValueError(f"need max_hold_s >= 0, blend_in_s >= 0, rest_hz > 0; got {max_hold_s}, {blend_in_s}, "
+                             f"{rest_hz}")
+        self.bundle, self.sinks = bundle, list(sinks)
+        self.fps = float(bundle.feature_spec.fps)
+        self.steps = steps if steps is not None else bundle.config.sample_steps
+        self.seed, self.window_ms, self.executor = seed, window_ms, executor
+        self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
+        self.on_audio, self.on_release = on_audio, on_release
+        self.rest = RestPose.of_silence(bundle, self.steps, seed)
+        self.spring = _Spring(len(self.rest.tangent(self._rest_frame())), 2 * np.pi * rest_hz)
+        self.stats = GestureStats()
+        self.origin: float | None = None  # monotonic time of pts 0 (the StartFrame)
+        self._utterances: deque[_Utterance] = deque()
+        self._playing: deque[_Utterance] = deque()  # utterances whose audio the transport has not all played
+        self.playout_observer = PlayoutObserver(self)
+        self._observed = False  # the observer sees this pipeline: the transport's playout is reported
+        self._play_end = 0.0               # when the audio pushed so far ends playing
+        self._holding: _Utterance | None = None
+        self._held: list[tuple[PipecatFrame, FrameDirection, _Utterance | None]] = []  # (audio: its utterance)
+        self._next_rest_due = 0.0
+        self._drift = 0.0  # frames' pts less their due time since the start: playout shifts moved one, not the other
+        self._last_due: float | None = None
+        self._index = 0
+        self._changed = asyncio.Event()
+        self._clock_task: asyncio.Task | None = None
+        self._hold_task: asyncio.Task | None = None
+
+    # ---- pipecat ---------------------------------------------------------------------------------
+
+    async def process_frame(self, frame: PipecatFrame, direction: FrameDirection):
+        await super().process_frame(frame, direction)
+        if isinstance(frame, StartFrame):
+            await self.push_frame(frame, direction)
+            self._start()
+            return
+        if isinstance(frame, (InterruptionFrame, CancelFrame)):
+            await self._interrupt(frame)
+            await self.push_frame(frame, direction)
+            if isinstance(frame, CancelFrame):
+                await self._stop()
+            return
+        if direction == FrameDirection.UPSTREAM:
+            if isinstance(frame, BotStartedSpeakingFrame):
+                self._bot_started(time.monotonic())
+            elif isinstance(frame, BotStoppedSpeakingFrame) and self._utterances:
+                u = self._utterances[-1]  # ended by the transport (a TTS that sends no TTSStopped), if all heard:
+                if u.start is not None and time.monotonic() >= u.start + u.pushed_s - 1 / self.fps:
+                    await self._end_utterance()  # (not the next answer, begun while the last one still played)
+            await self.push_frame(frame, direction)
+            return
+        u = None
+        if isinstance(frame, OutputAudioRawFrame) and frame.audio:
+            u = await self._hear(frame)
+        elif isinstance(frame, (TTSStartedFrame, TTSStoppedFrame, EndFrame)):
+            await self._end_utterance()  # TTSStarted: what comes next is a new utterance
+        if self._holding is not None and not isinstance(frame, SystemFrame):
+            self._held.append((frame, direction, u))  # behind the held audio, in order
+            return
+        await self.push_frame(frame, direction)
+
+    async def cleanup(self):
+        await self._stop()
+        await super().cleanup()
+
+    # ---- the agent's audio -----------------------------------------------------------------------
+
+    async def _hear(self, frame: OutputAudioRawFrame) -> _Utterance:
+        """Feed a frame of agent audio to its utterance's session (a new utterance if none is open); schedule
+        its playout unless it is held."""
+        u = self._utterances[-1] if self._utterances and self._utterances[-1].open else None
+        if u is not None and u.rate != frame.sample_rate:
+            await self._end_utterance()
+            u = None
+        if u is None:
+            u = self._new_utterance(frame.sample_rate)
+            if self.max_hold_s > 0 and self._play_end <= time.monotonic() and self._holding is None:
+                self._holding = u  # it would be heard at once: hold it until its first frames are made
+                self._hold_task = self.create_task(self._hold(u), name="gesture-hold")
+        x = _mono(frame)
+        if self._holding is None:  # (held audio goes out later, back to back: no transport gap to fill)
+            gap = self._schedule(u, len(x) / frame.sample_rate)
+            if gap > 0:
+                await self._feed(u, np.zeros(int(round(gap * frame.sample_rate)), np.float32))
+        await self._feed(u, x)
+        return u
+
+    def _new_utterance(self, rate: int) -> _Utterance:
+        from dimgestor.features import PoseDecoder
+
+        number = self.stats.utterances
+        self.stats.utterances += 1
+        b = self.bundle
+        session = Session(b.stream(steps=self.steps, seed=self.seed + number),
+                          PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
+                          window_ms=self.window_ms, executor=self.executor, name=f"utterance-{number}")
+        u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
+                       None if rate == SAMPLE_RATE else make_resampler(rate), rate)
+
+        def emit(frames: list[Frame]) -> None:
+            u.frames.extend(frames)
+            if frames:
+                u.first_ready.set()
+            self._changed.set()
+
+        async def run() -> None:
+            try:
+                await session.run(u.source, emit)
+            except Exception:
+                log.exception("utterance %d: inference failed; the avatar eases to rest", number)
+            finally:
+                u.done, u.open = True, False
+                u.first_ready.set()
+                self._changed.set()
+
+        u.task = self.create_task(run(), name=f"gesture-utterance-{number}")
+        self._utterances.append(u)
+        return u
+
+    async def _feed(self, u: _Utterance, x: np.ndarray) -> None:
+        y = x if u.resampler is None else np.asarray(u.resampler.process(x), dtype=np.float32)
+        if len(y):
+            u.audio.append((u.source.samples_in / SAMPLE_RATE, y))
+            await u.source.put(y)  # (waits only when an hour of audio is queued)
+
+    def _schedule(self, u: _Utterance, seconds: float) -> float:
+        """`seconds` of u's audio are pushed to the transport now: when they play. Returns the silence (s) the
+        transport plays before them, part of u's timeline (a TTS slower than real time)."""
+        now = time.monotonic()
+        begin = max(now, self._play_end)
+        if u.start is None:
+            u.start, gap = begin, 0.0
+            u.pts0 = begin - self.origin + self._drift
+        else:
+            gap = max(0.0, begin - (u.start + u.pushed_s))
+        if gap > 0:
+            u.gaps.append((u.audio_s, gap))
+        if not u.audio_s:
+            self._playing.append(u)
+        u.pushed_s += gap + seconds
+        u.audio_s += seconds
+        self._play_end = begin + seconds
+        self._changed.set()
+        return gap
+
+    def _give_audio(self, u: _Utterance, until: float) -> None:
+        """u's audio up to local time `until` to on_audio, as it is heard (never what an interruption cut)."""
+        while u.audio and u.audio[0][0] < until:
+            pts, y = u.audio.pop(0)
+            n = len(y) if until == np.inf else min(len(y), int(round((until - pts) * SAMPLE_RATE)))
+            if n < len(y):  # the rest is heard later
+                u.audio.insert(0, (pts + n / SAMPLE_RATE, y[n:]))
+            if n <= 0:
+                break
+            if self.on_audio is not None:
+                self.on_audio(u.pts0 + pts, y[:n])
+
+    async def _hold(self, u: _Utterance) -> None:
+        t0 = time.monotonic()
+        try:
+            await asyncio.wait_for(u.first_ready.wait(), self.max_hold_s)
+        except asyncio.TimeoutError:
+            pass
+        self.stats.held_s += time.monotonic() - t0
+        log.debug("utterance %d: audio held %.0f ms", u.number, 1000 * (time.monotonic() - t0))
+        while self._held:  # out in order; process_frame keeps appending until the list is empty
+            frame, direction, v = self._held.pop(0)
+            if v is not None:
+                self._schedule(v, len(_mono(frame)) / frame.sample_rate)
+            await self.push_frame(frame, direction)
+        self._holding = self._hold_task = None
+
+    async def _end_utterance(self) -> None:
+        """The open utterance's audio has all come: its session flushes its last frames."""
+        if not self._utterances or not self._utterances[-1].open:
+            return
+        u = self._utterances[-1]
+        u.open = False
+        if u.resampler is not None:
+            tail = np.asarray(u.resampler.flush(), dtype=np.float32)
+            if len(tail):
+                u.audio.append((u.source.samples_in / SAMPLE_RATE, tail))
+                await u.source.put(tail)
+        await u.source.close()
+
+    def _heard(self, wall: float, seconds: float) -> None:
+        """The output transport reported playing `seconds` of audio from `wall` (`PlayoutObserver`): the playing
+        utterance's clock follows. A report is never early but may be late (the loop was busy when the
+        transport pushed it on), so an earlier one moves the clock at once, a later one only when the last
+        `LATER_AFTER` reports agree (the device really ran dry: a stalled loop, a slow write)."""
+        if not self._playing:
+            return
+        u = self._playing[0]
+        local = u.heard_s + sum(g for at, g in u.gaps if at <= u.heard_s + 1e-6)
+        offset = wall - local  # when u's local time 0 was heard, by this report
+        u.heard_s += seconds
+        u.last_chunk_s = seconds
+        if not u.open and u.heard_s >= u.audio_s - 1e-6:  # (its last chunk may be padded with silence)
+            self._playing.popleft()
+        shift = 0.0
+        if not u.confirmed:
+            u.confirmed, shift = True, offset - u.start
+        elif offset < u.start - 1e-3:
+            shift = offset - u.start
+        else:
+            u.offsets.append(offset)
+            if len(u.offsets) == LATER_AFTER and min(u.offsets) > u.start + 5e-3:
+                shift = min(u.offsets) - u.start
+        if shift:
+            u.offsets.clear()
+            later = [v for v in self._playing if v is not u and v.start is not None and v.start > u.start]
+            for v in [u, *later]:  # what is queued behind it plays that much later (or earlier) too
+                v.start += shift
+            self._play_end += shift
+        self._changed.set()
+
+    def _bot_started(self, now: float) -> None:
+        """The transport started playing: an utterance that began in silence began now (if later than thought)."""
+        if self._observed:
+            return
+        for u in self._utterances:
+            if u.start is not None and u.released == 0 and u.start < now:
+                u.start = now
+                self._changed.set()
+                break
+
+    async def _interrupt(self, frame: PipecatFrame) -> None:
+        """The user barged in (or the pipeline stops): nothing not yet heard will be; ease to rest."""
+        now = time.monotonic()
+        if isinstance(frame, InterruptionFrame):
+            self.stats.interruptions += 1
+        if self._hold_task is not None:
+            await self.cancel_task(self._hold_task)
+        kept = [(f, d) for f, d, _ in self._held if not getattr(f, "interruptible", True)]
+        self._held, self._holding, self._hold_task = [], None, None
+        for f, d in kept:  # uninterruptible frames still go, in order (held audio is dropped: never heard)
+            await self.push_frame(f, d)
+        for u in self._utterances:
+            self.stats.dropped_unplayed += len(u.frames)
+            u.frames.clear()
+            await u.source.close()
+            if u.task is not None:
+                await self.cancel_task(u.task)
+        self._utterances.clear()
+        self._playing.clear()
+        self._play_end = now
+        if self._last_due is not None:
+            self._next_rest_due = self._last_due + 1 / self.fps
+        self._changed.set()
+
+    # ---- the clock -------------------------------------------------------------------------------
+
+    def _start(self) -> None:
+        self.origin = self._next_rest_due = time.monotonic()
+        self._clock_task = self.create_task(self._clock(), name="gesture-clock")
+
+    async def _stop(self) -> None:
+        for task in [self._clock_task, self._hold_task, *(u.task for u in self._utterances)]:
+            if task is not None and not task.done():
+                await self.cancel_task(task)
+        self._clock_task = self._hold_task = None
+
+    async def _clock(self) -> None:
+        """Release every frame at its due time: the current utterance's, or the spring's between them."""
+        dt = 1 / self.fps
+        while True:
+            now = time.monotonic()
+            u = self._utterances[0] if self._utterances else None
+            # (an estimated start: the observer reports the real one; a transport it does not see, never)
+            started = u is not None and u.start is not None and (
+                u.confirmed or not self._observed or now > u.start + UNCONFIRMED_S)
+            # (once begun, an utterance keeps the clock: when its audio pauses, the picture waits with it)
+            if started and (u.released or self._next_rest_due >= u.start - dt / 2):
+                if u.frames:
+                    due = u.start + u.frames[0].pts
+                    if due > now and await self._wait(due - now):
+                        continue
+                    if self._unheard(u, u.frames[0], due) and await self._wait(due + UNCONFIRMED_S - now):
+                        continue
+                    self._release_speech(u, u.frames.popleft(), due, time.monotonic())
+                elif u.done:
+                    self._give_audio(u, np.inf)
+                    self._utterances.popleft()
+                    if self._last_due is not None:
+                        self._next_rest_due = self._last_due + dt
+                else:
+                    await self._wait(None)  # its next frame is late: it goes as soon as it is made
+                continue
+            due = self._next_rest_due
+            if due > now and await self._wait(due - now):
+                continue
+            self._release_rest(due)
+
+    def _unheard(self, u: _Utterance, f: Frame, due: float) -> bool:
+        """The transport has not reported playing f's audio yet (it ran late: the frame waits for it, up to
+        UNCONFIRMED_S past its due time, so reports that come late or never cannot stop the avatar)."""
+        if not self._observed or time.monotonic() > due + UNCONFIRMED_S:
+            return False
+        moment = _audio_at(u, f.pts)  # (the chunk after the last reported one follows it: report latency allowed)
+        return moment is not None and moment >= u.heard_s + u.last_chunk_s
+
+    async def _wait(self, timeout: float | None) -> bool:
+        """Sleep until `timeout` or until something changed; True: something changed (look again)."""
+        self._changed.clear()
+        try:
+            await asyncio.wait_for(self._changed.wait(), timeout)
+            return True
+        except asyncio.TimeoutError:
+            return False
+
+    def _release_speech(self, u: _Utterance, f: Frame, due: float, now: float) -> None:
+        k = f.index
+        x = self.rest.tangent(f)
+        if k < self.blend_in:  # ease in from where the spring is
+            w = _smoothstep((k + 1) / (self.blend_in + 1))
+            x = (1 - w) * self.spring.step(1 / self.fps) + w * x
+            root, rot, feats = self.rest.pose(x)
+        else:
+            root, rot, feats = f.root_pos, f.rotations, f.features
+        self.spring.follow(x, 1 / self.fps)
+        late = now - due
+        if late > 1 / self.fps:
+            self.stats.late += 1
+        self.stats.max_late_s = max(self.stats.max_late_s, late)
+        self.stats.speech_frames += 1
+        u.released += 1
+        self._give_audio(u, f.pts + 1 / self.fps)
+        self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats), due, u.number, k, _audio_at(u, f.pts))
+
+    def _release_rest(self, due: float) -> None:
+        root, rot, feats = self.rest.pose(self.spring.step(1 / self.fps))
+        self.stats.rest_frames += 1
+        self._send(Frame(self._index, due - self.origin + self._drift, root, rot, feats), due, -1, -1, None)
+
+    def _send(self, frame: Frame, due: float, utterance: int, k: int, audio_s: float | None) -> None:
+        for sink in self.sinks:
+            sink.send([frame])
+        self._index += 1
+        self._drift = frame.pts - (due - self.origin)  # the audio's clock less the wall's (moves at playout shifts)
+        self._last_due = due
+        self._next_rest_due = due + 1 / self.fps
+        if self.on_release is not None:
+            self.on_release(Released(frame, time.monotonic(), due, utterance, k, audio_s))
+
+    @property
+    def frames_sent(self) -> int:
+        return self._index
+
+    def _rest_frame(self) -> Frame:
+        return Frame(0, 0.0, self.rest.root_pos, self.rest.rotations, self.rest.features)
+
+
+class PlayoutObserver(BaseObserver):
+    """Tells its `GestureProcessor` when the output transport plays each chunk of audio: a transport pushes a
+    chunk on once written to its device, so that push's timestamp is when the chunk starts to be heard. Add it
+    to the pipeline's observers (`PipelineWorker(..., observers=[gestures.playout_observer])`); without it the
+    processor follows its own model of the transport (and BotStartedSpeaking), which a stalled event loop or a
+    device that ran dry makes late."""
+
+    def __init__(self, processor: "GestureProcessor"):
+        super().__init__(observe_every_push=False)  # (the transport's chunks are its own frames: their first push)
+        self.processor = processor
+        self._clock_offset_ns: int | None = None
+
+    async def on_push_frame(self, data: FramePushed):
+        self.processor._observed = True  # (the StartFrame's push comes before any audio)
+        if not (isinstance(data.source, BaseOutputTransport) and data.direction == FrameDirection.DOWNSTREAM
+                and isinstance(data.frame, OutputAudioRawFrame) and data.frame.audio):
+            return
+        if self._clock_offset_ns is None:  # the pipeline clock counts from its start: to time.monotonic
+            self._clock_offset_ns = time.monotonic_ns() - data.source.get_clock().get_time()
+        f = data.frame
+        seconds = len(f.audio) / (2 * f.num_channels * f.sample_rate)
+        self.processor._heard((data.timestamp + self._clock_offset_ns) / 1e9, seconds)
+
+
+def _audio_at(u: _Utterance, local: float) -> float | None:
+    """The moment of u's audio heard at `local` seconds into its timeline (None: a gap the transport filled)."""
+    silence = 0.0
+    for at, gap in u.gaps:
+        if local < at + silence:
+            break
+        if local < at + silence + gap:
+            return None
+        silence += gap
+    return local - silence
+
+
+def _mono(frame: OutputAudioRawFrame) -> np.ndarray:
+    """16-bit PCM (interleaved if several channels) -> float32 mono."""
+    x = np.frombuffer(frame.audio, dtype="<i2").astype(np.float32) / 32768.0
+    if frame.num_channels > 1:
+        x = x[: len(x) // frame.num_channels * frame.num_channels].reshape(-1, frame.num_channels).mean(axis=1)
+    return x
+
+
+def _smoothstep(t: float) -> float:
+    t = min(max(t, 0.0), 1.0)
+    return t * t * (3 - 2 * t)
