@@ -58,9 +58,10 @@ WARMUP_S = 4.0
 SAID_SPAN_S = 5.0  # the least delayed microphone chunk within this of a moment dates it (as the viewer does)  # onsets earlier than this on the stream's clock are left out (the playout clock is settling)
 
 
-def stimulus(seconds: float, period_s: float = 1.3, burst_s: float = 0.4, lead_s: float = 1.0) -> tuple[np.ndarray, list[float]]:
+def stimulus(seconds: float, period_s: float = 1.37, burst_s: float = 0.4, lead_s: float = 1.0) -> tuple[np.ndarray, list[float]]:
     """Tone bursts (a voiced 160 Hz tone with harmonics, full level from its first sample) every `period_s`
-    after `lead_s` of silence: the samples at RATE and the onset times (s)."""
+    after `lead_s` of silence: the samples at RATE and the onset times (s). The period is no multiple of a frame
+    or a window, so the onsets fall at every phase of them."""
     x = np.zeros(int(seconds * RATE), np.float32)
     t = np.arange(int(burst_s * RATE)) / RATE
     burst = 0.3 * (np.sin(2 * np.pi * 160 * t) + 0.5 * np.sin(2 * np.pi * 320 * t + 1.0)) * np.minimum(1, (burst_s - t) / 0.05)
@@ -361,6 +362,9 @@ def run_vmc(a, tmp: Path) -> dict:
     hello = {"fps": p.bundle.feature_spec.fps, "lookahead_s": p.session.lookahead_s, "window_ms": a.window_ms}
     played = [feeder.t0 + 0.5 + f for f in file_onsets]
     vmc = next(s for s in p.sinks if hasattr(s, "pacer"))
+    if a.raw:
+        write_json(a.raw.with_suffix(".vmc.json"), {"hello": hello, "timings": stamps.windows, "played": played,
+                                                    "bundles": bundles, "chunks": [[c.t_start, c.arrival, float(np.abs(c.samples).max())] for c in p.source.chunks]})
     return {**analyse_vmc(hello, stamps.windows, p.source.chunks, bundles, played),
             "vmc_jitter_buffer_ms": vmc.jitter_s * 1000, "vmc_sent": vmc.sent, "vmc_dropped": vmc.dropped}
 
@@ -450,6 +454,7 @@ def main(argv=None) -> int:
     ap.add_argument("--vmc-jitter-ms", type=float, default=None, help="passed to the server (default: its own)")
     ap.add_argument("--page-size", default="480,320", help="the browser window (software WebGL draws every pixel "
                                                            "on the CPU: a large page is slow on a small machine)")
+    ap.add_argument("--note", default=None, help="a remark stored with each run (e.g. what was changed)")
     ap.add_argument("--raw", type=Path, help="also write the talk path's raw stamps here (to re-analyse)")
     ap.add_argument("--out", type=Path, required=True, help="JSON to write; merged with it when it exists (one "
                                                             "entry per path, model and window); the plot beside it")
@@ -463,7 +468,7 @@ def main(argv=None) -> int:
             r = (run_talk if path == "talk" else run_vmc)(a, Path(tmp))
         r = {"path": path, "model": name, "checkpoint": a.checkpoint, "window_ms": a.window_ms, "steps": a.steps,
              "seconds": a.seconds, "vmc_jitter_ms": a.vmc_jitter_ms if path == "vmc" else None,
-             "device": describe_device("cpu"), "code_version": code_version(), "date": utc_now(),
+             "note": a.note, "device": describe_device("cpu"), "code_version": code_version(), "date": utc_now(),
              "load_avg_before": load, "load_avg_after": load_average(), **r}
         if "skipped" in r:
             print(f"{path}: skipped: {r['skipped']}")

@@ -7,6 +7,9 @@ themselves are the benchmark's business (benchmarks/results/latency.json), not t
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
+import subprocess
 import sys
 
 import numpy as np
@@ -22,6 +25,35 @@ pytestmark = [pytest.mark.timeout(300),
               pytest.mark.skipif(not CHROMIUM, reason="chromium not installed (Debian: apt-get install chromium)"),
               pytest.mark.skipif(not THREE_JS.exists(), reason="the viewer's npm dependencies are not installed "
                                  "(make setup runs npm ci in clients/web)")]
+
+
+def test_readout_dates_speech_by_its_least_delayed_moment_and_the_best_pong(tmp_path):
+    """clients/web/latency.js under node: speech said is dated by the least delayed of the last 5 s; `timing`
+    counts only once a pong related the clocks, through the pong with the shortest round trip; the total is the
+    playout offset minus that, plus half a page frame."""
+    node = shutil.which("node")
+    if not node:
+        pytest.skip("node not installed (Debian: apt-get install nodejs)")
+    script = tmp_path / "latency.txt"
+    script.write_text("\n".join([
+        "total 2.0 0.02 10.0",             # nothing said yet: no total
+        "said 1.0 10.1", "said 1.1 10.5",  # said at pts + 9.1, then + 9.4 (a busy page): the least delayed counts
+        "total 9.5 0.02 10.6",             # 9.5 - 9.1 + 0.01 = 0.41 s
+        "said 8.0 20.0",                   # 7 s later: the early ones are forgotten, pts + 12.0
+        "total 12.3 0 20.0",
+        "timing 3.0 100.0",                # no pong yet: the server's clock is unknown
+        "pong 30.0 30.2 130.0", "pong 40.0 40.02 140.51",  # offsets 99.9 and 100.5; the second's round trip is shorter
+        "timing 22.0 122.0",               # arrived at 122.0 - 100.5 = 21.5 local: said at pts - 0.5
+        "total 0.2 0 21.5"]))              # least delayed: 21.5 - 22.0 = -0.5 -> 0.2 + 0.5 = 0.7 s
+    r = subprocess.run([node, str(REPO / "clients/web/tests/latency_check.mjs"), str(script)], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    totals = [o["total_ms"] for o in out if o["event"] == "total"]
+    assert totals[0] is None and totals[1] == pytest.approx(410) and totals[2] == pytest.approx(300)
+    assert totals[3] == pytest.approx(700)
+    timings = [o["timing_used"] for o in out if o["event"] == "timing"]
+    assert timings == [False, True] and out[-1]["server_offset"] == pytest.approx(100.5)
 
 
 def test_talk_readout_equals_the_benchmarks_onset_to_screen_total(tmp_path, checkpoint):
