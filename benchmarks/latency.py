@@ -46,25 +46,43 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
-from benchmarks.common import RESULTS, code_version, describe_device, load_average, utc_now, write_json  # noqa: E402
+from benchmarks.common import code_version, describe_device, load_average, utc_now, write_json  # noqa: E402
 
 PROBE = Path(__file__).resolve().parent / "latency_probe.js"
 PARTS = {"talk": ["capture", "network_up", "lookahead", "frame", "window", "queue", "compute", "network_down",
                   "playout"],
          "vmc": ["capture", "lookahead", "frame", "window", "queue", "compute", "pacing"]}
 RATE = 48000
-ONSET, QUIET, QUIET_S = 0.05, 0.01, 0.3  # an onset: |x| > ONSET after QUIET_S below QUIET (latency_probe.js)
-WARMUP_S = 4.0
-SAID_SPAN_S = 5.0  # the least delayed microphone chunk within this of a moment dates it (as the viewer does)  # onsets earlier than this on the stream's clock are left out (the playout clock is settling)
+METHOD = {
+    "talk": "onset = the first microphone sample above 0.05 after 0.3 s of quiet; said = when the page got its "
+            "chunk (the least delayed chunk within 5 s dates the stream: the device's and the worklet's own buffers "
+            "before that are not seen); total = said -> the first requestAnimationFrame presenting the onset's pts "
+            "(the compositor's frame after it is not seen); the server's stamps are related to the page's clock by "
+            "the pong with the shortest round trip (min_rtt_ms), so network up vs down is split within half of it",
+    "vmc": "onset played = when pacat was given that sample, paced in real time; the stream's onset found in the "
+           "server's own captured audio (the server runs in the benchmark's process: one clock); capture = played -> "
+           "the server had it, through the virtual microphone (pacat, PulseAudio, PortAudio: a real device's input "
+           "latency replaces it); server_side = total - capture, what the mic -> VMC target is about",
+    "parts": "lookahead = the hello's lookahead_s; frame = the onset to the first frame at or after it; window = "
+             "the rest of that frame's window's audio; queue = audio arrived -> inference began; compute -> frames "
+             "queued; then network down and playout (talk) or the VMC pacer and UDP (vmc); slack = total - parts",
+}
+# An onset: |x| > ONSET after QUIET_S below QUIET (latency_probe.js finds the first sample above ONSET). QUIET is
+# above the 16 kHz resampler's ringing just before a burst (up to 0.01 at these bursts).
+ONSET, QUIET, QUIET_S = 0.05, 0.03, 0.3
+WARMUP_S = 4.0  # onsets earlier than this on the stream's clock are left out (the playout clock is settling)
+SAID_SPAN_S = 5.0  # the least delayed microphone chunk within this of a moment dates it (as the viewer does)
 
 
-def stimulus(seconds: float, period_s: float = 1.37, burst_s: float = 0.4, lead_s: float = 1.0) -> tuple[np.ndarray, list[float]]:
+def stimulus(seconds: float, period_s: float = 1.37, burst_s: float = 0.4,
+             lead_s: float = 1.0) -> tuple[np.ndarray, list[float]]:
     """Tone bursts (a voiced 160 Hz tone with harmonics, full level from its first sample) every `period_s`
     after `lead_s` of silence: the samples at RATE and the onset times (s). The period is no multiple of a frame
     or a window, so the onsets fall at every phase of them."""
     x = np.zeros(int(seconds * RATE), np.float32)
     t = np.arange(int(burst_s * RATE)) / RATE
-    burst = 0.3 * (np.sin(2 * np.pi * 160 * t) + 0.5 * np.sin(2 * np.pi * 320 * t + 1.0)) * np.minimum(1, (burst_s - t) / 0.05)
+    tone = np.sin(2 * np.pi * 160 * t) + 0.5 * np.sin(2 * np.pi * 320 * t + 1.0)
+    burst = 0.3 * tone * np.minimum(1, (burst_s - t) / 0.05)  # a 50 ms fade out: one onset per burst
     onsets = []
     for start in np.arange(lead_s, seconds - burst_s, period_s):
         a = int(start * RATE)
@@ -95,7 +113,8 @@ def detect_onsets(x: np.ndarray, rate: int) -> list[int]:
 def jitter(transits: list[float]) -> dict:
     """How much later than the least late a window's first frame came (ms): what a playout buffer must absorb."""
     x = np.asarray(transits) - min(transits)
-    return {q: round(float(np.percentile(x, int(q[1:]))), 1) for q in ("p50", "p90", "p99")} | {"max": round(float(x.max()), 1)}
+    out = {q: round(float(np.percentile(x, int(q[1:]))), 1) for q in ("p50", "p90", "p99")}
+    return out | {"max": round(float(x.max()), 1)}
 
 
 def summary(rows: list[dict], keys: list[str]) -> dict:
@@ -126,7 +145,8 @@ def run_talk(a, tmp: Path) -> dict:
     browser = None
     try:
         url = s.wait_for(r"WebSocket\s+ws://(\S+)", 180).group(1)
-        browser = Browser(tmp, "about:blank", (f"--window-size={a.page_size}", "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+        browser = Browser(tmp, "about:blank", (f"--window-size={a.page_size}", "--use-fake-ui-for-media-stream",
+                                               "--use-fake-device-for-media-stream",
                                                f"--use-file-for-fake-audio-capture={wav}"))
         browser.call("Page.enable")
         browser.call("Page.addScriptToEvaluateOnNewDocument", source=PROBE.read_text())
@@ -146,7 +166,8 @@ def run_talk(a, tmp: Path) -> dict:
                 got[k] += part[k]
             got["mic_rate"] = part["mic_rate"]
             if time.monotonic() > t_start + WARMUP_S + 1:  # the viewer's readout, as the onsets after the warm-up
-                hud.append(browser.eval("[performance.now(), window.dimgestor.delayMs, window.dimgestor.delayMeasured]"))
+                hud.append(browser.eval("[performance.now(), window.dimgestor.delayMs, "
+                                        "window.dimgestor.delayMeasured]"))
         hello = browser.eval("window.dimgestor.hello")
         page = browser.eval("({underruns: window.dimgestor.clock.underruns, margin_s: window.dimgestor.clock.marginS, "
                             "dropped: window.dimgestor.audioChunksDropped, errors: window.dimgestor.errors})")
@@ -226,7 +247,8 @@ def analyse_talk(got: dict, hello: dict) -> dict:
                "capture": sent_e - said_e, "network_up": page(w["arrived_s"]) - sent_e,
                "lookahead": lookahead * 1000, "frame": (j / fps - p) * 1000,
                "window": (E - j / fps - lookahead) * 1000,
-               "queue": (w["dispatched_s"] - w["arrived_s"]) * 1000, "compute": (w["sent_s"] - w["dispatched_s"]) * 1000,
+               "queue": (w["dispatched_s"] - w["arrived_s"]) * 1000,
+               "compute": (w["sent_s"] - w["dispatched_s"]) * 1000,
                "network_down": arrival[j] - page(w["sent_s"]), "playout": drawn - arrival[j]}
         row["slack"] = row["total"] - sum(row[k] for k in PARTS["talk"])
         rows.append({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()})
@@ -236,9 +258,11 @@ def analyse_talk(got: dict, hello: dict) -> dict:
     rafs = np.diff(shown[:, 0]) if len(shown) > 1 else np.zeros(1)
     transits = [arrival[w["first"]] - w["first"] / fps * 1000 for w in timings
                 if w["first"] in arrival and w["first"] / fps >= WARMUP_S]
-    return {"onsets": len(rows), "parts": summary(rows, PARTS["talk"]), "arrival_jitter_ms": jitter(transits), "total": summary(rows, ["total"])["total"],
+    return {"onsets": len(rows), "parts": summary(rows, PARTS["talk"]), "arrival_jitter_ms": jitter(transits),
+            "total": summary(rows, ["total"])["total"],
             "slack": summary(rows, ["slack"])["slack"], "min_rtt_ms": round(rtt, 2),
-            "raf_interval_ms": {"median_ms": round(float(np.median(rafs)), 1), "p90_ms": round(float(np.percentile(rafs, 90)), 1)},
+            "raf_interval_ms": {"median_ms": round(float(np.median(rafs)), 1),
+                                "p90_ms": round(float(np.percentile(rafs, 90)), 1)},
             "lookahead_s": lookahead, "window_ms": hello.get("window_ms"), "rows": rows}
 
 
@@ -260,7 +284,8 @@ class Feeder(threading.Thread):
         super().__init__(daemon=True)
         self.x, self.block, self.t0 = x, block, None
         self.proc = subprocess.Popen(["pacat", "--playback", f"--device={sink}", f"--rate={RATE}", "--channels=1",
-                                      "--format=float32le", "--latency-msec=10", "--raw"], stdin=subprocess.PIPE, env=env)
+                                      "--format=float32le", "--latency-msec=10", "--raw"],
+                                     stdin=subprocess.PIPE, env=env)
 
     def run(self):
         self.t0 = time.monotonic() + 0.05
@@ -363,8 +388,9 @@ def run_vmc(a, tmp: Path) -> dict:
     played = [feeder.t0 + 0.5 + f for f in file_onsets]
     vmc = next(s for s in p.sinks if hasattr(s, "pacer"))
     if a.raw:
+        chunks = [[c.t_start, c.arrival, float(np.abs(c.samples).max())] for c in p.source.chunks]
         write_json(a.raw.with_suffix(".vmc.json"), {"hello": hello, "timings": stamps.windows, "played": played,
-                                                    "bundles": bundles, "chunks": [[c.t_start, c.arrival, float(np.abs(c.samples).max())] for c in p.source.chunks]})
+                                                    "bundles": bundles, "chunks": chunks})
     return {**analyse_vmc(hello, stamps.windows, p.source.chunks, bundles, played),
             "vmc_jitter_buffer_ms": vmc.jitter_s * 1000, "vmc_sent": vmc.sent, "vmc_dropped": vmc.dropped}
 
@@ -394,7 +420,8 @@ def analyse_vmc(hello: dict, timings: list, chunks: list, bundles: list, played:
         row = {"pts_s": round(p, 4), "total": (sent[j] - t_played) * 1000,
                "capture": (w["arrived_s"] - (t_played + E - p)) * 1000,
                "lookahead": lookahead * 1000, "frame": (j / fps - p) * 1000, "window": (E - j / fps - lookahead) * 1000,
-               "queue": (w["dispatched_s"] - w["arrived_s"]) * 1000, "compute": (w["sent_s"] - w["dispatched_s"]) * 1000,
+               "queue": (w["dispatched_s"] - w["arrived_s"]) * 1000,
+               "compute": (w["sent_s"] - w["dispatched_s"]) * 1000,
                "pacing": (sent[j] - w["sent_s"]) * 1000}
         row["slack"] = row["total"] - sum(row[k] for k in PARTS["vmc"])
         rows.append({k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()})
@@ -404,7 +431,8 @@ def analyse_vmc(hello: dict, timings: list, chunks: list, bundles: list, played:
     for row in rows:  # what the target is about: the server's part, from the onset's arrival to the bundle sent
         row["server_side"] = round(row["total"] - row["capture"], 2)
     transits = [(w["sent_s"] - w["first"] / fps) * 1000 for w in timings if w["first"] / fps >= WARMUP_S]
-    return {"onsets": len(rows), "parts": summary(rows, PARTS["vmc"]), "made_jitter_ms": jitter(transits), "total": summary(rows, ["total"])["total"],
+    return {"onsets": len(rows), "parts": summary(rows, PARTS["vmc"]), "made_jitter_ms": jitter(transits),
+            "total": summary(rows, ["total"])["total"],
             "server_side": summary(rows, ["server_side"])["server_side"],
             "slack": summary(rows, ["slack"])["slack"], "lookahead_s": lookahead, "window_ms": hello.get("window_ms"),
             "rows": rows}
@@ -474,10 +502,11 @@ def main(argv=None) -> int:
             print(f"{path}: skipped: {r['skipped']}")
         else:
             print(f"{path} {name} {a.window_ms} ms: total {r['total']}"
-                  + (f" (server side {r['server_side']})" if "server_side" in r else "") + f" over {r['onsets']} onsets; "
+                  + (f" (server side {r['server_side']})" if "server_side" in r else "")
+                  + f" over {r['onsets']} onsets; "
                   + ", ".join(f"{k} {v['median_ms']}" for k, v in r["parts"].items()))
         runs = [x for x in runs if (x["path"], x["model"], x["window_ms"]) != (path, name, a.window_ms)] + [r]
-    write_json(a.out, {"benchmark": "latency", "runs": runs})
+    write_json(a.out, {"benchmark": "latency", "method": METHOD, "runs": runs})
     plot(runs, a.out.with_suffix(".png"))
     return 0
 
