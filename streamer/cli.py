@@ -119,7 +119,8 @@ def _output_flags(s: argparse.ArgumentParser) -> None:
     _flag(s, "--vmc-max-bytes", type=int, metavar="N",
               help="split each frame's VMC bundle into bundles of at most N bytes (e.g. 1400 for a LAN); 0 = one bundle")
     _flag(s, "--vmc-jitter-ms", type=float, metavar="MS",
-              help="VMC jitter buffer: frames are sent this long after the earliest they could be")
+              help="VMC jitter buffer: frames are sent this long after the earliest they could be (default: one window, "
+                   "--window-ms)")
     _flag(s, "--record", metavar="OUT.bvh",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s)")

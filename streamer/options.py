@@ -73,7 +73,7 @@ class ServeOptions(BaseModel):
     vmc_root: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     vmc_bones: Literal["all", "upper"] = "all"
     vmc_max_bytes: int = 0
-    vmc_jitter_ms: float = Field(250.0, ge=0, le=5000)
+    vmc_jitter_ms: float | None = Field(None, ge=0, le=5000)  # None: one window (window_ms)
     # the rest
     record: str | None = None  # a BVH path
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json

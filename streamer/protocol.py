@@ -25,7 +25,7 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
-REVISION = 4  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 5  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
@@ -127,6 +127,14 @@ def status(latency_ms: float, rtf: float, frames_sent: int, dropped: int, client
                        "frames_sent": frames_sent, "dropped": dropped, "clients": clients, **optional})
 
 
+def timing(first: int, frames: int, window, sent_s: float) -> str:
+    """Revision 5: when one window's audio arrived, was dispatched and its `frames` frames from index `first`
+    were sent, on the server's monotonic clock (s); `window` is a `streamer.sessions.WindowTiming`."""
+    return json.dumps({"type": "timing", "first": first, "frames": frames,
+                       "audio_until_s": round(window.audio_until_s, 6), "arrived_s": round(window.arrived_s, 6),
+                       "dispatched_s": round(window.dispatched_s, 6), "sent_s": round(sent_s, 6)})
+
+
 def error(code: str, message: str) -> str:
     return json.dumps({"type": "error", "code": code, "message": message})
 
@@ -223,6 +231,10 @@ def _parse_hello(msg: dict) -> dict:
         if not isinstance(msg["source_audio"], bool):
             raise ProtocolError("bad_message", f"source_audio must be true or false, got {msg['source_audio']!r}")
         out["source_audio"] = msg["source_audio"]
+    if "timing" in msg:
+        if not isinstance(msg["timing"], bool):
+            raise ProtocolError("bad_message", f"timing must be true or false, got {msg['timing']!r}")
+        out["timing"] = msg["timing"]
     if "audio" in msg:
         a = msg["audio"]
         if not isinstance(a, dict):

@@ -25,7 +25,17 @@ from streamer.frames import Frame
 from streamer.scheduling import as_scheduler
 from streamer.sources import AudioChunk
 
-__all__ = ["Session", "Stats", "AudioClock"]
+__all__ = ["Session", "Stats", "AudioClock", "WindowTiming"]
+
+
+@dataclass(frozen=True)
+class WindowTiming:
+    """One window on the server's monotonic clock: the audio it needed (up to `audio_until_s` on the stream's
+    clock) was all there at `arrived_s`, and inference on it began at `dispatched_s` (protocol `timing`)."""
+
+    audio_until_s: float
+    arrived_s: float
+    dispatched_s: float
 
 
 @dataclass
@@ -39,6 +49,7 @@ class Stats:
     latency_ms: float = 0.0  # last sample of a window in -> its frames out
     rtf: float = 0.0         # inference time / audio time
     ended: bool = False
+    window: WindowTiming | None = None  # the window whose frames are being emitted now
 
     def update(self, audio_s: float, infer_s: float, latency_s: float, frames: int, alpha: float = 0.2) -> None:
         a = 1.0 if self.windows == 0 else alpha
@@ -191,6 +202,7 @@ class Session:
                     self.on_boundary()
             if self.handover:  # the state goes on elsewhere: no silence padded, no last frames
                 return self.stream.frames_out
+            self.stats.window = None  # the flush's frames wait for no audio
             finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)
             frames = await asyncio.wrap_future(finish)
             await _emit(emit, frames)
@@ -217,6 +229,7 @@ class Session:
         """One due window: its calls in turn, each call's frames emitted as they come, each ranked by
         `AudioClock` with what waits behind it."""
         samples = np.concatenate([c.samples for c in chunks])
+        self.stats.window = WindowTiming(chunks[-1].t_end, chunks[-1].arrival, time.monotonic())
         infer_s, n = 0.0, 0
         calls = self.windows.calls(samples)
         for k, call in enumerate(calls):

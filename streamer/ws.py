@@ -96,6 +96,7 @@ class Client:
         self.totals = totals if totals is not None else FrameTotals()  # the server's, shared by all its clients
         self.own = False  # true once it sent audio: from then on it gets its own frames, not the broadcast
         self.source_audio = False  # asked for the server source's audio (hello "source_audio": true)
+        self.timing = False  # asked for each window's `timing` (hello "timing": true)
         self.source: PushSource | None = None
         self.resampler = None  # lives in the worker (built, used and flushed there)
         self.session: Session | None = None
@@ -554,6 +555,8 @@ class WsServer:
             return
         self.broadcast_frames += len(frames)
         encoded: dict[str, list] = {}
+        window = self.broadcast_stats.window if self.broadcast_stats is not None else None
+        timing = None
         for c in self.clients:
             if c.own:
                 continue
@@ -561,6 +564,9 @@ class WsServer:
                 encoded[c.encoding] = c.encode(frames)
             for m in encoded[c.encoding]:
                 c.put(m, "frame")
+            if c.timing and window is not None:
+                timing = timing or P.timing(frames[0].index, len(frames), window, time.monotonic())
+                c.put(timing, "note")
 
     def broadcast_audio(self, pts: float, samples: np.ndarray) -> None:
         """The server source's audio, sent in DGA1 messages of AUDIO_BATCH_S to clients that asked for it."""
@@ -690,9 +696,10 @@ class WsServer:
     async def _on_text(self, client: Client, text: str) -> None:
         msg = P.parse_text(text)
         if msg["type"] == "ping":
-            client.note(P.dumps({**msg, "type": "pong"}))
+            client.note(P.dumps({**msg, "type": "pong", "server_time_s": round(time.monotonic(), 6)}))
         elif msg["type"] == "hello":
             client.encoding = msg.get("encoding", client.encoding)
+            client.timing = msg.get("timing", client.timing)
             if msg.get("source_audio") and not client.source_audio and "source_audio" in self.hello:
                 for m in self.audio_recent:  # the audio of the frames still to come to a client that joins now
                     client.put(m, "audio")
@@ -789,7 +796,10 @@ class WsServer:
                 client.put(P.resume(source.backlog_s))  # a client that paused at slow_down may send again
             if frames:
                 client.session_frames += len(frames)
-                await client.put_own(await loop.run_in_executor(self.prep, client.encode, frames))
+                messages = await loop.run_in_executor(self.prep, client.encode, frames)
+                if client.timing and session.stats.window is not None:
+                    messages.append(P.timing(frames[0].index, len(frames), session.stats.window, time.monotonic()))
+                await client.put_own(messages)
 
         async def run() -> None:
             try:

@@ -197,3 +197,34 @@ def test_web_local_benchmark_writes_its_schema(tmp_path):
     [x] = r["results"]
     assert x["steps"] == 1 and x["threads"] == 1 and x["window_ms"] == 100 and x["windows"] == 8 - 3 - 2
     assert all(finite(x[k]) and x[k] > 0 for k in ("ms_p50", "ms_p90", "ms_mean", "rtf", "load_ms"))
+
+
+def test_latency_benchmark_measures_every_part_on_both_paths(tmp_path):
+    """Tiny model, a few onsets per path: each path is measured (or says why it was skipped: no Chromium, no
+    virtual microphone), every part is there and finite, and per onset the parts add up to the total (talk: up
+    to the page's microphone clock jitter; vmc: one clock, exactly)."""
+    from helpers.clients import make_tiny_checkpoint
+
+    ckpt = make_tiny_checkpoint(tmp_path)
+    out = tmp_path / "latency.json"
+    run("latency.py", "--checkpoint", str(ckpt), "--name", "tiny", "--steps", "1", "--window-ms", "100",
+        "--seconds", "11", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert [(x["path"], x["model"], x["window_ms"]) for x in r["runs"]] == [("talk", "tiny", 100), ("vmc", "tiny", 100)]
+    measured = [x for x in r["runs"] if "skipped" not in x]
+    for x in measured:
+        assert x["code_version"] and x["device"].startswith("CPU") and x["onsets"] >= 2
+        parts = {"talk": ["capture", "network_up", "lookahead", "frame", "window", "queue", "compute", "network_down",
+                          "playout"], "vmc": ["capture", "lookahead", "frame", "window", "queue", "compute", "pacing"]}
+        assert list(x["parts"]) == parts[x["path"]]
+        assert all(finite(v["median_ms"]) and v["median_ms"] <= v["p90_ms"] for v in x["parts"].values())
+        assert x["parts"]["lookahead"]["median_ms"] == 1000 * x["lookahead_s"]
+        for row in x["rows"]:
+            assert row["total"] > 1000 * x["lookahead_s"]
+            assert abs(row["total"] - sum(row[k] for k in parts[x["path"]]) - row["slack"]) < 0.1
+            assert abs(row["slack"]) < (50 if x["path"] == "talk" else 0.1)
+        if x["path"] == "talk":
+            assert x["hud_ms"]["measured"] and x["page"]["errors"] == []
+    assert out.with_suffix(".png").stat().st_size > 5_000
+    if not measured:
+        pytest.skip(f"neither path could run here: {[x['skipped'] for x in r['runs']]}")

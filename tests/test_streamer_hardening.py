@@ -64,6 +64,7 @@ def test_replies_carry_finite_numbers_only(bundle):
         return err, pong
 
     err, pong = asyncio.run(run())
+    assert isinstance(pong.pop("server_time_s"), float)  # revision 5
     assert err["code"] == "bad_message" and pong == {"type": "pong", "t": 2.5}
 
 

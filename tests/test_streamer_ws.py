@@ -31,7 +31,9 @@ def test_garbage_gets_an_error_and_the_connection_keeps_being_served(bundle):
                 err = await recv_json(c)
                 assert err["type"] == "error" and err["code"] == code and err["message"]
             await c.send(json.dumps({"type": "ping", "t": 1.5}))
-            assert await recv_json(c) == {"type": "pong", "t": 1.5}
+            pong = await recv_json(c)
+            server_time = pong.pop("server_time_s")  # revision 5: the server's monotonic clock when it answered
+            assert pong == {"type": "pong", "t": 1.5} and abs(server_time - time.monotonic()) < 5
         await ws.close()
 
     asyncio.run(run())
@@ -88,6 +90,57 @@ def test_client_audio_at_48khz_comes_back_as_its_own_gestures(bundle):
     rot = np.stack([f["rotations"] for f in frames])
     assert rot.shape == (len(frames), J, 4) and np.allclose(np.linalg.norm(rot, axis=-1), 1, atol=1e-5)
     assert np.ptp(rot, axis=0).max() > 1e-3  # it moves
+
+
+def test_timing_follows_each_window_of_a_client_that_asks_and_no_other(bundle):
+    """Revision 5: hello `timing: true` -> after each window's frames a `timing` message naming those frames, the
+    audio they were made from (enough for each frame's lookahead) and when it arrived, was dispatched and its frames
+    were sent, in that order on the server's monotonic clock (the pong's `server_time_s`); the flush at
+    `audio_end` has none, and a client that did not ask gets none."""
+    audio = np.round(synthetic_speech(2.0, rate=16000, seed=4) * 32767 * 0.8).astype("<i2")
+
+    async def talk(c, timing: bool):
+        await recv_json(c)
+        await c.send(json.dumps({"type": "hello", "protocol": 1, "timing": timing,
+                                 "audio": {"rate": 16000, "format": "pcm16", "channels": 1}}))
+        for i in range(0, len(audio), 1600):
+            await c.send(audio[i : i + 1600].tobytes())
+            await asyncio.sleep(0.02)
+        await c.send(json.dumps({"type": "audio_end"}))
+        await c.send(json.dumps({"type": "ping"}))
+        got = []
+        while not got or got[-1]["type"] != "end":
+            m = json.loads(await asyncio.wait_for(c.recv(), 30))
+            if m["type"] in ("frame", "timing", "end"):
+                got.append({**m, "at": time.monotonic()})
+            elif m["type"] == "pong":
+                server_time = m["server_time_s"]
+        return got, server_time
+
+    async def run():
+        ws = make_server(bundle)
+        await ws.open()
+        async with connect(ws.url) as asks, connect(ws.url) as other:
+            out = await asyncio.gather(talk(asks, True), talk(other, False))
+        await ws.close()
+        return out
+
+    (got, server_time), (plain, _) = asyncio.run(run())
+    assert [m for m in plain if m["type"] == "timing"] == []
+    assert abs(server_time - time.monotonic()) < 30  # the same monotonic clock (one machine)
+    frames, lookahead = [], 0.1  # make_server's hello
+    timings = 0
+    for m in got:
+        if m["type"] == "frame":
+            frames.append(m)
+        elif m["type"] == "timing":
+            timings += 1
+            window = frames[-m["frames"]:]
+            assert [f["index"] for f in window] == list(range(m["first"], m["first"] + m["frames"]))
+            assert window[-1]["pts"] + lookahead <= m["audio_until_s"] + 1e-6
+            assert m["arrived_s"] <= m["dispatched_s"] <= m["sent_s"] <= m["at"]
+    assert timings >= 10 and got[-2]["type"] == "frame"  # the flush's frames: no timing after them
+    assert sum(m["type"] == "frame" for m in got) == sum(m["type"] == "frame" for m in plain) == 40
 
 
 def test_a_client_that_never_reads_does_not_delay_another(bundle):

@@ -11,6 +11,7 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PlayoutClock } from './av-clock.js';
+import { SpeechToMotion } from './latency.js';
 import { FramePlayout } from './playout.js';
 import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
 import { AudioFlow, MIC_HOLD_S } from './audio-flow.js';
@@ -23,6 +24,7 @@ const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
 const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
 const RESEND_S = 15;  // our audio kept after it is sent: a hand-over re-sends it from the sample the state covers
+const LIVE_MARGIN_S = 0.05;  // talking: the playout buffer above the lateness seen (benchmarks/latency.py)
 const RESUME_WITHIN_MS = 10000;  // after a goaway: tries to resume this long before a fresh session
 const FPS_WINDOW_MS = 5000;       // received fps is averaged over this long (frames come in bursts)
 
@@ -38,7 +40,7 @@ const sourceAudio = new SourceAudio();
 const api = window.dimgestor = {
   state: 'connecting', url: null, hello: null, status: null, ended: null, errors: [],
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
-  gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false,
+  gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false, timingSeen: false,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
   audioFlow: null,  // the microphone's AudioFlow while talking: paused, pauses, resumes, heldS, droppedS
   notices: [],      // slow_down / resume: the server's flow control, not errors
@@ -426,7 +428,7 @@ let reconnectDelay = 1000;
 let pingSentAt = null;
 let lastIndex = -1;
 const arrivals = [];                // frame arrival times (ms) over the last FPS_WINDOW_MS, for the fps readout
-const spoken = [];                  // [local time (s) - pts (s)] of recent speech: when each moment of it was said
+const speech = new SpeechToMotion(); // when each moment of the speech was said: the measured speech -> motion
 
 // The page and the WebSocket share one port (streamer serve answers both): connect to the page's own origin.
 function socketUrl() {
@@ -480,7 +482,8 @@ function connect(audio = null, resume = null) {
     playout.queue = [];
     clock.reset();
     sourceAudio.clear();
-    spoken.length = 0;
+    speech.reset();
+    api.timingSeen = false;
     arrivals.length = 0;
   }
   const sock = new WebSocket(api.url);
@@ -493,7 +496,8 @@ function connect(audio = null, resume = null) {
     opened = true;
     // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so
     // nothing but the avatar answers the microphone.
-    const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio };
+    // Each window's `timing` (revision 5) dates the speech for the speech -> motion readout.
+    const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true };
     if (audio) hello.audio = audio;
     sock.send(JSON.stringify(hello));
     if (resume) sock.send(JSON.stringify({ type: 'resume_session', token: resume.token }));
@@ -551,8 +555,10 @@ function onMessage(data) {
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
       api.hello = msg;
       try { buildSkeleton(msg.skeleton, msg.humanoid); } catch (e) { fail(e.message); return; }
-      // Buffer one inference window (frames come in bursts of that length) plus some network jitter.
-      playout.delayS = (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
+      // The buffer above the worst lateness of late (which already holds a window's burst). Talking: only what
+      // the lateness may still grow by (underruns grow it, av-clock.js); watching with the sound: one window
+      // plus network jitter, so the sound seldom pauses.
+      playout.delayS = mode === 'talk' ? LIVE_MARGIN_S : (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
       clock.setBaseMargin(playout.delayS);
       clock.setBursts(msg.window_ms ? msg.window_ms / 1000 : 0.2, 1 / (msg.fps || 20));
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
@@ -566,7 +572,13 @@ function onMessage(data) {
       break;
     case 'frame': onFrame(msg); break;
     case 'status': api.status = msg; break;
-    case 'pong': if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; } break;
+    case 'pong':
+      if (typeof msg.t === 'number') speech.notePong(msg.t / 1000, performance.now() / 1000, msg.server_time_s);
+      if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; }
+      break;
+    case 'timing':  // watching: the server says when the audio arrived (talking: our own chunks say it better)
+      if (mode === 'view' && speech.noteTiming(msg)) api.timingSeen = true;
+      break;
     case 'goaway':  // revision 3: this worker is stopping; our session's state is saved under the token
       if (mode === 'talk' && api.talking && msg.resume_token) {
         handover = { token: msg.resume_token, since: performance.now() };
@@ -644,14 +656,8 @@ function onFrame(f) {
 function onSourceAudio(chunk) {
   // The server releases source audio as it is spoken (a file source is paced in real time), so its arrival
   // tells when each moment of the speech happened, on our clock.
-  noteSpoken(performance.now() / 1000 - (chunk.pts + chunk.samples.length / chunk.rate));
+  if (!api.timingSeen) speech.noteSaid(chunk.pts + chunk.samples.length / chunk.rate, performance.now() / 1000);
   sourceAudio.push(chunk);
-}
-
-function noteSpoken(offset) {
-  const now = performance.now() / 1000;
-  spoken.push([now, offset]);
-  while (spoken.length && spoken[0][0] < now - 5) spoken.shift();
 }
 
 // ---------------------------------------------------------------- sound, pause, view
@@ -788,7 +794,7 @@ function sendAudio(f32) {
   }
   // Our own speech: this chunk's last sample was said just now, at pts = the samples the server gets up to it.
   mic.samples += f32.length;
-  noteSpoken(performance.now() / 1000 - (mic.samples - flow.droppedSamples) / api.audioRate);
+  speech.noteSaid((mic.samples - flow.droppedSamples) / api.audioRate, performance.now() / 1000);
   const dropped = flow.droppedChunks;
   for (const b of flow.offer(buf, f32.length)) sendNow(b);  // paused (slow_down): held, at most MIC_HOLD_S
   api.audioChunksDropped += flow.droppedChunks - dropped;
@@ -815,15 +821,17 @@ function say(text) { ui.message.textContent = text; }
 function fail(text) { api.errors.push({ code: 'client', message: text }); say(text); }
 const fmt = (x, d = 1) => (typeof x === 'number' && isFinite(x) ? x.toFixed(d) : '-');
 
-/** Speech -> motion: how long after a moment of speech was said its gesture is on screen. */
+/** Speech -> motion: how long after a moment of speech was said its gesture is on screen (latency.js). */
 function speechToMotionMs() {
   const offset = clock.offset;
   if (offset === null) return null;
-  if (spoken.length) {  // measured: the earliest arrival of recent speech is when it was said (least delayed)
+  const measured = speech.totalMs(offset, (api.frameMs || 0) / 1000, performance.now() / 1000);
+  if (measured !== null) {
     api.delayMeasured = true;
-    return (offset - Math.min(...spoken.map((s) => s[1]))) * 1000;
+    return measured;
   }
-  // Estimated: the model's lookahead, one window of audio, the server's latency and our playout buffer.
+  // Estimated (a server before revision 5 without source audio): the model's lookahead, one window of audio,
+  // the server's latency and our playout buffer.
   const h = api.hello || {}, s = api.status || {};
   api.delayMeasured = false;
   return ((h.lookahead_s || 0) + (h.window_ms || 0) / 1000 + (s.latency_ms || 0) / 1000 + clock.marginS) * 1000;
@@ -866,7 +874,7 @@ setInterval(() => {
 setInterval(() => {  // round trip on the same socket as the frames
   if (ws && ws.readyState === WebSocket.OPEN && pingSentAt === null) {
     pingSentAt = performance.now();
-    ws.send(JSON.stringify({ type: 'ping' }));
+    ws.send(JSON.stringify({ type: 'ping', t: pingSentAt }));
   }
 }, 2000);
 
