@@ -368,6 +368,29 @@ def heard_pts(played: np.ndarray, idx: int, source: np.ndarray, near: float, sea
     return (lo + k + half) / 16000 if corr[k] > 0.8 else None
 
 
+def late_arrivals(log, margin_s: float, window_s: float = 10.0, apart_s: float = 1.0) -> int:
+    """How often frames came later than every frame of the `window_s` before them by more than `margin_s`
+    (transit = arrival - pts, as the page's playout clock sees it): the stalls a playout clock cannot hide,
+    late frames less than `apart_s` after the last one counting as one. log: [arrival s, pts] in arrival order."""
+    events, last, seen = 0, -float("inf"), []
+    for arrival, pts in log:
+        transit = arrival - pts
+        seen = [(a, t) for a, t in seen if a >= arrival - window_s]
+        if seen and transit > max(t for _, t in seen) + margin_s:
+            events += arrival - last > apart_s
+            last = arrival
+        seen.append((arrival, transit))
+    return events
+
+
+def test_late_arrivals_counts_each_stall_once():
+    steady = [(10 + 0.05 * i + 0.3, 10 + 0.05 * i) for i in range(200)]  # 0.3 s transit, every frame
+    assert late_arrivals(steady, 0.1) == 0
+    stalled = steady[:100] + [(a + 0.8, p) for a, p in steady[100:110]] + steady[110:]  # 0.8 s late for 0.5 s
+    assert late_arrivals(stalled, 0.1) == 1
+    assert late_arrivals(stalled, 1.0) == 0  # within the margin: nothing a clock with it would notice
+
+
 def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync(tmp_path, default_model_server):
     from scipy.signal import resample_poly
 
@@ -396,8 +419,9 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
             samples.append(browser.eval(SHOWN_NOW))
         t = np.array([s["t"] for s in samples])
         assert np.all(np.diff(t) > 0.1), f"the page's audio clock does not advance: {t}"
-        clock = browser.eval("(({underruns, catchUps, marginS, offset}) => ({underruns, catchUps, marginS, offset}))"
-                             "(window.dimgestor.clock)")
+        clock = browser.eval("(({underruns, catchUps, marginS, baseMarginS, offset}) => ({underruns, catchUps, marginS, "
+                             "baseMarginS, offset}))(window.dimgestor.clock)")
+        arrivals = browser.eval("window.dimgestor.arrivalLog")
         rec = browser.eval(RECORDING)
         png_a = browser.screenshot(tmp_path / "web_mannequin_a.png")
         time.sleep(0.7)
@@ -431,7 +455,12 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     print(f"frame pts - heard pts (s): {np.round(sync, 3)}; clock {clock}")
     assert len(sync) >= 8, f"too few moments with sound to check sync ({len(sync)} of {len(samples)})"
     assert np.all(np.abs(sync) < 0.1), f"frames and sound out of sync (s): {np.round(sync, 3)}; clock {clock}"
-    assert clock["catchUps"] + clock["underruns"] <= 2, f"the page kept losing its clock: {clock}"
+    # The clock may lose itself only where frames came later than anything in the 10 s before by more than its
+    # margin (the server or the page stalled: CI's other work on its two cores); each such stall may cost a hold
+    # and the catch-ups that give the buffer back. On a quiet machine there are none, and at most 2 in all.
+    stalls = late_arrivals(arrivals, clock["baseMarginS"])
+    assert clock["catchUps"] + clock["underruns"] <= 2 + 3 * stalls, \
+        f"the page kept losing its clock: {clock}, {stalls} stalls in the frames' arrival"
 
     # It played the clip from its first sample on: the first sound lines up with the clip's start (strong
     # correlation, and the clip's start lands where the sound starts).

@@ -33,6 +33,7 @@ export class PlayoutClock {
   /** `baseMarginS`: the buffer above the worst lateness when nothing went wrong (one window + network). */
   constructor(baseMarginS = 0.3) {
     this.baseMarginS = baseMarginS;
+    this.slackS = SLACK_S;  // spare buffer kept rather than skipping ahead (setSlack)
     this.burstS = 0;  // frames come in bursts this long (first to last pts): setBursts
     this.pageS = 0;   // the page's longest recent frame interval (s), kept current by the page
     this.reset();
@@ -58,6 +59,11 @@ export class PlayoutClock {
     this.marginS = Math.max(this.marginS - this.baseMarginS + s, s);
     this.baseMarginS = s;
   }
+
+  /** Catch up when the buffer has held more than `s` (and a margin) above lateness + margin for WINDOW_S.
+   *  Watching with the sound: SLACK_S, as a catch-up skips that much sound. Talking (no sound played back):
+   *  small, or spare buffer from the start (the page's slow first frames, `pageS`) stays as latency for good. */
+  setSlack(s) { this.slackS = s; }
 
   /** Frames come in bursts: one inference window of `windowS` seconds, frames `frameS` apart. */
   setBursts(windowS, frameS) { this.burstS = Math.max(0, windowS - frameS); }
@@ -98,7 +104,7 @@ export class PlayoutClock {
     }
     // Caught up after a stall: lateness has stayed far below the buffer for a whole window.
     const spare = this.offset - this.lateness() - this.marginS;
-    if (spare > Math.max(SLACK_S, this.marginS) && now - this.changedAt > WINDOW_S) {
+    if (spare > Math.max(this.slackS, this.marginS) && now - this.changedAt > WINDOW_S) {
       this.move(this.offset - spare, now);
       this.marginS = Math.max(this.baseMarginS, this.marginS / GROW);
       this.catchUps++;

@@ -24,6 +24,7 @@ const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
 const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
 const RESEND_S = 15;  // our audio kept after it is sent: a hand-over re-sends it from the sample the state covers
+const LIVE_SLACK_S = 0.1;    // talking: spare buffer above that kept for 10 s is given back (av-clock.js setSlack)
 const LIVE_MARGIN_S = 0.05;  // talking: the playout buffer above the lateness seen (benchmarks/latency.py)
 const RESUME_WITHIN_MS = 10000;  // after a goaway: tries to resume this long before a fresh session
 const FPS_WINDOW_MS = 5000;       // received fps is averaged over this long (frames come in bursts)
@@ -37,6 +38,7 @@ const ui = { state: $('state'), frames: $('frames'), fps: $('fps'), latency: $('
 
 const sourceAudio = new SourceAudio();
 // Everything a test or the console may want to read.
+const ARRIVAL_LOG = 4000;  // frames (200 s at 20 fps)
 const api = window.dimgestor = {
   state: 'connecting', url: null, hello: null, status: null, ended: null, errors: [],
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
@@ -46,6 +48,7 @@ const api = window.dimgestor = {
   notices: [],      // slow_down / resume: the server's flow control, not errors
   handovers: 0, resumed: 0,  // goaway (the worker stopped) while talking; sessions resumed on another worker
   reconnects: 0,    // talk connections lost without a goaway, talked on in a fresh session
+  arrivalLog: [],   // [arrival (s, page clock), pts] of the last ARRIVAL_LOG frames: how late frames came (tests)
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -560,6 +563,7 @@ function onMessage(data) {
       // plus network jitter, so the sound seldom pauses.
       playout.delayS = mode === 'talk' ? LIVE_MARGIN_S : (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
       clock.setBaseMargin(playout.delayS);
+      clock.setSlack(mode === 'talk' ? LIVE_SLACK_S : 0.5);
       clock.setBursts(msg.window_ms ? msg.window_ms / 1000 : 0.2, 1 / (msg.fps || 20));
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
@@ -651,6 +655,8 @@ function onFrame(f) {
   while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
   playout.push(f, now / 1000);
   clock.arrive(f.pts, now / 1000);
+  api.arrivalLog.push([now / 1000, f.pts]);
+  if (api.arrivalLog.length > ARRIVAL_LOG) api.arrivalLog.splice(0, api.arrivalLog.length - ARRIVAL_LOG);
 }
 
 function onSourceAudio(chunk) {
