@@ -169,6 +169,7 @@ def plot(result: dict, path: Path) -> None:
                         label=name.replace("_", " "))
         axes[2].set_xticks(xs, [f"K={r['steps']}" for r in srows])
         axes[2].set_ylabel(f"real-time streams, one process, {srows[0]['cores']} cores")
+        axes[2].legend(fontsize=7)
     save_panels(fig, axes, f"one stream, default model, 1 thread, interleaved by {result['interleave']}: "
                            f"{result['device']}", path)
     plt.close(fig)
