@@ -67,15 +67,7 @@ def measure(folder: Path, threads: int, calls: int, tmp: Path) -> dict:
     url = f"http://127.0.0.1:{server.server_address[1]}/?local=model/&threads={threads}"
     browser = Browser(profile, url)
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                browser.eval("document.readyState")
-                break
-            except RuntimeError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
+        browser.wait_page()
         browser.wait_for("window.dimgestorLocal && window.dimgestorLocal.info", 180, "the local model")
         info = browser.eval("window.dimgestorLocal.info")
         cores = browser.eval("navigator.hardwareConcurrency")

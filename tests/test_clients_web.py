@@ -78,6 +78,18 @@ class Browser:
             raise RuntimeError(f"{expression}: {r['exceptionDetails']}")
         return r["result"].get("value")
 
+    def wait_page(self, timeout: float = 30.0) -> None:
+        """Until the page has an execution context (just after Chromium starts, Runtime.evaluate fails)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                self.eval("document.readyState")
+                return
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+
     def wait_for(self, expression: str, timeout: float, what: str):
         deadline = time.monotonic() + timeout
         while True:

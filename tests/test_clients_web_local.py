@@ -93,15 +93,7 @@ def python_poses(folder: Path, frames: np.ndarray):
 def open_local(tmp_path: Path, url: str, extra: tuple[str, ...] = ()) -> Browser:
     browser = Browser(tmp_path, url + "?local=model/", extra)
     try:
-        deadline = time.monotonic() + 30
-        while True:  # the page may have no execution context yet just after Chromium starts
-            try:
-                browser.eval("document.readyState")
-                break
-            except RuntimeError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
+        browser.wait_page()  # the page may have no execution context yet just after Chromium starts
         browser.wait_for("window.dimgestorLocal && window.dimgestorLocal.info", 120, "the local model to load")
     except BaseException:
         browser.close()
