@@ -196,9 +196,10 @@ class DenoiseRunner:
             h, tail = m.encoder(x if plan is None else x.index_select(0, plan.rows), states.enc[k])
             out.enc[k].copy_(tail)
             if fast:  # rows (B n, H), the blocks' ops written out for a window of a few frames
-                h, mk = h.reshape(B * n, H), mods[k].reshape(B * n, -1)
+                h = h.reshape(B * n, H)
+                mk = mods[k].reshape(B * n, -1).split(H, -1)  # every block's 6 chunks (H each) cut at once
                 for j, fb in enumerate(self._blocks):
-                    h = fb(h, mk[:, 6 * H * j: 6 * H * (j + 1)], (states.conv[k, j], states.ssm[k, j]),
+                    h = fb(h, mk[6 * j: 6 * (j + 1)], (states.conv[k, j], states.ssm[k, j]),
                            (out.conv[k, j], out.ssm[k, j]), B, n)
                 h = h.view(B, n, H)
             else:  # a long window (a backlog): the block's modules, the scan picked by length
@@ -266,11 +267,11 @@ class _FastBlock:
         return _FastBlock(block, block.norm1.normalized_shape[0]) if plain else None
 
     def __call__(self, h, mod, state, out, B: int, L: int):
-        """h (B L, H); mod (B L, 6H) with 1 + scale; state: the (conv (B, d_conv - 1, C), ssm (B, h, p, n)) it
-        continues; the new one is written into `out`'s (may be the same tensors)."""
+        """h (B L, H); mod: its 6 adaLN chunks (B L, H) each, 1 added to the scales; state: the (conv (B, d_conv - 1,
+        C), ssm (B, h, p, n)) it continues; the new one is written into `out`'s (may be the same tensors)."""
         H, h_, p, n = self.H, self.h, self.p, self.n
         (conv, ssm), (conv_out, ssm_out) = state, out
-        shift1, scale1, gate1, shift2, scale2, gate2 = mod.split(H, -1)
+        shift1, scale1, gate1, shift2, scale2, gate2 = mod
         u = torch.addcmul(shift1, F.layer_norm(h, (H,), eps=1e-6), scale1)
         z, xBC, dt = F.linear(u, self.w_in).split([self.di, self.C, h_], -1)
         xs = torch.cat([conv, xBC.view(B, L, self.C)], 1)  # (B, d_conv - 1 + L, C): the conv's window, time-major
@@ -290,8 +291,12 @@ class _FastBlock:
                   for t in range(L)]  # (h p, 1) each
             y = torch.cat(ys, 1).t() if L > 1 else ys[0].view(1, h_ * p)
         else:  # broadcast multiply-adds over the batch, a head's decay over its channels
-            dA, Xdt, Bm, Cm = dA[..., None, None], Xdt[..., None], Bm[:, :, None, None], Cm[:, :, None, None]
-            ys = [ssd_step(ssm if t == 0 else ssm_out, dA[:, t], Xdt[:, t], Bm[:, t], Cm[:, t], out=ssm_out)[0]
+            # time on an axis whose split already broadcasts against the state (B, h, p, n): no slice is squeezed
+            # or unsqueezed (each a node of the exported graph: 6 a block fewer than selecting frame t)
+            dA = dA.transpose(1, 2)[:, :, None].split(1, -1)  # (B, h, 1, 1) each
+            Xdt = Xdt.permute(0, 2, 3, 1).split(1, -1)  # (B, h, p, 1) each
+            Bm, Cm = Bm[:, None].split(1, 2), Cm[:, None].split(1, 2)  # (B, 1, 1, n) each
+            ys = [ssd_step(ssm if t == 0 else ssm_out, dA[t], Xdt[t], Bm[t], Cm[t], out=ssm_out)[0]
                   for t in range(L)]  # (B, h, p) each
             y = torch.stack(ys, 1)
         y = torch.addcmul(y.reshape(B * L, self.di), x.reshape(B * L, self.di), self.D)  # + D x
