@@ -110,7 +110,8 @@ class _Slots:
 
     The runner writes each step's and block's new state into `out.conv[k, j]` (copy_, out=); traced into
     one stacked tensor, every such write becomes a scatter that copies the whole (K, blocks, ...) state (2 MB
-    at K = 8, ~2 ms each in ONNX Runtime). Written into separate tensors and stacked once at the end, the
+    at K = 8, ~2 ms each in ONNX Runtime). Written into separate tensors and stacked once at the end (one
+    concatenation of all K * blocks parts, not a stack of stacks: each level copies the whole state), the
     graph holds plain values."""
 
     def __init__(self, like: torch.Tensor):
@@ -122,12 +123,29 @@ class _Slots:
         return self.parts[index]
 
     def stacked(self) -> torch.Tensor:
-        def stack(prefix: tuple, depth: int) -> torch.Tensor:
-            if depth == 0:
-                return self.parts[prefix[0] if len(prefix) == 1 else prefix]
-            return torch.stack([stack(prefix + (i,), depth - 1) for i in range(self.like.shape[len(prefix)])])
         depth = max(1 if isinstance(k, int) else len(k) for k in self.parts)
-        return stack((), depth)
+        order = sorted(self.parts) if depth > 1 else range(self.like.shape[0])
+        if depth > 1 and len(order) != math.prod(self.like.shape[:depth]):
+            raise ValueError("the runner left a state slot unwritten")
+        return torch.stack([self.parts[i] for i in order]).view(self.like.shape)
+
+
+class _Parts:
+    """A `StepStates` field as the runner reads it: `parts[k]` or `parts[k, j]`, all cut by one split of the
+    input (two nested selects copy the state twice in ONNX Runtime, where a slice is a copy)."""
+
+    def __init__(self, t: torch.Tensor, depth: int):
+        self.shape, self.depth = t.shape, depth
+        self.parts = t.reshape(-1, *t.shape[depth:]).unbind(0)
+
+    def __getitem__(self, index) -> torch.Tensor:
+        index = (index,) if isinstance(index, int) else index
+        if len(index) != self.depth:
+            raise IndexError(f"state parts are indexed by {self.depth} numbers, got {index}")
+        flat = 0
+        for i, n in zip(index, self.shape):
+            flat = flat * n + i
+        return self.parts[flat]
 
 
 class FrameStep(nn.Module):
@@ -155,7 +173,8 @@ class FrameStep(nn.Module):
         cond, ex = m.condition(feats, ex)  # (1, M, H)
         states = StepStates(named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"])
         out = StepStates(*(_Slots(t) for t in states))
-        frames = self.runner.sample(cond, frame, seed, states, [self.guidance], out=out)  # (1, M, D)
+        parts = StepStates(*(_Parts(t, depth) for t, depth in zip(states, (1, 2, 2))))
+        frames = self.runner.sample(cond, frame, seed, parts, [self.guidance], out=out)  # (1, M, D)
         new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
         new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf}
         warm = frame < 0  # a warm-up call: its condition is not real yet, so the denoiser keeps its start state
@@ -248,14 +267,15 @@ def _quiet():
 def _optimize(model) -> None:
     """torch.onnx's own graph optimization (onnxscript's `optimize_ir`: constant folding, rewrites, clean-up;
     without it ORT runs a frame 2.8x slower) minus its no-op rules: their `x + 0` matches any scalar within
-    1e-8 of 0, which removed the front end's `+ 1e-12` and made digital silence log10(0) = -inf."""
+    1e-8 of 0, which removed the front end's `+ 1e-12` and made digital silence log10(0) = -inf. Plus rules of
+    ours (`_fusable_rules`) that let ONNX Runtime fuse each block's RMSNorm and GELU into one node each."""
     import onnx_ir as ir
     import onnx_ir.passes.common as common
     from onnxscript import rewriter
     from onnxscript.optimizer import _constant_folding
     from onnxscript.rewriter.rules.common import _no_op
 
-    rules = [r for r in rewriter._DEFAULT_REWRITE_RULES if r not in _no_op.rules]
+    rules = [r for r in rewriter._DEFAULT_REWRITE_RULES if r not in _no_op.rules] + _fusable_rules()
     ir.passes.Sequential(
         common.InlinePass(),
         ir.passes.PassManager([_constant_folding.FoldConstantsPass(
@@ -269,6 +289,37 @@ def _optimize(model) -> None:
         common.CommonSubexpressionEliminationPass(),
         common.NameFixPass(),
     )(model)
+
+
+def _fusable_rules() -> list:
+    """Two traced forms ONNX Runtime's fusions do not match, rewritten into the forms they do (same math; the
+    fused kernels round their own way, the frames move by < 1e-6):
+
+    - RMSNorm's `x * Reciprocal(Sqrt(s))` -> `x / Sqrt(s)` (the Reciprocal used there only):
+      SimplifiedLayerNormalization, 7 nodes -> 1;
+    - tanh GELU's `x * (0.5 * (1 + tanh(u)))` -> `(x * 0.5) * (1 + tanh(u))` (exact: multiplying by 0.5 is):
+      FastGelu, 8 nodes -> 1."""
+    from onnxscript.rewriter import pattern
+
+    def rms(op, x, s):
+        return op.Mul(x, op.Reciprocal(op.Sqrt(s)))
+
+    def rms_div(op, x, s):
+        return op.Div(x, op.Sqrt(s))
+
+    def gelu(op, x, u, half, one):
+        return op.Mul(x, op.Mul(half, op.Add(op.Tanh(u), one)))
+
+    def gelu_half_first(op, x, u, half, one):
+        return op.Mul(op.Mul(x, half), op.Add(op.Tanh(u), one))
+
+    def constants(context, half, one, **_):
+        value = lambda v: None if v.const_value is None or v.const_value.size != 1 else float(  # noqa: E731
+            v.const_value.numpy().reshape(()))
+        return value(half) == 0.5 and value(one) == 1.0
+
+    return [*pattern.RewriteRule(rms, rms_div).commute(),
+            *pattern.RewriteRule(gelu, gelu_half_first, constants).commute()]
 
 
 def weights_sha256(checkpoint: Path) -> str:

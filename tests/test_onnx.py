@@ -65,6 +65,27 @@ def test_manifest_is_the_graph(exported):
     json.loads((exported / "manifest.json").read_text())  # strict JSON: NaN is written "nan"
 
 
+def test_onnx_runtime_fuses_each_blocks_gelu_and_rmsnorm_and_reads_each_state_once(exported, bundle, tmp_path):
+    """The graph is written in the forms ONNX Runtime fuses (a tanh GELU and an RMSNorm a block and step become
+    one node each), and each stacked denoiser state is cut by one node (beside the warm-up gate), not per step."""
+    import collections
+
+    import onnx
+
+    m = load_manifest(exported)
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.optimized_model_filepath = str(tmp_path / "optimized.onnx")
+    ort.InferenceSession(str(exported / m["graph"]), opts, providers=["CPUExecutionProvider"])
+    ops = collections.Counter(n.op_type for n in onnx.load(opts.optimized_model_filepath).graph.node)
+    blocks = bundle.config.n_blocks
+    assert ops["FastGelu"] == STEPS * blocks
+    assert ops["SimplifiedLayerNormalization"] >= STEPS * blocks
+    written = onnx.load(str(exported / m["graph"])).graph.node
+    for name in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
+        assert sorted(n.op_type for n in written if name in n.input) == ["Reshape", "Where"]
+
+
 def test_state_shapes_are_the_torch_streams(exported, bundle):
     m = load_manifest(exported)
     shapes = {s["input"]: tuple(s["shape"]) for s in m["state"]}
