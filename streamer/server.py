@@ -82,7 +82,7 @@ def build(options: ServeOptions) -> Pipeline:
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
-    executor = _executor(options.no_batch or onnx is not None)  # (ONNX Runtime runs each stream's call alone)
+    executor = _executor(options.no_batch, onnx)
     metrics = _metrics(executor)
     make_session = functools.partial(_session, bundle, options, executor, steps, guidance, onnx=onnx)
     session = make_session("source") if source is not None else None
@@ -128,9 +128,13 @@ def _load(checkpoint: str | None):
         raise ServeError(f"cannot load {checkpoint or 'the embedded default model'}: {e}") from None
 
 
-def _executor(no_batch: bool):
+def _executor(no_batch: bool, onnx: OnnxModel | None = None):
     if no_batch:
         return RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
+        from dimgestor.onnx_batch import push_many
+
+        return StreamBatcher(push_many=functools.partial(push_many, onnx.batch_runner(inference_threads())))
     import torch
 
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread

@@ -16,7 +16,7 @@ from dimgestor.onnx_export import FrameStep  # noqa: E402
 from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
 from dimgestor.synthetic import synthetic_speech  # noqa: E402
 
-STEPS, FRAMES, SEED = 2, 2, 7  # a small graph: exporting it takes ~15 s
+STEPS, FRAMES, SEED, BATCH = 2, 2, 7, 3  # small graphs: exporting each takes ~15 s
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +26,10 @@ def bundle():
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """The embedded default model exported through the command line."""
+    """The embedded default model exported through the command line, with a graph of BATCH streams a call."""
     out = tmp_path_factory.mktemp("onnx")
-    assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES)]) == 0
+    assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES),
+                 "--batch", str(BATCH)]) == 0
     return out
 
 
@@ -260,3 +261,119 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
         assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
         assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
     assert out.with_suffix(".png").is_file()
+
+
+# ---- many streams a call: the batched graph and `streamer serve --backend onnxruntime`'s batches ----------------
+
+def test_batched_graph_is_its_manifest_entry(exported):
+    """The graph of B streams: every input and output the single-stream graph's with each state's rows times B on
+    its `batch_dim`, the other inputs' first dim B and frames (B, M, D)."""
+    m = load_manifest(exported)
+    assert m["batched"] == [{"batch": BATCH, "graph": f"frame_step_b{BATCH}.onnx"}]
+    session = ort.InferenceSession(str(exported / m["batched"][0]["graph"]), providers=["CPUExecutionProvider"])
+    dims = {s["input"]: s["batch_dim"] for s in m["state"]} | {s["output"]: s["batch_dim"] for s in m["state"]}
+    for entries, values in ((m["inputs"], session.get_inputs()), (m["outputs"], session.get_outputs())):
+        want = []
+        for e in entries:
+            shape = list(e["shape"])
+            if e["name"] == "frames":
+                shape = [BATCH, *shape]
+            else:
+                shape[dims.get(e["name"], 0)] *= BATCH
+            want.append((e["name"], shape))
+        assert want == [(v.name, v.shape) for v in values]
+
+
+def test_batched_graph_rows_equal_single_stream_calls(exported):
+    """Row b of one call of the B-stream graph is stream b's own call of the single-stream graph: different seeds,
+    frame indices and states, one row in its warm-up (frame < 0: it keeps its denoiser state) beside others that
+    are not, one at the start state (NaN noise floor). Frames and every state within 1e-5."""
+    m = load_manifest(exported)
+    single = ort.InferenceSession(str(exported / m["graph"]), providers=["CPUExecutionProvider"])
+    batched = ort.InferenceSession(str(exported / f"frame_step_b{BATCH}.onnx"), providers=["CPUExecutionProvider"])
+    names = [o.name for o in single.get_outputs()]
+    rng = np.random.default_rng(5)
+    start = {s["input"]: np.full(s["shape"], float(s["init"]), s["dtype"]) for s in m["state"]}
+    states = [start] + [{s["input"]: (0.3 * rng.standard_normal(s["shape"])).astype(s["dtype"]) for s in m["state"]}
+                        for _ in range(BATCH - 1)]
+    samples = (0.1 * rng.standard_normal((BATCH, 800 * FRAMES))).astype(np.float32)
+    seed, frame = np.array([3, 11, 2**40 + 5]), np.array([-FRAMES, 14, 0])
+    alone = [dict(zip(names, single.run(names, {"samples": samples[b:b + 1], "seed": seed[b:b + 1],
+                                                "frame": frame[b:b + 1], **states[b]}))) for b in range(BATCH)]
+    feeds = {"samples": samples, "seed": seed, "frame": frame}
+    feeds |= {s["input"]: np.concatenate([st[s["input"]] for st in states], s["batch_dim"]) for s in m["state"]}
+    together = dict(zip(names, batched.run(names, feeds)))
+    assert together["frames"].shape == (BATCH, FRAMES, alone[0]["frames"].shape[-1])
+    for b in range(BATCH):
+        assert np.abs(together["frames"][b] - alone[b]["frames"]).max() < 1e-5
+        for s in m["state"]:
+            k = s["shape"][s["batch_dim"]]
+            row = np.take(together[s["output"]], range(b * k, (b + 1) * k), axis=s["batch_dim"])
+            assert row.shape == alone[b][s["output"]].shape
+            np.testing.assert_allclose(row, alone[b][s["output"]], rtol=0, atol=1e-5, equal_nan=True)
+    kept = np.take(together["denoiser_ssm_out"], [0, 1], axis=2)  # row 0 in its warm-up: its rows (2 branches)
+    assert np.array_equal(kept, np.take(feeds["denoiser_ssm"], [0, 1], axis=2))
+
+
+def test_plan_mixes_graph_sizes_at_the_least_cost(exported):
+    from dimgestor.onnx_batch import BatchRunner
+
+    m = load_manifest(exported)
+    runner = BatchRunner(exported, m, cost={1: 1.0, BATCH: 1.2})
+    assert [runner.plan(n) for n in (1, 2, 3, 4, 5, 7)] == [[1], [3], [3], [3, 1], [3, 3], [3, 3, 1]]
+    dear = BatchRunner(exported, m, cost={1: 1.0, BATCH: 3.5})  # a batch dearer than its calls alone: never used
+    assert dear.plan(4) == [1, 1, 1, 1]
+    measured = BatchRunner(exported, m)  # measured at load: each graph's seconds per call
+    assert set(measured.cost) == {1, BATCH} and all(t > 0 for t in measured.cost.values())
+
+
+def test_streams_pushed_together_equal_streams_alone(exported, audio):
+    """`dimgestor.onnx_batch.push_many` (each push's calls of all its streams as batched calls, padded with idle
+    rows or mixed with single calls by `plan`) gives each stream the frames it makes alone: different seeds and
+    audio, awkward chunks (a window that is no call, several calls at once), streams joining late and missing
+    cycles, one stream finished mid-way (its exception in its place, the others go on)."""
+    from dimgestor.onnx_batch import BatchRunner, push_many
+    from dimgestor.onnx_stream import OnnxModel
+
+    model = OnnxModel.load(exported)
+    runner = BatchRunner(exported, model.manifest, cost={1: 1.0, BATCH: 1.2})  # pads 2 to 3, 4 as 3 + 1
+    n = 5
+    clips = [np.roll(audio, 3000 * k)[: len(audio) - 1000 * k] for k in range(n)]
+    alone = [streamed(ort_stream(exported, seed=SEED + k), clips[k], [len(clips[k])]) for k in range(n)]
+    streams = [model.stream(seed=SEED + k) for k in range(n)]
+    got, pos, joins = [[] for _ in range(n)], [0] * n, [0, 0, 2, 5, 1]
+    rng = np.random.default_rng(1)
+    cycle = 0
+    while any(p < len(c) for p, c in zip(pos, clips)):
+        if cycle == 6:  # stream 4 finishes early: a push into it still comes, and fails alone
+            heard = streams[4].state.samples_in
+            got[4].append(streams[4].finish())
+            pos[4] = len(clips[4])
+        idx = [k for k in range(n) if cycle >= joins[k] and pos[k] < len(clips[k]) and rng.random() < 0.85]
+        chunks = []
+        for k in idx:
+            size = int(rng.choice([1, 799, 1600, 3200, 2001, 5000]))
+            chunks.append(clips[k][pos[k]:pos[k] + size])
+            pos[k] += size
+        if cycle == 6:
+            idx, chunks = idx + [4], chunks + [np.zeros(1600, np.float32)]
+        outs = push_many(runner, [streams[k] for k in idx], chunks, return_exceptions=True)
+        for k, f in zip(idx, outs):
+            if k == 4 and cycle == 6:
+                assert isinstance(f, RuntimeError)
+            else:
+                got[k].append(f)
+        cycle += 1
+    assert cycle > 6
+    for k in range(n):
+        if k != 4:
+            got[k].append(streams[k].finish())
+        frames = np.concatenate(got[k])
+        want = alone[k]
+        if k == 4:  # the audio it had when it finished, alone
+            want = streamed(ort_stream(exported, seed=SEED + 4), clips[4][:heard], [heard])
+        assert frames.shape == want.shape and len(frames) > 0
+        assert np.abs(frames - want).max() < 1e-5
+    st = runner.stats
+    assert st.calls.get(BATCH, 0) > 0 and st.calls.get(1, 0) > 0 and st.padded > 0
+    assert st.gathers < sum(st.calls.values())  # the same streams together again: the last outputs fed back
