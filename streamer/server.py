@@ -34,6 +34,10 @@ if TYPE_CHECKING:
 
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_token", "run", "serve"]
 TOKEN_ENV = "STREAMER_TOKEN"
+# --backend onnxruntime without --onnx: the batch sizes exported at start beside the single-stream graph (each takes
+# about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of the saving per
+# stream is there by 4 streams a call at K = 8)
+SERVE_BATCHES = (4, 8)
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -207,9 +211,12 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 
     folder = tempfile.mkdtemp(prefix="dimgestor-onnx-")
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}) ...", file=sys.stderr, flush=True)
+    batches = () if options.no_batch else SERVE_BATCHES
+    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}"
+          + (f", graphs of 1 and {' and '.join(map(str, batches))} streams" if batches else "") + ") ...",
+          file=sys.stderr, flush=True)
     try:
-        export_onnx(options.checkpoint, folder, steps, guidance)
+        export_onnx(options.checkpoint, folder, steps, guidance, batches=batches)
     except ValueError as e:
         raise ServeError(f"--backend onnxruntime: cannot export {options.checkpoint or 'the embedded model'}: {e}"
                          ) from None

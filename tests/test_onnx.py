@@ -377,3 +377,52 @@ def test_streams_pushed_together_equal_streams_alone(exported, audio):
     st = runner.stats
     assert st.calls.get(BATCH, 0) > 0 and st.calls.get(1, 0) > 0 and st.padded > 0
     assert st.gathers < sum(st.calls.values())  # the same streams together again: the last outputs fed back
+
+
+def test_serve_on_onnxruntime_batches_clients_and_each_gets_what_it_gets_alone(exported, audio):
+    """`streamer serve --backend onnxruntime --source ws`: three clients talking at once (different audio, staggered
+    starts) share the batched calls (the status line's batch peaks at 2 or more), and each gets the frames it gets
+    talking alone to the same server (root and rotations as sent, to the JSON's rounding)."""
+    import asyncio
+
+    from helpers.serve import Serve
+    from websockets.asyncio.client import connect
+
+    clips = [np.round(np.roll(audio, 4000 * k)[:SAMPLE_RATE * 2] * 32767 * 0.8).astype("<i2") for k in range(3)]
+
+    async def talk(url, clip, delay):
+        await asyncio.sleep(delay)
+        async with connect(url) as c:
+            json.loads(await asyncio.wait_for(c.recv(), 30))
+            await c.send(json.dumps({"type": "hello", "protocol": 1,
+                                     "audio": {"rate": 16000, "format": "pcm16", "channels": 1}}))
+            for i in range(0, len(clip), 1600):
+                await c.send(clip[i:i + 1600].tobytes())
+                await asyncio.sleep(0.05)
+            await c.send(json.dumps({"type": "audio_end"}))
+            frames = []
+            while True:
+                m = json.loads(await asyncio.wait_for(c.recv(), 60))
+                if m["type"] == "frame":
+                    frames.append([*m["root"], *np.ravel(m["rotations"])])
+                elif m["type"] == "end":
+                    return np.array(frames)
+
+    s = Serve("--backend", "onnxruntime", "--onnx", str(exported), "--steps", str(STEPS), "--source", "ws",
+              "--ws", "127.0.0.1:0", "--window-ms", "100", "--status-every", "0.3")
+    try:
+        url = s.wait_for(r"WebSocket\s+(ws://\S+)", 120).group(1)
+
+        async def together():
+            return await asyncio.gather(*(talk(url, clip, 0.13 * k) for k, clip in enumerate(clips)))
+
+        shared = asyncio.run(together())
+        peak = max(int(m) for m in __import__("re").findall(r"batch [\d.]+ streams \(max (\d+)\)", s.output))
+        alone = [asyncio.run(talk(url, clip, 0)) for clip in clips]
+    finally:
+        s.proc.terminate()
+        s.finish()
+    assert peak >= 2, s.output[-2000:]
+    for a, b in zip(shared, alone):
+        assert a.shape == b.shape == (len(clips[0]) * 20 // SAMPLE_RATE, a.shape[1])
+        assert np.abs(a - b).max() <= 2e-5  # rounded to 5 decimals (root) and 6 (rotations) in the JSON
