@@ -49,7 +49,7 @@ class BatchRunner:
     def __init__(self, folder: str | Path, manifest: dict, threads: int = 1, cost: dict[int, float] | None = None):
         import onnxruntime as ort
 
-        self.manifest, self.ort = manifest, ort
+        self.manifest, self.threads = manifest, threads
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1

@@ -234,7 +234,8 @@ def test_serve_refuses_an_onnx_export_with_other_settings_or_a_state_store(expor
 
 def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path):
     """benchmarks/onnx_runtime.py on this module's export (K = 2, 100 ms windows): per-window times of both
-    backends with their frames compared, and the streams-per-process section for all three executors."""
+    backends with their frames compared, the streams-per-process section for all four executors (ONNX Runtime
+    batched among them) and the per-call table of 1 and BATCH streams a call."""
     import os
     import shutil
     import subprocess
@@ -246,7 +247,8 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     out = tmp_path / "onnx_runtime.json"
     proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
                            "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
-                           "--streams-max", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
+                           "--streams-max", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
+                           "--call-reps", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
                           cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -255,11 +257,17 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     assert row["steps"] == STEPS and row["max_abs_diff"] < 1e-4 and row["ratio_p50"] > 0
     assert row["torch"]["windows"] == row["onnxruntime"]["windows"] > 0
     (s,) = r["streams"]
-    for name, backend in (("torch_batched", "torch"), ("torch_unbatched", "torch"), ("onnxruntime", "onnxruntime")):
+    for name, backend in (("torch_batched", "torch"), ("torch_unbatched", "torch"), ("onnxruntime", "onnxruntime"),
+                          ("onnxruntime_batched", "onnxruntime")):
         m = s[name]
         assert m["backend"] == backend and 0 <= m["max_realtime_streams"] <= 2 and m["trials"]
         assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
         assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
+    assert s["graph_batches"] == [1, BATCH] and all(t["executor"] == "StreamBatcher" and t["graph_batches"] == [
+        1, BATCH] for t in s["onnxruntime_batched"]["trials"])
+    (c,) = r["calls"]
+    assert [row["batch"] for row in c["rows"]] == [1, BATCH] and c["state_bytes_per_stream"] > 0
+    assert all(row["ms_per_call"] > 0 and row["ms_per_stream"] == row["ms_per_call"] / row["batch"] for row in c["rows"])
     assert out.with_suffix(".png").is_file()
 
 
