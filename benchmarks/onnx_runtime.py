@@ -12,9 +12,13 @@ difference between the two backends' frames (normalized features).
 
 Streams per process (`--streams K...`, default K = 8): `benchmarks/streams.py`'s serving trial (paced sessions
 on one executor, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
-torch batched (one StreamBatcher on every core: `streamer serve`'s default), torch unbatched and ONNX Runtime (one
-session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer serve
---backend onnxruntime`), doubling then bisecting the count to 10 %.
+torch batched (one StreamBatcher on every core, or `--batched-threads`: `streamer serve`'s default), torch unbatched, ONNX Runtime
+unbatched (one session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer
+serve --backend onnxruntime --no-batch`) and ONNX Runtime batched (one StreamBatcher whose cycles run as calls of
+the export's graphs of 1 and `--batches` streams, ONNX Runtime on every core: `streamer serve --backend
+onnxruntime`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
+(`--call-batches`): ms per call and per stream, and the copies of gathering B streams' states into a call (what
+a call costs when the streams come back in another order or company).
 
     python benchmarks/onnx_runtime.py                       # K = 1, 4, 8 at 100 ms windows; streams at K = 8
     python benchmarks/onnx_runtime.py --exports /tmp/onnx   # keep the exported graphs for the next run
@@ -47,6 +51,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="K values for the streams-per-process comparison (none: skip it)")
     p.add_argument("--streams-s", type=float, default=8.0, help="audio per streams trial (s)")
     p.add_argument("--streams-max", type=int, default=160, help="largest stream count tried")
+    p.add_argument("--batches", type=int, nargs="*", default=[4, 8, 16, 32], metavar="B",
+                   help="graphs of B streams a call exported for the batched ONNX Runtime path (besides 1)")
+    p.add_argument("--call-batches", type=int, nargs="*", default=[1, 8, 32], metavar="B",
+                   help="batch sizes of the per-call cost table (1 or among --batches)")
+    p.add_argument("--call-reps", type=int, default=8, help="calls timed per batch size (interleaved)")
+    p.add_argument("--batched-threads", type=int, default=None, metavar="N",
+                   help="threads of the batched executors (torch's and ONNX Runtime's); default: every core. On a "
+                        "machine loaded by others, 1: two threads each waiting on the other's slice of a core "
+                        "stall the batch")
     p.add_argument("--out", type=Path, default=RESULTS / "onnx_runtime.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
@@ -54,14 +67,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def export_for(folder: Path, steps: int, frames: int) -> Path:
+def export_for(folder: Path, steps: int, frames: int, batches=()) -> Path:
+    """The export of K = steps (with graphs of `batches` streams), reused when its folder already has them."""
+    import json
+
     from dimgestor.onnx_export import MANIFEST, export_onnx
 
     out = folder / f"default_k{steps}_f{frames}"
-    if not (out / MANIFEST).is_file():
+    have = {e["batch"] for e in json.loads((out / MANIFEST).read_text()).get("batched", [])} if (
+        out / MANIFEST).is_file() else None
+    if have is None or not set(batches) - {1} <= have:
         t0 = time.perf_counter()
-        export_onnx(None, out, steps=steps, frames=frames)
-        print(f"exported K={steps} in {time.perf_counter() - t0:.0f} s")
+        export_onnx(None, out, steps=steps, frames=frames, batches=sorted(set(batches) | (have or set())))
+        print(f"exported K={steps} (batches {sorted(set(batches))}) in {time.perf_counter() - t0:.0f} s")
     return out
 
 
@@ -123,19 +141,67 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     from streams import max_streams
 
     c = bundle.config
-    onnx = OnnxModel.load(export_for(folder, steps, args.window_ms * c.fps // 1000))
+    onnx = OnnxModel.load(export_for(folder, steps, args.window_ms * c.fps // 1000, args.batches))
     cores = os.cpu_count() or 1
+    threads = args.batched_threads or cores
+    runner = onnx.batch_runner(threads=threads)  # (its graphs' costs measured once, for every trial)
     common = dict(steps=steps, window_ms=args.window_ms, seconds=args.streams_s, cap=args.streams_max)
-    row = {"steps": steps, "cores": cores,
-           "torch_batched": max_streams(bundle, batched=True, threads=cores, **common),
+    row = {"steps": steps, "cores": cores, "batched_threads": threads, "graph_batches": runner.sizes,
+           "graph_cost_ms": {str(b): 1000 * t for b, t in runner.cost.items()},
+           "torch_batched": max_streams(bundle, batched=True, threads=threads, **common),
            "torch_unbatched": max_streams(bundle, batched=False, threads=1, **common),
-           "onnxruntime": max_streams(bundle, batched=False, threads=1, onnx=onnx, **common)}
-    n = {k: row[k]["max_realtime_streams"] for k in ("torch_batched", "torch_unbatched", "onnxruntime")}
+           "onnxruntime": max_streams(bundle, batched=False, threads=1, onnx=onnx, **common),
+           "onnxruntime_batched": max_streams(bundle, batched=True, threads=threads, onnx=onnx, batch_runner=runner,
+                                              **common)}
+    row["onnxruntime_batched"]["calls"] = {str(b): n for b, n in runner.stats.calls.items()}
+    row["onnxruntime_batched"]["gathers"] = runner.stats.gathers
+    n = {k: row[k]["max_realtime_streams"] for k in STREAM_ROWS}
     row["max_realtime_streams"] = n
     row["ratio_onnxruntime_to_torch_batched"] = n["onnxruntime"] / max(n["torch_batched"], 1)
+    row["ratio_onnxruntime_batched_to_torch_batched"] = n["onnxruntime_batched"] / max(n["torch_batched"], 1)
     print(f"K={steps} streams per process: torch batched {n['torch_batched']}, unbatched {n['torch_unbatched']}, "
-          f"ONNX Runtime {n['onnxruntime']} ({row['ratio_onnxruntime_to_torch_batched']:.2f}x torch batched)")
+          f"ONNX Runtime {n['onnxruntime']} ({row['ratio_onnxruntime_to_torch_batched']:.2f}x torch batched), "
+          f"batched {n['onnxruntime_batched']} ({row['ratio_onnxruntime_batched_to_torch_batched']:.2f}x)")
     return row
+
+
+STREAM_ROWS = ("torch_batched", "torch_unbatched", "onnxruntime", "onnxruntime_batched")
+
+
+def call_costs(bundle, folder: Path, steps: int, args) -> dict:
+    """One ONNX Runtime call of B streams at K = steps, 1 thread: ms per call and per stream (the median of
+    `--call-reps`, the sizes interleaved), and the gather: B streams' states copied into the call's inputs."""
+    from dimgestor.onnx_batch import BatchRunner
+    from dimgestor.onnx_stream import load_manifest
+
+    export = export_for(folder, steps, args.window_ms * bundle.config.fps // 1000, args.batches)
+    manifest = load_manifest(export)
+    runner = BatchRunner(export, manifest, threads=1, cost={1: 1.0})  # (plan unused: each size called directly)
+    sizes = [b for b in args.call_batches if b in runner.sizes]
+    feeds = {b: runner._idle(b) for b in sizes}
+    for b in sizes:
+        runner._call(b, feeds[b])  # first calls allocate
+    run, gather = {b: [] for b in sizes}, {b: [] for b in sizes}
+    for _ in range(args.call_reps):
+        for b in sizes:
+            t0 = time.perf_counter()
+            runner._call(b, feeds[b])
+            run[b].append(time.perf_counter() - t0)
+            rows = [runner._idle(1)] * b  # B streams' own states (not the rows of one buffer): copied together
+            t0 = time.perf_counter()
+            for s in manifest["state"]:
+                parts = [r[s["input"]] for r in rows]
+                np.ascontiguousarray(parts[0]) if b == 1 else np.concatenate(parts, s["batch_dim"])
+            gather[b].append(time.perf_counter() - t0)
+    state_bytes = sum(v.nbytes for k, v in runner._idle(1).items() if k not in ("samples", "seed", "frame"))
+    out = []
+    for b in sizes:
+        ms = float(np.median(run[b]) * 1000)
+        out.append({"batch": b, "ms_per_call": ms, "ms_per_stream": ms / b, "gather_ms": float(
+            np.median(gather[b]) * 1000), "calls": len(run[b])})
+        print(f"K={steps} B={b:3d}: {ms:7.1f} ms a call, {ms / b:6.2f} ms a stream, gathering the states "
+              f"{out[-1]['gather_ms']:.2f} ms")
+    return {"steps": steps, "threads": 1, "state_bytes_per_stream": int(state_bytes), "rows": out}
 
 
 def plot(result: dict, path: Path) -> None:
@@ -148,8 +214,8 @@ def plot(result: dict, path: Path) -> None:
 
     rows = result["results"]
     x = np.arange(len(rows))
-    srows = result.get("streams") or []
-    fig, axes = plt.subplots(1, 3 if srows else 2, figsize=(13.5 if srows else 9, 3.4))
+    srows, crows = result.get("streams") or [], result.get("calls") or []
+    fig, axes = plt.subplots(1, 2 + bool(srows) + bool(crows), figsize=(4.5 * (2 + bool(srows) + bool(crows)), 3.4))
     for i, backend in enumerate(("torch", "onnxruntime")):
         p50 = [r[backend]["ms_p50"] for r in rows]
         p90 = [r[backend]["ms_p90"] for r in rows]
@@ -162,14 +228,24 @@ def plot(result: dict, path: Path) -> None:
     axes[1].set_xlabel("K")
     axes[1].set_ylim(0, max(1.1, max(r["ratio_p50"] for r in rows) * 1.1))
     if srows:
-        names = ("torch_batched", "torch_unbatched", "onnxruntime")
         xs = np.arange(len(srows))
-        for i, name in enumerate(names):
-            axes[2].bar(xs + (i - 1) * 0.27, [r["max_realtime_streams"][name] for r in srows], 0.27,
+        for i, name in enumerate(STREAM_ROWS):
+            axes[2].bar(xs + (i - 1.5) * 0.2, [r["max_realtime_streams"].get(name, 0) for r in srows], 0.2,
                         label=name.replace("_", " "))
         axes[2].set_xticks(xs, [f"K={r['steps']}" for r in srows])
         axes[2].set_ylabel(f"real-time streams, one process, {srows[0]['cores']} cores")
         axes[2].legend(fontsize=7)
+    if crows:
+        ax = axes[-1]
+        for r in crows:
+            bs = [c["batch"] for c in r["rows"]]
+            ax.plot(bs, [c["ms_per_stream"] for c in r["rows"]], "o-", label=f"K={r['steps']}: ms a stream")
+            ax.plot(bs, [c["gather_ms"] / c["batch"] for c in r["rows"]], "x--",
+                    label=f"K={r['steps']}: gathering its state")
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("streams per ONNX Runtime call (1 thread)")
+        ax.set_ylabel("ms per stream per 100 ms window")
+        ax.legend(fontsize=7)
     save_panels(fig, axes, f"one stream, default model, 1 thread, interleaved by {result['interleave']}: "
                            f"{result['device']}", path)
     plt.close(fig)
@@ -187,6 +263,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="onnx-bench-") as tmp:
         folder = args.exports or Path(tmp)
         rows = [measure(bundle, folder, k, args) for k in args.steps]
+        crows = [call_costs(bundle, folder, k, args) for k in args.streams]
         srows = [streams(bundle, folder, k, args) for k in args.streams]
     import onnxruntime
 
@@ -195,7 +272,7 @@ def main(argv=None) -> int:
               "load_average": load_average(), "note": args.note, "window_ms": args.window_ms,
               "interleave": args.interleave,
               "model": "embedded default (speech front end, guidance %g: 2 rows)" % bundle.config.guidance,
-              "results": rows, "streams": srows}
+              "results": rows, "streams": srows, "calls": crows}
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))
     return 0

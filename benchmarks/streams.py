@@ -94,11 +94,22 @@ class _CountingStats:
         return getattr(self.inner, name)
 
 
-def make_executor(batched: bool, threads: int):
+def make_executor(batched: bool, threads: int, batch_runner=None):
     """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
-    `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker."""
+    `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
+    batch_runner: a `dimgestor.onnx_batch.BatchRunner`: the StreamBatcher pushes its windows on it, as
+    `streamer serve --backend onnxruntime` does (its sessions' threads are the runner's)."""
     from streamer.scheduling import RankedExecutor, StreamBatcher
 
+    if batched and batch_runner is not None:
+        import functools
+
+        from dimgestor.onnx_batch import push_many
+
+        ex = StreamBatcher(push_many=functools.partial(push_many, batch_runner))
+        ex.stats = _CountingStats(ex.stats)
+        return ex, {"executor": "StreamBatcher", "inference_threads": 1,
+                    "onnxruntime_threads": batch_runner.threads, "graph_batches": batch_runner.sizes}
     if batched:
         ex = StreamBatcher()
         ex.stats = _CountingStats(ex.stats)
@@ -112,16 +123,19 @@ def make_executor(batched: bool, threads: int):
 
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
                   aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0,
-                  onnx=None) -> dict:
+                  onnx=None, batch_runner=None) -> dict:
     """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window. onnx: a `dimgestor.onnx_stream.OnnxModel`: the
-    sessions run on it, as `streamer serve --backend onnxruntime` builds them (each window alone, unbatched)."""
+    sessions run on it, as `streamer serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
+    export's batched graphs; unbatched: each window alone, as with --no-batch)."""
     from streamer.sessions import Session
 
+    if onnx is not None and batched and batch_runner is None:
+        raise ValueError("batched ONNX Runtime sessions need the export's BatchRunner (batch_runner=)")
     audio = test_audio(seconds, SAMPLE_RATE)
-    executor, how = make_executor(batched, threads)
+    executor, how = make_executor(batched, threads, batch_runner if onnx is not None else None)
     lags: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # per session: (audio time, lag s)
     frames = [0] * n
     window_s = window_ms / 1000
@@ -179,13 +193,14 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
 
 def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
-                aligned: bool = False, log=print, onnx=None) -> dict:
+                aligned: bool = False, log=print, onnx=None, batch_runner=None) -> dict:
     """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail
     until they are within 10 % (the answer is the largest count that passed)."""
     trials, good, bad, n = [], 0, None, 1
 
     def trial(k: int) -> bool:
-        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned, onnx=onnx)
+        r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned, onnx=onnx,
+                          batch_runner=batch_runner)
         trials.append(r)
         log(f"  {'' if onnx is None else 'onnxruntime '}{'batched' if batched else 'unbatched':9s}{' aligned' if aligned else ''} K={steps} {k:3d} streams: lag p50/p95 "
             f"{r['lag_ms_p50']:.0f}/{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, "

@@ -45,7 +45,7 @@ import logging
 import math
 import warnings
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 from torch import nn
@@ -66,7 +66,8 @@ class StateSpec(NamedTuple):
     """One carried tensor: fed as input `name`, returned as output `name + "_out"`, starting at `init`."""
 
     name: str
-    init: torch.Tensor  # its value before the first call (batch 1)
+    init: torch.Tensor  # its value before the first call (the graph's batch of streams)
+    dim: int = 0  # the dimension the streams' rows stack on (a stream has `init.shape[dim] // batch` rows)
 
     @property
     def out(self) -> str:
@@ -90,19 +91,20 @@ def _warmup(model: DiMGestor) -> int:
     return c.lookahead_feats // c.feats_per_frame
 
 
-def state_specs(model: DiMGestor, steps: int, rows: int) -> list[StateSpec]:
-    """The graph's carried tensors in input order: front end, extractor, denoiser (K steps, `rows` branches)."""
+def state_specs(model: DiMGestor, steps: int, rows: int, batch: int = 1) -> list[StateSpec]:
+    """The graph's carried tensors in input order: front end, extractor, denoiser (K steps, `rows` branches), for
+    `batch` streams (their rows stacked on each spec's `dim`: the batch dim of the torch layouts)."""
     if model.config.frontend == "pretrained":
         raise ValueError("ONNX export supports the logmel and speech front ends, not a pretrained encoder")
-    fe = model.frontend.init_state(1)
+    fe = model.frontend.init_state(batch)
     specs = [StateSpec(f"frontend_{k}", v) for k, v in fe._asdict().items() if torch.is_tensor(v)]
     ex = model.extractor
-    style = ex.style.zero_state(1)
+    style = ex.style.zero_state(batch)
     specs += [StateSpec("extractor_style_conv", style.conv), StateSpec("extractor_style_ssm", style.ssm),
-              StateSpec("extractor_buf", torch.zeros(1, ex.feat_dim + ex.S, ex.k - ex.stride))]
-    d = StepStates.zeros(model, steps, rows)  # the torch stream's own layout (`StreamState.denoiser`)
-    return specs + [StateSpec("denoiser_enc", d.enc), StateSpec("denoiser_conv", d.conv),
-                    StateSpec("denoiser_ssm", d.ssm)]
+              StateSpec("extractor_buf", torch.zeros(batch, ex.feat_dim + ex.S, ex.k - ex.stride))]
+    d = StepStates.zeros(model, steps, rows * batch)  # the torch stream's own layout (`StreamState.denoiser`)
+    return specs + [StateSpec("denoiser_enc", d.enc, 1), StateSpec("denoiser_conv", d.conv, 2),
+                    StateSpec("denoiser_ssm", d.ssm, 2)]
 
 
 class _Slots:
@@ -149,19 +151,25 @@ class _Parts:
 
 
 class FrameStep(nn.Module):
-    """M motion frames of a stream as a function of explicit tensors: what the ONNX graph is traced from, and,
-    run in torch, the graph's reference (`forward(samples, seed, frame, *state) -> (frames, *state)`)."""
+    """M motion frames of `batch` streams as a function of explicit tensors: what the ONNX graph is traced from,
+    and, run in torch, the graph's reference (`forward(samples, seed, frame, *state) -> (frames, *state)`).
 
-    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 2):
+    batch 1 is the engines' graph (frames (M, D)); a batch of B streams (frames (B, M, D)) takes each stream's
+    samples, seed, frame index and states as its rows: the streams are independent (own seeds, own frame
+    indices, some in their warm-up while others are not), and a row's frames are the ones it makes alone."""
+
+    def __init__(self, model: DiMGestor, steps: int, guidance: float, frames: int = 2, batch: int = 1):
         super().__init__()
         if frames < 1 or _warmup(model) % frames:
             raise ValueError(f"frames per call must divide the {_warmup(model)} warm-up frames (the lookahead), "
                              f"got {frames}")
-        self.model, self.guidance, self.frames = model, check_guidance(guidance), frames
+        if batch < 1:
+            raise ValueError(f"a batch is at least one stream, got {batch}")
+        self.model, self.guidance, self.frames, self.batch = model, check_guidance(guidance), frames, batch
         self.pairs = Diffusion(model.config).sampling_pairs("ddim", steps)
         self.runner = runner_for(model, self.pairs, "ddim", 0.0)  # the torch stream's sampler, shared with it
         self.rows = 1 if self.guidance == 1.0 else 2
-        self.specs = state_specs(model, len(self.pairs), self.rows)
+        self.specs = state_specs(model, len(self.pairs), self.rows, batch)
         self._fe_type, self._fe_fixed = type(model.frontend.init_state(1)), model.frontend.init_state(1)._asdict()
 
     def forward(self, samples: torch.Tensor, seed: torch.Tensor, frame: torch.Tensor, *state: torch.Tensor):
@@ -169,31 +177,36 @@ class FrameStep(nn.Module):
         fe = self._fe_type(**{k: named.get(f"frontend_{k}", v) for k, v in self._fe_fixed.items()})
         ex = ExtractorState(Mamba2State(named["extractor_style_conv"], named["extractor_style_ssm"]),
                             named["extractor_buf"])
-        feats, fe = m.frontend(samples, fe)  # (1, 5 M, F)
-        cond, ex = m.condition(feats, ex)  # (1, M, H)
+        feats, fe = m.frontend(samples, fe)  # (B, 5 M, F)
+        cond, ex = m.condition(feats, ex)  # (B, M, H)
         states = StepStates(named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"])
         out = StepStates(*(_Slots(t) for t in states))
         parts = StepStates(*(_Parts(t, depth) for t, depth in zip(states, (1, 2, 2))))
-        frames = self.runner.sample(cond, frame, seed, parts, [self.guidance], out=out)  # (1, M, D)
+        frames = self.runner.sample(cond, frame, seed, parts, [self.guidance] * self.batch, out=out)  # (B, M, D)
         new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
         new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf}
-        warm = frame < 0  # a warm-up call: its condition is not real yet, so the denoiser keeps its start state
-        new |= {f"denoiser_{k}": torch.where(warm, old, slots.stacked())
-                for k, old, slots in zip(("enc", "conv", "ssm"), states, out)}
-        return (frames[0], *(new[s.name] for s in self.specs))
+        # a warm-up call (frame < 0): its condition is not real yet, so that stream's denoiser rows keep their
+        # start state
+        warm = (frame < 0).repeat_interleave(self.rows) if self.batch > 1 else frame < 0  # (B rows,)
+        for spec, old, slots in zip(self.specs[-3:], states, out):
+            gate = warm.view([-1 if d == spec.dim else 1 for d in range(old.dim())]) if self.batch > 1 else warm
+            new[spec.name] = torch.where(gate, old, slots.stacked())
+        return (frames[0] if self.batch == 1 else frames, *(new[s.name] for s in self.specs))
 
     def example_inputs(self) -> tuple[torch.Tensor, ...]:
-        c = self.model.config
-        seed, frame = torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64)  # distinct: not aliased
-        return (torch.zeros(1, c.samples_per_frame * self.frames), seed, frame, *(s.init for s in self.specs))
+        c, B = self.model.config, self.batch
+        seed, frame = torch.zeros(B, dtype=torch.int64), torch.zeros(B, dtype=torch.int64)  # distinct: not aliased
+        return (torch.zeros(B, c.samples_per_frame * self.frames), seed, frame, *(s.init for s in self.specs))
 
 
 def _tensor_entry(name: str, t: torch.Tensor) -> dict:
     return {"name": name, "shape": list(t.shape), "dtype": str(t.dtype).removeprefix("torch.")}
 
 
-def manifest_of(step: FrameStep, checkpoint: dict) -> dict:
-    """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value)."""
+def manifest_of(step: FrameStep, checkpoint: dict, batches: Sequence[int] = ()) -> dict:
+    """What an engine needs to drive the graph: every input, output and state (shape, dtype, start value), and
+    the graphs of `batches` streams a call beside it (their shapes: each state's rows times the batch on its
+    `batch_dim`, the other inputs' first dim the batch, frames (B, M, D))."""
     c = step.model.config
     inputs = step.example_inputs()
     frame = torch.zeros(step.frames, c.motion_dim)
@@ -213,16 +226,21 @@ def manifest_of(step: FrameStep, checkpoint: dict) -> dict:
                    *(_tensor_entry(s.name, s.init) for s in step.specs)],
         "outputs": [_tensor_entry("frames", frame), *(_tensor_entry(s.out, s.init) for s in step.specs)],
         "state": [{"input": s.name, "output": s.out, "shape": list(s.init.shape),
-                   "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init)} for s in step.specs],
+                   "dtype": str(s.init.dtype).removeprefix("torch."), "init": _fill(s.init), "batch_dim": s.dim}
+                  for s in step.specs],
+        "batched": [{"batch": b, "graph": batch_graph(b)} for b in sorted(set(batches))],
         "checkpoint": checkpoint,
     }
 
 
-def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
-                guidance: float | None = None, frames: int = 2) -> Path:
-    """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out."""
-    import onnx
+def batch_graph(batch: int) -> str:
+    return GRAPH if batch == 1 else f"frame_step_b{batch}.onnx"
 
+
+def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
+                guidance: float | None = None, frames: int = 2, batches: Sequence[int] = ()) -> Path:
+    """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out.
+    batches: also a graph of B streams a call for each B (out/frame_step_bB.onnx), for a server's batches."""
     from .checkpoint import load_checkpoint
 
     bundle = load_checkpoint(checkpoint)
@@ -231,9 +249,24 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     steps = steps or c.sample_steps
     if not 1 <= steps <= c.n_steps:
         raise ValueError(f"--steps must be in 1..{c.n_steps}, got {steps}")
-    step = FrameStep(model, steps, c.guidance if guidance is None else guidance, frames).eval()
+    guidance = c.guidance if guidance is None else guidance
+    if any(b < 1 for b in batches):
+        raise ValueError(f"--batch sizes must be at least 1, got {list(batches)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    step = FrameStep(model, steps, guidance, frames).eval()
+    _export_graph(step, out / GRAPH)
+    for b in sorted(set(batches) - {1}):
+        _export_graph(FrameStep(model, steps, guidance, frames, batch=b).eval(), out / batch_graph(b))
+    checkpoint = {"path": str(bundle.path), "weights_sha256": weights_sha256(bundle.path),
+                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
+    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint, batches)), indent=1))
+    return out
+
+
+def _export_graph(step: FrameStep, path: Path) -> None:
+    import onnx
+
     names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
     names_out = ["frames", *(s.out for s in step.specs)]
     with torch.inference_mode(False), torch.no_grad(), _quiet():
@@ -242,12 +275,8 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
                                     opset_version=OPSET, dynamo=True, external_data=False, optimize=False,
                                     verbose=False)
     _optimize(program.model)
-    program.save(str(out / GRAPH))
-    onnx.checker.check_model(str(out / GRAPH))
-    checkpoint = {"path": str(bundle.path), "weights_sha256": weights_sha256(bundle.path),
-                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
-    (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint)), indent=1))
-    return out
+    program.save(str(path))
+    onnx.checker.check_model(str(path))
 
 
 @contextlib.contextmanager
@@ -349,11 +378,14 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=int, default=2,
                    help="motion frames per call, 50 ms each (2: 100 ms windows); a divisor of the lookahead's frames "
                         "(1, 2, 3 or 6 for the default model)")
+    p.add_argument("--batch", type=int, nargs="*", default=[], metavar="B",
+                   help="also export graphs of B streams a call (frame_step_bB.onnx): `streamer serve --backend "
+                        "onnxruntime` runs the due windows of many clients as one call")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
-    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames)
+    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames, args.batch)
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
           f"{len(m['state'])} state tensors) and {out / MANIFEST}")

@@ -47,6 +47,7 @@ class OnnxStreamState:
     calls: int = 0  # graph calls made (call j makes frames (j - warmup_calls) M ... + M - 1)
     frames_out: int = 0
     finished: bool = False
+    rows: tuple | None = None  # where `tensors` lie when a batched call made them: (its outputs, row, graph size)
 
 
 class FrameStepStream:
@@ -69,24 +70,34 @@ class FrameStepStream:
     def frames_out(self) -> int:
         return self.state.frames_out
 
+    def call_inputs(self, call: int, samples: np.ndarray) -> dict[str, np.ndarray]:
+        """The inputs other than the state of the stream's call number `call` (its `samples_per_call` samples)."""
+        j = call - self.warmup  # this call makes frames [j M, (j + 1) M) (j < 0: warm-up)
+        return {"samples": samples[None], "seed": self._seed, "frame": np.array([j * self.per_call], np.int64)}
+
     def _frames(self, state: OnnxStreamState, audio: np.ndarray) -> tuple[np.ndarray, OnnxStreamState]:
         """Whole frames of audio (a multiple of samples_per_call) after `state` -> frames, state."""
-        c, n, M = self.config, len(audio) // self.chunk, self.per_call
+        n = len(audio) // self.chunk
         tensors, out = state.tensors, []
         for i in range(n):
-            j = state.calls + i - self.warmup  # this call makes frames [j M, (j + 1) M) (j < 0: warm-up)
-            feeds = {"samples": audio[None, i * self.chunk:(i + 1) * self.chunk], "seed": self._seed,
-                     "frame": np.array([j * M], np.int64), **tensors}
-            result = self.run(feeds)
+            result = self.run({**self.call_inputs(state.calls + i, audio[i * self.chunk:(i + 1) * self.chunk]),
+                               **tensors})
             tensors = {s["input"]: result[s["output"]] for s in self.manifest["state"]}
-            if j >= 0:  # a warm-up call's frames are not real (the graph kept the denoiser's start state)
-                out.append(result["frames"])
-        frames = np.concatenate(out).astype(np.float32) if out else np.zeros((0, c.motion_dim), np.float32)
+            out.append(result["frames"])
+        return self.made(state, out, tensors, **({"rows": None} if n else {}))
+
+    def made(self, state: OnnxStreamState, frames: list[np.ndarray], tensors: dict, **more
+             ) -> tuple[np.ndarray, OnnxStreamState]:
+        """The frames of len(frames) calls made after `state` (warm-up calls' frames dropped: the graph kept the
+        denoiser's start state), their last state `tensors` -> the stream's new frames (smoothed), its state."""
+        c, n = self.config, len(frames)
+        real = [f for i, f in enumerate(frames) if state.calls + i >= self.warmup]
+        frames = np.concatenate(real).astype(np.float32) if real else np.zeros((0, c.motion_dim), np.float32)
         smoothed = state.smoother
         if self.smoother is not None and len(frames):
             frames, smoothed = self.smoother.step(smoothed, frames)
         return frames, replace(state, tensors=tensors, smoother=smoothed, calls=state.calls + n,
-                               frames_out=state.frames_out + len(frames))
+                               frames_out=state.frames_out + len(frames), **more)
 
     def step(self, state: OnnxStreamState, samples) -> tuple[np.ndarray, OnnxStreamState]:
         """Mono float32 16 kHz samples (any length) after `state` -> the frames that became final, the state."""
@@ -179,6 +190,13 @@ class OnnxModel:
     @classmethod
     def load(cls, folder: str | Path, threads: int = 1) -> "OnnxModel":
         return cls(Path(folder), load_manifest(folder), ort_runner(folder, threads))
+
+    def batch_runner(self, threads: int = 1):
+        """Sessions on the export's graphs of 1 and of each batched size (`dimgestor.onnx_batch.BatchRunner`): the
+        calls of many of this model's streams as few calls (`push_many`)."""
+        from .onnx_batch import BatchRunner
+
+        return BatchRunner(self.folder, self.manifest, threads)
 
     def stream(self, seed: int = 0, smoothing="config", lookahead_s: float | None = None) -> FrameStepStream:
         return FrameStepStream(self.manifest, self.run, seed, smoothing, lookahead_s)

@@ -157,10 +157,11 @@ def _model_flags(s: argparse.ArgumentParser) -> None:
                    "as one batched forward per sampler step)")
     _flag(s, "--backend", choices=("torch", "onnxruntime"),
               help="torch (default), or onnxruntime: the model's ONNX export (dimgestor export-onnx) on ONNX "
-                   "Runtime's CPU provider, each stream's windows alone; the same frames to < 1e-4")
+                   "Runtime's CPU provider, the due windows of all streams as calls of its batched graphs "
+                   "(--no-batch: each alone); the same frames to < 1e-4")
     _flag(s, "--onnx", metavar="DIR",
-              help="with --backend onnxruntime: the checkpoint's export-onnx folder (its K and guidance); "
-                   "default: export it at start")
+              help="with --backend onnxruntime: the checkpoint's export-onnx folder (its K and guidance; "
+                   "export it with --batch B... for batches of B streams a call); default: export it at start")
 
 
 def _server_flags(s: argparse.ArgumentParser) -> None:

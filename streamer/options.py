@@ -48,7 +48,7 @@ class ServeOptions(BaseModel):
     smooth: float | None = None  # One Euro cutoff in Hz, 0 = off; None: the checkpoint's setting
     window_ms: int = Field(200, ge=10, le=5000)
     no_batch: bool = False
-    backend: Literal["torch", "onnxruntime"] = "torch"  # onnxruntime: the ONNX export, one stream per call
+    backend: Literal["torch", "onnxruntime"] = "torch"  # onnxruntime: the ONNX export (its batched graphs)
     onnx: str | None = None  # with backend onnxruntime: an export folder of the checkpoint (else exported at start)
     # the WebSocket server (and the viewer on its port)
     ws: HostPort = ("127.0.0.1", 8765)

@@ -299,11 +299,16 @@ class StreamBatcher(_Threads):
     measurement): a real-time window that arrives meanwhile waits for at most that, then goes first, not for
     every fast sender's next second at once (31 clients sending faster than real time had pushed a
     bystander's p95 latency from 0.15 to 4.5 s). A bound in time, not in audio, holds on any model and machine.
+
+    push_many: what pushes a cycle's windows into their sessions' streams, `(streams, chunks, return_exceptions)
+    -> frames or exception per stream`; None: torch's (`dimgestor.batch.push_many`). `streamer serve --backend
+    onnxruntime` gives ONNX Runtime's (`dimgestor.onnx_batch.push_many` on the export's batched graphs).
     """
 
     def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", cycle_s: float = 0.1,
-                 backlog_s: float = 4.0, clock: Callable[[], float] = time.perf_counter):
-        self.max_batch = max_batch
+                 backlog_s: float = 4.0, clock: Callable[[], float] = time.perf_counter,
+                 push_many: Callable | None = None):
+        self.max_batch, self.push_many = max_batch, push_many
         self.cycle_s, self.backlog_s, self.clock = cycle_s, backlog_s, clock
         self.stats = BatchStats()
         self.cost = CycleCost()
@@ -361,7 +366,8 @@ class StreamBatcher(_Threads):
 
     def _batch(self, pushes: list[_PushJob]) -> None:
         """One batched push of every taken window; a window that fails fails its own future only."""
-        from dimgestor.batch import push_many
+        if (push_many := self.push_many) is None:
+            from dimgestor.batch import push_many
 
         self.stats.add(len(pushes))
         started = self.clock()

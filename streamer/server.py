@@ -34,6 +34,10 @@ if TYPE_CHECKING:
 
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_token", "run", "serve"]
 TOKEN_ENV = "STREAMER_TOKEN"
+# --backend onnxruntime without --onnx: the batch sizes exported at start beside the single-stream graph (each takes
+# about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of the saving per
+# stream is there by 4 streams a call at K = 8)
+SERVE_BATCHES = (4, 8)
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -82,7 +86,7 @@ def build(options: ServeOptions) -> Pipeline:
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
-    executor = _executor(options.no_batch or onnx is not None)  # (ONNX Runtime runs each stream's call alone)
+    executor = _executor(options.no_batch, onnx)
     metrics = _metrics(executor)
     make_session = functools.partial(_session, bundle, options, executor, steps, guidance, onnx=onnx)
     session = make_session("source") if source is not None else None
@@ -128,9 +132,13 @@ def _load(checkpoint: str | None):
         raise ServeError(f"cannot load {checkpoint or 'the embedded default model'}: {e}") from None
 
 
-def _executor(no_batch: bool):
+def _executor(no_batch: bool, onnx: OnnxModel | None = None):
     if no_batch:
         return RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+    if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
+        from dimgestor.onnx_batch import push_many
+
+        return StreamBatcher(push_many=functools.partial(push_many, onnx.batch_runner(inference_threads())))
     import torch
 
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread
@@ -203,9 +211,12 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 
     folder = tempfile.mkdtemp(prefix="dimgestor-onnx-")
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}) ...", file=sys.stderr, flush=True)
+    batches = () if options.no_batch else SERVE_BATCHES
+    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}"
+          + (f", graphs of 1 and {' and '.join(map(str, batches))} streams" if batches else "") + ") ...",
+          file=sys.stderr, flush=True)
     try:
-        export_onnx(options.checkpoint, folder, steps, guidance)
+        export_onnx(options.checkpoint, folder, steps, guidance, batches=batches)
     except ValueError as e:
         raise ServeError(f"--backend onnxruntime: cannot export {options.checkpoint or 'the embedded model'}: {e}"
                          ) from None

@@ -16,7 +16,7 @@ from dimgestor.onnx_export import FrameStep  # noqa: E402
 from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
 from dimgestor.synthetic import synthetic_speech  # noqa: E402
 
-STEPS, FRAMES, SEED = 2, 2, 7  # a small graph: exporting it takes ~15 s
+STEPS, FRAMES, SEED, BATCH = 2, 2, 7, 3  # small graphs: exporting each takes ~15 s
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +26,10 @@ def bundle():
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """The embedded default model exported through the command line."""
+    """The embedded default model exported through the command line, with a graph of BATCH streams a call."""
     out = tmp_path_factory.mktemp("onnx")
-    assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES)]) == 0
+    assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES),
+                 "--batch", str(BATCH)]) == 0
     return out
 
 
@@ -254,7 +255,8 @@ def test_serve_refuses_an_onnx_export_with_other_settings_or_a_state_store(expor
 
 def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path):
     """benchmarks/onnx_runtime.py on this module's export (K = 2, 100 ms windows): per-window times of both
-    backends with their frames compared, and the streams-per-process section for all three executors."""
+    backends with their frames compared, the streams-per-process section for all four executors (ONNX Runtime
+    batched among them) and the per-call table of 1 and BATCH streams a call."""
     import os
     import shutil
     import subprocess
@@ -266,7 +268,8 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     out = tmp_path / "onnx_runtime.json"
     proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
                            "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
-                           "--streams-max", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
+                           "--streams-max", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
+                           "--call-reps", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
                           cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -275,9 +278,183 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     assert row["steps"] == STEPS and row["max_abs_diff"] < 1e-4 and row["ratio_p50"] > 0
     assert row["torch"]["windows"] == row["onnxruntime"]["windows"] > 0
     (s,) = r["streams"]
-    for name, backend in (("torch_batched", "torch"), ("torch_unbatched", "torch"), ("onnxruntime", "onnxruntime")):
+    for name, backend in (("torch_batched", "torch"), ("torch_unbatched", "torch"), ("onnxruntime", "onnxruntime"),
+                          ("onnxruntime_batched", "onnxruntime")):
         m = s[name]
         assert m["backend"] == backend and 0 <= m["max_realtime_streams"] <= 2 and m["trials"]
         assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
         assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
+    assert s["graph_batches"] == [1, BATCH] and all(t["executor"] == "StreamBatcher" and t["graph_batches"] == [
+        1, BATCH] for t in s["onnxruntime_batched"]["trials"])
+    (c,) = r["calls"]
+    assert [row["batch"] for row in c["rows"]] == [1, BATCH] and c["state_bytes_per_stream"] > 0
+    assert all(row["ms_per_call"] > 0 and row["ms_per_stream"] == row["ms_per_call"] / row["batch"] for row in c["rows"])
     assert out.with_suffix(".png").is_file()
+
+
+# ---- many streams a call: the batched graph and `streamer serve --backend onnxruntime`'s batches ----------------
+
+def test_batched_graph_is_its_manifest_entry(exported):
+    """The graph of B streams: every input and output the single-stream graph's with each state's rows times B on
+    its `batch_dim`, the other inputs' first dim B and frames (B, M, D)."""
+    m = load_manifest(exported)
+    assert m["batched"] == [{"batch": BATCH, "graph": f"frame_step_b{BATCH}.onnx"}]
+    session = ort.InferenceSession(str(exported / m["batched"][0]["graph"]), providers=["CPUExecutionProvider"])
+    dims = {s["input"]: s["batch_dim"] for s in m["state"]} | {s["output"]: s["batch_dim"] for s in m["state"]}
+    for entries, values in ((m["inputs"], session.get_inputs()), (m["outputs"], session.get_outputs())):
+        want = []
+        for e in entries:
+            shape = list(e["shape"])
+            if e["name"] == "frames":
+                shape = [BATCH, *shape]
+            else:
+                shape[dims.get(e["name"], 0)] *= BATCH
+            want.append((e["name"], shape))
+        assert want == [(v.name, v.shape) for v in values]
+
+
+def test_batched_graph_rows_equal_single_stream_calls(exported):
+    """Row b of one call of the B-stream graph is stream b's own call of the single-stream graph: different seeds,
+    frame indices and states, one row in its warm-up (frame < 0: it keeps its denoiser state) beside others that
+    are not, one at the start state (NaN noise floor). Frames and every state within 1e-5."""
+    m = load_manifest(exported)
+    single = ort.InferenceSession(str(exported / m["graph"]), providers=["CPUExecutionProvider"])
+    batched = ort.InferenceSession(str(exported / f"frame_step_b{BATCH}.onnx"), providers=["CPUExecutionProvider"])
+    names = [o.name for o in single.get_outputs()]
+    rng = np.random.default_rng(5)
+    start = {s["input"]: np.full(s["shape"], float(s["init"]), s["dtype"]) for s in m["state"]}
+    states = [start] + [{s["input"]: (0.3 * rng.standard_normal(s["shape"])).astype(s["dtype"]) for s in m["state"]}
+                        for _ in range(BATCH - 1)]
+    samples = (0.1 * rng.standard_normal((BATCH, 800 * FRAMES))).astype(np.float32)
+    seed, frame = np.array([3, 11, 2**40 + 5]), np.array([-FRAMES, 14, 0])
+    alone = [dict(zip(names, single.run(names, {"samples": samples[b:b + 1], "seed": seed[b:b + 1],
+                                                "frame": frame[b:b + 1], **states[b]}))) for b in range(BATCH)]
+    feeds = {"samples": samples, "seed": seed, "frame": frame}
+    feeds |= {s["input"]: np.concatenate([st[s["input"]] for st in states], s["batch_dim"]) for s in m["state"]}
+    together = dict(zip(names, batched.run(names, feeds)))
+    assert together["frames"].shape == (BATCH, FRAMES, alone[0]["frames"].shape[-1])
+    for b in range(BATCH):
+        assert np.abs(together["frames"][b] - alone[b]["frames"]).max() < 1e-5
+        for s in m["state"]:
+            k = s["shape"][s["batch_dim"]]
+            row = np.take(together[s["output"]], range(b * k, (b + 1) * k), axis=s["batch_dim"])
+            assert row.shape == alone[b][s["output"]].shape
+            np.testing.assert_allclose(row, alone[b][s["output"]], rtol=0, atol=1e-5, equal_nan=True)
+    kept = np.take(together["denoiser_ssm_out"], [0, 1], axis=2)  # row 0 in its warm-up: its rows (2 branches)
+    assert np.array_equal(kept, np.take(feeds["denoiser_ssm"], [0, 1], axis=2))
+
+
+def test_plan_mixes_graph_sizes_at_the_least_cost(exported):
+    from dimgestor.onnx_batch import BatchRunner
+
+    m = load_manifest(exported)
+    runner = BatchRunner(exported, m, cost={1: 1.0, BATCH: 1.2})
+    assert [runner.plan(n) for n in (1, 2, 3, 4, 5, 7)] == [[1], [3], [3], [3, 1], [3, 3], [3, 3, 1]]
+    dear = BatchRunner(exported, m, cost={1: 1.0, BATCH: 3.5})  # a batch dearer than its calls alone: never used
+    assert dear.plan(4) == [1, 1, 1, 1]
+    measured = BatchRunner(exported, m)  # measured at load: each graph's seconds per call
+    assert set(measured.cost) == {1, BATCH} and all(t > 0 for t in measured.cost.values())
+
+
+def test_streams_pushed_together_equal_streams_alone(exported, audio):
+    """`dimgestor.onnx_batch.push_many` (each push's calls of all its streams as batched calls, padded with idle
+    rows or mixed with single calls by `plan`) gives each stream the frames it makes alone: different seeds and
+    audio, awkward chunks (a window that is no call, several calls at once), streams joining late and missing
+    cycles, one pushed alone before it joins, one stream finished mid-way (its exception in its place, the others
+    go on)."""
+    from dimgestor.onnx_batch import BatchRunner, push_many
+    from dimgestor.onnx_stream import OnnxModel
+
+    model = OnnxModel.load(exported)
+    runner = BatchRunner(exported, model.manifest, cost={1: 1.0, BATCH: 1.2})  # pads 2 to 3, 4 as 3 + 1
+    n = 5
+    clips = [np.roll(audio, 3000 * k)[: len(audio) - 1000 * k] for k in range(n)]
+    alone = [streamed(ort_stream(exported, seed=SEED + k), clips[k], [len(clips[k])]) for k in range(n)]
+    streams = [model.stream(seed=SEED + k) for k in range(n)]
+    got, pos, joins = [[] for _ in range(n)], [0] * n, [0, 0, 2, 5, 1]
+    rng = np.random.default_rng(1)
+    got[1].append(streams[1].push(clips[1][:4000]))  # its first calls alone: its state ONNX Runtime's own values
+    pos[1] = 4000
+    cycle = 0
+    while any(p < len(c) for p, c in zip(pos, clips)):
+        if cycle == 6:  # stream 4 finishes early: a push into it still comes, and fails alone
+            heard = streams[4].state.samples_in
+            got[4].append(streams[4].finish())
+            pos[4] = len(clips[4])
+        idx = [k for k in range(n) if cycle >= joins[k] and pos[k] < len(clips[k]) and rng.random() < 0.85]
+        chunks = []
+        for k in idx:
+            size = int(rng.choice([1, 799, 1600, 3200, 2001, 5000]))
+            chunks.append(clips[k][pos[k]:pos[k] + size])
+            pos[k] += size
+        if cycle == 6:
+            idx, chunks = idx + [4], chunks + [np.zeros(1600, np.float32)]
+        outs = push_many(runner, [streams[k] for k in idx], chunks, return_exceptions=True)
+        for k, f in zip(idx, outs):
+            if k == 4 and cycle == 6:
+                assert isinstance(f, RuntimeError)
+            else:
+                got[k].append(f)
+        cycle += 1
+    assert cycle > 6
+    for k in range(n):
+        if k != 4:
+            got[k].append(streams[k].finish())
+        frames = np.concatenate(got[k])
+        want = alone[k]
+        if k == 4:  # the audio it had when it finished, alone
+            want = streamed(ort_stream(exported, seed=SEED + 4), clips[4][:heard], [heard])
+        assert frames.shape == want.shape and len(frames) > 0
+        assert np.abs(frames - want).max() < 1e-5
+    st = runner.stats
+    assert st.calls.get(BATCH, 0) > 0 and st.calls.get(1, 0) > 0 and st.padded > 0
+    assert st.gathers < sum(st.calls.values())  # the same streams together again: the last outputs fed back
+
+
+def test_serve_on_onnxruntime_batches_clients_and_each_gets_what_it_gets_alone(exported, audio):
+    """`streamer serve --backend onnxruntime --source ws`: three clients talking at once (different audio, staggered
+    starts) share the batched calls (the status line's batch peaks at 2 or more), and each gets the frames it gets
+    talking alone to the same server (root and rotations as sent, to the JSON's rounding)."""
+    import asyncio
+
+    from helpers.serve import Serve
+    from websockets.asyncio.client import connect
+
+    clips = [np.round(np.roll(audio, 4000 * k)[:SAMPLE_RATE * 2] * 32767 * 0.8).astype("<i2") for k in range(3)]
+
+    async def talk(url, clip, delay):
+        await asyncio.sleep(delay)
+        async with connect(url) as c:
+            json.loads(await asyncio.wait_for(c.recv(), 30))
+            await c.send(json.dumps({"type": "hello", "protocol": 1,
+                                     "audio": {"rate": 16000, "format": "pcm16", "channels": 1}}))
+            for i in range(0, len(clip), 1600):
+                await c.send(clip[i:i + 1600].tobytes())
+                await asyncio.sleep(0.05)
+            await c.send(json.dumps({"type": "audio_end"}))
+            frames = []
+            while True:
+                m = json.loads(await asyncio.wait_for(c.recv(), 60))
+                if m["type"] == "frame":
+                    frames.append([*m["root"], *np.ravel(m["rotations"])])
+                elif m["type"] == "end":
+                    return np.array(frames)
+
+    s = Serve("--backend", "onnxruntime", "--onnx", str(exported), "--steps", str(STEPS), "--source", "ws",
+              "--ws", "127.0.0.1:0", "--window-ms", "100", "--status-every", "0.3")
+    try:
+        url = s.wait_for(r"WebSocket\s+(ws://\S+)", 120).group(1)
+
+        async def together():
+            return await asyncio.gather(*(talk(url, clip, 0.13 * k) for k, clip in enumerate(clips)))
+
+        shared = asyncio.run(together())
+        peak = max(int(m) for m in __import__("re").findall(r"batch [\d.]+ streams \(max (\d+)\)", s.output))
+        alone = [asyncio.run(talk(url, clip, 0)) for clip in clips]
+    finally:
+        s.proc.terminate()
+        s.finish()
+    assert peak >= 2, s.output[-2000:]
+    for a, b in zip(shared, alone):
+        assert a.shape == b.shape == (len(clips[0]) * 20 // SAMPLE_RATE, a.shape[1])
+        assert np.abs(a - b).max() <= 2e-5  # rounded to 5 decimals (root) and 6 (rotations) in the JSON
