@@ -29,6 +29,7 @@ from typing import NamedTuple, Sequence
 import torch
 import torch.nn.functional as F
 
+from .conditioning import begin_many
 from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State, ssd_step
 from .model import DenoiserState, DiMGestor
@@ -332,8 +333,9 @@ def step_many(streams: Sequence, states: Sequence, chunks: Sequence, return_exce
     """`GestureStream.step` of many streams at once: states[i] (a `StreamState` of streams[i]) and chunks[i] ->
     (each stream's frames, each one's new state). The states given are only read.
 
-    Each stream conditions its own audio; then the windows with the same runner and frame count are
-    denoised as one batch. A stream's frames are those it would give alone (to float rounding).
+    The streams' audio is conditioned in groups of equal chunk length and state shapes, one front-end and
+    extractor call each (`dimgestor.conditioning.begin_many`); then the windows with the same runner and frame
+    count are denoised as one batch. A stream's frames are those it would give alone (to float rounding).
     return_exceptions: a stream whose step fails (bad audio, a finished stream) gets its exception in
     its place and keeps its state, and the others go on; otherwise the first one is raised.
     """
@@ -342,14 +344,9 @@ def step_many(streams: Sequence, states: Sequence, chunks: Sequence, return_exce
     if not len(chunks) == len(states) == len(streams):
         raise ValueError(f"push_many: {len(streams)} streams but {len(states)} states and {len(chunks)} chunks")
     out: list = [None] * len(streams)
-    new, conds = list(states), [None] * len(streams)
-    for i, (s, c) in enumerate(zip(streams, chunks)):
-        try:
-            conds[i], new[i] = s.begin_step(states[i], c)
-        except Exception as e:
-            if not return_exceptions:
-                raise
-            out[i] = e
+    conds, new, begin_failed = begin_many(streams, states, chunks, return_exceptions)
+    for i, e in begin_failed.items():
+        out[i] = e
     live = [i for i, c in enumerate(conds) if c is not None and c.shape[1]]
     for i, c in enumerate(conds):
         if c is not None and not c.shape[1]:

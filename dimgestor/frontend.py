@@ -2,7 +2,9 @@
 
 Both front ends share one contract: `forward(samples, state) -> (feats, state)`, where feeding the
 audio in any chunking yields the same frames as feeding it at once, and `samples_needed(n)` says
-how much audio must have arrived before `n` frames exist (the front end's share of the latency).
+how much audio must have arrived before `n` frames exist (the front end's share of the latency). A state is
+a NamedTuple of tensors with one stream per row (dim 0) and a `consumed` count the forward only adds to, so
+the states of many streams stack into one batched call and split back (`dimgestor.conditioning`).
 """
 from __future__ import annotations
 

@@ -169,12 +169,17 @@ class GestureStream:
 
     def begin_step(self, state: StreamState, samples) -> tuple[torch.Tensor, StreamState]:
         """`step`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
-        complete. `dimgestor.batch.step_many` denoises the windows of many streams together between the halves."""
-        if state.finished:
-            raise RuntimeError("push() after finish(): start a new GestureStream")
-        samples = _check_audio(samples)
+        complete. `dimgestor.batch.step_many` denoises the windows of many streams together between the halves
+        (and conditions them together before: `dimgestor.conditioning.begin_many`)."""
+        samples = self.check_step(state, samples)
         cond, state = self._condition(state, samples)
         return cond, replace(state, samples_in=state.samples_in + len(samples))
+
+    def check_step(self, state: StreamState, samples) -> np.ndarray:
+        """`begin_step`'s checks: the samples as mono float32, or the error of a finished stream or bad audio."""
+        if state.finished:
+            raise RuntimeError("push() after finish(): start a new GestureStream")
+        return _check_audio(samples)
 
     def end_step(self, state: StreamState, frames: torch.Tensor | None, denoiser: StepStates
                  ) -> tuple[np.ndarray, StreamState]:

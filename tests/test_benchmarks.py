@@ -230,3 +230,29 @@ def test_latency_benchmark_measures_every_part_on_both_paths(tmp_path):
     assert out.with_suffix(".png").stat().st_size > 5_000
     if not measured:
         pytest.skip(f"neither path could run here: {[x['skipped'] for x in r['runs']]}")
+
+
+def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
+    """Both code roots are this checkout here: the smoke run checks the schema, not a speed-up."""
+    out = tmp_path / "bc.json"
+    run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "1", "--batch", "2",
+        "--rounds", "2", "--repeats", "1", "--streams-s", "1.5", "--streams-max", "2", "--trial-streams", "2",
+        "--sections", "profile", "streams", "trials", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["device"].startswith("CPU") and set(r["codes"]) == {"before", "after"} and len(r["load_avg_before"]) == 3
+    assert sorted(x["code"] for x in r["profile"]) == ["after", "before"]
+    for x in r["profile"]:
+        ms = x["ms_per_round"]
+        assert all(finite(ms[p]) for p in ("frontend", "extractor", "denoise", "end_step", "rest", "total"))
+        assert ms["total"] > 0 and ms["frontend"] > 0 and ms["denoise"] > 0 and len(x["load_avg"]) == 3
+    assert sorted(x["code"] for x in r["streams"]) == ["after", "before"]
+    assert all(x["max_realtime_streams"] >= 0 and x["trials"] for x in r["streams"])
+    assert sorted(x["code"] for x in r["trials"]) == ["after", "before"]
+    assert all(x["streams"] == 2 and x["windows"] > 0 and finite(x["lag_ms_p95"]) for x in r["trials"])
+    # streams pushed in random groups (as staggered clients make them): times per window
+    run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "1", "--batch", "3", "--groups",
+        "2", "--rounds", "2", "--repeats", "1", "--sections", "profile", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert r["groups"] == 2 and "streams" not in r and len(r["profile"]) == 2
+    assert all(finite(x["ms_per_window"]["total"]) and x["ms_per_window"]["frontend"] > 0 for x in r["profile"])
