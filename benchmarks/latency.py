@@ -154,7 +154,7 @@ def run_talk(a, tmp: Path) -> dict:
         browser.wait_for("window.dimgestor && window.dimgestor.hello && !document.getElementById('talk').disabled",
                          60, "hello and an enabled Talk button")
         browser.eval("document.getElementById('talk').click()", user_gesture=True)
-        browser.wait_for("window.dimgestor.talking && window.__latency.sends.length > 10", 30, "microphone chunks sent")
+        browser.wait_for("window.dimgestor.talking && window.dimgestor.audioChunksSent > 10", 30, "microphone chunks sent")
         got = {"sends": [], "texts": [], "arrive": [], "shown": []}
         hud, t_start = [], time.monotonic()
         while time.monotonic() < t_start + a.seconds:
