@@ -150,7 +150,7 @@ def run_talk(a, tmp: Path) -> dict:
                                                f"--use-file-for-fake-audio-capture={wav}"))
         browser.call("Page.enable")
         browser.call("Page.addScriptToEvaluateOnNewDocument", source=PROBE.read_text())
-        browser.call("Page.navigate", url=f"http://{url}")
+        browser.call("Page.navigate", url=f"http://{url}?avatar={a.avatar}")
         browser.wait_for("window.dimgestor && window.dimgestor.hello && !document.getElementById('talk').disabled",
                          60, "hello and an enabled Talk button")
         browser.eval("document.getElementById('talk').click()", user_gesture=True)
@@ -170,7 +170,8 @@ def run_talk(a, tmp: Path) -> dict:
                                         "window.dimgestor.delayMeasured]"))
         hello = browser.eval("window.dimgestor.hello")
         page = browser.eval("({underruns: window.dimgestor.clock.underruns, margin_s: window.dimgestor.clock.marginS, "
-                            "dropped: window.dimgestor.audioChunksDropped, errors: window.dimgestor.errors})")
+                            "dropped: window.dimgestor.audioChunksDropped, errors: window.dimgestor.errors, "
+                            "avatar: window.dimgestor.avatar, drawing: window.dimgestor.drawing || null})")
     finally:
         if browser is not None:
             browser.close()
@@ -482,6 +483,8 @@ def main(argv=None) -> int:
     ap.add_argument("--vmc-jitter-ms", type=float, default=None, help="passed to the server (default: its own)")
     ap.add_argument("--page-size", default="480,320", help="the browser window (software WebGL draws every pixel "
                                                            "on the CPU: a large page is slow on a small machine)")
+    ap.add_argument("--avatar", default="mannequin", choices=["mannequin", "skeleton"],
+                    help="the viewer's look while talking (its Avatar menu; the skeleton is far cheaper to draw)")
     ap.add_argument("--note", default=None, help="a remark stored with each run (e.g. what was changed)")
     ap.add_argument("--raw", type=Path, help="also write the talk path's raw stamps here (to re-analyse)")
     ap.add_argument("--out", type=Path, required=True, help="JSON to write; merged with it when it exists (one "
@@ -495,6 +498,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="latency-") as tmp:
             r = (run_talk if path == "talk" else run_vmc)(a, Path(tmp))
         r = {"path": path, "model": name, "checkpoint": a.checkpoint, "window_ms": a.window_ms, "steps": a.steps,
+             "avatar": a.avatar if path == "talk" else None,
              "seconds": a.seconds, "vmc_jitter_ms": a.vmc_jitter_ms if path == "vmc" else None,
              "note": a.note, "device": describe_device("cpu"), "code_version": code_version(), "date": utc_now(),
              "load_avg_before": load, "load_avg_after": load_average(), **r}

@@ -1,6 +1,7 @@
-// AudioWorklet that hands the microphone out in fixed-size mono chunks. Runs on the audio thread; the page gives
-// it a MessagePort to the socket worker (socket-worker.js), which converts to the declared wire format and sends:
-// the chunks never wait for the page's main thread. Chunks made before that port comes are kept and go first.
+// AudioWorklet that hands the microphone out in fixed-size mono chunks. Runs on the audio thread. With
+// processorOptions.viaPort the page gives it a MessagePort to the socket worker (socket-worker.js), which converts
+// to the declared wire format and sends: the chunks never wait for the page's main thread; chunks made before that
+// port comes are kept and go first. Without it (local mode, local-engine.js) the chunks go on the node's own port.
 const EARLY_MAX = 50;  // chunks kept before the port comes (1 s of 20 ms chunks); beyond it the oldest go
 
 class MicChunker extends AudioWorkletProcessor {
@@ -10,7 +11,7 @@ class MicChunker extends AudioWorkletProcessor {
     this.size = (options.processorOptions && options.processorOptions.chunkSamples) || 960;
     this.buf = new Float32Array(this.size);
     this.fill = 0;
-    this.out = null;   // the port to the socket worker
+    this.out = options.processorOptions && options.processorOptions.viaPort ? null : this.port;  // where chunks go
     this.early = [];   // chunks made before it came
     this.port.onmessage = (e) => {
       if (!(e.data && e.data.port)) return;

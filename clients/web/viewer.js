@@ -62,7 +62,11 @@ scene.add(new THREE.HemisphereLight(0xdfe8ff, 0x3a3430, 1.1));
 const key = new THREE.DirectionalLight(0xfff4e8, 2.4);  // key light from the front left, casting shadows
 key.position.set(2.0, 4.0, 3.5);
 key.castShadow = true;
-key.shadow.mapSize.set(1024, 1024);
+// A software renderer (no GPU: SwiftShader, llvmpipe) draws every pixel on the CPU: there the viewer draws without
+// MSAA and with a 512 shadow map (in headless Chromium beside other work: ~2 -> ~9 fps for the mannequin,
+// benchmarks/results/latency_talk_worker.json; a page's messages wait for its drawing, README "Latency").
+const SOFTWARE_GL = softwareGl();
+key.shadow.mapSize.setScalar(SOFTWARE_GL ? 512 : 1024);
 Object.assign(key.shadow.camera, { left: -2, right: 2, top: 2.5, bottom: -0.5, near: 0.5, far: 12 });
 key.shadow.bias = -0.0005;
 key.shadow.normalBias = 0.02;
@@ -91,7 +95,7 @@ camera.position.set(0, 1.2, 4);
 let renderer = null;
 let controls = null;
 try {
-  renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer = new THREE.WebGLRenderer({ antialias: !SOFTWARE_GL });
   renderer.setPixelRatio(devicePixelRatio);
   renderer.setSize(innerWidth, innerHeight);
   renderer.shadowMap.enabled = true;
@@ -107,6 +111,21 @@ try {
   say(`WebGL unavailable: ${e.message}`);
 }
 addEventListener('resize', () => { fitViewport(); });
+api.drawing = { softwareGl: SOFTWARE_GL, antialias: !SOFTWARE_GL, shadowMap: key.shadow.mapSize.x };
+
+/** Whether WebGL here is a software renderer (its name says so); false when it cannot be told. */
+function softwareGl() {
+  try {
+    const gl = document.createElement('canvas').getContext('webgl2') || document.createElement('canvas').getContext('webgl');
+    if (!gl) return false;
+    const name = String(gl.getParameter(gl.RENDERER));  // unmasked in current browsers
+    const lose = gl.getExtension('WEBGL_lose_context');
+    if (lose) lose.loseContext();
+    return /swiftshader|llvmpipe|softpipe|software/i.test(name);
+  } catch (e) {
+    return false;
+  }
+}
 
 function gradientTexture(top, bottom) {
   const c = document.createElement('canvas');
@@ -327,16 +346,26 @@ const FACE_FOLLOW_S = 0.8;
 let lastRender = performance.now();
 const PAGE_FRAMES_MS = 2000;
 const pageFrames = [];  // [time, interval] of the page's frames in the last PAGE_FRAMES_MS
+const deliveries = [];  // [time, delay] of frames reaching this thread from the socket worker, the same span
+
+/** The clock's start holds the page's longest recent frame or message delay: frames are stamped on arrival in the
+ *  socket worker, but this thread learns of them only between its drawings, up to a frame later. */
+function updatePageS(t) {
+  while (deliveries.length && deliveries[0][0] < t - PAGE_FRAMES_MS) deliveries.shift();
+  let worst = 0;
+  for (const [, d] of pageFrames) worst = Math.max(worst, d);
+  for (const [, d] of deliveries) worst = Math.max(worst, d);
+  clock.pageS = worst / 1000;
+}
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
-  // The clock's start holds the page's longest frame of late (a busy page stamps arrivals up to that late).
   pageFrames.push([t, t - lastRender]);
   while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
-  clock.pageS = Math.max(...pageFrames.map(([, d]) => d)) / 1000;
+  updatePageS(t);
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
@@ -649,6 +678,9 @@ function onFrame(f, now) {
   api.lastFrame = f;
   arrivals.push(now);
   while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
+  const seen = performance.now();
+  deliveries.push([seen, seen - now]);
+  updatePageS(seen);
   playout.push(f, now / 1000);
   clock.arrive(f.pts, now / 1000);
   api.arrivalLog.push([now / 1000, f.pts]);
@@ -716,7 +748,7 @@ async function startTalk() {
     let node;
     if (ctx.audioWorklet) {
       await ctx.audioWorklet.addModule(new URL('./mic-worklet.js', import.meta.url));
-      node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples } });
+      node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples, viaPort: true } });
       node.port.postMessage({ port: toWorker.port1 }, [toWorker.port1]);
     } else {  // older browsers: the deprecated main-thread path
       node = ctx.createScriptProcessor(2048, 1, 1);
