@@ -4,8 +4,9 @@ Two paths, each fed a stimulus with onsets at known places (tone bursts after si
 
 talk  real Chromium, its fake microphone playing the stimulus, the web viewer's Talk button, against
       `streamer serve --source ws`. benchmarks/latency_probe.js stamps on the page's clock when each microphone
-      chunk reached the page and was sent, when each frame arrived and which pts every requestAnimationFrame
-      presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
+      chunk reached the viewer's socket worker and was sent, when each frame arrived there (as the playout clock
+      is told of it: the worker's stamp for frames read from shared memory) and which pts every
+      requestAnimationFrame presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
       when inference began and when its frames were sent, related to the page's clock by the pong with the
       shortest round trip. total = onset reached the page -> the first requestAnimationFrame presenting its pts.
 vmc   `streamer serve --source mic --osc` with the virtual microphone (tests/virtual_mic.py) playing the stimulus
@@ -54,8 +55,8 @@ PARTS = {"talk": ["capture", "network_up", "lookahead", "frame", "window", "queu
          "vmc": ["capture", "lookahead", "frame", "window", "queue", "compute", "pacing"]}
 RATE = 48000
 METHOD = {
-    "talk": "onset = the first microphone sample above 0.05 after 0.3 s of quiet; said = when the page got its "
-            "chunk (the least delayed chunk within 5 s dates the stream: the device's and the worklet's own buffers "
+    "talk": "onset = the first microphone sample above 0.05 after 0.3 s of quiet; said = when the viewer's socket "
+            "worker got its chunk (the least delayed chunk within 5 s dates the stream: the device's and the worklet's own buffers "
             "before that are not seen); total = said -> the first requestAnimationFrame presenting the onset's pts "
             "(the compositor's frame after it is not seen); the server's stamps are related to the page's clock by "
             "the pong with the shortest round trip (min_rtt_ms), so network up vs down is split within half of it",

@@ -5,12 +5,19 @@
 // them when it draws. Microphone flow control (audio-flow.js) and the hand-over's re-send live here too, so the
 // audio's order never depends on the main thread: slow_down, goaway and resume are acted on as they arrive.
 //
+// Frames down go into a ring in shared memory when the page is cross-origin isolated (the server sends the headers):
+// the page reads the ring at each draw, so a frame that came while it was drawing is shown at the very next draw,
+// not after the messages queued behind that draw. The ring comes with the hello; without isolation frames are
+// posted like every other message.
+//
 // Page -> worker: init {pageOrigin} | connect {id, url, hello, resume} | close {code, reason} | send {text} |
 //                 ping | mic {port, rate, format} | micStop | audioEnd
 // Worker -> page: open {id} | close {id, code, reason} | message {id, msg, at} | frame {id, frame, at} |
 //                 sourceAudio {id, chunk, at} | bad {id, message} | mic {said, sent, dropped, flow, ...}
+//                 (message: a hello carries `ring`, the SharedArrayBuffer its frames then go to: frame-ring.js)
 // (`at`: arrival, ms on the page's performance.now clock)
 import { AudioFlow } from './audio-flow.js';
+import { FrameRing } from './frame-ring.js';
 import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
 
 const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
@@ -25,6 +32,7 @@ let talk = false;      // this connection declared audio in its hello
 let moving = false;    // a goaway came while talking: audio is held until session_resumed (or a fresh session)
 let mic = null;        // {port, rate, format, samples} while the microphone feeds us
 let flow = null;       // AudioFlow of this talk (outlives the microphone: what is held goes at `resume`)
+let ring = null;       // FrameRing of this connection's stream (from its hello on) when memory can be shared
 let endPending = false;  // audio_end waits for the held audio
 const sent = { chunks: [], samples: 0 };  // [first sample, buffer, samples] of our recent audio; samples sent
 const counts = { sent: 0, dropped: 0 };
@@ -61,6 +69,7 @@ function closeSocket(code = 1000, reason = '') {
 function connect({ id: newId, url, hello, resume }) {
   closeSocket(1000, 'reconnect');
   id = newId;
+  ring = null;
   talk = !!hello.audio;
   endPending = false;
   if (!resume) {  // a fresh session: what was sent or held belongs to the old one
@@ -94,7 +103,7 @@ function receive(data, myId) {
       if (binaryKind(data) === 'DGA1') {
         const chunk = decodeSourceAudio(data);
         post({ type: 'sourceAudio', id: myId, chunk, at }, [chunk.samples.buffer]);
-      } else post({ type: 'frame', id: myId, frame: decodeBinaryFrame(data), binary: true, at });
+      } else sendFrame(decodeBinaryFrame(data), true, at, myId);
     } catch (e) { post({ type: 'bad', id: myId, message: e.message }); }
     return;
   }
@@ -103,9 +112,18 @@ function receive(data, myId) {
     post({ type: 'bad', id: myId, message: `unparsable message: ${data.slice(0, 80)}` });
     return;
   }
-  if (msg.type === 'frame') { post({ type: 'frame', id: myId, frame: msg, at }); return; }
+  if (msg.type === 'frame') { sendFrame(msg, false, at, myId); return; }
   if (talk && flow) audioControl(msg);  // before the page hears of it: the page's view of the flow is then current
+  if (msg.type === 'hello' && self.crossOriginIsolated && msg.skeleton && Array.isArray(msg.skeleton.joints)) {
+    ring = FrameRing.create(msg.skeleton.joints.length);
+    post({ type: 'message', id: myId, msg, at, ring: ring.sab });
+    return;
+  }
   post({ type: 'message', id: myId, msg, at });
+}
+
+function sendFrame(frame, binary, at, myId) {
+  if (!(ring && ring.write(frame, binary, at))) post({ type: 'frame', id: myId, frame, binary, at });
 }
 
 /** The server's flow control and hand-over, acted on here so no chunk is sent out of turn. */

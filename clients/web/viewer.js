@@ -13,6 +13,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PlayoutClock } from './av-clock.js';
 import { SpeechToMotion } from './latency.js';
 import { FramePlayout } from './playout.js';
+import { FrameRing } from './frame-ring.js';
 import { MIC_HOLD_S } from './audio-flow.js';
 import { buildMannequin } from './mannequin.js';
 import { SourceAudio } from './source-audio.js';
@@ -45,7 +46,7 @@ const api = window.dimgestor = {
   notices: [],      // slow_down / resume: the server's flow control, not errors
   handovers: 0, resumed: 0,  // goaway (the worker stopped) while talking; sessions resumed on another worker
   reconnects: 0,    // talk connections lost without a goaway, talked on in a fresh session
-  arrivalLog: [],   // [arrival (s, page clock, stamped by the socket worker), pts] of the last ARRIVAL_LOG frames
+  arrivalLog: [],   // [arrival (s, page clock, when this thread could show it), pts] of the last ARRIVAL_LOG frames
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -118,7 +119,8 @@ function softwareGl() {
   try {
     const gl = document.createElement('canvas').getContext('webgl2') || document.createElement('canvas').getContext('webgl');
     if (!gl) return false;
-    const name = String(gl.getParameter(gl.RENDERER));  // unmasked in current browsers
+    const info = gl.getExtension('WEBGL_debug_renderer_info');  // (Chromium masks gl.RENDERER itself)
+    const name = String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
     const lose = gl.getExtension('WEBGL_lose_context');
     if (lose) lose.loseContext();
     return /swiftshader|llvmpipe|softpipe|software/i.test(name);
@@ -303,6 +305,7 @@ function applyFrame(f) {
 // Frames are shown at their presentation time, not on arrival (they come in bursts): playout.js keeps them and
 // interpolates; av-clock.js is the one clock of picture and sound (a jitter buffer sized from the lateness seen).
 const playout = new FramePlayout();
+let ring = null;  // the stream's FrameRing (shared memory with the socket worker) when the page is isolated
 const clock = new PlayoutClock();
 api.playout = playout;
 api.clock = clock;
@@ -310,6 +313,7 @@ let lastShowAt = performance.now();
 let needFraming = false;
 
 function showPose() {
+  takeRing();  // the frames the socket worker has by now, whatever messages wait behind this drawing
   const nowMs = performance.now();
   const dt = (nowMs - lastShowAt) / 1000;
   lastShowAt = nowMs;
@@ -346,26 +350,17 @@ const FACE_FOLLOW_S = 0.8;
 let lastRender = performance.now();
 const PAGE_FRAMES_MS = 2000;
 const pageFrames = [];  // [time, interval] of the page's frames in the last PAGE_FRAMES_MS
-const deliveries = [];  // [time, delay] of frames reaching this thread from the socket worker, the same span
 
-/** The clock's start holds the page's longest recent frame or message delay: frames are stamped on arrival in the
- *  socket worker, but this thread learns of them only between its drawings, up to a frame later. */
-function updatePageS(t) {
-  while (deliveries.length && deliveries[0][0] < t - PAGE_FRAMES_MS) deliveries.shift();
-  let worst = 0;
-  for (const [, d] of pageFrames) worst = Math.max(worst, d);
-  for (const [, d] of deliveries) worst = Math.max(worst, d);
-  clock.pageS = worst / 1000;
-}
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
+  // The clock's start holds the page's longest frame of late (a busy page learns of frames up to that late).
   pageFrames.push([t, t - lastRender]);
   while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
-  updatePageS(t);
+  clock.pageS = Math.max(...pageFrames.map(([, d]) => d)) / 1000;
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
@@ -499,13 +494,21 @@ function dropConnection(reason) {
   if (link) link.postMessage({ type: 'close', code: 1000, reason });
 }
 
+/** Frames from the shared ring: this thread has them the moment it looks, so the socket worker's arrival stamp is
+ *  when they could be shown (posted frames are later: when this thread got round to their message). */
+function takeRing() {
+  if (ring) for (const [f, at, binary] of ring.take()) { onFrame(f, at, at); if (binary) api.binaryFramesReceived++; }
+}
+
 function fromWorker(m) {
   if (m.type === 'mic') { onMicReport(m); return; }
   if (m.id !== connId) return;  // a connection replaced since
+  takeRing();  // frames the worker had before this message come first
+  if (m.ring) ring = new FrameRing(m.ring, m.msg.skeleton.joints.length);
   switch (m.type) {
     case 'open': onOpen(); break;
     case 'close': onClose(m); break;
-    case 'frame': onFrame(m.frame, m.at); if (m.binary) api.binaryFramesReceived++; break;
+    case 'frame': onFrame(m.frame, m.at, performance.now()); if (m.binary) api.binaryFramesReceived++; break;
     case 'sourceAudio': onSourceAudio(m.chunk, m.at); break;
     case 'message': onParsed(m.msg, m.at); break;
     case 'bad': fail(m.message); break;
@@ -529,6 +532,8 @@ function connect(audio = null, resume = null) {
     api.timingSeen = false;
     arrivals.length = 0;
   }
+  if (resume) takeRing();  // the old stream's last frames: the resumed one goes on from them
+  ring = null;
   connId++;
   connOpen = connOpened = false;
   // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so nothing
@@ -606,7 +611,7 @@ function onParsed(msg, at) {
         ui.talk.classList.add('hint');
       } else ui.talk.classList.remove('hint');
       break;
-    case 'frame': onFrame(msg, at); break;
+    case 'frame': onFrame(msg, at, at); break;
     case 'status': api.status = msg; break;
     case 'pong':
       if (typeof msg.t === 'number') speech.notePong(msg.t / 1000, at / 1000, msg.server_time_s);
@@ -670,7 +675,8 @@ function onParsed(msg, at) {
   }
 }
 
-function onFrame(f, now) {
+/** A frame that arrived at `now` (ms, page clock) and could be shown from `usable` on (ms). */
+function onFrame(f, now, usable) {
   if (!joints.length) return;  // frames before hello cannot be placed
   if (lastIndex >= 0 && f.index > lastIndex + 1) api.gaps += f.index - lastIndex - 1;
   lastIndex = f.index;
@@ -678,12 +684,11 @@ function onFrame(f, now) {
   api.lastFrame = f;
   arrivals.push(now);
   while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
-  const seen = performance.now();
-  deliveries.push([seen, seen - now]);
-  updatePageS(seen);
-  playout.push(f, now / 1000);
-  clock.arrive(f.pts, now / 1000);
-  api.arrivalLog.push([now / 1000, f.pts]);
+  // The playout clock takes when this thread could show the frame: a posted frame reaches a page busy drawing up
+  // to one of its own frames after the socket worker got it, and that is lateness too; the ring's, no later.
+  playout.push(f, usable / 1000);
+  clock.arrive(f.pts, usable / 1000);
+  api.arrivalLog.push([usable / 1000, f.pts]);
   if (api.arrivalLog.length > ARRIVAL_LOG) api.arrivalLog.splice(0, api.arrivalLog.length - ARRIVAL_LOG);
 }
 
