@@ -357,10 +357,11 @@ function render() {
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
-  // The clock's start holds the page's longest frame of late (a busy page learns of frames up to that late).
+  // The clock's start holds the page's longest frame of late when frames come as messages (a busy page reads them
+  // up to that late); from the shared ring it has every frame that came before it draws: nothing to hold.
   pageFrames.push([t, t - lastRender]);
   while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
-  clock.pageS = Math.max(...pageFrames.map(([, d]) => d)) / 1000;
+  clock.pageS = ring ? 0 : Math.max(...pageFrames.map(([, d]) => d)) / 1000;
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
