@@ -37,6 +37,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import textwrap
 import threading
 import time
 import wave
@@ -448,7 +449,7 @@ def plot(runs: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    bars = [(f"{r['path']}\n{r['model']}\n{r['window_ms']} ms", r) for r in runs if "parts" in r]
+    bars = [(f"{r['path']}\n{textwrap.fill(r['model'], 22)}\n{r['window_ms']} ms", r) for r in runs if "parts" in r]
     fig, ax = plt.subplots(figsize=(max(4, 1.6 * len(bars) + 2), 4.5))
     keys = list(dict.fromkeys(k for _, r in bars for k in r["parts"]))
     colors = plt.cm.tab10(np.linspace(0, 1, 10))
