@@ -357,11 +357,13 @@ function render() {
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
-  // The clock's start holds the page's longest frame of late when frames come as messages (a busy page reads them
-  // up to that late); from the shared ring it has every frame that came before it draws: nothing to hold.
+  // The clock's start holds the page's longest frame of late: a busy page reads posted frames up to that late, and
+  // the sound of a stream's first frame must be scheduled before it is due (a late start skips the sound's first
+  // moment). Talking from the shared ring neither holds: the page has every frame that came before it draws, and
+  // there is no sound; the allowance would stay as latency until the 10 s give-back.
   pageFrames.push([t, t - lastRender]);
   while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
-  clock.pageS = ring ? 0 : Math.max(...pageFrames.map(([, d]) => d)) / 1000;
+  clock.pageS = ring && api.talking ? 0 : Math.max(...pageFrames.map(([, d]) => d)) / 1000;
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
