@@ -4,8 +4,9 @@ Two paths, each fed a stimulus with onsets at known places (tone bursts after si
 
 talk  real Chromium, its fake microphone playing the stimulus, the web viewer's Talk button, against
       `streamer serve --source ws`. benchmarks/latency_probe.js stamps on the page's clock when each microphone
-      chunk reached the page and was sent, when each frame arrived and which pts every requestAnimationFrame
-      presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
+      chunk reached the viewer's socket worker and was sent, when each frame arrived there (as the playout clock
+      is told of it: the worker's stamp for frames read from shared memory) and which pts every
+      requestAnimationFrame presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
       when inference began and when its frames were sent, related to the page's clock by the pong with the
       shortest round trip. total = onset reached the page -> the first requestAnimationFrame presenting its pts.
 vmc   `streamer serve --source mic --osc` with the virtual microphone (tests/virtual_mic.py) playing the stimulus
@@ -36,6 +37,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import textwrap
 import threading
 import time
 import wave
@@ -54,8 +56,8 @@ PARTS = {"talk": ["capture", "network_up", "lookahead", "frame", "window", "queu
          "vmc": ["capture", "lookahead", "frame", "window", "queue", "compute", "pacing"]}
 RATE = 48000
 METHOD = {
-    "talk": "onset = the first microphone sample above 0.05 after 0.3 s of quiet; said = when the page got its "
-            "chunk (the least delayed chunk within 5 s dates the stream: the device's and the worklet's own buffers "
+    "talk": "onset = the first microphone sample above 0.05 after 0.3 s of quiet; said = when the viewer's socket "
+            "worker got its chunk (the least delayed chunk within 5 s dates the stream: the device's and the worklet's own buffers "
             "before that are not seen); total = said -> the first requestAnimationFrame presenting the onset's pts "
             "(the compositor's frame after it is not seen); the server's stamps are related to the page's clock by "
             "the pong with the shortest round trip (min_rtt_ms), so network up vs down is split within half of it",
@@ -150,11 +152,11 @@ def run_talk(a, tmp: Path) -> dict:
                                                f"--use-file-for-fake-audio-capture={wav}"))
         browser.call("Page.enable")
         browser.call("Page.addScriptToEvaluateOnNewDocument", source=PROBE.read_text())
-        browser.call("Page.navigate", url=f"http://{url}")
+        browser.call("Page.navigate", url=f"http://{url}?avatar={a.avatar}")
         browser.wait_for("window.dimgestor && window.dimgestor.hello && !document.getElementById('talk').disabled",
                          60, "hello and an enabled Talk button")
         browser.eval("document.getElementById('talk').click()", user_gesture=True)
-        browser.wait_for("window.dimgestor.talking && window.__latency.sends.length > 10", 30, "microphone chunks sent")
+        browser.wait_for("window.dimgestor.talking && window.dimgestor.audioChunksSent > 10", 30, "microphone chunks sent")
         got = {"sends": [], "texts": [], "arrive": [], "shown": []}
         hud, t_start = [], time.monotonic()
         while time.monotonic() < t_start + a.seconds:
@@ -170,7 +172,8 @@ def run_talk(a, tmp: Path) -> dict:
                                         "window.dimgestor.delayMeasured]"))
         hello = browser.eval("window.dimgestor.hello")
         page = browser.eval("({underruns: window.dimgestor.clock.underruns, margin_s: window.dimgestor.clock.marginS, "
-                            "dropped: window.dimgestor.audioChunksDropped, errors: window.dimgestor.errors})")
+                            "dropped: window.dimgestor.audioChunksDropped, errors: window.dimgestor.errors, "
+                            "avatar: window.dimgestor.avatar, drawing: window.dimgestor.drawing || null})")
     finally:
         if browser is not None:
             browser.close()
@@ -446,7 +449,7 @@ def plot(runs: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    bars = [(f"{r['path']}\n{r['model']}\n{r['window_ms']} ms", r) for r in runs if "parts" in r]
+    bars = [(f"{r['path']}\n{textwrap.fill(r['model'], 22)}\n{r['window_ms']} ms", r) for r in runs if "parts" in r]
     fig, ax = plt.subplots(figsize=(max(4, 1.6 * len(bars) + 2), 4.5))
     keys = list(dict.fromkeys(k for _, r in bars for k in r["parts"]))
     colors = plt.cm.tab10(np.linspace(0, 1, 10))
@@ -482,6 +485,8 @@ def main(argv=None) -> int:
     ap.add_argument("--vmc-jitter-ms", type=float, default=None, help="passed to the server (default: its own)")
     ap.add_argument("--page-size", default="480,320", help="the browser window (software WebGL draws every pixel "
                                                            "on the CPU: a large page is slow on a small machine)")
+    ap.add_argument("--avatar", default="mannequin", choices=["mannequin", "skeleton"],
+                    help="the viewer's look while talking (its Avatar menu; the skeleton is far cheaper to draw)")
     ap.add_argument("--note", default=None, help="a remark stored with each run (e.g. what was changed)")
     ap.add_argument("--raw", type=Path, help="also write the talk path's raw stamps here (to re-analyse)")
     ap.add_argument("--out", type=Path, required=True, help="JSON to write; merged with it when it exists (one "
@@ -495,6 +500,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory(prefix="latency-") as tmp:
             r = (run_talk if path == "talk" else run_vmc)(a, Path(tmp))
         r = {"path": path, "model": name, "checkpoint": a.checkpoint, "window_ms": a.window_ms, "steps": a.steps,
+             "avatar": a.avatar if path == "talk" else None,
              "seconds": a.seconds, "vmc_jitter_ms": a.vmc_jitter_ms if path == "vmc" else None,
              "note": a.note, "device": describe_device("cpu"), "code_version": code_version(), "date": utc_now(),
              "load_avg_before": load, "load_avg_after": load_average(), **r}

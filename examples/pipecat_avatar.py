@@ -138,6 +138,7 @@ async def run(args, speech: np.ndarray, bundle) -> int:
             print(f"pipecat_avatar: {line}", file=sys.stderr, flush=True)
         gestures = GestureProcessor(sinks, bundle=bundle, steps=args.steps, seed=args.seed,
                                     window_ms=args.window_ms, on_audio=ws.broadcast_audio)
+        ws.broadcast_stats = gestures.inference  # each second's `status`: the model's latency and real-time factor
         tts = WavTTS(speech, args.rate, speed=args.burst, burst_s=args.burst_s)
         output = PacedAudioOutput(args.rate)
         worker = PipelineWorker(Pipeline([tts, gestures, output]), idle_timeout_secs=None, enable_rtvi=False,

@@ -96,6 +96,25 @@ class GestureStats:
     interruptions: int = 0
 
 
+class InferenceStats:
+    """The model's recent latency and real-time factor for a `WsServer`'s `status` (its `broadcast_stats`): the
+    newest utterance's session's (the last one's between utterances; 0 before the first). No `window`: frames go
+    out when their audio is heard, not as a window is made, so `timing` messages would misdate them."""
+
+    window = None
+
+    def __init__(self):
+        self.session = None  # the newest utterance's `streamer.sessions.Stats`
+
+    @property
+    def latency_ms(self) -> float:
+        return self.session.latency_ms if self.session is not None else 0.0
+
+    @property
+    def rtf(self) -> float:
+        return self.session.rtf if self.session is not None else 0.0
+
+
 @dataclass(frozen=True)
 class RestPose:
     """The pose the avatar eases to between utterances, and the tangent space the spring works in."""
@@ -201,6 +220,7 @@ class GestureProcessor(FrameProcessor):
         self.rest = RestPose.of_silence(bundle, self.steps, seed)
         self.spring = _Spring(len(self.rest.tangent(self._rest_frame())), 2 * np.pi * rest_hz)
         self.stats = GestureStats()
+        self.inference = InferenceStats()  # for `status` (WsServer.broadcast_stats), as `streamer serve` sends
         self.origin: float | None = None  # monotonic time of pts 0 (the StartFrame)
         self._utterances: deque[_Utterance] = deque()
         self._playing: deque[_Utterance] = deque()  # utterances whose audio the transport has not all played
@@ -285,6 +305,7 @@ class GestureProcessor(FrameProcessor):
         session = Session(b.stream(steps=self.steps, seed=self.seed + number),
                           PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
                           window_ms=self.window_ms, executor=self.executor, name=f"utterance-{number}")
+        self.inference.session = session.stats
         u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
                        None if rate == SAMPLE_RATE else make_resampler(rate), rate)
 

@@ -28,6 +28,9 @@ MAX_FILE_BYTES = 64 * 1024 * 1024
 TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
          ".html": "text/html; charset=utf-8", ".css": "text/css", ".wasm": "application/wasm"}
 TEXT = "text/plain; charset=utf-8"
+# Cross-origin isolation: the page may share memory with its workers (the socket worker's frame ring,
+# clients/web/socket-worker.js; onnxruntime-web's threads in local mode). Every file it loads is our own.
+ISOLATION = (("Cross-Origin-Opener-Policy", "same-origin"), ("Cross-Origin-Embedder-Policy", "require-corp"))
 
 
 @dataclass(frozen=True)
@@ -41,7 +44,7 @@ class Answer:
         """As a websockets `Response` (sent instead of the upgrade; the connection closes after it)."""
         headers = Headers([("Date", email.utils.formatdate(usegmt=True)), ("Connection", "close"),
                            ("Content-Length", str(len(self.body))), ("Content-Type", self.content_type),
-                           ("X-Content-Type-Options", "nosniff"), ("Cache-Control", "no-cache")])
+                           ("X-Content-Type-Options", "nosniff"), ("Cache-Control", "no-cache"), *ISOLATION])
         if self.status == HTTPStatus.METHOD_NOT_ALLOWED:
             headers["Allow"] = "GET, HEAD"
         return Response(self.status, HTTPStatus(self.status).phrase, headers, b"" if self.head_only else self.body)

@@ -15,12 +15,9 @@ import sys
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
-from streamer.viewer import WEB_DIR, ViewerFiles
+from streamer.viewer import ISOLATION, WEB_DIR, ViewerFiles
 
 __all__ = ["prepare_model", "web_json", "make_server", "register", "run"]
-
-ISOLATION = (("Cross-Origin-Opener-Policy", "same-origin"), ("Cross-Origin-Embedder-Policy", "require-corp"))
-
 
 def web_json(checkpoint: str | None, root: str = "tether", tether_s: float = 5.0,
              humanoid_map: str | None = None) -> dict:

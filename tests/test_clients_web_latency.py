@@ -58,7 +58,7 @@ def test_readout_dates_speech_by_its_least_delayed_moment_and_the_best_pong(tmp_
 
 def test_talk_readout_equals_the_benchmarks_onset_to_screen_total(tmp_path, checkpoint):
     a = argparse.Namespace(checkpoint=str(checkpoint), steps=1, window_ms=100, seconds=14.0, page_size="480,320",
-                           raw=None)
+                           avatar="mannequin", raw=None)
     r = latency.run_talk(a, tmp_path)
     assert r["page"]["errors"] == [] and r["onsets"] >= 3
     assert r["hud_ms"]["measured"] and r["hud_ms"]["samples"] >= 3

@@ -283,7 +283,7 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     try:
         url = proc.wait_for(r"WebSocket\s+(ws://\S+)", timeout=60).group(1)
         proc.wait_for("waiting for a WebSocket client", timeout=30)
-        frames, audio = [], []
+        frames, audio, statuses = [], [], []
         with connect(url, max_size=2**24) as c:
             hello = json.loads(c.recv(timeout=30))
             assert hello["type"] == "hello" and hello["source_audio"]["rate"] == 16000
@@ -295,6 +295,8 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
                 d = json.loads(m)
                 if d["type"] == "frame":
                     frames.append(d)
+                elif d["type"] == "status":
+                    statuses.append(d)
                 elif d["type"] == "end":
                     break
         assert proc.finish(60) == 0, proc.output
@@ -319,3 +321,7 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     times = [m[-1][2][0] for m in frames_vmc]  # the frames' pts, in order: the receiver got the same clock
     assert np.all(np.diff(times) > 0)
     assert "1 utterances" in proc.output
+    # `status` as `streamer serve` sends it (docs/protocol.md): the viewer's HUD shows the model's latency and RTF
+    speaking = [s for s in statuses if s["latency_ms"] > 0]
+    assert speaking and all(s["rtf"] > 0 and s["session"] == "broadcast" for s in speaking), statuses
+    assert statuses[-1]["frames_sent"] > 0 and statuses[-1]["clients"] == 1

@@ -17,9 +17,10 @@
 // frames that came before that. A stream's first message may be the tail of a window (a model that looks ahead
 // has only a few frames' audio at first: 2 of 4 with 350 ms), whose frames are later than their pts by less
 // than a whole window's first frame will be: the lateness expected is the newest of them plus the burst's span
-// (one window less one frame), when that is more than the first's. A busy page stamps arrivals up to one of its
-// own frames late (a software-rendered page on a loaded machine draws at ~5 fps), so the start's buffer also
-// holds the page's longest recent frame (`pageS`).
+// (one window less one frame), when that is more than the first's. A busy page learns of arrivals up to one of
+// its own frames late (the socket worker has them sooner, but a software-rendered page on a loaded machine draws at
+// ~5 fps and reads its messages between drawings), so the start's buffer also holds the page's longest recent
+// frame (`pageS`).
 const WINDOW_S = 10;       // lateness is remembered this long
 const MARGIN_MAX_S = 2;    // the margin grows at most to this
 const GROW = 1.5;          // margin x GROW when underruns come within REPEAT_S of each other

@@ -13,8 +13,8 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PlayoutClock } from './av-clock.js';
 import { SpeechToMotion } from './latency.js';
 import { FramePlayout } from './playout.js';
-import { binaryKind, decodeBinaryFrame, decodeSourceAudio } from './protocol.js';
-import { AudioFlow, MIC_HOLD_S } from './audio-flow.js';
+import { FrameRing } from './frame-ring.js';
+import { MIC_HOLD_S } from './audio-flow.js';
 import { buildMannequin } from './mannequin.js';
 import { SourceAudio } from './source-audio.js';
 
@@ -22,8 +22,6 @@ const params = new URLSearchParams(location.search);
 const ENCODING = params.get('encoding') === 'binary' ? 'binary' : 'json';
 const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
-const MAX_SEND_BUFFER = 1 << 20;  // bytes queued in the socket before mic chunks are dropped
-const RESEND_S = 15;  // our audio kept after it is sent: a hand-over re-sends it from the sample the state covers
 const LIVE_SLACK_S = 0.1;    // talking: spare buffer above that kept for 10 s is given back (av-clock.js setSlack)
 const LIVE_MARGIN_S = 0.05;  // talking: the playout buffer above the lateness seen (benchmarks/latency.py)
 const RESUME_WITHIN_MS = 10000;  // after a goaway: tries to resume this long before a fresh session
@@ -44,11 +42,11 @@ const api = window.dimgestor = {
   framesReceived: 0, binaryFramesReceived: 0, lastFrame: null, shownFrame: null, bufferMs: null,
   gaps: 0, fps: 0, rttMs: null, delayMs: null, delayMeasured: false, timingSeen: false,
   talking: false, audioRate: null, audioChunksSent: 0, audioChunksDropped: 0, micMonitorGain: null,
-  audioFlow: null,  // the microphone's AudioFlow while talking: paused, pauses, resumes, heldS, droppedS
+  audioFlow: null,  // the microphone's flow (socket-worker.js) while talking: paused, pauses, resumes, heldS, ...
   notices: [],      // slow_down / resume: the server's flow control, not errors
   handovers: 0, resumed: 0,  // goaway (the worker stopped) while talking; sessions resumed on another worker
   reconnects: 0,    // talk connections lost without a goaway, talked on in a fresh session
-  arrivalLog: [],   // [arrival (s, page clock), pts] of the last ARRIVAL_LOG frames: how late frames came (tests)
+  arrivalLog: [],   // [arrival (s, page clock, when this thread could show it), pts] of the last ARRIVAL_LOG frames
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
@@ -65,7 +63,11 @@ scene.add(new THREE.HemisphereLight(0xdfe8ff, 0x3a3430, 1.1));
 const key = new THREE.DirectionalLight(0xfff4e8, 2.4);  // key light from the front left, casting shadows
 key.position.set(2.0, 4.0, 3.5);
 key.castShadow = true;
-key.shadow.mapSize.set(1024, 1024);
+// A software renderer (no GPU: SwiftShader, llvmpipe) draws every pixel on the CPU: there the viewer draws without
+// MSAA and with a 512 shadow map (in headless Chromium beside other work: ~2 -> ~9 fps for the mannequin,
+// benchmarks/results/latency_talk_worker.json; a page's messages wait for its drawing, README "Latency").
+const SOFTWARE_GL = softwareGl();
+key.shadow.mapSize.setScalar(SOFTWARE_GL ? 512 : 1024);
 Object.assign(key.shadow.camera, { left: -2, right: 2, top: 2.5, bottom: -0.5, near: 0.5, far: 12 });
 key.shadow.bias = -0.0005;
 key.shadow.normalBias = 0.02;
@@ -94,7 +96,7 @@ camera.position.set(0, 1.2, 4);
 let renderer = null;
 let controls = null;
 try {
-  renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  renderer = new THREE.WebGLRenderer({ antialias: !SOFTWARE_GL });
   renderer.setPixelRatio(devicePixelRatio);
   renderer.setSize(innerWidth, innerHeight);
   renderer.shadowMap.enabled = true;
@@ -110,6 +112,22 @@ try {
   say(`WebGL unavailable: ${e.message}`);
 }
 addEventListener('resize', () => { fitViewport(); });
+api.drawing = { softwareGl: SOFTWARE_GL, antialias: !SOFTWARE_GL, shadowMap: key.shadow.mapSize.x };
+
+/** Whether WebGL here is a software renderer (its name says so); false when it cannot be told. */
+function softwareGl() {
+  try {
+    const gl = document.createElement('canvas').getContext('webgl2') || document.createElement('canvas').getContext('webgl');
+    if (!gl) return false;
+    const info = gl.getExtension('WEBGL_debug_renderer_info');  // (Chromium masks gl.RENDERER itself)
+    const name = String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
+    const lose = gl.getExtension('WEBGL_lose_context');
+    if (lose) lose.loseContext();
+    return /swiftshader|llvmpipe|softpipe|software/i.test(name);
+  } catch (e) {
+    return false;
+  }
+}
 
 function gradientTexture(top, bottom) {
   const c = document.createElement('canvas');
@@ -287,6 +305,7 @@ function applyFrame(f) {
 // Frames are shown at their presentation time, not on arrival (they come in bursts): playout.js keeps them and
 // interpolates; av-clock.js is the one clock of picture and sound (a jitter buffer sized from the lateness seen).
 const playout = new FramePlayout();
+let ring = null;  // the stream's FrameRing (shared memory with the socket worker) when the page is isolated
 const clock = new PlayoutClock();
 api.playout = playout;
 api.clock = clock;
@@ -294,6 +313,7 @@ let lastShowAt = performance.now();
 let needFraming = false;
 
 function showPose() {
+  takeRing();  // the frames the socket worker has by now, whatever messages wait behind this drawing
   const nowMs = performance.now();
   const dt = (nowMs - lastShowAt) / 1000;
   lastShowAt = nowMs;
@@ -330,16 +350,20 @@ const FACE_FOLLOW_S = 0.8;
 let lastRender = performance.now();
 const PAGE_FRAMES_MS = 2000;
 const pageFrames = [];  // [time, interval] of the page's frames in the last PAGE_FRAMES_MS
+
 function render() {
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
   const t = performance.now(), dt = Math.min((t - lastRender) / 1000, 0.5);
   api.frameMs = api.frameMs === null ? t - lastRender : 0.9 * api.frameMs + 0.1 * (t - lastRender);
-  // The clock's start holds the page's longest frame of late (a busy page stamps arrivals up to that late).
+  // The clock's start holds the page's longest frame of late: a busy page reads posted frames up to that late, and
+  // the sound of a stream's first frame must be scheduled before it is due (a late start skips the sound's first
+  // moment). Talking from the shared ring neither holds: the page has every frame that came before it draws, and
+  // there is no sound; the allowance would stay as latency until the 10 s give-back.
   pageFrames.push([t, t - lastRender]);
   while (pageFrames[0][0] < t - PAGE_FRAMES_MS) pageFrames.shift();
-  clock.pageS = Math.max(...pageFrames.map(([, d]) => d)) / 1000;
+  clock.pageS = ring && api.talking ? 0 : Math.max(...pageFrames.map(([, d]) => d)) / 1000;
   lastRender = t;
   if (joints.length && followFrom && faceFollow && api.shownFrame && !api.paused) {
     // Orbit towards the avatar's front: the model turns as it talks, and a viewer wants to see its face.
@@ -424,7 +448,13 @@ addEventListener('drop', (e) => {
 ui.avatar.addEventListener('change', () => { setAvatar(ui.avatar.value); resetView(); });
 
 // ---------------------------------------------------------------- protocol
-let ws = null;
+// The WebSocket lives in a Web Worker (socket-worker.js): the microphone's audio goes up and frames come down
+// (parsed, and stamped on arrival) without waiting for this thread's drawing. Here: which connection is current
+// and what its messages mean for the page.
+let link = null;                   // the socket worker, made at the first connect
+let connId = 0;                    // the current connection: the worker's events of older ones are ignored
+let connOpen = false;
+let connOpened = false;            // the current connection opened at some point
 let mode = 'view';                 // 'view': watch the server's source; 'talk': own session fed by the mic
 let reconnectTimer = null;
 let reconnectDelay = 1000;
@@ -446,40 +476,56 @@ function socketUrl() {
 }
 
 // ---- hand-over (protocol revision 3): a worker that stops sends `goaway` with a resume token; our session goes
-// on on another worker (the same URL: a balancer picks one) from the sample its state covers, so we keep the
-// audio we sent lately (`sent`) and hold the microphone meanwhile (AudioFlow, as at slow_down).
+// on on another worker (the same URL: a balancer picks one) from the sample its state covers. The socket worker
+// keeps the audio we sent lately, holds the microphone meanwhile and re-sends at session_resumed.
 let handover = null;  // {token, since (ms)} from a goaway until session_resumed (or a fresh session)
-const sent = { chunks: [], samples: 0 };  // [first sample, buffer, samples] of our recent audio; samples sent
 
-function keepSent(buf, n) {
-  sent.chunks.push([sent.samples, buf, n]);
-  sent.samples += n;
-  const keep = RESEND_S * (api.audioRate || 48000);
-  while (sent.chunks.length > 1 && sent.samples - sent.chunks[0][0] - sent.chunks[0][2] > keep) sent.chunks.shift();
+function socketWorker() {
+  if (!link) {
+    link = new Worker(new URL('./socket-worker.js', import.meta.url), { type: 'module' });
+    link.onmessage = (e) => fromWorker(e.data);
+    link.onerror = (e) => fail(`socket worker: ${e.message}`);
+    link.postMessage({ type: 'init', pageOrigin: performance.timeOrigin });
+  }
+  return link;
 }
 
-function resendFrom(sample) {
-  // The audio after `sample` again, in order (the chunk that straddles it cut), then what was held meanwhile.
-  const bytes = AUDIO_FORMAT === 'float32' ? 4 : 2;
-  for (const [first, buf, n] of sent.chunks) {
-    if (first + n <= sample) continue;
-    const skip = Math.max(0, sample - first);
-    ws.send(skip ? buf.slice(skip * bytes) : buf);
-    api.audioChunksSent++;
+/** Close the current connection on purpose (its close event is then ignored: no reconnect from it). */
+function dropConnection(reason) {
+  connId++;
+  connOpen = false;
+  if (link) link.postMessage({ type: 'close', code: 1000, reason });
+}
+
+/** Frames from the shared ring: this thread has them the moment it looks, so the socket worker's arrival stamp is
+ *  when they could be shown (posted frames are later: when this thread got round to their message). */
+function takeRing() {
+  if (ring) for (const [f, at, binary] of ring.take()) { onFrame(f, at, at); if (binary) api.binaryFramesReceived++; }
+}
+
+function fromWorker(m) {
+  if (m.type === 'mic') { onMicReport(m); return; }
+  if (m.id !== connId) return;  // a connection replaced since
+  takeRing();  // frames the worker had before this message come first
+  if (m.ring) ring = new FrameRing(m.ring, m.msg.skeleton.joints.length);
+  switch (m.type) {
+    case 'open': onOpen(); break;
+    case 'close': onClose(m); break;
+    case 'frame': onFrame(m.frame, m.at, performance.now()); if (m.binary) api.binaryFramesReceived++; break;
+    case 'sourceAudio': onSourceAudio(m.chunk, m.at); break;
+    case 'message': onParsed(m.msg, m.at); break;
+    case 'bad': fail(m.message); break;
+    default: fail(`socket worker: unknown event ${JSON.stringify(m.type)}`);
   }
-  for (const b of api.audioFlow.resume()) sendNow(b);
 }
 
 function connect(audio = null, resume = null) {
   clearTimeout(reconnectTimer);
   endPending = false;
-  if (ws) { const old = ws; ws = null; old.close(1000, 'reconnect'); }
   mode = audio ? 'talk' : 'view';
   pingSentAt = null;
   if (!resume) {  // a resumed session goes on: its frames, clocks and audio continue where they were
     handover = null;
-    sent.chunks.length = 0;
-    sent.samples = 0;
     lastIndex = -1;
     playout.offset = null;  // whatever this connection sends starts a new playout clock
     playout.queue = [];
@@ -489,70 +535,64 @@ function connect(audio = null, resume = null) {
     api.timingSeen = false;
     arrivals.length = 0;
   }
-  const sock = new WebSocket(api.url);
-  sock.binaryType = 'arraybuffer';
-  ws = sock;
-  let opened = false;
+  if (resume) takeRing();  // the old stream's last frames: the resumed one goes on from them
+  ring = null;
+  connId++;
+  connOpen = connOpened = false;
+  // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so nothing
+  // but the avatar answers the microphone. Each window's `timing` (revision 5) dates the speech for the speech ->
+  // motion readout. The worker sends it (and resume_session) when the socket opens.
+  const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true };
+  if (audio) hello.audio = audio;
+  socketWorker().postMessage({ type: 'connect', id: connId, url: api.url, hello, resume: resume ? resume.token : null });
   setState('connecting');
-  sock.onopen = () => {
-    if (sock !== ws) return;
-    opened = true;
-    // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so
-    // nothing but the avatar answers the microphone.
-    // Each window's `timing` (revision 5) dates the speech for the speech -> motion readout.
-    const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true };
-    if (audio) hello.audio = audio;
-    sock.send(JSON.stringify(hello));
-    if (resume) sock.send(JSON.stringify({ type: 'resume_session', token: resume.token }));
-    reconnectDelay = 1000;
-    setState('open');
-  };
-  sock.onmessage = (ev) => { if (sock === ws) onMessage(ev.data); };
-  sock.onclose = (ev) => {
-    if (sock !== ws) return;  // a socket we replaced on purpose
-    ws = null;
-    if (handover && api.talking) {  // the worker stopped (1012 after goaway): resume on another, at once
-      setState('moving');
-      reconnectTimer = setTimeout(() => resumeOrRestart(), 50);
-      return;
-    }
-    setState('closed', ev.code === 1000 ? '' : ` (code ${ev.code}${ev.reason ? ': ' + ev.reason : ''})`);
-    if (api.talking && opened) {  // our worker went away (killed, or stopped without a state store): talk on in
-      api.reconnects++;           // a fresh session on whichever worker answers (a failed try stops the mic below)
-      say('connection lost: talking on in a fresh session');
-      api.audioFlow.take();
-      api.audioFlow.paused = false;
-      reconnectTimer = setTimeout(() => connect(api.talkFormat), 250);
-      return;
-    }
-    // A refused handshake (a 401 for a missing token) reaches a page only as a close before open.
-    if (!opened && !params.get('token')) say('cannot connect: if the server requires a token, open this page with ?token=...');
-    if (api.talking) stopMic();
-    // Keep trying: the server may be restarting. A 401 (bad token) also lands here as code 1006.
-    reconnectTimer = setTimeout(() => connect(null), reconnectDelay);
-    reconnectDelay = Math.min(reconnectDelay * 2, 10000);
-  };
+}
+
+function onOpen() {
+  connOpen = connOpened = true;
+  reconnectDelay = 1000;
+  setState('open');
+}
+
+function onClose(ev) {
+  connOpen = false;
+  connId++;  // this connection is over: nothing more of it counts
+  if (handover && api.talking) {  // the worker stopped (1012 after goaway): resume on another, at once
+    setState('moving');
+    reconnectTimer = setTimeout(() => resumeOrRestart(), 50);
+    return;
+  }
+  setState('closed', ev.code === 1000 ? '' : ` (code ${ev.code}${ev.reason ? ': ' + ev.reason : ''})`);
+  if (api.talking && connOpened) {  // our worker went away (killed, or stopped without a state store): talk on in
+    api.reconnects++;               // a fresh session on whichever worker answers (a failed try stops the mic below)
+    say('connection lost: talking on in a fresh session');
+    reconnectTimer = setTimeout(() => connect(api.talkFormat), 250);  // (the held audio is the old session's)
+    return;
+  }
+  // A refused handshake (a 401 for a missing token) reaches a page only as a close before open.
+  if (!connOpened && !params.get('token')) say('cannot connect: if the server requires a token, open this page with ?token=...');
+  if (api.talking) stopMic();
+  // Keep trying: the server may be restarting. A 401 (bad token) also lands here as code 1006.
+  reconnectTimer = setTimeout(() => connect(null), reconnectDelay);
+  reconnectDelay = Math.min(reconnectDelay * 2, 10000);
 }
 
 function resumeOrRestart() {
   if (!api.talking) { handover = null; connect(null); return; }
   if (performance.now() - handover.since < RESUME_WITHIN_MS) { connect(api.talkFormat, handover); return; }
   say('could not resume our session on another worker: a fresh one starts');
-  api.audioFlow.take();  // what was held belongs to the old session
-  api.audioFlow.paused = false;
-  connect(api.talkFormat);
+  connect(api.talkFormat);  // (the socket worker drops what was held: it belongs to the old session)
 }
 
+/** A message as JSON text (local mode: local-engine.js hands its messages here). */
 function onMessage(data) {
-  if (typeof data !== 'string') {
-    try {
-      if (binaryKind(data) === 'DGA1') onSourceAudio(decodeSourceAudio(data));
-      else { onFrame(decodeBinaryFrame(data)); api.binaryFramesReceived++; }
-    } catch (e) { fail(e.message); }
-    return;
-  }
   let msg;
   try { msg = JSON.parse(data); } catch (e) { fail(`unparsable message: ${data.slice(0, 80)}`); return; }
+  onParsed(msg, performance.now());
+}
+
+/** A parsed message from the server that arrived at `at` (ms, page clock). */
+function onParsed(msg, at) {
   switch (msg.type) {
     case 'hello':
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
@@ -574,11 +614,11 @@ function onMessage(data) {
         ui.talk.classList.add('hint');
       } else ui.talk.classList.remove('hint');
       break;
-    case 'frame': onFrame(msg); break;
+    case 'frame': onFrame(msg, at, at); break;
     case 'status': api.status = msg; break;
     case 'pong':
-      if (typeof msg.t === 'number') speech.notePong(msg.t / 1000, performance.now() / 1000, msg.server_time_s);
-      if (pingSentAt !== null) { api.rttMs = performance.now() - pingSentAt; pingSentAt = null; }
+      if (typeof msg.t === 'number') speech.notePong(msg.t / 1000, at / 1000, msg.server_time_s);
+      if (pingSentAt !== null && typeof msg.t === 'number') { api.rttMs = at - msg.t; pingSentAt = null; }
       break;
     case 'timing':  // watching: the server says when the audio arrived (talking: our own chunks say it better)
       if (mode === 'view' && speech.noteTiming(msg)) api.timingSeen = true;
@@ -586,16 +626,14 @@ function onMessage(data) {
     case 'goaway':  // revision 3: this worker is stopping; our session's state is saved under the token
       if (mode === 'talk' && api.talking && msg.resume_token) {
         handover = { token: msg.resume_token, since: performance.now() };
-        api.handovers++;
-        api.audioFlow.slowDown();  // hold the microphone until session_resumed
+        api.handovers++;  // (the socket worker holds the microphone until session_resumed)
         say('the server is restarting: moving our session to another worker');
       }
       break;
     case 'session_resumed':
       if (mode === 'talk' && handover) {
         handover = null;
-        api.resumed++;
-        resendFrom(msg.samples);
+        api.resumed++;  // (the socket worker re-sent our audio from msg.samples)
         setState('open');
         say('our session moved to another worker: talking again');
       }
@@ -604,16 +642,13 @@ function onMessage(data) {
       if (handover && ['busy', 'resume_failed'].includes(msg.code)) {  // during a hand-over
         api.notices.push(msg);
         if (msg.code === 'resume_failed') handover.since = -Infinity;  // the token is spent: a fresh session
-        const sock = ws;
-        ws = null;  // (its close is ours: no reconnect from onclose)
-        if (sock) sock.close(1000, 'resume elsewhere');
+        dropConnection('resume elsewhere');
         reconnectTimer = setTimeout(() => resumeOrRestart(), msg.code === 'busy' ? 200 : 0);
         break;
       }
       if (msg.code === 'slow_down') {  // a notice, nothing was lost: hold the microphone until `resume`
         api.notices.push(msg);
-        if (mode === 'talk' && api.audioFlow) {
-          api.audioFlow.slowDown();
+        if (mode === 'talk' && api.audioFlow) {  // (the socket worker holds the microphone already)
           say(`the server asks us to slow down: holding the microphone until it resumes (at most ${MIC_HOLD_S} s)`);
         }
         break;
@@ -628,9 +663,8 @@ function onMessage(data) {
       break;
     case 'resume':  // revision 2: the server takes our audio again (ignored while only watching)
       api.notices.push(msg);
-      if (mode === 'talk' && api.audioFlow) {
-        for (const buf of api.audioFlow.resume()) sendNow(buf);
-        if (endPending) endAudio();
+      if (mode === 'talk' && api.audioFlow) {  // (the socket worker sent what it held, and audio_end if due)
+        if (endPending) { endPending = false; say('audio ended; waiting for the last gestures'); }
         else if (api.talking) say(`the server resumed (backlog ${fmt(msg.backlog_s)} s): talking again`);
       }
       break;
@@ -644,25 +678,27 @@ function onMessage(data) {
   }
 }
 
-function onFrame(f) {
+/** A frame that arrived at `now` (ms, page clock) and could be shown from `usable` on (ms). */
+function onFrame(f, now, usable) {
   if (!joints.length) return;  // frames before hello cannot be placed
   if (lastIndex >= 0 && f.index > lastIndex + 1) api.gaps += f.index - lastIndex - 1;
   lastIndex = f.index;
   api.framesReceived++;
   api.lastFrame = f;
-  const now = performance.now();
   arrivals.push(now);
   while (arrivals.length && arrivals[0] <= now - FPS_WINDOW_MS) arrivals.shift();
-  playout.push(f, now / 1000);
-  clock.arrive(f.pts, now / 1000);
-  api.arrivalLog.push([now / 1000, f.pts]);
+  // The playout clock takes when this thread could show the frame: a posted frame reaches a page busy drawing up
+  // to one of its own frames after the socket worker got it, and that is lateness too; the ring's, no later.
+  playout.push(f, usable / 1000);
+  clock.arrive(f.pts, usable / 1000);
+  api.arrivalLog.push([usable / 1000, f.pts]);
   if (api.arrivalLog.length > ARRIVAL_LOG) api.arrivalLog.splice(0, api.arrivalLog.length - ARRIVAL_LOG);
 }
 
-function onSourceAudio(chunk) {
+function onSourceAudio(chunk, at) {
   // The server releases source audio as it is spoken (a file source is paced in real time), so its arrival
   // tells when each moment of the speech happened, on our clock.
-  if (!api.timingSeen) speech.noteSaid(chunk.pts + chunk.samples.length / chunk.rate, performance.now() / 1000);
+  if (!api.timingSeen) speech.noteSaid(chunk.pts + chunk.samples.length / chunk.rate, at / 1000);
   sourceAudio.push(chunk);
 }
 
@@ -712,19 +748,22 @@ async function startTalk() {
     const stream = await navigator.mediaDevices.getUserMedia(
       { audio: { channelCount: 1, echoCancellation: true, noiseSuppression: true, autoGainControl: true } });
     const ctx = new AudioContext();
-    mic = { stream, ctx, node: null, samples: 0 };  // set now, so a failure below still releases the microphone
+    mic = { stream, ctx, node: null };  // set now, so a failure below still releases the microphone
     await ctx.resume();
     const src = ctx.createMediaStreamSource(stream);
     const chunkSamples = Math.round(ctx.sampleRate * 0.02);
+    const toWorker = new MessageChannel();  // the microphone's chunks -> the socket worker, not through this thread
     let node;
     if (ctx.audioWorklet) {
       await ctx.audioWorklet.addModule(new URL('./mic-worklet.js', import.meta.url));
-      node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples } });
-      node.port.onmessage = (e) => sendAudio(e.data);
+      node = new AudioWorkletNode(ctx, 'mic-chunker', { processorOptions: { chunkSamples, viaPort: true } });
+      node.port.postMessage({ port: toWorker.port1 }, [toWorker.port1]);
     } else {  // older browsers: the deprecated main-thread path
       node = ctx.createScriptProcessor(2048, 1, 1);
-      node.onaudioprocess = (e) => sendAudio(new Float32Array(e.inputBuffer.getChannelData(0)));
+      node.onaudioprocess = (e) => toWorker.port1.postMessage(new Float32Array(e.inputBuffer.getChannelData(0)));
     }
+    socketWorker().postMessage({ type: 'mic', port: toWorker.port2, rate: ctx.sampleRate, format: AUDIO_FORMAT },
+                               [toWorker.port2]);
     // The node must reach the destination to be pulled; a zero gain makes sure the microphone is never heard.
     const silence = ctx.createGain();
     silence.gain.value = 0;
@@ -734,7 +773,7 @@ async function startTalk() {
     mic.node = node;
     api.talking = true;
     api.audioRate = ctx.sampleRate;
-    api.audioFlow = new AudioFlow(ctx.sampleRate);
+    api.audioFlow = { paused: false, pauses: 0, resumes: 0, heldS: 0, droppedS: 0, droppedChunks: 0 };
     // Our own session: a fresh connection whose hello declares the audio we will send.
     api.talkFormat = { rate: ctx.sampleRate, format: AUDIO_FORMAT, channels: 1 };
     connect(api.talkFormat);
@@ -753,23 +792,18 @@ async function startTalk() {
 function stopTalk() {
   if (!api.talking) return;
   stopMic();
-  if (ws && ws.readyState === WebSocket.OPEN) {
-    if (api.audioFlow && api.audioFlow.paused) {  // what is held goes first, at `resume`, then audio_end
+  if (connOpen) {
+    link.postMessage({ type: 'audioEnd' });  // the socket worker sends it after what it holds (at `resume`)
+    if (api.audioFlow && api.audioFlow.paused) {
       endPending = true;
       say('stopped; the server has us paused: the last audio and audio_end go when it resumes');
-    } else endAudio();
+    } else say('audio ended; waiting for the last gestures');
   } else {
     connect(null);  // the talk connection never opened: nothing to wait for
   }
 }
 
 let endPending = false;  // stopped talking while paused: audio_end waits for `resume` (after the held audio)
-
-function endAudio() {
-  endPending = false;
-  ws.send(JSON.stringify({ type: 'audio_end' }));
-  say('audio ended; waiting for the last gestures');
-}
 
 function stopMic() {
   if (mic) {
@@ -778,41 +812,21 @@ function stopMic() {
     mic.ctx.close();
     mic = null;
   }
+  if (link) link.postMessage({ type: 'micStop' });
   api.talking = false;
   ui.talk.textContent = 'Talk';
   ui.talk.classList.remove('on');
 }
 
-function sendAudio(f32) {
+/** The socket worker's account of the microphone: counts, flow state, and when the chunk it took was said. */
+function onMicReport(m) {
+  api.audioChunksSent = m.sent;
+  api.audioChunksDropped = m.dropped;
+  if (api.audioFlow) Object.assign(api.audioFlow, m.flow);
   if (!api.talking || mode !== 'talk') return;
-  if (!handover && (!ws || ws.readyState !== WebSocket.OPEN)) return;  // (moving: held below, sent at resume)
-  const flow = api.audioFlow;
-  if (!flow.paused && ws.bufferedAmount > MAX_SEND_BUFFER) { api.audioChunksDropped++; return; }  // bounded, counted
-  let buf;
-  if (AUDIO_FORMAT === 'float32') {
-    buf = new ArrayBuffer(f32.length * 4);
-    const dv = new DataView(buf);
-    for (let i = 0; i < f32.length; i++) dv.setFloat32(i * 4, f32[i], true);
-  } else {
-    buf = new ArrayBuffer(f32.length * 2);
-    const dv = new DataView(buf);
-    for (let i = 0; i < f32.length; i++) dv.setInt16(i * 2, Math.round(Math.max(-1, Math.min(1, f32[i])) * 32767), true);
-  }
-  // Our own speech: this chunk's last sample was said just now, at pts = the samples the server gets up to it.
-  mic.samples += f32.length;
-  speech.noteSaid((mic.samples - flow.droppedSamples) / api.audioRate, performance.now() / 1000);
-  const dropped = flow.droppedChunks;
-  for (const b of flow.offer(buf, f32.length)) sendNow(b);  // paused (slow_down): held, at most MIC_HOLD_S
-  api.audioChunksDropped += flow.droppedChunks - dropped;
-  if (flow.droppedChunks > dropped && dropped === 0)
-    say(`paused by the server for over ${MIC_HOLD_S} s: dropping the oldest microphone audio (counted)`);
-}
-
-function sendNow(buf) {
-  if (!ws || ws.readyState !== WebSocket.OPEN) return;
-  ws.send(buf);
-  api.audioChunksSent++;
-  keepSent(buf, buf.byteLength / (AUDIO_FORMAT === 'float32' ? 4 : 2));
+  // Our own speech: the chunk's last sample was said when the worker got it, at pts = the samples up to it.
+  if (m.said) speech.noteSaid(m.said[0], m.said[1]);
+  if (m.startedDropping) say(`paused by the server for over ${MIC_HOLD_S} s: dropping the oldest microphone audio (counted)`);
 }
 
 ui.talk.addEventListener('click', () => (local ? local.toggleMic().catch((e) => say(`microphone: ${e.message}`)) : startTalk()));
@@ -878,9 +892,9 @@ setInterval(() => {
 }, 250);
 
 setInterval(() => {  // round trip on the same socket as the frames
-  if (ws && ws.readyState === WebSocket.OPEN && pingSentAt === null) {
+  if (connOpen && pingSentAt === null) {
     pingSentAt = performance.now();
-    ws.send(JSON.stringify({ type: 'ping', t: pingSentAt }));
+    link.postMessage({ type: 'ping' });  // the worker stamps it as it sends it
   }
 }, 2000);
 

@@ -1,0 +1,55 @@
+// Frames from the socket worker to the page through shared memory (a SharedArrayBuffer: needs a cross-origin
+// isolated page), without DOM so it also runs under node (clients/web/tests/). The worker writes each frame into
+// the next of SLOTS slots and then advances `head` (Atomics); the page reads the slots from where it stopped up to
+// head whenever it draws. A page that fell more than SLOTS frames behind loses the oldest (its frame gaps count
+// them). Slot: index, pts, arrival (ms, page clock), binary (0/1), root[3], rotations[J][w, x, y, z], as float64.
+export const SLOTS = 256;  // 12.8 s at 20 fps
+const HEAD = 4;            // fields before the root
+
+export class FrameRing {
+  constructor(sab, joints) {
+    this.sab = sab;
+    this.joints = joints;
+    this.slot = HEAD + 3 + 4 * joints;
+    this.head = new Int32Array(sab, 0, 1);  // frames written so far
+    this.x = new Float64Array(sab, 8, SLOTS * this.slot);
+    this.read = 0;                          // frames read so far (the page's side)
+  }
+
+  /** A ring for frames of `joints` joints (the worker's side; its `sab` goes to the page). */
+  static create(joints) {
+    return new FrameRing(new SharedArrayBuffer(8 + 8 * SLOTS * (HEAD + 3 + 4 * joints)), joints);
+  }
+
+  /** Put a frame in (the worker); false when it does not fit the ring's joints (then it goes another way). */
+  write(f, binary, at) {
+    if (f.rotations.length !== this.joints || f.root.length !== 3) return false;
+    const n = Atomics.load(this.head, 0);
+    const x = this.x;
+    let o = (n % SLOTS) * this.slot;
+    x[o] = f.index; x[o + 1] = f.pts; x[o + 2] = at; x[o + 3] = binary ? 1 : 0;
+    o += HEAD;
+    for (let i = 0; i < 3; i++) x[o++] = f.root[i];
+    for (const q of f.rotations) for (let i = 0; i < 4; i++) x[o++] = q[i];
+    Atomics.store(this.head, 0, n + 1);
+    return true;
+  }
+
+  /** The frames written since the last call (the page), oldest first: [{type, index, pts, root, rotations}, at,
+   *  binary]. Frames overwritten before they were read are skipped. */
+  take() {
+    const head = Atomics.load(this.head, 0);
+    if (head - this.read >= SLOTS) this.read = head - SLOTS + 1;  // (the slot being written next is not read)
+    const out = [];
+    const x = this.x;
+    for (; this.read < head; this.read++) {
+      let o = (this.read % SLOTS) * this.slot;
+      const f = { type: 'frame', index: x[o], pts: x[o + 1], root: [x[o + 4], x[o + 5], x[o + 6]], rotations: [] };
+      const at = x[o + 2], binary = x[o + 3] === 1;
+      o += HEAD + 3;
+      for (let j = 0; j < this.joints; j++, o += 4) f.rotations.push([x[o], x[o + 1], x[o + 2], x[o + 3]]);
+      out.push([f, at, binary]);
+    }
+    return out;
+  }
+}
