@@ -64,8 +64,12 @@ def test_talk_readout_equals_the_benchmarks_onset_to_screen_total(tmp_path, chec
     assert r["hud_ms"]["measured"] and r["hud_ms"]["samples"] >= 3
     # The readout dates speech and presents poses as the benchmark does; what differs is when within a page frame
     # the onset falls (the readout takes half a frame) and how the playout clock moved between its samples and the
-    # onsets: one page frame (p90) and the page's arrival jitter (p90) bound it, plus 30 ms.
-    tolerance = r["raf_interval_ms"]["p90_ms"] + r["arrival_jitter_ms"]["p90"] + 30
+    # onsets: one page frame (p90), the page's arrival jitter (p90) and how far the playout buffer itself moved
+    # over the run (the spread of the onsets' playout part: an underrun on a loaded machine grows it between the
+    # readout's samples and the onsets) bound it, plus 30 ms.
+    playout = [row["playout"] for row in r["rows"]]
+    moved = float(np.percentile(playout, 90) - np.percentile(playout, 10))
+    tolerance = r["raf_interval_ms"]["p90_ms"] + r["arrival_jitter_ms"]["p90"] + moved + 30
     assert abs(r["hud_ms"]["median_ms"] - r["total"]["median_ms"]) <= tolerance, (r["hud_ms"], r["total"], tolerance)
 
 
