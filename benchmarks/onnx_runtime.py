@@ -14,9 +14,9 @@ Streams per process (`--streams K...`, default K = 8): `benchmarks/streams.py`'s
 on one executor, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
 torch batched (one StreamBatcher on every core, or `--batched-threads`: `streamer serve`'s default), torch unbatched, ONNX Runtime
 unbatched (one session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer
-serve --backend onnxruntime --no-batch`) and ONNX Runtime batched (one StreamBatcher whose cycles run as calls of
-the export's graphs of 1 and `--batches` streams, ONNX Runtime on every core: `streamer serve --backend
-onnxruntime`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
+serve --backend onnxruntime --no-batch`) and ONNX Runtime batched (a StreamBatcher a core, `--batched-threads`,
+each with its share of the sessions and its cycles run as calls of the export's graphs of 1 and `--batches`
+streams on its own one-thread sessions: `streamer serve --backend onnxruntime`'s `BatcherPool`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
 (`--call-batches`): ms per call and per stream, and the copies of gathering B streams' states into a call (what
 a call costs when the streams come back in another order or company).
 
@@ -144,17 +144,24 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     onnx = OnnxModel.load(export_for(folder, steps, args.window_ms * c.fps // 1000, args.batches))
     cores = os.cpu_count() or 1
     threads = args.batched_threads or cores
-    runner = onnx.batch_runner(threads=threads)  # (its graphs' costs measured once, for every trial)
+    # ONNX Runtime batched: a StreamBatcher a core, each on its own one-thread runner (`streamer serve`'s
+    # `onnx_batchers`); their graphs' costs measured once, for every trial
+    runners = [onnx.batch_runner(threads=1) for _ in range(threads)]
+    runner = runners[0]
     common = dict(steps=steps, window_ms=args.window_ms, seconds=args.streams_s, cap=args.streams_max)
     row = {"steps": steps, "cores": cores, "batched_threads": threads, "graph_batches": runner.sizes,
            "graph_cost_ms": {str(b): 1000 * t for b, t in runner.cost.items()},
            "torch_batched": max_streams(bundle, batched=True, threads=threads, **common),
            "torch_unbatched": max_streams(bundle, batched=False, threads=1, **common),
            "onnxruntime": max_streams(bundle, batched=False, threads=1, onnx=onnx, **common),
-           "onnxruntime_batched": max_streams(bundle, batched=True, threads=threads, onnx=onnx, batch_runner=runner,
+           "onnxruntime_batched": max_streams(bundle, batched=True, threads=threads, onnx=onnx, batch_runner=runners,
                                               **common)}
-    row["onnxruntime_batched"]["calls"] = {str(b): n for b, n in runner.stats.calls.items()}
-    row["onnxruntime_batched"]["gathers"] = runner.stats.gathers
+    calls = {}
+    for r in runners:
+        for b, k in r.stats.calls.items():
+            calls[str(b)] = calls.get(str(b), 0) + k
+    row["onnxruntime_batched"]["calls"] = calls
+    row["onnxruntime_batched"]["gathers"] = sum(r.stats.gathers for r in runners)
     n = {k: row[k]["max_realtime_streams"] for k in STREAM_ROWS}
     row["max_realtime_streams"] = n
     row["ratio_onnxruntime_to_torch_batched"] = n["onnxruntime"] / max(n["torch_batched"], 1)

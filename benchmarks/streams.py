@@ -97,19 +97,23 @@ class _CountingStats:
 def make_executor(batched: bool, threads: int, batch_runner=None):
     """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
     `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
-    batch_runner: a `dimgestor.onnx_batch.BatchRunner`: the StreamBatcher pushes its windows on it, as
-    `streamer serve --backend onnxruntime` does (its sessions' threads are the runner's)."""
+    batch_runner: a `dimgestor.onnx_batch.BatchRunner`, or a list of them: a `BatcherPool` of one StreamBatcher a
+    runner pushes its windows on them, as `streamer serve --backend onnxruntime` does (a runner's session threads
+    are its own)."""
     from streamer.scheduling import RankedExecutor, StreamBatcher
 
     if batched and batch_runner is not None:
         import functools
 
         from dimgestor.onnx_batch import push_many
+        from streamer.scheduling import BatcherPool
 
-        ex = StreamBatcher(push_many=functools.partial(push_many, batch_runner))
+        runners = batch_runner if isinstance(batch_runner, (list, tuple)) else [batch_runner]
+        ex = BatcherPool([StreamBatcher(push_many=functools.partial(push_many, r), thread_name=f"bench-batch-{i}")
+                          for i, r in enumerate(runners)])  # as `streamer serve --backend onnxruntime` (one lane a runner)
         ex.stats = _CountingStats(ex.stats)
-        return ex, {"executor": "StreamBatcher", "inference_threads": 1,
-                    "onnxruntime_threads": batch_runner.threads, "graph_batches": batch_runner.sizes}
+        return ex, {"executor": "BatcherPool", "inference_threads": len(runners),
+                    "onnxruntime_threads": runners[0].threads, "graph_batches": runners[0].sizes}
     if batched:
         ex = StreamBatcher()
         ex.stats = _CountingStats(ex.stats)

@@ -389,6 +389,81 @@ class StreamBatcher(_Threads):
             self.cost.add(took, sum(len(j.samples) for j in pushes) / SAMPLE_RATE)
 
 
+class BatcherPool(Scheduler):
+    """Several `StreamBatcher`s, one inference thread each, a session kept on one of them (the one with the fewest
+    sessions when its first window comes): batched work for runtimes whose batched call keeps one core busy.
+
+    ONNX Runtime runs a batched call of this small graph on one core (its ops are too small to split across
+    threads): one batcher of all the streams left the other core idle and kept fewer real-time streams than
+    one window per call on a thread per core (benchmarks/onnx_runtime.py). A batcher per core, each batching
+    its own share of the sessions, keeps both. A session's windows are always on the same batcher (its state
+    in the runtime's rows stays where it is); its other jobs (its finish) follow it there."""
+
+    def __init__(self, batchers: list[StreamBatcher]):
+        if not batchers:
+            raise ValueError("BatcherPool needs at least one StreamBatcher")
+        self.batchers = list(batchers)
+        self.stats = BatchStats()  # one for all: the sizes of every batcher's batches
+        self._home: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # session -> its batcher
+        self._lock = threading.Lock()
+
+    def _batcher(self, session) -> StreamBatcher:
+        with self._lock:
+            home = self._home.get(session)
+            if home is None:
+                load = [0] * len(self.batchers)
+                for b in self._home.values():
+                    load[self.batchers.index(b)] += 1
+                home = self._home[session] = self.batchers[load.index(min(load))]
+            return home
+
+    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
+        return self._batcher(session).submit_push(session, samples, rank)
+
+    def submit_ranked(self, rank: float, fn: Callable, /, *args, **kwargs) -> Future:
+        owner = getattr(fn, "__self__", None)  # a session's bound method (its finish): on that session's batcher
+        with self._lock:
+            home = self._home.get(owner) if owner is not None else None
+        return (home or min(self.batchers, key=lambda b: b.queued_jobs())).submit_ranked(rank, fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        for b in self.batchers:
+            b.shutdown(wait=False, cancel_futures=cancel_futures)
+        if wait:
+            for b in self.batchers:
+                b.shutdown(wait=True)
+
+    @property
+    def workers(self) -> int:
+        return sum(b.workers for b in self.batchers)
+
+    def queued_jobs(self) -> int:
+        return sum(b.queued_jobs() for b in self.batchers)
+
+    @property
+    def observer(self):
+        return self.batchers[0].observer
+
+    @observer.setter
+    def observer(self, value) -> None:
+        for b in self.batchers:
+            b.observer = value
+
+    @property
+    def stats(self) -> BatchStats:
+        """The batches' sizes (one `BatchStats` that every batcher adds to)."""
+        return self.batchers[0].stats
+
+    @stats.setter
+    def stats(self, value) -> None:
+        for b in self.batchers:
+            b.stats = value
+
+    @property
+    def cost(self) -> CycleCost:
+        return self.batchers[0].cost
+
+
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
 

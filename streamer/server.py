@@ -21,7 +21,7 @@ from streamer.frames import Frame
 from streamer.handover import open_store
 from streamer.health import Readiness, RealtimeLoad
 from streamer.metrics import ServerMetrics
-from streamer.scheduling import RankedExecutor, StreamBatcher
+from streamer.scheduling import BatcherPool, RankedExecutor, StreamBatcher
 from streamer.sessions import Session
 from streamer.options import ServeError, ServeOptions
 from streamer.sink import Sink
@@ -52,7 +52,7 @@ class Pipeline:
     source: WavSource | MicSource | None  # the server's own audio; None: --source ws
     session: Session | None  # the source's session
     make_session: Callable[..., Session]  # one more session (a WebSocket client's own audio)
-    executor: StreamBatcher | RankedExecutor  # where every session's inference runs
+    executor: StreamBatcher | BatcherPool | RankedExecutor  # where every session's inference runs
     sinks: list[Sink]  # where the source's frames go, in the order they open
     ws: WsServer | None = None  # the WebSocket server (also among the sinks): clients bring their own audio too
     metrics: ServerMetrics = field(default_factory=ServerMetrics)  # served by `ws` (/metrics, /readyz)
@@ -136,14 +136,22 @@ def _executor(no_batch: bool, onnx: OnnxModel | None = None):
     if no_batch:
         return RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
-        from dimgestor.onnx_batch import push_many
-
-        return StreamBatcher(push_many=functools.partial(push_many, onnx.batch_runner(inference_threads())))
+        return onnx_batchers(onnx, inference_threads())
     import torch
 
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread
     torch.set_num_threads(inference_threads())
     return StreamBatcher()
+
+
+def onnx_batchers(onnx: OnnxModel, lanes: int) -> BatcherPool:
+    """`lanes` StreamBatchers on ONNX Runtime, each batching its share of the sessions as calls of the export's
+    graphs on its own one-thread sessions: a batched call of this graph keeps one core busy, whatever ONNX
+    Runtime's intra-op threads (`BatcherPool`)."""
+    from dimgestor.onnx_batch import push_many
+
+    return BatcherPool([StreamBatcher(push_many=functools.partial(push_many, onnx.batch_runner(1)),
+                                      thread_name=f"infer-batch-{i}") for i in range(max(1, lanes))])
 
 
 def inference_threads() -> int:
@@ -156,7 +164,7 @@ def inference_threads() -> int:
     return max(1, (os.cpu_count() or 1) - 1)
 
 
-def _metrics(executor: StreamBatcher | RankedExecutor) -> ServerMetrics:
+def _metrics(executor: StreamBatcher | BatcherPool | RankedExecutor) -> ServerMetrics:
     """The worker's metrics, fed by every inference call of `executor` (its real-time load decides /readyz)."""
     metrics = ServerMetrics(Readiness(RealtimeLoad(threads=executor.workers)))
     executor.observer = metrics
@@ -425,7 +433,7 @@ def _status_line(p: Pipeline) -> str:
         st = p.session.stats
         parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",
                   f"rtf {st.rtf:.2f}"]
-    if isinstance(p.executor, StreamBatcher):
+    if isinstance(p.executor, (StreamBatcher, BatcherPool)):
         parts += [text for text in (p.executor.stats.describe(), p.executor.cost.describe()) if text]
     parts += [text for text in (sink.status() for sink in p.sinks) if text]
     if isinstance(p.source, MicSource):

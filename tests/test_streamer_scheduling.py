@@ -12,7 +12,8 @@ import pytest
 
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_speech
-from streamer.scheduling import PoolScheduler, RankedExecutor, Scheduler, StreamBatcher, WindowPolicy, as_scheduler
+from streamer.scheduling import (BatcherPool, PoolScheduler, RankedExecutor, Scheduler, StreamBatcher, WindowPolicy,
+                                 as_scheduler)
 from streamer.sessions import Session
 from streamer.sources import AudioChunk
 
@@ -25,10 +26,11 @@ async def _chunks(audio, n=700):
         yield AudioChunk(audio[a:a + n], a / 16000, 0.0)
 
 
-@pytest.mark.parametrize("kind", ["batcher", "ranked", "pool", "none"])
+@pytest.mark.parametrize("kind", ["batcher", "batchers", "ranked", "pool", "none"])
 def test_every_scheduler_gives_a_session_its_offline_frames(bundle, kind):
     audio = synthetic_speech(1.13, seed=2)
     executor = {"batcher": lambda: StreamBatcher(), "ranked": lambda: RankedExecutor(2),
+                "batchers": lambda: BatcherPool([StreamBatcher(), StreamBatcher()]),
                 "pool": lambda: ThreadPoolExecutor(1), "none": lambda: None}[kind]()
     session = Session.from_bundle(bundle, steps=2, seed=4, window_ms=130, executor=executor)
     assert isinstance(session.scheduler, Scheduler)
@@ -40,6 +42,40 @@ def test_every_scheduler_gives_a_session_its_offline_frames(bundle, kind):
     want = bundle.denormalize(generate_offline(bundle.model, audio, steps=2, seed=4))
     assert n == len(frames) == len(want) and [f.index for f in frames] == list(range(n))
     assert np.abs(np.stack([f.features for f in frames]) - want).max() < 1e-4
+
+
+def test_a_batcher_pool_keeps_each_session_on_one_batcher_and_shares_them_out(bundle):
+    """Four sessions on two batchers: two each, every window of a session (and its finish) on the same batcher's
+    thread, each session's frames its offline ones."""
+    from dimgestor.batch import push_many
+
+    threads: dict[int, set] = {}
+
+    def recording(streams, chunks, return_exceptions=False):
+        for s in streams:
+            threads.setdefault(id(s), set()).add(threading.current_thread().name)
+        return push_many(streams, chunks, return_exceptions)
+
+    pool = BatcherPool([StreamBatcher(push_many=recording, thread_name=f"lane-{i}") for i in range(2)])
+    audio = [synthetic_speech(0.9 + 0.1 * j, seed=j) for j in range(4)]
+    sessions = [Session.from_bundle(bundle, steps=2, seed=j, window_ms=100, executor=pool) for j in range(4)]
+
+    async def run_all():
+        out = [[] for _ in sessions]
+        await asyncio.gather(*(s.run(_chunks(a, 400), o.extend) for s, a, o in zip(sessions, audio, out)))
+        return out
+
+    try:
+        outs = asyncio.run(run_all())
+        homes = [pool._home[s] for s in sessions]
+    finally:
+        pool.shutdown()
+    assert sorted(homes.count(b) for b in pool.batchers) == [2, 2]
+    for s, home, a, frames in zip(sessions, homes, audio, outs):
+        assert threads[id(s.stream)] == {home._threads[0].name}
+        want = bundle.denormalize(generate_offline(bundle.model, a, steps=2, seed=sessions.index(s)))
+        assert len(frames) == len(want) and np.abs(np.stack([f.features for f in frames]) - want).max() < 1e-4
+    assert pool.workers == 2 and pool.stats.batches > 0 and pool.queued_jobs() == 0
 
 
 def test_the_window_rule():
