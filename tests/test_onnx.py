@@ -284,7 +284,7 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
         assert m["backend"] == backend and 0 <= m["max_realtime_streams"] <= 2 and m["trials"]
         assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
         assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
-    assert s["graph_batches"] == [1, BATCH] and all(t["executor"] == "StreamBatcher" and t["graph_batches"] == [
+    assert s["graph_batches"] == [1, BATCH] and all(t["executor"] == "BatcherPool" and t["graph_batches"] == [
         1, BATCH] for t in s["onnxruntime_batched"]["trials"])
     (c,) = r["calls"]
     assert [row["batch"] for row in c["rows"]] == [1, BATCH] and c["state_bytes_per_stream"] > 0
