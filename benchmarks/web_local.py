@@ -178,7 +178,8 @@ def plot(result: dict, path: Path) -> None:
     axes[1].set_ylabel("real-time factor (mean)")
     axes[1].set_ylim(0, max(1.1, max(r["rtf"] for r in rows) * 1.1))
     if talk:
-        kinds = [("hud", "HUD speech->motion"), ("lag", "audio sent - pts drawn"), ("buffer", "playout buffer")]
+        hud = "HUD speech->motion" + ("" if all(r["hud_measured"] == 1 for r in talk) else " (estimated)")
+        kinds = [("hud", hud), ("lag", "audio sent - pts drawn"), ("buffer", "playout buffer")]
         width = 0.8 / len(kinds)
         for i, (k, label) in enumerate(kinds):
             p50 = [r[f"{k}_ms_p50"] for r in talk]
@@ -187,6 +188,7 @@ def plot(result: dict, path: Path) -> None:
                         capsize=3, label=f"{label}: p50, p90 whisker")
         axes[2].set_xticks(np.arange(len(talk)), [f"Talk K={r['steps']}" for r in talk])
         axes[2].set_ylabel("ms")
+        axes[2].legend(fontsize=7)
     browser = result["browser"].split(" built")[0]  # "Chromium N.N.N.N"
     save_panels(fig, axes, f"local mode in headless {browser} (onnxruntime-web WASM), one stream, default model, "
                            f"shared 2-core CPU (load {result['load_average'][0]})", path)

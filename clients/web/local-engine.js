@@ -193,8 +193,8 @@ class LocalEngine {
           const piece = audio.slice(i, i + chunk);
           // Its sound goes to the viewer as it is heard, with its pts, before its frames (as a server's source audio).
           if (sound) this.hooks.sourceAudio({ rate: this.rate, pts: i / this.rate, samples: piece.slice() }, due(i));
+          pushed += piece.length;  // (before the push transfers its buffer to the worker)
           pushes.push(this.push(piece));  // (not awaited: the worker takes them in order)
-          pushed += piece.length;
           i += chunk;
         } while (realtime && i < audio.length && due(i) <= performance.now());
       }
