@@ -8,7 +8,16 @@ of the frame step on a fresh stream of noise through `window.dimgestorLocal.benc
 (worker side: the graph call, the state carried, no drawing). The warm-up calls and the first two real ones are left
 out. Result: median, p90 and mean ms per window, the real-time factor (mean / window), load time.
 
-    python benchmarks/web_local.py                        # K = 1, 4, 8; threads 1, 2 and the default
+Talk (`--talk-s`, per K, onnxruntime-web's default threads): a fresh page whose microphone is Chromium's fake one
+fed the demo speech WAV (looped) talks for that long; every 250 ms, in an animation frame after the page's own
+(which picks the pose and draws it), it reads the HUD's speech -> motion readout (`dimgestor.delayMs`: measured
+from when each microphone chunk reached the page, or an estimate where the page gives none: `hud_measured`), the
+playout buffer (`bufferMs`: newest frame's pts - the pts drawn) and, independent of the page's readout, the lag
+on screen: the pts of all the audio handed to the model by then minus the pts drawn then. The first `--settle`
+seconds are left out. `--web DIR` serves another copy of clients/web (e.g. an older commit's, with its
+node_modules) to measure before / after a change.
+
+    python benchmarks/web_local.py                        # K = 1, 4, 8; threads 1, 2 and the default; Talk 30 s
     python benchmarks/web_local.py --exports /tmp/web     # keep the exported graphs for the next run
 
 Chromium is driven over the DevTools protocol by the tests' `Browser` (tests/test_clients_web.py).
@@ -21,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +49,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--exports", type=Path, default=None,
                    help="folder of the exported graphs (reused when present; default: a temporary folder)")
     p.add_argument("--out", type=Path, default=RESULTS / "web_local.json")
+    p.add_argument("--talk-s", type=float, default=30, help="seconds of Talk per K (0: none)")
+    p.add_argument("--settle", type=float, default=5, help="Talk's first seconds left out")
+    p.add_argument("--web", type=Path, default=None, help="serve this clients/web folder instead of the repo's")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
@@ -55,27 +68,37 @@ def chromium_version() -> str:
     return subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.strip()
 
 
-def measure(folder: Path, threads: int, calls: int, tmp: Path) -> dict:
+@contextmanager
+def local_page(folder: Path, threads: int, tmp: Path, web: Path | None, flags: tuple[str, ...] = ()):
+    """A fresh headless Chromium on `/?local=model/` served by `streamer web`'s server, the model loaded."""
     sys.path.insert(0, str(REPO / "tests"))
     from test_clients_web import Browser
 
+    import streamer.web
     from streamer.web import make_server
 
+    if web is not None:
+        streamer.web.WEB_DIR = web.resolve()  # (make_server mounts it at "/")
     server = make_server("127.0.0.1", 0, folder)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     profile = Path(tempfile.mkdtemp(dir=tmp))
     url = f"http://127.0.0.1:{server.server_address[1]}/?local=model/&threads={threads}"
-    browser = Browser(profile, url)
+    browser = Browser(profile, url, flags)
     try:
         browser.wait_page()
         browser.wait_for("window.dimgestorLocal && window.dimgestorLocal.info", 180, "the local model")
-        info = browser.eval("window.dimgestorLocal.info")
-        cores = browser.eval("navigator.hardwareConcurrency")
-        bench = browser.eval(f"window.dimgestorLocal.bench({calls})")
+        yield browser
     finally:
         browser.close()
         server.shutdown()
         server.server_close()
+
+
+def measure(folder: Path, threads: int, calls: int, tmp: Path, web: Path | None) -> dict:
+    with local_page(folder, threads, tmp, web) as browser:
+        info = browser.eval("window.dimgestorLocal.info")
+        cores = browser.eval("navigator.hardwareConcurrency")
+        bench = browser.eval(f"window.dimgestorLocal.bench({calls})")
     skip = info["call"]["warmup_calls"] + 2
     ms = bench["ms"][skip:]
     window_ms = 1000 * bench["samplesPerCall"] / bench["sampleRate"]
@@ -83,6 +106,47 @@ def measure(folder: Path, threads: int, calls: int, tmp: Path) -> dict:
             "hardware_concurrency": cores, "load_ms": info["loadMs"], "window_ms": window_ms, "windows": len(ms),
             "ms_p50": percentile_ms([m / 1000 for m in ms], 50), "ms_p90": percentile_ms([m / 1000 for m in ms], 90),
             "ms_mean": float(np.mean(ms)), "rtf": float(np.mean(ms) / window_ms)}
+
+
+# Read in an animation frame callback after the page's own, which picked the pose drawn in this frame.
+TALK_READ = """new Promise((done) => requestAnimationFrame(() => {
+  const d = window.dimgestor, l = window.dimgestorLocal;
+  done({t: performance.now() / 1000, hud: d.delayMs, measured: !!d.delayMeasured, buffer: d.bufferMs,
+        shown: d.shownFrame ? d.shownFrame.pts : null, sent: l.audioS + l.backlogS, dropped: l.droppedS,
+        rtf: l.rtf, frameMs: d.frameMs});
+}))"""
+
+
+def measure_talk(folder: Path, seconds: float, settle: float, tmp: Path, web: Path | None) -> dict:
+    """Talk through the fake microphone for `seconds`: the HUD's readout, the buffer and the lag on screen."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from helpers.clients import SPEECH_WAV
+
+    flags = ("--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+             f"--use-file-for-fake-audio-capture={SPEECH_WAV}")
+    with local_page(folder, 0, tmp, web, flags) as browser:
+        browser.eval("window.dimgestor.talk()", user_gesture=True)
+        browser.wait_for("window.dimgestor.shownFrame", 60, "a frame from the microphone on screen")
+        t0, reads = time.monotonic(), []
+        while time.monotonic() - t0 < seconds:
+            time.sleep(0.25)
+            reads.append(browser.eval(TALK_READ))
+        clock = browser.eval("(({underruns, catchUps, marginS, baseMarginS, slackS}) => ({underruns, catchUps, marginS, "
+                             "baseMarginS, slackS}))(window.dimgestor.clock)")
+        browser.eval("window.dimgestor.stopTalk()")
+    start = reads[0]["t"] + settle
+    kept = [r for r in reads if r["t"] >= start and r["shown"] is not None]
+    hud = [r["hud"] / 1000 for r in kept if r["hud"] is not None]
+    buffer = [r["buffer"] / 1000 for r in kept if r["buffer"] is not None]
+    lag = [r["sent"] - r["shown"] for r in kept]
+    return {"threads_asked": 0, "seconds": seconds, "settle_s": settle, "reads": len(kept),
+            "hud_measured": float(np.mean([r["measured"] for r in kept])) if kept else float("nan"),
+            "hud_ms_p50": percentile_ms(hud, 50), "hud_ms_p90": percentile_ms(hud, 90),
+            "lag_ms_p50": percentile_ms(lag, 50), "lag_ms_p90": percentile_ms(lag, 90),
+            "buffer_ms_p50": percentile_ms(buffer, 50), "buffer_ms_p90": percentile_ms(buffer, 90),
+            "rtf": kept[-1]["rtf"] if kept else float("nan"), "dropped_s": reads[-1]["dropped"],
+            "page_frame_ms": float(np.mean([r["frameMs"] for r in kept])) if kept else float("nan"),
+            "clock_at_end": clock}
 
 
 def plot(result: dict, path: Path) -> None:
@@ -96,7 +160,8 @@ def plot(result: dict, path: Path) -> None:
     rows = result["results"]
     settings = sorted({r["threads_asked"] for r in rows})
     ks = sorted({r["steps"] for r in rows})
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    talk = result.get("talk", [])
+    fig, axes = plt.subplots(1, 3 if talk else 2, figsize=(13.5 if talk else 9, 3.4))
     width = 0.8 / len(settings)
     for i, t in enumerate(settings):
         sel = {r["steps"]: r for r in rows if r["threads_asked"] == t}
@@ -112,6 +177,18 @@ def plot(result: dict, path: Path) -> None:
     axes[1].set_xlabel("K")
     axes[1].set_ylabel("real-time factor (mean)")
     axes[1].set_ylim(0, max(1.1, max(r["rtf"] for r in rows) * 1.1))
+    if talk:
+        hud = "HUD speech->motion" + ("" if all(r["hud_measured"] == 1 for r in talk) else " (estimated)")
+        kinds = [("hud", hud), ("lag", "audio sent - pts drawn"), ("buffer", "playout buffer")]
+        width = 0.8 / len(kinds)
+        for i, (k, label) in enumerate(kinds):
+            p50 = [r[f"{k}_ms_p50"] for r in talk]
+            p90 = [r[f"{k}_ms_p90"] for r in talk]
+            axes[2].bar(np.arange(len(talk)) + (i - 1) * width, p50, width, yerr=[[0] * len(talk), np.subtract(p90, p50)],
+                        capsize=3, label=f"{label}: p50, p90 whisker")
+        axes[2].set_xticks(np.arange(len(talk)), [f"Talk K={r['steps']}" for r in talk])
+        axes[2].set_ylabel("ms")
+        axes[2].legend(fontsize=7)
     browser = result["browser"].split(" built")[0]  # "Chromium N.N.N.N"
     save_panels(fig, axes, f"local mode in headless {browser} (onnxruntime-web WASM), one stream, default model, "
                            f"shared 2-core CPU (load {result['load_average'][0]})", path)
@@ -123,7 +200,7 @@ def main(argv=None) -> int:
     from streamer.web import prepare_model
 
     browser = chromium_version()
-    rows = []
+    rows, talk = [], []
     with tempfile.TemporaryDirectory(prefix="web-bench-") as tmp:
         folder = args.exports or Path(tmp)
         for k in args.steps:
@@ -132,10 +209,16 @@ def main(argv=None) -> int:
             prepare_model(model, None, steps=k, frames=2)
             print(f"K={k}: model ready in {time.perf_counter() - t0:.0f} s")
             for t in args.threads:
-                row = {"steps": k, **measure(model, t, args.calls, Path(tmp))}
+                row = {"steps": k, **measure(model, t, args.calls, Path(tmp), args.web)}
                 rows.append(row)
                 print(f"K={k}, threads {row['threads']} (asked {t}): p50 {row['ms_p50']:.1f} ms, "
                       f"p90 {row['ms_p90']:.1f} ms, RTF {row['rtf']:.2f}")
+            if args.talk_s > 0:
+                row = {"steps": k, **measure_talk(model, args.talk_s, args.settle, Path(tmp), args.web)}
+                talk.append(row)
+                print(f"K={k}, Talk: HUD {row['hud_ms_p50']:.0f} / {row['hud_ms_p90']:.0f} ms (measured "
+                      f"{row['hud_measured']:.0%}), lag on screen {row['lag_ms_p50']:.0f} / {row['lag_ms_p90']:.0f} "
+                      f"ms, buffer {row['buffer_ms_p50']:.0f} / {row['buffer_ms_p90']:.0f} ms (p50 / p90)")
     import json
 
     lock = json.loads((REPO / "clients" / "web" / "package-lock.json").read_text())
@@ -144,7 +227,7 @@ def main(argv=None) -> int:
               "device": describe_device("cpu"), "browser": f"{browser} headless, onnxruntime-web {ort_web} (wasm)",
               "load_average": load_average(), "note": args.note, "window_ms": 100,
               "model": "embedded default (speech front end, guidance 1.25: 2 rows), 2 frames a call",
-              "results": rows}
+              "web": str(args.web) if args.web else "clients/web (this commit)", "results": rows, "talk": talk}
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))
     return 0

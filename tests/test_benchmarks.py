@@ -188,15 +188,19 @@ def test_cluster_load_benchmark_runs_a_rolling_restart_and_writes_its_schema(tmp
 @pytest.mark.skipif(not (REPO / "clients/web/node_modules/onnxruntime-web").is_dir(),
                     reason="onnxruntime-web is not installed (make setup runs npm ci in clients/web)")
 def test_web_local_benchmark_writes_its_schema(tmp_path):
-    """One K (exported, ~30 s), one thread setting, a few windows in headless Chromium."""
+    """One K (exported, ~30 s), one thread setting, a few windows and 4 s of Talk in headless Chromium."""
     out = tmp_path / "web_local.json"
-    run("web_local.py", "--steps", "1", "--threads", "1", "--calls", "8", "--out", str(out))
+    run("web_local.py", "--steps", "1", "--threads", "1", "--calls", "8", "--talk-s", "4", "--settle", "1",
+        "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["code"] and r["device"].startswith("CPU") and "onnxruntime-web" in r["browser"]
     [x] = r["results"]
     assert x["steps"] == 1 and x["threads"] == 1 and x["window_ms"] == 100 and x["windows"] == 8 - 3 - 2
     assert all(finite(x[k]) and x[k] > 0 for k in ("ms_p50", "ms_p90", "ms_mean", "rtf", "load_ms"))
+    [t] = r["talk"]  # the readout is measured (from the microphone's chunks), the buffer and the lag are there
+    assert t["steps"] == 1 and t["reads"] >= 5 and t["hud_measured"] == 1.0, t
+    assert all(finite(t[k]) and t[k] > 0 for k in ("hud_ms_p50", "hud_ms_p90", "lag_ms_p50", "buffer_ms_p50")), t
 
 
 def test_latency_benchmark_measures_every_part_on_both_paths(tmp_path):

@@ -412,6 +412,21 @@ def heard_pts(played: np.ndarray, idx: int, source: np.ndarray, near: float, sea
     return (lo + k + half) / 16000 if corr[k] > 0.8 else None
 
 
+def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray) -> list[float]:
+    """For each SHOWN_NOW read: the pts on screen minus the source time heard then (s), found from the recorded
+    sound (`played16`, 16 kHz, its first sample at context time `start_s`); reads where the clock caught up or
+    ran dry since the one before (recovering from a stall, counted apart) and silent moments are left out."""
+    sync = []
+    for prev, s in zip([None] + samples[:-1], samples):
+        if prev is not None and s["jumps"] != prev["jumps"]:
+            continue
+        heard_idx = int((s["t"] - s["lat"] - start_s) * 16000)  # index into played16
+        heard = heard_pts(played16, heard_idx, source, near=s["pts"])
+        if heard is not None:
+            sync.append(s["pts"] - heard)
+    return sync
+
+
 def late_arrivals(log, margin_s: float, window_s: float = 10.0, apart_s: float = 1.0) -> int:
     """How often frames came later than every frame of the `window_s` before them by more than `margin_s`
     (transit = arrival - pts, as the page's playout clock sees it): the stalls a playout clock cannot hide,
@@ -425,6 +440,30 @@ def late_arrivals(log, margin_s: float, window_s: float = 10.0, apart_s: float =
             last = arrival
         seen.append((arrival, transit))
     return events
+
+
+def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source: np.ndarray, context) -> int:
+    """The first sound in `played16` (16 kHz) from index `after` on is the source from its first sample: strong
+    correlation, and the source's start lands where the sound starts. Returns that sound's index."""
+    onset = after + int(np.argmax(np.abs(played16[after:]) > 0.01))
+    assert np.abs(played16[onset]) > 0.01, f"no sound after {after / 16000:.2f} s of the recording; {context}"
+    assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
+    n = 1600  # the first 100 ms (the page may pause the sound soon after, waiting for late frames)
+    seg = played16[onset : onset + n]
+    window = source[: 2 * n]
+    energy = np.convolve(window**2, np.ones(n), "valid")  # |source[k:k+n]|^2 for every lag k
+    corr = np.correlate(window, seg, mode="valid") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
+    lag = int(np.argmax(corr))
+    print(f"sound at {onset / 16000:.3f} s: source from {lag / 16000:.3f} s (correlation {corr[lag]:.3f})")
+    assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f}); {context}"
+    # Where the played sound first crosses 0.01 depends on the playback level (the clip fades in over ~50 ms):
+    # the source sample that crosses the same level, scaled by the measured gain, is where the sound must start.
+    gain = np.linalg.norm(seg) / (np.sqrt(energy[lag]) + 1e-9)
+    expected = int(np.argmax(np.abs(source) > 0.01 / max(gain, 1e-6)))
+    assert abs(lag - expected) < 0.015 * 16000, (
+        f"the sound started {lag / 16000:.3f} s into the source, where the source reaches the played level at "
+        f"{expected / 16000:.3f} s (gain {gain:.2f}): not at its start; {context}")
+    return onset
 
 
 def test_late_arrivals_counts_each_stall_once():
@@ -487,15 +526,7 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     # source that is, is found from the sound itself (a 100 ms stretch matched against the clip, which loops),
     # so a pause in the sound (the page waiting for late frames) cannot fool the check; silent moments are left
     # out. The frame on screen then must be the one with that pts.
-    start_s = rec["start"] / rate
-    sync = []
-    for prev, s in zip([None] + samples[:-1], samples):
-        if prev is not None and s["jumps"] != prev["jumps"]:
-            continue  # the clock caught up or ran dry since the last read (recovering from a stall): counted below
-        heard_idx = int((s["t"] - s["lat"] - start_s) * 16000)  # index into played16
-        heard = heard_pts(played16, heard_idx, source, near=s["pts"])
-        if heard is not None:
-            sync.append(s["pts"] - heard)
+    sync = shown_minus_heard(samples, played16, rec["start"] / rate, source)
     print(f"frame pts - heard pts (s): {np.round(sync, 3)}; clock {clock}")
     assert len(sync) >= 8, f"too few moments with sound to check sync ({len(sync)} of {len(samples)})"
     assert np.all(np.abs(sync) < 0.1), f"frames and sound out of sync (s): {np.round(sync, 3)}; clock {clock}"
@@ -506,26 +537,9 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     assert clock["catchUps"] + clock["underruns"] <= 2 + 3 * stalls, \
         f"the page kept losing its clock: {clock}, {stalls} stalls in the frames' arrival"
 
-    # It played the clip from its first sample on: the first sound lines up with the clip's start (strong
-    # correlation, and the clip's start lands where the sound starts).
-    onset = int(np.argmax(np.abs(played16) > 0.01))
+    # It played the clip from its first sample on: the first sound lines up with the clip's start.
     assert np.abs(played16).max() > 0.1, f"nothing was played ({len(played16)} samples recorded)"
-    assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
-    n = 1600  # the first 100 ms (the page may pause the sound soon after, waiting for late frames)
-    seg = played16[onset : onset + n]
-    window = source[: 2 * n]
-    energy = np.convolve(window**2, np.ones(n), "valid")  # |source[k:k+n]|^2 for every lag k
-    corr = np.correlate(window, seg, mode="valid") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
-    lag = int(np.argmax(corr))
-    print(f"first sound: source from {lag / 16000:.3f} s (correlation {corr[lag]:.3f})")
-    assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f})"
-    # Where the played sound first crosses 0.01 depends on the playback level (the clip fades in over ~50 ms):
-    # the source sample that crosses the same level, scaled by the measured gain, is where the sound must start.
-    gain = np.linalg.norm(seg) / (np.sqrt(energy[lag]) + 1e-9)
-    expected = int(np.argmax(np.abs(source) > 0.01 / max(gain, 1e-6)))
-    assert abs(lag - expected) < 0.015 * 16000, (
-        f"the sound started {lag / 16000:.3f} s into the source, where the source reaches the played level at "
-        f"{expected / 16000:.3f} s (gain {gain:.2f}): not at its start; {clock}")
+    assert_sound_starts_at_source_start(played16, 0, source, clock)
 
     # Two moments differ on screen (it moves), and the skeleton toggle draws something else.
     a, b, sk = read_png(png_a), read_png(png_b), read_png(png_skeleton)

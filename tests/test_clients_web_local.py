@@ -1,13 +1,16 @@
 """The viewer's local mode (`streamer web`, `?local=model/`): the model runs in the browser with onnxruntime-web
 (WebAssembly, in a Web Worker), no inference server. In real headless Chromium: a known WAV gives the frames
 Python's `FrameStepStream` on ONNX Runtime gives for the same audio, seed, K and M (normalized features within
-1e-4, decoded rotations within 1e-4 and root within 1e-3 cm), and the fake microphone gives moving frames at
-the stream's rate in real time with the page saying it runs locally and showing its real-time factor. The pose
+1e-4, decoded rotations within 1e-4 and root within 1e-3 cm); a dropped WAV is heard from its first sample, in
+sync with its gestures, and a second drop replaces it; the fake microphone gives moving frames at the stream's
+rate in real time with the page saying it runs locally, showing its real-time factor and a measured speech ->
+motion delay. The pose
 decoding (pose-decoder.js) and the output filter are also checked under node against Python's numbers.
 The page runs the embedded default model (K = 2 here, to export quickly); the node checks a tiny checkpoint."""
 
 from __future__ import annotations
 
+import base64
 import json
 import shutil
 import socket
@@ -20,7 +23,8 @@ import numpy as np
 import pytest
 
 from helpers.clients import REPO, SPEECH_WAV, free_port
-from test_clients_web import CHROMIUM, Browser, assert_figure_drawn
+from test_clients_web import (CHROMIUM, RECORDER, RECORDING, SHOWN_NOW, Browser, assert_figure_drawn,
+                              assert_sound_starts_at_source_start, late_arrivals, shown_minus_heard)
 
 ORT_WEB = REPO / "clients" / "web" / "node_modules" / "onnxruntime-web" / "dist" / "ort.wasm.min.mjs"
 NODE = shutil.which("node")
@@ -244,3 +248,86 @@ def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_serve
     assert hud["state"] == "local" and "no server inference" in hud["url"]
     assert 0 < float(hud["rtf"]) < 10, hud
     assert_figure_drawn(png)
+
+
+DROP = """(async (url, name) => {
+  const bytes = await (await fetch(url)).arrayBuffer();
+  const dt = new DataTransfer();
+  dt.items.add(new File([bytes], name, {type: 'audio/wav'}));
+  const c = window.dimgestor.sourceAudio.context();
+  const at = {t: c.currentTime, page: performance.now() / 1000};
+  document.body.dispatchEvent(new DragEvent('drop', {dataTransfer: dt, bubbles: true, cancelable: true}));
+  return at;
+})"""
+
+
+@pytest.mark.timeout(300)
+@needs_chromium
+@needs_ort_web
+def test_local_dropped_wav_is_heard_in_sync_with_its_gestures_and_a_second_drop_replaces_it(
+        tmp_path, web_model, web_server):
+    from scipy.signal import resample_poly
+
+    from dimgestor.audio import load_wav
+
+    shutil.copy(SPEECH_WAV, web_model / "speech.wav")  # speech from its first 15 ms: a cut start would show
+    browser = open_local(tmp_path, web_server)
+    try:
+        rate = browser.eval(RECORDER)  # records what the page plays, sample by sample, from before any sound
+        browser.eval(f"({DROP})('/model/speech.wav', 'speech.wav')")
+        browser.wait_for("!!window.dimgestor.shownFrame && window.dimgestor.shownFrame.pts > 0.3", 60,
+                         "the dropped WAV's frames on screen")
+        first = []
+        for _ in range(6):
+            time.sleep(0.4)
+            first.append(browser.eval(SHOWN_NOW))
+        second_at = browser.eval(f"({DROP})('/model/speech.wav', 'again.wav')")
+        browser.wait_for(f"window.dimgestor.arrivalLog.some(([a, p]) => a > {second_at['page']} && p < 0.2)", 60,
+                         "the second drop's frames")
+        began = browser.eval("window.dimgestorLocal.streamAt") / 1000  # (page s) when the second stream replaced the first
+        time.sleep(0.5)
+        readout = browser.eval("({delay: window.dimgestor.delayMs, measured: window.dimgestor.delayMeasured, "
+                               "sound: document.getElementById('sound').textContent})")
+        samples = []
+        for _ in range(24):  # ~11 s of the 13.8 s file
+            time.sleep(0.4)
+            samples.append(browser.eval(SHOWN_NOW))
+        clock = browser.eval("(({underruns, catchUps, marginS, baseMarginS, offset}) => ({underruns, catchUps, "
+                             "marginS, baseMarginS, offset}))(window.dimgestor.clock)")
+        arrivals = browser.eval("window.dimgestor.arrivalLog")
+        rec = browser.eval(RECORDING)
+        errors = browser.eval("window.dimgestor.errors")
+    finally:
+        browser.close()
+    assert errors == []
+    played = np.frombuffer(base64.b64decode(rec["pcm"]), "<i2").astype(np.float32) / 32767
+    played16 = resample_poly(played, 16000, rate).astype(np.float32) if rate != 16000 else played
+    source = load_wav(SPEECH_WAV).astype(np.float32)
+    start_s = rec["start"] / rate
+    assert np.abs(played16).max() > 0.1, f"nothing was played ({len(played16)} samples recorded)"
+
+    # Heard from the file's first sample: the first sound is the file's start.
+    assert_sound_starts_at_source_start(played16, 0, source, clock)
+    # The second drop: the first file's sound stops when the second stream begins (within 0.1 s: the output's
+    # latency), so the next sound is the second's start, not the first going on; the second is heard from its
+    # first sample too. (The page's and the audio context's clocks, read together at the drop, tick alike.)
+    stopped = int((second_at["t"] + began - second_at["page"] + 0.1 - start_s) * 16000)
+    onset = assert_sound_starts_at_source_start(played16, stopped, source, clock)
+    print(f"the first file's sound stopped {began - second_at['page']:.2f} s after the second drop; the second's "
+          f"sound began {onset / 16000 - stopped / 16000 + 0.1:.2f} s after that")
+
+    # In sync over the file: the frame on screen is the one whose pts is heard (as the server mode's test, within
+    # 0.1 s), read in both streams; the second read ~11 s of its file.
+    sync_first = shown_minus_heard(first, played16, start_s, source)
+    sync = shown_minus_heard(samples, played16, start_s, source)
+    print(f"frame pts - heard pts (s): first {np.round(sync_first, 3)}, second {np.round(sync, 3)}; clock {clock}")
+    assert len(sync) >= 10, f"too few moments with sound to check sync ({len(sync)} of {len(samples)})"
+    assert np.all(np.abs(sync_first + sync) < 0.1), f"frames and sound out of sync (s); clock {clock}"
+    # The clock may lose itself only where frames came later than anything before by more than its margin (the
+    # worker or the page starved on this shared machine: measured in the second stream's arrivals), as watching.
+    stalls = late_arrivals([(a, p) for a, p in arrivals if a > began], clock["baseMarginS"])
+    assert clock["catchUps"] + clock["underruns"] <= 2 + 3 * stalls, \
+        f"the page kept losing its clock: {clock}, {stalls} stalls in the frames' arrival"
+    # The HUD's speech -> motion is measured from when each piece of the file was heard, and the Sound button is on.
+    assert readout["measured"] and 0 < readout["delay"] < 5000, readout
+    assert readout["sound"] == "Sound on", readout

@@ -3,14 +3,16 @@
 // carries its state; here the frames are denormalized and decoded to poses (pose-decoder.js) and handed to the
 // viewer as protocol messages (hello, frame, status: docs/protocol.md), so the same playout clock, mannequin
 // and VRM code draw them. Audio: the microphone (Talk: captured by mic-worklet.js in an AudioContext running at
-// the model's 16 kHz, the browser resampling) or a dropped WAV file (played through the model in real time).
+// the model's 16 kHz, the browser resampling) or a dropped WAV file (played through the model in real time, its
+// sound handed to the viewer with each chunk, as a server's source audio: the viewer plays it on the frames' playout
+// clock, source-audio.js). A second drop replaces the first: its stream, frames and sound.
 //
 // The model folder holds what `streamer web` writes: frame_step.onnx + manifest.json (`dimgestor export-onnx`)
 // and web.json (the hello the server would send for this checkpoint, the feature layout, the root mode).
 //
 // window.dimgestorLocal (for scripts and tests): ready (a promise), info, rtf, runMs, audioS (answered by the
-// worker), capturedS (from the microphone), backlogS, droppedS,
-// framesMade, runWav(url | File, {realtime, seed}) -> {normalized, root, rotations, rtf}, startMic(),
+// worker), capturedS (from the microphone), backlogS, droppedS, streamAt (when the stream now began, page ms),
+// framesMade, runWav(url | File, {realtime, seed, sound}) -> {normalized, root, rotations, rtf}, startMic(),
 // stopMic(), bench(calls) -> per-call ms.
 import { PoseDecoder } from './pose-decoder.js';
 
@@ -18,7 +20,8 @@ const MAX_BACKLOG_S = 2;   // microphone audio waiting for the worker beyond thi
 const RTF_WINDOW = 50;     // pushes the shown real-time factor is averaged over
 const WAV_CHUNK_S = 0.1;   // a dropped WAV goes to the worker in chunks this long, paced in real time
 
-/** hooks: {onMessage(json), say(text), fail(text), setState(state, detail), api (window.dimgestor), talkButton}. */
+/** hooks: {onMessage(json), say(text), fail(text), setState(state, detail), api (window.dimgestor), talkButton,
+ *  beginStream({talk, sound, windowS}), sourceAudio({rate, pts, samples}, at ms), noteSaid(pts, at ms)}. */
 export async function startLocal(base, hooks) {
   const engine = new LocalEngine(new URL(base || 'model/', location.href), hooks);
   window.dimgestorLocal = engine;
@@ -46,6 +49,9 @@ class LocalEngine {
     this.mic = null;
     this.record = null;        // {normalized, root, rotations} while runWav collects the frames it makes
     this.source = null;        // 'mic' | 'wav' | null
+    this.stream = 0;           // the stream now: answers for an older one (replaced by a drop) are dropped
+    this.wavRun = 0;           // the WAV run now: an older run's pacing stops when a new one starts
+    this.pushedS = 0;          // audio of this stream sent to the worker (the pts it has reached)
   }
 
   async start() {
@@ -98,20 +104,31 @@ class LocalEngine {
     else p.resolve(msg);
   }
 
-  newStream(seed) {
+  /** A fresh stream in the worker and the viewer (`sound`: the audio pushed is played there too). */
+  newStream(seed, sound = false) {
+    this.stream++;
+    this.streamAt = performance.now();
     this.decoder = new PoseDecoder(this.spec, this.web.root, this.web.tether_s);
     this.framesMade = 0;
+    this.pushedS = 0;
     this.rtfPushes = [];
-    return this.worker ? this.call({ type: 'reset', seed }) : null;
+    if (this.hooks.beginStream) {
+      const windowS = this.info ? this.info.call.frames_per_call / this.fps : null;
+      this.hooks.beginStream({ talk: this.source === 'mic', sound, windowS });
+    }
+    return this.worker ? this.call({ type: 'reset', seed, stream: this.stream }) : null;
   }
 
   /** 16 kHz samples to the model; its frames go to the viewer (and to `record`). */
   async push(samples, finish = false) {
     const n = finish ? 0 : samples.length;  // (read before the buffer is transferred to the worker)
+    const stream = this.stream;
     this.backlog += n;
+    this.pushedS += n / this.rate;
     let r;
     try {
-      r = finish ? await this.call({ type: 'finish' }) : await this.call({ type: 'push', samples }, [samples.buffer]);
+      r = finish ? await this.call({ type: 'finish', stream })
+        : await this.call({ type: 'push', samples, stream }, [samples.buffer]);
     } finally {
       this.backlog -= n;
     }
@@ -123,6 +140,7 @@ class LocalEngine {
       const [run, audio] = this.rtfPushes.reduce((a, [x, y]) => [a[0] + x, a[1] + y], [0, 0]);
       this.rtf = run / audio;
     }
+    if (stream !== this.stream) return 0;  // a stream replaced meanwhile: its last frames are not shown
     for (const row of r.frames) this.emit(row);
     if (r.runMs > 0) this.lastCallMs = r.runMs;  // (a push shorter than a call may complete none)
     this.hooks.onMessage(JSON.stringify({ type: 'status', rtf: this.rtf, latency_ms: this.lastCallMs, local: true }));
@@ -142,34 +160,53 @@ class LocalEngine {
   }
 
   // ---------------------------------------------------------------- a WAV file
-  /** A WAV (URL or File) through the model: as fast as it goes (realtime false) or paced like live audio. */
-  async runWav(source, { realtime = false, seed } = {}) {
+  /** A WAV (URL or File) through the model: as fast as it goes (realtime false) or paced like live audio, its
+   *  sound played with the frames (`sound`, paced only). A run started meanwhile replaces this one: its pacing
+   *  stops and it returns what it made so far (`replaced`). */
+  async runWav(source, { realtime = false, seed, sound = false } = {}) {
     await this.ready;
-    if (this.source) throw new Error(`busy: the ${this.source} is running (stop it first)`);
+    if (this.source === 'mic') throw new Error('busy: the microphone is running (stop it first)');
+    // Read and parsed before anything running is replaced: a file that cannot be read stops nothing.
     const bytes = source instanceof Blob ? await source.arrayBuffer() : await (await fetch(source)).arrayBuffer();
     const audio = await wavTo16k(bytes, this.rate);
+    if (this.source === 'mic') throw new Error('busy: the microphone is running (stop it first)');
+    const run = ++this.wavRun;
     this.source = 'wav';
-    this.record = { normalized: [], root: [], rotations: [] };
+    const record = this.record = { normalized: [], root: [], rotations: [] };
     const t0 = performance.now(), runMs0 = this.runMs;
+    sound = sound && realtime;
+    let pushed = 0;
     try {
-      await this.newStream(seed);
+      await this.newStream(seed, sound);
       // As fast as it goes: all of it in one message (the worker still calls the graph window by window).
       const chunk = realtime ? Math.round(WAV_CHUNK_S * this.rate) : audio.length;
       const pushes = [];
-      for (let i = 0; i < audio.length; i += chunk) {
-        if (realtime) {  // pace: this chunk is "heard" when its last sample's time has come
-          const due = t0 + (1000 * Math.min(i + chunk, audio.length)) / this.rate;
-          await new Promise((res) => setTimeout(res, Math.max(0, due - performance.now())));
+      const due = (i) => t0 + (1000 * Math.min(i + chunk, audio.length)) / this.rate;  // its last sample's time
+      for (let i = 0; i < audio.length && run === this.wavRun;) {
+        if (realtime) {  // pace: a chunk is "heard" when its last sample's time has come
+          await new Promise((res) => setTimeout(res, Math.max(0, due(i) - performance.now())));
+          if (run !== this.wavRun) break;
         }
-        pushes.push(this.push(audio.slice(i, i + chunk)));  // (not awaited: the worker takes them in order)
+        // Every chunk due by now: a page busy drawing wakes late (a software-drawn page's frame can take 250 ms),
+        // and one chunk a wake would fall behind real time.
+        do {
+          const piece = audio.slice(i, i + chunk);
+          // Its sound goes to the viewer as it is heard, with its pts, before its frames (as a server's source audio).
+          if (sound) this.hooks.sourceAudio({ rate: this.rate, pts: i / this.rate, samples: piece.slice() }, due(i));
+          pushed += piece.length;  // (before the push transfers its buffer to the worker)
+          pushes.push(this.push(piece));  // (not awaited: the worker takes them in order)
+          i += chunk;
+        } while (realtime && i < audio.length && due(i) <= performance.now());
       }
-      pushes.push(this.push(null, true));
+      if (run === this.wavRun) pushes.push(this.push(null, true));
       await Promise.all(pushes);
-      const out = this.record;
-      return { ...out, rtf: (this.runMs - runMs0) / ((1000 * audio.length) / this.rate), samples: audio.length };
+      return { ...record, rtf: (this.runMs - runMs0) / ((1000 * audio.length) / this.rate), samples: pushed,
+               replaced: run !== this.wavRun };
     } finally {
-      this.record = null;
-      this.source = null;
+      if (run === this.wavRun) {
+        this.record = null;
+        this.source = null;
+      }
     }
   }
 
@@ -180,8 +217,8 @@ class LocalEngine {
     e.stopImmediatePropagation();
     document.getElementById('drop').classList.remove('show');
     this.hooks.say(`${file.name}: generating locally, in real time`);
-    this.runWav(file, { realtime: true }).then(
-      (r) => this.hooks.say(`${file.name}: ${r.normalized.length} frames made here, real-time factor ${r.rtf.toFixed(2)}`),
+    this.runWav(file, { realtime: true, sound: true }).then(
+      (r) => r.replaced || this.hooks.say(`${file.name}: ${r.normalized.length} frames made here, real-time factor ${r.rtf.toFixed(2)}`),
       (err) => this.hooks.say(`${file.name}: ${err.message}`));
   }
 
@@ -207,6 +244,9 @@ class LocalEngine {
     node.port.onmessage = (e) => {  // each chunk to the worker at once (it takes them in order, answers in order)
       this.capturedS += e.data.length / this.rate;
       if (this.backlog / this.rate > MAX_BACKLOG_S) { this.droppedS += e.data.length / this.rate; return; }
+      // Said when it reached the page, its last sample at the pts of all the audio sent (the speech -> motion
+      // readout, as talking to a server; a chunk the page got late reads least delayed among the last 5 s).
+      this.hooks.noteSaid(this.pushedS + e.data.length / this.rate, performance.now());
       last = this.push(e.data).catch((err) => hooks.fail(`local inference: ${err.message}`));
     };
     const silence = ctx.createGain();  // the node must reach the destination to be pulled; never heard

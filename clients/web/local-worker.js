@@ -12,6 +12,7 @@ import { FrameStepStream } from './frame-step-stream.js';
 
 let session = null, manifest = null, stream = null, seed = 0;
 let queue = Promise.resolve();
+let latest = 0;  // the newest stream the page has asked for (its messages carry `stream`)
 
 async function run(feeds) {
   const tensors = {};
@@ -43,7 +44,9 @@ async function init({ base, threads, seed: s }) {
            crossOriginIsolated: self.crossOriginIsolated, sampler: manifest.sampler, call: manifest.call };
 }
 
-async function push(samples) {
+async function push(samples, of) {
+  // A stream replaced since this was sent (a second WAV dropped): answered, not run.
+  if (of < latest) return { type: 'frames', frames: [], runMs: 0, samples: samples.length, skipped: true };
   const runMs = stream.runMs;
   const frames = await stream.push(samples);
   return { type: 'frames', frames, runMs: stream.runMs - runMs, samples: samples.length };
@@ -70,12 +73,13 @@ async function bench(calls) {
 }
 
 const handlers = {
-  init, push: (m) => push(m.samples), finish: () => finish(), bench: (m) => bench(m.calls),
+  init, push: (m) => push(m.samples, m.stream ?? latest), finish: () => finish(), bench: (m) => bench(m.calls),
   reset: (m) => { seed = m.seed ?? seed; stream = new FrameStepStream(manifest, run, seed); return { type: 'reset' }; },
 };
 
 self.onmessage = (e) => {
   const msg = e.data;
+  if (msg.stream > latest) latest = msg.stream;  // (at once: pushes queued for an older stream are skipped)
   queue = queue.then(async () => {
     try {
       const handler = handlers[msg.type];

@@ -35,6 +35,7 @@ const ui = { state: $('state'), frames: $('frames'), fps: $('fps'), latency: $('
              drop: $('drop'), paused: $('paused') };
 
 const sourceAudio = new SourceAudio();
+let localSound = false;  // local mode (below): the stream is a dropped file, its sound played
 // Everything a test or the console may want to read.
 const ARRIVAL_LOG = 4000;  // frames (200 s at 20 fps)
 const api = window.dimgestor = {
@@ -526,14 +527,7 @@ function connect(audio = null, resume = null) {
   pingSentAt = null;
   if (!resume) {  // a resumed session goes on: its frames, clocks and audio continue where they were
     handover = null;
-    lastIndex = -1;
-    playout.offset = null;  // whatever this connection sends starts a new playout clock
-    playout.queue = [];
-    clock.reset();
-    sourceAudio.clear();
-    speech.reset();
-    api.timingSeen = false;
-    arrivals.length = 0;
+    resetStream();
   }
   if (resume) takeRing();  // the old stream's last frames: the resumed one goes on from them
   ring = null;
@@ -546,6 +540,29 @@ function connect(audio = null, resume = null) {
   if (audio) hello.audio = audio;
   socketWorker().postMessage({ type: 'connect', id: connId, url: api.url, hello, resume: resume ? resume.token : null });
   setState('connecting');
+}
+
+/** Forget the stream shown so far: whatever comes next starts a new playout clock, sound and speech readout. */
+function resetStream() {
+  lastIndex = -1;
+  playout.offset = null;
+  playout.queue = [];
+  clock.reset();
+  sourceAudio.clear();
+  speech.reset();
+  api.timingSeen = false;
+  arrivals.length = 0;
+}
+
+/** The playout buffer for this `mode`, frames coming in bursts of `windowS` (null: not said) at `fps`. Talking:
+ *  only what the lateness may still grow by above the worst lateness of late (which already holds a window's
+ *  burst; underruns grow it, av-clock.js), spare buffer given back; watching with the sound: one window plus
+ *  network jitter, so the sound seldom pauses. */
+function sizePlayout(windowS, fps) {
+  playout.delayS = mode === 'talk' ? LIVE_MARGIN_S : (windowS || 0.25) + 0.06;
+  clock.setBaseMargin(playout.delayS);
+  clock.setSlack(mode === 'talk' ? LIVE_SLACK_S : 0.5);
+  clock.setBursts(windowS || 0.2, 1 / (fps || 20));
 }
 
 function onOpen() {
@@ -598,13 +615,7 @@ function onParsed(msg, at) {
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
       api.hello = msg;
       try { buildSkeleton(msg.skeleton, msg.humanoid); } catch (e) { fail(e.message); return; }
-      // The buffer above the worst lateness of late (which already holds a window's burst). Talking: only what
-      // the lateness may still grow by (underruns grow it, av-clock.js); watching with the sound: one window
-      // plus network jitter, so the sound seldom pauses.
-      playout.delayS = mode === 'talk' ? LIVE_MARGIN_S : (msg.window_ms ? msg.window_ms / 1000 : 0.25) + 0.06;
-      clock.setBaseMargin(playout.delayS);
-      clock.setSlack(mode === 'talk' ? LIVE_SLACK_S : 0.5);
-      clock.setBursts(msg.window_ms ? msg.window_ms / 1000 : 0.2, 1 / (msg.fps || 20));
+      sizePlayout(msg.window_ms ? msg.window_ms / 1000 : null, msg.fps);
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
       if (!api.talking) ui.talk.title = msg.audio && msg.audio.accepts ? 'Talk to the avatar' : 'this server takes no audio';
       ui.sound.disabled = !msg.source_audio || mode === 'talk';
@@ -704,7 +715,7 @@ function onSourceAudio(chunk, at) {
 
 // ---------------------------------------------------------------- sound, pause, view
 function updateSoundButton() {
-  const available = api.hello && api.hello.source_audio && mode === 'view';
+  const available = api.hello && (api.hello.source_audio || localSound) && mode === 'view';
   ui.sound.textContent = !available ? 'No sound' : sourceAudio.muted ? 'Sound off' : sourceAudio.blocked ? 'Sound: click' : 'Sound on';
   ui.sound.classList.toggle('on', !!available && !sourceAudio.muted);
 }
@@ -898,11 +909,25 @@ setInterval(() => {  // round trip on the same socket as the frames
   }
 }, 2000);
 
-// Local mode (?local=MODEL_URL): no server; local-engine.js runs the model here and hands its frames to onMessage.
+// Local mode (?local=MODEL_URL): no server; local-engine.js runs the model here and hands its frames to onMessage,
+// a dropped WAV's sound to onSourceAudio (played on the playout clock, as the server's source) and, talking, when
+// each microphone chunk reached the page (the speech -> motion readout, as talking to a server).
 let local = null;
+
+/** Local mode: a new stream starts (the microphone when `talk`, else a file), frames in `windowS` bursts. */
+function beginLocalStream({ talk, sound, windowS }) {
+  mode = talk ? 'talk' : 'view';
+  localSound = !!sound;
+  resetStream();
+  sizePlayout(windowS, api.hello && api.hello.fps);
+  ui.sound.disabled = !localSound;
+  updateSoundButton();
+}
 if (params.has('local')) {
   import('./local-engine.js').then(async (m) => {
-    local = await m.startLocal(params.get('local'), { onMessage, say, fail, setState, api, talkButton: ui.talk });
+    local = await m.startLocal(params.get('local'), { onMessage, say, fail, setState, api, talkButton: ui.talk,
+                                                      beginStream: beginLocalStream, sourceAudio: onSourceAudio,
+                                                      noteSaid: (pts, at) => speech.noteSaid(pts, at / 1000) });
     api.talk = () => local.toggleMic();
     api.stopTalk = () => local.stopMic();
   }).catch((e) => fail(`local inference: ${e.message}`));
