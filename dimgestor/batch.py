@@ -88,6 +88,7 @@ class _Guidance(NamedTuple):
     are adjacent, so a stream's state is one slice of the batch's buffer)."""
 
     rows: torch.Tensor  # (R,) the window each network row belongs to
+    sources: torch.Tensor  # (R,) where each row's modulations come from: its window b, or B (the null condition)
     cond_rows: torch.Tensor  # (B,) each window's conditional row
     null_rows: torch.Tensor  # (G,) each guided window's unconditional row
     guided: torch.Tensor  # (G,) the guided windows
@@ -99,22 +100,31 @@ class _Guidance(NamedTuple):
         """None where no window is guided (scale 1): then the batch runs exactly the unguided ops."""
         if guidance is None or all(s == 1.0 for s in guidance):
             return None
-        rows, cond_rows, null_rows, guided, scale = [], [], [], [], []
+        rows, sources, cond_rows, null_rows, guided, scale = [], [], [], [], [], []
         for b, s in enumerate(guidance):
             cond_rows.append(len(rows))
             rows.append(b)
+            sources.append(b)
             if s != 1.0:
                 null_rows.append(len(rows))
                 rows.append(b)
+                sources.append(len(guidance))
                 guided.append(b)
                 scale.append(float(s))
         idx = lambda v: torch.tensor(v, dtype=torch.long, device=device)  # noqa: E731
-        return _Guidance(idx(rows), idx(cond_rows), idx(null_rows), idx(guided),
+        return _Guidance(idx(rows), idx(sources), idx(cond_rows), idx(null_rows), idx(guided),
                          torch.tensor(scale, dtype=dtype, device=device)[:, None, None], len(guided) == len(guidance))
 
-    def condition(self, cond: torch.Tensor) -> torch.Tensor:
-        """cond (B, n, H) -> (R, n, H): the null condition (zeros) on the unconditional rows."""
-        return cond.index_select(0, self.rows).index_fill_(0, self.null_rows, 0.0)
+    def modulations(self, mods: torch.Tensor, null: torch.Tensor) -> torch.Tensor:
+        """The windows' modulations (K, B, n, W) and the null condition's (K, W) -> every row's (K, R, n, W).
+
+        The unconditional rows' condition is zeros, so their modulations are the same every window (the step
+        embedding's alone): made once, not half of every window's largest matrix product."""
+        K, B, n, W = mods.shape
+        null = null[:, None, None].expand(K, 1, n, W)
+        if self.all_guided:  # each window's row, then its null row
+            return torch.stack([mods, null.expand(K, B, n, W)], 2).view(K, 2 * B, n, W)
+        return torch.cat([mods, null], 1).index_select(1, self.sources)
 
     def combine(self, out: torch.Tensor) -> torch.Tensor:
         """The network output on the R rows -> the guided output (B, n, D) of the B windows."""
@@ -159,6 +169,7 @@ class DenoiseRunner:
             self._b[6 * H * len(m.blocks) + H:] += 1  # the final layer's scale
             t = torch.tensor([t for t, _ in self.pairs], device=self._w.device)
             self._temb = m.t_embedder(t).detach().clone()  # (K, H)
+            self._null = F.linear(F.silu(self._temb), self._w, self._b)  # (K, W): the null condition's (zeros)
             self._blocks = [_FastBlock.of(b) for b in m.blocks]
         self._version = version
 
@@ -170,7 +181,8 @@ class DenoiseRunner:
         return F.linear(F.silu(c), self._w, self._b)
 
     def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates,
-               guidance: Sequence[float] | None = None, out: StepStates | None = None) -> torch.Tensor:
+               guidance: Sequence[float] | None = None, out: StepStates | None = None,
+               hold: torch.Tensor | None = None) -> torch.Tensor:
         """Denoise B windows of n frames: cond (B, n, H), row b's frames start at frame_starts[b] of the stream
         seeded seeds[b] -> x0 (B, n, motion_dim). The new states are written into `out` (same shapes as
         `states`; None: into `states` itself, in place), step by step: no state is copied. Call under
@@ -178,6 +190,11 @@ class DenoiseRunner:
 
         guidance: each window's classifier-free guidance scale (None: all 1). A guided window has two rows in
         `states`, its conditional then its unconditional branch (see `_Guidance`), so `states` has B + G rows.
+
+        hold: (B + G,) bool, the network rows whose states stay as they were (`out` gets `states`' values: a
+        stream in the exported graph's warm-up, whose condition is not real yet). Their frames mean nothing.
+        Into the fast path's blocks as a zero step size (decay exp(0) = 1 and input 0: the SSM state, the
+        largest, carried exactly without a pass over it), elsewhere as a choice between old and new.
         """
         m, d = self.model, self.diffusion
         n = cond.shape[1]
@@ -185,28 +202,31 @@ class DenoiseRunner:
         nb = len(m.blocks)
         plan = _Guidance.plan(guidance, cond.device, cond.dtype)
         x = motion_noise_rows(seeds, frame_starts, n, 0, D, L, cond.device).to(cond.dtype)  # x_T, (B, n, D)
+        mods = self.modulations(cond)  # (K, B windows, n, W)
         if plan is not None:
-            cond = plan.condition(cond)  # (R, n, H)
-        B = cond.shape[0]  # network rows
+            mods = plan.modulations(mods, self._null)  # (K, R, n, W)
+        B = mods.shape[1]  # network rows
         if states.batch != B:
             raise ValueError(f"states hold {states.batch} rows, the windows (with their guided rows) need {B}")
         out = states if out is None else out
-        mods = self.modulations(cond)
         fast = n <= STEP_MAX and all(b is not None for b in self._blocks)
         for k, (t, t_prev) in enumerate(self.pairs):
             h, tail = m.encoder(x if plan is None else x.index_select(0, plan.rows), states.enc[k])
-            out.enc[k].copy_(tail)
+            out.enc[k].copy_(tail if hold is None else torch.where(_rows(hold, tail), states.enc[k], tail))
             if fast:  # rows (B n, H), the blocks' ops written out for a window of a few frames
                 h = h.reshape(B * n, H)
                 mk = mods[k].reshape(B * n, -1).split(H, -1)  # every block's 6 chunks (H each) cut at once
                 for j, fb in enumerate(self._blocks):
                     h = fb(h, mk[6 * j: 6 * (j + 1)], (states.conv[k, j], states.ssm[k, j]),
-                           (out.conv[k, j], out.ssm[k, j]), B, n)
+                           (out.conv[k, j], out.ssm[k, j]), B, n, hold)
                 h = h.view(B, n, H)
             else:  # a long window (a backlog): the block's modules, the scan picked by length
                 for j, block in enumerate(m.blocks):
                     h = _modulated_block(block, h, mods[k, :, :, 6 * H * j: 6 * H * (j + 1)],
                                          (states.conv[k, j], states.ssm[k, j]), (out.conv[k, j], out.ssm[k, j]))
+                    if hold is not None:
+                        for old, new in ((states.conv[k, j], out.conv[k, j]), (states.ssm[k, j], out.ssm[k, j])):
+                            new.copy_(torch.where(_rows(hold, new), old, new))
             y = _modulated_final(m.final, h, mods[k, :, :, 6 * H * nb:])
             if plan is not None:
                 y = plan.combine(y)  # (B windows, n, D)
@@ -218,6 +238,11 @@ class DenoiseRunner:
             else:
                 x, _ = d.ddim_step(x, eps, t, t_prev, self.eta, noise, x0=x0)
         return x
+
+
+def _rows(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """A (rows,) mask shaped to broadcast over `like` (rows, ...)."""
+    return mask.view(-1, *[1] * (like.dim() - 1))
 
 
 def _modulated_block(block, h, mod, state, out):
@@ -267,20 +292,23 @@ class _FastBlock:
                  and isinstance(block.mlp.act, torch.nn.GELU) and block.mlp.act.approximate == "tanh")
         return _FastBlock(block, block.norm1.normalized_shape[0]) if plain else None
 
-    def __call__(self, h, mod, state, out, B: int, L: int):
+    def __call__(self, h, mod, state, out, B: int, L: int, hold=None):
         """h (B L, H); mod: its 6 adaLN chunks (B L, H) each, 1 added to the scales; state: the (conv (B, d_conv - 1,
-        C), ssm (B, h, p, n)) it continues; the new one is written into `out`'s (may be the same tensors)."""
+        C), ssm (B, h, p, n)) it continues; the new one is written into `out`'s (may be the same tensors);
+        hold: None or (B,) bool, rows whose state `out` gets unchanged (`DenoiseRunner.sample`)."""
         H, h_, p, n = self.H, self.h, self.p, self.n
         (conv, ssm), (conv_out, ssm_out) = state, out
         shift1, scale1, gate1, shift2, scale2, gate2 = mod
         u = torch.addcmul(shift1, F.layer_norm(h, (H,), eps=1e-6), scale1)
         z, xBC, dt = F.linear(u, self.w_in).split([self.di, self.C, h_], -1)
         xs = torch.cat([conv, xBC.view(B, L, self.C)], 1)  # (B, d_conv - 1 + L, C): the conv's window, time-major
-        conv_out.copy_(xs[:, L:])
+        conv_out.copy_(xs[:, L:] if hold is None else torch.where(_rows(hold, conv), conv, xs[:, L:]))
         # each frame's d_conv inputs as a view (B, L, C, d_conv), weighed and summed (exported: a few nodes, not 3 a tap)
         y = (xs.unfold(1, self.dc, 1) * self.taps).sum(-1) + self.conv_bias
         x, Bm, Cm = F.silu(y).split([self.di, n, n], -1)  # (B, L, .)
         dt = F.softplus(dt + self.dt_bias).view(B, L, h_)
+        if hold is not None:  # dt = 0: dA = exp(0) = 1 and Xdt = 0, so the recurrence returns the state as it was
+            dt = torch.where(_rows(hold, dt), 0.0, dt)
         dA = torch.exp(dt * self.A)  # (B, L, h)
         Xdt = x.view(B, L, h_, p) * dt[..., None]  # (B, L, h, p)
         if B == 1:  # 2-D matmuls on the state's rows (a head's p channels each), written into the buffer

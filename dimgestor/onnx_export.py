@@ -182,15 +182,14 @@ class FrameStep(nn.Module):
         states = StepStates(named["denoiser_enc"], named["denoiser_conv"], named["denoiser_ssm"])
         out = StepStates(*(_Slots(t) for t in states))
         parts = StepStates(*(_Parts(t, depth) for t, depth in zip(states, (1, 2, 2))))
-        frames = self.runner.sample(cond, frame, seed, parts, [self.guidance] * self.batch, out=out)  # (B, M, D)
+        # a warm-up call (frame < 0): its condition is not real yet, so that stream's denoiser rows keep their
+        # start state (the runner holds them: no pass over the whole stacked state to choose old or new)
+        warm = (frame < 0).repeat_interleave(self.rows)  # (B rows,)
+        frames = self.runner.sample(cond, frame, seed, parts, [self.guidance] * self.batch, out=out,
+                                    hold=warm)  # (B, M, D)
         new = {f"frontend_{k}": v for k, v in fe._asdict().items() if torch.is_tensor(v)}
         new |= {"extractor_style_conv": ex.style.conv, "extractor_style_ssm": ex.style.ssm, "extractor_buf": ex.buf}
-        # a warm-up call (frame < 0): its condition is not real yet, so that stream's denoiser rows keep their
-        # start state
-        warm = (frame < 0).repeat_interleave(self.rows) if self.batch > 1 else frame < 0  # (B rows,)
-        for spec, old, slots in zip(self.specs[-3:], states, out):
-            gate = warm.view([-1 if d == spec.dim else 1 for d in range(old.dim())]) if self.batch > 1 else warm
-            new[spec.name] = torch.where(gate, old, slots.stacked())
+        new |= {spec.name: slots.stacked() for spec, slots in zip(self.specs[-3:], out)}
         return (frames[0] if self.batch == 1 else frames, *(new[s.name] for s in self.specs))
 
     def example_inputs(self) -> tuple[torch.Tensor, ...]:

@@ -62,6 +62,29 @@ def test_runner_equals_the_models_own_forward(model, n, sampler, eta, K, B):
                 assert (got_t - want_t).abs().max() < TOL
 
 
+@pytest.mark.parametrize("n", [2, 7])  # the written-out block (held by a zero step size) and the modules
+@pytest.mark.parametrize("guidance", [None, [1.0, 2.0, 1.5]])
+def test_held_rows_keep_their_states_exactly(model, n, guidance):
+    """`hold` (the exported graph's warm-up): held rows come out with the very states they went in with; the
+    other rows' frames and states are the ones they get without it."""
+    pairs = Diffusion(model.config).sampling_pairs("ddim", 3)
+    runner = DenoiseRunner(model, pairs, "ddim", 0.0)
+    gen = torch.Generator().manual_seed(1)
+    rows = 3 if guidance is None else 5  # window 0 unguided; 1 and 2 guided, two rows each
+    hold = torch.tensor([False, True, True, False, False] if guidance else [False, True, False])
+    with torch.inference_mode():
+        start = StepStates(*(torch.randn(t.shape, generator=gen) for t in StepStates.zeros(model, len(pairs), rows)))
+        cond = torch.randn(3, n, model.config.hidden, generator=gen)
+        free, held = (StepStates(*(torch.empty_like(t) for t in start)) for _ in range(2))
+        want = runner.sample(cond, [4, 9, 0], [1, 2, 3], start, guidance, out=free)
+        got = runner.sample(cond, [4, 9, 0], [1, 2, 3], start, guidance, out=held, hold=hold)
+    for b in (0, 2):  # window 1's frames (held) mean nothing
+        assert torch.equal(got[b], want[b])
+    for new, old, ref, dim in zip(held, start, free, (1, 2, 2)):
+        assert torch.equal(new.index_select(dim, hold.nonzero()[:, 0]), old.index_select(dim, hold.nonzero()[:, 0]))
+        assert torch.equal(new.index_select(dim, (~hold).nonzero()[:, 0]), ref.index_select(dim, (~hold).nonzero()[:, 0]))
+
+
 def _schedule(rng, total, low, high):
     sizes, left = [], total
     while left > 0:

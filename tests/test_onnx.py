@@ -68,7 +68,9 @@ def test_manifest_is_the_graph(exported):
 
 def test_onnx_runtime_fuses_each_blocks_gelu_and_rmsnorm_and_reads_each_state_once(exported, bundle, tmp_path):
     """The graph is written in the forms ONNX Runtime fuses (a tanh GELU and an RMSNorm a block and step become
-    one node each), and each stacked denoiser state is cut by one node (beside the warm-up gate), not per step."""
+    one node each), each stacked denoiser state is read by one node that cuts it (the warm-up holds a stream's
+    state inside the steps, with no pass over the whole state), and the front end's transforms are matrix
+    products (ONNX Runtime's DFT cost more than the rest of the front end)."""
     import collections
 
     import onnx
@@ -82,9 +84,10 @@ def test_onnx_runtime_fuses_each_blocks_gelu_and_rmsnorm_and_reads_each_state_on
     blocks = bundle.config.n_blocks
     assert ops["FastGelu"] == STEPS * blocks
     assert ops["SimplifiedLayerNormalization"] >= STEPS * blocks
+    assert ops["DFT"] == 0
     written = onnx.load(str(exported / m["graph"])).graph.node
     for name in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
-        assert sorted(n.op_type for n in written if name in n.input) == ["Reshape", "Where"]
+        assert [n.op_type for n in written if name in n.input] == ["Reshape"]
 
 
 def test_state_shapes_are_the_torch_streams(exported, bundle):
