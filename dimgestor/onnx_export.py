@@ -32,8 +32,10 @@ Why this boundary (one graph for the whole window step, fixed shapes):
 
 It is traced from what the torch stream runs (`DiMGestor.frontend`, `.condition`, and the stream's sampler
 `DenoiseRunner.sample` with its written-out blocks; run eagerly, `FrameStep` is the graph's reference), so
-there is no second model. The exporter is torch.onnx's dynamo one (`torch.export`, then onnxscript): the
-TorchScript exporter has no conversion for the front end's `aten::fft_rfft`; the dynamo one writes ONNX DFT.
+there is no second model. Where ONNX Runtime pays for a form that torch does not, the traced code takes another
+form of the same math while exporting (`torch.compiler.is_exporting()`): the speech front end's spectra as matrix
+products instead of DFT nodes, its running statistics in torch instead of numpy. The exporter is torch.onnx's
+dynamo one (`torch.export`, then onnxscript), which handles what the model's code does in torch.
 """
 from __future__ import annotations
 
@@ -380,6 +382,9 @@ def register(subparsers) -> None:
     p.add_argument("--batch", type=int, nargs="*", default=[], metavar="B",
                    help="also export graphs of B streams a call (frame_step_bB.onnx): `streamer serve --backend "
                         "onnxruntime` runs the due windows of many clients as one call")
+    p.add_argument("--triton", type=int, default=None, metavar="INSTANCES",
+                   help="also write a Triton model repository (OUT/triton/dimgestor: config.pbtxt with the states "
+                        "as the sequence batcher's implicit state, 1/model.onnx) with this many CPU instances")
     p.set_defaults(func=_run)
 
 
@@ -388,4 +393,11 @@ def _run(args) -> int:
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
           f"{len(m['state'])} state tensors) and {out / MANIFEST}")
+    if args.triton is not None:
+        from .onnx_triton import write_triton_repository
+
+        if args.triton < 1:
+            raise SystemExit(f"--triton needs at least 1 instance, got {args.triton}")
+        model = write_triton_repository(out, out / "triton", instances=args.triton)
+        print(f"wrote the Triton model repository {model.parent} (model {model.name}, {args.triton} CPU instances)")
     return 0

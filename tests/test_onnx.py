@@ -26,10 +26,11 @@ def bundle():
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """The embedded default model exported through the command line, with a graph of BATCH streams a call."""
+    """The embedded default model exported through the command line, with a graph of BATCH streams a call and a
+    Triton model repository."""
     out = tmp_path_factory.mktemp("onnx")
     assert main(["export-onnx", "--out", str(out), "--steps", str(STEPS), "--frames", str(FRAMES),
-                 "--batch", str(BATCH)]) == 0
+                 "--batch", str(BATCH), "--triton", "2"]) == 0
     return out
 
 
@@ -88,6 +89,57 @@ def test_onnx_runtime_fuses_each_blocks_gelu_and_rmsnorm_and_reads_each_state_on
     written = onnx.load(str(exported / m["graph"])).graph.node
     for name in ("denoiser_enc", "denoiser_conv", "denoiser_ssm"):
         assert [n.op_type for n in written if name in n.input] == ["Reshape"]
+
+
+def test_triton_repository_keeps_every_state_as_implicit_state(exported, audio):
+    """The Triton repository's config.pbtxt parses as Triton's own ModelConfig and declares exactly the graph's
+    inputs and outputs (samples, seed, frame -> frames; every state pair as the sequence batcher's implicit state,
+    with its start value), and a client that sends only samples, seed and frame, its states carried the way the
+    config says, gets the frames of the Python ONNX Runtime stream."""
+    mc = pytest.importorskip("tritonclient.grpc.model_config_pb2", reason="the test extra's tritonclient is absent")
+    from google.protobuf import text_format
+
+    model = exported / "triton" / "dimgestor"
+    config = text_format.Parse((model / "config.pbtxt").read_text(), mc.ModelConfig())
+    assert config.backend == "onnxruntime" and config.max_batch_size == 0
+    assert [(g.count, g.kind) for g in config.instance_group] == [(2, mc.ModelInstanceGroup.KIND_CPU)]
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    session = ort.InferenceSession(str(model / "1" / "model.onnx"), opts, providers=["CPUExecutionProvider"])
+    onnx_type = {mc.TYPE_FP32: "tensor(float)", mc.TYPE_FP64: "tensor(double)", mc.TYPE_INT64: "tensor(int64)"}
+    numpy_type = {mc.TYPE_FP32: np.float32, mc.TYPE_FP64: np.float64, mc.TYPE_INT64: np.int64}
+    states = config.sequence_batching.state
+    declared_in = [(t.name, list(t.dims), onnx_type[t.data_type]) for t in config.input]
+    declared_out = [(t.name, list(t.dims), onnx_type[t.data_type]) for t in config.output]
+    assert [n for n, *_ in declared_in] == ["samples", "seed", "frame"] and [n for n, *_ in declared_out] == ["frames"]
+    assert sorted(declared_in + [(s.input_name, list(s.dims), onnx_type[s.data_type]) for s in states]) == sorted(
+        (v.name, v.shape, v.type) for v in session.get_inputs())
+    assert sorted(declared_out + [(s.output_name, list(s.dims), onnx_type[s.data_type]) for s in states]) == sorted(
+        (v.name, v.shape, v.type) for v in session.get_outputs())
+
+    carried = {}  # what Triton holds for a new sequence: each state's initial_state
+    for s in states:
+        assert len(s.initial_state) == 1  # (a repeated field in Triton's schema)
+        init = s.initial_state[0]
+        assert list(init.dims) == list(s.dims) and init.data_type == s.data_type
+        dtype = numpy_type[init.data_type]
+        carried[s.input_name] = (np.zeros(list(init.dims), dtype) if init.zero_data else np.fromfile(
+            model / "initial_state" / init.data_file, dtype).reshape(list(init.dims)))
+    assert np.isnan(carried["frontend_floor"]).all()  # the one start value that is not zeros
+    m = load_manifest(exported)
+    call, warmup = m["call"]["samples_per_call"], m["call"]["warmup_calls"]
+    calls = len(audio) // call
+    got = []
+    for j in range(calls):  # a Triton client's requests: samples, seed, frame; states stay in the server
+        result = dict(zip([o.name for o in session.get_outputs()], session.run(None, {
+            "samples": audio[None, j * call:(j + 1) * call], "seed": np.array([SEED], np.int64),
+            "frame": np.array([(j - warmup) * FRAMES], np.int64), **carried})))
+        carried = {s.input_name: result[s.output_name] for s in states}
+        if j >= warmup:
+            got.append(result["frames"])
+    want = ort_stream(exported, seed=SEED, smoothing=None).push(audio[:calls * call])
+    assert len(want) == (calls - warmup) * FRAMES
+    np.testing.assert_array_equal(np.concatenate(got), want)
 
 
 def test_state_shapes_are_the_torch_streams(exported, bundle):
