@@ -248,7 +248,7 @@ def correlate(white: torch.Tensor, taps: int) -> torch.Tensor:
     """(..., n + taps - 1, D) white draws, oldest first -> (..., n, D): each frame a weighted sum of its last `taps`."""
     if taps == 1:
         return white
-    k = noise_kernel(taps).to(white.dtype).flip(0)  # oldest first, to match unfold's order
+    k = noise_kernel(taps).to(white.device, white.dtype).flip(0)  # oldest first, to match unfold's order
     return (white.unfold(-2, taps, 1) * k).sum(-1)  # unfold -> (..., n, D, taps)
 
 

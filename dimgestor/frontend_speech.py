@@ -142,9 +142,12 @@ class SpeechFrontEnd(nn.Module):
         measures = (energy.double(), bands.double(), periodicity, logf0.double())
         if torch.compiler.is_exporting():
             return running_stats(*measures, carried, self.tau, self.pitch_tau, self.floor_rise, torch)
-        carried, *per_frame = running_stats(*(t.numpy() for t in measures), tuple(t.numpy() for t in carried),
-                                            self.tau, self.pitch_tau, self.floor_rise)
-        return tuple(torch.from_numpy(a) for a in carried), *(torch.from_numpy(a) for a in per_frame)
+        # (on a GPU the statistics go through the host: one small copy each way per window, not ~20 kernels a frame)
+        carried, *per_frame = running_stats(*(t.cpu().numpy() for t in measures),
+                                            tuple(t.cpu().numpy() for t in carried), self.tau, self.pitch_tau,
+                                            self.floor_rise)
+        dev = energy.device
+        return tuple(torch.from_numpy(a).to(dev) for a in carried), *(torch.from_numpy(a).to(dev) for a in per_frame)
 
     def frame_measures(self, frames: torch.Tensor):
         """Windowed frames (B, n, win) -> (band dB (B, n, M), frame dBFS (B, n), periodicity (B, n), log2 f0 (B, n))."""
