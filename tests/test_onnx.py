@@ -347,6 +347,34 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     assert out.with_suffix(".png").is_file()
 
 
+def test_gpu_benchmark_runs_end_to_end_on_the_cpu_at_tiny_size(exported, tmp_path):
+    """benchmarks/onnx_cuda.py's code path with `--device cpu` (no GPU here): both backends stream 1 and BATCH
+    streams in lockstep with every input and output bound once to a fixed buffer, their frames agree, the CUDA
+    graph row is recorded as not possible, and one profiled call says where the nodes ran."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "onnx_cuda.json"
+    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_cuda.py"), "--exports", str(exported),
+                           "--device", "cpu", "--rounds", "3", "--warmup-rounds", "1", "--out", str(out)],
+                          cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(out.read_text())
+    assert r["steps"] == STEPS and [row["batch"] for row in r["rows"]] == [1, BATCH]
+    for row in r["rows"]:
+        for name in ("torch", "onnxruntime"):
+            assert row[name]["rounds"] == 3 and row[name]["ms_p50"] > 0
+    assert "onnxruntime_graph" in r["errors"]  # CUDA graphs need the CUDA provider
+    assert len(r["compare"]) == 2 and all(c["frames"] > 0 and c["max_abs_diff"] < 1e-4 for c in r["compare"])
+    placement = r["onnxruntime_nodes_by_provider"]
+    assert list(placement) == ["CPUExecutionProvider"] and placement["CPUExecutionProvider"]["nodes"] > 100
+    assert out.with_suffix(".png").is_file()
+
+
 # ---- many streams a call: the batched graph and `streamer serve --backend onnxruntime`'s batches ----------------
 
 def test_batched_graph_is_its_manifest_entry(exported):
