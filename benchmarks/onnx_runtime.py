@@ -51,6 +51,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="K values for the streams-per-process comparison (none: skip it)")
     p.add_argument("--streams-s", type=float, default=8.0, help="audio per streams trial (s)")
     p.add_argument("--streams-max", type=int, default=160, help="largest stream count tried")
+    p.add_argument("--streams-repeats", type=int, default=1, metavar="N",
+                   help="search each executor's count N times, the executors taking turns (order rotating): the "
+                        "count is the median, every search's kept (one search's count moves by up to 1.5x between "
+                        "runs minutes apart on a quiet machine)")
     p.add_argument("--batches", type=int, nargs="*", default=[4, 8, 16, 32], metavar="B",
                    help="graphs of B streams a call exported for the batched ONNX Runtime path (besides 1)")
     p.add_argument("--call-batches", type=int, nargs="*", default=[1, 8, 32], metavar="B",
@@ -149,13 +153,21 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     runners = [onnx.batch_runner(threads=1) for _ in range(threads)]
     runner = runners[0]
     common = dict(steps=steps, window_ms=args.window_ms, seconds=args.streams_s, cap=args.streams_max)
+    search = {"torch_batched": lambda: max_streams(bundle, batched=True, threads=threads, **common),
+              "torch_unbatched": lambda: max_streams(bundle, batched=False, threads=1, **common),
+              "onnxruntime": lambda: max_streams(bundle, batched=False, threads=1, onnx=onnx, **common),
+              "onnxruntime_batched": lambda: max_streams(bundle, batched=True, threads=threads, onnx=onnx,
+                                                         batch_runner=runners, **common)}
+    found = {name: [] for name in STREAM_ROWS}
+    for rep in range(args.streams_repeats):
+        order = STREAM_ROWS[rep % len(STREAM_ROWS):] + STREAM_ROWS[:rep % len(STREAM_ROWS)]
+        for name in order:
+            found[name].append(search[name]())
     row = {"steps": steps, "cores": cores, "batched_threads": threads, "graph_batches": runner.sizes,
-           "graph_cost_ms": {str(b): 1000 * t for b, t in runner.cost.items()},
-           "torch_batched": max_streams(bundle, batched=True, threads=threads, **common),
-           "torch_unbatched": max_streams(bundle, batched=False, threads=1, **common),
-           "onnxruntime": max_streams(bundle, batched=False, threads=1, onnx=onnx, **common),
-           "onnxruntime_batched": max_streams(bundle, batched=True, threads=threads, onnx=onnx, batch_runner=runners,
-                                              **common)}
+           "graph_cost_ms": {str(b): 1000 * t for b, t in runner.cost.items()}}
+    for name, runs in found.items():  # the last search's trials; every search's count; the median as the count
+        counts = [r["max_realtime_streams"] for r in runs]
+        row[name] = {**runs[-1], "searches": counts, "max_realtime_streams": int(np.median(counts))}
     calls = {}
     for r in runners:
         for b, k in r.stats.calls.items():
@@ -166,6 +178,8 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     row["max_realtime_streams"] = n
     row["ratio_onnxruntime_to_torch_batched"] = n["onnxruntime"] / max(n["torch_batched"], 1)
     row["ratio_onnxruntime_batched_to_torch_batched"] = n["onnxruntime_batched"] / max(n["torch_batched"], 1)
+    row["ratio_by_search"] = [o / max(t, 1) for o, t in zip(row["onnxruntime_batched"]["searches"],
+                                                            row["torch_batched"]["searches"])]
     print(f"K={steps} streams per process: torch batched {n['torch_batched']}, unbatched {n['torch_unbatched']}, "
           f"ONNX Runtime {n['onnxruntime']} ({row['ratio_onnxruntime_to_torch_batched']:.2f}x torch batched), "
           f"batched {n['onnxruntime_batched']} ({row['ratio_onnxruntime_batched_to_torch_batched']:.2f}x)")
@@ -237,8 +251,11 @@ def plot(result: dict, path: Path) -> None:
     if srows:
         xs = np.arange(len(srows))
         for i, name in enumerate(STREAM_ROWS):
-            axes[2].bar(xs + (i - 1.5) * 0.2, [r["max_realtime_streams"].get(name, 0) for r in srows], 0.2,
-                        label=name.replace("_", " "))
+            med = [r["max_realtime_streams"].get(name, 0) for r in srows]
+            found = [r.get(name, {}).get("searches") or [m] for r, m in zip(srows, med)]
+            axes[2].bar(xs + (i - 1.5) * 0.2, med, 0.2, yerr=[np.subtract(med, [min(f) for f in found]),
+                                                             np.subtract([max(f) for f in found], med)], capsize=3,
+                        label=name.replace("_", " ") + (" (median; whisker: min-max of searches)" if i == 0 else ""))
         axes[2].set_xticks(xs, [f"K={r['steps']}" for r in srows])
         axes[2].set_ylabel(f"real-time streams, one process, {srows[0]['cores']} cores")
         axes[2].legend(fontsize=7)

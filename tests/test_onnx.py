@@ -311,7 +311,8 @@ def test_serve_refuses_an_onnx_export_with_other_settings_or_a_state_store(expor
 def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path):
     """benchmarks/onnx_runtime.py on this module's export (K = 2, 100 ms windows): per-window times of both
     backends with their frames compared, the streams-per-process section for all four executors (ONNX Runtime
-    batched among them) and the per-call table of 1 and BATCH streams a call."""
+    batched among them), each searched twice (the count their median), and the per-call table of 1 and BATCH
+    streams a call."""
     import os
     import shutil
     import subprocess
@@ -323,7 +324,7 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     out = tmp_path / "onnx_runtime.json"
     proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
                            "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
-                           "--streams-max", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
+                           "--streams-max", "2", "--streams-repeats", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
                            "--call-reps", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
                           cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
                           capture_output=True, text=True, timeout=300)
@@ -338,7 +339,9 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
         m = s[name]
         assert m["backend"] == backend and 0 <= m["max_realtime_streams"] <= 2 and m["trials"]
         assert all(t["frames"] > 0 and t["backend"] == backend for t in m["trials"])
-        assert s["max_realtime_streams"][name] == m["max_realtime_streams"]
+        assert s["max_realtime_streams"][name] == m["max_realtime_streams"] == int(np.median(m["searches"]))
+        assert len(m["searches"]) == 2
+    assert len(s["ratio_by_search"]) == 2
     assert s["graph_batches"] == [1, BATCH] and all(t["executor"] == "BatcherPool" and t["graph_batches"] == [
         1, BATCH] for t in s["onnxruntime_batched"]["trials"])
     (c,) = r["calls"]
