@@ -258,7 +258,10 @@ def plot(result: dict, path: Path) -> None:
                         label=name.replace("_", " ") + (" (median; whisker: min-max of searches)" if i == 0 else ""))
         axes[2].set_xticks(xs, [f"K={r['steps']}" for r in srows])
         axes[2].set_ylabel(f"real-time streams, one process, {srows[0]['cores']} cores")
-        axes[2].legend(fontsize=7)
+        top = max(max(r[name].get("searches") or [r["max_realtime_streams"].get(name, 0)]) for r in srows
+                  for name in STREAM_ROWS if name in r)
+        axes[2].set_ylim(0, 1.7 * max(top, 1))  # room for the legend above the bars
+        axes[2].legend(fontsize=6, loc="upper left")
     if crows:
         ax = axes[-1]
         for r in crows:
