@@ -389,6 +389,8 @@ def register(subparsers) -> None:
 
 
 def _run(args) -> int:
+    if args.triton is not None and args.triton < 1:  # before minutes of exporting
+        raise SystemExit(f"--triton needs at least 1 instance, got {args.triton}")
     out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames, args.batch)
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
@@ -396,8 +398,6 @@ def _run(args) -> int:
     if args.triton is not None:
         from .onnx_triton import write_triton_repository
 
-        if args.triton < 1:
-            raise SystemExit(f"--triton needs at least 1 instance, got {args.triton}")
         model = write_triton_repository(out, out / "triton", instances=args.triton)
         print(f"wrote the Triton model repository {model.parent} (model {model.name}, {args.triton} CPU instances)")
     return 0

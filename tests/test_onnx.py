@@ -142,6 +142,13 @@ def test_triton_repository_keeps_every_state_as_implicit_state(exported, audio):
     np.testing.assert_array_equal(np.concatenate(got), want)
 
 
+def test_triton_without_an_instance_is_refused_before_exporting(tmp_path):
+    """`--triton 0` is a clear error at once, not after minutes of exporting, and writes nothing."""
+    with pytest.raises(SystemExit, match="--triton needs at least 1 instance, got 0"):
+        main(["export-onnx", "--out", str(tmp_path / "out"), "--steps", str(STEPS), "--triton", "0"])
+    assert not (tmp_path / "out").exists()
+
+
 def test_state_shapes_are_the_torch_streams(exported, bundle):
     m = load_manifest(exported)
     shapes = {s["input"]: tuple(s["shape"]) for s in m["state"]}
