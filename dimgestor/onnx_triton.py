@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .onnx_stream import _initial
+
 __all__ = ["triton_config", "write_triton_repository", "TRITON_TYPES"]
 
 TRITON_TYPES = {"float32": "TYPE_FP32", "float64": "TYPE_FP64", "int64": "TYPE_INT64"}
@@ -41,7 +43,7 @@ def _tensor(entry: dict) -> str:
 
 
 def _fill(state: dict) -> float:
-    return float("nan") if state["init"] == "nan" else float(state["init"])
+    return float(state["init"])  # "nan" reads as NaN
 
 
 def triton_config(manifest: dict, name: str = "dimgestor", instances: int = 1, idle_s: float = IDLE_S) -> str:
@@ -83,7 +85,7 @@ def triton_config(manifest: dict, name: str = "dimgestor", instances: int = 1, i
 
 def initial_state(state: dict) -> np.ndarray:
     """A state's start value as Triton's `initial_state` holds it (raw row-major bytes in the data file)."""
-    return np.full(state["shape"], _fill(state), dtype=state["dtype"])
+    return _initial(state)
 
 
 def write_triton_repository(export_dir: str | Path, repo: str | Path, name: str = "dimgestor",
