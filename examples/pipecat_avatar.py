@@ -6,6 +6,7 @@ audio in real time (to nowhere: a machine without a sound device, like a server;
 
 It waits for its first WebSocket client (open http://127.0.0.1:8765/ and press Sound), then speaks the file
 (`--times` over, `--pause` seconds apart) and exits once it is heard. Needs `pip install 'dimgestor[pipecat]'`.
+The guide: docs/pipecat.md. `--ws` and `--vmc` take HOST:PORT as `dimgestor serve`'s do.
 """
 
 from __future__ import annotations
