@@ -80,3 +80,25 @@ def test_the_train_commands_use_only_flags_train_has(text):
         flags = [w.split("=")[0] for w in shlex.split(args) if w.startswith("--")]
         unknown = [f for f in flags if f not in known]
         assert not unknown, f"{command!r}: dimgestor train has no {unknown}"
+
+
+FREE = {"train": "--data", "export": "--out"}  # where the guide may name another folder than the Makefile
+
+
+def _options(command: str, sub: str) -> list[str]:
+    """The words after `dimgestor SUB`, sorted, without the FREE flag's value."""
+    words = shlex.split(command.split(f"dimgestor {sub} ", 1)[1])
+    return sorted(w for i, w in enumerate(words) if not (i and words[i - 1] == FREE[sub]))
+
+
+def test_the_shipped_recipe_is_the_makefiles_default_model(text):
+    make = (DOC.parents[1] / "Makefile").read_text().replace("\\\n", " ")
+    target = re.search(r"^default-model:.*?\n((?:\t.*\n)+)", make, re.M).group(1)
+    made = {sub: _options(line.replace("$(BIN)/", ""), sub) for line in target.splitlines()
+            for sub in ("train", "export") if f"dimgestor {sub} " in line}
+    block = next(b for b in re.findall(r"```\n(.*?)```", text, re.S) if "--out runs/default" in b)
+    shown = {sub: _options(line, sub) for line in block.replace("\\\n", " ").splitlines()
+             for sub in ("train", "export") if f"dimgestor {sub} " in line}
+    assert shown["train"] == made["train"]
+    # (export's --sample-steps is spelled --steps in the guide, as in the CLI's one name for it)
+    assert shown["export"] == sorted(w.replace("--sample-steps", "--steps") for w in made["export"])
