@@ -98,13 +98,14 @@ def rtf(x: float) -> str:
 def one_stream(r: dict[str, dict]) -> list[str]:
     w = r["windows"]
     rows = [[str(x["steps"]), ms(x["torch"]["ms_p50"]), rtf(x["torch"]["rtf"]), ms(x["onnxruntime"]["ms_p50"]),
-             rtf(x["onnxruntime"]["rtf"]), f"{x['ratio_p50']:.2f}"] for x in sorted(w["results"], key=lambda x: x["steps"])]
+             rtf(x["onnxruntime"]["rtf"]), f"{x['ratio_p50']:.2f}"]
+            for x in sorted(w["results"], key=lambda x: x["steps"])]
     worst = max(x["max_abs_diff"] for x in w["results"])
     return ["## One stream", "",
-            f"The embedded default model, {w['window_ms']} ms windows, one thread. The real-time factor (RTF) is compute "
-            "time over audio time: 0.1 means a window costs a tenth of its length.", "",
-            *table(["DDIM steps K", "torch ms a window (median)", "torch RTF (mean)", "ONNX Runtime ms", "ONNX Runtime RTF (mean)",
-                    "ONNX Runtime / torch"], rows), "",
+            f"The embedded default model, {w['window_ms']} ms windows, one thread. The real-time factor (RTF) is "
+            "compute time over audio time: 0.1 means a window costs a tenth of its length.", "",
+            *table(["DDIM steps K", "torch ms a window (median)", "torch RTF (mean)", "ONNX Runtime ms",
+                    "ONNX Runtime RTF (mean)", "ONNX Runtime / torch"], rows), "",
             f"The two backends' frames agree within {worst:.0e} (normalized features).", "", source("windows"), ""]
 
 
@@ -126,9 +127,9 @@ def streams(r: dict[str, dict]) -> list[str]:
     ks = sorted(p["batched"], key=int)
     preset_rows = [[k, (">= " if capped.get(k) else "") + str(p["batched"][k]), str(p["unbatched"][k])] for k in ks]
     return ["## Real-time streams per process", "",
-            f"How many live streams one serving process keeps in real time on both cores: the embedded default model, "
-            f"K = {s['steps']}, {r['streams']['window_ms']} ms windows, clients joining at random moments. Each count was searched "
-            f"{n} times, the executors taking turns: the median, the range in brackets.", "",
+            "How many live streams one serving process keeps in real time on both cores: the embedded default "
+            f"model, K = {s['steps']}, {r['streams']['window_ms']} ms windows, clients joining at random moments. "
+            f"Each count was searched {n} times, the executors taking turns: the median, the range in brackets.", "",
             *table(["executor", "streams"], rows), "", source("streams"), "",
             "A model of the `realtime` preset's size with the log-mel front end and no guidance (what `dimgestor train "
             "--preset realtime` makes without `--cond-drop` or `--set frontend=speech`) costs about half as much per "
@@ -167,10 +168,12 @@ def presets(r: dict[str, dict]) -> list[str]:
 
 
 def latency(r: dict[str, dict]) -> list[str]:
-    runs = [x for x in r["vmc"]["runs"] if x["path"] == "vmc"] + [x for x in r["vmc_jitter"]["runs"] if x["path"] == "vmc"]
+    runs = [x for key in ("vmc", "vmc_jitter") for x in r[key]["runs"] if x["path"] == "vmc"]
     rows = [[x["model"], str(x["window_ms"]), f"{x['vmc_jitter_buffer_ms']:g}", f"{x['lookahead_s'] * 1000:.0f}",
              f"{x['server_side']['median_ms']:.0f} ({x['server_side']['p90_ms']:.0f})"]
             for x in sorted(runs, key=lambda x: (x["model"], x["window_ms"], -x["vmc_jitter_buffer_ms"]))]
+    onsets = sorted({x["onsets"] for x in runs})
+    spoken = " or ".join(sorted({f"{x['seconds']:g} s" for x in runs}))
     jitter = " and ".join(sorted({f"`--vmc-jitter-ms {x['vmc_jitter_ms']:g}`" for x in r["vmc_jitter"]["runs"]
                                   if x["path"] == "vmc"}))
     newest = {}
@@ -181,9 +184,12 @@ def latency(r: dict[str, dict]) -> list[str]:
              f"{x['total']['median_ms']:.0f} ({x['total']['p90_ms']:.0f})"] for a, x in sorted(newest.items())]
     return ["## Latency: speech to motion", "",
             "**Microphone to VMC** (`dimgestor serve --source mic --vmc ...`): from a sound reaching the server to its "
-            "VMC bundle sent, median (p90) in ms over about 26 speech onsets of a 40 s run. The microphone's own input "
-            "latency comes before it. *Algorithmic* is the model's share: one 50 ms frame plus its audio lookahead.", "",
-            *table(["model", "window ms", "VMC jitter buffer ms", "algorithmic ms", "microphone -> VMC sent"], rows), "",
+            f"VMC bundle sent, median (p90) in ms over {onsets[0]}-{onsets[-1]} speech onsets of a {spoken} run. "
+            "The microphone's own "
+            "input latency comes before it. *Algorithmic* is the model's share: one 50 ms frame plus its audio "
+            "lookahead.", "",
+            *table(["model", "window ms", "VMC jitter buffer ms", "algorithmic ms", "microphone -> VMC sent"], rows),
+            "",
             f"*From `benchmarks/results/{SOURCES['vmc']}`; the {jitter} row from "
             f"`benchmarks/results/{SOURCES['vmc_jitter']}`.*", "",
             "**Talk in the browser viewer**: from a microphone chunk reaching the "
@@ -202,7 +208,8 @@ def gpu(r: dict[str, dict]) -> list[str]:
             f"Measured on an {g['device'].split(',')[0]}: the embedded default model, K = {g['steps']}, "
             f"{g['window_ms']:g} ms windows, B streams in lockstep, the median ms of a round from the host's audio to "
             f"the host's frames (real time: under {g['window_ms']:g} ms). One GPU keeps **{best['onnxruntime']:,} "
-            f"streams on ONNX Runtime** (its CUDA provider, states kept on the GPU) and **{best['torch']:,} on torch**.", "",
+            f"streams on ONNX Runtime** (its CUDA provider, states kept on the GPU) and **{best['torch']:,} on "
+            "torch**.", "",
             *table(["streams B", "torch CUDA ms a round", "ONNX Runtime CUDA ms a round"], rows), "", source("gpu"), ""]
 
 
@@ -210,9 +217,10 @@ def render(results: Path = RESULTS) -> str:
     r = load(results)
     head = ["# Performance", "",
             "<!-- Written by benchmarks/performance_doc.py from benchmarks/results/: do not edit by hand. -->", "",
-            f"What the engine costs, as last measured. The CPU figures come from one machine: {cpu_machine(r)}, no GPU, "
-            "torch's CPU build. Each table says which results file it comes from; how each benchmark works, how to "
-            "re-run it and the history of its numbers are in [benchmarks/README.md](../benchmarks/README.md). "
+            "What the engine costs, as last measured. The CPU figures come from one machine: "
+            f"{cpu_machine(r)}, no GPU, torch's CPU build. Each table says which results file it comes from; how "
+            "each benchmark works, how to re-run it and the history of its numbers are in "
+            "[benchmarks/README.md](../benchmarks/README.md). "
             "After a benchmark is re-run, `python benchmarks/performance_doc.py` rewrites this page "
             "(`--check` says whether it is current).", ""]
     body = one_stream(r) + streams(r) + model_cost(r) + presets(r) + latency(r) + gpu(r)
