@@ -127,7 +127,7 @@ def streams(r: dict[str, dict]) -> list[str]:
     ks = sorted(p["batched"], key=int)
     preset_rows = [[k, (">= " if capped.get(k) else "") + str(p["batched"][k]), str(p["unbatched"][k])] for k in ks]
     return ["## Real-time streams per process", "",
-            "How many live streams one serving process keeps in real time on both cores: the embedded default "
+            f"How many live streams one serving process keeps in real time on {s['cores']} cores: the embedded default "
             f"model, K = {s['steps']}, {r['streams']['window_ms']} ms windows, clients joining at random moments. "
             f"Each count was searched {n} times, the executors taking turns: the median, the range in brackets.", "",
             *table(["executor", "streams"], rows), "", source("streams"), "",
