@@ -1,0 +1,90 @@
+"""docs/performance.md is what benchmarks/performance_doc.py renders from benchmarks/results/, and the script
+notices a changed figure, a missing file and a result from another machine."""
+
+import importlib.util
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "benchmarks" / "performance_doc.py"
+
+
+@pytest.fixture(scope="module")
+def perf():
+    spec = importlib.util.spec_from_file_location("performance_doc", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture
+def results(perf, tmp_path):
+    """A copy of the results files the page is made from, to alter."""
+    out = tmp_path / "results"
+    out.mkdir()
+    for name in perf.SOURCES.values():
+        shutil.copy(perf.RESULTS / name, out / name)
+    return out
+
+
+def edit(path: Path, change) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def test_the_page_is_what_the_results_say(perf):
+    assert perf.DOC.read_text(encoding="utf-8") == perf.render(), \
+        "docs/performance.md is stale: run `python benchmarks/performance_doc.py`"
+    assert perf.main(["--check"]) == 0
+
+
+def test_a_changed_figure_makes_the_check_fail_until_the_page_is_rewritten(perf, results, tmp_path, capsys):
+    page = tmp_path / "performance.md"
+    assert perf.main(["--results", str(results), "--doc", str(page)]) == 0
+    assert perf.main(["--check", "--results", str(results), "--doc", str(page)]) == 0
+
+    def k8_ratio(d):
+        next(x for x in d["results"] if x["steps"] == 8)["ratio_p50"] = 0.91
+    edit(results / perf.SOURCES["windows"], k8_ratio)
+    assert perf.main(["--check", "--results", str(results), "--doc", str(page)]) == 1
+    assert "not what the results say" in capsys.readouterr().err
+    row = next(line for line in perf.render(results).splitlines() if line.startswith("| 8 |") and "0.91" in line)
+    assert row.endswith("| 0.91 |")
+    assert perf.main(["--results", str(results), "--doc", str(page)]) == 0
+    assert perf.main(["--check", "--results", str(results), "--doc", str(page)]) == 0
+
+
+def test_every_table_names_its_results_file_and_every_named_file_exists(perf):
+    text = perf.DOC.read_text(encoding="utf-8")
+    cited = set(re.findall(r"benchmarks/results/([\w.]+\.json)", text))
+    assert cited == set(perf.SOURCES.values())
+    assert all((perf.RESULTS / name).is_file() for name in cited)
+    sections = text.split("\n## ")[1:]
+    assert sections and all("*From `benchmarks/results/" in s for s in sections)
+
+
+def test_the_cpu_machine_is_named_once_and_no_load_average_or_commit_appears(perf):
+    text = perf.DOC.read_text(encoding="utf-8")
+    name = perf.cpu_machine(perf.load(perf.RESULTS))
+    assert text.count(name) == 1
+    assert not re.search(r"load average|load_avg|\b(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b", text, re.I)
+
+
+def test_a_result_from_another_machine_is_refused(perf, results, capsys):
+    edit(results / perf.SOURCES["cost"],
+         lambda d: d.update(device="CPU Intel Xeon, 8 cores visible, torch 2.13.0+cpu (1 intra-op threads)"))
+    with pytest.raises(perf.ResultsError, match=perf.SOURCES["cost"]):
+        perf.render(results)
+    assert perf.main(["--check", "--results", str(results)]) == 2
+    assert "different machines" in capsys.readouterr().err
+
+
+def test_a_missing_results_file_is_named(perf, results):
+    (results / perf.SOURCES["gpu"]).unlink()
+    with pytest.raises(perf.ResultsError, match=perf.SOURCES["gpu"]):
+        perf.render(results)
