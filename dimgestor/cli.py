@@ -199,7 +199,7 @@ def build_parser(prog: str = "dimgestor") -> argparse.ArgumentParser:
                         "dimgestor serve --source mic --vmc 127.0.0.1:39539 --checkpoint live",
                         "dimgestor generate --audio speech.wav --out motion.bvh",
                         "dimgestor train --data my_data --out runs/mine"))
-    parser.add_argument("--version", action="version", version=f"{prog} {__version__}")
+    parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     from streamer import cli as streamer_cli
     from streamer import web
