@@ -17,7 +17,7 @@ import textwrap
 
 from . import __version__
 
-__all__ = ["main", "model_info", "build_parser", "HelpFormatter", "DeprecatedAlias", "deprecated_alias"]
+__all__ = ["main", "model_info", "build_parser", "HelpFormatter", "DeprecatedAlias", "deprecated_alias", "examples"]
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -158,7 +158,7 @@ def _register_info(sub) -> None:
     p.add_argument("--preset", default="realtime", choices=list(PRESETS), help="model preset to describe")
     p.add_argument("--checkpoint", default=None, help="describe a checkpoint (or run folder) instead of a preset")
     p.add_argument("--motion-dim", type=int, default=None, help="feature columns (default: the preset's)")
-    p.add_argument("--steps", type=int, default=8, help="DDIM steps K the stream carries state for")
+    p.add_argument("--steps", type=int, default=8, metavar="K", help="DDIM steps K the stream carries state for")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_info)
 
