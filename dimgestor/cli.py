@@ -1,18 +1,79 @@
-"""The `dimgestor` command: info, train, generate (and eval when installed).
+"""The `dimgestor` command: serve, generate, train, render, eval, info, export, export-onnx, devices, web.
 
-Subcommands live in their modules and join through `register(subparsers)`. Errors a user can fix
-(bad files, bad options) print one `error: ...` line and exit 2; DIMGESTOR_DEBUG=1 shows the traceback.
+Subcommands live in their modules and join through `register(subparsers)` (serve, devices and web from
+`streamer`). Errors a user can fix (bad files, bad options) print one `error: ...` line and exit 2;
+DIMGESTOR_DEBUG=1 shows the traceback. Help is grouped by purpose, states each option's default once and ends
+with examples (`HelpFormatter`); old spellings of renamed options still work and say once what replaced them
+(`deprecated_alias`).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import sys
+import textwrap
 
 from . import __version__
 
-__all__ = ["main", "model_info"]
+__all__ = ["main", "model_info", "build_parser", "HelpFormatter", "DeprecatedAlias", "deprecated_alias", "examples"]
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """One default per option: "(default: X)" is added only where the help states none and there is one to state
+    (not None, False or empty). Descriptions and epilogs are wrapped, except paragraphs with indented lines
+    (examples), which are kept as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text, default = action.help or "", action.default
+        if (not action.option_strings or action.required or default is None or default is False
+                or default is argparse.SUPPRESS or (isinstance(default, (list, tuple)) and not default)
+                or re.search(r"\bdefault", text, re.IGNORECASE)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)  # (never "--window-" "ms")
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        out = []
+        for paragraph in textwrap.dedent(text).strip("\n").split("\n\n"):
+            lines = paragraph.splitlines()
+            if any(line[:1].isspace() for line in lines):
+                out.append("\n".join(indent + line for line in lines))
+            else:
+                out.append(textwrap.fill(" ".join(paragraph.split()), width, initial_indent=indent,
+                                         subsequent_indent=indent))
+        return "\n\n".join(out)
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old spelling of an option: stores into the new option's field and says once, on stderr, what replaced it.
+    Hidden from --help (the subcommand's epilog lists the old spellings)."""
+
+    def __init__(self, option_strings, dest, replaced_by: str = "", note: str = "", **kwargs):
+        kwargs.update(default=argparse.SUPPRESS, help=argparse.SUPPRESS)  # the new option's default stands
+        super().__init__(option_strings, dest, **kwargs)
+        self.replaced_by, self.note, self.said = replaced_by, note, False
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if not self.said:
+            print(f"{parser.prog}: {option_string} is now {self.replaced_by}{self.note}", file=sys.stderr, flush=True)
+            self.said = True
+        setattr(namespace, self.dest, values)
+
+
+def deprecated_alias(parser: argparse.ArgumentParser, old: str, new: argparse.Action, note: str = "") -> None:
+    """Accept `old` as a deprecated spelling of the option `new` (the action add_argument returned): same value."""
+    parser.add_argument(old, action=DeprecatedAlias, dest=new.dest, type=new.type, nargs=new.nargs,
+                        choices=new.choices, metavar=new.metavar, replaced_by=new.option_strings[-1], note=note)
+
+
+def examples(*lines: str, deprecated: str = "") -> str:
+    """A subcommand's epilog: "examples:" and the command lines (kept as written), then the old spellings."""
+    text = "examples:\n" + "\n".join(f"  {line}" for line in lines)
+    return text + (f"\n\ndeprecated spellings, still accepted: {deprecated}" if deprecated else "")
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -74,7 +135,7 @@ def _export(args) -> int:
     inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta),
                                    ("sample_steps", args.sample_steps), ("guidance", args.guidance)) if v is not None}
     if inference.get("sample_steps", 1) < 1:
-        raise ValueError("--sample-steps must be >= 1")
+        raise ValueError("--steps must be >= 1")
     if "guidance" in inference:
         from .diffusion import check_guidance
         check_guidance(inference["guidance"])
@@ -86,39 +147,80 @@ def _export(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dimgestor", description="DiM-Gestor co-speech gesture engine")
-    parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    p = sub.add_parser("info", help="parameter counts and streaming state size of a preset or checkpoint")
-    p.add_argument("--preset", default="realtime", help="paper, realtime or tiny")
-    p.add_argument("--checkpoint", default=None, help="describe a checkpoint instead of a preset")
+def _register_info(sub) -> None:
+    from .config import PRESETS
+
+    p = sub.add_parser("info", help="parameter counts and streaming state size of a preset or checkpoint",
+                       description="Parameter counts per component, the algorithmic latency and the streaming state "
+                                   "one stream carries, for a preset or a checkpoint.",
+                       epilog=examples("dimgestor info", "dimgestor info --preset paper --steps 4",
+                                       "dimgestor info --checkpoint runs/mine --json"))
+    p.add_argument("--preset", default="realtime", choices=list(PRESETS), help="model preset to describe")
+    p.add_argument("--checkpoint", default=None, help="describe a checkpoint (or run folder) instead of a preset")
     p.add_argument("--motion-dim", type=int, default=None, help="feature columns (default: the preset's)")
-    p.add_argument("--steps", type=int, default=8, help="DDIM steps the stream carries state for")
+    p.add_argument("--steps", type=int, default=8, metavar="K", help="DDIM steps K the stream carries state for")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_info)
 
+
+def _register_export(sub) -> None:
     p = sub.add_parser("export", help="copy a checkpoint's inference files (no optimizer state), e.g. to "
-                                      "dimgestor/default_model/")
+                                      "dimgestor/default_model/",
+                       description="Copy a checkpoint's inference files (config, weights, normalisation; no "
+                                   "optimizer state) to a folder, optionally with new sampling defaults that "
+                                   "generate and serve then use when not told.",
+                       epilog=examples("dimgestor export --checkpoint runs/mine --out my_model",
+                                       "dimgestor export --checkpoint runs/mine --out my_model --steps 4 --smooth 4",
+                                       deprecated="--sample-steps (now --steps)"))
     p.add_argument("--checkpoint", required=True, help="checkpoint folder or run folder (its latest)")
     p.add_argument("--out", required=True, help="destination folder (replaced)")
-    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
-                   help="set the output filter's cutoff that generate/serve use by default (0 = off)")
-    p.add_argument("--smooth-beta", type=float, default=None, help="set the output filter's speed coefficient")
-    p.add_argument("--sample-steps", type=int, default=None, help="set the DDIM steps K generate/serve use by default")
-    p.add_argument("--guidance", type=float, default=None, metavar="S",
-                   help="set the classifier-free guidance scale generate/serve/eval use by default (1 = unguided)")
+    sampling = p.add_argument_group("sampling defaults written into the copy",
+                                    "an option not given keeps the checkpoint's own value")
+    steps = sampling.add_argument("--steps", dest="sample_steps", type=int, default=None, metavar="K",
+                                  help="DDIM steps K that generate and serve use by default")
+    deprecated_alias(p, "--sample-steps", steps)
+    sampling.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                          help="the One Euro output filter's cutoff generate and serve use by default (0 = off)")
+    sampling.add_argument("--smooth-beta", type=float, default=None, metavar="BETA",
+                          help="the One Euro output filter's speed coefficient")
+    sampling.add_argument("--guidance", type=float, default=None, metavar="S",
+                          help="classifier-free guidance scale generate, serve and eval use by default (1 = unguided)")
     p.set_defaults(func=_export)
+
+
+def build_parser(prog: str = "dimgestor") -> argparse.ArgumentParser:
+    """The whole command line; `prog` is how it was called (`streamer`, the old name, builds the same)."""
+    parser = argparse.ArgumentParser(
+        prog=prog, formatter_class=HelpFormatter,
+        description="DiM-Gestor co-speech gesture engine: speech in, avatar motion out. `dimgestor COMMAND --help` "
+                    "says what each command takes.",
+        epilog=examples("dimgestor serve                                  # the demo clip; viewer at "
+                        "http://127.0.0.1:8765/",
+                        "dimgestor serve --source mic --vmc 127.0.0.1:39539 --checkpoint live",
+                        "dimgestor generate --audio speech.wav --out motion.bvh",
+                        "dimgestor train --data my_data --out runs/mine"))
+    parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    from streamer import cli as streamer_cli
+    from streamer import web
 
     from . import eval as evaluation
     from . import generate, onnx_export, render, train
-    for module in (train, generate, evaluation, render, onnx_export):
+    streamer_cli.register_serve(sub)
+    for module in (generate, train, render, evaluation):
         module.register(sub)
+    _register_info(sub)
+    _register_export(sub)
+    onnx_export.register(sub)
+    streamer_cli.register_devices(sub)
+    web.register(sub)
+    for p in sub.choices.values():  # (one formatter for all: grouped, one default each, examples kept as written)
+        p.formatter_class = HelpFormatter
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, prog: str = "dimgestor") -> int:
+    args = build_parser(prog).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -1,6 +1,6 @@
 """`dimgestor eval`: how a model's motion compares with real capture, per number of sampling steps K.
 
-Per K (`--ks`, whole held-out stretches or whole WAV files): hand jerk and area under jerk (beside the
+Per K (`--steps K,K,...`, whole held-out stretches or whole WAV files): hand jerk and area under jerk (beside the
 real capture's: the ratio is the jitter), speech/silence motion contrast, BeatAlign beside a
 shuffled-audio baseline, FGD, diversity across seeds, net turn and turning speed; and how much the hands
 follow the speech, each beside its chance level: loudness coupling (beside circularly shifted audio),
@@ -411,19 +411,19 @@ def plot(result: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def parse_ks(text: str | None, n_steps: int, default: int) -> list[int]:
-    """--ks "1,2,4,8" -> [1, 2, 4, 8] (values above the model's chain dropped); None -> [default]."""
+def parse_ks(text: str | None, n_steps: int, default: int, flag: str = "--ks") -> list[int]:
+    """`flag` "1,2,4,8" -> [1, 2, 4, 8] (values above the model's chain dropped); None -> [default]."""
     if text is None:
         return [default]
     try:
         ks = [int(k) for k in text.split(",") if k.strip()]
     except ValueError:
-        raise ValueError(f"--ks expects comma-separated step counts such as 1,2,4,8, got {text!r}") from None
+        raise ValueError(f"{flag} expects comma-separated step counts such as 1,2,4,8, got {text!r}") from None
     if not ks or any(k < 1 for k in ks):
-        raise ValueError(f"--ks needs step counts >= 1, got {text!r}")
+        raise ValueError(f"{flag} needs step counts >= 1, got {text!r}")
     kept = [k for k in ks if k <= n_steps]
     if not kept:
-        raise ValueError(f"--ks {text}: the model has only {n_steps} diffusion steps")
+        raise ValueError(f"{flag} {text}: the model has only {n_steps} diffusion steps")
     return kept
 
 
@@ -443,7 +443,7 @@ def run(args: argparse.Namespace) -> dict:
     c = bundle.config
     if args.steps is None:
         args.steps = c.sample_steps
-    ks = parse_ks(getattr(args, "ks", None), c.n_steps, args.steps)
+    ks = parse_ks(getattr(args, "ks", None), c.n_steps, args.steps, flag="--steps")
     smooth_hz = c.smooth_hz if smoothing == "config" else smoothing
     seeds = getattr(args, "seeds", 3)
     if getattr(args, "wavs", None) is not None:
@@ -550,37 +550,53 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
-    p.add_argument("--data", default=None, help="folder of NAME.bvh + NAME.wav pairs (its valid split is scored)")
-    p.add_argument("--wavs", default=None, help="instead of --data: a folder of speech WAVs without motion "
-                                                   "(reference-free metrics only)")
-    p.add_argument("--steps", type=int, default=None, help="DDIM steps K (default: the checkpoint's sample_steps)")
-    p.add_argument("--ks", default=None, metavar="K,K,...",
-                   help="report these step counts, e.g. 1,2,4,8 (default: --steps alone)")
-    p.add_argument("--seeds", type=int, default=3, help="seeds per K (diversity is measured between them)")
-    p.add_argument("--guidance", type=float, default=None, metavar="S",
-                   help="classifier-free guidance scale of every generation (default: the checkpoint's; 1 = unguided)")
-    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
-                   help="output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--window-s", type=float, default=4.0, help="length of the scored windows (s)")
-    p.add_argument("--valid-fraction", type=float, default=0.15,
+    from .cli import deprecated_alias
+
+    g = p.add_argument_group("what to score")
+    g.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
+    g.add_argument("--data", default=None, metavar="DIR",
+                   help="folder of NAME.bvh + NAME.wav pairs (its valid split is scored)")
+    g.add_argument("--wavs", default=None, metavar="DIR", help="instead of --data: a folder of speech WAVs without "
+                                                                "motion (reference-free metrics only)")
+    g.add_argument("--window-s", type=float, default=4.0, metavar="S", help="length of the scored windows, in seconds")
+    g.add_argument("--valid-fraction", type=float, default=0.15, metavar="F",
                    help="held-out tail of each clip when the folder has no split file")
-    p.add_argument("--valid-seconds", type=float, default=None,
+    g.add_argument("--valid-seconds", type=float, default=None, metavar="S",
                    help="held-out tail of each clip in seconds (overrides --valid-fraction)")
-    p.add_argument("--max-windows", type=int, default=None, help="score at most this many valid windows")
-    p.add_argument("--fgd-model", default=None,
+    g.add_argument("--max-windows", type=int, default=None, metavar="N",
+                   help="score at most this many valid windows (default: all)")
+    g = p.add_argument_group("sampling")
+    steps = g.add_argument("--steps", dest="ks", default=None, metavar="K[,K,...]",
+                           help="DDIM steps K, or several to report each, e.g. 1,2,4,8 (default: the checkpoint's "
+                                "sample_steps)")
+    deprecated_alias(p, "--ks", steps, note=" (it takes the same K,K,...)")
+    p.set_defaults(steps=None)  # (the first of --steps; run() fills in the checkpoint's)
+    g.add_argument("--seeds", type=int, default=3, metavar="N", help="seeds per K (diversity is measured between them)")
+    g.add_argument("--seed", type=int, default=0, help="first noise seed (the others follow it)")
+    g.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale of every generation (default: the checkpoint's; 1 = unguided)")
+    g.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                   help="output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
+    g = p.add_argument_group("FGD feature extractor")
+    g.add_argument("--fgd-model", default=None, metavar="DIR",
                    help="folder of the FGD autoencoder: loaded if present, else trained on the train split and saved "
                         "(default: a cache folder keyed by the data folder and feature layout)")
-    p.add_argument("--fgd-steps", type=int, default=1500, help="training steps of the FGD autoencoder")
-    p.add_argument("--out", default="results.json", help="JSON output")
-    p.add_argument("--plot", default=None, help="PNG bar chart of the metrics per system")
+    g.add_argument("--fgd-steps", type=int, default=1500, metavar="N", help="training steps of the FGD autoencoder")
+    g = p.add_argument_group("outputs")
+    g.add_argument("--out", default="results.json", metavar="FILE.json", help="JSON output")
+    g.add_argument("--plot", default=None, metavar="FILE.png", help="PNG bar chart of the metrics per system")
 
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `eval` subcommand to the `dimgestor` CLI."""
+    from .cli import examples
+
     p = subparsers.add_parser("eval", help="jerk, speech contrast, BeatAlign, FGD, diversity and turning per K",
-                              description=__doc__.split("\n\n")[0])
+                              description=__doc__.split("\n\n")[0],
+                              epilog=examples("dimgestor eval --data my_data --out results.json",
+                                              "dimgestor eval --data my_data --steps 1,2,4,8 --plot results.png",
+                                              "dimgestor eval --wavs other_voices --checkpoint live --steps 4",
+                                              deprecated="--ks K,K,... (now --steps K,K,...)"))
     add_arguments(p)
     p.set_defaults(func=main_from_args)
     return p

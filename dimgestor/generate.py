@@ -49,34 +49,45 @@ def check_export(manifest: dict, bundle: Bundle) -> None:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("generate", help="generate a BVH for a WAV file (offline, whole file)",
-                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--checkpoint", default=None,
+    from .cli import examples
+
+    p = subparsers.add_parser(
+        "generate", help="generate a BVH for a WAV file (offline, whole file)",
+        description="Generate the motion for a speech WAV file, offline (the whole file at once; the same frames "
+                    "as `dimgestor serve --record` on that file, seed and steps), and write it as a BVH.",
+        epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint live --steps 4 --seed 3",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda"))
+    g = p.add_argument_group("input and output")
+    g.add_argument("--audio", required=True, metavar="FILE.wav", help="speech WAV (any rate, mono or stereo)")
+    g.add_argument("--out", required=True, metavar="OUT.bvh", help="output BVH file")
+    g = p.add_argument_group("model and sampling")
+    g.add_argument("--checkpoint", default=None,
                    help="checkpoint folder, a file in it, a run folder (its latest), or `live` (the embedded live "
-                        "model); default: the embedded default model")
-    p.add_argument("--audio", required=True, help="speech WAV (any rate, mono or stereo)")
-    p.add_argument("--out", required=True, help="output .bvh")
-    p.add_argument("--steps", type=int, default=None,
-                   help="DDIM steps K (ignored by ddpm, which uses all N); default: the checkpoint's sample_steps")
-    p.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
-    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                        "model) (default: the embedded default model)")
+    g.add_argument("--steps", type=int, default=None, metavar="K",
+                   help="DDIM steps K (ignored by ddpm, which uses all N) (default: the checkpoint's sample_steps)")
+    g.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim",
+                   help="'ddim': K steps (deterministic with --eta 0); 'ddpm': the model's whole chain, stochastic")
+    g.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
+    g.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
+    g.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale: 1 = unguided, > 1 follows the audio more (needs a model "
-                        "trained with --cond-drop; costs a second batch row); default: the checkpoint's")
-    p.add_argument("--smooth", type=float, default=None, metavar="HZ",
+                        "trained with --cond-drop; costs a second batch row) (default: the checkpoint's)")
+    g.add_argument("--smooth", type=float, default=None, metavar="HZ",
                    help="One Euro output filter cutoff in Hz, 0 = off (default: the checkpoint's setting)")
-    p.add_argument("--root", choices=("free", "tether", "lock"), default="free",
+    g.add_argument("--root", choices=("free", "tether", "lock"), default="free",
                    help="root ground motion: as generated, pulled back to the start, or locked "
-                        "(as `streamer serve --root`)")
-    p.add_argument("--tether-s", type=float, default=5.0, help="time constant of --root tether, seconds")
-    p.add_argument("--device", default="cpu", help="cpu, cuda, ...")
-    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
+                        "(as `dimgestor serve --root`)")
+    g.add_argument("--tether-s", type=float, default=5.0, metavar="S", help="time constant of --root tether, in seconds")
+    g = p.add_argument_group("compute")
+    g.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:1, ...")
+    g.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
                    help="onnxruntime: the ONNX export streamed on ONNX Runtime's CPU provider (DDIM, eta 0; the "
                         "`onnx` extra)")
-    p.add_argument("--onnx", default=None, metavar="DIR",
+    g.add_argument("--onnx", default=None, metavar="DIR",
                    help="with --backend onnxruntime: this checkpoint's `dimgestor export-onnx` folder (its K and "
-                        "guidance); default: export one into a temporary folder first (~30 s)")
+                        "guidance) (default: export one into a temporary folder first, ~30 s)")
     p.set_defaults(func=_run)
 
 
@@ -104,7 +115,7 @@ def _run(args) -> int:
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
     audio = load_wav(args.audio, SAMPLE_RATE)
-    if len(audio) * bundle.feature_spec.fps // SAMPLE_RATE == 0:  # `streamer serve` refuses it too
+    if len(audio) * bundle.feature_spec.fps // SAMPLE_RATE == 0:  # `dimgestor serve` refuses it too
         raise AudioError(f"{args.audio}: {len(audio)} audio samples, shorter than one motion frame "
                          f"({1000 / bundle.feature_spec.fps:g} ms): nothing to generate")
     if args.backend == "onnxruntime":

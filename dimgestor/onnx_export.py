@@ -369,20 +369,31 @@ def _json_safe(v):
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export-onnx", help="the streaming step as an ONNX graph with explicit state",
-                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--checkpoint", default=None, help="checkpoint or run folder; default: the embedded model")
-    p.add_argument("--out", required=True, help="folder for frame_step.onnx and manifest.json")
-    p.add_argument("--steps", type=int, default=None, help="DDIM steps K in the graph; default: the checkpoint's")
-    p.add_argument("--guidance", type=float, default=None, metavar="S",
-                   help="classifier-free guidance scale baked into the graph; default: the checkpoint's")
-    p.add_argument("--frames", type=int, default=2,
+    from .cli import examples
+
+    p = subparsers.add_parser(
+        "export-onnx", help="the streaming step as an ONNX graph with explicit state",
+        description="Export the model's streaming step (one window of frames, every state explicit) as an ONNX "
+                    "graph with a manifest: for `dimgestor serve --backend onnxruntime`, `dimgestor web`, Triton "
+                    "or your own runtime.",
+        epilog=examples("dimgestor export-onnx --out onnx_model",
+                        "dimgestor export-onnx --checkpoint live --out onnx_live --steps 4 --batch 4 8",
+                        "dimgestor export-onnx --out onnx_model --triton 2"))
+    g = p.add_argument_group("model and sampling")
+    g.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
+    g.add_argument("--steps", type=int, default=None, metavar="K",
+                   help="DDIM steps K in the graph (default: the checkpoint's)")
+    g.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="classifier-free guidance scale baked into the graph (default: the checkpoint's)")
+    g.add_argument("--frames", type=int, default=2, metavar="N",
                    help="motion frames per call, 50 ms each (2: 100 ms windows); a divisor of the lookahead's frames "
                         "(1, 2, 3 or 6 for the default model)")
-    p.add_argument("--batch", type=int, nargs="*", default=[], metavar="B",
-                   help="also export graphs of B streams a call (frame_step_bB.onnx): `streamer serve --backend "
+    g = p.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="DIR", help="folder for frame_step.onnx and manifest.json")
+    g.add_argument("--batch", type=int, nargs="*", default=[], metavar="B",
+                   help="also export graphs of B streams a call (frame_step_bB.onnx): `dimgestor serve --backend "
                         "onnxruntime` runs the due windows of many clients as one call")
-    p.add_argument("--triton", type=int, default=None, metavar="INSTANCES",
+    g.add_argument("--triton", type=int, default=None, metavar="INSTANCES",
                    help="also write a Triton model repository (OUT/triton/dimgestor: config.pbtxt with the states "
                         "as the sequence batcher's implicit state, 1/model.onnx) with this many CPU instances")
     p.set_defaults(func=_run)

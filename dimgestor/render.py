@@ -388,16 +388,24 @@ def motion_stats(motion: BvhMotion) -> dict:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bvh", help="input BVH file")
-    p.add_argument("--out", required=True, help="OUT.gif (animation) or OUT.png (filmstrip of evenly spaced poses)")
-    p.add_argument("--start", type=float, default=0.0, help="first second to render")
-    p.add_argument("--seconds", type=float, default=None, help="how many seconds to render (default: to the end)")
-    p.add_argument("--fps", type=float, default=None, help=f"GIF frame rate (default {GIF_FPS:g}; frames are subsampled)")
-    p.add_argument("--width", type=int, default=None, help="image width in pixels")
-    p.add_argument("--height", type=int, default=None, help="image height in pixels")
-    p.add_argument("--views", default=",".join(VIEWS), help="comma-separated views: front, side")
-    p.add_argument("--panels", type=int, default=6, help="poses in a PNG filmstrip")
-    p.add_argument("--title", default=None, help="title (default: the file name)")
-    p.add_argument("--no-face-camera", action="store_true", help="keep the file's heading instead of turning it to the camera")
+    p.add_argument("--out", required=True, metavar="OUT.gif|OUT.png",
+                   help="OUT.gif (animation) or OUT.png (filmstrip of evenly spaced poses)")
+    g = p.add_argument_group("what to render")
+    g.add_argument("--start", type=float, default=0.0, metavar="S", help="first second to render")
+    g.add_argument("--seconds", type=float, default=None, metavar="S",
+                   help="how many seconds to render (default: to the end)")
+    g.add_argument("--views", default=",".join(VIEWS), help="comma-separated views: front, side")
+    g.add_argument("--panels", type=int, default=6, metavar="N", help="poses in a PNG filmstrip")
+    g.add_argument("--no-face-camera", action="store_true",
+                   help="keep the file's heading instead of turning it to the camera")
+    g = p.add_argument_group("image")
+    g.add_argument("--fps", type=float, default=None,
+                   help=f"GIF frame rate; frames are subsampled (default: {GIF_FPS:g})")
+    g.add_argument("--width", type=int, default=None, metavar="PX",
+                   help="image width in pixels, with --height (default: sized to the views)")
+    g.add_argument("--height", type=int, default=None, metavar="PX",
+                   help="image height in pixels, with --width (default: sized to the views)")
+    g.add_argument("--title", default=None, help="title (default: the file name)")
 
 
 def main_from_args(args: argparse.Namespace) -> int:
@@ -425,8 +433,13 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `render` subcommand to the `dimgestor` CLI."""
+    from .cli import examples
+
     p = subparsers.add_parser("render", help="stick-figure preview of a BVH file (GIF animation or PNG filmstrip)",
-                              description=__doc__.split("\n\n")[0])
+                              description=__doc__.split("\n\n")[0],
+                              epilog=examples("dimgestor render motion.bvh --out motion.gif",
+                                              "dimgestor render motion.bvh --out strip.png --panels 8 --views front",
+                                              "dimgestor render motion.bvh --out clip.gif --start 2 --seconds 5 --fps 10"))
     add_arguments(p)
     p.set_defaults(func=main_from_args)
     return p

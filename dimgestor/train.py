@@ -565,64 +565,88 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
-                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    from .cli import examples
+    from .config import PRESETS
+
+    p = subparsers.add_parser(
+        "train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
+        description="Train a model on a folder of NAME.bvh + NAME.wav pairs (motion capture with its speech). "
+                    "Checkpoints and log.jsonl go to the run folder; several GPUs: launch it with torchrun.",
+        epilog=examples("dimgestor train --data my_data --out runs/mine",
+                        "dimgestor train --data my_data --out runs/mine --resume            # after a stop",
+                        "dimgestor train --data my_data --out runs/small --preset tiny --max-steps 2000 --device cpu",
+                        "torchrun --nproc-per-node 2 -m dimgestor.cli train --data my_data --out runs/ddp"))
     d = TrainConfig(data="", out="")  # the defaults, one place
-    p.add_argument("--data", required=True, help="folder of BVH+WAV pairs (sub-folders allowed)")
-    p.add_argument("--out", required=True, help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
-    p.add_argument("--preset", default=d.preset, help="model preset: paper, realtime or tiny")
-    p.add_argument("--recipe", default=d.recipe, choices=list(RECIPES),
-                   help="diffusion training recipe: 'streaming' (short cosine chain, x0 + derivative losses; smooth "
-                        "at any K) or 'paper' (Zhang et al.: 1000 linear steps, noise MSE)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a model config field, repeatable")
-    p.add_argument("--max-steps", type=int, default=d.max_steps)
-    p.add_argument("--batch-size", type=int, default=d.batch_size, help="global batch (split over DDP ranks)")
-    p.add_argument("--lr", type=float, default=d.lr)
-    p.add_argument("--warmup", type=int, default=d.warmup, help="linear learning-rate warm-up steps")
-    p.add_argument("--weight-decay", type=float, default=d.weight_decay, help="AdamW's decoupled weight decay")
-    p.add_argument("--grad-clip", type=float, default=d.grad_clip, help="max gradient norm (0 = no clipping)")
-    p.add_argument("--window-s", type=float, default=d.window_s, help="training window length in seconds")
-    p.add_argument("--hop-s", type=float, default=None, help="window hop (default: a quarter window)")
-    p.add_argument("--valid-fraction", type=float, default=d.valid_fraction,
+    g = p.add_argument_group("data")
+    g.add_argument("--data", required=True, metavar="DIR", help="folder of BVH+WAV pairs (sub-folders allowed)")
+    g.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="dataset feature cache (default: $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
+    g.add_argument("--window-s", type=float, default=d.window_s, metavar="S", help="training window length in seconds")
+    g.add_argument("--hop-s", type=float, default=None, metavar="S", help="window hop (default: a quarter window)")
+    g.add_argument("--valid-fraction", type=float, default=d.valid_fraction, metavar="F",
                    help="held-out tail of every clip, as a fraction (without a split file)")
-    p.add_argument("--valid-seconds", type=float, default=None,
+    g.add_argument("--valid-seconds", type=float, default=None, metavar="S",
                    help="held-out tail of every clip in seconds (overrides --valid-fraction)")
-    p.add_argument("--heading", choices=["velocity", "facing"], default=None,
+    g.add_argument("--heading", choices=["velocity", "facing"], default=None,
                    help="root heading features: a per-frame turn (PyMO, the paper) or relative to the clip's mean "
                         "facing (bounded, no spin) (default: the recipe's)")
-    p.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
+    g.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="add left/right mirrored windows (default: on when the training split is under 30 min)")
-    p.add_argument("--speeds", default=None, metavar="R,R",
+    g.add_argument("--speeds", default=None, metavar="R,R",
                    help="speed-perturbed copies of the training audio+motion, e.g. 0.9,1.1 ('' = none; "
                         "default: 0.9,1.1 when the training split is under 30 min)")
-    p.add_argument("--augment", action=argparse.BooleanOptionalAction, default=None,
+    g.add_argument("--augment", action=argparse.BooleanOptionalAction, default=None,
                    help="train on augmented copies of the audio too (pitch/formant, reverb, noise, EQ/band limits, "
                         "gain) so gestures follow other voices and microphones (default: on when the training split "
                         "is under 30 min)")
-    p.add_argument("--aug-copies", type=int, default=d.aug_copies,
+    g.add_argument("--aug-copies", type=int, default=d.aug_copies, metavar="N",
                    help="augmented versions of each training window (features of all are kept in memory)")
-    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every)
-    p.add_argument("--valid-every", type=int, default=d.valid_every)
-    p.add_argument("--keep", type=int, default=d.keep, help="checkpoints to keep (0 = all)")
-    p.add_argument("--ema", type=float, default=d.ema)
-    p.add_argument("--vel-weight", type=float, default=None,
+
+    g = p.add_argument_group("model and recipe")
+    g.add_argument("--preset", default=d.preset, choices=list(PRESETS),
+                   help="model size: 'realtime' (live use on a CPU), 'paper' (the paper's size), 'tiny' (tests)")
+    g.add_argument("--recipe", default=d.recipe, choices=list(RECIPES),
+                   help="diffusion training recipe: 'streaming' (short cosine chain, x0 + derivative losses; smooth "
+                        "at any K) or 'paper' (Zhang et al.: 1000 linear steps, noise MSE)")
+    g.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a model config field (dimgestor info --json lists them), repeatable")
+    g.add_argument("--vel-weight", type=float, default=None, metavar="W",
                    help="weight of a velocity loss on the predicted x0 (default: the recipe's; 0 = none)")
-    p.add_argument("--acc-weight", type=float, default=None,
+    g.add_argument("--acc-weight", type=float, default=None, metavar="W",
                    help="weight of an acceleration loss on the predicted x0 (default: the recipe's; 0 = none)")
-    p.add_argument("--root-weight", type=float, default=None,
+    g.add_argument("--root-weight", type=float, default=None, metavar="W",
                    help="weight of a loss on the integrated root travel and turning of the predicted x0, against "
                         "spin and drift (default: the recipe's; 0 = none)")
-    p.add_argument("--cond-drop", type=float, default=None, metavar="P",
+    g.add_argument("--cond-drop", type=float, default=None, metavar="P",
                    help="probability that a training window's audio condition is dropped (zeroed), so the model also "
                         "learns the unconditional motion that `--guidance S` sampling extrapolates away from "
                         "(default: the recipe's; 0 = none)")
-    p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--device", default=d.device, help="auto (CUDA when present), cpu, cuda, cuda:1, ...")
-    p.add_argument("--threads", type=int, default=None,
+
+    g = p.add_argument_group("optimisation")
+    g.add_argument("--max-steps", type=int, default=d.max_steps, metavar="N", help="optimizer steps to train for")
+    g.add_argument("--batch-size", type=int, default=d.batch_size, metavar="N",
+                   help="global batch (split over DDP ranks)")
+    g.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (AdamW)")
+    g.add_argument("--warmup", type=int, default=d.warmup, metavar="N", help="linear learning-rate warm-up steps")
+    g.add_argument("--weight-decay", type=float, default=d.weight_decay, metavar="W",
+                   help="AdamW's decoupled weight decay")
+    g.add_argument("--grad-clip", type=float, default=d.grad_clip, metavar="NORM",
+                   help="max gradient norm (0 = no clipping)")
+    g.add_argument("--ema", type=float, default=d.ema, metavar="DECAY",
+                   help="decay of the exponential moving average of the weights, which checkpoints save")
+    g.add_argument("--seed", type=int, default=d.seed, help="seed of initialisation, batches and noise")
+
+    g = p.add_argument_group("run and checkpoints")
+    g.add_argument("--out", required=True, metavar="DIR", help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
+    g.add_argument("--ckpt-every", type=int, default=d.ckpt_every, metavar="N", help="save a checkpoint every N steps")
+    g.add_argument("--valid-every", type=int, default=d.valid_every, metavar="N",
+                   help="compute the held-out loss every N steps (logged to log.jsonl)")
+    g.add_argument("--keep", type=int, default=d.keep, metavar="N", help="checkpoints to keep (0 = all)")
+    g.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
+    g.add_argument("--device", default=d.device, help="torch device: auto (CUDA when present), cpu, cuda, cuda:1, ...")
+    g.add_argument("--threads", type=int, default=None, metavar="N",
                    help="CPU threads for torch (default: torch's choice; 1 is much faster on a busy shared machine)")
-    p.add_argument("--cache-dir", default=None, help="dataset cache (default $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to log.jsonl)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar (logs still go to log.jsonl)")
     p.set_defaults(func=_run)
 
 

@@ -57,7 +57,7 @@ class LevelMeter:
     def describe(self) -> str:
         """For the status line: `mic -23 dBFS`, or the warning while the input is dead."""
         if self.no_signal:
-            return f"mic NO SIGNAL for {self.silent_s:.0f}s (muted? wrong --device?)"
+            return f"mic NO SIGNAL for {self.silent_s:.0f}s (muted? wrong --input-device?)"
         return f"mic {self.level_dbfs:4.0f} dBFS"
 
 

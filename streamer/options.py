@@ -1,7 +1,8 @@
-"""`streamer serve`'s options: one typed, frozen value, validated once, with one default per option.
+"""`dimgestor serve`'s options: one typed, frozen value, validated once, with one default per option.
 
 The command line is built from these fields (`streamer.cli` takes each flag's default from here and maps
-the parsed flags back by field name), and a test or an embedding program builds the same value directly.
+the parsed flags back by field name; a flag is named like its field but for those in FLAGS), and a test or an
+embedding program builds the same value directly.
 What is checked here needs nothing but the values (and, for --record, that its folder exists): opening
 the source, the model and the sinks is `streamer.server.build`'s job.
 """
@@ -22,17 +23,25 @@ class ServeError(RuntimeError):
 
 
 HostPort = tuple[str, int]
+# The fields whose flag is not named after them (renamed flags: the fields kept their names for the code that reads
+# them; `--osc` and serve's `--device` are still accepted, as deprecated spellings)
+FLAGS = {"osc": "--vmc", "device": "--input-device"}
+
+
+def flag_of(field: str) -> str:
+    """The command-line flag that sets a field: "window_ms" -> "--window-ms", "osc" -> "--vmc"."""
+    return FLAGS.get(field, "--" + field.replace("_", "-"))
 
 
 class ServeOptions(BaseModel):
-    """Every `streamer serve` flag, by its field name (`--window-ms` is `window_ms`); `streamer serve --help`
-    says what each one does."""
+    """Every `dimgestor serve` flag, by its field name (`--window-ms` is `window_ms`, `--vmc` is `osc`: FLAGS);
+    `dimgestor serve --help` says what each one does."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     # the server's own audio
     source: str = "demo"  # "mic", "demo", a WAV path, or "ws" (clients' own audio only)
-    device: str | None = None  # --source mic: an input device index or part of its name
+    device: str | None = None  # --input-device, for --source mic: an input device index or part of its name
     rate: int | None = Field(None, gt=0)  # --source mic: capture rate (None: the device's own)
     gain: float = 0.0  # --source mic: dB
     gate: float | None = None  # --source mic: noise gate, dBFS
@@ -66,8 +75,8 @@ class ServeOptions(BaseModel):
     state_store: str | None = None  # "memory" or redis://...: sessions are handed over on SIGTERM (handover.py)
     state_ttl: float = Field(300.0, gt=0, le=86400)
     save_state_every: float | None = Field(None, gt=0, le=3600)  # s of audio between a session's periodic saves
-    # VMC/OSC
-    osc: HostPort | None = None
+    # VMC (OSC over UDP)
+    osc: HostPort | None = None  # --vmc HOST:PORT
     vmc_positions: Literal["hips", "all"] = "hips"
     vmc_hips_height: float | None = None
     vmc_root: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
@@ -90,7 +99,7 @@ class ServeOptions(BaseModel):
 
     @property
     def device_id(self) -> int | str | None:
-        """--device as PortAudio takes it: an index if it is one, else a part of the name."""
+        """--input-device as PortAudio takes it: an index if it is one, else a part of the name."""
         return int(self.device) if self.device is not None and self.device.isdigit() else self.device
 
     @property
@@ -160,7 +169,7 @@ class ServeOptions(BaseModel):
             try:
                 self.vmc()
             except ValueError as e:
-                raise ValueError(f"--osc: {e}") from None
+                raise ValueError(f"--vmc: {e}") from None
         return self
 
 
@@ -169,7 +178,7 @@ def _message(error: dict) -> str:
     if error["type"] == "value_error":  # (ours: the message names the flag already)
         return str(error["ctx"]["error"])
     name, given = str(error["loc"][0]) if error["loc"] else "", error.get("input")
-    flag = "--" + name.replace("_", "-")
+    flag = flag_of(name)
     field = ServeOptions.model_fields.get(name)
     b = {k: getattr(m, k) for m in (field.metadata if field else ()) for k in ("ge", "gt", "le")
          if getattr(m, k, None) is not None}

@@ -196,15 +196,15 @@ def _input_device(sd, device: int | str | None) -> dict:
     except (sd.PortAudioError, ValueError) as e:
         if device is None:
             raise SourceError("No input device: PortAudio has no default input; list the inputs with "
-                              "`streamer devices` and pick one with --device") from None
+                              "`dimgestor devices` and pick one with --input-device") from None
         try:  # say so when it names an output-only device
             any_kind = sd.query_devices(device)
         except (sd.PortAudioError, ValueError):
-            raise SourceError(f"No input device {device!r}: {_one_line(e)} (list the inputs: streamer devices)") from None
+            raise SourceError(f"No input device {device!r}: {_one_line(e)} (list the inputs: dimgestor devices)") from None
         info = dict(any_kind)
     if info["max_input_channels"] < 1:
         raise SourceError(f"No input device: {info['name']!r} has no input channels (an output device?); "
-                          "list the inputs with `streamer devices`")
+                          "list the inputs with `dimgestor devices`")
     if "index" not in info:
         info["index"] = device if isinstance(device, int) else sd.default.device[0]
     return info
@@ -252,7 +252,7 @@ class MicSource:
             self.warn(f"microphone {self.name!r}: signal again ({self.meter.level_dbfs:.0f} dBFS)")
         elif self.warn is not None and self.meter.no_signal and not was_dead:
             self.warn(f"no signal from microphone {self.name!r} for {self.meter.silent_s:.0f} s: is it muted, or the "
-                      "wrong device? (list them: streamer devices; pick one: --device)")
+                      "wrong device? (list them: dimgestor devices; pick one: --input-device)")
         return self.gate.process(block) if self.gate is not None else block
 
     async def __aiter__(self) -> AsyncIterator[AudioChunk]:

@@ -294,14 +294,14 @@ class VmcSink:
         except OSError as e:
             self.sock.close()
             self.sock = None
-            raise OSError(f"--osc {self.host}:{self.port}: {e.strerror or e}") from None
+            raise OSError(f"--vmc {self.host}:{self.port}: {e.strerror or e}") from None
         self.task = asyncio.get_running_loop().create_task(self.run(), name="vmc")
 
     def describe(self) -> str:
         return f"VMC/OSC -> {self.host}:{self.port}"
 
     def status(self) -> str:
-        line = f"osc sent {self.sent} dropped {self.dropped}"
+        line = f"vmc sent {self.sent} dropped {self.dropped}"
         if self.dropped > self.reported_dropped:  # a stall (CPU busy, process paused): say so
             line += (f" | WARNING: VMC dropped {self.dropped - self.reported_dropped} late frames (a stall: CPU busy "
                      f"or process paused)")

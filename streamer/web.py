@@ -1,7 +1,7 @@
-"""`streamer web`: the viewer with the model running inside the browser (onnxruntime-web), no inference server.
+"""`dimgestor web`: the viewer with the model running inside the browser (onnxruntime-web), no inference server.
 
 It exports the checkpoint's frame step into a folder (`dimgestor export-onnx`: frame_step.onnx + manifest.json),
-writes web.json beside it (the hello `streamer serve` would send for this checkpoint, the feature layout the
+writes web.json beside it (the hello `dimgestor serve` would send for this checkpoint, the feature layout the
 page decodes, the root mode) and serves clients/web at "/" and that folder at "/model/" over plain HTTP:
 static files only, so any static server would do as well. The page is `/?local=model/`
 (clients/web/local-engine.js). Responses carry COOP/COEP, so the page is cross-origin isolated and
@@ -9,7 +9,6 @@ onnxruntime-web may use threads (`?threads=N`).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -79,17 +78,32 @@ def make_server(host: str, port: int, model: Path) -> ThreadingHTTPServer:
 
 
 def register(sub) -> None:
+    """Add `web` to the `dimgestor` subcommands."""
+    from dimgestor.cli import examples
+
     p = sub.add_parser("web", help="serve the viewer with the model running in the browser (no inference server)",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--model", default="web-model", help="folder for the exported model (exported if it has none)")
-    p.add_argument("--checkpoint", default=None, help="checkpoint or run folder; default: the embedded model")
-    p.add_argument("--steps", type=int, default=4, help="DDIM steps K in the exported graph")
-    p.add_argument("--frames", type=int, default=2, help="motion frames per call (2: 100 ms windows)")
-    p.add_argument("--export", action="store_true", help="export again even if the folder has a graph")
-    p.add_argument("--root", choices=("tether", "free", "lock"), default="tether", help="root ground motion")
-    p.add_argument("--tether-s", type=float, default=5.0, help="time constant of --root tether, seconds")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8766)
+                       description="Export the model for the browser (onnxruntime-web) into a folder and serve the "
+                                   "viewer and that folder over plain HTTP: static files only, inference runs in the "
+                                   "page. Open the address it prints.",
+                       epilog=examples("dimgestor web                        # then open http://127.0.0.1:8766/?local=model/",
+                                       "dimgestor web --checkpoint live --steps 2 --model live-web-model"))
+    model = p.add_argument_group("model and sampling")
+    model.add_argument("--model", default="web-model", metavar="DIR",
+                       help="folder for the exported model (exported if it has none)")
+    model.add_argument("--checkpoint", default=None,
+                       help="checkpoint or run folder, or `live` (default: the embedded default model)")
+    model.add_argument("--steps", type=int, default=4, metavar="K", help="DDIM steps K in the exported graph")
+    model.add_argument("--frames", type=int, default=2, help="motion frames per call (2: 100 ms windows)")
+    model.add_argument("--export", action="store_true", help="export again even if the folder has a graph")
+    model.add_argument("--root", choices=("tether", "free", "lock"), default="tether",
+                       help="root ground motion (as serve's --root)")
+    model.add_argument("--tether-s", type=float, default=5.0, metavar="S",
+                       help="time constant of --root tether, in seconds")
+    network = p.add_argument_group("network")
+    network.add_argument("--host", default="127.0.0.1",
+                         help="address to serve on; 127.0.0.1 keeps it local, 0.0.0.0 opens it to the network")
+    network.add_argument("--port", type=int, default=8766, help="HTTP port (0 = any free)")
+    p.set_defaults(func=run)
 
 
 def run(args) -> int:
@@ -97,7 +111,7 @@ def run(args) -> int:
                            export=args.export or None)
     server = make_server(args.host, args.port, folder)
     host, port = server.server_address[:2]
-    print(f"streamer web: open http://{'127.0.0.1' if host == '0.0.0.0' else host}:{port}/?local=model/ "
+    print(f"dimgestor web: open http://{'127.0.0.1' if host == '0.0.0.0' else host}:{port}/?local=model/ "
           f"(model: {folder}; inference runs in the browser)", file=sys.stderr, flush=True)
     try:
         server.serve_forever()

@@ -520,7 +520,7 @@ class WsServer:
         if status is None:
             return None
         self.refusals(logging.INFO, f"{why}")
-        return connection.respond(status, {HTTPStatus.FORBIDDEN: "origin not allowed (see streamer serve --allow-origin)\n",
+        return connection.respond(status, {HTTPStatus.FORBIDDEN: "origin not allowed (see dimgestor serve --allow-origin)\n",
                                            HTTPStatus.UNAUTHORIZED: "missing or wrong token (use ?token=...)\n"}
                                   .get(status, "bad request\n"))
 

@@ -85,7 +85,7 @@ def test_register_adds_the_eval_subcommand():
     ev.register(sub)
     args = parser.parse_args(["eval", "--checkpoint", "ck", "--data", "d", "--steps", "4", "--out", "x.json",
                               "--plot", "x.png"])
-    assert (args.command, args.checkpoint, args.data, args.steps, args.out, args.plot) == ("eval", "ck", "d", 4, "x.json", "x.png")
+    assert (args.command, args.checkpoint, args.data, args.ks, args.out, args.plot) == ("eval", "ck", "d", "4", "x.json", "x.png")
     assert args.func is ev.main_from_args
 
 
@@ -172,7 +172,7 @@ def test_eval_on_speech_without_motion_and_per_k(data, tmp_path, capsys):
     save_wav(wavs / "two.wav", (0.1 * rng.standard_normal(2 * 44100)).astype(np.float32), 44100)  # resampled
     parser = argparse.ArgumentParser()
     ev.register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--wavs", str(wavs), "--ks", "1,3,2000",
+    args = parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--wavs", str(wavs), "--steps", "1,3,2000",
                               "--seeds", "2", "--out", str(tmp_path / "w.json"), "--plot", str(tmp_path / "w.png")])
     assert args.func(args) == 0
     res = json.loads((tmp_path / "w.json").read_text())
@@ -199,6 +199,8 @@ def test_eval_on_speech_without_motion_and_per_k(data, tmp_path, capsys):
         ev.run(parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck")]))
     with pytest.raises(ValueError, match="--ks"):
         ev.parse_ks("1,x", 8, 4)
+    with pytest.raises(ValueError, match="--steps 2000: the model has only 1000"):
+        ev.run(parser.parse_args(["eval", "--checkpoint", str(tmp_path / "ck"), "--wavs", str(wavs), "--steps", "2000"]))
 
 
 def test_voice_row_pools_seeds_and_judges_chance(data):

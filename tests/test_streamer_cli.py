@@ -1,4 +1,4 @@
-"""`streamer serve` as a user runs it: a subprocess, real websockets/python-osc clients, loopback only."""
+"""`dimgestor serve` as a user runs it: a subprocess, real websockets/python-osc clients, loopback only."""
 
 import asyncio
 import json
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.timeout(180)
 def test_wav_file_to_websocket_client_and_vmc(tiny_checkpoint, wav, tmp_path):
     server, rec = osc_server()
     s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--wait-client",
-              "--osc", f"127.0.0.1:{server.server_address[1]}")
+              "--vmc", f"127.0.0.1:{server.server_address[1]}")
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
     hello, msgs = asyncio.run(follow(url))
     assert s.finish() == 0, s.output
@@ -115,7 +115,7 @@ async def first_message(url: str) -> dict:
 
 
 def test_mic_without_an_input_device_exits_with_a_clear_message():
-    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", "mic", "--no-ws"],
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", "mic", "--no-ws"],
                        cwd=REPO, capture_output=True, text=True, timeout=60)
     try:
         import sounddevice as sd
@@ -140,7 +140,7 @@ def test_mic_without_an_input_device_exits_with_a_clear_message():
     (["--guidance", "-1"], "--guidance: guidance scale must be"),
 ])
 def test_bad_arguments_exit_2_with_a_message(args, message):
-    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--no-ws", *args],
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--no-ws", *args],
                        cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
 
@@ -161,7 +161,7 @@ def test_zeggs_skeleton_maps_every_humanoid_bone(zeggs_dir, wav, tmp_path):
     ckpt = save_checkpoint(tmp_path / "zeggs_tiny", model, spec, sk, np.zeros(spec.dim), np.full(spec.dim, 0.1))
 
     server, rec = osc_server()
-    s = serve(ckpt, "--source", str(wav), "--fast", "--wait-client", "--osc", f"127.0.0.1:{server.server_address[1]}")
+    s = serve(ckpt, "--source", str(wav), "--fast", "--wait-client", "--vmc", f"127.0.0.1:{server.server_address[1]}")
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
     hello, msgs = asyncio.run(follow(url))
     assert s.finish() == 0, s.output

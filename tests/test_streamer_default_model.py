@@ -58,7 +58,7 @@ def test_default_model_streams_the_demo_like_offline_generate(tmp_path):
     rec_path, off_path = tmp_path / "stream.bvh", tmp_path / "offline.bvh"
     server, rec = osc_server()
     s = Serve("--source", str(clip), "--fast", "--wait-client", "--ws", "127.0.0.1:0", "--steps", "4", "--seed", "2",
-              "--record", str(rec_path), "--osc", f"127.0.0.1:{server.server_address[1]}")
+              "--record", str(rec_path), "--vmc", f"127.0.0.1:{server.server_address[1]}")
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
     hello, msgs = asyncio.run(follow(url))
     assert s.finish() == 0, s.output

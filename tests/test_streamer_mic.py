@@ -1,5 +1,5 @@
 """The live microphone for real: PortAudio captures a virtual sound card (a private PulseAudio daemon,
-tests/virtual_mic.py) through `streamer devices` and `streamer serve --source mic`, as a user runs them."""
+tests/virtual_mic.py) through `dimgestor devices` and `dimgestor serve --source mic`, as a user runs them."""
 
 import asyncio
 import json
@@ -27,13 +27,13 @@ def vmic(tmp_path_factory):
         yield mic
 
 
-def streamer(vmic, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "streamer.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
+def dimgestor(vmic, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
                           capture_output=True, text=True, timeout=120)
 
 
 def test_devices_lists_the_virtual_microphones_with_their_rates(vmic):
-    r = streamer(vmic, "devices")
+    r = dimgestor(vmic, "devices")
     assert r.returncode == 0, r.stderr
     rows = re.findall(r"^([* ])\s*(\d+)\s+(\S+)\s+\((\w+), (\d+) ch, (\d+) Hz\)$", r.stdout, re.M)
     names = {name: (mark, api, int(rate)) for mark, _, name, api, _, rate in rows}
@@ -60,12 +60,12 @@ async def watch_while_playing(url: str, vmic, wav, sink: str, seconds: float):
 
 @pytest.mark.parametrize("device, rate, sink", [("pulse", 48000, "mic48"), ("vmic44", 44100, "mic44")])
 def test_serve_mic_gestures_while_speech_plays_and_rests_in_silence(vmic, tmp_path, device, rate, sink):
-    """`--device pulse --rate 48000` and `--device vmic44` (its own rate, 44.1 kHz): captured through PortAudio,
+    """`--input-device pulse --rate 48000` and `--input-device vmic44` (its own rate, 44.1 kHz): captured through PortAudio,
     resampled to 16 kHz as it streams, the embedded default model's avatar moves faster while speech plays
     than in the silence played after it; latency stays low, no audio is dropped, Ctrl-C ends cleanly."""
     wav = speech_then_silence(tmp_path / "talk.wav", SPEECH_S, SILENCE_S)
     rate_args = ["--rate", str(rate)] if device == "pulse" else []
-    s = Serve("--source", "mic", "--device", device, *rate_args, "--ws", "127.0.0.1:0", "--status-every", "0.5",
+    s = Serve("--source", "mic", "--input-device", device, *rate_args, "--ws", "127.0.0.1:0", "--status-every", "0.5",
               env=vmic.env)
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
     assert f"microphone {device!r} at {rate} Hz" in s.output
@@ -98,7 +98,7 @@ def test_serve_mic_gestures_while_speech_plays_and_rests_in_silence(vmic, tmp_pa
 
 
 def test_a_silent_microphone_warns_no_signal(vmic):
-    r = streamer(vmic, "serve", "--source", "mic", "--device", "vmic_quiet", "--no-ws", "--status-every", "0.5",
+    r = dimgestor(vmic, "serve", "--source", "mic", "--input-device", "vmic_quiet", "--no-ws", "--status-every", "0.5",
                  "--max-seconds", "6")
     assert r.returncode == 0, r.stderr
     assert re.search(r"no signal from microphone 'vmic_quiet' for 3 s: is it muted", r.stderr), r.stderr
@@ -115,20 +115,20 @@ def _index_of(vmic, name: str) -> int:
 @pytest.mark.parametrize("how", ["name", "index"])
 def test_a_device_without_input_channels_exits_2_with_one_clear_line(vmic, how):
     device = "vspeaker" if how == "name" else str(_index_of(vmic, "vspeaker"))
-    r = streamer(vmic, "serve", "--source", "mic", "--device", device, "--no-ws")
+    r = dimgestor(vmic, "serve", "--source", "mic", "--input-device", device, "--no-ws")
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
         "streamer: No input device: 'vspeaker' has no input channels (an output device?); "
-        "list the inputs with `streamer devices`"], r.stderr
+        "list the inputs with `dimgestor devices`"], r.stderr
 
 
 @pytest.mark.parametrize("args, says", [
-    (["--device", "vmic44", "--rate", "1000000"], "streamer: Input device 'vmic44' cannot capture at 1000000 Hz"),
-    (["--device", "vmic"], "streamer: No input device 'vmic': Multiple input devices found for 'vmic'"),
-    (["--device", "no such mic"], "streamer: No input device 'no such mic'"),
+    (["--input-device", "vmic44", "--rate", "1000000"], "streamer: Input device 'vmic44' cannot capture at 1000000 Hz"),
+    (["--input-device", "vmic"], "streamer: No input device 'vmic': Multiple input devices found for 'vmic'"),
+    (["--input-device", "no such mic"], "streamer: No input device 'no such mic'"),
 ])
 def test_a_device_that_cannot_be_used_exits_2_with_one_clear_line(vmic, args, says):
-    r = streamer(vmic, "serve", "--source", "mic", "--no-ws", *args)
+    r = dimgestor(vmic, "serve", "--source", "mic", "--no-ws", *args)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(says), r.stderr

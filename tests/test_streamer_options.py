@@ -1,12 +1,12 @@
-"""`ServeOptions`: one typed, frozen value per `streamer serve`, the command line built from it, one default each."""
+"""`ServeOptions`: one typed, frozen value per `dimgestor serve`, the command line built from it, one default each."""
 
 import inspect
 
 import pytest
 from pydantic import ValidationError
 
-from streamer.cli import build_parser
-from streamer.options import ServeError, ServeOptions
+from dimgestor.cli import DeprecatedAlias, build_parser
+from streamer.options import FLAGS, ServeError, ServeOptions, flag_of
 from streamer.record import RecordingSink
 from streamer.sink import Sink
 from streamer.vmc import VmcSink
@@ -19,15 +19,18 @@ def parse(*flags: str) -> ServeOptions:
 
 
 def serve_flags() -> dict[str, str]:
-    """{field name: flag} of every `streamer serve` option (not -h, -v)."""
+    """{field name: flag} of every `dimgestor serve` option (not -h, -v, nor the deprecated spellings)."""
     sub = next(a for a in build_parser()._actions if a.dest == "command").choices["serve"]
-    return {a.dest: a.option_strings[-1] for a in sub._actions if a.dest not in ("help", "verbose")}
+    return {a.dest: a.option_strings[-1] for a in sub._actions
+            if a.dest not in ("help", "verbose") and not isinstance(a, DeprecatedAlias)}
 
 
 def test_every_flag_is_a_field_of_the_same_name_and_every_field_a_flag():
     flags = serve_flags()
     assert set(flags) == set(ServeOptions.model_fields)
-    assert all(flag == "--" + name.replace("_", "-") for name, flag in flags.items())
+    assert all(flag == flag_of(name) for name, flag in flags.items())
+    renamed = {name: flag for name, flag in flags.items() if flag != "--" + name.replace("_", "-")}
+    assert renamed == FLAGS == {"osc": "--vmc", "device": "--input-device"}
 
 
 def test_no_flags_give_the_options_defaults():
@@ -37,10 +40,21 @@ def test_no_flags_give_the_options_defaults():
 
 def test_flags_map_onto_their_fields():
     o = parse("--ws", "0.0.0.0:9000", "--vmc-root", "1,2,3", "--allow-origin", "http://a.example:3000",
-              "--allow-origin", "*", "--http", "8080", "--max-sessions", "5", "--device", "3", "--root", "free")
+              "--allow-origin", "*", "--http", "8080", "--max-sessions", "5", "--input-device", "3", "--root", "free",
+              "--vmc", "127.0.0.1:39539")
     assert o.ws == ("0.0.0.0", 9000) and o.vmc_root == (1.0, 2.0, 3.0, 0.0) and o.http == (None, 8080)
     assert o.allow_origin == ("http://a.example:3000", "*") and o.max_sessions == 5 and o.root == "free"
-    assert o.device_id == 3 and parse("--device", "USB").device_id == "USB"
+    assert o.device_id == 3 and parse("--input-device", "USB").device_id == "USB" and o.osc == ("127.0.0.1", 39539)
+
+
+def test_the_old_spellings_set_the_same_fields_and_say_once_what_replaced_them(capsys):
+    assert parse("--osc", "127.0.0.1:39539", "--device", "USB") == parse("--vmc", "127.0.0.1:39539",
+                                                                          "--input-device", "USB")
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(" is now ")[0] for line in err] == ["dimgestor serve: --osc", "dimgestor serve: --device"]
+    assert err[0].endswith("--osc is now --vmc") and "--input-device" in err[1] and "torch device" in err[1]
+    assert parse("--osc", "h:1", "--osc", "h:2").osc == ("h", 2)  # the last one wins, as for any option
+    assert len(capsys.readouterr().err.splitlines()) == 1  # said once
 
 
 def test_options_are_frozen_and_refuse_unknown_names():
@@ -58,6 +72,8 @@ def test_options_are_frozen_and_refuse_unknown_names():
     ({"record": "x.bvh", "source": "ws"}, "--record records the server's own source"),
     ({"allow_origin": ["http://a.example/x"]}, "is not an origin"),
     ({"save_state_every": 5.0}, "--save-state-every saves sessions to the state store: give --state-store too"),
+    ({"osc": ("127.0.0.1", 9), "vmc_max_bytes": 100}, "--vmc: "),  # named by its flag, not its field
+    ({"osc": "nowhere"}, "--vmc: "),
 ])
 def test_a_bad_option_is_one_message_naming_its_flag(values, message):
     with pytest.raises(ServeError) as e:

@@ -72,7 +72,7 @@ def check_recovery(times, name, last_resume, baseline_window, fps=20):
 def test_vmc_and_websocket_recover_from_sigstop_pauses(tiny_checkpoint, wav):  # noqa: F811
     vmc = VmcTimes()
     vmc.start()
-    s = serve(tiny_checkpoint, "--source", str(wav), "--loop", "--osc", f"127.0.0.1:{vmc.port}")
+    s = serve(tiny_checkpoint, "--source", str(wav), "--loop", "--vmc", f"127.0.0.1:{vmc.port}")
     try:
         url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
         ws = WsTimes(url)

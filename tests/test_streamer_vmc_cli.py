@@ -1,4 +1,4 @@
-"""`streamer` flags for VMC receivers and --version, as a user types them."""
+"""`dimgestor serve` flags for VMC receivers and --version, as a user types them."""
 
 import subprocess
 import sys
@@ -9,14 +9,14 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def streamer(*args):
-    return subprocess.run([sys.executable, "-m", "streamer.cli", *args], cwd=REPO, capture_output=True, text=True,
+def dimgestor(*args):
+    return subprocess.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=60)
 
 
 def test_version():
-    r = streamer("--version")
-    assert r.returncode == 0 and r.stdout.startswith("streamer (dimgestor) ") and r.stdout.split()[-1][0].isdigit()
+    r = dimgestor("--version")
+    assert r.returncode == 0 and r.stdout.startswith("dimgestor ") and r.stdout.split()[-1][0].isdigit()
 
 
 @pytest.mark.parametrize("args, message", [
@@ -27,10 +27,10 @@ def test_version():
     (["--vmc-jitter-ms", "-5"], "--vmc-jitter-ms must be in"),
 ])
 def test_bad_vmc_options_exit_2_with_a_message(args, message):
-    r = streamer("serve", "--no-ws", "--osc", "127.0.0.1:9", *args)
+    r = dimgestor("serve", "--no-ws", "--vmc", "127.0.0.1:9", *args)
     assert r.returncode == 2 and message in r.stderr, r.stderr
 
 
 def test_max_sessions_is_checked_before_anything_starts():
-    r = streamer("serve", "--source", "ws", "--ws", "127.0.0.1:0", "--max-sessions", "0")
+    r = dimgestor("serve", "--source", "ws", "--ws", "127.0.0.1:0", "--max-sessions", "0")
     assert r.returncode == 2 and "--max-sessions must be in 1..4096" in r.stderr, r.stderr

@@ -46,12 +46,12 @@ def clip(tmp_path_factory):
 
 @pytest.fixture(scope="module", params=list(MODES))
 def live_run(request, clip, tmp_path_factory):
-    """`streamer serve` (embedded model, real time) -> VMC to a capture socket, and --record of the same run."""
+    """`dimgestor serve` (embedded model, real time) -> VMC to a capture socket, and --record of the same run."""
     cap = Capture()
     cap.start()
     out = tmp_path_factory.mktemp("vmc") / "rec.bvh"
-    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", str(clip), "--no-ws",
-                        "--osc", f"127.0.0.1:{cap.port}", "--record", str(out), "--status-every", "0",
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(clip), "--no-ws",
+                        "--vmc", f"127.0.0.1:{cap.port}", "--record", str(out), "--status-every", "0",
                         *MODES[request.param]],
                        cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     time.sleep(0.3)

@@ -1,4 +1,4 @@
-"""`streamer serve` as a subprocess that tests talk to: the addresses it prints, and a client that follows it."""
+"""`dimgestor serve` as a subprocess that tests talk to: the addresses it prints, and a client that follows it."""
 
 import asyncio
 import json
@@ -17,10 +17,10 @@ WAV_SECONDS = 3.0  # the length of the `wav` fixture (tests/conftest.py)
 
 
 class Serve:
-    """A running `streamer serve` (or another `command`); reads its stderr in a thread to find the addresses it
+    """A running `dimgestor serve` (or another `command`); reads its stderr in a thread to find the addresses it
     prints."""
 
-    def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "streamer.cli", "serve")):
+    def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "dimgestor.cli", "serve")):
         env = {**(env or os.environ), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
         self.proc = subprocess.Popen([sys.executable, *command, *args], cwd=REPO, env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
