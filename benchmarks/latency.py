@@ -3,13 +3,13 @@
 Two paths, each fed a stimulus with onsets at known places (tone bursts after silence):
 
 talk  real Chromium, its fake microphone playing the stimulus, the web viewer's Talk button, against
-      `streamer serve --source ws`. benchmarks/latency_probe.js stamps on the page's clock when each microphone
+      `dimgestor serve --source ws`. benchmarks/latency_probe.js stamps on the page's clock when each microphone
       chunk reached the viewer's socket worker and was sent, when each frame arrived there (as the playout clock
       is told of it: the worker's stamp for frames read from shared memory) and which pts every
       requestAnimationFrame presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
       when inference began and when its frames were sent, related to the page's clock by the pong with the
       shortest round trip. total = onset reached the page -> the first requestAnimationFrame presenting its pts.
-vmc   `streamer serve --source mic --osc` with the virtual microphone (tests/virtual_mic.py) playing the stimulus
+vmc   `dimgestor serve --source mic --vmc` with the virtual microphone (tests/virtual_mic.py) playing the stimulus
       in real time, a UDP receiver stamping the bundles: total = onset played -> the bundle of the first frame at
       or after the onset's pts received (server side, one clock: time.monotonic of this machine).
 
@@ -368,8 +368,8 @@ def run_vmc(a, tmp: Path) -> dict:
             from streamer.options import ServeOptions
             from streamer.server import build, run
 
-            argv = ["serve", *serve_args(a, "mic"), "--device", "pulse", "--rate", str(RATE), "--no-ws",
-                    "--osc", f"127.0.0.1:{udp.port}", "--max-seconds", str(a.seconds + 1)]
+            argv = ["serve", *serve_args(a, "mic"), "--input-device", "pulse", "--rate", str(RATE), "--no-ws",
+                    "--vmc", f"127.0.0.1:{udp.port}", "--max-seconds", str(a.seconds + 1)]
             if a.vmc_jitter_ms is not None:
                 argv += ["--vmc-jitter-ms", str(a.vmc_jitter_ms)]
             args = vars(build_parser().parse_args(argv))

@@ -12,11 +12,11 @@ difference between the two backends' frames (normalized features).
 
 Streams per process (`--streams K...`, default K = 8): `benchmarks/streams.py`'s serving trial (paced sessions
 on one executor, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
-torch batched (one StreamBatcher on every core, or `--batched-threads`: `streamer serve`'s default), torch unbatched, ONNX Runtime
+torch batched (one StreamBatcher on every core, or `--batched-threads`: `dimgestor serve`'s default), torch unbatched, ONNX Runtime
 unbatched (one session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer
 serve --backend onnxruntime --no-batch`) and ONNX Runtime batched (a StreamBatcher a core, `--batched-threads`,
 each with its share of the sessions and its cycles run as calls of the export's graphs of 1 and `--batches`
-streams on its own one-thread sessions: `streamer serve --backend onnxruntime`'s `BatcherPool`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
+streams on its own one-thread sessions: `dimgestor serve --backend onnxruntime`'s `BatcherPool`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
 (`--call-batches`): ms per call and per stream, and the copies of gathering B streams' states into a call (what
 a call costs when the streams come back in another order or company).
 
@@ -148,7 +148,7 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     onnx = OnnxModel.load(export_for(folder, steps, args.window_ms * c.fps // 1000, args.batches))
     cores = os.cpu_count() or 1
     threads = args.batched_threads or cores
-    # ONNX Runtime batched: a StreamBatcher a core, each on its own one-thread runner (`streamer serve`'s
+    # ONNX Runtime batched: a StreamBatcher a core, each on its own one-thread runner (`dimgestor serve`'s
     # `onnx_batchers`); their graphs' costs measured once, for every trial
     runners = [onnx.batch_runner(threads=1) for _ in range(threads)]
     runner = runners[0]

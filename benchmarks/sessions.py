@@ -1,4 +1,4 @@
-"""Issue 25 at full size against `streamer serve` on loopback: throttled sessions and the keepalive,
+"""Issue 25 at full size against `dimgestor serve` on loopback: throttled sessions and the keepalive,
 a flood of malformed requests, and shutdown after both.
 
 keepalive: N clients (default 31, beside one real-time talker: 32 = the default session limit) send
@@ -41,7 +41,7 @@ MIB = 1 << 20
 
 class Server:
     def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "serve", *args], cwd=REPO,
+        self.proc = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "serve", *args], cwd=REPO,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True).start()

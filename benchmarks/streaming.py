@@ -283,7 +283,7 @@ def streams(args) -> dict:
 
 
 def streams_summary(st: dict) -> dict:
-    """max_realtime_streams: preset -> the batched count at the largest K (what `streamer serve` holds; the
+    """max_realtime_streams: preset -> the batched count at the largest K (what `dimgestor serve` holds; the
     schema of issue 7); max_realtime_streams_by_k: mode -> K -> count."""
     by_k = {mode: {k: v[mode]["max_realtime_streams"] for k, v in st["by_k"].items() if mode in v}
             for mode in ("batched", "unbatched", "batched_aligned")}
@@ -498,7 +498,7 @@ def main(argv=None) -> None:
             "achieved_gflops": "denoiser FLOPs (flops_per_frame_step x frames x K) / compute time (sweep) or / trial wall "
                                "time (streams); the front end and condition path are not counted",
             "max_realtime_streams": "preset -> real-time streams through the serving path, batched (one StreamBatcher, "
-                                    "as streamer serve), at the largest K of the streams section; see "
+                                    "as dimgestor serve), at the largest K of the streams section; see "
                                     "max_realtime_streams_by_k for every K and mode and streams.by_k for the trials",
             "max_realtime_streams_by_k": "Sessions on one executor in one asyncio loop, audio paced by the clock (see "
                                          "streams.pass_rule); batched = one StreamBatcher, unbatched = one "

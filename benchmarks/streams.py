@@ -46,7 +46,7 @@ def random_bundle(preset: str, seed: int = 0):
     preset "default": the embedded default model itself (its front end, lookahead and guidance).
 
     Speed does not depend on the weights; the skeleton makes each window's pose decoding (done on the
-    inference thread, as in `streamer serve`) the real one.
+    inference thread, as in `dimgestor serve`) the real one.
     """
     import torch
 
@@ -96,9 +96,9 @@ class _CountingStats:
 
 def make_executor(batched: bool, threads: int, batch_runner=None):
     """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
-    `streamer serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
+    `dimgestor serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
     batch_runner: a `dimgestor.onnx_batch.BatchRunner`, or a list of them: a `BatcherPool` of one StreamBatcher a
-    runner pushes its windows on them, as `streamer serve --backend onnxruntime` does (a runner's session threads
+    runner pushes its windows on them, as `dimgestor serve --backend onnxruntime` does (a runner's session threads
     are its own)."""
     from streamer.scheduling import RankedExecutor, StreamBatcher
 
@@ -110,7 +110,7 @@ def make_executor(batched: bool, threads: int, batch_runner=None):
 
         runners = batch_runner if isinstance(batch_runner, (list, tuple)) else [batch_runner]
         ex = BatcherPool([StreamBatcher(push_many=functools.partial(push_many, r), thread_name=f"bench-batch-{i}")
-                          for i, r in enumerate(runners)])  # as `streamer serve --backend onnxruntime` (one lane a runner)
+                          for i, r in enumerate(runners)])  # as `dimgestor serve --backend onnxruntime` (one lane a runner)
         ex.stats = _CountingStats(ex.stats)
         return ex, {"executor": "BatcherPool", "inference_threads": len(runners),
                     "onnxruntime_threads": runners[0].threads, "graph_batches": runners[0].sizes}
@@ -132,7 +132,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window. onnx: a `dimgestor.onnx_stream.OnnxModel`: the
-    sessions run on it, as `streamer serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
+    sessions run on it, as `dimgestor serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
     export's batched graphs; unbatched: each window alone, as with --no-batch)."""
     from streamer.sessions import Session
 

@@ -1,8 +1,8 @@
 """The viewer's local mode in headless Chromium: one stream's per-window cost and real-time factor of the embedded
 default model run by onnxruntime-web (WebAssembly, in the page's Web Worker) at K = 1, 4, 8, 100 ms windows.
 
-For each K the model is exported (`streamer web`'s folder: frame_step.onnx, manifest.json, web.json) and served
-by `streamer web`'s server; for each thread setting a fresh page (`/?local=model/&threads=N`, 0 = onnxruntime-web's
+For each K the model is exported (`dimgestor web`'s folder: frame_step.onnx, manifest.json, web.json) and served
+by `dimgestor web`'s server; for each thread setting a fresh page (`/?local=model/&threads=N`, 0 = onnxruntime-web's
 default, which is 1 unless the page is cross-origin isolated and then min(4, ceil(cores / 2))) runs `--calls` calls
 of the frame step on a fresh stream of noise through `window.dimgestorLocal.bench` and reports each call's time
 (worker side: the graph call, the state carried, no drawing). The warm-up calls and the first two real ones are left
@@ -70,7 +70,7 @@ def chromium_version() -> str:
 
 @contextmanager
 def local_page(folder: Path, threads: int, tmp: Path, web: Path | None, flags: tuple[str, ...] = ()):
-    """A fresh headless Chromium on `/?local=model/` served by `streamer web`'s server, the model loaded."""
+    """A fresh headless Chromium on `/?local=model/` served by `dimgestor web`'s server, the model loaded."""
     sys.path.insert(0, str(REPO / "tests"))
     from test_clients_web import Browser
 
