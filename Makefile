@@ -1,15 +1,41 @@
 # Two entry points, as in the README: `make demo` (main job) and `make test` (the test suite).
-# Each sets up its own virtual environment on first use.
+# Each sets up the virtual environment it needs on first use (docs/install.md): `make demo` only what serving
+# needs, `make test` the test tools besides; each step is remembered by a stamp file in the environment.
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
+PIP := $(BIN)/python -m pip install -q --disable-pip-version-check
+# The torch build (scripts/install-torch): auto (the CPU build on Linux without an NVIDIA GPU, PyPI's default
+# elsewhere), cpu, cuda or default. To switch an existing environment: make torch TORCH=cuda
+TORCH ?= auto
+export TORCH
 
-$(BIN)/.installed: pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q --disable-pip-version-check --upgrade pip
-	$(BIN)/pip install -q --disable-pip-version-check torch==2.13.0
-	$(BIN)/pip install -q --disable-pip-version-check -e '.[test]'
-	touch $@
+$(BIN)/python:
+	@echo "Creating the virtual environment $(VENV) ($(PYTHON) -m venv)"
+	@$(PYTHON) -m venv $(VENV)
+	@$(PIP) --upgrade pip
+
+# (order-only: the interpreter is a link whose time is the system Python's)
+$(VENV)/.torch-installed: pyproject.toml scripts/install-torch | $(BIN)/python
+	@sh scripts/install-torch $(BIN)/python
+	@touch $@
+
+$(VENV)/.serve-installed: pyproject.toml $(VENV)/.torch-installed
+	@echo "Installing dimgestor and what serving needs (pip install -e .)"
+	@$(PIP) -e .
+	@touch $@
+
+# `dimgestor export-onnx` and `--backend onnxruntime` (make web exports the model).
+$(VENV)/.onnx-installed: pyproject.toml $(VENV)/.serve-installed
+	@echo "Installing the ONNX exporter and runtime (pip install -e '.[onnx]')"
+	@$(PIP) -e '.[onnx]'
+	@touch $@
+
+# The test extra holds the onnx extra's pins too: after it, `make demo` and `make web` install nothing more.
+$(VENV)/.test-installed: pyproject.toml $(VENV)/.torch-installed
+	@echo "Installing dimgestor with its test tools (pip install -e '.[test]')"
+	@$(PIP) -e '.[test]'
+	@touch $@ $(VENV)/.serve-installed $(VENV)/.onnx-installed
 
 # Test tooling from npm (an independent OSC parser for the VMC checks), pinned by tests/node/package-lock.json.
 # Without npm the tests that need it skip and say so.
@@ -22,26 +48,33 @@ $(VMC_CHECK)/node_modules/.package-lock.json: $(VMC_CHECK)/package.json $(VMC_CH
 # the viewer's HTTP server serves them from clients/web/node_modules (no CDN, no internet at run time).
 WEB := clients/web
 $(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.json
-	@if command -v npm >/dev/null; then cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error; \
+	@if command -v npm >/dev/null; then echo "Installing the web viewer's three.js and three-vrm (npm ci in $(WEB))"; \
+		cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error; \
 	else echo "npm not found: the browser viewer cannot load three.js and its tests will be skipped (Debian: apt install npm)" >&2; fi
 
-.PHONY: setup test demo default-model live-model web
-setup: $(BIN)/.installed $(WEB)/node_modules/.package-lock.json
+.PHONY: setup torch test demo default-model live-model web
+# What `make demo` needs: torch, the package and its dependencies, the viewer's JavaScript.
+setup: $(VENV)/.serve-installed $(WEB)/node_modules/.package-lock.json
 
-test: setup $(VMC_CHECK)/node_modules/.package-lock.json
+torch: | $(BIN)/python
+	sh scripts/install-torch $(BIN)/python
+	@touch $(VENV)/.torch-installed
+
+test: $(VENV)/.test-installed $(WEB)/node_modules/.package-lock.json $(VMC_CHECK)/node_modules/.package-lock.json
 	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile
 
 # Ports of `make demo`, e.g. `make demo WS_PORT=9000 OSC_PORT=39540` (the viewer: http://127.0.0.1:WS_PORT/).
 WS_PORT ?= 8765
 OSC_PORT ?= 39539
 demo: setup
-	$(BIN)/streamer serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --osc 127.0.0.1:$(OSC_PORT)
+	@echo "Starting the server: open http://127.0.0.1:$(WS_PORT)/ (VMC to 127.0.0.1:$(OSC_PORT)); Ctrl-C stops"
+	$(BIN)/dimgestor serve --source demo --loop --ws 127.0.0.1:$(WS_PORT) --vmc 127.0.0.1:$(OSC_PORT)
 
 # The viewer with the model running in the browser (onnxruntime-web), no inference server: exports the default
 # model into web-model/ the first time; then open http://127.0.0.1:WEB_PORT/?local=model/
 WEB_PORT ?= 8766
-web: setup
-	$(BIN)/streamer web --model web-model --port $(WEB_PORT)
+web: $(VENV)/.onnx-installed $(WEB)/node_modules/.package-lock.json
+	$(BIN)/dimgestor web --model web-model --port $(WEB_PORT)
 
 # Retrain the embedded default model (see MODEL_CARD.md): the realtime preset with the speech front end
 # (level-free bands and prosody), 300 ms of audio lookahead (downsampler kernel 41) and 15 % condition dropout,
@@ -51,20 +84,20 @@ web: setup
 # unseen-voice numbers against steps are in MODEL_CARD.md), then copy its inference files into the package with
 # its sampling default: K = 4 DDIM steps, classifier-free guidance 1.25, no output filter.
 ZEGGS ?= ../shared/data/zeggs_sample
-default-model: $(BIN)/.installed
+default-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/default \
 		--max-steps 1200 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 400 --valid-every 400 --seed 0 \
 		--valid-seconds 15 --no-augment --set frontend=speech --set lookahead_ms=300 --set down_kernel=41 \
 		--cond-drop 0.15
-	$(BIN)/dimgestor export --checkpoint runs/default --out dimgestor/default_model --sample-steps 4 --smooth 0 \
+	$(BIN)/dimgestor export --checkpoint runs/default --out dimgestor/default_model --steps 4 --smooth 0 \
 		--guidance 1.25
 
 # The embedded live model (`--checkpoint live`, MODEL_CARD.md "The live model"): the default model's recipe with
 # the realtime preset's own 150 ms of lookahead (downsampler kernel 31), so a frame needs audio up to 200 ms after
 # its start instead of 350: what a live microphone wants. Same data, steps, dropout and sampling defaults.
-live-model: $(BIN)/.installed
+live-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/live \
 		--max-steps 1200 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 400 --valid-every 400 --seed 0 \
 		--valid-seconds 15 --no-augment --set frontend=speech --cond-drop 0.15
-	$(BIN)/dimgestor export --checkpoint runs/live --out dimgestor/live_model --sample-steps 4 --smooth 0 \
+	$(BIN)/dimgestor export --checkpoint runs/live --out dimgestor/live_model --steps 4 --smooth 0 \
 		--guidance 1.25

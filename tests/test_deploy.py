@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 import urllib.error
 import urllib.request
 import wave
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
@@ -403,18 +405,152 @@ def _local_cluster_module():
     return module
 
 
-def test_the_compose_file_and_dockerfile_agree_with_what_is_tested_here():
-    """Docker cannot run here: check that deploy/compose.yaml fills the tested template with the tested passive
-    checks and mounts files that exist, and that the Dockerfile installs the torch pyproject.toml pins."""
-    yaml = pytest.importorskip("yaml")
-    deploy = REPO / "deploy"
-    compose = yaml.safe_load((deploy / "compose.yaml").read_text())["services"]
-    nginx, worker = compose["nginx"], compose["worker"]
+# deploy/compose.yaml and deploy/Dockerfile: no Docker daemon or compose runs where the tests run, so they are checked
+# here as data (PyYAML, the Dockerfile's instructions), against the code that will run them: the serve argument
+# parser and options, the state store's URL reading, the health endpoints, the nginx template's placeholders.
+DEPLOY = REPO / "deploy"
+
+
+def compose_services() -> dict:
+    return yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
+
+
+def interpolated(text: str) -> str:
+    """A compose value as compose fills it from an empty environment: `${NAME:-default}` -> default."""
+    return re.sub(r"\$\{(\w+)(?::?-([^}]*))?\}", lambda m: m.group(2) or "", text)
+
+
+def dockerfile() -> list[tuple[str, str]]:
+    """deploy/Dockerfile's final stage as (INSTRUCTION, arguments), continuation lines joined, comments dropped."""
+    lines, joined = [], ""
+    for line in (DEPLOY / "Dockerfile").read_text().splitlines():
+        if line.lstrip().startswith("#") or not line.strip():
+            continue
+        joined += line.rstrip("\\").strip() + " "
+        if not line.endswith("\\"):
+            lines.append(joined.strip())
+            joined = ""
+    stages = [i for i, line in enumerate(lines) if line.startswith("FROM ")]
+    return [tuple(line.split(" ", 1)) for line in lines[stages[-1]:]]
+
+
+def instruction(name: str) -> list[str]:
+    return [args for op, args in dockerfile() if op == name]
+
+
+def serve_parser():
+    """The argument parser `dimgestor serve` runs (streamer.cli's until serve moves into dimgestor.cli)."""
+    import argparse
+    import importlib
+
+    for module in ("dimgestor.cli", "streamer.cli"):
+        parser = importlib.import_module(module).build_parser()
+        commands = next(a.choices for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        if "serve" in commands:
+            return parser
+    raise AssertionError("no `serve` subcommand in dimgestor.cli or streamer.cli")
+
+
+def served(argv: list[str]):
+    """argv (`dimgestor serve ...`) as the worker would take it: parsed, then validated -> its ServeOptions."""
+    from streamer.options import ServeOptions
+
+    assert argv[:2] == ["dimgestor", "serve"], argv
+    args = serve_parser().parse_args(argv[1:])
+    return ServeOptions.parse(**{k: v for k, v in vars(args).items() if k in ServeOptions.model_fields})
+
+
+def worker_commands() -> dict[str, list[str]]:
+    """Every worker command line: the compose worker's and the image's default (CMD)."""
+    cmd = json.loads(instruction("CMD")[-1])
+    return {"compose worker": [interpolated(a) for a in compose_services()["worker"]["command"]], "image CMD": cmd}
+
+
+def test_every_worker_command_is_dimgestor_serve_as_its_parser_and_options_take_it():
+    assert pytest.raises(SystemExit, serve_parser().parse_args, ["serve", "--no-such-flag"])  # (it does check)
+    for where, argv in worker_commands().items():
+        options = served(argv)
+        assert options.source == "ws" and options.ws == ("0.0.0.0", 8765), (where, options)
+    compose = served(worker_commands()["compose worker"])
+    assert compose.allow_origin == ("http://localhost:8765",)  # DIMGESTOR_PUBLIC_ORIGIN's default
+
+
+def test_the_compose_workers_hand_sessions_over_through_its_redis_service():
+    """Sessions outlive their worker under compose: every worker is given the `redis` service as its state store,
+    starts after it answers, and the image has the client (the `cluster` extra)."""
+    from streamer.handover import open_store
+
+    services = compose_services()
+    worker = services["worker"]
+    store = open_store(served(worker_commands()["compose worker"]).state_store)
+    address = store.client.connection_pool.connection_kwargs
+    assert address["host"] in services and services[address["host"]]["image"].startswith("redis:"), address
+    redis = services[address["host"]]
+    assert str(address["port"]) in redis["expose"]
+    assert "--port" not in redis["command"] and redis["command"][0] == "redis-server"
+    assert ["--save", ""] == redis["command"][1:3]  # no persistence: states live for tens of ms
+    assert worker["depends_on"][address["host"]] == {"condition": "service_healthy"}
+    assert redis["healthcheck"]["test"] == ["CMD", "redis-cli", "ping"]
+    # the image: CPU torch first (the pin pyproject.toml holds), then the package with the `cluster` extra
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    pin = next(d for d in pyproject["dependencies"] if d.startswith("torch=="))
+    assert any(d.startswith("redis") for d in pyproject["optional-dependencies"]["cluster"])
+    runs = instruction("RUN")
+    torch_at = next(i for i, r in enumerate(runs) if f"pip install --no-cache-dir {pin} " in r)
+    assert "--index-url https://download.pytorch.org/whl/cpu" in runs[torch_at]
+    package_at = next(i for i, r in enumerate(runs) if "pip install --no-cache-dir -e '.[cluster]'" in r)
+    assert torch_at < package_at
+
+
+def test_health_checks_poll_what_a_worker_answers_and_the_docs_they_point_to_exist():
+    from urllib.parse import urlsplit
+
+    from streamer.health import Readiness, answer
+
+    services = compose_services()
+    check = instruction("HEALTHCHECK")
+    assert len(check) == 1
+    argv = json.loads(check[0][check[0].index("CMD ") + 4:])
+    assert argv[:2] == ["python", "-c"]
+    compile(argv[2], "HEALTHCHECK", "exec")
+    url = urlsplit(re.search(r"http://[^'\"]+", argv[2]).group(0))
+    for where, cmd in worker_commands().items():  # the port each worker listens on
+        assert (url.hostname, url.port) == ("127.0.0.1", served(cmd).ws[1]), where
+    # liveness: 200 whatever the load (a busy or draining worker is not restarted), from the worker's own handler
+    busy = Readiness()
+    busy.draining = True
+    live = answer("GET", url.path, busy)
+    assert live is not None and live.status == 200, url.path
+    assert answer("GET", "/readyz", busy).status == 503  # (readiness is the other endpoint)
+    # every service another waits on to be healthy has a health check: its own, or the image's for the worker
+    for name, service in services.items():
+        for dependency, how in service.get("depends_on", {}).items():
+            if how["condition"] == "service_healthy":
+                has_check = "healthcheck" in services[dependency] or ("build" in services[dependency] and check)
+                assert has_check, (name, dependency)
+    # the sections the deploy files' comments point to are in docs/deploy.md
+    headings = set(re.findall(r"^#+ (.+)$", (REPO / "docs" / "deploy.md").read_text(), re.M))
+    for path in (DEPLOY / "Dockerfile", DEPLOY / "compose.yaml"):
+        for section in re.findall(r'docs/deploy\.md, "([^"]+)"', path.read_text()):
+            assert section in headings, (path.name, section)
+    assert "Health checks" in headings
+
+
+def test_nginx_in_compose_fills_the_tested_template_with_the_worker_service():
+    """The compose nginx: the local cluster's template and entrypoint, its upstream the `worker` service on the
+    port the workers listen on, with the tested passive checks."""
+    services = compose_services()
+    nginx, worker = services["nginx"], services["worker"]
     upstream = nginx["environment"]["DIMGESTOR_UPSTREAM"]
-    assert upstream == f"server worker:8765 max_fails=1 fail_timeout={_local_cluster_module().FAIL_TIMEOUT_S}s;"
+    host, port = re.fullmatch(r"server (\S+):(\d+) max_fails=1 fail_timeout=(\d+)s;", upstream).group(1, 2)
+    assert host == "worker" and host in services
+    assert int(port) == served(worker_commands()["compose worker"]).ws[1] and port in worker["expose"]
+    assert upstream.endswith(f"fail_timeout={_local_cluster_module().FAIL_TIMEOUT_S}s;")
+    assert nginx["ports"] == [f"{nginx['environment']['DIMGESTOR_LISTEN']}:{nginx['environment']['DIMGESTOR_LISTEN']}"]
     assert {v.split(":")[0] for v in nginx["volumes"]} == {"./nginx.conf", "./nginx-entrypoint.sh"}
-    assert all((deploy / v.split(":")[0]).is_file() for v in nginx["volumes"])
-    assert (deploy / worker["build"]["context"] / worker["build"]["dockerfile"]).resolve() == deploy / "Dockerfile"
+    assert all((DEPLOY / v.split(":")[0]).is_file() for v in nginx["volumes"])
+    assert nginx["entrypoint"] == ["/bin/sh", "/deploy/nginx-entrypoint.sh"]
+    assert set(re.findall(r"\$\{(DIMGESTOR_\w+)\}", (DEPLOY / "nginx.conf").read_text())) == {
+        k for k in nginx["environment"] if k.startswith("DIMGESTOR_")}
+    assert (DEPLOY / worker["build"]["context"] / worker["build"]["dockerfile"]).resolve() == DEPLOY / "Dockerfile"
     assert "OMP_NUM_THREADS=1" in worker["environment"]
-    pin = re.search(r'"(torch==[\d.]+)"', (REPO / "pyproject.toml").read_text()).group(1)
-    assert f"pip install --no-cache-dir {pin} " in (deploy / "Dockerfile").read_text()
