@@ -92,8 +92,9 @@ def test_two_processes_take_the_same_steps_as_one_with_the_same_global_batch_and
     wa, ws, wb = (load_checkpoint(tmp_path / n).model.state_dict() for n in ("one", "scalar", "two"))
     for x, y, s in [(wa, wb, ws), (one["model"], two["model"], _state(tmp_path / "scalar")["model"])]:
         spread = max(_distance(x, s), EPS32 * _distance(x, {k: 0 * v for k, v in x.items()}))
-        print(f"weights: two processes {_distance(x, y):.2e} from one; rounding alone {spread:.2e}")
-        assert _distance(x, y) <= SPREAD * spread
+        d = _distance(x, y)
+        print(f"weights: two processes {d:.2e} from one; rounding alone {spread:.2e}")
+        assert d <= SPREAD * spread, f"two processes' weights {d:.2e} from one process's; rounding moves {spread:.2e}"
     a, s, b = (_log(tmp_path / n) for n in ("one", "scalar", "two"))
     for key, steps in [("valid_loss", (0, 2, 4, 6)), ("train_loss", (2, 4))]:  # (train: smoothed, anew on --resume)
         x, y, z = ([r[key] for r in log if r["step"] in steps] for log in (a, b, s))
