@@ -172,7 +172,7 @@ class _Utterance:
     start: float | None = None   # monotonic time its first sample is heard
     pts0: float = 0.0            # its first frame's pts (its frames' and its audio's clock: never moves)
     pushed_s: float = 0.0        # audio (and transport gaps) handed to the transport so far
-    audio_s: float = 0.0         # of which audio
+    samples: int = 0             # of which audio, in samples at `rate` (counted, not summed as seconds: see gaps)
     gaps: list = field(default_factory=list)  # (audio_s before it, seconds): silence the transport plays
     heard_s: float = 0.0         # audio the transport reported playing (`playout_observer`)
     last_chunk_s: float = 0.0    # the last reported chunk's length
@@ -185,6 +185,13 @@ class _Utterance:
     audio: list = field(default_factory=list)  # (local pts, 16 kHz samples) not yet heard: for on_audio
     task: asyncio.Task | None = None
     released: int = 0
+
+    @property
+    def audio_s(self) -> float:
+        """Seconds of audio handed to the transport. A gap starts exactly here: a frame whose pts is the same
+        moment (k / fps == samples / rate) shows the gap's silence, where a sum of 20 ms chunks (0.4000000000000001
+        after twenty) would have put it a rounding error into the gap and labelled it audio."""
+        return self.samples / self.rate
 
 
 class GestureProcessor(FrameProcessor):
@@ -290,7 +297,7 @@ class GestureProcessor(FrameProcessor):
                 self._hold_task = self.create_task(self._hold(u), name="gesture-hold")
         x = _mono(frame)
         if self._holding is None:  # (held audio goes out later, back to back: no transport gap to fill)
-            gap = self._schedule(u, len(x) / frame.sample_rate)
+            gap = self._schedule(u, len(x))
             if gap > 0:
                 await self._feed(u, np.zeros(int(round(gap * frame.sample_rate)), np.float32))
         await self._feed(u, x)
@@ -335,9 +342,10 @@ class GestureProcessor(FrameProcessor):
             u.audio.append((u.source.samples_in / SAMPLE_RATE, y))
             await u.source.put(y)  # (waits only when an hour of audio is queued)
 
-    def _schedule(self, u: _Utterance, seconds: float) -> float:
-        """`seconds` of u's audio are pushed to the transport now: when they play. Returns the silence (s) the
-        transport plays before them, part of u's timeline (a TTS slower than real time)."""
+    def _schedule(self, u: _Utterance, samples: int) -> float:
+        """`samples` of u's audio (at its rate) are pushed to the transport now: when they play. Returns the
+        silence (s) the transport plays before them, part of u's timeline (a TTS slower than real time)."""
+        seconds = samples / u.rate
         now = time.monotonic()
         begin = max(now, self._play_end)
         if u.start is None:
@@ -347,10 +355,10 @@ class GestureProcessor(FrameProcessor):
             gap = max(0.0, begin - (u.start + u.pushed_s))
         if gap > 0:
             u.gaps.append((u.audio_s, gap))
-        if not u.audio_s:
+        if not u.samples:
             self._playing.append(u)
         u.pushed_s += gap + seconds
-        u.audio_s += seconds
+        u.samples += samples
         self._play_end = begin + seconds
         self._changed.set()
         return gap
@@ -378,7 +386,7 @@ class GestureProcessor(FrameProcessor):
         while self._held:  # out in order; process_frame keeps appending until the list is empty
             frame, direction, v = self._held.pop(0)
             if v is not None:
-                self._schedule(v, len(_mono(frame)) / frame.sample_rate)
+                self._schedule(v, len(_mono(frame)))
             await self.push_frame(frame, direction)
         self._holding = self._hold_task = None
 

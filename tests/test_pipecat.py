@@ -12,6 +12,7 @@ import json
 import sys
 import time
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -261,7 +262,34 @@ def test_a_tts_slower_than_real_time_gestures_late_never_early_and_drops_nothing
         slack = run.slack(r.due, heard, r.wall)
         assert abs(r.due - heard) <= SYNC_S + slack, f"frame {r.k} due {1000 * (r.due - heard):.0f} ms off"
         assert r.wall >= heard - SYNC_S - slack, f"frame {r.k} went out before its audio"
+    # and a frame that shows silence was due while the transport had nothing to play
+    dry = [(e, b.start) for b, e in zip(played[1:], ends) if b.start - e > 1e-3] + [(ends[-1], np.inf)]
+    for r in frames:
+        if r.audio_s is None:
+            off = min(max(0.0, e - r.due, r.due - s) for e, s in dry)
+            assert off <= SYNC_S + run.slack(r.due), f"frame {r.k} shows silence {1000 * off:.0f} ms off a pause"
     print(f"slow TTS: {stats.late} of {len(frames)} frames late, up to {1000 * stats.max_late_s:.0f} ms")
+
+
+def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypatch):
+    """A slow TTS sends twenty 20 ms chunks, then nothing until 0.525 s: the transport is silent from 0.4 s. Frame 8
+    (pts 0.4) shows that silence, not the audio after it (which is heard only at 0.525 s): the pause begins where
+    the audio counted in samples ends, exactly (a sum of 20 ms as seconds is 0.4000000000000001). On a fake clock."""
+    from streamer import pipecat as sp
+
+    clock = SimpleNamespace(monotonic=lambda: 0.0)
+    monkeypatch.setattr(sp, "time", clock)
+    g = sp.GestureProcessor([], bundle=bundle)
+    g.origin = 0.0
+    u = sp._Utterance(0, None, None, None, RATE)
+    for _ in range(20):
+        assert g._schedule(u, RATE // 50) == 0.0
+    clock.monotonic = lambda: 0.525
+    assert g._schedule(u, RATE // 50) == pytest.approx(0.125)
+    shown = [sp._audio_at(u, k / FPS) for k in range(13)]
+    assert shown[:8] == [k / FPS for k in range(8)]
+    assert shown[8:11] == [None, None, None]
+    assert shown[11:] == pytest.approx([0.425, 0.475])
 
 
 def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
