@@ -545,14 +545,16 @@ class GestureProcessor(FrameProcessor):
         self.stats.speech_frames += 1
         u.released += 1
         self._give_audio(u, f.pts + 1 / self.fps)
-        self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats), due, u.number, k, _audio_at(u, f.pts))
+        self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats), due, u.number, k, _audio_at(u, f.pts), now)
 
     def _release_rest(self, due: float) -> None:
         root, rot, feats = self.rest.pose(self.spring.step(1 / self.fps))
         self.stats.rest_frames += 1
-        self._send(Frame(self._index, due - self.origin + self._drift, root, rot, feats), due, -1, -1, None)
+        self._send(Frame(self._index, due - self.origin + self._drift, root, rot, feats), due, -1, -1, None,
+                   time.monotonic())
 
-    def _send(self, frame: Frame, due: float, utterance: int, k: int, audio_s: float | None) -> None:
+    def _send(self, frame: Frame, due: float, utterance: int, k: int, audio_s: float | None, now: float) -> None:
+        """`now`: the release's instant, the one its lateness was counted from (`Released.wall` says the same)."""
         for sink in self.sinks:
             sink.send([frame])
         self._index += 1
@@ -560,7 +562,7 @@ class GestureProcessor(FrameProcessor):
         self._last_due = due
         self._next_rest_due = due + 1 / self.fps
         if self.on_release is not None:
-            self.on_release(Released(frame, time.monotonic(), due, utterance, k, audio_s))
+            self.on_release(Released(frame, now, due, utterance, k, audio_s))
 
     @property
     def frames_sent(self) -> int:
