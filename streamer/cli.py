@@ -249,7 +249,7 @@ def run_devices(args=None) -> int:
     try:
         devices = list_input_devices()
     except SourceError as e:
-        print(f"streamer: {e}", file=sys.stderr)
+        print(f"dimgestor: {e}", file=sys.stderr)
         return EXIT_USAGE
     if not devices:
         print("No input devices found.", file=sys.stderr)
@@ -275,7 +275,7 @@ def run_serve(args) -> int:
         options = ServeOptions.parse(**{k: v for k, v in vars(args).items() if k in ServeOptions.model_fields})
         return asyncio.run(serve(options))
     except (ServeError, SourceError) as e:
-        print(f"streamer: {e}", file=sys.stderr)
+        print(f"dimgestor: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:  # a second Ctrl-C while shutting down
         return 130

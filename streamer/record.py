@@ -118,7 +118,7 @@ class BvhRecorder:
         except OSError:
             pass
         if self.size:  # the header is there: say what was kept
-            print(f"streamer: recording stopped: cannot write {self.path}: {self.failed}; kept the first "
+            print(f"dimgestor: recording stopped: cannot write {self.path}: {self.failed}; kept the first "
                   f"{self.frames} frames ({self.frames * self.frame_time:.1f} s)", file=sys.stderr, flush=True)
 
     def close(self) -> Path | None:
@@ -149,7 +149,7 @@ class RecordingSink:
     async def close(self, drain: bool = True) -> None:
         path = self.recorder.close() if self.recorder is not None else None
         if path:
-            print(f"streamer: wrote {self.recorder.frames} frames to {path}", file=sys.stderr)
+            print(f"dimgestor: wrote {self.recorder.frames} frames to {path}", file=sys.stderr)
 
     def describe(self) -> str:
         return f"recording  {self.path}"

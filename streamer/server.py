@@ -110,7 +110,7 @@ def _source(options: ServeOptions):
     source = open_source(options.source, device=options.device_id, realtime=not options.fast, loop=options.loop,
                          rate=options.rate, gain_db=options.gain, gate_dbfs=options.gate)
     if isinstance(source, MicSource):
-        source.warn = lambda text: print(f"streamer: {text}", file=sys.stderr, flush=True)
+        source.warn = lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True)
     return source
 
 
@@ -220,7 +220,7 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
     folder = tempfile.mkdtemp(prefix="dimgestor-onnx-")
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
     batches = () if options.no_batch else SERVE_BATCHES
-    print(f"streamer: exporting the model to ONNX (K={steps}, guidance {guidance:g}"
+    print(f"dimgestor: exporting the model to ONNX (K={steps}, guidance {guidance:g}"
           + (f", graphs of 1 and {' and '.join(map(str, batches))} streams" if batches else "") + ") ...",
           file=sys.stderr, flush=True)
     try:
@@ -352,7 +352,7 @@ async def _open(sinks: list[Sink]) -> None:
 async def _stream(p: Pipeline, stop: asyncio.Event) -> None:
     """The source through its session into every sink, until the source ends or `stop`."""
     if p.options.wait_client and p.ws is not None:
-        print("streamer: waiting for a WebSocket client before starting the source", file=sys.stderr, flush=True)
+        print("dimgestor: waiting for a WebSocket client before starting the source", file=sys.stderr, flush=True)
         while not p.ws.clients and not stop.is_set():
             await asyncio.sleep(0.02)
     chunks = until(p.source, stop)
@@ -364,7 +364,7 @@ async def _stream(p: Pipeline, stop: asyncio.Event) -> None:
             sink.send(frames)
 
     n = await p.session.run(chunks, emit)
-    print(f"streamer: source ended after {n} frames", file=sys.stderr)
+    print(f"dimgestor: source ended after {n} frames", file=sys.stderr)
 
 
 async def until(source, stop: asyncio.Event) -> AsyncIterator[AudioChunk]:
@@ -418,7 +418,7 @@ def _banner(p: Pipeline) -> str:
     if o.http is not None:
         lines.append(f"--http is deprecated: the viewer is served on the WebSocket port ({p.ws.viewer_urls[0]}); "
                      f"--http still serves it, and the WebSocket, on port {p.ws.addresses[-1][1]} too")
-    return "\n".join(f"streamer: {line}" for line in lines)
+    return "\n".join(f"dimgestor: {line}" for line in lines)
 
 
 async def _report(p: Pipeline) -> None:
@@ -428,7 +428,7 @@ async def _report(p: Pipeline) -> None:
 
 
 def _status_line(p: Pipeline) -> str:
-    parts = [f"[streamer {time.monotonic() - p.t0:6.1f}s]"]
+    parts = [f"[dimgestor {time.monotonic() - p.t0:6.1f}s]"]
     if p.session is not None:
         st = p.session.stats
         parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",

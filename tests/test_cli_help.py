@@ -170,4 +170,4 @@ def test_the_console_scripts_as_a_user_runs_them():
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.splitlines() == ["streamer is now `dimgestor`: run `dimgestor serve ...` (the same options)",
                                      "streamer serve: --osc is now --vmc",
-                                     "streamer: --steps must be >= 1, got 0"], r.stderr
+                                     "dimgestor: --steps must be >= 1, got 0"], r.stderr

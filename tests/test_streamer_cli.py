@@ -76,7 +76,7 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
 def test_ctrl_c_stops_cleanly_and_finishes_the_recording(tiny_checkpoint, wav, tmp_path):
     out = tmp_path / "partial.bvh"
     s = serve(tiny_checkpoint, "--source", str(wav), "--loop", "--record", str(out))  # real time, forever
-    m = s.wait_for(r"\[streamer\s+([\d.]+)s\] \| audio\s+([\d.]+)s \| frames [1-9].* \| batch ([\d.]+) streams")
+    m = s.wait_for(r"\[dimgestor\s+([\d.]+)s\] \| audio\s+([\d.]+)s \| frames [1-9].* \| batch ([\d.]+) streams")
     assert float(m.group(2)) <= float(m.group(1))  # paced in real time, not as fast as possible
     assert float(m.group(3)) == 1.0  # batched inference by default; one stream here
     s.proc.send_signal(signal.SIGINT)

@@ -181,7 +181,7 @@ def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         line = ""
-        while not line.startswith("streamer: WebSocket"):
+        while not line.startswith("dimgestor: WebSocket"):
             line = s.stdout.readline()
             assert line, "the server exited"
         url = line.split()[2].split("?")[0]

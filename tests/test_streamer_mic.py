@@ -118,14 +118,14 @@ def test_a_device_without_input_channels_exits_2_with_one_clear_line(vmic, how):
     r = dimgestor(vmic, "serve", "--source", "mic", "--input-device", device, "--no-ws")
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
-        "streamer: No input device: 'vspeaker' has no input channels (an output device?); "
+        "dimgestor: No input device: 'vspeaker' has no input channels (an output device?); "
         "list the inputs with `dimgestor devices`"], r.stderr
 
 
 @pytest.mark.parametrize("args, says", [
-    (["--input-device", "vmic44", "--rate", "1000000"], "streamer: Input device 'vmic44' cannot capture at 1000000 Hz"),
-    (["--input-device", "vmic"], "streamer: No input device 'vmic': Multiple input devices found for 'vmic'"),
-    (["--input-device", "no such mic"], "streamer: No input device 'no such mic'"),
+    (["--input-device", "vmic44", "--rate", "1000000"], "dimgestor: Input device 'vmic44' cannot capture at 1000000 Hz"),
+    (["--input-device", "vmic"], "dimgestor: No input device 'vmic': Multiple input devices found for 'vmic'"),
+    (["--input-device", "no such mic"], "dimgestor: No input device 'no such mic'"),
 ])
 def test_a_device_that_cannot_be_used_exits_2_with_one_clear_line(vmic, args, says):
     r = dimgestor(vmic, "serve", "--source", "mic", "--no-ws", *args)
