@@ -550,7 +550,7 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import deprecated_alias
+    from .cli_help import deprecated_alias
 
     g = p.add_argument_group("what to score")
     g.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
@@ -589,7 +589,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `eval` subcommand to the `dimgestor` CLI."""
-    from .cli import examples
+    from .cli_help import examples
 
     p = subparsers.add_parser("eval", help="jerk, speech contrast, BeatAlign, FGD, diversity and turning per K",
                               description=__doc__.split("\n\n")[0],

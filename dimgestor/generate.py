@@ -49,7 +49,7 @@ def check_export(manifest: dict, bundle: Bundle) -> None:
 
 
 def register(subparsers) -> None:
-    from .cli import examples
+    from .cli_help import examples
 
     p = subparsers.add_parser(
         "generate", help="generate a BVH for a WAV file (offline, whole file)",

@@ -369,7 +369,7 @@ def _json_safe(v):
 
 
 def register(subparsers) -> None:
-    from .cli import examples
+    from .cli_help import examples
 
     p = subparsers.add_parser(
         "export-onnx", help="the streaming step as an ONNX graph with explicit state",

@@ -433,7 +433,7 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `render` subcommand to the `dimgestor` CLI."""
-    from .cli import examples
+    from .cli_help import examples
 
     p = subparsers.add_parser("render", help="stick-figure preview of a BVH file (GIF animation or PNG filmstrip)",
                               description=__doc__.split("\n\n")[0],

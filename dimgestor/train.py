@@ -565,7 +565,7 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def register(subparsers) -> None:
-    from .cli import examples
+    from .cli_help import examples
     from .config import PRESETS
 
     p = subparsers.add_parser(

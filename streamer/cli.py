@@ -1,5 +1,5 @@
 """`dimgestor serve` (audio in, gestures out) and `dimgestor devices`, registered into the `dimgestor` command
-(`register_serve`, `register_devices`); `streamer ...`, the old name, is an alias of `dimgestor ...` that says so."""
+(`register_serve`, `register_devices`); `streamer ...`, the old name, is `dimgestor.cli.streamer_main`."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import sys
 from streamer.options import ServeError, ServeOptions, flag_of
 
 EXIT_USAGE = 2
-COMMANDS = ("serve", "generate", "train", "render", "eval", "info", "export", "export-onnx", "devices", "web")
 
 
 def _hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
@@ -68,7 +67,7 @@ SERVE_EXAMPLES = (
 
 def register_serve(sub) -> argparse.ArgumentParser:
     """Add `serve` to the `dimgestor` subcommands."""
-    from dimgestor.cli import deprecated_alias, examples
+    from dimgestor.cli_help import deprecated_alias, examples
 
     s = sub.add_parser("serve", help="turn live or file audio into gestures; send them over WebSocket, VMC or BVH",
                        description="Audio in (microphone, WAV file, or WebSocket clients' own audio), gesture "
@@ -234,7 +233,7 @@ def _operations_flags(g) -> dict[str, argparse.Action]:
 
 def register_devices(sub) -> argparse.ArgumentParser:
     """Add `devices` to the `dimgestor` subcommands."""
-    from dimgestor.cli import examples
+    from dimgestor.cli_help import examples
 
     p = sub.add_parser("devices", help="list audio input devices (for serve --source mic --input-device N)",
                        description="List the audio input devices PortAudio sees, the default one marked with *.",
@@ -279,26 +278,3 @@ def run_serve(args) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:  # a second Ctrl-C while shutting down
         return 130
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The `dimgestor` command line as `streamer` (its old name) parses it: the same parser."""
-    from dimgestor.cli import build_parser
-
-    return build_parser(prog="streamer")
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`streamer ...`: runs `dimgestor ...` after saying, once, that it is the new name."""
-    from dimgestor.cli import main as dimgestor_main
-
-    argv = sys.argv[1:] if argv is None else list(argv)
-    command = next((a for a in argv if not a.startswith("-")), "")  # (never the rest: it may hold a token)
-    command = command if command in COMMANDS else "COMMAND"
-    print(f"streamer is now `dimgestor`: run `dimgestor {command} ...` (the same options)", file=sys.stderr,
-          flush=True)
-    return dimgestor_main(argv, prog="streamer")
-
-
-if __name__ == "__main__":
-    sys.exit(main())

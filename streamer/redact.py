@@ -1,7 +1,7 @@
-"""Keeping the token out of the log: a logging filter on every handler of `streamer serve`.
+"""Keeping the token out of the log: a logging filter on every handler of `dimgestor serve`.
 
-Its state (the server's own token) is class-level and lives in this module rather than in `streamer.cli`,
-which runs as `__main__` under `python -m streamer.cli` (a second copy of its classes when imported).
+Its state (the server's own token) is class-level and lives in this module rather than in the command line's,
+which runs as `__main__` under `python -m dimgestor.cli` (a second copy of its classes when imported).
 """
 
 from __future__ import annotations

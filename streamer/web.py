@@ -79,7 +79,7 @@ def make_server(host: str, port: int, model: Path) -> ThreadingHTTPServer:
 
 def register(sub) -> None:
     """Add `web` to the `dimgestor` subcommands."""
-    from dimgestor.cli import examples
+    from dimgestor.cli_help import examples
 
     p = sub.add_parser("web", help="serve the viewer with the model running in the browser (no inference server)",
                        description="Export the model for the browser (onnxruntime-web) into a folder and serve the "

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from dimgestor.cli import DeprecatedAlias, HelpFormatter, build_parser
+from dimgestor.cli import build_parser, streamer_main
 from dimgestor.cli import main as dimgestor_main
+from dimgestor.cli_help import DeprecatedAlias, HelpFormatter
 from dimgestor.config import PRESETS
-from streamer.cli import main as streamer_main
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ["serve", "generate", "train", "render", "eval", "info", "export", "export-onnx", "devices", "web"]

@@ -56,7 +56,7 @@ def web_server(web_model, tmp_path_factory):
     """`streamer web` on a free port serving the page and the model folder; yields its base URL."""
     port = free_port()
     log = tmp_path_factory.mktemp("web_server") / "server.log"
-    cmd = [sys.executable, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "web",
+    cmd = [sys.executable, "-c", "import sys; from dimgestor.cli import main; sys.exit(main())", "web",
            "--model", str(web_model), "--port", str(port)]
     with open(log, "w") as out:
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)

@@ -439,16 +439,10 @@ def instruction(name: str) -> list[str]:
 
 
 def serve_parser():
-    """The argument parser `dimgestor serve` runs (streamer.cli's until serve moves into dimgestor.cli)."""
-    import argparse
-    import importlib
+    """The argument parser `dimgestor serve` runs."""
+    from dimgestor.cli import build_parser
 
-    for module in ("dimgestor.cli", "streamer.cli"):
-        parser = importlib.import_module(module).build_parser()
-        commands = next(a.choices for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-        if "serve" in commands:
-            return parser
-    raise AssertionError("no `serve` subcommand in dimgestor.cli or streamer.cli")
+    return build_parser()
 
 
 def served(argv: list[str]):

@@ -45,6 +45,6 @@ def test_generate_refuses_audio_shorter_than_a_frame(tmp_path, checkpoint, sampl
 
 def test_serve_refuses_an_empty_wav(tmp_path):
     wav = empty_wav(tmp_path / "empty.wav")
-    r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
+    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no audio samples" in r.stderr

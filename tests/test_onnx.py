@@ -291,7 +291,7 @@ def test_serve_on_onnxruntime_records_what_the_torch_backend_records(exported, a
     for backend in ("torch", "onnxruntime"):
         out[backend] = tmp_path / f"{backend}.bvh"
         extra = ["--onnx", str(exported)] if backend == "onnxruntime" else ["--guidance", str(guidance)]
-        r = subprocess.run([sys.executable, "-m", "streamer.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
+        r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
                             "--record", str(out[backend]), "--steps", str(STEPS), "--seed", str(SEED), "--backend",
                             backend, "--window-ms", "100", *extra], capture_output=True, text=True, timeout=180,
                            env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})

@@ -9,7 +9,7 @@ import pytest
 from dimgestor import rotations as R
 from dimgestor.audio import load_wav
 from dimgestor.checkpoint import load_checkpoint
-from streamer.cli import build_parser
+from dimgestor.cli import build_parser
 from streamer.sessions import Session
 from dimgestor.audio import SAMPLE_RATE
 from streamer.sources import DEMO_WAV, AudioChunk
