@@ -164,7 +164,8 @@ def _sounddevice():
     try:
         import sounddevice
     except OSError as e:  # the module imports, but the PortAudio shared library is missing
-        raise SourceError(f"PortAudio library not found ({e}); install it, e.g. `apt install libportaudio2`") from None
+        detail = "" if str(e) == "PortAudio library not found" else f" ({e})"  # (sounddevice's own words, often)
+        raise SourceError(f"PortAudio library not found{detail}; install it, e.g. `apt install libportaudio2`") from None
     return sounddevice
 
 

@@ -61,3 +61,23 @@ def test_a_failing_source_surfaces_its_error(bundle):
     session = Session.from_bundle(bundle, steps=2, window_ms=100)
     with pytest.raises(OSError, match="unplugged"):
         asyncio.run(session.run(broken(), lambda fs: None))
+
+
+@pytest.mark.parametrize("why, said", [("PortAudio library not found", ""),
+                                       ("libportaudio.so.2: bad ELF", " (libportaudio.so.2: bad ELF)")])
+def test_a_missing_portaudio_is_said_once_with_the_package_to_install(monkeypatch, why, said):
+    import builtins
+
+    from streamer.sources import SourceError, _sounddevice
+
+    real_import = builtins.__import__
+
+    def no_portaudio(name, *args, **kw):
+        if name == "sounddevice":
+            raise OSError(why)
+        return real_import(name, *args, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", no_portaudio)
+    with pytest.raises(SourceError) as e:
+        _sounddevice()
+    assert str(e.value) == f"PortAudio library not found{said}; install it, e.g. `apt install libportaudio2`"
