@@ -170,7 +170,7 @@ class _Utterance:
     resampler: object | None  # to 16 kHz (`StreamingResampler`); None: the TTS's rate is 16 kHz
     rate: int
     start: float | None = None   # monotonic time its first sample is heard
-    pts0: float = 0.0            # its first frame's pts (its frames' and its audio's clock: never moves)
+    pts0: float = 0.0            # its first frame's pts (its frames' and its audio's clock: fixed at its first release)
     pushed_s: float = 0.0        # audio (and transport gaps) handed to the transport so far
     samples: int = 0             # of which audio, in samples at `rate` (counted, not summed as seconds: see gaps)
     gaps: list = field(default_factory=list)  # (audio_s before it, seconds): silence the transport plays
@@ -238,6 +238,7 @@ class GestureProcessor(FrameProcessor):
         self._held: list[tuple[PipecatFrame, FrameDirection, _Utterance | None]] = []  # (audio: its utterance)
         self._next_rest_due = 0.0
         self._drift = 0.0  # frames' pts less their due time since the start: playout shifts moved one, not the other
+        self._last_pts: float | None = None  # the last frame sent's
         self._last_due: float | None = None
         self._index = 0
         self._changed = asyncio.Event()
@@ -499,6 +500,7 @@ class GestureProcessor(FrameProcessor):
                         continue
                     self._release_speech(u, u.frames.popleft(), due, time.monotonic())
                 elif u.done:
+                    self._begin(u)
                     self._give_audio(u, np.inf)
                     self._utterances.popleft()
                     if self._last_due is not None:
@@ -528,7 +530,16 @@ class GestureProcessor(FrameProcessor):
         except asyncio.TimeoutError:
             return False
 
+    def _begin(self, u: _Utterance) -> None:
+        """Before u's first frame or audio goes out: its pts come after every frame sent. They were set when its
+        audio was pushed, from the wall clock; a rest frame released since (the transport had not yet confirmed
+        when u starts, or confirmed it later) may carry a later pts. Frames' pts only increase: u's clock moves
+        on, its audio with it (on_audio's pts are the same clock): a viewer stays in sync."""
+        if u.released == 0 and self._last_pts is not None:
+            u.pts0 = max(u.pts0, self._last_pts + 0.5 / self.fps)
+
     def _release_speech(self, u: _Utterance, f: Frame, due: float, now: float) -> None:
+        self._begin(u)
         k = f.index
         x = self.rest.tangent(f)
         if k < self.blend_in:  # ease in from where the spring is
@@ -558,6 +569,7 @@ class GestureProcessor(FrameProcessor):
         for sink in self.sinks:
             sink.send([frame])
         self._index += 1
+        self._last_pts = frame.pts
         self._drift = frame.pts - (due - self.origin)  # the audio's clock less the wall's (moves at playout shifts)
         self._last_due = due
         self._next_rest_due = due + 1 / self.fps

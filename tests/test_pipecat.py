@@ -292,6 +292,42 @@ def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypat
     assert shown[11:] == pytest.approx([0.425, 0.475])
 
 
+def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_clock(bundle, monkeypatch):
+    """Its audio is pushed at 48.7 ms; the transport has not confirmed it when the rest frame due at 50 ms goes out
+    (pts 0.05). Its first frame and its audio come after that on the frames' clock, never before (a receiver's
+    clock must not step back: seen once in CI as a VMC time going from 0.05 to 0.0487). On a fake clock."""
+    from streamer import pipecat as sp
+    from streamer.frames import Frame
+
+    class Keep:
+        def __init__(self):
+            self.frames = []
+
+        def send(self, frames):
+            self.frames += frames
+
+    clock = SimpleNamespace(monotonic=lambda: 0.0)
+    monkeypatch.setattr(sp, "time", clock)
+    heard = []
+    sink = Keep()
+    g = sp.GestureProcessor([sink], bundle=bundle, on_audio=lambda pts, y: heard.append((pts, len(y))))
+    g.origin, g._observed = 0.0, True
+    g._release_rest(0.0)
+    clock.monotonic = lambda: 0.0487
+    u = sp._Utterance(0, None, None, None, RATE)
+    g._schedule(u, RATE // 50)
+    u.audio.append((0.0, np.zeros(320, np.float32)))
+    clock.monotonic = lambda: 0.05
+    g._release_rest(0.05)
+    f = g._rest_frame()
+    g._release_speech(u, Frame(0, 0.0, f.root_pos, f.rotations, f.features), u.start, 0.05)
+    pts = [f.pts for f in sink.frames]
+    assert pts[:2] == [0.0, 0.05] and pts[2] > pts[1]
+    assert heard == [(pts[2], 320)]  # its audio on the same clock as its frames
+    g._release_rest(0.1)
+    assert sink.frames[3].pts > pts[2]
+
+
 def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     """examples/pipecat_avatar.py end to end: it waits for a WebSocket client, speaks the file in bursts and
     serves continuous frames with the agent's audio (DGA1) to the viewer's protocol, and VMC to a receiver."""
