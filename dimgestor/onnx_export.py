@@ -56,12 +56,12 @@ from .batch import StepStates, runner_for
 from .diffusion import Diffusion, check_guidance
 from .mamba2 import Mamba2State
 from .model import DiMGestor, ExtractorState
+from .onnx_stream import MANIFEST
 
 __all__ = ["FrameStep", "StateSpec", "export_onnx", "state_specs", "manifest_of", "OPSET", "register"]
 
 OPSET = 18
 GRAPH = "frame_step.onnx"
-MANIFEST = "manifest.json"
 
 
 class StateSpec(NamedTuple):
