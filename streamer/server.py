@@ -196,7 +196,7 @@ def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> O
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
     """--backend onnxruntime: the --onnx folder (checked against the checkpoint, K and guidance), or the
     checkpoint exported now into a folder that lives as long as the process."""
-    from dimgestor.generate import check_export
+    from dimgestor.onnx_export import check_export
     from dimgestor.onnx_stream import load_manifest
 
     if options.onnx is not None:
