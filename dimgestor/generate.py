@@ -11,9 +11,9 @@ import torch
 from .audio import SAMPLE_RATE, AudioError, load_wav
 from .bvh import BvhMotion, write_bvh
 from .checkpoint import Bundle, load_checkpoint
+from .cli_help import smoothing_from_flag
 from .features import features_to_motion
 from .diffusion import check_guidance
-from .stream import smoothing_from_flag
 
 __all__ = ["generate_motion", "register"]
 

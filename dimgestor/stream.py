@@ -26,8 +26,7 @@ from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor, ExtractorState
 from .smoothing import OneEuroFilter, OneEuroState
 
-__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames",
-           "smoothing_from_flag"]
+__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -58,15 +57,6 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
         else:
             x, _ = diffusion.ddim_step(x, eps, t, t_prev, eta, noise, x0=x0)
     return x[0], new_states
-
-
-def smoothing_from_flag(hz: float | None):
-    """A command line's --smooth HZ as a `smoothing` argument: None -> "config", 0 -> off, else the cutoff."""
-    if hz is None:
-        return "config"
-    if hz < 0:
-        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {hz}")
-    return hz or None
 
 
 def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:
