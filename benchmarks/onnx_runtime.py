@@ -75,7 +75,8 @@ def export_for(folder: Path, steps: int, frames: int, batches=()) -> Path:
     """The export of K = steps (with graphs of `batches` streams), reused when its folder already has them."""
     import json
 
-    from dimgestor.onnx_export import MANIFEST, export_onnx
+    from dimgestor.onnx_export import export_onnx
+    from dimgestor.onnx_stream import MANIFEST
 
     out = folder / f"default_k{steps}_f{frames}"
     have = {e["batch"] for e in json.loads((out / MANIFEST).read_text()).get("batched", [])} if (
@@ -141,6 +142,7 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     """Real-time streams in one process at K = steps: torch batched and unbatched, ONNX Runtime (shared session)."""
     import os
 
+    from dimgestor.onnx_batch import BatchRunner
     from dimgestor.onnx_stream import OnnxModel
     from streams import max_streams
 
@@ -150,7 +152,7 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     threads = args.batched_threads or cores
     # ONNX Runtime batched: a StreamBatcher a core, each on its own one-thread runner (`dimgestor serve`'s
     # `onnx_batchers`); their graphs' costs measured once, for every trial
-    runners = [onnx.batch_runner(threads=1) for _ in range(threads)]
+    runners = [BatchRunner.of(onnx, threads=1) for _ in range(threads)]
     runner = runners[0]
     common = dict(steps=steps, window_ms=args.window_ms, seconds=args.streams_s, cap=args.streams_max)
     search = {"torch_batched": lambda: max_streams(bundle, batched=True, threads=threads, **common),

@@ -26,6 +26,16 @@ class AudioError(ValueError):
     """A file that is not readable audio; the message names the file."""
 
 
+def check_audio(audio) -> np.ndarray:
+    """Samples a stream takes (mono, float, in [-1, 1]) as float32; anything else is a ValueError saying why."""
+    a = np.asarray(audio)
+    if a.ndim != 1:
+        raise ValueError(f"audio must be mono 1-D samples, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"audio must be float samples in [-1, 1], got dtype {a.dtype}")
+    return a.astype(np.float32, copy=False)
+
+
 # ---- reading -------------------------------------------------------------------------------------
 
 

@@ -1,5 +1,6 @@
 """The help and option conventions every `dimgestor` subcommand shares: grouped help with one default per option
-and examples at the end (`HelpFormatter`, `examples`), and old spellings of renamed options (`deprecated_alias`).
+and examples at the end (`HelpFormatter`, `examples`), old spellings of renamed options (`deprecated_alias`), and
+the value of a flag several subcommands take (`smoothing_from_flag`).
 
 Its own module so that the subcommands' modules (here and in `streamer`) use it without importing the command
 line that registers them.
@@ -11,7 +12,7 @@ import re
 import sys
 import textwrap
 
-__all__ = ["HelpFormatter", "DeprecatedAlias", "deprecated_alias", "examples"]
+__all__ = ["HelpFormatter", "DeprecatedAlias", "deprecated_alias", "examples", "smoothing_from_flag"]
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -68,3 +69,12 @@ def examples(*lines: str, deprecated: str = "") -> str:
     """A subcommand's epilog: "examples:" and the command lines (kept as written), then the old spellings."""
     text = "examples:\n" + "\n".join(f"  {line}" for line in lines)
     return text + (f"\n\ndeprecated spellings, still accepted: {deprecated}" if deprecated else "")
+
+
+def smoothing_from_flag(hz: float | None):
+    """A command line's --smooth HZ as a `smoothing` argument: None -> "config", 0 -> off, else the cutoff."""
+    if hz is None:
+        return "config"
+    if hz < 0:
+        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {hz}")
+    return hz or None

@@ -430,7 +430,7 @@ def parse_ks(text: str | None, n_steps: int, default: int, flag: str = "--ks") -
 def run(args: argparse.Namespace) -> dict:
     from .checkpoint import load_checkpoint
     from .dataset import GestureDataset
-    from .stream import smoothing_from_flag
+    from .cli_help import smoothing_from_flag
 
     smoothing = smoothing_from_flag(getattr(args, "smooth", None))  # before anything slow
     if (args.data is None) == (getattr(args, "wavs", None) is None):

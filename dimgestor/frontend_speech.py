@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from .config import ModelConfig
+from .mel import mel_filterbank
 
 __all__ = ["SpeechFrontEnd", "SpeechState", "SPEECH_CHANNELS"]
 
@@ -107,8 +108,6 @@ class SpeechFrontEnd(nn.Module):
 
     def __init__(self, config: ModelConfig, tau_s: float = 3.0, pitch_tau_s: float = 5.0):
         super().__init__()
-        from .frontend import mel_filterbank
-
         self.hop, self.win, self.n_fft, self.sr = config.hop_length, config.win_length, config.n_fft, config.sample_rate
         self.n_mels = config.n_mels
         self.dim = config.n_mels + len(SPEECH_CHANNELS)

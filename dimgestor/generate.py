@@ -11,9 +11,9 @@ import torch
 from .audio import SAMPLE_RATE, AudioError, load_wav
 from .bvh import BvhMotion, write_bvh
 from .checkpoint import Bundle, load_checkpoint
+from .cli_help import smoothing_from_flag
 from .features import features_to_motion
 from .diffusion import check_guidance
-from .stream import smoothing_from_flag
 
 __all__ = ["generate_motion", "register"]
 
@@ -31,21 +31,13 @@ def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int 
                          root: str = "free", tether_s: float = 5.0) -> BvhMotion:
     """`generate_motion` on ONNX Runtime: the exported frame step (`dimgestor export-onnx`) streamed over the audio
     (its K and guidance are the export's). The same frames as the torch backend to < 1e-4 (tests/test_onnx.py)."""
+    from .onnx_export import check_export
     from .onnx_stream import load_manifest, ort_stream
 
     check_export(load_manifest(onnx_dir), bundle)
     stream = ort_stream(onnx_dir, seed=seed, smoothing=smoothing)
     features = bundle.denormalize(np.concatenate([stream.push(audio), stream.finish()]))
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
-
-
-def check_export(manifest: dict, bundle: Bundle) -> None:
-    """An ONNX export must be of this checkpoint's weights (`export-onnx --checkpoint` the same folder)."""
-    from .onnx_export import weights_sha256
-
-    if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
-        raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
-                         f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
 
 
 def register(subparsers) -> None:

@@ -21,8 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .onnx_stream import FrameStepStream, OnnxStreamState, _initial
-from .stream import _check_audio
+from .audio import check_audio
+from .onnx_stream import FrameStepStream, OnnxModel, OnnxStreamState, initial_tensor
 
 __all__ = ["BatchRunner", "BatchStats", "push_many"]
 
@@ -65,6 +65,11 @@ class BatchRunner:
         self.cost = dict(cost) if cost is not None else self._measure()
         self._plans: dict[int, list[int]] = {}
 
+    @classmethod
+    def of(cls, model: OnnxModel, threads: int = 1) -> "BatchRunner":
+        """Sessions on a loaded export's graphs: the calls of many of its streams as few calls (`push_many`)."""
+        return cls(model.folder, model.manifest, threads)
+
     # ---- shapes ----------------------------------------------------------------------------------
 
     def _shape(self, entry: dict, size: int) -> list[int]:
@@ -79,7 +84,7 @@ class BatchRunner:
         c = self.manifest["call"]
         feeds = {"samples": np.zeros((size, c["samples_per_call"]), np.float32),
                  "seed": np.zeros(size, np.int64), "frame": np.zeros(size, np.int64)}
-        feeds |= {s["input"]: _initial({**s, "shape": self._shape(s, size)}) for s in self.states}
+        feeds |= {s["input"]: initial_tensor({**s, "shape": self._shape(s, size)}) for s in self.states}
         self._idle_rows[size] = feeds
         return feeds
 
@@ -199,7 +204,7 @@ def push_many(runner: BatchRunner, streams: Sequence[FrameStepStream], chunks: S
         try:
             if s.state.finished:
                 raise RuntimeError("push() after finish(): start a new stream")
-            audio[i] = np.concatenate([s.state.pending, _check_audio(chunk)])
+            audio[i] = np.concatenate([s.state.pending, check_audio(chunk)])
         except Exception as e:
             if not return_exceptions:
                 raise

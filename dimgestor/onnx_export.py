@@ -47,7 +47,7 @@ import logging
 import math
 import warnings
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import TYPE_CHECKING, NamedTuple, Sequence
 
 import torch
 from torch import nn
@@ -56,12 +56,16 @@ from .batch import StepStates, runner_for
 from .diffusion import Diffusion, check_guidance
 from .mamba2 import Mamba2State
 from .model import DiMGestor, ExtractorState
+from .onnx_stream import MANIFEST
 
-__all__ = ["FrameStep", "StateSpec", "export_onnx", "state_specs", "manifest_of", "OPSET", "register"]
+if TYPE_CHECKING:
+    from .checkpoint import Bundle
+
+__all__ = ["FrameStep", "StateSpec", "check_export", "export_onnx", "state_specs", "manifest_of", "weights_sha256",
+           "OPSET", "register"]
 
 OPSET = 18
 GRAPH = "frame_step.onnx"
-MANIFEST = "manifest.json"
 
 
 class StateSpec(NamedTuple):
@@ -355,6 +359,13 @@ def _fusable_rules() -> list:
 def weights_sha256(checkpoint: Path) -> str:
     """The checkpoint's weights file hash: which model an export was made from."""
     return hashlib.sha256((Path(checkpoint) / "model.safetensors").read_bytes()).hexdigest()
+
+
+def check_export(manifest: dict, bundle: Bundle) -> None:
+    """An ONNX export must be of this checkpoint's weights (`export-onnx --checkpoint` the same folder)."""
+    if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
+        raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
+                         f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
 
 
 def _json_safe(v):

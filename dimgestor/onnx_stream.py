@@ -18,20 +18,24 @@ from typing import Callable
 import numpy as np
 import torch
 
+from .audio import check_audio
 from .config import ModelConfig
 from .smoothing import OneEuroState
-from .stream import _check_audio, make_smoother
+from .stream import make_smoother
 
-__all__ = ["FrameStepStream", "OnnxStreamState", "OnnxModel", "load_manifest", "ort_runner", "torch_runner", "ort_stream"]
+__all__ = ["FrameStepStream", "OnnxStreamState", "OnnxModel", "MANIFEST", "initial_tensor", "load_manifest", "ort_runner",
+           "torch_runner", "ort_stream"]
 
 Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
+MANIFEST = "manifest.json"  # an export folder's description of its graphs (`dimgestor.onnx_export.manifest_of`)
 
 
 def load_manifest(folder: str | Path) -> dict:
-    return json.loads((Path(folder) / "manifest.json").read_text())
+    return json.loads((Path(folder) / MANIFEST).read_text())
 
 
-def _initial(entry: dict) -> np.ndarray:
+def initial_tensor(entry: dict) -> np.ndarray:
+    """A manifest's state entry -> the state's start value (its shape and dtype, filled with its `init`)."""
     fill = float(entry["init"])  # "nan" reads as NaN
     return np.full(entry["shape"], fill, dtype=entry["dtype"])
 
@@ -64,7 +68,7 @@ class FrameStepStream:
         self.state = self.initial_state()
 
     def initial_state(self) -> OnnxStreamState:
-        return OnnxStreamState({s["input"]: _initial(s) for s in self.manifest["state"]}, np.zeros(0, np.float32))
+        return OnnxStreamState({s["input"]: initial_tensor(s) for s in self.manifest["state"]}, np.zeros(0, np.float32))
 
     @property
     def frames_out(self) -> int:
@@ -103,7 +107,7 @@ class FrameStepStream:
         """Mono float32 16 kHz samples (any length) after `state` -> the frames that became final, the state."""
         if state.finished:
             raise RuntimeError("push() after finish(): start a new stream")
-        audio = np.concatenate([state.pending, _check_audio(samples)])
+        audio = np.concatenate([state.pending, check_audio(samples)])
         whole = len(audio) - len(audio) % self.chunk
         frames, state = self._frames(state, audio[:whole])
         return frames, replace(state, pending=audio[whole:], samples_in=state.samples_in + len(samples))
@@ -190,13 +194,6 @@ class OnnxModel:
     @classmethod
     def load(cls, folder: str | Path, threads: int = 1) -> "OnnxModel":
         return cls(Path(folder), load_manifest(folder), ort_runner(folder, threads))
-
-    def batch_runner(self, threads: int = 1):
-        """Sessions on the export's graphs of 1 and of each batched size (`dimgestor.onnx_batch.BatchRunner`): the
-        calls of many of this model's streams as few calls (`push_many`)."""
-        from .onnx_batch import BatchRunner
-
-        return BatchRunner(self.folder, self.manifest, threads)
 
     def stream(self, seed: int = 0, smoothing="config", lookahead_s: float | None = None) -> FrameStepStream:
         return FrameStepStream(self.manifest, self.run, seed, smoothing, lookahead_s)

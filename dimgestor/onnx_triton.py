@@ -19,13 +19,10 @@ dim 1 or 2, `batch_dim`), while Triton batches implicit states on a leading batc
 """
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
-import numpy as np
-
-from .onnx_stream import _initial
+from .onnx_stream import initial_tensor, load_manifest
 
 __all__ = ["triton_config", "write_triton_repository", "TRITON_TYPES"]
 
@@ -83,25 +80,18 @@ def triton_config(manifest: dict, name: str = "dimgestor", instances: int = 1, i
     ])
 
 
-def initial_state(state: dict) -> np.ndarray:
-    """A state's start value as Triton's `initial_state` holds it (raw row-major bytes in the data file)."""
-    return _initial(state)
-
-
 def write_triton_repository(export_dir: str | Path, repo: str | Path, name: str = "dimgestor",
                             instances: int = 1) -> Path:
     """An export folder (frame_step.onnx + manifest.json) -> repo/name/{config.pbtxt, 1/model.onnx,
     initial_state/...}; returns the model's folder."""
-    from .onnx_export import MANIFEST
-
     export_dir = Path(export_dir)
-    manifest = json.loads((export_dir / MANIFEST).read_text())
+    manifest = load_manifest(export_dir)
     model = Path(repo) / name
     (model / "1").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(export_dir / manifest["graph"], model / "1" / "model.onnx")
     for s in manifest["state"]:
         if _fill(s) != 0.0:
             (model / "initial_state").mkdir(exist_ok=True)
-            (model / "initial_state" / s["input"]).write_bytes(initial_state(s).tobytes())
+            (model / "initial_state" / s["input"]).write_bytes(initial_tensor(s).tobytes())  # raw row-major, as Triton reads it
     (model / "config.pbtxt").write_text(triton_config(manifest, name, instances))
     return model

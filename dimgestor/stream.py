@@ -19,14 +19,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from .audio import check_audio
 from .batch import StepStates, denoise, runner_for
 from .config import ModelConfig
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor, ExtractorState
 from .smoothing import OneEuroFilter, OneEuroState
 
-__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames",
-           "smoothing_from_flag"]
+__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -59,15 +59,6 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
     return x[0], new_states
 
 
-def smoothing_from_flag(hz: float | None):
-    """A command line's --smooth HZ as a `smoothing` argument: None -> "config", 0 -> off, else the cutoff."""
-    if hz is None:
-        return "config"
-    if hz < 0:
-        raise ValueError(f"--smooth must be >= 0 Hz (0 = off), got {hz}")
-    return hz or None
-
-
 def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:
     """The output filter: "config" (the model config's smooth_hz/smooth_beta), None or 0 (off), a cutoff
     in Hz (with the config's beta), or a (cutoff_hz, beta) pair. A config, not a model: the ONNX Runtime
@@ -84,15 +75,6 @@ def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | No
     else:
         hz, beta = float(smoothing), c.smooth_beta
     return OneEuroFilter(c.fps, hz, beta) if hz else None
-
-
-def _check_audio(audio) -> np.ndarray:
-    a = np.asarray(audio)
-    if a.ndim != 1:
-        raise ValueError(f"audio must be mono 1-D samples, got shape {a.shape}")
-    if not np.issubdtype(a.dtype, np.floating):
-        raise ValueError(f"audio must be float samples in [-1, 1], got dtype {a.dtype}")
-    return a.astype(np.float32, copy=False)
 
 
 def _device(model: torch.nn.Module) -> torch.device:
@@ -179,7 +161,7 @@ class GestureStream:
         """`begin_step`'s checks: the samples as mono float32, or the error of a finished stream or bad audio."""
         if state.finished:
             raise RuntimeError("push() after finish(): start a new GestureStream")
-        return _check_audio(samples)
+        return check_audio(samples)
 
     def end_step(self, state: StreamState, frames: torch.Tensor | None, denoiser: StepStates
                  ) -> tuple[np.ndarray, StreamState]:
@@ -234,7 +216,7 @@ def generate_offline(model: DiMGestor, audio, steps: int | None = None, seed: in
 
     steps None: the config's sample_steps; smoothing: see make_smoother; guidance None: the config's scale.
     """
-    audio = _check_audio(audio)
+    audio = check_audio(audio)
     c = model.config
     guidance = check_guidance(c.guidance if guidance is None else guidance)
     T = len(audio) * c.fps // c.sample_rate

@@ -173,13 +173,13 @@ async def run(args, speech: np.ndarray, bundle) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from streamer.cli import _hostport
+    from streamer.cli import host_port
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--wav", required=True, help="the speech the agent says (any WAV)")
-    p.add_argument("--ws", type=_hostport, default=("127.0.0.1", 8765), metavar="HOST:PORT",
+    p.add_argument("--ws", type=host_port, default=("127.0.0.1", 8765), metavar="HOST:PORT",
                    help="WebSocket and web viewer (default 127.0.0.1:8765)")
-    p.add_argument("--vmc", type=_hostport, default=None, metavar="HOST:PORT", help="also send VMC (OSC/UDP) there")
+    p.add_argument("--vmc", type=host_port, default=None, metavar="HOST:PORT", help="also send VMC (OSC/UDP) there")
     p.add_argument("--burst", type=float, default=5.0, help="TTS speed: audio made per second of wall time (5)")
     p.add_argument("--burst-s", type=float, default=1.0, help="audio per TTS burst, seconds (1.0)")
     p.add_argument("--rate", type=int, default=24000, help="the TTS's sample rate (24000)")

@@ -13,7 +13,8 @@ from streamer.options import ServeError, ServeOptions, flag_of
 EXIT_USAGE = 2
 
 
-def _hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+def host_port(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+    """A HOST:PORT (or PORT) flag's value -> (host, port): an argparse `type`, so a bad one is a usage error."""
     host, sep, port = text.rpartition(":")
     if not sep:
         host, port = default_host, text
@@ -38,7 +39,7 @@ def _root_pose(text: str) -> tuple[float, float, float, float]:
 
 def _http_addr(text: str) -> tuple[str | None, int]:
     """--http [HOST:]PORT; no host -> None (serve beside the WebSocket)."""
-    host, port = _hostport(text)
+    host, port = host_port(text)
     return (host if ":" in text else None), port
 
 
@@ -48,7 +49,7 @@ def _flag(group, flag: str, field: str | None = None, **kw) -> argparse.Action:
     field = field or flag.lstrip("-").replace("-", "_")
     assert flag_of(field) == flag, (flag, field)  # options.py names it the same
     default = ServeOptions.model_fields[field].default
-    if kw.get("type") is _hostport and default is not None:
+    if kw.get("type") is host_port and default is not None:
         default = f"{default[0]}:{default[1]}"
     elif kw.get("type") is _root_pose:
         default = ",".join(f"{v:g}" for v in default)
@@ -146,7 +147,7 @@ def _model_flags(g) -> dict[str, argparse.Action]:
 
 def _output_flags(g) -> dict[str, argparse.Action]:
     return {a.dest: a for a in (
-        _flag(g, "--vmc", "osc", type=_hostport, metavar="HOST:PORT",
+        _flag(g, "--vmc", "osc", type=host_port, metavar="HOST:PORT",
               help="send the VMC protocol (OSC over UDP) to a receiver at HOST:PORT: VSeeFace, Warudo, a "
                    "Marionette... (usual port 39539) (default: no VMC output)"),
         _flag(g, "--vmc-positions", choices=("hips", "all"),
@@ -178,7 +179,7 @@ def _output_flags(g) -> dict[str, argparse.Action]:
 def _network_flags(g) -> dict[str, argparse.Action]:
     """The WebSocket server (and the viewer on its port)."""
     return {a.dest: a for a in (
-        _flag(g, "--ws", type=_hostport, metavar="HOST:PORT",
+        _flag(g, "--ws", type=host_port, metavar="HOST:PORT",
               help="WebSocket and web viewer address; 127.0.0.1 keeps it local, 0.0.0.0 opens it to the network; "
                    "port 0 = any free"),
         _flag(g, "--no-ws", action="store_true", help="do not run the WebSocket server"),

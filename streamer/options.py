@@ -105,7 +105,7 @@ class ServeOptions(BaseModel):
     @property
     def smoothing(self):
         """--smooth as `Session` takes it ("config", None = off, or a cutoff in Hz)."""
-        from dimgestor.stream import smoothing_from_flag
+        from dimgestor.cli_help import smoothing_from_flag
 
         return smoothing_from_flag(self.smooth)
 
@@ -143,7 +143,7 @@ class ServeOptions(BaseModel):
     @classmethod
     def _smooth(cls, value):
         if value is not None:
-            from dimgestor.stream import smoothing_from_flag
+            from dimgestor.cli_help import smoothing_from_flag
 
             smoothing_from_flag(value)  # raises with the flag's own message
         return value

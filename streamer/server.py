@@ -148,9 +148,9 @@ def onnx_batchers(onnx: OnnxModel, lanes: int) -> BatcherPool:
     """`lanes` StreamBatchers on ONNX Runtime, each batching its share of the sessions as calls of the export's
     graphs on its own one-thread sessions: a batched call of this graph keeps one core busy, whatever ONNX
     Runtime's intra-op threads (`BatcherPool`)."""
-    from dimgestor.onnx_batch import push_many
+    from dimgestor.onnx_batch import BatchRunner, push_many
 
-    return BatcherPool([StreamBatcher(push_many=functools.partial(push_many, onnx.batch_runner(1)),
+    return BatcherPool([StreamBatcher(push_many=functools.partial(push_many, BatchRunner.of(onnx, 1)),
                                       thread_name=f"infer-batch-{i}") for i in range(max(1, lanes))])
 
 
@@ -196,7 +196,7 @@ def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> O
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
     """--backend onnxruntime: the --onnx folder (checked against the checkpoint, K and guidance), or the
     checkpoint exported now into a folder that lives as long as the process."""
-    from dimgestor.generate import check_export
+    from dimgestor.onnx_export import check_export
     from dimgestor.onnx_stream import load_manifest
 
     if options.onnx is not None:

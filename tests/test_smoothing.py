@@ -87,7 +87,7 @@ def test_streaming_with_smoothing_equals_offline_and_the_config_default_applies(
 
 
 def test_the_checkpoint_defaults_drive_steps_and_smoothing():
-    from dimgestor.stream import smoothing_from_flag
+    from dimgestor.cli_help import smoothing_from_flag
     model = _model(sample_steps=2, smooth_hz=2.0)
     audio = _audio(1.0)
     assert np.array_equal(generate_offline(model, audio), generate_offline(model, audio, steps=2, smoothing=2.0))

@@ -1,0 +1,132 @@
+"""The packages import one way: no import cycle among dimgestor/ and streamer/ modules (function-level imports
+count too), and no module imports another's private name (shared code is public, with a docstring)."""
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("dimgestor", "streamer")
+CALLERS = ("examples", "benchmarks")  # the project's own code outside the packages
+
+
+def modules(root: Path, packages=PACKAGES) -> dict[str, Path]:
+    """Dotted module name -> file, for every .py under the packages (a package is its __init__.py)."""
+    found = {}
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            parts = path.relative_to(root).with_suffix("").parts
+            found[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return found
+
+
+def imports(path: Path, name: str) -> list[tuple[str, str | None, int]]:
+    """Every import in the file, at any depth: (module imported from, name taken from it or None, line)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(a.name, None, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                base = ".".join(up + ([node.module] if node.module else []))
+            out += [(base, a.name, node.lineno) for a in node.names]
+    return out
+
+
+def graph(root: Path, packages=PACKAGES) -> dict[str, set[str]]:
+    """Module -> the package modules it imports (`from p import m` where m is a module is an import of p.m)."""
+    mods = modules(root, packages)
+    edges = {m: set() for m in mods}
+    for m, path in mods.items():
+        for base, name, _ in imports(path, m):
+            sub = f"{base}.{name}" if name else None
+            target = sub if sub in mods else base if base in mods else None
+            if target is not None and target != m:
+                edges[m].add(target)
+    return edges
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index, low, stack, on, found = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(edges[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = []
+            while not part or part[-1] != v:
+                part.append(stack.pop())
+                on.discard(part[-1])
+            if len(part) > 1:
+                found.append(sorted(part))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def private_imports(root: Path, packages=PACKAGES, callers=CALLERS) -> list[str]:
+    """`from m import _name` of a package module, in the packages and in the callers' scripts (dunders are public;
+    another library's private names are that library's business)."""
+    mods = modules(root, packages)
+    files = [(m, p) for m, p in mods.items()]
+    files += [(p.stem, p) for d in callers if (root / d).is_dir() for p in sorted((root / d).rglob("*.py"))]
+    bad = []
+    for m, path in files:
+        for base, name, line in imports(path, m):
+            if (name and name.startswith("_") and not name.startswith("__") and base != m
+                    and base.split(".")[0] in packages):
+                bad.append(f"{path.relative_to(root)}:{line}: from {base} import {name}")
+    return bad
+
+
+def test_no_import_cycle_among_the_packages_modules():
+    edges = graph(REPO)
+    assert len(edges) > 50  # every module was found
+    assert cycles(edges) == []
+
+
+def test_no_module_imports_another_modules_private_name():
+    assert private_imports(REPO) == []
+
+
+def _package(root: Path, files: dict[str, str]) -> Path:
+    for rel, text in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+    return root
+
+
+def test_a_cycle_through_a_function_level_import_is_found(tmp_path):
+    root = _package(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/low.py": "def f():\n    from .high import g\n    return g\n",
+        "pkg/high.py": "from . import low\n\ndef g():\n    return low\n",
+        "pkg/leaf.py": "from pkg.low import f\n",
+        "pkg/sub/__init__.py": "",
+        "pkg/sub/deep.py": "from ..leaf import f\n",
+    })
+    edges = graph(root, ("pkg",))
+    assert edges["pkg.leaf"] == {"pkg.low"} and edges["pkg.sub.deep"] == {"pkg.leaf"}
+    assert cycles(edges) == [["pkg.high", "pkg.low"]]
+
+
+def test_a_private_name_imported_across_modules_is_found(tmp_path):
+    root = _package(tmp_path, {
+        "pkg/__init__.py": "__version__ = '1'\n",
+        "pkg/a.py": "_x = 1\n__all__ = []\n",
+        "pkg/b.py": "from pkg import __version__\n\ndef f():\n    from .a import (\n        __all__,\n        _x,\n    )\n",
+        "examples/demo.py": "from pkg.a import _x as x\nfrom numpy.linalg import _umath_linalg\n",
+    })
+    assert private_imports(root, ("pkg",), ("examples",)) == [
+        "pkg/b.py:4: from pkg.a import _x", "examples/demo.py:1: from pkg.a import _x"]
