@@ -22,7 +22,7 @@ import pytest
 from websockets.sync.client import connect
 
 from helpers.clients import REPO, SPEECH_WAV, global_rotations, live_server, quat_matrix
-from vrm_model import make_vrm
+from helpers.vrm_model import make_vrm
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 THREE_JS = REPO / "clients" / "web" / "node_modules" / "three" / "build" / "three.module.js"
