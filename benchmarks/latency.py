@@ -137,7 +137,7 @@ def serve_args(a, source: str) -> list[str]:
 
 def run_talk(a, tmp: Path) -> dict:
     from helpers.serve import Serve
-    from test_clients_web import CHROMIUM, Browser
+    from helpers.browser import CHROMIUM, Browser
 
     if not CHROMIUM:
         return {"skipped": "chromium not installed"}
