@@ -9,7 +9,7 @@ talk  real Chromium, its fake microphone playing the stimulus, the web viewer's 
       requestAnimationFrame presented; the server's `timing` messages (protocol revision 5) say when each window's audio had arrived,
       when inference began and when its frames were sent, related to the page's clock by the pong with the
       shortest round trip. total = onset reached the page -> the first requestAnimationFrame presenting its pts.
-vmc   `dimgestor serve --source mic --vmc` with the virtual microphone (tests/virtual_mic.py) playing the stimulus
+vmc   `dimgestor serve --source mic --vmc` with the virtual microphone (tests/helpers/virtual_mic.py) playing the stimulus
       in real time, a UDP receiver stamping the bundles: total = onset played -> the bundle of the first frame at
       or after the onset's pts received (server side, one clock: time.monotonic of this machine).
 
@@ -137,7 +137,7 @@ def serve_args(a, source: str) -> list[str]:
 
 def run_talk(a, tmp: Path) -> dict:
     from helpers.serve import Serve
-    from test_clients_web import CHROMIUM, Browser
+    from helpers.browser import CHROMIUM, Browser
 
     if not CHROMIUM:
         return {"skipped": "chromium not installed"}
@@ -347,8 +347,8 @@ def run_vmc(a, tmp: Path) -> dict:
     import asyncio
 
     import pytest
-    from udp_capture import UdpCapture
-    from virtual_mic import missing, virtual_mic
+    from helpers.udp_capture import UdpCapture
+    from helpers.virtual_mic import missing, virtual_mic
 
     if why := missing():
         return {"skipped": f"no virtual microphone: {why}"}

@@ -20,7 +20,7 @@ node_modules) to measure before / after a change.
     python benchmarks/web_local.py                        # K = 1, 4, 8; threads 1, 2 and the default; Talk 30 s
     python benchmarks/web_local.py --exports /tmp/web     # keep the exported graphs for the next run
 
-Chromium is driven over the DevTools protocol by the tests' `Browser` (tests/test_clients_web.py).
+Chromium is driven over the DevTools protocol by the tests' `Browser` (tests/helpers/browser.py).
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def chromium_version() -> str:
 def local_page(folder: Path, threads: int, tmp: Path, web: Path | None, flags: tuple[str, ...] = ()):
     """A fresh headless Chromium on `/?local=model/` served by `dimgestor web`'s server, the model loaded."""
     sys.path.insert(0, str(REPO / "tests"))
-    from test_clients_web import Browser
+    from helpers.browser import Browser
 
     import streamer.web
     from streamer.web import make_server

@@ -24,22 +24,9 @@ def zeggs_dir():
 @pytest.fixture(scope="session")
 def tiny_checkpoint(tmp_path_factory):
     """A random-init `tiny` model on the synthetic skeleton, saved like a trained one (fast, exact)."""
-    import numpy as np
-    import torch
+    from helpers.checkpoint import make_tiny_checkpoint
 
-    from dimgestor.checkpoint import save_checkpoint
-    from dimgestor.config import get_preset
-    from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
-    from dimgestor.synthetic import synthetic_skeleton
-
-    sk = synthetic_skeleton()
-    spec = FeatureSpec.for_skeleton(sk)
-    torch.manual_seed(0)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
-    rng = np.random.default_rng(0)
-    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"))
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +52,6 @@ def wav(tmp_path_factory):
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """The client tests' tiny checkpoint (its own seed, so their recorded numbers stay as they were)."""
-    from helpers.clients import make_tiny_checkpoint
+    from helpers.checkpoint import make_tiny_checkpoint
 
-    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"))
+    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), seed=1)

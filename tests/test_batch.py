@@ -4,28 +4,11 @@ import pytest
 import torch
 
 from dimgestor.batch import DenoiseRunner, StepStates, push_many
-from dimgestor.config import get_preset
 from dimgestor.diffusion import Diffusion
-from dimgestor.model import DiMGestor
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
+from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces
 
 TOL = 1e-5
-
-
-def _model(preset="tiny", **overrides):
-    model = DiMGestor(get_preset(preset, **overrides))
-    torch.manual_seed(3)
-    with torch.no_grad():  # break the zero init so the frames depend on everything
-        for p in model.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    return model.eval()
-
-
-def _audio(seconds, seed):
-    rng = np.random.default_rng(seed)
-    n = int(seconds * 16000)
-    env = 0.5 + 0.5 * np.sin(np.arange(n) / (1200 + 300 * seed))
-    return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -108,15 +91,7 @@ def test_batched_streams_equal_solo_streams(model):
         audio = _audio(seconds, seed)
         plans.append((seed, audio, start, _schedule(rng, len(audio), lo, hi)))
 
-    solo = []
-    for seed, audio, _, sizes in plans:
-        s = GestureStream(model, steps=4, seed=seed, smoothing=None)
-        out, i = [], 0
-        for n in sizes:
-            out.append(s.push(audio[i:i + n]))
-            i += n
-        out.append(s.finish())
-        solo.append(np.concatenate(out))
+    solo = [stream_in_pieces(model, audio, sizes, steps=4, seed=seed, smoothing=None) for seed, audio, _, sizes in plans]
 
     streams = [GestureStream(model, steps=4, seed=seed, smoothing=None) for seed, *_ in plans]
     outs = [[] for _ in plans]

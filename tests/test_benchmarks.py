@@ -169,9 +169,9 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
                     or __import__("shutil").which("redis-server") is None,
                     reason="nginx or redis-server not installed (.ci/run installs both)")
 def test_cluster_load_benchmark_runs_a_rolling_restart_and_writes_its_schema(tmp_path):
-    from helpers.clients import make_tiny_checkpoint
+    from helpers.checkpoint import make_tiny_checkpoint
 
-    ckpt = make_tiny_checkpoint(tmp_path)
+    ckpt = make_tiny_checkpoint(tmp_path, seed=1)
     out = tmp_path / "cluster_load.json"
     run("cluster_load.py", "--workers", "2", "--clients", "3", "--seconds", "6", "--restart-at", "1",
         "--fail-timeout", "1", "--worker-args", f"--checkpoint {ckpt} --steps 2 --window-ms 100 --status-every 0",
@@ -208,9 +208,9 @@ def test_latency_benchmark_measures_every_part_on_both_paths(tmp_path):
     """Tiny model, a few onsets per path: each path is measured (or says why it was skipped: no Chromium, no
     virtual microphone), every part is there and finite, and per onset the parts add up to the total (talk: up
     to the page's microphone clock jitter; vmc: one clock, exactly)."""
-    from helpers.clients import make_tiny_checkpoint
+    from helpers.checkpoint import make_tiny_checkpoint
 
-    ckpt = make_tiny_checkpoint(tmp_path)
+    ckpt = make_tiny_checkpoint(tmp_path, seed=1)
     out = tmp_path / "latency.json"
     run("latency.py", "--checkpoint", str(ckpt), "--name", "tiny", "--steps", "1", "--window-ms", "100",
         "--seconds", "14", "--out", str(out))

@@ -184,7 +184,7 @@ def test_python_client_reports_a_refused_token(tmp_path, checkpoint):
 
 @pytest.fixture(scope="module")
 def vmic(tmp_path_factory):
-    from virtual_mic import virtual_mic
+    from helpers.virtual_mic import virtual_mic
 
     with virtual_mic(tmp_path_factory.mktemp("vmic")) as mic:
         yield mic
@@ -217,7 +217,7 @@ def test_python_client_mic_streams_until_ctrl_c_then_ends_cleanly(tmp_path, vmic
     """`--mic` through real PortAudio at the device's 44.1 kHz: speech played into a virtual sound card comes
     back as gestures (the embedded default model) that move faster than in the silence played after it;
     the first Ctrl-C sends audio_end and waits for the session's last frames."""
-    from virtual_mic import speech_then_silence
+    from helpers.virtual_mic import speech_then_silence
 
     talk = speech_then_silence(tmp_path / "talk.wav", 4.0, 4.0)
     saved = tmp_path / "saved"
@@ -252,7 +252,7 @@ def test_python_client_mic_holds_its_audio_at_slow_down_and_sends_it_at_resume(t
     """`--mic` (real PortAudio, a virtual sound card) talking to a server at a third of real time whose backlog
     holds 0.5 s (in process): it gets `slow_down`, holds the microphone (under its 10 s bound: nothing dropped)
     and sends it at `resume`; Ctrl-C then ends the session with `end`, no error, and says how often it paused."""
-    from virtual_mic import speech_then_silence
+    from helpers.virtual_mic import speech_then_silence
 
     talk = speech_then_silence(tmp_path / "talk.wav", 3.0, 1.0)
     executor = SlowExecutor(1, delay_s=3.0)

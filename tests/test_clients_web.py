@@ -14,136 +14,22 @@ import shutil
 import subprocess
 import time
 import urllib.request
-from contextlib import ExitStack, contextmanager
-from pathlib import Path
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from websockets.sync.client import connect
 
+from helpers.av_sync import (RECORDER, RECORDING, SHOWN_NOW, assert_sound_starts_at_source_start, late_arrivals,
+                             shown_minus_heard, without_holds)
+from helpers.browser import CHROMIUM, THREE_JS, Browser, assert_figure_drawn, read_png
 from helpers.clients import REPO, SPEECH_WAV, global_rotations, live_server, quat_matrix
-from vrm_model import make_vrm
+from helpers.vrm_model import make_vrm
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-THREE_JS = REPO / "clients" / "web" / "node_modules" / "three" / "build" / "three.module.js"
 pytestmark = [pytest.mark.timeout(240),
               pytest.mark.skipif(not CHROMIUM, reason="chromium not installed (Debian: apt-get install chromium; "
                                  ".ci/run installs it)"),
               pytest.mark.skipif(not THREE_JS.exists(), reason="the viewer's npm dependencies are not installed "
                                  "(make setup runs npm ci in clients/web)")]
-
-
-class Browser:
-    """Headless Chromium with one page, driven over the DevTools protocol."""
-
-    def __init__(self, tmp: Path, url: str, extra_flags: tuple[str, ...] = ()):
-        profile = tmp / "chromium-profile"
-        profile.mkdir()
-        self.log = tmp / "chromium.log"
-        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--no-first-run",
-                 "--disable-component-update", "--disable-sync", f"--user-data-dir={profile}",
-                 "--remote-debugging-port=0", "--window-size=960,640",
-                 # WebGL on the CPU: without a GPU, Chromium only draws WebGL through SwiftShader when asked.
-                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--autoplay-policy=no-user-gesture-required",
-                 *extra_flags]
-        with open(self.log, "w") as log:
-            self.proc = subprocess.Popen([CHROMIUM, *flags, url], stdout=log, stderr=subprocess.STDOUT)
-        port_file = profile / "DevToolsActivePort"  # Chromium writes the port it picked here
-        deadline = time.monotonic() + 30
-        while not (port_file.exists() and len(port_file.read_text().split()) >= 2):
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                raise RuntimeError(f"chromium did not start:\n{self.log.read_text()[-3000:]}")
-            time.sleep(0.1)
-        port = port_file.read_text().split()[0]
-        targets = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10))
-        page = next(t for t in targets if t["type"] == "page")
-        self.stack = ExitStack()
-        self.ws = self.stack.enter_context(connect(page["webSocketDebuggerUrl"], max_size=64 * 2**20))
-        self.next_id = 0
-
-    def call(self, method: str, **params) -> dict:
-        self.next_id += 1
-        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv(timeout=60))
-            if msg.get("id") == self.next_id:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return msg["result"]
-
-    def eval(self, expression: str, user_gesture: bool = False):
-        r = self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True,
-                      userGesture=user_gesture)
-        if "exceptionDetails" in r:
-            raise RuntimeError(f"{expression}: {r['exceptionDetails']}")
-        return r["result"].get("value")
-
-    def wait_page(self, timeout: float = 30.0) -> None:
-        """Until the page has an execution context (just after Chromium starts, Runtime.evaluate fails)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                self.eval("document.readyState")
-                return
-            except RuntimeError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.2)
-
-    def wait_for(self, expression: str, timeout: float, what: str):
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                value = self.eval(expression)
-            except RuntimeError as e:  # no execution context for a moment: the page is (re)loading; a cross-origin
-                if "execution context" not in str(e) or time.monotonic() > deadline:  # isolated page (the viewer)
-                    raise                                                             # swaps its process then
-                value = None
-            if value:
-                return value
-            if time.monotonic() > deadline:
-                page = self.eval("JSON.stringify({state: window.dimgestor && window.dimgestor.state, "
-                                 "frames: window.dimgestor && window.dimgestor.framesReceived, "
-                                 "errors: window.dimgestor && window.dimgestor.errors, "
-                                 "message: document.getElementById('message').textContent})")
-                raise AssertionError(f"timed out waiting for {what}; page: {page}")
-            time.sleep(0.2)
-
-    def positions(self) -> np.ndarray:
-        return np.asarray(self.eval("window.dimgestor.jointWorldPositions()"), dtype=np.float64)
-
-    def screenshot(self, path: Path) -> Path:
-        path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"]))
-        artifacts = os.environ.get("DIMGESTOR_ARTIFACTS")
-        if artifacts:
-            Path(artifacts).mkdir(parents=True, exist_ok=True)
-            shutil.copy(path, Path(artifacts) / path.name)
-        print(f"screenshot: {path}")
-        return path
-
-    def close(self):
-        try:
-            self.stack.close()
-        finally:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
-def read_png(png: Path) -> np.ndarray:
-    import matplotlib.image
-
-    return matplotlib.image.imread(str(png))[..., :3]
-
-
-def assert_figure_drawn(png: Path) -> None:
-    """The screenshot shows the mannequin: enough light, nearly grey pixels (its body) right of the HUD."""
-    img = read_png(png)[:, 300:]
-    light = (img.min(axis=2) > 0.55) & (img.max(axis=2) - img.min(axis=2) < 0.15)  # the background is dark
-    assert light.sum() > 1500, f"{png}: the avatar is not visible ({light.sum()} body-coloured pixels)"
 
 
 def forward_kinematics(skeleton: dict, frame: dict) -> np.ndarray:
@@ -357,135 +243,6 @@ def facing_cosine(browser: Browser) -> float:
     forward = np.cross(left, up) * [1, 0, 1]
     to_camera = (np.asarray(browser.eval("window.dimgestor.cameraPosition()")) - p["Hips"]) * [1, 0, 1]
     return float(forward @ to_camera / np.linalg.norm(forward) / np.linalg.norm(to_camera))
-
-
-# Records what the page's sound output plays (its master gain node), sample by sample, with the context frame
-# of each render quantum: an AudioWorklet on the page's own AudioContext.
-RECORDER = """(async () => {
-  const audio = window.dimgestor.sourceAudio, ctx = audio.context();
-  const code = `registerProcessor('rec', class extends AudioWorkletProcessor {
-    process(inputs) { const x = inputs[0][0]; this.port.postMessage({frame: currentFrame, x: x ? x.slice() : null,
-                      n: 128}); return true; } });`;
-  await ctx.audioWorklet.addModule(URL.createObjectURL(new Blob([code], {type: 'text/javascript'})));
-  const node = new AudioWorkletNode(ctx, 'rec');
-  window.rec = {start: null, blocks: []};
-  node.port.onmessage = (e) => { if (window.rec.start === null) window.rec.start = e.data.frame;
-                                 window.rec.blocks.push(e.data); };
-  audio.gain.connect(node);
-  node.connect(ctx.destination);
-  return ctx.sampleRate;
-})()"""
-
-RECORDING = """(() => {
-  const r = window.rec, n = r.blocks.length ? r.blocks[r.blocks.length - 1].frame + 128 - r.start : 0;
-  const pcm = new Int16Array(n);
-  for (const b of r.blocks) if (b.x) for (let i = 0; i < b.x.length; i++)
-    pcm[b.frame - r.start + i] = Math.max(-32768, Math.min(32767, Math.round(b.x[i] * 32767)));
-  let s = ''; const u8 = new Uint8Array(pcm.buffer);
-  for (let i = 0; i < u8.length; i += 8192) s += String.fromCharCode(...u8.subarray(i, i + 8192));
-  return {start: r.start, pcm: btoa(s)};
-})()"""
-
-
-SHOWN_NOW = """new Promise((done) => requestAnimationFrame(() => {
-  const c = window.dimgestor.sourceAudio.ctx;
-  const k = window.dimgestor.clock;
-  done({t: c.currentTime, lat: c.outputLatency || 0, pts: window.dimgestor.shownFrame.pts,
-        jumps: k.catchUps + k.underruns});
-}))"""
-
-
-def heard_pts(played: np.ndarray, idx: int, source: np.ndarray, near: float, search_s: float = 2.0) -> float | None:
-    """The source time (s, on the looped clip's clock) that `played` has around index idx (16 kHz), looked for
-    within `search_s` of `near`; None where it is silent or matches nothing well."""
-    from scipy.signal import correlate
-
-    half = 800  # 50 ms each side
-    seg = played[idx - half : idx + half] if idx >= half else np.zeros(0, np.float32)
-    if len(seg) < 2 * half or np.sqrt(np.mean(seg**2)) < 0.02:
-        return None
-    lo = int((near - search_s) * 16000) - half
-    ext = np.take(source, np.arange(lo, lo + int(2 * search_s * 16000) + 2 * half), mode="wrap")
-    energy = np.convolve(ext**2, np.ones(2 * half), "valid")
-    corr = correlate(ext, seg, mode="valid", method="fft") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
-    k = int(np.argmax(corr))
-    return (lo + k + half) / 16000 if corr[k] > 0.8 else None
-
-
-def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray) -> list[float]:
-    """For each SHOWN_NOW read: the pts on screen minus the source time heard then (s), found from the recorded
-    sound (`played16`, 16 kHz, its first sample at context time `start_s`); reads where the clock caught up or
-    ran dry since the one before (recovering from a stall, counted apart) and silent moments are left out."""
-    sync = []
-    for prev, s in zip([None] + samples[:-1], samples):
-        if prev is not None and s["jumps"] != prev["jumps"]:
-            continue
-        heard_idx = int((s["t"] - s["lat"] - start_s) * 16000)  # index into played16
-        heard = heard_pts(played16, heard_idx, source, near=s["pts"])
-        if heard is not None:
-            sync.append(s["pts"] - heard)
-    return sync
-
-
-def late_arrivals(log, margin_s: float, window_s: float = 10.0, apart_s: float = 1.0) -> int:
-    """How often frames came later than every frame of the `window_s` before them by more than `margin_s`
-    (transit = arrival - pts, as the page's playout clock sees it): the stalls a playout clock cannot hide,
-    late frames less than `apart_s` after the last one counting as one. log: [arrival s, pts] in arrival order."""
-    events, last, seen = 0, -float("inf"), []
-    for arrival, pts in log:
-        transit = arrival - pts
-        seen = [(a, t) for a, t in seen if a >= arrival - window_s]
-        if seen and transit > max(t for _, t in seen) + margin_s:
-            events += arrival - last > apart_s
-            last = arrival
-        seen.append((arrival, transit))
-    return events
-
-
-def without_holds(x: np.ndarray, n: int, holds: int, quiet: float = 1e-4, min_run: int = 320) -> np.ndarray:
-    """The first `n` samples of `x` (16 kHz) with its first `holds` pauses cut out: runs of digital silence of at
-    least `min_run` samples (20 ms), where the page's clock held at its newest frame, playing nothing, to resume
-    the sound where it stopped (av-clock.js). Speech never falls that silent within it (the test clip's first
-    pause is 0.45 s in)."""
-    out, i = [], 0
-    while len(out) < n and i < len(x):
-        want = n - len(out)
-        view = np.abs(x[i : i + want + min_run]) < quiet  # (a pause that begins near the end shows whole)
-        runs = np.flatnonzero(np.convolve(view, np.ones(min_run), "valid") >= min_run) if holds else []
-        start = int(runs[0]) if len(runs) and runs[0] < want else want
-        out.extend(x[i : i + start])
-        if start == want:
-            break
-        holds, i = holds - 1, i + start + min_run
-        while i < len(x) and abs(x[i]) < quiet:
-            i += 1
-    return np.asarray(out, dtype=x.dtype)
-
-
-def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source: np.ndarray, clock: dict) -> int:
-    """The first sound in `played16` (16 kHz) from index `after` on is the source from its first sample: strong
-    correlation, and the source's start lands where the sound starts. Returns that sound's index. `clock`: the
-    page's clock counters; a hold it counted (an underrun: frames came late on a loaded machine) may pause the
-    sound, which then resumes where it stopped, so that many pauses are cut out of what is compared."""
-    onset = after + int(np.argmax(np.abs(played16[after:]) > 0.01))
-    assert np.abs(played16[onset]) > 0.01, f"no sound after {after / 16000:.2f} s of the recording; {clock}"
-    assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
-    n = 1600  # the first 100 ms of sound
-    seg = without_holds(played16[onset:], n, clock["underruns"])
-    window = source[: 2 * n]
-    energy = np.convolve(window**2, np.ones(n), "valid")  # |source[k:k+n]|^2 for every lag k
-    corr = np.correlate(window, seg, mode="valid") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
-    lag = int(np.argmax(corr))
-    print(f"sound at {onset / 16000:.3f} s: source from {lag / 16000:.3f} s (correlation {corr[lag]:.3f})")
-    assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f}); {clock}"
-    # Where the played sound first crosses 0.01 depends on the playback level (the clip fades in over ~50 ms):
-    # the source sample that crosses the same level, scaled by the measured gain, is where the sound must start.
-    gain = np.linalg.norm(seg) / (np.sqrt(energy[lag]) + 1e-9)
-    expected = int(np.argmax(np.abs(source) > 0.01 / max(gain, 1e-6)))
-    assert abs(lag - expected) < 0.015 * 16000, (
-        f"the sound started {lag / 16000:.3f} s into the source, where the source reaches the played level at "
-        f"{expected / 16000:.3f} s (gain {gain:.2f}): not at its start; {clock}")
-    return onset
 
 
 def test_a_hold_the_clock_counted_is_cut_out_of_the_sound_compared_with_the_source():

@@ -15,8 +15,8 @@ import sys
 import numpy as np
 import pytest
 
+from helpers.browser import CHROMIUM, THREE_JS, Browser
 from helpers.clients import REPO, live_server
-from test_clients_web import CHROMIUM, THREE_JS, Browser
 
 sys.path.insert(0, str(REPO / "benchmarks"))
 import latency  # noqa: E402

@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers.av_sync import (RECORDER, RECORDING, SHOWN_NOW, assert_sound_starts_at_source_start, late_arrivals,
+                             shown_minus_heard)
+from helpers.browser import CHROMIUM, Browser, assert_figure_drawn
 from helpers.clients import REPO, SPEECH_WAV, free_port
-from test_clients_web import (CHROMIUM, RECORDER, RECORDING, SHOWN_NOW, Browser, assert_figure_drawn,
-                              assert_sound_starts_at_source_start, late_arrivals, shown_minus_heard)
 
 ORT_WEB = REPO / "clients" / "web" / "node_modules" / "onnxruntime-web" / "dist" / "ort.wasm.min.mjs"
 NODE = shutil.which("node")

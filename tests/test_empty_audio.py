@@ -7,7 +7,7 @@ import wave
 
 import numpy as np
 
-from helpers.clients import REPO, live_server, make_tiny_checkpoint, run_client
+from helpers.clients import REPO, live_server, run_client
 import pytest
 
 
@@ -18,11 +18,6 @@ def empty_wav(path, samples=0):
         w.setframerate(16000)
         w.writeframes(np.zeros(samples, "<i2").tobytes())
     return path
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    return make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"))
 
 
 @pytest.mark.timeout(120)

@@ -14,28 +14,12 @@ from dimgestor.checkpoint import load_checkpoint
 from dimgestor.cli import main
 from dimgestor.config import get_preset
 from dimgestor.diffusion import Diffusion, motion_noise
-from dimgestor.model import DiMGestor
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
 from dimgestor.synthetic import make_synthetic_pair
 from dimgestor.train import TrainConfig, resolve_cond_drop, train
+from helpers.stream import noise_audio as _audio, push_in_pieces, random_tiny_model as _model, stream_in_pieces
 
 TOL = 1e-5  # batched vs alone, runner vs the model's own forward (as tests/test_batch.py)
-
-
-def _model(preset="tiny", **overrides):
-    torch.manual_seed(3)  # the same weights for every call (overrides here change no parameter)
-    model = DiMGestor(get_preset(preset, **overrides))
-    with torch.no_grad():  # break the zero init so the frames depend on everything
-        for p in model.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    return model.eval()
-
-
-def _audio(seconds, seed):
-    rng = np.random.default_rng(seed)
-    n = int(seconds * 16000)
-    env = 0.5 + 0.5 * np.sin(np.arange(n) / (1200 + 300 * seed))
-    return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
 
 
 def _sizes(total, pattern):
@@ -45,15 +29,6 @@ def _sizes(total, pattern):
         i += 1
     sizes[-1] -= sum(sizes) - total
     return sizes
-
-
-def _stream(stream, audio, sizes):
-    out, i = [], 0
-    for n in sizes:
-        out.append(stream.push(audio[i:i + n]))
-        i += n
-    out.append(stream.finish())
-    return np.concatenate(out)
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +127,7 @@ def test_guided_streaming_equals_offline_for_awkward_chunks(model, guidance, eta
     for pattern in ([1, 2, 799, 801, 1601], [800], [3333]):  # 1 sample, odd lengths, one frame, not frame multiples
         s = GestureStream(model, steps=5, seed=9, eta=eta, smoothing=None, guidance=guidance)
         assert s.state.denoiser.batch == 2
-        assert np.abs(_stream(s, audio, _sizes(len(audio), pattern)) - offline).max() < 1e-4
+        assert np.abs(push_in_pieces(s, audio, _sizes(len(audio), pattern)) - offline).max() < 1e-4
 
 
 def test_guided_streams_batched_equal_guided_streams_alone(model, monkeypatch):
@@ -166,7 +141,7 @@ def test_guided_streams_batched_equal_guided_streams_alone(model, monkeypatch):
         (15, 2.0, 2.0, 1, [int(n) for n in rng.integers(300, 4000, 12)]),  # ragged
     ]
     plans = [(seed, g, _audio(sec, seed), start, _sizes(int(sec * 16000), sizes)) for seed, g, sec, start, sizes in specs]
-    solo = [_stream(GestureStream(model, steps=4, seed=seed, smoothing=None, guidance=g), audio, sizes)
+    solo = [stream_in_pieces(model, audio, sizes, steps=4, seed=seed, smoothing=None, guidance=g)
             for seed, g, audio, _, sizes in plans]
 
     streams = [GestureStream(model, steps=4, seed=seed, smoothing=None, guidance=g) for seed, g, *_ in plans]

@@ -336,7 +336,7 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     from dimgestor.audio import load_wav, save_wav
     from streamer import protocol as P
     from helpers.vmc import bundles, check_vmc_bundle
-    from udp_capture import UdpCapture
+    from helpers.udp_capture import UdpCapture
 
     wav = tmp_path / "say.wav"
     save_wav(wav, load_wav(SPEECH_WAV)[: 3 * 16000], 16000)

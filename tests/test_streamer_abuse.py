@@ -16,7 +16,7 @@ import pytest
 from websockets.asyncio.client import connect
 
 from dimgestor.synthetic import synthetic_speech
-from streamer_abusers import PATTERNS, abuse
+from helpers.streamer_abusers import PATTERNS, abuse
 from helpers.serve import serve
 
 pytestmark = pytest.mark.timeout(150)

@@ -7,35 +7,22 @@ import time
 
 import numpy as np
 import pytest
-import torch
 
 from dimgestor.audio import save_wav
-from dimgestor.checkpoint import load_checkpoint, save_checkpoint
-from dimgestor.config import get_preset
-from dimgestor.features import FeatureSpec
-from dimgestor.model import DiMGestor
+from dimgestor.checkpoint import load_checkpoint
 from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
+from dimgestor.synthetic import synthetic_speech
 from streamer.scheduling import StreamBatcher
 from streamer.sessions import Session
 from streamer.sources import WavSource
+from helpers.checkpoint import make_tiny_checkpoint
 
 pytestmark = pytest.mark.timeout(180)
 
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory):
-    sk = synthetic_skeleton()
-    spec = FeatureSpec.for_skeleton(sk)
-    torch.manual_seed(0)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
-    with torch.no_grad():  # break the zero init so the frames depend on everything
-        for p in model.parameters():
-            p.add_(torch.randn_like(p) * 0.05)
-    rng = np.random.default_rng(0)
-    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
-    path = save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny", model, spec, sk, mean, std, info={"test": True})
-    return load_checkpoint(path)
+    return load_checkpoint(make_tiny_checkpoint(tmp_path_factory.mktemp("ckpt"), jitter=0.05))
 
 
 def test_sessions_share_batches_and_each_gets_its_own_frames(bundle, tmp_path):

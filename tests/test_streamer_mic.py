@@ -1,5 +1,5 @@
 """The live microphone for real: PortAudio captures a virtual sound card (a private PulseAudio daemon,
-tests/virtual_mic.py) through `dimgestor devices` and `dimgestor serve --source mic`, as a user runs them."""
+tests/helpers/virtual_mic.py) through `dimgestor devices` and `dimgestor serve --source mic`, as a user runs them."""
 
 import asyncio
 import json
@@ -15,7 +15,7 @@ from websockets.asyncio.client import connect
 
 from helpers.serve import REPO, Serve
 from helpers.clients import joint_speed
-from virtual_mic import speech_then_silence, virtual_mic
+from helpers.virtual_mic import speech_then_silence, virtual_mic
 
 pytestmark = pytest.mark.timeout(180)
 SPEECH_S, SILENCE_S = 5.0, 4.5

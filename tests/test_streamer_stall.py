@@ -13,7 +13,7 @@ import pytest
 from websockets.asyncio.client import connect
 
 from helpers.serve import serve
-from udp_capture import UdpCapture
+from helpers.udp_capture import UdpCapture
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.slow,
               pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="needs SIGSTOP/SIGCONT (POSIX)")]

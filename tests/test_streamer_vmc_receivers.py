@@ -22,7 +22,7 @@ from dimgestor.rotations import quat_mul, quat_rotate
 from streamer.pose import HumanoidRig, load_humanoid_map, to_unity_quat
 from streamer.sources import DEMO_WAV
 from streamer.vmc import UPPER_BODY
-from udp_capture import UdpCapture
+from helpers.udp_capture import UdpCapture
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_DIR = REPO / "tests" / "node"

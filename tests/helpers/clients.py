@@ -29,28 +29,6 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def make_tiny_checkpoint(folder: Path) -> Path:
-    """A random-init `tiny` model on the synthetic skeleton, saved the way training saves one.
-
-    Random weights still give motion that follows the audio and the noise, which is all a client test needs.
-    """
-    import torch
-
-    from dimgestor.checkpoint import save_checkpoint
-    from dimgestor.config import get_preset
-    from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
-    from dimgestor.synthetic import synthetic_skeleton
-
-    skeleton = synthetic_skeleton()
-    spec = FeatureSpec.for_skeleton(skeleton)
-    torch.manual_seed(1)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
-    rng = np.random.default_rng(1)
-    mean, std = rng.normal(size=spec.dim) * 0.1, rng.uniform(0.2, 0.6, size=spec.dim)
-    return save_checkpoint(folder / "tiny", model, spec, skeleton, mean, std, info={"test": "clients"})
-
-
 @dataclass
 class LiveServer:
     ws_url: str

@@ -9,14 +9,15 @@ from dimgestor.model import DiMGestor
 from dimgestor.stream import GestureStream
 
 
-def random_tiny_model(**overrides):
-    """A `tiny` model with its zero init broken, so the frames depend on every parameter."""
-    model = DiMGestor(get_preset("tiny", **overrides))
-    torch.manual_seed(1)
+def random_tiny_model(preset="tiny", seed=3, **overrides):
+    """A model (the `tiny` preset unless told) with its zero init broken, so the frames depend on every parameter;
+    the same weights for the same arguments."""
+    torch.manual_seed(seed)
+    model = DiMGestor(get_preset(preset, **overrides))
     with torch.no_grad():  # break the zero init so the frames depend on everything
         for p in model.parameters():
             p.add_(torch.randn_like(p) * 0.05)
-    return model
+    return model.eval()
 
 
 def noise_audio(seconds, seed=0):
@@ -27,15 +28,19 @@ def noise_audio(seconds, seed=0):
     return (rng.standard_normal(n) * 0.1 * env).astype(np.float32)
 
 
-def stream_in_pieces(model, audio, sizes, **kw):
-    """`GestureStream` fed `audio` in pieces of `sizes` samples, then finished: all its frames."""
-    s = GestureStream(model, **kw)
+def push_in_pieces(stream, audio, sizes):
+    """`stream` fed `audio` in pieces of `sizes` samples, then finished: all its frames."""
     out, i = [], 0
     for n in sizes:
-        out.append(s.push(audio[i:i + n]))
+        out.append(stream.push(audio[i:i + n]))
         i += n
     assert i == len(audio)
-    out.append(s.finish())
+    out.append(stream.finish())
     frames = np.concatenate(out)
-    assert s.frames_out == len(frames)
+    assert stream.frames_out == len(frames)
     return frames
+
+
+def stream_in_pieces(model, audio, sizes, **kw):
+    """A new `GestureStream(model, **kw)` fed `audio` in pieces of `sizes` samples, then finished: all its frames."""
+    return push_in_pieces(GestureStream(model, **kw), audio, sizes)
