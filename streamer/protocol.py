@@ -33,7 +33,8 @@ AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sa
 
 # The WebSocket sink's channel map: the channels every frame sent to a client carries, in this order (after the
 # rotations of a binary frame, under "channels" in a JSON frame), and what `hello.channels` announces. Empty: the
-# frames are exactly those of revision 5. A new channel is one entry here (name -> its `Channel`).
+# frames are exactly those of revision 5. A new channel is one entry here (name -> its `Channel`), made before the
+# server's hello is built (the hello announces the layout every frame then has).
 WS_CHANNELS: dict[str, Channel] = {}
 
 

@@ -236,3 +236,23 @@ def test_a_clients_own_session_sends_the_channel_in_its_encoding(bundle, wave, e
     made = wave.values()
     assert end["frames"] == len(frames) == len(made) == 24
     assert np.allclose([f["channels"]["test_wave"] for f in frames], made, rtol=1e-5, atol=1e-5)
+
+
+def test_the_pipecat_processor_passes_a_speech_frames_channels_on(bundle, monkeypatch):
+    """GestureProcessor re-stamps each speech frame it releases: the channels go with it (a rest frame has none,
+    so its sinks send zeros). On a fake clock."""
+    from types import SimpleNamespace
+
+    from streamer import pipecat as sp
+
+    sent = []
+    monkeypatch.setattr(sp, "time", SimpleNamespace(monotonic=lambda: 0.0))
+    g = sp.GestureProcessor([SimpleNamespace(send=sent.extend)], bundle=bundle)
+    g.origin, g._observed = 0.0, True
+    u = sp._Utterance(0, None, None, None, 16000)
+    g._schedule(u, 320)
+    rest = g._rest_frame()
+    values = {WAVE.name: np.array([1.0, 2.0, 3.0])}
+    g._release_speech(u, Frame(0, 0.0, rest.root_pos, rest.rotations, rest.features, values), u.start, 0.0)
+    g._release_rest(0.05)
+    assert sent[0].channels is values and sent[1].channels == {}
