@@ -179,6 +179,8 @@ class Session:
         feats = np.asarray(self.denormalize(normalized), dtype=np.float64)
         pose = self.decoder.decode(feats)
         made = {name: np.asarray(make(feats)) for name, make in self.channels.items()}
+        if any(len(v) != n for v in made.values()):
+            raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
                 for i in range(n)]

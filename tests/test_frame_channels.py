@@ -258,3 +258,10 @@ def test_the_pipecat_processor_passes_a_speech_frames_channels_on(bundle, monkey
     g._release_speech(u, Frame(0, 0.0, rest.root_pos, rest.rotations, rest.features, values), u.start, 0.0)
     g._release_rest(0.05)
     assert sent[0].channels is values and sent[1].channels == {}
+
+
+def test_a_maker_of_the_wrong_number_of_rows_is_a_clear_error_where_it_is_made(bundle):
+    session = Session.from_bundle(bundle, steps=2, seed=3)
+    session.channels = {WAVE.name: lambda feats: np.zeros((len(feats) + 1, 3))}
+    with pytest.raises(ValueError, match="rows for"):
+        session.infer(synthetic_speech(0.5, seed=1))
