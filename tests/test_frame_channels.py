@@ -10,7 +10,6 @@ import threading
 
 import numpy as np
 import pytest
-from pythonosc.osc_bundle import OscBundle
 from websockets.asyncio.client import connect
 
 from dimgestor.audio import save_wav
