@@ -556,7 +556,8 @@ class GestureProcessor(FrameProcessor):
         self.stats.speech_frames += 1
         u.released += 1
         self._give_audio(u, f.pts + 1 / self.fps)
-        self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats), due, u.number, k, _audio_at(u, f.pts), now)
+        self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats, f.channels), due, u.number, k,
+                   _audio_at(u, f.pts), now)
 
     def _release_rest(self, due: float) -> None:
         root, rot, feats = self.rest.pose(self.spring.step(1 / self.fps))

@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import struct
 from dataclasses import dataclass
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from dimgestor import __version__
 from dimgestor.audio import SAMPLE_RATE
-from streamer.frames import Frame
+from streamer.frames import Channel, Frame, channel_values
 
 PROTOCOL = 1
 SERVER = f"dimgestor/{__version__}"
@@ -24,10 +25,17 @@ MAX_AUDIO_ABS = 4.0  # float32 samples beyond this are not -1..1 audio (wrong fo
 MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
-FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4]
-REVISION = 5  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
+REVISION = 6  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
+
+
+# The WebSocket sink's channel map: the channels every frame sent to a client carries, in this order (after the
+# rotations of a binary frame, under "channels" in a JSON frame), and what `hello.channels` announces. Empty: the
+# frames are exactly those of revision 5. A new channel is one entry here (name -> its `Channel`), made before the
+# server's hello is built (the hello announces the layout every frame then has).
+WS_CHANNELS: dict[str, Channel] = {}
 
 
 class ProtocolError(ValueError):
@@ -62,6 +70,7 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
           accepts_audio: bool, **optional) -> dict:
     """The server's hello; `optional` adds the optional fields (window_ms, source, ...)."""
     j = len(skeleton.names)
+    channels = channel_layout(j)
     return {
         "type": "hello", "protocol": PROTOCOL, "revision": REVISION, "server": SERVER, "fps": fps, "encoding": "json",
         "skeleton": {
@@ -74,31 +83,69 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
         "audio": {"accepts": accepts_audio, "rate": AUDIO_RATE, "formats": list(AUDIO_FORMATS)},
         "lookahead_s": round(float(lookahead_s), 6),
         "max_message_bytes": MAX_BINARY_BYTES,
-        "binary_frame_bytes": FRAME_HEADER.size + 16 * j,
+        "binary_frame_bytes": FRAME_HEADER.size + 16 * j + sum(4 * c["size"] for c in channels),
+        "channels": channels,
         **optional,
     }
 
 
-def frame_json(frame: Frame) -> str:
-    return json.dumps({
+def channel_layout(joints: int, channels: Mapping[str, Channel] | None = None) -> list[dict]:
+    """`hello.channels` (revision 6): each sent channel's name, size, byte offset in a binary frame of `joints`
+    joints, and its labels and description where it has them."""
+    at, out = FRAME_HEADER.size + 16 * joints, []
+    for c in (WS_CHANNELS if channels is None else channels).values():
+        out.append({"name": c.name, "size": c.size, "offset": at,
+                    **({"labels": list(c.labels)} if c.labels else {}),
+                    **({"description": c.description} if c.description else {})})
+        at += 4 * c.size
+    return out
+
+
+def frame_json(frame: Frame, channels: Mapping[str, Channel] | None = None) -> str:
+    msg = {
         "type": "frame", "index": frame.index, "pts": round(frame.pts, 6),
         "root": np.round(np.nan_to_num(frame.root_pos), 5).tolist(),
         "rotations": np.round(np.nan_to_num(frame.rotations), 6).tolist(),
-    }, separators=(",", ":"))  # nan_to_num: a model failure must not make unparseable JSON
+    }  # nan_to_num: a model failure must not make unparseable JSON
+    channels = WS_CHANNELS if channels is None else channels
+    if channels:
+        msg["channels"] = {c.name: np.round(np.nan_to_num(channel_values(frame, c)), 6).tolist()
+                           for c in channels.values()}
+    return json.dumps(msg, separators=(",", ":"))
 
 
-def frame_binary(frame: Frame) -> bytes:
+def frame_binary(frame: Frame, channels: Mapping[str, Channel] | None = None) -> bytes:
     head = FRAME_HEADER.pack(FRAME_MAGIC, frame.index, frame.pts, *map(float, frame.root_pos))
-    return head + np.ascontiguousarray(frame.rotations, dtype="<f4").tobytes()
+    parts = [head, np.ascontiguousarray(frame.rotations, dtype="<f4").tobytes()]
+    for c in (WS_CHANNELS if channels is None else channels).values():
+        parts.append(channel_values(frame, c).astype("<f4").tobytes())
+    return b"".join(parts)
 
 
-def parse_frame_binary(buf: bytes) -> dict:
-    """Inverse of frame_binary (for clients and tests): {index, pts, root, rotations (J, 4)}."""
+def encode_frames(frames: Sequence[Frame], encoding: str) -> list[str | bytes]:
+    """A client's frame messages in its encoding ("json" or "binary"), with the channels of `WS_CHANNELS`."""
+    channels = dict(WS_CHANNELS)  # one layout for the whole call
+    if encoding == "binary":
+        return [frame_binary(f, channels) for f in frames]
+    return [frame_json(f, channels) for f in frames]
+
+
+def parse_frame_binary(buf: bytes, joints: int | None = None, channels: Sequence[dict] = ()) -> dict:
+    """Inverse of frame_binary (for clients and tests): {index, pts, root, rotations (J, 4), channels}.
+
+    Without `joints` every byte after the header is a rotation (a revision 5 frame, or no channel sent); with
+    `joints` and the hello's `channels` each channel is read at its offset, and bytes no channel names (a later
+    revision's) are ignored."""
+    if len(buf) < FRAME_HEADER.size:
+        raise ValueError(f"not a DGF1 frame ({len(buf)} bytes)")
     magic, index, pts, *root = FRAME_HEADER.unpack_from(buf)
-    if magic != FRAME_MAGIC or (len(buf) - FRAME_HEADER.size) % 16:
-        raise ValueError(f"not a DGF1 frame ({len(buf)} bytes, magic {magic!r})")
-    rot = np.frombuffer(buf, "<f4", offset=FRAME_HEADER.size).reshape(-1, 4)
-    return {"index": index, "pts": pts, "root": np.array(root), "rotations": rot}
+    rotation_bytes = len(buf) - FRAME_HEADER.size if joints is None else 16 * joints
+    end = max([FRAME_HEADER.size + rotation_bytes] + [c["offset"] + 4 * c["size"] for c in channels])
+    if magic != FRAME_MAGIC or rotation_bytes % 16 or len(buf) < end:
+        raise ValueError(f"not a DGF1 frame of this layout ({len(buf)} bytes, magic {magic!r})")
+    rot = np.frombuffer(buf, "<f4", count=rotation_bytes // 4, offset=FRAME_HEADER.size).reshape(-1, 4)
+    values = {c["name"]: np.frombuffer(buf, "<f4", count=c["size"], offset=c["offset"]) for c in channels}
+    return {"index": index, "pts": pts, "root": np.array(root), "rotations": rot, "channels": values}
 
 
 def dumps(msg: dict) -> str:

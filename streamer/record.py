@@ -6,6 +6,9 @@ field) is rewritten in place, at least every `flush_every_s`. After a SIGKILL th
 frames of the last flush. The root is integrated across chunks exactly as `features_to_motion` does on
 the whole recording, so the file equals `dimgestor generate` on the same audio, seed and steps. A full
 disk (or any write error) stops the recording with one message and keeps what was written.
+
+The frame channels named in `RECORD_CHANNELS` go to a CSV beside the BVH (`OUT.channels.csv`: one line per frame,
+`index,pts`, then one column per value), written at the same flushes; with the map empty there is no CSV.
 """
 
 from __future__ import annotations
@@ -14,21 +17,77 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
-from streamer.frames import Frame
+from streamer.frames import Channel, Frame, channel_values
 
 COUNT_WIDTH = 12  # room for the frame count in the header (space-padded, so any reader takes it)
+# The recording's channel map: frame channel name -> its spec (the CSV's columns are `name.label`, or
+# `name.i` for unlabelled values). A new channel is one entry here.
+RECORD_CHANNELS: dict[str, Channel] = {}
 
 
 class RecordError(OSError):
     """The recording cannot be opened (the message says why)."""
 
 
+def channels_path(path: str | Path) -> Path:
+    """Where a recording's channels go: OUT.bvh -> OUT.channels.csv."""
+    path = Path(path)
+    return path.with_name(path.stem + ".channels.csv")
+
+
+class ChannelTable:
+    """The mapped channels of each frame, appended as CSV lines; a write error stops it with one message."""
+
+    def __init__(self, path: Path, channels: list[Channel]):
+        self.path, self.channels = path, channels
+        self.pending: list[str] = []
+        self.size, self.failed = 0, ""
+        try:
+            self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError as e:
+            raise RecordError(f"cannot record to {path}: {e.strerror or e}") from None
+        names = [f"{c.name}.{label}" for c in channels for label in (c.labels or range(c.size))]
+        self.pending.append(",".join(["index", "pts", *names]) + "\n")
+        self.flush()
+
+    def add(self, frames: list[Frame]) -> None:
+        for f in frames:
+            values = np.concatenate([channel_values(f, c) for c in self.channels])
+            self.pending.append(f"{f.index},{f.pts!r}," + ",".join(f"{v:.6g}" for v in values) + "\n")
+
+    def flush(self) -> None:
+        if self.failed or not self.pending:
+            return
+        view = memoryview("".join(self.pending).encode())
+        self.pending = []
+        at = self.size
+        try:
+            while view:
+                k = os.pwrite(self.fd, view, at)
+                view, at = view[k:], at + k
+        except OSError as e:
+            self.failed = f"{e.strerror or e}"
+            try:
+                os.ftruncate(self.fd, self.size)  # no partial line
+            except OSError:
+                pass
+            print(f"dimgestor: channel recording stopped: cannot write {self.path}: {self.failed}",
+                  file=sys.stderr, flush=True)
+            return
+        self.size = at
+
+    def close(self) -> None:
+        self.flush()
+        os.close(self.fd)
+
+
 class BvhRecorder:
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
-                 flush_every_s: float = 0.5):
+                 flush_every_s: float = 0.5, channels: Mapping[str, Channel] | None = None):
         from dimgestor.bvh import format_hierarchy
         from dimgestor.features import PoseDecoder
 
@@ -59,6 +118,12 @@ class BvhRecorder:
         if not self._append(head.encode()) or not self._set_count(0):
             os.close(self.fd)
             raise RecordError(f"cannot record to {self.path}: {self.failed}")
+        channels = list((RECORD_CHANNELS if channels is None else channels).values())
+        try:
+            self.table = ChannelTable(channels_path(self.path), channels) if channels else None
+        except RecordError:
+            os.close(self.fd)
+            raise
 
     def on_frames(self, frames: list[Frame]) -> None:
         if not frames or self.failed or self.closed:
@@ -75,6 +140,8 @@ class BvhRecorder:
         self.last = values[-1, self.rot_cols]
         self.pending.append(format_frames(values))
         self.pending_frames += n
+        if self.table is not None:
+            self.table.add(frames)
         if time.monotonic() - self.last_flush >= self.flush_every_s:
             self.flush()
 
@@ -87,6 +154,8 @@ class BvhRecorder:
         self.pending, self.pending_frames = [], 0
         if self._append(data):
             self._set_count(self.frames + n)
+        if self.table is not None:
+            self.table.flush()
 
     def _append(self, data: bytes) -> bool:
         at = self.size
@@ -128,6 +197,8 @@ class BvhRecorder:
         self.flush()
         self.closed = True
         os.close(self.fd)
+        if self.table is not None:
+            self.table.close()
         return None if self.failed else self.path
 
 
@@ -135,13 +206,15 @@ class RecordingSink:
     """`BvhRecorder` as a `Sink` (streamer/sink.py): the file is created by `open`, last of all the sinks, so
     that a failure to start anything else leaves an old recording alone."""
 
-    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0):
+    def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
+                 channels: Mapping[str, Channel] | None = None):
         self.path = Path(path)
         self.args = (skeleton, feature_spec, root, tether_s)
+        self.channels = channels
         self.recorder: BvhRecorder | None = None
 
     async def open(self) -> None:
-        self.recorder = BvhRecorder(self.path, *self.args)  # RecordError (an OSError) says why not
+        self.recorder = BvhRecorder(self.path, *self.args, channels=self.channels)  # RecordError says why not
 
     def send(self, frames: list[Frame]) -> None:
         self.recorder.on_frames(frames)
@@ -152,7 +225,8 @@ class RecordingSink:
             print(f"dimgestor: wrote {self.recorder.frames} frames to {path}", file=sys.stderr)
 
     def describe(self) -> str:
-        return f"recording  {self.path}"
+        channels = RECORD_CHANNELS if self.channels is None else self.channels
+        return f"recording  {self.path}" + (f" (channels: {channels_path(self.path)})" if channels else "")
 
     def status(self) -> str:
         return ""

@@ -16,7 +16,8 @@ import time
 from collections import deque
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import AsyncIterable, Callable
+from types import MappingProxyType
+from typing import AsyncIterable, Callable, Mapping
 
 import numpy as np
 
@@ -164,6 +165,10 @@ class Session:
     def lookahead_s(self) -> float:
         return float(self.stream.lookahead_s)
 
+    # The channels this session's frames carry beside the pose: name -> maker of a window's values from its
+    # denormalized features, (n, D) -> (n, size). Where a new channel is made; each sink's map says if it is sent.
+    channels: Mapping[str, Callable[[np.ndarray], np.ndarray]] = MappingProxyType({})
+
     def frames_of(self, normalized: np.ndarray) -> list[Frame]:
         """The stream's newest n frames as normalized features (n, D) -> Frames (decoded poses, stamped).
         A scheduler that pushed the stream itself (a batch) calls it; the pose decoder moves on."""
@@ -173,8 +178,12 @@ class Session:
         first = self.stream.frames_out - n
         feats = np.asarray(self.denormalize(normalized), dtype=np.float64)
         pose = self.decoder.decode(feats)
+        made = {name: np.asarray(make(feats)) for name, make in self.channels.items()}
+        if any(len(v) != n for v in made.values()):
+            raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
-                      np.asarray(pose.rotations[i]), feats[i]) for i in range(n)]
+                      np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
+                for i in range(n)]
 
     def infer(self, samples: np.ndarray) -> list[Frame]:
         """One window's frames, inferred in the calling thread (a scheduler's worker)."""

@@ -3,6 +3,7 @@
 Per frame, one bundle (types as in the VMC Marionette spec; EVMC4U checks each of them):
   /VMC/Ext/Root/Pos (s)"root" (f)p.x p.y p.z (f)q.x q.y q.z q.w      the fixed root pose (`VmcOptions.root`)
   /VMC/Ext/Bone/Pos (s)HumanBodyBones name (f)p.x p.y p.z (f)q.x q.y q.z q.w   per sent bone, local
+  ... each channel of `VMC_CHANNELS` (e.g. /VMC/Ext/Blend/Val (s)name (f)value per blendshape)
   /VMC/Ext/Blend/Apply
   /VMC/Ext/OK (i)1
   /VMC/Ext/T (f)the frame's presentation time, seconds on the stream's audio clock
@@ -25,10 +26,11 @@ import struct
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Mapping, Protocol
 
 import numpy as np
 
-from streamer.frames import Frame
+from streamer.frames import Channel, Frame, channel_values
 from streamer.pacing import Pacer
 from streamer.pose import HumanoidRig, to_unity_position, to_unity_quat
 
@@ -66,6 +68,31 @@ class VmcOptions:
             raise ValueError(f"root must be 4 finite numbers x, y, z, yaw_deg; got {self.root}")
         if self.max_bytes and self.max_bytes < MIN_SPLIT_BYTES:
             raise ValueError(f"max bytes must be 0 (no split) or >= {MIN_SPLIT_BYTES}, got {self.max_bytes}")
+
+
+class VmcChannel(Protocol):
+    """How one frame channel is sent over VMC: its spec and the OSC messages of its values."""
+
+    channel: Channel
+
+    def messages(self, values: np.ndarray) -> list[tuple[str, list]]:
+        """(address, args) messages of one frame's values (size,), sent before /VMC/Ext/Blend/Apply."""
+
+
+@dataclass(frozen=True)
+class BlendValues:
+    """A channel sent as blendshape values: /VMC/Ext/Blend/Val (s)label (f)value, one message per value."""
+
+    channel: Channel
+
+    def messages(self, values: np.ndarray) -> list[tuple[str, list]]:
+        labels = self.channel.labels or [f"{self.channel.name}_{i}" for i in range(self.channel.size)]
+        return [("/VMC/Ext/Blend/Val", [name, float(v)]) for name, v in zip(labels, values)]
+
+
+# The VMC sink's channel map: frame channel name -> how it is sent. Empty: the bundles are those of the pose
+# alone. A new channel is one entry here (e.g. the face: `BlendValues(FACE)`).
+VMC_CHANNELS: dict[str, VmcChannel] = {}
 
 
 # ---- OSC packing ---------------------------------------------------------------------------------
@@ -115,8 +142,10 @@ def reference_bundle(messages: list[tuple[str, list]]) -> bytes:
 class VmcEncoder:
     """Frames -> VMC datagrams for one rig and one set of options (no I/O)."""
 
-    def __init__(self, rig: HumanoidRig, options: VmcOptions = VmcOptions(), scale: float = 0.01):
+    def __init__(self, rig: HumanoidRig, options: VmcOptions = VmcOptions(), scale: float = 0.01,
+                 channels: Mapping[str, VmcChannel] | None = None):
         self.rig, self.options = rig, options
+        self.channels = list((VMC_CHANNELS if channels is None else channels).values())
         if options.hips_height_m is not None:
             scale = options.hips_height_m / rig.rest_hips_height()
         self.scale = scale
@@ -152,7 +181,7 @@ class VmcEncoder:
         bones = [("/VMC/Ext/Bone/Pos", [n, *map(float, v)]) for n, v in zip(self.names, values)]
         head = [("/VMC/Ext/Root/Pos", list(self.root_args))]
         tail = [("/VMC/Ext/Blend/Apply", []), ("/VMC/Ext/OK", [1]), ("/VMC/Ext/T", [float(frame.pts)])]
-        items = [head] + [[b] for b in bones] + [tail]
+        items = [head] + [[b] for b in bones] + [[m] for m in self.channel_messages(frame)] + [tail]
         sizes = [sum(len(_osc_message(a, *args)) + 4 for a, args in it) for it in items]
         groups = _split(sizes, self.options.max_bytes)
         return [sum((items[i] for i in g), []) for g in groups]
@@ -162,11 +191,16 @@ class VmcEncoder:
         floats = self.bone_values(frame).astype(">f4").tobytes()
         bones = [h + floats[28 * i : 28 * i + 28] for i, h in enumerate(self.headers)]
         t = _osc_message("/VMC/Ext/T", float(frame.pts))
-        items = [[self.root_msg]] + [[b] for b in bones] + [[self.apply_msg, self.ok_msg, t]]
+        extra = [[_osc_message(a, *args)] for a, args in self.channel_messages(frame)]
+        items = [[self.root_msg]] + [[b] for b in bones] + extra + [[self.apply_msg, self.ok_msg, t]]
         if not self.options.max_bytes:
             return [_bundle([m for it in items for m in it])]
         sizes = [sum(len(m) + 4 for m in it) for it in items]
         return [_bundle([m for i in g for m in items[i]]) for g in _split(sizes, self.options.max_bytes)]
+
+    def channel_messages(self, frame: Frame) -> list[tuple[str, list]]:
+        """The (address, args) messages of the frame's mapped channels (zeros for a channel it lacks)."""
+        return [m for c in self.channels for m in c.messages(channel_values(frame, c.channel))]
 
     def heartbeat(self, t: float) -> list[bytes]:
         """No frames flowing: the link is up but no pose is loaded."""
@@ -203,12 +237,12 @@ class VmcSink:
 
     def __init__(self, host: str, port: int, rig: HumanoidRig, scale: float = 0.01, pace: bool = True,
                  jitter_s: float = 0.25, max_queue: int = 200, options: VmcOptions = VmcOptions(),
-                 drain_s: float = 2.0):
+                 drain_s: float = 2.0, channels: Mapping[str, VmcChannel] | None = None):
         self.sock: socket.socket | None = None
         self.host, self.port = host, port
         self.drain_s = drain_s
         self.reported_dropped = 0  # drops already told in a status line
-        self.encoder = VmcEncoder(rig, options, scale)
+        self.encoder = VmcEncoder(rig, options, scale, channels)
         self.pace, self.jitter_s = pace, jitter_s
         self.pacer = Pacer(buffer_s=jitter_s)
         self.queue: deque[Frame] = deque()

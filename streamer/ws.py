@@ -143,8 +143,7 @@ class Client:
             self.put(m, "own")
 
     def encode(self, frames: list[Frame]) -> list[str | bytes]:  # worker thread
-        enc = P.frame_binary if self.encoding == "binary" else P.frame_json
-        return [enc(f) for f in frames]
+        return P.encode_frames(frames, self.encoding)
 
     async def send_loop(self) -> None:
         while True:

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Example dimgestor client (protocol v1 revision 3, docs/protocol.md): print frames, optionally send a WAV or the mic.
+"""Example dimgestor client (protocol v1 revision 6, docs/protocol.md): print frames, optionally send a WAV or the mic.
 
     python clients/python/client.py                                # watch the server's source
     python clients/python/client.py --wav speech.wav --binary      # own session from a WAV file
@@ -34,15 +34,24 @@ RESUME_WITHIN_S = 10.0  # after a goaway: connections tried for this long before
 MIC_HOLD_S = 10.0  # microphone audio held while the server has us paused; beyond it the oldest is dropped, counted
 
 
-def decode_binary_frame(buf: bytes) -> dict:
-    """Decode a DGF1 binary frame into the same dict a JSON frame parses to."""
-    if len(buf) < BINARY_HEADER.size or (len(buf) - BINARY_HEADER.size) % 16:
-        raise ValueError(f"binary frame of {len(buf)} bytes is not 28 + 16*J")
+def decode_binary_frame(buf: bytes, hello: dict | None = None) -> dict:
+    """Decode a DGF1 binary frame into the same dict a JSON frame parses to. With the server's hello the frame has
+    its joint count of rotations, then each of `hello["channels"]` (revision 6) at its offset; without it every
+    byte after the header is a rotation (a frame without channels)."""
+    channels = (hello or {}).get("channels") or []
+    joints = len(hello["skeleton"]["joints"]) if hello else (len(buf) - BINARY_HEADER.size) // 16
+    end = max([BINARY_HEADER.size + 16 * joints] + [c["offset"] + 4 * c["size"] for c in channels])
+    if len(buf) < end or (hello is None and (len(buf) - BINARY_HEADER.size) % 16):
+        raise ValueError(f"binary frame of {len(buf)} bytes is not 28 + 16*J + the hello's channels")
     magic, index, pts, *root = BINARY_HEADER.unpack_from(buf)
     if magic != b"DGF1":
         raise ValueError(f"binary frame magic {magic!r}, expected b'DGF1'")
-    rotations = np.frombuffer(buf, "<f4", offset=BINARY_HEADER.size).reshape(-1, 4)
-    return {"type": "frame", "index": index, "pts": pts, "root": root, "rotations": rotations.tolist()}
+    rotations = np.frombuffer(buf, "<f4", count=4 * joints, offset=BINARY_HEADER.size).reshape(-1, 4)
+    msg = {"type": "frame", "index": index, "pts": pts, "root": root, "rotations": rotations.tolist()}
+    if channels:  # bytes past the last channel the hello names (a later revision's) are ignored
+        msg["channels"] = {c["name"]: np.frombuffer(buf, "<f4", count=c["size"], offset=c["offset"]).tolist()
+                           for c in channels}
+    return msg
 
 
 def read_wav(path: str) -> tuple[np.ndarray, int]:
@@ -210,6 +219,7 @@ class Printer:
 
     def __init__(self, args):
         self.args, self.frames, self.count, self.skeleton, self.fps = args, 0, 0, None, 20.0
+        self.hello: dict | None = None  # the server's: the binary frame layout
         self.save = Path(args.save) if args.save else None
         if self.save:
             self.save.mkdir(parents=True, exist_ok=True)
@@ -221,7 +231,7 @@ class Printer:
             with open(self.save / name, mode) as f:
                 f.write(message)
         self.count += 1
-        msg = decode_binary_frame(message) if isinstance(message, bytes) else json.loads(message)
+        msg = decode_binary_frame(message, self.hello) if isinstance(message, bytes) else json.loads(message)
         kind = msg.get("type")
         if kind == "frame":
             self.frames += 1
@@ -229,12 +239,16 @@ class Printer:
                 root = ", ".join(f"{v:7.2f}" for v in msg["root"])
                 name = self.skeleton[1] if self.skeleton and len(self.skeleton) > 1 else "joint 1"
                 q = ", ".join(f"{v:+.3f}" for v in msg["rotations"][min(1, len(msg["rotations"]) - 1)])
-                print(f"frame {msg['index']:5d}  pts {msg['pts']:7.3f}  root [{root}]  {name} [{q}]")
+                extra = "".join(f"  {k} [{', '.join(f'{v:+.3f}' for v in vals[:3])}{', ...' if len(vals) > 3 else ''}]"
+                                for k, vals in msg.get("channels", {}).items())
+                print(f"frame {msg['index']:5d}  pts {msg['pts']:7.3f}  root [{root}]  {name} [{q}]{extra}")
         elif kind == "hello":
+            self.hello = msg
             self.skeleton, self.fps = msg["skeleton"]["joints"], float(msg.get("fps", self.fps))
             print(f"hello: {msg.get('server')} protocol {msg.get('protocol')}, {len(self.skeleton)} joints "
                   f"({msg['skeleton'].get('units')}), {msg.get('fps')} fps, lookahead {msg.get('lookahead_s')} s, "
-                  f"audio {msg.get('audio')}")
+                  f"audio {msg.get('audio')}"
+                  + "".join(f", channel {c['name']} ({c['size']} values)" for c in msg.get("channels") or []))
         elif kind == "status" and not self.args.quiet:
             print(f"status: latency {msg.get('latency_ms')} ms, rtf {msg.get('rtf')}, sent {msg.get('frames_sent')}, "
                   f"dropped {msg.get('dropped')}, clients {msg.get('clients')}")

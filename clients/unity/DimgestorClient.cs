@@ -1,4 +1,4 @@
-// Unity client for dimgestor (protocol v1 revision 3): receives gesture frames over a WebSocket and drives a Humanoid
+// Unity client for dimgestor (protocol v1 revision 6): receives gesture frames over a WebSocket and drives a Humanoid
 // avatar through Animator.GetBoneTransform. No third-party package: System.Net.WebSockets.ClientWebSocket.
 //
 // Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
@@ -145,6 +145,7 @@ namespace Dimgestor
         {
             var buffer = new byte[64 * 1024];
             var message = new System.IO.MemoryStream();
+            Hello layout = null;  // this connection's hello
             while (ws.State == WebSocketState.Open && !ct.IsCancellationRequested)
             {
                 var r = await ws.ReceiveAsync(new ArraySegment<byte>(buffer), ct).ConfigureAwait(false);
@@ -155,8 +156,13 @@ namespace Dimgestor
                 message.SetLength(0);
                 try
                 {
-                    if (r.MessageType == WebSocketMessageType.Binary) Handle(Protocol.DecodeBinaryFrame(data, 0, data.Length));
-                    else Handle(Protocol.Parse(Encoding.UTF8.GetString(data)));
+                    if (r.MessageType == WebSocketMessageType.Binary) Handle(Protocol.DecodeBinaryFrame(data, 0, data.Length, layout));
+                    else
+                    {
+                        var m = Protocol.Parse(Encoding.UTF8.GetString(data));
+                        if (m is Hello) layout = (Hello)m;  // the binary frames' layout: joints and channels
+                        Handle(m);
+                    }
                 }
                 catch (ProtocolException e) { lastError = e.Message; }  // one bad message does not end the stream
             }

@@ -1,4 +1,4 @@
-// dimgestor protocol v1 revision 2 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
+// dimgestor protocol v1 revision 6 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
 // and is tested outside Unity (clients/unity/tests/). The Unity glue is DimgestorClient.cs.
 //
 // Spaces: the wire is BVH space (right-handed, Y up, file units). Unity is left-handed, Y up, metres:
@@ -71,6 +71,16 @@ namespace Dimgestor
         public string[] AudioFormats = new string[0];
         public double LookaheadS;
         public double WindowMs;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
+        public ChannelSpec[] Channels = new ChannelSpec[0];  // revision 6: what each frame carries beside the pose
+    }
+
+    /// <summary>Revision 6: one channel of every frame (e.g. blendshape weights): Size values, in a binary frame
+    /// at byte Offset; Labels name each value when the server gives them (else empty).</summary>
+    public class ChannelSpec
+    {
+        public string Name;
+        public int Size, Offset;
+        public string[] Labels = new string[0];
     }
 
     public class Frame : Message
@@ -79,6 +89,7 @@ namespace Dimgestor
         public double Pts;
         public Vec3 Root;              // root joint position, BVH space, file units
         public Quat[] Rotations;       // local rotations, skeleton order
+        public Dictionary<string, double[]> Channels = new Dictionary<string, double[]>();  // revision 6: name -> values
     }
 
     public class Status : Message
@@ -113,7 +124,7 @@ namespace Dimgestor
     public static class Protocol
     {
         public const int Version = 1;
-        public const int Revision = 3;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+        public const int Revision = 6;  // the optional additions this client knows (docs/protocol.md, "Revisions")
         public const int BinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
         /// <summary>Parse one text message. Throws ProtocolException (with the position) on bad input.</summary>
@@ -203,6 +214,28 @@ namespace Dimgestor
                     for (int i = 0; i < f.Count; i++) h.AudioFormats[i] = f[i] as string;
                 }
             }
+            if (o.ContainsKey("channels"))
+            {
+                var cs = Json.Arr(o, "channels");
+                h.Channels = new ChannelSpec[cs.Count];
+                for (int i = 0; i < cs.Count; i++)
+                {
+                    var c = cs[i] as Dictionary<string, object>;
+                    string what = "hello.channels[" + i + "]";
+                    if (c == null) throw new ProtocolException(what + " is not an object");
+                    h.Channels[i] = new ChannelSpec
+                    {
+                        Name = Json.Str(c, "name", ""), Size = (int)Json.Num(c, "size", 0), Offset = (int)Json.Num(c, "offset", 0),
+                    };
+                    if (h.Channels[i].Size < 0 || h.Channels[i].Offset < 0) throw new ProtocolException(what + ": negative size or offset");
+                    if (c.ContainsKey("labels"))
+                    {
+                        var l = Json.Arr(c, "labels");
+                        h.Channels[i].Labels = new string[l.Count];
+                        for (int k = 0; k < l.Count; k++) h.Channels[i].Labels[k] = l[k] as string;
+                    }
+                }
+            }
             return h;
         }
 
@@ -215,6 +248,15 @@ namespace Dimgestor
                 Root = Vec(o.ContainsKey("root") ? o["root"] : null, "frame.root"), Rotations = new Quat[rots.Count],
             };
             for (int j = 0; j < rots.Count; j++) f.Rotations[j] = Rot(rots[j], "frame.rotations[" + j + "]");
+            if (o.ContainsKey("channels"))
+                foreach (var kv in Json.Obj(o, "channels"))
+                {
+                    var a = kv.Value as List<object>;
+                    if (a == null) continue;  // not values: a later revision's, ignored
+                    var values = new double[a.Count];
+                    for (int i = 0; i < a.Count; i++) values[i] = Json.ToNum(a[i], "frame.channels." + kv.Key);
+                    f.Channels[kv.Key] = values;
+                }
             return f;
         }
 
@@ -232,14 +274,18 @@ namespace Dimgestor
             return new Quat(Json.ToNum(a[0], what), Json.ToNum(a[1], what), Json.ToNum(a[2], what), Json.ToNum(a[3], what));
         }
 
-        /// <summary>Decode a binary (DGF1) frame; count = message length in bytes.</summary>
-        public static Frame DecodeBinaryFrame(byte[] data, int offset, int count)
+        /// <summary>Decode a binary (DGF1) frame; count = message length in bytes. With the server's hello the
+        /// frame has its joints' rotations, then each of hello.Channels at its offset (bytes past them are
+        /// ignored); without it every byte after the header is a rotation (a frame without channels).</summary>
+        public static Frame DecodeBinaryFrame(byte[] data, int offset, int count, Hello hello = null)
         {
-            if (count < BinaryHeaderBytes || (count - BinaryHeaderBytes) % 16 != 0)
-                throw new ProtocolException("binary frame of " + count + " bytes is not 28 + 16*J");
+            int n = hello != null ? hello.Skeleton.Joints.Length : (count - BinaryHeaderBytes) / 16;
+            int end = BinaryHeaderBytes + 16 * n;
+            if (hello != null) foreach (var c in hello.Channels) end = Math.Max(end, c.Offset + 4 * c.Size);
+            if (count < end || (hello == null && (count - BinaryHeaderBytes) % 16 != 0))
+                throw new ProtocolException("binary frame of " + count + " bytes is not 28 + 16*J" + (hello != null ? " + the hello's channels" : ""));
             if (data[offset] != 'D' || data[offset + 1] != 'G' || data[offset + 2] != 'F' || data[offset + 3] != '1')
                 throw new ProtocolException("binary frame does not start with DGF1");
-            int n = (count - BinaryHeaderBytes) / 16;
             var f = new Frame
             {
                 Type = "frame", Index = ReadU32(data, offset + 4), Pts = ReadF64(data, offset + 8),
@@ -248,6 +294,13 @@ namespace Dimgestor
             };
             for (int j = 0, p = offset + BinaryHeaderBytes; j < n; j++, p += 16)
                 f.Rotations[j] = new Quat(ReadF32(data, p), ReadF32(data, p + 4), ReadF32(data, p + 8), ReadF32(data, p + 12));
+            if (hello != null)
+                foreach (var c in hello.Channels)
+                {
+                    var values = new double[c.Size];
+                    for (int i = 0; i < c.Size; i++) values[i] = ReadF32(data, offset + c.Offset + 4 * i);
+                    f.Channels[c.Name] = values;
+                }
             return f;
         }
 

@@ -190,7 +190,8 @@ void UDimgestorComponent::HandleBinary(const void* Data, SIZE_T Size, bool bIsLa
 	dimgestor::Message Message;
 	Message.type = dimgestor::MessageType::Frame;
 	std::string Error;
-	if (dimgestor::DecodeBinaryFrame(BinaryBuffer.GetData(), BinaryBuffer.Num(), Message.frame, Error)) Handle(Message);
+	if (dimgestor::DecodeBinaryFrame(BinaryBuffer.GetData(), BinaryBuffer.Num(), Message.frame, Error,
+	                                 bHaveHello ? &Hello : nullptr)) Handle(Message);
 	else LastError = UTF8_TO_TCHAR(Error.c_str());
 	BinaryBuffer.Reset();
 }

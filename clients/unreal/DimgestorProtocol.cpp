@@ -122,6 +122,24 @@ bool ParseHello(const JsonValue& o, Hello& h, std::string& error) {
             if (x.kind == JsonValue::String) h.audio_formats.push_back(x.s);
     }
   }
+  if (const JsonValue* cs = o.Get("channels")) {
+    if (cs->kind != JsonValue::Array) { error = "hello.channels is not an array"; return false; }
+    for (size_t i = 0; i < cs->items.size(); ++i) {
+      const JsonValue& c = cs->items[i];
+      std::string at = "hello.channels[" + std::to_string(i) + "]";
+      ChannelSpec spec;
+      double size, offset;
+      if (c.kind != JsonValue::Object) { error = at + " is not an object"; return false; }
+      if (!f.Str(c, "name", "", spec.name) || !f.Num(c, "size", 0, size) || !f.Num(c, "offset", 0, offset)) return false;
+      if (size < 0 || offset < 0 || size > 1e6 || offset > 1e9) { error = at + ": bad size or offset"; return false; }
+      spec.size = size_t(size);
+      spec.offset = size_t(offset);
+      if (const JsonValue* l = c.Get("labels"))
+        if (l->kind == JsonValue::Array)
+          for (const JsonValue& x : l->items) spec.labels.push_back(x.kind == JsonValue::String ? x.s : "");
+      h.channels.push_back(spec);
+    }
+  }
   return true;
 }
 
@@ -140,6 +158,19 @@ bool ParseFrame(const JsonValue& o, Frame& fr, std::string& error) {
   fr.rotations.resize(rots->items.size());
   for (size_t j = 0; j < rots->items.size(); ++j)
     if (!f.ToQuat(rots->items[j], fr.rotations[j], "frame.rotations[" + std::to_string(j) + "]")) return false;
+  fr.channels.clear();
+  if (const JsonValue* cs = o.Get("channels")) {
+    if (cs->kind == JsonValue::Object)
+      for (size_t i = 0; i < cs->keys.size(); ++i) {
+        const JsonValue& v = cs->items[i];
+        if (v.kind != JsonValue::Array) continue;  // not values: a later revision's, ignored
+        std::vector<double>& values = fr.channels[cs->keys[i]];
+        for (const JsonValue& x : v.items) {
+          if (x.kind != JsonValue::Number) { error = "frame.channels." + cs->keys[i] + " has a non-number"; return false; }
+          values.push_back(x.n);
+        }
+      }
+  }
   return true;
 }
 
@@ -227,21 +258,30 @@ std::string ResumeSession(const std::string& token) {
   return "{\"type\":\"resume_session\",\"token\":\"" + token + "\"}";
 }
 
-bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error) {
-  if (size < kBinaryHeaderBytes || (size - kBinaryHeaderBytes) % 16 != 0) {
-    error = "binary frame of " + std::to_string(size) + " bytes is not 28 + 16*J";
+bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error, const Hello* hello) {
+  size_t n = hello ? hello->skeleton.joints.size() : (size >= kBinaryHeaderBytes ? (size - kBinaryHeaderBytes) / 16 : 0);
+  size_t end = kBinaryHeaderBytes + 16 * n;
+  if (hello)
+    for (const ChannelSpec& c : hello->channels) end = std::max(end, c.offset + 4 * c.size);
+  if (size < end || (!hello && (size - kBinaryHeaderBytes) % 16 != 0)) {
+    error = "binary frame of " + std::to_string(size) + " bytes is not 28 + 16*J" + (hello ? " + the hello's channels" : "");
     return false;
   }
   if (std::memcmp(data, "DGF1", 4) != 0) { error = "binary frame does not start with DGF1"; return false; }
   out.index = ReadLE<uint32_t>(data + 4);
   out.pts = ReadLE<double>(data + 8);
   out.root = Vec3{ReadLE<float>(data + 16), ReadLE<float>(data + 20), ReadLE<float>(data + 24)};
-  size_t n = (size - kBinaryHeaderBytes) / 16;
   out.rotations.resize(n);
   for (size_t j = 0; j < n; ++j) {
     const uint8_t* p = data + kBinaryHeaderBytes + 16 * j;
     out.rotations[j] = Quat{ReadLE<float>(p), ReadLE<float>(p + 4), ReadLE<float>(p + 8), ReadLE<float>(p + 12)};
   }
+  out.channels.clear();
+  if (hello)
+    for (const ChannelSpec& c : hello->channels) {
+      std::vector<double>& values = out.channels[c.name];
+      for (size_t i = 0; i < c.size; ++i) values.push_back(ReadLE<float>(data + c.offset + 4 * i));
+    }
   return true;
 }
 

@@ -1,4 +1,4 @@
-// dimgestor protocol v1 revision 2 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
+// dimgestor protocol v1 revision 6 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
 // no exceptions (Unreal builds without them), so it compiles and is tested outside the engine.
 //
 // The wire is BVH space: right-handed, Y up, file units (cm for ZEGGS). Conversions provided:
@@ -40,6 +40,14 @@ struct Skeleton {
   int IndexOf(const std::string& joint) const;  // -1 when absent
 };
 
+// Revision 6: one channel of every frame (e.g. blendshape weights): `size` values, in a binary frame at byte
+// `offset`; `labels` name each value when the server gives them (else empty).
+struct ChannelSpec {
+  std::string name;
+  size_t size = 0, offset = 0;
+  std::vector<std::string> labels;
+};
+
 struct Hello {
   int protocol = 0;
   std::string server;
@@ -52,6 +60,7 @@ struct Hello {
   std::vector<std::string> audio_formats;
   double lookahead_s = 0;
   double window_ms = 0;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
+  std::vector<ChannelSpec> channels;  // revision 6: what each frame carries beside the pose
 };
 
 struct Frame {
@@ -59,6 +68,7 @@ struct Frame {
   double pts = 0;
   Vec3 root;                  // root joint position, BVH space, file units
   std::vector<Quat> rotations;  // local rotations, skeleton order
+  std::map<std::string, std::vector<double>> channels;  // revision 6: name -> values
 };
 
 struct Status {
@@ -86,14 +96,16 @@ struct Message {
 };
 
 constexpr int kProtocolVersion = 1;
-constexpr int kProtocolRevision = 3;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+constexpr int kProtocolRevision = 6;  // the optional additions this client knows (docs/protocol.md, "Revisions")
 constexpr size_t kBinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
 
 // Parse one text message. On bad input returns false and says what and where in `error`.
 bool ParseMessage(const std::string& text, Message& out, std::string& error);
 
-// Decode one binary (DGF1) frame message of `size` bytes.
-bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error);
+// Decode one binary (DGF1) frame message of `size` bytes. With the server's hello the frame has its joints'
+// rotations, then each of hello->channels at its offset (bytes past them are ignored); without it every byte after
+// the header is a rotation (a frame without channels).
+bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error, const Hello* hello = nullptr);
 
 // The client's hello; with audio_rate > 0 it also declares the audio format that will be sent.
 std::string ClientHello(bool binary_frames, int audio_rate = 0, const std::string& audio_format = "float32",

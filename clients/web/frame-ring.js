@@ -2,23 +2,29 @@
 // isolated page), without DOM so it also runs under node (clients/web/tests/). The worker writes each frame into
 // the next of SLOTS slots and then advances `head` (Atomics); the page reads the slots from where it stopped up to
 // head whenever it draws. A page that fell more than SLOTS frames behind loses the oldest (its frame gaps count
-// them). Slot: index, pts, arrival (ms, page clock), binary (0/1), root[3], rotations[J][w, x, y, z], as float64.
+// them). Slot: index, pts, arrival (ms, page clock), binary (0/1), root[3], rotations[J][w, x, y, z], then the
+// values of each channel of the server's hello (revision 6: hello.channels, in order), as float64.
 export const SLOTS = 256;  // 12.8 s at 20 fps
 const HEAD = 4;            // fields before the root
 
+const slotSize = (joints, channels) => HEAD + 3 + 4 * joints + channels.reduce((n, c) => n + c.size, 0);
+
 export class FrameRing {
-  constructor(sab, joints) {
+  constructor(sab, joints, channels = []) {
     this.sab = sab;
     this.joints = joints;
-    this.slot = HEAD + 3 + 4 * joints;
+    this.channels = (channels || []).map((c) => ({ name: c.name, size: c.size }));
+    this.slot = slotSize(joints, this.channels);
     this.head = new Int32Array(sab, 0, 1);  // frames written so far
     this.x = new Float64Array(sab, 8, SLOTS * this.slot);
     this.read = 0;                          // frames read so far (the page's side)
   }
 
-  /** A ring for frames of `joints` joints (the worker's side; its `sab` goes to the page). */
-  static create(joints) {
-    return new FrameRing(new SharedArrayBuffer(8 + 8 * SLOTS * (HEAD + 3 + 4 * joints)), joints);
+  /** A ring for frames of `joints` joints and the hello's `channels` (the worker's side; its `sab` goes to the
+   *  page, which makes its own FrameRing of the same joints and channels). */
+  static create(joints, channels = []) {
+    const chans = channels || [];
+    return new FrameRing(new SharedArrayBuffer(8 + 8 * SLOTS * slotSize(joints, chans)), joints, chans);
   }
 
   /** Put a frame in (the worker); false when it does not fit the ring's joints (then it goes another way). */
@@ -31,6 +37,10 @@ export class FrameRing {
     o += HEAD;
     for (let i = 0; i < 3; i++) x[o++] = f.root[i];
     for (const q of f.rotations) for (let i = 0; i < 4; i++) x[o++] = q[i];
+    for (const c of this.channels) {  // a frame without the channel (or with too few values) holds zeros
+      const v = (f.channels && f.channels[c.name]) || [];
+      for (let i = 0; i < c.size; i++) x[o++] = Number(v[i]) || 0;
+    }
     Atomics.store(this.head, 0, n + 1);
     return true;
   }
@@ -48,6 +58,11 @@ export class FrameRing {
       const at = x[o + 2], binary = x[o + 3] === 1;
       o += HEAD + 3;
       for (let j = 0; j < this.joints; j++, o += 4) f.rotations.push([x[o], x[o + 1], x[o + 2], x[o + 3]]);
+      if (this.channels.length) f.channels = {};
+      for (const c of this.channels) {
+        f.channels[c.name] = Array.from(x.subarray(o, o + c.size));
+        o += c.size;
+      }
       out.push([f, at, binary]);
     }
     return out;

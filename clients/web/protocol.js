@@ -1,18 +1,30 @@
-// Protocol v1 (revision 2) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
+// Protocol v1 (revision 6) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
 
-/** Decode a DGF1 binary frame: "DGF1" | u32 index | f64 pts | f32[3] root | f32[J*4] wxyz, little-endian. */
-export function decodeBinaryFrame(buf) {
+/** Decode a DGF1 binary frame: "DGF1" | u32 index | f64 pts | f32[3] root | f32[J*4] wxyz | channels,
+ *  little-endian. With the server's `hello`, J is its joint count and each of `hello.channels` (revision 6) is read
+ *  at its offset into `channels: {name: [values]}`; bytes past the last listed channel are ignored. Without it,
+ *  every byte after the header is a rotation (a frame without channels). */
+export function decodeBinaryFrame(buf, hello = null) {
   const dv = new DataView(buf);
   const magic = String.fromCharCode(...new Uint8Array(buf, 0, Math.min(4, buf.byteLength)));
-  if (magic !== 'DGF1' || buf.byteLength < 28 || (buf.byteLength - 28) % 16 !== 0)
+  const joints = hello && hello.skeleton && Array.isArray(hello.skeleton.joints) ? hello.skeleton.joints.length : null;
+  const channels = (hello && Array.isArray(hello.channels)) ? hello.channels : [];
+  const n = joints === null ? (buf.byteLength - 28) / 16 : joints;
+  const end = Math.max(28 + 16 * n, ...channels.map((c) => c.offset + 4 * c.size));
+  if (magic !== 'DGF1' || buf.byteLength < 28 || !Number.isInteger(n) || buf.byteLength < end)
     throw new Error(`bad binary frame (${buf.byteLength} bytes, magic ${JSON.stringify(magic)})`);
-  const n = (buf.byteLength - 28) / 16;
   const rotations = new Array(n);
   for (let j = 0, o = 28; j < n; j++, o += 16)
     rotations[j] = [dv.getFloat32(o, true), dv.getFloat32(o + 4, true), dv.getFloat32(o + 8, true),
                     dv.getFloat32(o + 12, true)];
-  return { type: 'frame', index: dv.getUint32(4, true), pts: dv.getFloat64(8, true),
-           root: [dv.getFloat32(16, true), dv.getFloat32(20, true), dv.getFloat32(24, true)], rotations };
+  const frame = { type: 'frame', index: dv.getUint32(4, true), pts: dv.getFloat64(8, true),
+                  root: [dv.getFloat32(16, true), dv.getFloat32(20, true), dv.getFloat32(24, true)], rotations };
+  if (channels.length) {
+    frame.channels = {};
+    for (const c of channels)
+      frame.channels[c.name] = Array.from({ length: c.size }, (_, i) => dv.getFloat32(c.offset + 4 * i, true));
+  }
+  return frame;
 }
 
 /** The magic of a binary message from the server: "DGF1" (frame) or "DGA1" (source audio). */

@@ -33,6 +33,7 @@ let moving = false;    // a goaway came while talking: audio is held until sessi
 let mic = null;        // {port, rate, format, samples} while the microphone feeds us
 let flow = null;       // AudioFlow of this talk (outlives the microphone: what is held goes at `resume`)
 let ring = null;       // FrameRing of this connection's stream (from its hello on) when memory can be shared
+let serverHello = null;  // this connection's hello from the server: the binary frame layout (joints, channels)
 let endPending = false;  // audio_end waits for the held audio
 const sent = { chunks: [], samples: 0 };  // [first sample, buffer, samples] of our recent audio; samples sent
 const counts = { sent: 0, dropped: 0 };
@@ -70,6 +71,7 @@ function connect({ id: newId, url, hello, resume }) {
   closeSocket(1000, 'reconnect');
   id = newId;
   ring = null;
+  serverHello = null;
   talk = !!hello.audio;
   endPending = false;
   if (!resume) {  // a fresh session: what was sent or held belongs to the old one
@@ -103,7 +105,7 @@ function receive(data, myId) {
       if (binaryKind(data) === 'DGA1') {
         const chunk = decodeSourceAudio(data);
         post({ type: 'sourceAudio', id: myId, chunk, at }, [chunk.samples.buffer]);
-      } else sendFrame(decodeBinaryFrame(data), true, at, myId);
+      } else sendFrame(decodeBinaryFrame(data, serverHello), true, at, myId);
     } catch (e) { post({ type: 'bad', id: myId, message: e.message }); }
     return;
   }
@@ -113,9 +115,10 @@ function receive(data, myId) {
     return;
   }
   if (msg.type === 'frame') { sendFrame(msg, false, at, myId); return; }
+  if (msg.type === 'hello') serverHello = msg;
   if (talk && flow) audioControl(msg);  // before the page hears of it: the page's view of the flow is then current
   if (msg.type === 'hello' && self.crossOriginIsolated && msg.skeleton && Array.isArray(msg.skeleton.joints)) {
-    ring = FrameRing.create(msg.skeleton.joints.length);
+    ring = FrameRing.create(msg.skeleton.joints.length, msg.channels);
     post({ type: 'message', id: myId, msg, at, ring: ring.sab });
     return;
   }

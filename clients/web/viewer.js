@@ -50,6 +50,9 @@ const api = window.dimgestor = {
   arrivalLog: [],   // [arrival (s, page clock, when this thread could show it), pts] of the last ARRIVAL_LOG frames
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
+  // The frame channels the server sends beside the pose (revision 6: hello.channels); a frame's values are in
+  // lastFrame.channels[name].
+  channelNames: () => ((api.hello && Array.isArray(api.hello.channels)) ? api.hello.channels.map((c) => c.name) : []),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
   loadAvatarFile: (file) => loadAvatarFile(file), setAvatar: (m) => setAvatar(m), resetView: () => resetView(),
   setPaused: (p) => setPaused(p), setMuted: (m) => setMuted(m),
@@ -508,7 +511,7 @@ function fromWorker(m) {
   if (m.type === 'mic') { onMicReport(m); return; }
   if (m.id !== connId) return;  // a connection replaced since
   takeRing();  // frames the worker had before this message come first
-  if (m.ring) ring = new FrameRing(m.ring, m.msg.skeleton.joints.length);
+  if (m.ring) ring = new FrameRing(m.ring, m.msg.skeleton.joints.length, m.msg.channels);
   switch (m.type) {
     case 'open': onOpen(); break;
     case 'close': onClose(m); break;

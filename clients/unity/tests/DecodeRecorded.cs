@@ -19,12 +19,13 @@ static class DecodeRecorded
     {
         if (args.Length != 1) { Console.Error.WriteLine("usage: DecodeRecorded.exe FOLDER"); return 2; }
         Skeleton skeleton = null;
+        Hello hello = null;  // the binary frames' layout once a hello was read
         foreach (var path in Directory.GetFiles(args[0]).OrderBy(p => p, StringComparer.Ordinal))
         {
             Message m;
             try
             {
-                if (path.EndsWith(".bin")) { var b = File.ReadAllBytes(path); m = Protocol.DecodeBinaryFrame(b, 0, b.Length); }
+                if (path.EndsWith(".bin")) { var b = File.ReadAllBytes(path); m = Protocol.DecodeBinaryFrame(b, 0, b.Length, hello); }
                 else if (path.EndsWith(".json")) m = Protocol.Parse(File.ReadAllText(path, Encoding.UTF8));
                 else continue;
             }
@@ -38,6 +39,7 @@ static class DecodeRecorded
             if (h != null)
             {
                 skeleton = h.Skeleton;
+                hello = h;
                 sb.Append(",\"joints\":" + h.Skeleton.Joints.Length + ",\"humanoid\":" + h.Humanoid.Count);
                 sb.Append(",\"fps\":" + N(h.Fps) + ",\"unit_to_m\":" + N(h.Skeleton.UnitToMeters));
                 sb.Append(",\"audio_rate\":" + h.AudioRate + ",\"offset_last\":" + V(h.Skeleton.Offsets[h.Skeleton.Offsets.Length - 1]));
@@ -51,6 +53,9 @@ static class DecodeRecorded
                 sb.Append(",\"unity_root\":" + V(Protocol.ToUnityPosition(f.Root, u)));
                 sb.Append(",\"unity_rotations\":" + Qs(f.Rotations.Select(Protocol.ToUnityRotation).ToArray()));
                 if (skeleton != null) sb.Append(",\"global_rotations\":" + Qs(Protocol.GlobalRotations(skeleton, f.Rotations)));
+                if (f.Channels.Count > 0)
+                    sb.Append(",\"channels\":{" + string.Join(",", f.Channels.OrderBy(kv => kv.Key, StringComparer.Ordinal)
+                        .Select(kv => "\"" + kv.Key + "\":[" + string.Join(",", kv.Value.Select(N)) + "]")) + "}");
             }
             var st = m as Status;
             if (st != null) sb.Append(",\"latency_ms\":" + N(st.LatencyMs) + ",\"dropped\":" + st.Dropped);

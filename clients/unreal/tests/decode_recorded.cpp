@@ -35,6 +35,8 @@ int main(int argc, char** argv) {
   for (const auto& e : fs::directory_iterator(argv[1])) files.push_back(e.path());
   std::sort(files.begin(), files.end());
   Skeleton skeleton;
+  Hello hello;  // the binary frames' layout once a hello was read
+  bool have_hello = false;
   for (const fs::path& path : files) {
     std::ifstream in(path, std::ios::binary);
     std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
@@ -44,7 +46,8 @@ int main(int argc, char** argv) {
     if (path.extension() == ".bin") {
       m.type = MessageType::Frame;
       m.type_name = "frame";
-      ok = DecodeBinaryFrame(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), m.frame, error);
+      ok = DecodeBinaryFrame(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), m.frame, error,
+                             have_hello ? &hello : nullptr);
     } else if (path.extension() == ".json") {
       ok = ParseMessage(bytes, m, error);
     } else {
@@ -55,6 +58,8 @@ int main(int argc, char** argv) {
     line += ",\"type\":\"" + m.type_name + "\"";
     if (m.type == MessageType::Hello) {
       skeleton = m.hello.skeleton;
+      hello = m.hello;
+      have_hello = true;
       line += ",\"joints\":" + std::to_string(skeleton.joints.size()) + ",\"humanoid\":" +
               std::to_string(m.hello.humanoid.size()) + ",\"fps\":" + N(m.hello.fps) + ",\"unit_to_m\":" +
               N(skeleton.unit_to_m) + ",\"audio_rate\":" + std::to_string(m.hello.audio_rate) +
@@ -69,6 +74,15 @@ int main(int argc, char** argv) {
       line += ",\"unreal_rotations\":" + Qs(f.rotations, ToUnrealRotation);
       if (!skeleton.joints.empty())
         line += ",\"global_rotations\":" + Qs(GlobalRotations(skeleton, f.rotations), [](const Quat& q) { return q; });
+      if (!f.channels.empty()) {
+        std::string cs;
+        for (const auto& kv : f.channels) {
+          cs += std::string(cs.empty() ? "" : ",") + "\"" + Escape(kv.first) + "\":[";
+          for (size_t i = 0; i < kv.second.size(); ++i) cs += (i ? "," : "") + N(kv.second[i]);
+          cs += "]";
+        }
+        line += ",\"channels\":{" + cs + "}";
+      }
     } else if (m.type == MessageType::Status) {
       line += ",\"latency_ms\":" + N(m.status.latency_ms) + ",\"dropped\":" + std::to_string(m.status.dropped);
     } else if (m.type == MessageType::End) {
