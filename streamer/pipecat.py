@@ -456,18 +456,21 @@ class GestureProcessor(FrameProcessor):
         self._held, self._holding, self._hold_task = [], None, None
         for f, d in kept:  # uninterruptible frames still go, in order (held audio is dropped: never heard)
             await self.push_frame(f, d)
-        for u in self._utterances:
-            self.stats.dropped_unplayed += len(u.frames)
-            u.frames.clear()
-            await u.source.close()
-            if u.task is not None:
-                await self.cancel_task(u.task)
+        # (detached before any await: the clock task pops finished utterances, and audio after the interruption
+        # may start a new one, while the old ones' inference is cancelled)
+        gone = list(self._utterances)
         self._utterances.clear()
         self._playing.clear()
         self._play_end = now
         if self._last_due is not None:
             self._next_rest_due = self._last_due + 1 / self.fps
         self._changed.set()
+        for u in gone:
+            self.stats.dropped_unplayed += len(u.frames)
+            u.frames.clear()
+            await u.source.close()
+            if u.task is not None:
+                await self.cancel_task(u.task)
 
     # ---- the clock -------------------------------------------------------------------------------
 
