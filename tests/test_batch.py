@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import DenoiseRunner, StepStates, push_many
+from dimgestor.batch import push_many
 from dimgestor.config import get_preset
 from dimgestor.diffusion import Diffusion
 from dimgestor.model import DiMGestor
+from dimgestor.sampler import DenoiseRunner, StepStates
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
 
 TOL = 1e-5
