@@ -24,14 +24,9 @@ def push_many(streams: Sequence[GestureStream], chunks: Sequence, return_excepti
 
 def step_many(streams: Sequence[GestureStream], states: Sequence[StreamState], chunks: Sequence,
               return_exceptions: bool = False) -> tuple[list, list[StreamState]]:
-    """`GestureStream.step` of many streams at once: states[i] (a state of streams[i]) and chunks[i] ->
-    (each stream's frames, each one's new state). The states given are only read.
-
-    The audio is conditioned in groups (`begin_many`), then the windows with the same runner and frame count
-    are denoised as one batch; a stream's frames are those it would give alone (to float rounding).
-    return_exceptions: a stream whose step fails (bad audio, a finished stream) gets its exception in
-    its place and keeps its state, and the others go on; otherwise the first one is raised.
-    """
+    """`GestureStream.step` of many streams: states[i] (only read) and chunks[i] -> (each one's frames, each one's
+    new state), the frames those it gets alone. return_exceptions: a stream whose step fails gets its exception in
+    its place and keeps its state while the others go on; otherwise the first one is raised."""
     if len({id(s) for s in streams}) != len(streams):
         raise ValueError("push_many: each stream at most once per call")
     if not len(chunks) == len(states) == len(streams):
@@ -55,13 +50,9 @@ def step_many(streams: Sequence[GestureStream], states: Sequence[StreamState], c
 
 def begin_many(streams: Sequence[GestureStream], states: Sequence[StreamState], chunks: Sequence,
                return_exceptions: bool = False) -> tuple[list, list[StreamState], dict[int, Exception]]:
-    """`GestureStream.begin_step` of many streams -> (each one's condition (1, n, H), each one's state after the
-    step's first half, {index: exception} of the failed ones (their condition None, their state the one given)).
-
-    One front-end and one extractor call per group of streams with the same model, chunk length and state
-    shapes (`dimgestor.conditioning.group_key`). The states given are only read. return_exceptions: as
-    `step_many`. A group whose batched call fails runs stream by stream, so only the stream at fault fails.
-    """
+    """`GestureStream.begin_step` of many streams, conditioned in groups -> (each one's condition (1, n, H), each
+    one's state after it, {index: exception} of the failed ones). return_exceptions: as `step_many`; a group whose
+    call fails runs stream by stream, so only the stream at fault fails."""
     conds, new, failed = [None] * len(streams), list(states), {}
     samples: list = [None] * len(streams)
     groups: dict[tuple, list[int]] = defaultdict(list)
@@ -101,13 +92,8 @@ def begin_many(streams: Sequence[GestureStream], states: Sequence[StreamState], 
 
 def _denoise_rounds(runners: dict[int, DenoiseRunner], windows: dict[int, Window], return_exceptions: bool
                     ) -> tuple[dict[int, torch.Tensor], dict[int, StepStates], dict[int, Exception]]:
-    """Windows (keyed by stream), denoised in batches -> (each one's frames, each one's new denoiser state,
-    the exceptions of the failed ones).
-
-    Windows are cut into pieces of the most common length, denoised round by round: a stream that fell behind
-    still shares the batch of the others instead of running alone. Once a stream would be alone in a round it
-    takes all it has left at once. Streaming equals offline for any cut, so the frames do not change.
-    """
+    """Windows (keyed by stream) -> (frames, new denoiser states, exceptions), cut into pieces of the most common
+    length so that a stream that fell behind still shares the others' batches (streaming = offline for any cut)."""
     lengths = [w.cond.shape[1] for w in windows.values()]
     piece = max(set(lengths), key=lambda n: (lengths.count(n), n)) if windows else 1
     done = {i: 0 for i in windows}

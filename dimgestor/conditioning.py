@@ -1,11 +1,5 @@
-"""The condition side of a stream's step: audio -> the condition of the frames it completes, for one stream or
-a group of them in one front-end and one extractor call (a window's few frames cost each call's fixed ops).
-
-States stack in one row per stream and split back out (each stream's row, a view); every op of the front ends
-and the extractor computes its rows independently, so a stream's condition is the one it gets alone to float
-rounding. A front end's state is a NamedTuple of tensors with the stream on dim 0 and a `consumed` count its
-forward only adds to: stacked it starts at 0 and each row gets its own count plus the batch's.
-"""
+"""Audio -> the condition of the frames it completes, for one stream or a group in one call (a window's few frames
+cost each call's fixed ops, not arithmetic); every op computes its rows alone, so a row's condition is its own."""
 from __future__ import annotations
 
 from typing import Any, NamedTuple, Sequence

@@ -1,9 +1,6 @@
-"""The K-step sampler of a model's windows (`DenoiseRunner`, the fast path every stream takes, alone or batched).
-
-A window is a few frames, so its cost is reading every block's weights once per step: all adaLN modulations
-of a window come from one matmul, and the windows of B streams run as one forward per step (a row each).
-`dimgestor.stream.sample_frames` is its reference; the tests hold them equal.
-"""
+"""The K-step sampler every stream runs, alone or batched: a window's cost is reading the weights once a step, so
+all its adaLN modulations come from one matmul and B streams' windows share each forward (`sample_frames` is its
+reference)."""
 from __future__ import annotations
 
 import weakref
@@ -20,17 +17,11 @@ __all__ = ["StepStates", "Window", "DenoiseRunner", "runner_for", "denoise"]
 
 
 class StepStates(NamedTuple):
-    """The denoiser's carried state for every sampler step of B streams, stacked (batch rows on dim `B`).
+    """The denoiser's carried state for every sampler step of B stream rows, stacked."""
 
-    enc  (K, B, motion_dim, 2)                the causal encoder's tail
-    conv (K, blocks, B, d_conv - 1, conv_dim) each block's Mamba-2 conv tail, time-major (the transpose of
-                                              `Mamba2State.conv`: the fast block appends frames without a transpose)
-    ssm  (K, blocks, B, heads, headdim, d_state) each block's SSM state
-    """
-
-    enc: torch.Tensor
-    conv: torch.Tensor
-    ssm: torch.Tensor
+    enc: torch.Tensor  # (K, B, motion_dim, 2): the causal encoder's tail
+    conv: torch.Tensor  # (K, blocks, B, d_conv - 1, conv_dim), time-major: the fast block appends without a transpose
+    ssm: torch.Tensor  # (K, blocks, B, heads, headdim, d_state)
 
     @property
     def batch(self) -> int:
@@ -127,11 +118,8 @@ class _Guidance(NamedTuple):
 
 
 class DenoiseRunner:
-    """The K-step sampler of one model and schedule, for windows of B streams (the fast path).
-
-    Built once per (model, sampler, steps, eta) by `runner_for`; it holds the stacked adaLN weights and
-    the step embeddings, rebuilt when the model's parameters change (their version counters or storage move).
-    """
+    """The K-step sampler of one model and schedule (`runner_for`); its stacked adaLN weights and step embeddings
+    are rebuilt when the model's parameters change."""
 
     def __init__(self, model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str = "ddim", eta: float = 0.0):
         self.model, self.pairs, self.sampler, self.eta = model, list(pairs), sampler, float(eta)
@@ -166,8 +154,7 @@ class DenoiseRunner:
         self._version = version
 
     def modulations(self, cond: torch.Tensor) -> torch.Tensor:
-        """cond (B, n, H) -> (K, B, n, blocks * 6H + 2H): every adaLN output of the window, all steps
-        (1 added to the scale chunks, as the blocks take them)."""
+        """cond (B, n, H) -> (K, B, n, blocks * 6H + 2H): every adaLN output of the window, all steps (scales + 1)."""
         self._prepare()
         c = cond[None] + self._temb[:, None, None, :]  # (K, B, n, H): the condition plus each step's embedding
         return F.linear(F.silu(c), self._w, self._b)
@@ -175,19 +162,11 @@ class DenoiseRunner:
     def sample(self, cond: torch.Tensor, frame_starts: Sequence[int], seeds: Sequence[int], states: StepStates,
                guidance: Sequence[float] | None = None, out: StepStates | None = None,
                hold: torch.Tensor | None = None) -> torch.Tensor:
-        """Denoise B windows of n frames: cond (B, n, H), row b's frames start at frame_starts[b] of the stream
-        seeded seeds[b] -> x0 (B, n, motion_dim). The new states are written into `out` (same shapes as
-        `states`; None: into `states` itself, in place), step by step: no state is copied. Call under
-        torch.inference_mode().
-
-        guidance: each window's classifier-free guidance scale (None: all 1). A guided window has two rows in
-        `states`, its conditional then its unconditional branch (see `_Guidance`), so `states` has B + G rows.
-
-        hold: (B + G,) bool, the network rows whose states stay as they were (`out` gets `states`' values: a
-        stream in the exported graph's warm-up, whose condition is not real yet). Their frames mean nothing.
-        Into the fast path's blocks as a zero step size (decay exp(0) = 1 and input 0: the SSM state, the
-        largest, carried exactly without a pass over it), elsewhere as a choice between old and new.
-        """
+        """B windows: cond (B, n, H), row b's frames start at frame_starts[b] of the stream seeded seeds[b] -> x0
+        (B, n, motion_dim); under torch.inference_mode(). The new states go into `out` step by step (None: into
+        `states`, in place). guidance: each window's scale (None: all 1); a guided window has two rows in `states`
+        (conditional, unconditional: `_Guidance`). hold: (B + G,) bool, rows whose states stay as they were (an
+        exported stream's warm-up; their frames mean nothing), in the fast blocks as a zero step size."""
         m, d = self.model, self.diffusion
         n = cond.shape[1]
         D, L, H = m.config.motion_dim, m.config.noise_taps, m.config.hidden
@@ -252,13 +231,8 @@ def _modulated_final(final, h, mod):
 
 
 class _FastBlock:
-    """One AdaLN Mamba-2 block's inference on a window of a few frames, its ops written out.
-
-    The same algebra as `AdaLNMamba2Block.forward` with `Mamba2.forward` and `ssd_steps` (the recurrence is
-    their `ssd_step`, writing into the runner's buffer), on rows (B n, H): no module calls, no layout changes,
-    the derived constants (A, D per channel, the conv taps) made once. The runner's tests hold it equal to
-    the modules.
-    """
+    """`AdaLNMamba2Block.forward` on a window of a few frames with its ops written out on rows (B n, H): there each
+    op's fixed cost is the cost, so no module calls or layout changes (the tests hold it equal to the modules)."""
 
     def __init__(self, block, H: int):
         mx = block.mixer
@@ -337,11 +311,8 @@ def runner_for(model: DiMGestor, pairs: Sequence[tuple[int, int]], sampler: str,
 
 
 def denoise(runner: DenoiseRunner, windows: Sequence[Window]) -> tuple[list[torch.Tensor], list[StepStates]]:
-    """One batched sampler run of windows with the same frame count -> each one's x0 (n, D) and new state.
-
-    The states given are only read. The new ones are the rows of one new buffer, in the windows' order; when
-    the same streams come back together (a busy server), that buffer is read in place (`_join`): no copy.
-    """
+    """Windows of one frame count, one sampler run -> each one's x0 (n, D) and new state (the given ones are only
+    read; the new ones are rows of one buffer, read in place when the same streams come back together: `_join`)."""
     with torch.inference_mode():
         buf = _join([w.state for w in windows])
         new = StepStates(*(torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in buf))
