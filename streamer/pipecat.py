@@ -43,6 +43,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
@@ -201,15 +202,21 @@ class GestureProcessor(FrameProcessor):
     bundle or checkpoint: the model (default: the embedded one). on_audio(pts, samples): the agent's audio at
     16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
     web viewer plays it in sync; audio an interruption cut is never given).
-    on_release(Released): every frame sent, for measurements. executor: where inference runs (a
-    `streamer.scheduling` scheduler or Executor; None: a shared pool).
+    on_release(Released): every frame sent, for measurements. scheduler: where inference runs (a
+    `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its deprecated name.
     """
 
     def __init__(self, sinks: list[Sink], *, bundle=None, checkpoint: str | None = None, steps: int | None = None,
-                 seed: int = 0, window_ms: int = 200, executor=None, max_hold_s: float = 0.3,
+                 seed: int = 0, window_ms: int = 200, scheduler=None, max_hold_s: float = 0.3,
                  blend_in_s: float = 0.5, rest_hz: float = 1.3,
                  on_audio: Callable[[float, np.ndarray], None] | None = None,
-                 on_release: Callable[[Released], None] | None = None, **kwargs):
+                 on_release: Callable[[Released], None] | None = None, executor=None, **kwargs):
+        if executor is not None:
+            if scheduler is not None:
+                raise TypeError("GestureProcessor: give scheduler= only (executor= is its deprecated name)")
+            warnings.warn("GestureProcessor(executor=...) is deprecated: use scheduler=", DeprecationWarning,
+                          stacklevel=2)
+            scheduler = executor
         super().__init__(**kwargs)
         if bundle is None:
             from dimgestor.checkpoint import load_checkpoint
@@ -221,7 +228,7 @@ class GestureProcessor(FrameProcessor):
         self.bundle, self.sinks = bundle, list(sinks)
         self.fps = float(bundle.feature_spec.fps)
         self.steps = steps if steps is not None else bundle.config.sample_steps
-        self.seed, self.window_ms, self.executor = seed, window_ms, executor
+        self.seed, self.window_ms, self.scheduler = seed, window_ms, scheduler
         self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
         self.on_audio, self.on_release = on_audio, on_release
         self.rest = RestPose.of_silence(bundle, self.steps, seed)
@@ -312,7 +319,7 @@ class GestureProcessor(FrameProcessor):
         b = self.bundle
         session = Session(b.stream(steps=self.steps, seed=self.seed + number),
                           PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
-                          window_ms=self.window_ms, executor=self.executor, name=f"utterance-{number}")
+                          window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}")
         self.inference.session = session.stats
         u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
                        None if rate == SAMPLE_RATE else make_resampler(rate), rate)
