@@ -1,41 +1,10 @@
-"""Voice agents: `GestureProcessor`, a pipecat frame processor that gives an agent's voice a gesturing avatar.
+"""Voice agents: `GestureProcessor`, a pipecat stage between the TTS and the output transport that gives the
+agent's voice a gesturing avatar (docs/pipecat.md).
 
-Placed between the TTS and the output transport, it passes every frame on unchanged and listens to the agent's
-output audio (any rate, in bursts):
-
-    TTS -> GestureProcessor -> output transport          sinks (WsServer, VmcSink, any `streamer.sink.Sink`)
-              |  each utterance's audio -> its own engine `Session` -> frames, released by the playout clock
-
-Playout clock. The output transport plays the audio pushed to it back to back in real time, so audio pushed at
-wall time w starts playing at max(w, the end of the audio pushed before); a pause in a slow TTS's audio is
-silence in the utterance's timeline (the session hears it too). That estimate is corrected by what the transport
-reports: `playout_observer` (add it to the PipelineWorker's observers) sees the transport push each chunk on
-once written to its device, i.e. when it starts to be heard. An utterance's first frame waits for that report;
-an earlier report moves the clock at once, later ones when `LATER_AFTER` agree (the device really ran dry,
-e.g. the event loop stalled), so the picture pauses with the sound; a frame does not go out before the transport
-reported its audio playing (unless that report is `UNCONFIRMED_S` overdue). Without the observer,
-BotStartedSpeaking (from the transport) corrects the start. Utterance frame k is released at start + k / fps:
-when its audio is heard.
-
-When a frame is not ready at its time. The model needs 350 ms of future audio (its lookahead) and an inference
-call for a frame, so an utterance that starts in silence would begin with its first frames late. Its audio is
-then held back (with every frame behind it, in order) until its first frames are made, at most `max_hold_s`:
-the voice starts a few tens of milliseconds later (about one inference call) and the body moves with its first
-word, as a video avatar would rather have it than a body that starts late. Later frames are normally ready long
-before their audio plays (the TTS bursts ahead); one that is still late (a TTS slower than real time, a stalled
-machine) goes out as soon as it is made, counted in `stats.late` (the avatar catches up; no frame is dropped
-and the voice is never held again).
-
-Between utterances and after an interruption the avatar eases to rest: a critically damped spring (rate
-`rest_hz`) from the last pose, with its velocity, towards a rest pose (the model's own pose in silence), so it
-neither freezes nor snaps; the next utterance blends in from wherever the spring is over `blend_in_s`. Frames
-go out at `fps` all the time, speech or not. Their pts: seconds since the StartFrame, less the time playout
-paused; `on_audio` gets the agent's audio on the same clock (a viewer that plays it stays in sync).
-An interruption drops every frame whose audio will not be played, cancels the utterance's inference and drops
-audio still held; the transport drops the unplayed audio itself.
-
-Utterance i runs the model with seed + i from a fresh state: past the blend-in, its frames equal `dimgestor
-generate` on that utterance's audio (resampled to 16 kHz) with the same seed and K.
+Each utterance's audio runs through its own engine `Session` (seed + i: past the blend-in, `dimgestor generate`'s
+frames), and frame k goes to the sinks at the utterance's start + k / fps on the playout clock the transport
+reports (`playout_observer`), i.e. when its audio is heard. The first audio waits (at most `max_hold_s`) for the
+first frames, so the body moves with the first word; between utterances a critically damped spring eases to rest.
 """
 
 from __future__ import annotations
