@@ -208,8 +208,8 @@ class GestureStream:
         c = self.model.config
         T = state.samples_in * c.fps // c.sample_rate
         pad = max(self.model.samples_needed(T) - state.samples_in, 0)
-        c = condition(self.model, state.frontend, state.extractor, np.zeros(pad, np.float32))
-        frames, end = self._denoise(replace(state, finished=True, frontend=c.frontend, extractor=c.extractor), c.cond)
+        padded = condition(self.model, state.frontend, state.extractor, np.zeros(pad, np.float32))
+        frames, end = self._denoise(replace(state.conditioned(padded, 0), finished=True), padded.cond)
         out = frames[: max(T - state.frames_out, 0)]
         return out, replace(end, frames_out=state.frames_out + len(out))
 
