@@ -1,6 +1,6 @@
 """What classifier-free guidance costs: per-window compute and real-time factor, guided against unguided.
 
-A guided stream runs its unconditional branch as a second batch row (`dimgestor.batch`), so its denoiser
+A guided stream runs its unconditional branch as a second batch row (`dimgestor.sampler`), so its denoiser
 does twice the rows per sampler step; the front end and the condition are computed once. Measured with
 100 ms windows (the served window size) on one torch thread, at each K:
 

@@ -3,7 +3,7 @@
 Each trial runs n `streamer.sessions.Session`s in one asyncio loop, each fed by its own `PacedSource`
 (20 ms chunks released when their last sample would have been spoken, as a microphone or a paced
 file does), all on ONE `StreamBatcher` (batched: the due windows of all sessions as one forward per
-sampler step) or ONE `RankedExecutor` (unbatched: each session's window alone, as `--no-batch`).
+sampler step) or ONE `RankedScheduler` (unbatched: each session's window alone, as `--no-batch`).
 Sessions start at staggered phases (session j's audio clock begins j/n of a window later), as clients
 that connect at random times do, so a cycle batches whichever windows are due.
 
@@ -65,7 +65,7 @@ def random_bundle(preset: str, seed: int = 0):
     return Bundle(model, model.config, base.feature_spec, base.skeleton, base.mean, base.std, {"random_init": True})
 
 
-def _set_threads(executor, workers: int, threads: int) -> list[int]:
+def _set_threads(scheduler, workers: int, threads: int) -> list[int]:
     """Set torch's intra-op thread count in each inference thread (it is per calling thread) -> what each has."""
     import torch
 
@@ -76,7 +76,7 @@ def _set_threads(executor, workers: int, threads: int) -> list[int]:
         barrier.wait(timeout=30)  # every worker takes one job
         return torch.get_num_threads()
 
-    return [f.result(timeout=60) for f in [executor.submit(job) for _ in range(workers)]]
+    return [f.result(timeout=60) for f in [scheduler.submit(job) for _ in range(workers)]]
 
 
 class _CountingStats:
@@ -94,13 +94,13 @@ class _CountingStats:
         return getattr(self.inner, name)
 
 
-def make_executor(batched: bool, threads: int, batch_runner=None):
-    """(executor, description): one StreamBatcher thread on `threads` torch threads, or a RankedExecutor as
+def make_scheduler(batched: bool, threads: int, batch_runner=None):
+    """(scheduler, description): one StreamBatcher thread on `threads` torch threads, or a RankedScheduler as
     `dimgestor serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
     batch_runner: a `dimgestor.onnx_batch.BatchRunner`, or a list of them: a `BatcherPool` of one StreamBatcher a
     runner pushes its windows on them, as `dimgestor serve --backend onnxruntime` does (a runner's session threads
     are its own)."""
-    from streamer.scheduling import RankedExecutor, StreamBatcher
+    from streamer.scheduling import RankedScheduler, StreamBatcher
 
     if batched and batch_runner is not None:
         import functools
@@ -120,7 +120,7 @@ def make_executor(batched: bool, threads: int, batch_runner=None):
         got = _set_threads(ex, 1, threads)
         return ex, {"executor": "StreamBatcher", "inference_threads": 1, "torch_threads_per_thread": got}
     workers = min(4, os.cpu_count() or 1)
-    ex = RankedExecutor(max_workers=workers, thread_name_prefix="bench-infer")
+    ex = RankedScheduler(max_workers=workers, thread_name_prefix="bench-infer")
     got = _set_threads(ex, workers, 1)
     return ex, {"executor": "RankedExecutor", "inference_threads": workers, "torch_threads_per_thread": got}
 
@@ -128,7 +128,7 @@ def make_executor(batched: bool, threads: int, batch_runner=None):
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
                   aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0,
                   onnx=None, batch_runner=None) -> dict:
-    """n paced sessions on one executor for `seconds` of audio each -> lags, batch sizes, frames, verdict.
+    """n paced sessions on one scheduler for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window. onnx: a `dimgestor.onnx_stream.OnnxModel`: the
@@ -139,21 +139,21 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     if onnx is not None and batched and batch_runner is None:
         raise ValueError("batched ONNX Runtime sessions need the export's BatchRunner (batch_runner=)")
     audio = test_audio(seconds, SAMPLE_RATE)
-    executor, how = make_executor(batched, threads, batch_runner if onnx is not None else None)
+    scheduler, how = make_scheduler(batched, threads, batch_runner if onnx is not None else None)
     lags: list[list[tuple[float, float]]] = [[] for _ in range(n)]  # per session: (audio time, lag s)
     frames = [0] * n
     window_s = window_ms / 1000
 
     async def one(j: int, t0: float) -> None:
         if onnx is None:
-            session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, executor=executor,
+            session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, scheduler=scheduler,
                                           name=f"bench{j}")
         else:
             from dimgestor.features import PoseDecoder
 
             session = Session(onnx.stream(seed=j, lookahead_s=bundle.model.lookahead_s),
                               PoseDecoder(bundle.skeleton, bundle.feature_spec), bundle.denormalize,
-                              bundle.feature_spec.fps, window_ms=window_ms, executor=executor, name=f"bench{j}")
+                              bundle.feature_spec.fps, window_ms=window_ms, scheduler=scheduler, name=f"bench{j}")
 
         def emit(fs) -> None:
             frames[j] += len(fs)
@@ -178,13 +178,13 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     try:
         wall = asyncio.run(main())
     finally:
-        executor.shutdown(wait=True, cancel_futures=True)
+        scheduler.shutdown(wait=True, cancel_futures=True)
     cpu = time.process_time() - cpu0
     late = [lag for per in lags for a, lag in per if a >= seconds / 2]
     ends = [per[-1][1] if per and per[-1][0] >= seconds - window_s else float("inf") for per in lags]
     p95 = percentile_ms(late, 95) if late else float("inf")
     end_worst = max(ends) * 1000
-    stats = getattr(executor, "stats", None)
+    stats = getattr(scheduler, "stats", None)
     return {
         "streams": n, "batched": batched, "backend": "torch" if onnx is None else "onnxruntime", "phases": "aligned" if aligned else "staggered", **how,
         "lag_ms_p50": percentile_ms(late, 50) if late else float("inf"), "lag_ms_p95": p95,

@@ -172,6 +172,19 @@ class Diffusion:
         var = beta * (1 - a_prev) / (1 - a_t)  # beta_tilde_t, eq. 7
         return mean + math.sqrt(var) * noise
 
+    @staticmethod
+    def needs_noise(sampler: str, t: int, t_prev: int, eta: float = 0.0) -> bool:
+        """Whether `sampler`'s step (t, t_prev) adds noise (then `sample_step` takes it)."""
+        return sampler == "ddpm" and t > 0 or sampler == "ddim" and eta > 0 and t_prev >= 0
+
+    def sample_step(self, sampler: str, x_t: torch.Tensor, eps: torch.Tensor, x0: torch.Tensor, t: int, t_prev: int,
+                    eta: float = 0.0, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """One step of `sampler` ("ddim" or "ddpm") from the network's (eps, x0) -> x_{t_prev}: every sampler's
+        dispatch (the fast runner and its reference both step through it)."""
+        if sampler == "ddpm":
+            return self.ddpm_step(x_t, x0, t, noise)
+        return self.ddim_step(x_t, eps, t, t_prev, eta, noise, x0=x0)[0]
+
     def sampling_pairs(self, sampler: str, steps: int) -> list[tuple[int, int]]:
         if sampler == "ddim":
             return ddim_pairs(steps, self.N, self.spacing)

@@ -11,7 +11,7 @@ Three CPU forms of the same scan, picked by length in `Mamba2._run`, each with a
 `ssd_naive` (the per-step recurrence) and against `ssd_chunked` (the whole-sequence chunked
 state-space-duality scan, kept as the reference of the chunk algebra):
   - `ssd_steps`: the recurrence itself (`ssd_step`, also what `ssd_naive` and the runner's written-out
-    block in `dimgestor.batch` call), for windows of up to `STEP_MAX` frames (a streaming window at
+    block in `dimgestor.sampler` call), for windows of up to `STEP_MAX` frames (a streaming window at
     20 fps is 1-10 frames, where the number of ops per call, not their arithmetic, is the cost);
   - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk;
   - `ssd_scan`: the lean long-sequence scan, a loop over chunks carrying the state, so its working memory

@@ -10,7 +10,7 @@ The states are the streams' own values, as on the single-stream path: a batched 
 (bound by address, never written again) and each stream keeps views of its rows. Gathering B streams' states
 into one batch copies them (the denoiser's SSM state is ~2 MB a stream at K = 8), so when the same streams come
 back in the same order (a busy server: every stream has a window due each cycle) the last call's outputs are fed
-back as they are, with no copy at all, as `dimgestor.batch.denoise` does for torch.
+back as they are, with no copy at all, as `dimgestor.sampler.denoise` does for torch.
 """
 from __future__ import annotations
 

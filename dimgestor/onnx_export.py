@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING, NamedTuple, Sequence
 import torch
 from torch import nn
 
-from .batch import StepStates, runner_for
+from .sampler import StepStates, runner_for
 from .diffusion import Diffusion, check_guidance
 from .mamba2 import Mamba2State
 from .model import DiMGestor, ExtractorState

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .batch import StepStates
+from .sampler import StepStates
 from .frontend import FrontEndState
 from .frontend_speech import SpeechState
 from .mamba2 import Mamba2State

@@ -9,7 +9,8 @@ the frames equal those of `generate_offline` on the whole recording. With classi
 
 All of that is one value, `StreamState`; `GestureStream.step(state, samples) -> (frames, state)` is the
 stream as a function (it never writes into the state it is given), and `push` / `finish` step the state
-the stream holds. `dimgestor.batch.step_many` maps the step over the states of many streams at once.
+the stream holds. `dimgestor.batch.step_many` maps the step over the states of many streams at once; the
+step's parts (`dimgestor.conditioning`, then `dimgestor.sampler`) are functions of states, shared by both.
 """
 from __future__ import annotations
 
@@ -20,10 +21,11 @@ import numpy as np
 import torch
 
 from .audio import check_audio
-from .batch import StepStates, denoise, runner_for
+from .conditioning import Conditioned, condition
 from .config import ModelConfig
 from .diffusion import Diffusion, check_guidance, guide, motion_noise
 from .model import DenoiserState, DiMGestor, ExtractorState
+from .sampler import StepStates, Window, denoise, runner_for
 from .smoothing import OneEuroFilter, OneEuroState
 
 __all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
@@ -50,12 +52,9 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
             out = guide(out[:1], out[1:], guidance)
         new_states.append(state)
         eps, x0 = diffusion.split(out, x, t)
-        noisy = sampler == "ddpm" and t > 0 or sampler == "ddim" and eta > 0 and t_prev >= 0
+        noisy = diffusion.needs_noise(sampler, t, t_prev, eta)
         noise = motion_noise(seed, frame_start, n, i + 1, D, L, dev)[None] if noisy else None
-        if sampler == "ddpm":
-            x = diffusion.ddpm_step(x, x0, t, noise)
-        else:
-            x, _ = diffusion.ddim_step(x, eps, t, t_prev, eta, noise, x0=x0)
+        x = diffusion.sample_step(sampler, x, eps, x0, t, t_prev, eta, noise)
     return x[0], new_states
 
 
@@ -93,6 +92,10 @@ class StreamState:
     samples_in: int = 0  # audio samples received (the audio clock)
     frames_out: int = 0  # frames returned; frame i is presented at i / fps on the audio clock
     finished: bool = False
+
+    def conditioned(self, c: Conditioned, samples: int) -> "StreamState":
+        """This state with its front end and extractor moved on to `c` by `samples` more samples heard."""
+        return replace(self, frontend=c.frontend, extractor=c.extractor, samples_in=self.samples_in + samples)
 
 
 class GestureStream:
@@ -139,23 +142,12 @@ class GestureStream:
     def finished(self) -> bool:
         return self.state.finished
 
-    def _condition(self, state: StreamState, samples: np.ndarray) -> tuple[torch.Tensor, StreamState]:
-        """Audio -> the condition (1, n, H) of the n frames it completes, and the state with the front end's and
-        the extractor's moved on."""
-        m, dev = self.model, _device(self.model)
-        with torch.inference_mode():
-            x = torch.from_numpy(np.ascontiguousarray(samples)).to(dev)[None]
-            feats, fe = m.frontend(x, state.frontend)
-            cond, ex = m.condition(feats, state.extractor)
-        return cond, replace(state, frontend=fe, extractor=ex)
-
     def begin_step(self, state: StreamState, samples) -> tuple[torch.Tensor, StreamState]:
         """`step`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
-        complete. `dimgestor.batch.step_many` denoises the windows of many streams together between the halves
-        (and conditions them together before: `dimgestor.conditioning.begin_many`)."""
+        complete (`dimgestor.batch.begin_many` does it for many streams, conditioned in groups)."""
         samples = self.check_step(state, samples)
-        cond, state = self._condition(state, samples)
-        return cond, replace(state, samples_in=state.samples_in + len(samples))
+        c = condition(self.model, state.frontend, state.extractor, samples)
+        return c.cond, state.conditioned(c, len(samples))
 
     def check_step(self, state: StreamState, samples) -> np.ndarray:
         """`begin_step`'s checks: the samples as mono float32, or the error of a finished stream or bad audio."""
@@ -174,10 +166,14 @@ class GestureStream:
             out, smoothed = self.smoother.step(smoothed, out)
         return out, replace(state, denoiser=denoiser, smoother=smoothed, frames_out=state.frames_out + len(out))
 
+    def window(self, state: StreamState, cond: torch.Tensor) -> Window:
+        """What the sampler needs to denoise the frames of `cond` (1, n, H) after `state` (`dimgestor.sampler`)."""
+        return Window(cond, state.denoiser, state.frames_out, self.seed, self.guidance)
+
     def _denoise(self, state: StreamState, cond: torch.Tensor) -> tuple[np.ndarray, StreamState]:
         if not cond.shape[1]:
             return self.end_step(state, None, state.denoiser)
-        (x,), (denoiser,) = denoise([self], [state.denoiser], [cond], [state.frames_out])
+        (x,), (denoiser,) = denoise(self.runner, [self.window(state, cond)])
         return self.end_step(state, x, denoiser)
 
     def step(self, state: StreamState, samples) -> tuple[np.ndarray, StreamState]:
@@ -194,8 +190,8 @@ class GestureStream:
         c = self.model.config
         T = state.samples_in * c.fps // c.sample_rate
         pad = max(self.model.samples_needed(T) - state.samples_in, 0)
-        cond, padded = self._condition(replace(state, finished=True), np.zeros(pad, np.float32))
-        frames, end = self._denoise(padded, cond)
+        padded = condition(self.model, state.frontend, state.extractor, np.zeros(pad, np.float32))
+        frames, end = self._denoise(replace(state.conditioned(padded, 0), finished=True), padded.cond)
         out = frames[: max(T - state.frames_out, 0)]
         return out, replace(end, frames_out=state.frames_out + len(out))
 

@@ -1,41 +1,10 @@
-"""Voice agents: `GestureProcessor`, a pipecat frame processor that gives an agent's voice a gesturing avatar.
+"""Voice agents: `GestureProcessor`, a pipecat stage between the TTS and the output transport that gives the
+agent's voice a gesturing avatar (docs/pipecat.md).
 
-Placed between the TTS and the output transport, it passes every frame on unchanged and listens to the agent's
-output audio (any rate, in bursts):
-
-    TTS -> GestureProcessor -> output transport          sinks (WsServer, VmcSink, any `streamer.sink.Sink`)
-              |  each utterance's audio -> its own engine `Session` -> frames, released by the playout clock
-
-Playout clock. The output transport plays the audio pushed to it back to back in real time, so audio pushed at
-wall time w starts playing at max(w, the end of the audio pushed before); a pause in a slow TTS's audio is
-silence in the utterance's timeline (the session hears it too). That estimate is corrected by what the transport
-reports: `playout_observer` (add it to the PipelineWorker's observers) sees the transport push each chunk on
-once written to its device, i.e. when it starts to be heard. An utterance's first frame waits for that report;
-an earlier report moves the clock at once, later ones when `LATER_AFTER` agree (the device really ran dry,
-e.g. the event loop stalled), so the picture pauses with the sound; a frame does not go out before the transport
-reported its audio playing (unless that report is `UNCONFIRMED_S` overdue). Without the observer,
-BotStartedSpeaking (from the transport) corrects the start. Utterance frame k is released at start + k / fps:
-when its audio is heard.
-
-When a frame is not ready at its time. The model needs 350 ms of future audio (its lookahead) and an inference
-call for a frame, so an utterance that starts in silence would begin with its first frames late. Its audio is
-then held back (with every frame behind it, in order) until its first frames are made, at most `max_hold_s`:
-the voice starts a few tens of milliseconds later (about one inference call) and the body moves with its first
-word, as a video avatar would rather have it than a body that starts late. Later frames are normally ready long
-before their audio plays (the TTS bursts ahead); one that is still late (a TTS slower than real time, a stalled
-machine) goes out as soon as it is made, counted in `stats.late` (the avatar catches up; no frame is dropped
-and the voice is never held again).
-
-Between utterances and after an interruption the avatar eases to rest: a critically damped spring (rate
-`rest_hz`) from the last pose, with its velocity, towards a rest pose (the model's own pose in silence), so it
-neither freezes nor snaps; the next utterance blends in from wherever the spring is over `blend_in_s`. Frames
-go out at `fps` all the time, speech or not. Their pts: seconds since the StartFrame, less the time playout
-paused; `on_audio` gets the agent's audio on the same clock (a viewer that plays it stays in sync).
-An interruption drops every frame whose audio will not be played, cancels the utterance's inference and drops
-audio still held; the transport drops the unplayed audio itself.
-
-Utterance i runs the model with seed + i from a fresh state: past the blend-in, its frames equal `dimgestor
-generate` on that utterance's audio (resampled to 16 kHz) with the same seed and K.
+Each utterance's audio runs through its own engine `Session` (seed + i: past the blend-in, `dimgestor generate`'s
+frames), and frame k goes to the sinks at the utterance's start + k / fps on the playout clock the transport
+reports (`playout_observer`), i.e. when its audio is heard. The first audio waits (at most `max_hold_s`) for the
+first frames, so the body moves with the first word; between utterances a critically damped spring eases to rest.
 """
 
 from __future__ import annotations
@@ -43,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
@@ -201,15 +171,21 @@ class GestureProcessor(FrameProcessor):
     bundle or checkpoint: the model (default: the embedded one). on_audio(pts, samples): the agent's audio at
     16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
     web viewer plays it in sync; audio an interruption cut is never given).
-    on_release(Released): every frame sent, for measurements. executor: where inference runs (a
-    `streamer.scheduling` scheduler or Executor; None: a shared pool).
+    on_release(Released): every frame sent, for measurements. scheduler: where inference runs (a
+    `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its deprecated name.
     """
 
     def __init__(self, sinks: list[Sink], *, bundle=None, checkpoint: str | None = None, steps: int | None = None,
-                 seed: int = 0, window_ms: int = 200, executor=None, max_hold_s: float = 0.3,
+                 seed: int = 0, window_ms: int = 200, scheduler=None, max_hold_s: float = 0.3,
                  blend_in_s: float = 0.5, rest_hz: float = 1.3,
                  on_audio: Callable[[float, np.ndarray], None] | None = None,
-                 on_release: Callable[[Released], None] | None = None, **kwargs):
+                 on_release: Callable[[Released], None] | None = None, executor=None, **kwargs):
+        if executor is not None:
+            if scheduler is not None:
+                raise TypeError("GestureProcessor: give scheduler= only (executor= is its deprecated name)")
+            warnings.warn("GestureProcessor(executor=...) is deprecated: use scheduler=", DeprecationWarning,
+                          stacklevel=2)
+            scheduler = executor
         super().__init__(**kwargs)
         if bundle is None:
             from dimgestor.checkpoint import load_checkpoint
@@ -221,7 +197,7 @@ class GestureProcessor(FrameProcessor):
         self.bundle, self.sinks = bundle, list(sinks)
         self.fps = float(bundle.feature_spec.fps)
         self.steps = steps if steps is not None else bundle.config.sample_steps
-        self.seed, self.window_ms, self.executor = seed, window_ms, executor
+        self.seed, self.window_ms, self.scheduler = seed, window_ms, scheduler
         self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
         self.on_audio, self.on_release = on_audio, on_release
         self.rest = RestPose.of_silence(bundle, self.steps, seed)
@@ -312,7 +288,7 @@ class GestureProcessor(FrameProcessor):
         b = self.bundle
         session = Session(b.stream(steps=self.steps, seed=self.seed + number),
                           PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
-                          window_ms=self.window_ms, executor=self.executor, name=f"utterance-{number}")
+                          window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}")
         self.inference.session = session.stats
         u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
                        None if rate == SAMPLE_RATE else make_resampler(rate), rate)

@@ -1,12 +1,11 @@
 """Where the sessions' inference runs: one scheduler interface, the policies behind it, and the window rule.
 
-A session hands its scheduler windows of audio (`submit_push` -> a Future of its frames) and other jobs
-(`submit_ranked`: a stream's finish). Each comes with a rank: how far the session's audio is ahead of real
-time (rank > 0: working through a backlog). Real time goes first, so a session fed in real time (a talker,
-a microphone, a paced file) never waits behind a backlog:
+A session hands its scheduler windows of audio (`submit_push(source, samples, rank)` -> a Future of its frames)
+and other jobs (`submit_ranked`: a stream's finish). The rank is how far the session's audio is ahead of real
+time (rank > 0: a backlog); real time goes first, so a talker never waits behind a backlog:
 - `StreamBatcher` (`streamer serve`'s default): one thread runs the due windows of all sessions as batched
   forwards, the model's weights read once per sampler step for all of them (`dimgestor.batch.push_many`);
-- `RankedExecutor` (`--no-batch`): worker threads, each window a job of its own, lowest rank first;
+- `RankedScheduler` (`--no-batch`): worker threads, each window a job of its own, lowest rank first;
 - `PoolScheduler`: any `concurrent.futures.Executor` (None: a shared thread pool), unranked, for tools and tests.
 The scheduler also says how a session's audio becomes calls (`windows` -> `WindowPolicy`).
 """
@@ -23,14 +22,29 @@ from abc import ABC, abstractmethod
 from collections import deque
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 
-__all__ = ["WindowPolicy", "Scheduler", "RankedExecutor", "StreamBatcher", "PoolScheduler", "BatchStats",
-           "as_scheduler"]
+__all__ = ["WindowPolicy", "WindowSource", "Scheduler", "RankedScheduler", "RankedExecutor", "StreamBatcher",
+           "BatcherPool", "PoolScheduler", "BatchStats", "as_scheduler"]
+
+
+class WindowSource(Protocol):
+    """All a scheduler uses of whoever submits windows (a `streamer.sessions.Session` is one): the stream the
+    samples are pushed into, and what makes the Future's frames of the stream's new output."""
+
+    @property
+    def stream(self) -> Any: ...
+
+    def frames_of(self, normalized: np.ndarray) -> list: ...
+
+
+def _infer(source: WindowSource, samples: np.ndarray) -> list:
+    """One window of `source`, alone, in the calling thread (a scheduler's worker)."""
+    return source.frames_of(source.stream.push(samples))
 
 
 @dataclass(frozen=True)
@@ -67,8 +81,8 @@ class Scheduler(Executor, ABC):
         return WindowPolicy.of(window_ms, max_call_s, max_buffer_s)
 
     @abstractmethod
-    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        """Queue one window of `session` (a `streamer.sessions.Session`) -> a Future of its frames (list[Frame])."""
+    def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
+        """Queue one window of `source` -> a Future of its frames (`source.frames_of` the stream's new ones)."""
 
     @abstractmethod
     def submit_ranked(self, rank: float, fn: Callable, /, *args, **kwargs) -> Future:
@@ -100,7 +114,7 @@ class _Job:
 
 @dataclass
 class _PushJob:
-    session: Any
+    source: WindowSource
     samples: np.ndarray
     rank: float
     future: Future
@@ -203,7 +217,7 @@ class _Threads(Scheduler):
         """Run what `_take` returned (outside the lock)."""
 
 
-class RankedExecutor(_Threads):
+class RankedScheduler(_Threads):
     """Worker threads that run the waiting job of lowest rank first (first come, first served among equals).
 
     A job ahead of real time (rank > 0) starts only while no real-time job (rank <= 0) runs, so a real-time
@@ -216,8 +230,8 @@ class RankedExecutor(_Threads):
         self._running_realtime = 0
         super().__init__([f"{thread_name_prefix}_{i}" for i in range(max_workers)])
 
-    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        return self._enqueue(_Job(rank, next(self._seq), Future(), session.infer, (samples,), windows=1))
+    def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
+        return self._enqueue(_Job(rank, next(self._seq), Future(), _infer, (source, samples), windows=1))
 
     def queued_jobs(self) -> int:
         return len(self._jobs)
@@ -285,24 +299,13 @@ class CycleCost:
 
 
 class StreamBatcher(_Threads):
-    """One inference thread that runs the due windows of all sessions as batched forwards.
+    """One inference thread that runs the due windows of all sessions as batched forwards, real time first.
 
-    Each cycle it takes every window waiting (one per session), runs each stream's front end and extractor,
-    denoises the windows of equal length as one batch per sampler step (`dimgestor.batch.push_many`: one
-    stream per batch row) and decodes the poses. A stream that has nothing due is not waited for, so a
-    stalled client never delays the others; streams join and leave by submitting or not. While a real-time
-    window (rank <= 0) waits, windows ahead of real time (a backlog) wait for the next cycle. Other jobs (a
-    stream's finish) run alone between batches, unranked.
-
-    A cycle of backlog alone takes windows (least ahead of real time first) only until their estimated compute
-    (`CycleCost`, measured on the backlog cycles) reaches `cycle_s` (`backlog_s` of audio before the first
-    measurement): a real-time window that arrives meanwhile waits for at most that, then goes first, not for
-    every fast sender's next second at once (31 clients sending faster than real time had pushed a
-    bystander's p95 latency from 0.15 to 4.5 s). A bound in time, not in audio, holds on any model and machine.
-
-    push_many: what pushes a cycle's windows into their sessions' streams, `(streams, chunks, return_exceptions)
-    -> frames or exception per stream`; None: torch's (`dimgestor.batch.push_many`). `streamer serve --backend
-    onnxruntime` gives ONNX Runtime's (`dimgestor.onnx_batch.push_many` on the export's batched graphs).
+    A cycle takes every waiting window (one per session) and pushes them as one `push_many`; a session with
+    nothing due is not waited for. A backlog cycle takes windows only up to `cycle_s` of estimated compute
+    (`CycleCost`; `backlog_s` of audio before a measurement), so a real-time window never waits for more.
+    push_many: `(streams, chunks, return_exceptions) -> frames or exception per stream`; None: torch's
+    (`dimgestor.batch.push_many`); `--backend onnxruntime` gives `dimgestor.onnx_batch.push_many`.
     """
 
     def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", cycle_s: float = 0.1,
@@ -316,8 +319,8 @@ class StreamBatcher(_Threads):
         self._jobs: deque[_Job] = deque()
         super().__init__([thread_name])
 
-    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        return self._enqueue(_PushJob(session, samples, rank, Future()))
+    def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
+        return self._enqueue(_PushJob(source, samples, rank, Future()))
 
     def _put(self, job) -> None:
         (self._pushes if isinstance(job, _PushJob) else self._jobs).append(job)
@@ -347,9 +350,9 @@ class StreamBatcher(_Threads):
         for j in pushes:
             if not realtime and taken and backlog + len(j.samples) > most:
                 break  # a short backlog cycle, so that the next real-time window is not kept waiting
-            if len(taken) < self.max_batch and id(j.session) not in seen:
+            if len(taken) < self.max_batch and id(j.source) not in seen:
                 taken.append(j)
-                seen.add(id(j.session))
+                seen.add(id(j.source))
                 backlog += len(j.samples)
         ids = {id(j) for j in taken}
         self._pushes = [j for j in self._pushes if id(j) not in ids]
@@ -372,7 +375,7 @@ class StreamBatcher(_Threads):
         self.stats.add(len(pushes))
         started = self.clock()
         try:
-            results = push_many([j.session.stream for j in pushes], [j.samples for j in pushes],
+            results = push_many([j.source.stream for j in pushes], [j.samples for j in pushes],
                                 return_exceptions=True)
         except BaseException as e:  # noqa: BLE001 - handed to every waiting session
             results = [e] * len(pushes)
@@ -381,7 +384,7 @@ class StreamBatcher(_Threads):
                 j.future.set_exception(r)
                 continue
             try:
-                j.future.set_result(j.session.frames_of(r))
+                j.future.set_result(j.source.frames_of(r))
             except BaseException as e:  # noqa: BLE001
                 j.future.set_exception(e)
         took = self.clock() - started
@@ -390,38 +393,32 @@ class StreamBatcher(_Threads):
 
 
 class BatcherPool(Scheduler):
-    """Several `StreamBatcher`s, one inference thread each, a session kept on one of them (the one with the fewest
-    sessions when its first window comes): batched work for runtimes whose batched call keeps one core busy.
-
-    ONNX Runtime runs a batched call of this small graph on one core (its ops are too small to split across
-    threads): one batcher of all the streams left the other core idle and kept fewer real-time streams than
-    one window per call on a thread per core (benchmarks/onnx_runtime.py). A batcher per core, each batching
-    its own share of the sessions, keeps both. A session's windows are always on the same batcher (its state
-    in the runtime's rows stays where it is); its other jobs (its finish) follow it there."""
+    """Several `StreamBatcher`s, one thread each, a session kept on one of them (its finish too): for runtimes whose
+    batched call keeps only one core busy (ONNX Runtime on this small graph)."""
 
     def __init__(self, batchers: list[StreamBatcher]):
         if not batchers:
             raise ValueError("BatcherPool needs at least one StreamBatcher")
         self.batchers = list(batchers)
         self.stats = BatchStats()  # one for all: the sizes of every batcher's batches
-        self._home: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # session -> its batcher
+        self._home: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # source (session) -> its batcher
         self._lock = threading.Lock()
 
-    def _batcher(self, session) -> StreamBatcher:
+    def _batcher(self, source: WindowSource) -> StreamBatcher:
         with self._lock:
-            home = self._home.get(session)
+            home = self._home.get(source)
             if home is None:
                 load = [0] * len(self.batchers)
                 for b in self._home.values():
                     load[self.batchers.index(b)] += 1
-                home = self._home[session] = self.batchers[load.index(min(load))]
+                home = self._home[source] = self.batchers[load.index(min(load))]
             return home
 
-    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        return self._batcher(session).submit_push(session, samples, rank)
+    def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
+        return self._batcher(source).submit_push(source, samples, rank)
 
     def submit_ranked(self, rank: float, fn: Callable, /, *args, **kwargs) -> Future:
-        owner = getattr(fn, "__self__", None)  # a session's bound method (its finish): on that session's batcher
+        owner = getattr(fn, "__self__", None)  # a source's bound method (its finish): on that source's batcher
         with self._lock:
             home = self._home.get(owner) if owner is not None else None
         return (home or min(self.batchers, key=lambda b: b.queued_jobs())).submit_ranked(rank, fn, *args, **kwargs)
@@ -486,8 +483,8 @@ class PoolScheduler(Scheduler):
     def _pool(self) -> Executor:
         return self.executor if self.executor is not None else _shared_pool()
 
-    def submit_push(self, session, samples: np.ndarray, rank: float = 0.0) -> Future:
-        return self._pool().submit(session.infer, samples)
+    def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
+        return self._pool().submit(_infer, source, samples)
 
     def submit_ranked(self, rank: float, fn: Callable, /, *args, **kwargs) -> Future:
         return self._pool().submit(fn, *args, **kwargs)
@@ -497,6 +494,9 @@ class PoolScheduler(Scheduler):
             self.executor.shutdown(wait, cancel_futures=cancel_futures)
 
 
-def as_scheduler(executor: Executor | None) -> Scheduler:
-    """A session's `executor` argument as the scheduler it talks to."""
-    return executor if isinstance(executor, Scheduler) else PoolScheduler(executor)
+def as_scheduler(scheduler: Scheduler | Executor | None) -> Scheduler:
+    """A session's `scheduler` argument (a `Scheduler`, any `concurrent.futures.Executor`, or None) as a Scheduler."""
+    return scheduler if isinstance(scheduler, Scheduler) else PoolScheduler(scheduler)
+
+
+RankedExecutor = RankedScheduler  # deprecated name (one name: scheduler)

@@ -21,7 +21,7 @@ from streamer.frames import Frame
 from streamer.handover import open_store
 from streamer.health import Readiness, RealtimeLoad
 from streamer.metrics import ServerMetrics
-from streamer.scheduling import BatcherPool, RankedExecutor, StreamBatcher
+from streamer.scheduling import BatcherPool, RankedScheduler, StreamBatcher
 from streamer.sessions import Session
 from streamer.options import ServeError, ServeOptions
 from streamer.sink import Sink
@@ -52,11 +52,16 @@ class Pipeline:
     source: WavSource | MicSource | None  # the server's own audio; None: --source ws
     session: Session | None  # the source's session
     make_session: Callable[..., Session]  # one more session (a WebSocket client's own audio)
-    executor: StreamBatcher | BatcherPool | RankedExecutor  # where every session's inference runs
+    scheduler: StreamBatcher | BatcherPool | RankedScheduler  # where every session's inference runs
     sinks: list[Sink]  # where the source's frames go, in the order they open
     ws: WsServer | None = None  # the WebSocket server (also among the sinks): clients bring their own audio too
     metrics: ServerMetrics = field(default_factory=ServerMetrics)  # served by `ws` (/metrics, /readyz)
     t0: float = field(default_factory=time.monotonic)
+
+    @property
+    def executor(self) -> StreamBatcher | BatcherPool | RankedScheduler:
+        """Deprecated name of `scheduler`."""
+        return self.scheduler
 
 
 async def serve(options: ServeOptions) -> int:
@@ -64,7 +69,7 @@ async def serve(options: ServeOptions) -> int:
     try:
         return await run(pipeline)
     finally:
-        pipeline.executor.shutdown(wait=False, cancel_futures=True)
+        pipeline.scheduler.shutdown(wait=False, cancel_futures=True)
 
 
 # ---- build ---------------------------------------------------------------------------------------
@@ -86,9 +91,9 @@ def build(options: ServeOptions) -> Pipeline:
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
-    executor = _executor(options.no_batch, onnx)
-    metrics = _metrics(executor)
-    make_session = functools.partial(_session, bundle, options, executor, steps, guidance, onnx=onnx)
+    scheduler = _scheduler(options.no_batch, onnx)
+    metrics = _metrics(scheduler)
+    make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx)
     session = make_session("source") if source is not None else None
     if session is not None:
         session.on_window = metrics.window_done
@@ -102,7 +107,7 @@ def build(options: ServeOptions) -> Pipeline:
     if recording is not None:  # (frames on disk; after a write error the rest are not counted anywhere)
         metrics.sinks["record"] = lambda: (recording.recorder.frames if recording.recorder else 0, None)
     sinks = [s for s in (ws, vmc, recording) if s is not None]
-    return Pipeline(options, bundle, steps, guidance, source, session, make_session, executor, sinks, ws, t0=t0,
+    return Pipeline(options, bundle, steps, guidance, source, session, make_session, scheduler, sinks, ws, t0=t0,
                     metrics=metrics)
 
 
@@ -132,9 +137,9 @@ def _load(checkpoint: str | None):
         raise ServeError(f"cannot load {checkpoint or 'the embedded default model'}: {e}") from None
 
 
-def _executor(no_batch: bool, onnx: OnnxModel | None = None):
+def _scheduler(no_batch: bool, onnx: OnnxModel | None = None):
     if no_batch:
-        return RankedExecutor(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
+        return RankedScheduler(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
         return onnx_batchers(onnx, inference_threads())
     import torch
@@ -164,15 +169,15 @@ def inference_threads() -> int:
     return max(1, (os.cpu_count() or 1) - 1)
 
 
-def _metrics(executor: StreamBatcher | BatcherPool | RankedExecutor) -> ServerMetrics:
-    """The worker's metrics, fed by every inference call of `executor` (its real-time load decides /readyz)."""
-    metrics = ServerMetrics(Readiness(RealtimeLoad(threads=executor.workers)))
-    executor.observer = metrics
-    metrics.queues["dimgestor_inference_queue_jobs"] = executor.queued_jobs
+def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> ServerMetrics:
+    """The worker's metrics, fed by every inference call of `scheduler` (its real-time load decides /readyz)."""
+    metrics = ServerMetrics(Readiness(RealtimeLoad(threads=scheduler.workers)))
+    scheduler.observer = metrics
+    metrics.queues["dimgestor_inference_queue_jobs"] = scheduler.queued_jobs
     return metrics
 
 
-def _session(bundle, options: ServeOptions, executor, steps: int, guidance: float, name: str = "client",
+def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
              onnx: OnnxModel | None = None) -> Session:
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
@@ -180,10 +185,10 @@ def _session(bundle, options: ServeOptions, executor, steps: int, guidance: floa
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
-                       executor=executor, name=name)
+                       scheduler=scheduler, name=name)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
-                               window_ms=options.window_ms, executor=executor, name=name)
+                               window_ms=options.window_ms, scheduler=scheduler, name=name)
 
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:
@@ -433,8 +438,8 @@ def _status_line(p: Pipeline) -> str:
         st = p.session.stats
         parts += [f"audio {st.audio_s:6.1f}s", f"frames {st.frames}", f"latency {st.latency_ms:5.0f}ms",
                   f"rtf {st.rtf:.2f}"]
-    if isinstance(p.executor, (StreamBatcher, BatcherPool)):
-        parts += [text for text in (p.executor.stats.describe(), p.executor.cost.describe()) if text]
+    if isinstance(p.scheduler, (StreamBatcher, BatcherPool)):
+        parts += [text for text in (p.scheduler.stats.describe(), p.scheduler.cost.describe()) if text]
     parts += [text for text in (sink.status() for sink in p.sinks) if text]
     if isinstance(p.source, MicSource):
         parts += [p.source.meter.describe(), f"mic dropped {p.source.dropped_s:.1f}s"]

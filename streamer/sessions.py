@@ -3,7 +3,7 @@
 A session owns one `GestureStream` (the model's streaming state) and one `PoseDecoder` (the root
 integration). Its scheduler (`streamer.scheduling`) says when a window of audio is due and how a long take
 is cut into calls (`WindowPolicy`), and runs the calls: batched with the other sessions' windows
-(`StreamBatcher`, `streamer serve`'s default) or each alone (`RankedExecutor`, `--no-batch`). Calls are ranked
+(`StreamBatcher`, `streamer serve`'s default) or each alone (`RankedScheduler`, `--no-batch`). Calls are ranked
 real time first, then backlogs (`AudioClock`). Each frame is stamped with
 pts = index / fps on the audio clock.
 """
@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import time
+import warnings
 from collections import deque
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 from streamer.frames import Frame
-from streamer.scheduling import as_scheduler
+from streamer.scheduling import Scheduler, as_scheduler
 from streamer.sources import AudioChunk
 
 __all__ = ["Session", "Stats", "AudioClock", "WindowTiming"]
@@ -137,12 +138,19 @@ class AudioClock:
 class Session:
     """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`.
 
-    executor: a `streamer.scheduling.Scheduler`, any `concurrent.futures.Executor`, or None (a shared pool).
+    scheduler: a `streamer.scheduling.Scheduler`, any `concurrent.futures.Executor`, or None (a shared pool);
+    `executor` is its deprecated name. The scheduler uses only `stream` and `frames_of` (`WindowSource`).
     """
 
     def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
-                 window_ms: int = 200, executor: Executor | None = None, name: str = "session"):
-        self.scheduler = as_scheduler(executor)
+                 window_ms: int = 200, scheduler: Scheduler | Executor | None = None, name: str = "session", *,
+                 executor: Executor | None = None):
+        if executor is not None:
+            if scheduler is not None:
+                raise TypeError("Session: give scheduler= only (executor= is its deprecated name)")
+            warnings.warn("Session(executor=...) is deprecated: use scheduler=", DeprecationWarning, stacklevel=2)
+            scheduler = executor
+        self.scheduler = as_scheduler(scheduler)
         self.windows = self.scheduler.windows(window_ms)
         self.stream, self.decoder, self.denormalize = stream, decoder, denormalize
         self.fps, self.name = fps, name
@@ -184,10 +192,6 @@ class Session:
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
                 for i in range(n)]
-
-    def infer(self, samples: np.ndarray) -> list[Frame]:
-        """One window's frames, inferred in the calling thread (a scheduler's worker)."""
-        return self.frames_of(self.stream.push(samples))
 
     def infer_finish(self) -> list[Frame]:
         """The frames after the audio ended, in the calling thread (a scheduler's worker)."""

@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import DenoiseRunner, StepStates, push_many
+from dimgestor.batch import push_many
 from dimgestor.diffusion import Diffusion
+from dimgestor.sampler import DenoiseRunner, StepStates
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces
 

@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import push_many, step_many
-from dimgestor.conditioning import begin_many
+from dimgestor.batch import begin_many, push_many, step_many
 from dimgestor.mamba2 import Mamba2State
 from dimgestor.stream import GestureStream
 from helpers.stream import noise_audio, random_tiny_model

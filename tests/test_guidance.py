@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import DenoiseRunner, StepStates, _Guidance, push_many
+from dimgestor.batch import push_many
 from dimgestor.checkpoint import load_checkpoint
 from dimgestor.cli import main
 from dimgestor.config import get_preset
 from dimgestor.diffusion import Diffusion, motion_noise
+from dimgestor.sampler import DenoiseRunner, StepStates, _Guidance
 from dimgestor.stream import GestureStream, generate_offline, sample_frames
 from dimgestor.synthetic import make_synthetic_pair
 from dimgestor.train import TrainConfig, resolve_cond_drop, train
