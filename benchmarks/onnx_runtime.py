@@ -11,9 +11,9 @@ real-time factor (mean cost / window length), the ONNX Runtime / torch ratio of 
 difference between the two backends' frames (normalized features).
 
 Streams per process (`--streams K...`, default K = 8): `benchmarks/streams.py`'s serving trial (paced sessions
-on one executor, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
+on one scheduler, staggered phases; a count keeps real time when its p95 lag stays under a window + 150 ms) for
 torch batched (one StreamBatcher on every core, or `--batched-threads`: `dimgestor serve`'s default), torch unbatched, ONNX Runtime
-unbatched (one session shared by all streams, each window alone on a RankedExecutor thread per core: `streamer
+unbatched (one session shared by all streams, each window alone on a RankedScheduler thread per core: `streamer
 serve --backend onnxruntime --no-batch`) and ONNX Runtime batched (a StreamBatcher a core, `--batched-threads`,
 each with its share of the sessions and its cycles run as calls of the export's graphs of 1 and `--batches`
 streams on its own one-thread sessions: `dimgestor serve --backend onnxruntime`'s `BatcherPool`), doubling then bisecting the count to 10 %. Beside it, what one call costs at K = 8 with B streams
@@ -52,7 +52,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--streams-s", type=float, default=8.0, help="audio per streams trial (s)")
     p.add_argument("--streams-max", type=int, default=160, help="largest stream count tried")
     p.add_argument("--streams-repeats", type=int, default=1, metavar="N",
-                   help="search each executor's count N times, the executors taking turns (order rotating): the "
+                   help="search each scheduler's count N times, the schedulers taking turns (order rotating): the "
                         "count is the median, every search's kept (one search's count moves by up to 1.5x between "
                         "runs minutes apart on a quiet machine)")
     p.add_argument("--batches", type=int, nargs="*", default=[4, 8, 16, 32], metavar="B",
@@ -61,7 +61,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="batch sizes of the per-call cost table (1 or among --batches)")
     p.add_argument("--call-reps", type=int, default=8, help="calls timed per batch size (interleaved)")
     p.add_argument("--batched-threads", type=int, default=None, metavar="N",
-                   help="threads of the batched executors (torch's and ONNX Runtime's); default: every core. On a "
+                   help="threads of the batched schedulers (torch's and ONNX Runtime's); default: every core. On a "
                         "machine loaded by others, 1: two threads each waiting on the other's slice of a core "
                         "stall the batch")
     p.add_argument("--out", type=Path, default=RESULTS / "onnx_runtime.json")

@@ -24,7 +24,7 @@ DOC = REPO / "docs" / "performance.md"
 # What each section reads: the current run of each measurement (benchmarks/README.md has their histories).
 SOURCES = {
     "windows": "onnx_runtime_windows.json",  # one stream's window, torch against ONNX Runtime, K = 1, 4, 8
-    "streams": "onnx_runtime_batched.json",  # streams per process, the default model, every executor searched 3x
+    "streams": "onnx_runtime_batched.json",  # streams per process, the default model, every scheduler searched 3x
     "preset": "streaming.json",  # the realtime preset: one stream's RTF, streams per process, the paper preset, memory
     "cost": "model_cost.json",  # the default model's window beside the realtime preset's
     "vmc": "latency.json",  # microphone -> VMC, default and live model, 100 and 200 ms windows
@@ -129,8 +129,8 @@ def streams(r: dict[str, dict]) -> list[str]:
     return ["## Real-time streams per process", "",
             f"How many live streams one serving process keeps in real time on {s['cores']} cores: the embedded default "
             f"model, K = {s['steps']}, {r['streams']['window_ms']} ms windows, clients joining at random moments. "
-            f"Each count was searched {n} times, the executors taking turns: the median, the range in brackets.", "",
-            *table(["executor", "streams"], rows), "", source("streams"), "",
+            f"Each count was searched {n} times, the configurations taking turns: the median, the range in brackets.", "",
+            *table(["backend, scheduler", "streams"], rows), "", source("streams"), "",
             "A model of the `realtime` preset's size with the log-mel front end and no guidance (what `dimgestor train "
             "--preset realtime` makes without `--cond-drop` or `--set frontend=speech`) costs about half as much per "
             "stream (the next section compares the two), on torch:", "",

@@ -7,7 +7,7 @@ Sections (run all by default, or some with --sections; each updates its part of 
            cores, and the same with bfloat16 matmuls (torch.autocast) beside it, with its error
   hour     one configuration streamed for --hour-s of audio (default 1 h) as fast as possible, RSS traced
   streams  the most real-time streams one process keeps through the serving path (Sessions on one
-           StreamBatcher vs one RankedExecutor, audio paced by the clock) at K = 1, 4, 8 (benchmarks/streams.py)
+           StreamBatcher vs one RankedScheduler, audio paced by the clock) at K = 1, 4, 8 (benchmarks/streams.py)
   gflops   the machine's matmul peak (1 thread, all threads; fp32, bf16) beside the GFLOP/s the denoiser
            achieved in the sweep and streams sections of this run (benchmarks/flops.py)
   seams    jerk at window boundaries vs inside windows (benchmarks/seams.py)
@@ -64,7 +64,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--streams-threads", type=int, default=1,
                    help="torch threads of the StreamBatcher's one inference thread (default 1: at 24 realtime K=8 "
                         "streams on 2 cores, 2 threads gave lag p95 0.51-0.55 s against 0.17-0.21 s with 1: the ops "
-                        "are too small to split and the event loop needs the other core); the unbatched executor "
+                        "are too small to split and the event loop needs the other core); the unbatched scheduler "
                         "runs min(4, cores) workers of one torch thread each")
     p.add_argument("--streams-aligned", type=int, nargs="*", default=[8],
                    help="K values whose batched search is repeated with every session's windows due at the same "
@@ -500,9 +500,9 @@ def main(argv=None) -> None:
             "max_realtime_streams": "preset -> real-time streams through the serving path, batched (one StreamBatcher, "
                                     "as dimgestor serve), at the largest K of the streams section; see "
                                     "max_realtime_streams_by_k for every K and mode and streams.by_k for the trials",
-            "max_realtime_streams_by_k": "Sessions on one executor in one asyncio loop, audio paced by the clock (see "
+            "max_realtime_streams_by_k": "Sessions on one scheduler in one asyncio loop, audio paced by the clock (see "
                                          "streams.pass_rule); batched = one StreamBatcher, unbatched = one "
-                                         "RankedExecutor (--no-batch)",
+                                         "RankedScheduler (--no-batch)",
         },
     })
     write_json(args.out, result)

@@ -17,6 +17,7 @@ import heapq
 import itertools
 import threading
 import time
+import warnings
 import weakref
 from abc import ABC, abstractmethod
 from collections import deque
@@ -28,8 +29,8 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 
-__all__ = ["WindowPolicy", "WindowSource", "Scheduler", "RankedScheduler", "RankedExecutor", "StreamBatcher",
-           "BatcherPool", "PoolScheduler", "BatchStats", "as_scheduler"]
+__all__ = ["WindowPolicy", "WindowSource", "Scheduler", "RankedScheduler", "StreamBatcher", "BatcherPool",
+           "PoolScheduler", "BatchStats", "as_scheduler"]
 
 
 class WindowSource(Protocol):
@@ -499,4 +500,10 @@ def as_scheduler(scheduler: Scheduler | Executor | None) -> Scheduler:
     return scheduler if isinstance(scheduler, Scheduler) else PoolScheduler(scheduler)
 
 
-RankedExecutor = RankedScheduler  # deprecated name (one name: scheduler)
+def __getattr__(name: str):
+    """`RankedExecutor`: the deprecated name of `RankedScheduler` (one name: scheduler), with a warning."""
+    if name == "RankedExecutor":
+        warnings.warn("streamer.scheduling.RankedExecutor is deprecated: use RankedScheduler", DeprecationWarning,
+                      stacklevel=2)
+        return RankedScheduler
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

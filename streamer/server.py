@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
@@ -61,6 +62,7 @@ class Pipeline:
     @property
     def executor(self) -> StreamBatcher | BatcherPool | RankedScheduler:
         """Deprecated name of `scheduler`."""
+        warnings.warn("Pipeline.executor is deprecated: use Pipeline.scheduler", DeprecationWarning, stacklevel=2)
         return self.scheduler
 
 

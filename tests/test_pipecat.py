@@ -271,6 +271,20 @@ def test_a_tts_slower_than_real_time_gestures_late_never_early_and_drops_nothing
     print(f"slow TTS: {stats.late} of {len(frames)} frames late, up to {1000 * stats.max_late_s:.0f} ms")
 
 
+def test_the_old_name_executor_still_works_and_warns(bundle):
+    """GestureProcessor(executor=) is the deprecated spelling of scheduler=: the same scheduler, with a warning."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from streamer import pipecat as sp
+
+    with ThreadPoolExecutor(1) as pool:
+        with pytest.warns(DeprecationWarning, match="use scheduler="):
+            g = sp.GestureProcessor([], bundle=bundle, executor=pool)
+        assert g.scheduler is pool
+        with pytest.raises(TypeError, match="scheduler= only"):
+            sp.GestureProcessor([], bundle=bundle, scheduler=pool, executor=pool)
+
+
 def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypatch):
     """A slow TTS sends twenty 20 ms chunks, then nothing until 0.525 s: the transport is silent from 0.4 s. Frame 8
     (pts 0.4) shows that silence, not the audio after it (which is heard only at 0.525 s): the pause begins where

@@ -42,7 +42,7 @@ def test_sessions_share_batches_and_each_gets_its_own_frames(bundle, tmp_path):
     async def one(seed, wav, delay):
         await asyncio.sleep(delay)
         src = WavSource(wav, realtime=True, chunk_ms=20)
-        session = Session.from_bundle(bundle, steps=3, seed=seed, window_ms=100, executor=batcher, name=f"s{seed}")
+        session = Session.from_bundle(bundle, steps=3, seed=seed, window_ms=100, scheduler=batcher, name=f"s{seed}")
         frames, t0 = [], time.monotonic()
 
         async def emit(fs):
@@ -79,7 +79,7 @@ def test_windows_waiting_together_run_as_one_batch(bundle):
     gate = threading.Event()
     try:
         batcher.submit(gate.wait, 30)  # the batcher is busy until the windows below are all queued
-        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(5)]
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, scheduler=batcher) for i in range(5)]
         audio = synthetic_speech(0.3, seed=3)
         futures = [batcher.submit_push(s, audio, rank=0.0 if i < 4 else 1.0) for i, s in enumerate(sessions)]
         gate.set()
@@ -106,7 +106,7 @@ def test_a_backlog_cycle_is_short_so_real_time_windows_do_not_wait_behind_it(bun
     gate, order = threading.Event(), []
     try:
         batcher.submit(gate.wait, 30)
-        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(7)]
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, scheduler=batcher) for i in range(7)]
         audio = synthetic_speech(0.6, seed=3)
         backlog = [batcher.submit_push(s, audio, rank=1.0 + i) for i, s in enumerate(sessions[:6])]
         for i, f in enumerate(backlog):
@@ -133,7 +133,7 @@ def test_tied_backlog_windows_take_turns_in_the_order_they_were_queued(bundle):
     gate, order = threading.Event(), []
     try:
         batcher.submit(gate.wait, 30)
-        sessions = [Session.from_bundle(bundle, steps=2, seed=i, executor=batcher) for i in range(6)]
+        sessions = [Session.from_bundle(bundle, steps=2, seed=i, scheduler=batcher) for i in range(6)]
         audio = synthetic_speech(0.6, seed=3)
         queued = [3, 0, 5, 1, 4, 2]
         futures = [batcher.submit_push(sessions[i], audio, rank=5.0) for i in queued]
@@ -153,8 +153,8 @@ def test_batcher_isolates_a_failing_stream(bundle):
     batcher = StreamBatcher()
     gate = threading.Event()
     try:
-        good = Session.from_bundle(bundle, steps=2, seed=1, executor=batcher)
-        bad = Session.from_bundle(bundle, steps=2, seed=2, executor=batcher)
+        good = Session.from_bundle(bundle, steps=2, seed=1, scheduler=batcher)
+        bad = Session.from_bundle(bundle, steps=2, seed=2, scheduler=batcher)
         bad.stream.finish()
         audio = synthetic_speech(0.5, seed=1)
         batcher.submit(gate.wait, 30)

@@ -196,7 +196,7 @@ def test_the_counters_equal_what_a_real_session_did(bundle):
     made: list[Session] = []
 
     def make_session():
-        made.append(Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, executor=batcher))
+        made.append(Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher))
         return made[-1]
 
     ws = make_server(bundle)
@@ -265,7 +265,7 @@ def test_readyz_fails_while_slowed_inference_cannot_keep_real_time(bundle, monke
     metrics = ServerMetrics(Readiness(RealtimeLoad(window_s=1.0)))
     batcher.observer = metrics
     ws = make_server(bundle, metrics=metrics)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, executor=batcher)
+    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher)
     seen: list[str] = []
 
     async def watch(stop: asyncio.Event):
@@ -321,7 +321,7 @@ def test_sigterm_marks_the_worker_draining(tiny_checkpoint):
     try:
         asyncio.run(main())
     finally:
-        p.executor.shutdown(wait=False, cancel_futures=True)
+        p.scheduler.shutdown(wait=False, cancel_futures=True)
     assert [a[::2] for a in at_close] == [(503, "not ready: draining (shutting down)\n")]
 
 

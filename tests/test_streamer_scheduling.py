@@ -12,7 +12,7 @@ import pytest
 
 from dimgestor.stream import generate_offline
 from dimgestor.synthetic import synthetic_speech
-from streamer.scheduling import (BatcherPool, PoolScheduler, RankedExecutor, Scheduler, StreamBatcher, WindowPolicy,
+from streamer.scheduling import (BatcherPool, PoolScheduler, RankedScheduler, Scheduler, StreamBatcher, WindowPolicy,
                                  as_scheduler)
 from streamer.sessions import Session
 from streamer.sources import AudioChunk
@@ -29,10 +29,10 @@ async def _chunks(audio, n=700):
 @pytest.mark.parametrize("kind", ["batcher", "batchers", "ranked", "pool", "none"])
 def test_every_scheduler_gives_a_session_its_offline_frames(bundle, kind):
     audio = synthetic_speech(1.13, seed=2)
-    executor = {"batcher": lambda: StreamBatcher(), "ranked": lambda: RankedExecutor(2),
-                "batchers": lambda: BatcherPool([StreamBatcher(), StreamBatcher()]),
-                "pool": lambda: ThreadPoolExecutor(1), "none": lambda: None}[kind]()
-    session = Session.from_bundle(bundle, steps=2, seed=4, window_ms=130, executor=executor)
+    scheduler = {"batcher": lambda: StreamBatcher(), "ranked": lambda: RankedScheduler(2),
+                 "batchers": lambda: BatcherPool([StreamBatcher(), StreamBatcher()]),
+                 "pool": lambda: ThreadPoolExecutor(1), "none": lambda: None}[kind]()
+    session = Session.from_bundle(bundle, steps=2, seed=4, window_ms=130, scheduler=scheduler)
     assert isinstance(session.scheduler, Scheduler)
     frames = []
     try:
@@ -58,7 +58,7 @@ def test_a_batcher_pool_keeps_each_session_on_one_batcher_and_shares_them_out(bu
 
     pool = BatcherPool([StreamBatcher(push_many=recording, thread_name=f"lane-{i}") for i in range(2)])
     audio = [synthetic_speech(0.9 + 0.1 * j, seed=j) for j in range(4)]
-    sessions = [Session.from_bundle(bundle, steps=2, seed=j, window_ms=100, executor=pool) for j in range(4)]
+    sessions = [Session.from_bundle(bundle, steps=2, seed=j, window_ms=100, scheduler=pool) for j in range(4)]
 
     async def run_all():
         out = [[] for _ in sessions]
@@ -88,11 +88,11 @@ def test_the_window_rule():
     for bad in (9, 5001):
         with pytest.raises(ValueError, match="window_ms"):
             WindowPolicy.of(bad)
-    assert StreamBatcher.windows is RankedExecutor.windows is PoolScheduler.windows  # one rule for every kind
+    assert StreamBatcher.windows is RankedScheduler.windows is PoolScheduler.windows  # one rule for every kind
 
 
-def test_ranked_executor_runs_real_time_before_backlog():
-    ex, gate, order = RankedExecutor(1), threading.Event(), []
+def test_ranked_scheduler_runs_real_time_before_backlog():
+    ex, gate, order = RankedScheduler(1), threading.Event(), []
     try:
         ex.submit(gate.wait, 30)
         futures = [ex.submit_ranked(r, order.append, r) for r in (2.0, 0.5, -1.0, 0.0, -1.0)]
@@ -107,7 +107,7 @@ def test_ranked_executor_runs_real_time_before_backlog():
 
 
 def test_shutdown_cancels_what_waits():
-    for ex in (RankedExecutor(1), StreamBatcher()):
+    for ex in (RankedScheduler(1), StreamBatcher()):
         gate, started = threading.Event(), threading.Event()
         running = ex.submit(lambda: (started.set(), gate.wait(30))[1])
         assert started.wait(30)
@@ -127,13 +127,37 @@ def test_a_plain_executor_is_adapted_and_a_scheduler_is_itself():
         b.shutdown()
 
 
+def test_the_old_name_executor_still_works_and_warns():
+    """`executor` was the scheduler's old name: Session(executor=), Pipeline.executor and RankedExecutor still work,
+    each with a DeprecationWarning; giving both names is an error (GestureProcessor's: test_pipecat)."""
+    from types import SimpleNamespace
+
+    import streamer.scheduling as scheduling
+    from streamer.server import Pipeline
+
+    pool = ThreadPoolExecutor(1)
+    try:
+        with pytest.warns(DeprecationWarning, match="use scheduler="):
+            session = Session(SimpleNamespace(frames_out=0), None, None, 20, executor=pool)
+        assert isinstance(session.scheduler, PoolScheduler) and session.scheduler.submit(lambda: 7).result(10) == 7
+        with pytest.raises(TypeError, match="scheduler= only"):
+            Session(SimpleNamespace(frames_out=0), None, None, 20, scheduler=pool, executor=pool)
+    finally:
+        pool.shutdown()
+    with pytest.warns(DeprecationWarning, match="use RankedScheduler"):
+        assert scheduling.RankedExecutor is RankedScheduler
+    p = Pipeline(*[None] * 7, scheduler=pool, sinks=[])
+    with pytest.warns(DeprecationWarning, match="Pipeline.scheduler"):
+        assert p.executor is pool
+
+
 def test_the_interpreter_exits_with_schedulers_left_running():
     """Never shut down, jobs inside torch calls: the exit hook lets them end and the process exits cleanly
     (without it the daemon workers die mid-call and the process aborts: "terminate called ...")."""
     code = """if True:
         import sys, time, torch
-        from streamer.scheduling import RankedExecutor, StreamBatcher
-        ex, b = RankedExecutor(1), StreamBatcher()
+        from streamer.scheduling import RankedScheduler, StreamBatcher
+        ex, b = RankedScheduler(1), StreamBatcher()
         def job(name):
             t0 = time.monotonic()
             while time.monotonic() - t0 < 0.5:
@@ -186,7 +210,7 @@ def _ranked_session(scheduler: _Ranks) -> Session:
 
     from streamer.sessions import AudioClock
 
-    session = Session(SimpleNamespace(frames_out=0), None, None, 20, window_ms=200, executor=scheduler)
+    session = Session(SimpleNamespace(frames_out=0), None, None, 20, window_ms=200, scheduler=scheduler)
     session.clock = AudioClock(now=lambda: scheduler.clock[0])
     return session
 
