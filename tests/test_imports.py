@@ -1,11 +1,12 @@
 """The packages import one way: no import cycle among dimgestor/ and streamer/ modules (function-level imports
-count too), and no module imports another's private name (shared code is public, with a docstring)."""
+count too), and no module, script or test imports a package module's private name (shared code is public, with a
+docstring; tests go through the public API)."""
 import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("dimgestor", "streamer")
-CALLERS = ("examples", "benchmarks")  # the project's own code outside the packages
+CALLERS = ("examples", "benchmarks", "tests")  # the project's own code outside the packages
 
 
 def modules(root: Path, packages=PACKAGES) -> dict[str, Path]:
@@ -76,7 +77,7 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 
 def private_imports(root: Path, packages=PACKAGES, callers=CALLERS) -> list[str]:
-    """`from m import _name` of a package module, in the packages and in the callers' scripts (dunders are public;
+    """`from m import _name` of a package module, in the packages and in the callers' files (dunders are public;
     another library's private names are that library's business)."""
     mods = modules(root, packages)
     files = [(m, p) for m, p in mods.items()]

@@ -68,7 +68,7 @@ def test_a_failing_source_surfaces_its_error(bundle):
 def test_a_missing_portaudio_is_said_once_with_the_package_to_install(monkeypatch, why, said):
     import builtins
 
-    from streamer.sources import SourceError, _sounddevice
+    from streamer.sources import SourceError, list_input_devices
 
     real_import = builtins.__import__
 
@@ -79,5 +79,5 @@ def test_a_missing_portaudio_is_said_once_with_the_package_to_install(monkeypatc
 
     monkeypatch.setattr(builtins, "__import__", no_portaudio)
     with pytest.raises(SourceError) as e:
-        _sounddevice()
+        list_input_devices()
     assert str(e.value) == f"PortAudio library not found{said}; install it, e.g. `apt install libportaudio2`"
