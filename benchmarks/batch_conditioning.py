@@ -8,7 +8,7 @@ a neighbour's load falls on both alike.
 
   profile  B streams pushed together (`push_many`, 100 ms windows, one torch thread, smoothing off), rounds
            after a warm-up; per round: the front end's calls, the extractor's calls, the denoiser batch
-           (`_denoise_rounds`), the output step (`end_step`) and the rest (`push_many`'s own work, timers)
+           (`denoise`'s calls), the output step (`end_step`) and the rest (`push_many`'s own work, timers)
   streams  the most real-time streams one process keeps through the serving path (`benchmarks/streams.py`:
            paced sessions on one `StreamBatcher`, staggered phases), at each K
   trials   serving trials at fixed stream counts (`--trial-streams`), `--repeats` per tree, taking turns: the
@@ -110,7 +110,7 @@ def profile(job: dict) -> dict:
     totals = dict.fromkeys(PARTS, 0.0)
     fe, ex = type(model.frontend), type(model.extractor)
     fe.forward, ex.forward = _timer(totals, "frontend", fe.forward), _timer(totals, "extractor", ex.forward)
-    batch._denoise_rounds = _timer(totals, "denoise", batch._denoise_rounds)
+    batch.denoise = _timer(totals, "denoise", batch.denoise)  # each batched sampler run `push_many` makes
     GestureStream.end_step = _timer(totals, "end_step", GestureStream.end_step)
     walls, pos, pushed = [], [0] * B, 0
     rng = np.random.default_rng(0)

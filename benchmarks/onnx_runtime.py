@@ -201,22 +201,22 @@ def call_costs(bundle, folder: Path, steps: int, args) -> dict:
     manifest = load_manifest(export)
     runner = BatchRunner(export, manifest, threads=1, cost={1: 1.0})  # (plan unused: each size called directly)
     sizes = [b for b in args.call_batches if b in runner.sizes]
-    feeds = {b: runner._idle(b) for b in sizes}
+    feeds = {b: runner.idle_inputs(b) for b in sizes}
     for b in sizes:
-        runner._call(b, feeds[b])  # first calls allocate
+        runner.run_graph(b, feeds[b])  # first calls allocate
     run, gather = {b: [] for b in sizes}, {b: [] for b in sizes}
     for _ in range(args.call_reps):
         for b in sizes:
             t0 = time.perf_counter()
-            runner._call(b, feeds[b])
+            runner.run_graph(b, feeds[b])
             run[b].append(time.perf_counter() - t0)
-            rows = [runner._idle(1)] * b  # B streams' own states (not the rows of one buffer): copied together
+            rows = [runner.idle_inputs(1)] * b  # B streams' own states (not the rows of one buffer): copied together
             t0 = time.perf_counter()
             for s in manifest["state"]:
                 parts = [r[s["input"]] for r in rows]
                 np.ascontiguousarray(parts[0]) if b == 1 else np.concatenate(parts, s["batch_dim"])
             gather[b].append(time.perf_counter() - t0)
-    state_bytes = sum(v.nbytes for k, v in runner._idle(1).items() if k not in ("samples", "seed", "frame"))
+    state_bytes = sum(v.nbytes for k, v in runner.idle_inputs(1).items() if k not in ("samples", "seed", "frame"))
     out = []
     for b in sizes:
         ms = float(np.median(run[b]) * 1000)

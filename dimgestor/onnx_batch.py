@@ -77,7 +77,7 @@ class BatchRunner:
         shape[entry["batch_dim"]] *= size
         return shape
 
-    def _idle(self, size: int) -> dict[str, np.ndarray]:
+    def idle_inputs(self, size: int) -> dict[str, np.ndarray]:
         """Inputs of `size` idle rows (silence, a stream's start state), to pad a call (made once: only read)."""
         if size in self._idle_rows:
             return self._idle_rows[size]
@@ -92,11 +92,11 @@ class BatchRunner:
         """Seconds per call of each graph (the best of `repeats` after one warm call): what `plan` weighs."""
         cost = {}
         for size in self.sizes:
-            feeds = self._idle(size)
+            feeds = self.idle_inputs(size)
             times = []
             for _ in range(repeats + 1):
                 t0 = time.perf_counter()
-                self._call(size, feeds)
+                self.run_graph(size, feeds)
                 times.append(time.perf_counter() - t0)
             cost[size] = min(times[1:])
         return cost
@@ -114,7 +114,7 @@ class BatchRunner:
 
     # ---- calls -----------------------------------------------------------------------------------
 
-    def _call(self, size: int, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def run_graph(self, size: int, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """One run of the graph of `size` streams, its outputs written into fresh arrays (bound by address)."""
         session = self.sessions[size]
         io, out = session.io_binding(), {}
@@ -138,7 +138,7 @@ class BatchRunner:
             i += len(part)
             feeds = self._feeds(size, part)
             t0 = time.perf_counter()
-            out = self._call(size, feeds)
+            out = self.run_graph(size, feeds)
             self.stats.run_s += time.perf_counter() - t0
             self.stats.calls[size] = self.stats.calls.get(size, 0) + 1
             self.stats.rows += len(part)
@@ -167,7 +167,7 @@ class BatchRunner:
         same = first is not None and all(st.rows is not None and st.rows[0] is first[0] and st.rows[1:] == (r, size)
                                          for r, (_, st) in enumerate(part))
         if n < size:
-            idle = self._idle(size - n)
+            idle = self.idle_inputs(size - n)
             feeds = {k: np.concatenate([v, idle[k]]) for k, v in feeds.items()}
         if same:  # (the idle rows' states are the last call's too: they stay a silent stream's)
             return feeds | {s["input"]: first[0][s["output"]] for s in self.states}
