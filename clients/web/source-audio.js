@@ -7,6 +7,7 @@
 // for sample, so it never runs ahead of a picture waiting for late frames; when the clock moves (it rebuilt its
 // buffer after an underrun, or caught up) the schedule is made afresh from the pts presented now.
 const RESYNC_S = 0.03;
+const SOONEST_S = 0.005;  // a piece starts no sooner than this after the context's current time
 const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock move), seconds
 
 export class SourceAudio {
@@ -112,6 +113,15 @@ export class SourceAudio {
     return ctx.currentTime + (t - performance.now() / 1000) - (ctx.outputLatency || ctx.baseLatency || 0);
   }
 
+  /** The pts where the scheduled sound ended, when it has played out though there is sound after it (the page
+   *  came back later than the sound it had scheduled lasted: av-clock.js soundStopped); otherwise null. */
+  ranOutAt() {
+    if (this.next === null || this.paused || !this.ctx || this.ctx.state !== 'running') return null;
+    if (this.next > this.ctx.currentTime + SOONEST_S) return null;
+    const until = this.until;
+    return this.chunks.some((c) => c.end > until + 1e-3) ? until : null;
+  }
+
   /** The pts being heard now (null when nothing is scheduled). */
   heardPts(now) {
     if (!this.ctx || this.offset === null || !this.playing.length) return null;
@@ -138,7 +148,7 @@ export class SourceAudio {
     if (this.next !== null && Math.abs(when - this.next) < RESYNC_S) when = this.next;  // butt-join
     const dur = (i1 - i0) / c.rate;
     this.next = when + dur;
-    const soonest = ctx.currentTime + 0.005;
+    const soonest = ctx.currentTime + SOONEST_S;
     if (when + dur <= soonest) return;  // already past
     const skip = Math.max(0, soonest - when);
     const src = ctx.createBufferSource();
