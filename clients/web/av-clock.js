@@ -42,6 +42,7 @@ export class PlayoutClock {
     this.slackS = SLACK_S;  // spare buffer kept rather than skipping ahead (setSlack)
     this.burstS = 0;  // frames come in bursts this long (first to last pts): setBursts
     this.pageS = 0;   // the page's longest recent frame interval (s), kept current by the page
+    this.startLeadS = 0;  // sound scheduled now is heard this much later at the soonest (the page keeps it current)
     this.reset();
   }
 
@@ -123,8 +124,9 @@ export class PlayoutClock {
   /** The pts to present at local time `now` (null before any frame); holds while the frames are late. */
   time(now) {
     if (this.offset === null) return null;
-    if (this.firstPts !== null) {  // the first presentation starts at the first frame, however busy the page was
-      if (now - this.offset > this.firstPts) this.move(now - this.firstPts, now);
+    if (this.firstPts !== null) {  // the first presentation starts at the first frame, however busy the page was,
+      // and where its sound can still be heard from its first sample
+      if (now + this.startLeadS - this.offset > this.firstPts) this.move(now + this.startLeadS - this.firstPts, now);
       this.firstPts = null;
     }
     if (this.holdAt !== null) {

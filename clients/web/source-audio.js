@@ -8,6 +8,7 @@
 // buffer after an underrun, or caught up) the schedule is made afresh from the pts presented now.
 const RESYNC_S = 0.03;
 const SOONEST_S = 0.005;  // a piece starts no sooner than this after the context's current time
+const LEAD_SPARE_S = 0.02; // the page's time from reading the clock to scheduling the sound (leadS)
 const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock move), seconds
 
 export class SourceAudio {
@@ -120,6 +121,13 @@ export class SourceAudio {
     if (this.next > this.ctx.currentTime + SOONEST_S) return null;
     const until = this.until;
     return this.chunks.some((c) => c.end > until + 1e-3) ? until : null;
+  }
+
+  /** How much later than local time `now` sound scheduled now can be heard at the soonest (s): the output's
+   *  latency, and a little; 0 while no sound plays. */
+  leadS(now) {
+    if (this.paused || !this.ctx || this.ctx.state !== 'running') return 0;
+    return Math.max(0, this.ctx.currentTime + SOONEST_S - this.contextTimeAt(now)) + LEAD_SPARE_S;
   }
 
   /** The pts being heard now (null when nothing is scheduled). */

@@ -320,6 +320,7 @@ function showPose() {
   lastShowAt = nowMs;
   if (api.paused) return;
   const now = nowMs / 1000;
+  clock.startLeadS = sourceAudio.leadS(now);
   let t = clock.time(now);
   const ranOut = sourceAudio.ranOutAt();  // the page came too late to go on with the sound: hold there too
   if (ranOut !== null && clock.soundStopped(ranOut, now)) t = clock.time(now);

@@ -1,6 +1,6 @@
 // Test driver: PlayoutClock (../av-clock.js) on a schedule of frame arrivals and display refreshes.
 // usage: node av_clock_check.mjs SCHEDULE
-//   (lines: "margin S" | "slack S" | "bursts WINDOW_S FRAME_S" | "page S" | "arrive PTS T" | "time T" | "turn T")
+//   (lines: "margin S" | "slack S" | "bursts WINDOW_S FRAME_S" | "page S" | "lead S" | "arrive PTS T" | "time T" | "turn T")
 // "turn T" is one turn of the page with sound (viewer.js showPose): the clock read, the sound scheduled up to its
 // horizon (the source's audio there all along), a hold where that sound had played out before the turn.
 // Prints one JSON line per "time" or "turn" ({t, pts, offset, horizon}) and a last line with the clock's
@@ -17,6 +17,7 @@ for (const line of readFileSync(process.argv[2], 'utf8').split('\n')) {
   else if (op === 'bursts') clock.setBursts(Number(a), Number(b));
   else if (op === 'slack') clock.setSlack(Number(a));
   else if (op === 'page') clock.pageS = Number(a);
+  else if (op === 'lead') clock.startLeadS = Number(a);
   else if (op === 'arrive') clock.arrive(Number(a), Number(b));
   else if (op === 'time') {
     const pts = clock.time(Number(a));
