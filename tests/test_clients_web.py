@@ -555,9 +555,10 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
             time.sleep(0.3)
         assert min(cosines) > 0.7, f"the avatar does not face the camera at start (cos {np.round(cosines, 2)})"
 
-        # The audio clock advances, and the frame drawn is the one whose pts is being heard: read in an animation
-        # frame callback after the page's own (which picks the pose and draws it), with the audio clock then. (Read
-        # at an arbitrary moment, a software-rendered page on a loaded machine may be several frames behind.)
+        # The audio clock advances, and the frame drawn is the one whose pts is heard when the page picked it: read
+        # in an animation frame callback after the page's own (which picks the pose and draws it), with the audio
+        # clock then and how long ago the pick was. (Read at an arbitrary moment, a software-rendered page on a
+        # loaded machine may be several frames behind.)
         samples = []
         for _ in range(20):
             time.sleep(0.4)
@@ -587,7 +588,7 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     # Sync: at context time T the listener hears what the recording has at T - latency. Which moment of the
     # source that is, is found from the sound itself (a 100 ms stretch matched against the clip, which loops),
     # so a pause in the sound (the page waiting for late frames) cannot fool the check; silent moments are left
-    # out. The frame on screen then must be the one with that pts.
+    # out. The frame picked then must be the one with that pts.
     # A starved page (a software-rendered Chromium on two busy cores draws about once a second) holds where the
     # sound it had scheduled ran out (av-clock.js soundStopped), and nothing plays then: the moments checked are
     # the steady reads, and where the clip speaks at the pts on screen, the sound must be heard at most of them.
@@ -745,7 +746,11 @@ def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path,
         killed = time.monotonic()
         browser.wait_for(f"window.dimgestor.reconnects === 1 && window.dimgestor.framesReceived > {before + 2}", 30,
                          "frames again, from a fresh session")
-        assert time.monotonic() - killed < 2.0 + 1.0  # (within 2 s, plus this check's own polling)
+        noticed = time.monotonic() - killed
+        t0 = time.monotonic()
+        browser.eval("0")  # one round trip of this check's polling, as the page answers now (a loaded machine: s)
+        polling = 0.2 + 2 * (time.monotonic() - t0)  # its interval, and the last poll's round trip with slack
+        assert noticed < 2.0 + max(1.0, polling), (noticed, polling)  # within 2 s, plus this check's own polling
         browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on")
         api = browser.eval("({talking: dimgestor.talking, errors: dimgestor.errors, state: dimgestor.state})")
         assert api == {"talking": True, "errors": [], "state": "open"}, api
