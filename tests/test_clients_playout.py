@@ -258,6 +258,12 @@ def test_web_av_clock_starts_at_the_first_frame_when_the_page_was_busy(tmp_path)
     pts = np.array([s["pts"] for s in out])
     assert pts[0] == 0.0 and counters["underruns"] == 0 and counters["catchUps"] == 0, counters
     np.testing.assert_allclose(np.diff(pts), 1 / DISPLAY_HZ, atol=1e-6)
+    # With sound, what is scheduled now is heard only after the output's latency: the late start begins that
+    # much before the first frame (held on screen), so the sound's first sample is heard, not skipped.
+    out, counters = run_clock(tmp_path, lines + ["lead 0.05"], arrivals, display)
+    pts = np.array([s["pts"] for s in out])
+    assert pts[0] == pytest.approx(-0.05) and counters["underruns"] == 0 and counters["catchUps"] == 0, counters
+    np.testing.assert_allclose(np.diff(pts), 1 / DISPLAY_HZ, atol=1e-6)
 
 
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
@@ -325,3 +331,41 @@ def test_web_av_clock_talking_gives_back_the_start_allowance_of_a_slow_page(tmp_
     end_watch = [s["offset"] for s in watch if s["t"] > 25][-1]
     assert end_talk <= lateness + 0.05 + 1e-6 < end_watch - 0.3, (end_talk, end_watch, lateness)
     assert talk_counters["catchUps"] == 1 and watch_counters["catchUps"] == 0
+
+
+def run_turns(tmp_path, arrivals, turns) -> tuple[list[dict], dict]:
+    """av_clock_check.mjs: the arrivals [(t, pts)] and turns of a page playing the sound, in time order."""
+    events = sorted([(t, 0, f"arrive {p:.6f} {t:.6f}") for t, p in arrivals] + [(t, 1, f"turn {t:.6f}") for t in turns])
+    sched = tmp_path / "turns.txt"
+    sched.write_text("\n".join([f"margin {DELAY_S}"] + [e[2] for e in events]) + "\n")
+    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = [json.loads(line) for line in r.stdout.splitlines()]
+    return out[:-1], out[-1]
+
+
+@pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
+def test_web_av_clock_holds_where_the_sound_ran_out_while_the_page_was_busy(tmp_path):
+    """What the browser test saw beside a 2-thread busy loop: frames and sound come on time, but the page, which
+    schedules sound only when it runs and only up to the newest frame (~0.3 s ahead), was busy for 1.5 s, and the
+    sound it had scheduled played out. The clock holds where the sound stopped (picture and sound resume there,
+    no frame skipped), counts it, and keeps the time the page came late as lateness: a second such stall 4 s
+    later finds the sound scheduled far enough ahead and does not hold. Before, nothing held: the sound of every
+    stall was lost while the clock counted no underrun."""
+    arrivals = [(0.2 * w + 0.35 + 0.04 * ((w * 7) % 5) / 4, 0.2 * w + 0.05 * k) for w in range(100) for k in range(4)]
+    busy = [(6.0, 7.5), (11.5, 13.0)]
+    turns = [t for t in np.arange(0.3, 20.0, 1 / DISPLAY_HZ) if not any(a <= t < b for a, b in busy)]
+    out, counters = run_turns(tmp_path, arrivals, turns)
+    shown = [s for s in out if s["pts"] is not None]
+    t, pts = np.array([s["t"] for s in shown]), np.array([s["pts"] for s in shown])
+    assert counters["underruns"] == counters["soundHolds"] == 1, counters
+    assert (np.diff(pts) >= -1e-9).all(), "presented time ran backwards"
+    before, after = shown[int(np.searchsorted(t, 6.0)) - 1], shown[int(np.searchsorted(t, 7.5))]
+    assert before["until"] + before["offset"] < 7.5, "the stall was shorter than the sound scheduled (no test)"
+    assert after["pts"] == pytest.approx(before["until"]), "did not resume where the sound stopped"
+    # From the hold on, what each turn scheduled lasts until the next turn: no sound lost in the second stall.
+    later = [(s, n) for s, n in zip(shown, shown[1:]) if s["t"] > 8 and s["until"] is not None]
+    assert all(s["until"] + s["offset"] > n["t"] for s, n in later), "sound ran out after the hold"
+    second = shown[int(np.searchsorted(t, 13.0))]
+    assert second["pts"] > shown[int(np.searchsorted(t, 11.5)) - 1]["pts"] + 1.4, "held at the second stall"

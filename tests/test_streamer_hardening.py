@@ -25,6 +25,7 @@ from streamer.record import BvhRecorder
 from streamer.server import ServeError, ServeOptions, read_token
 from streamer.ws import WsServer, own_origins
 from helpers.serve import REPO, serve
+from helpers.stalls import runnable_waiting_s, wait_counting_cpu_waits
 from helpers.ws import SlowExecutor, make_server, recv_json, running
 
 pytestmark = pytest.mark.timeout(120)
@@ -222,6 +223,7 @@ def test_sigterm_ends_every_stream_within_two_seconds_whatever_clients_do(tiny_c
             while not got_frame:
                 m = json.loads(await asyncio.wait_for(talker.recv(), 30))
                 got_frame = m["type"] == "frame"
+            waiting0 = runnable_waiting_s(s.proc.pid)
             t0 = time.monotonic()
             s.proc.send_signal(signal.SIGTERM)
             ends = []
@@ -229,16 +231,18 @@ def test_sigterm_ends_every_stream_within_two_seconds_whatever_clients_do(tiny_c
                 async for m in c:
                     if json.loads(m)["type"] == "end":
                         ends.append(json.loads(m))
-            await asyncio.get_running_loop().run_in_executor(None, s.proc.wait, 10)
+            waited = await asyncio.get_running_loop().run_in_executor(None, wait_counting_cpu_waits, s.proc, waiting0)
             elapsed = time.monotonic() - t0
         never_reads.transport.abort()
-        return ends, elapsed
+        return ends, elapsed, waited
 
-    ends, elapsed = asyncio.run(run())
-    print(f"SIGTERM to exit: {elapsed:.2f} s")
+    ends, elapsed, waited = asyncio.run(run())
+    print(f"SIGTERM to exit: {elapsed:.2f} s, of which the server waited {waited:.2f} s for a CPU")
     assert s.finish() == 0, s.output
     assert len(ends) == 2 and ends[0]["frames"] > 0 and ends[1] == {"type": "end", "frames": 0}
-    assert elapsed < 4.0, f"shutdown took {elapsed:.1f} s (the server's part is bounded by 2 s)"
+    # The server's part is bounded by 2 s, its exit takes a moment more; the time the machine's other work kept
+    # it from running (measured: its main thread runnable, waiting for a CPU) is not its doing.
+    assert elapsed - waited < 4.0, f"shutdown took {elapsed:.1f} s, of which {waited:.2f} s waiting for a CPU"
 
 
 # ---- recording -----------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from dimgestor.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.sessions import Session
 from helpers.serve import serve
+from helpers.stalls import runnable_waiting_s, wait_counting_cpu_waits
 from helpers.ws import SlowExecutor, make_server, recv_json
 
 pytestmark = pytest.mark.timeout(240)
@@ -126,19 +127,21 @@ def test_a_client_leaving_in_any_blocked_state_frees_its_slot_and_memory_at_once
             got[state] = await probe(url)
         await asyncio.sleep(0.5)
         rss1 = rss_mb(s.proc.pid)
+        waiting0 = runnable_waiting_s(s.proc.pid)
         t0 = time.monotonic()
         s.proc.send_signal(signal.SIGTERM)
-        await asyncio.get_running_loop().run_in_executor(None, s.proc.wait, 10)
-        return got, rss0, peak, rss1, time.monotonic() - t0
+        waited = await asyncio.get_running_loop().run_in_executor(None, wait_counting_cpu_waits, s.proc, waiting0)
+        return got, rss0, peak, rss1, time.monotonic() - t0, waited
 
-    got, rss0, peak, rss1, shutdown_s = asyncio.run(run())
+    got, rss0, peak, rss1, shutdown_s, waited = asyncio.run(run())
     print(f"next client 1 s after each departure: {got}; RSS {rss0:.0f} MB -> peak {peak:.0f} -> {rss1:.0f} MB; "
-          f"SIGTERM to exit {shutdown_s:.2f} s")
+          f"SIGTERM to exit {shutdown_s:.2f} s, of which the server waited {waited:.2f} s for a CPU")
     assert s.finish() == 0, s.output
     for state, (what, seconds) in got.items():
         assert what == "frame", f"after {state}: the next client got {what!r} ({got})\n{s.output[-3000:]}"
     assert rss1 - rss0 < 50, f"RSS {rss0:.0f} -> {rss1:.0f} MB"
-    assert shutdown_s < 4.0, f"shutdown took {shutdown_s:.1f} s"  # the server's part is bounded by 2 s
+    # The server's part is bounded by 2 s; the time the machine's other work kept it from running is not its doing.
+    assert shutdown_s - waited < 4.0, f"shutdown took {shutdown_s:.1f} s, of which {waited:.2f} s waiting for a CPU"
     assert "Traceback" not in s.output, s.output[-3000:]
     departures = [line for line in s.output.splitlines() if "left with its audio session running" in line]
     assert 1 <= len(departures) <= len(STATES), s.output[-3000:]  # said once per departure at most (rate-limited)

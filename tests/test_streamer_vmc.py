@@ -1,6 +1,7 @@
 """VMC over OSC: a python-osc server receives one bundle per frame with the spec's argument types."""
 
 import asyncio
+import os
 import threading
 import time
 
@@ -16,6 +17,7 @@ from dimgestor.synthetic import synthetic_skeleton
 from streamer.frames import Frame
 from streamer.pose import HumanoidRig, load_humanoid_map
 from streamer.vmc import VmcEncoder, VmcOptions, VmcSink, reference_bundle
+from helpers.stalls import runnable_waiting_s
 from helpers.vmc import bundles, check_vmc_bundle, osc_server, type_tags
 
 def test_vmc_sink_sends_spec_typed_bundles(zeggs_dir):
@@ -137,12 +139,13 @@ def test_a_late_frame_is_dropped_not_burst_and_close_is_quick():
         time.sleep(1.0)  # the event loop stalls while frames 4.. arrive "in time" for a clock that moved on
         sink.send([Frame(i, i / 20, np.zeros(3), np.tile([1.0, 0, 0, 0], (J, 1)), np.zeros(3)) for i in range(4, 60)])
         await asyncio.sleep(1.5)
-        t = time.monotonic()
+        waiting0, t = runnable_waiting_s(os.getpid()), time.monotonic()
         await sink.close(drain=False)
-        return sink, time.monotonic() - t
+        return sink, time.monotonic() - t, runnable_waiting_s(os.getpid()) - waiting0
 
-    sink, close_s = asyncio.run(run())
+    sink, close_s, waited = asyncio.run(run())
     server.shutdown()
     assert sink.pacer.stats.dropped_late > 0 and sink.dropped >= sink.pacer.stats.dropped_late
     assert sink.sent + sink.dropped == 60
-    assert close_s < 0.5
+    # at once, but for the time this thread waited, runnable, for a CPU (the machine's other work)
+    assert close_s - waited < 0.5, f"close took {close_s:.2f} s, of which {waited:.2f} s waiting for a CPU"

@@ -13,6 +13,11 @@
 // took is given back, as live use needs. Moves are rare, so the sound does not jump at every late burst, and
 // while it holds nothing plays: what is heard at audio time t is always the frame with pts t.
 //
+// The page schedules sound only when it runs, as far as the horizon: a page busier than that lead (a starved
+// machine drawing at 1 fps) comes back after the sound it scheduled has played out, frames and sound there all
+// along. That is the page's own lateness, and it holds like an underrun (soundStopped): sound and picture resume
+// where the sound stopped, and the time the page came late counts as lateness, so the buffer covers it.
+//
 // The stream starts at its first frame however long the page took to present it, with a buffer set from the
 // frames that came before that. A stream's first message may be the tail of a window (a model that looks ahead
 // has only a few frames' audio at first: 2 of 4 with 350 ms), whose frames are later than their pts by less
@@ -37,6 +42,7 @@ export class PlayoutClock {
     this.slackS = SLACK_S;  // spare buffer kept rather than skipping ahead (setSlack)
     this.burstS = 0;  // frames come in bursts this long (first to last pts): setBursts
     this.pageS = 0;   // the page's longest recent frame interval (s), kept current by the page
+    this.startLeadS = 0;  // sound scheduled now is heard this much later at the soonest (the page keeps it current)
     this.reset();
   }
 
@@ -53,6 +59,7 @@ export class PlayoutClock {
     this.shrunkAt = -Infinity; // when the margin last shrank a step
     this.changedAt = null;    // when the offset last moved
     this.underruns = 0;
+    this.soundHolds = 0;      // of which the page came back too late to go on with the sound (soundStopped)
     this.catchUps = 0;
   }
 
@@ -117,8 +124,9 @@ export class PlayoutClock {
   /** The pts to present at local time `now` (null before any frame); holds while the frames are late. */
   time(now) {
     if (this.offset === null) return null;
-    if (this.firstPts !== null) {  // the first presentation starts at the first frame, however busy the page was
-      if (now - this.offset > this.firstPts) this.move(now - this.firstPts, now);
+    if (this.firstPts !== null) {  // the first presentation starts at the first frame, however busy the page was,
+      // and where its sound can still be heard from its first sample
+      if (now + this.startLeadS - this.offset > this.firstPts) this.move(now + this.startLeadS - this.firstPts, now);
       this.firstPts = null;
     }
     if (this.holdAt !== null) {
@@ -134,12 +142,22 @@ export class PlayoutClock {
     return t;
   }
 
-  /** Hold at the newest frame until the buffer is rebuilt; underruns in a row grow the margin. */
-  underrun(now) {
+  /** Hold at `pts` (the newest frame) until the buffer is rebuilt; underruns in a row grow the margin. */
+  underrun(now, pts = this.newestPts) {
     if (now - this.lastUnderrun < REPEAT_S) this.marginS = Math.min(this.marginS * GROW, MARGIN_MAX_S);
     this.lastUnderrun = now;
     this.underruns++;
-    this.holdAt = this.newestPts;
+    this.holdAt = pts;
+  }
+
+  /** The sound scheduled up to `pts` had played out when the page came back at `now`, though there was more:
+   *  hold there and note `now - pts` as lateness (see above). True when the clock holds for it. */
+  soundStopped(pts, now) {
+    if (this.offset === null || this.firstPts !== null || this.holdAt !== null || pts >= now - this.offset) return false;
+    this.transits.push([now, now - pts]);
+    this.soundHolds++;
+    this.underrun(now, pts);
+    return true;
   }
 
   /** How far the sound may be scheduled (pts): never past the frames there are, nothing new while holding. */

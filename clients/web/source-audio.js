@@ -7,6 +7,8 @@
 // for sample, so it never runs ahead of a picture waiting for late frames; when the clock moves (it rebuilt its
 // buffer after an underrun, or caught up) the schedule is made afresh from the pts presented now.
 const RESYNC_S = 0.03;
+const SOONEST_S = 0.005;  // a piece starts no sooner than this after the context's current time
+const LEAD_SPARE_S = 0.02; // the page's time from reading the clock to scheduling the sound (leadS)
 const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock move), seconds
 
 export class SourceAudio {
@@ -112,6 +114,22 @@ export class SourceAudio {
     return ctx.currentTime + (t - performance.now() / 1000) - (ctx.outputLatency || ctx.baseLatency || 0);
   }
 
+  /** The pts where the scheduled sound ended, when it has played out though there is sound after it (the page
+   *  came back later than the sound it had scheduled lasted: av-clock.js soundStopped); otherwise null. */
+  ranOutAt() {
+    if (this.next === null || this.paused || !this.ctx || this.ctx.state !== 'running') return null;
+    if (this.next > this.ctx.currentTime + SOONEST_S) return null;
+    const until = this.until;
+    return this.chunks.some((c) => c.end > until + 1e-3) ? until : null;
+  }
+
+  /** How much later than local time `now` sound scheduled now can be heard at the soonest (s): the output's
+   *  latency, and a little; 0 while no sound plays. */
+  leadS(now) {
+    if (this.paused || !this.ctx || this.ctx.state !== 'running') return 0;
+    return Math.max(0, this.ctx.currentTime + SOONEST_S - this.contextTimeAt(now)) + LEAD_SPARE_S;
+  }
+
   /** The pts being heard now (null when nothing is scheduled). */
   heardPts(now) {
     if (!this.ctx || this.offset === null || !this.playing.length) return null;
@@ -138,7 +156,7 @@ export class SourceAudio {
     if (this.next !== null && Math.abs(when - this.next) < RESYNC_S) when = this.next;  // butt-join
     const dur = (i1 - i0) / c.rate;
     this.next = when + dur;
-    const soonest = ctx.currentTime + 0.005;
+    const soonest = ctx.currentTime + SOONEST_S;
     if (when + dur <= soonest) return;  // already past
     const skip = Math.max(0, soonest - when);
     const src = ctx.createBufferSource();

@@ -323,7 +323,10 @@ function showPose() {
   lastShowAt = nowMs;
   if (api.paused) return;
   const now = nowMs / 1000;
-  const t = clock.time(now);
+  clock.startLeadS = sourceAudio.leadS(now);
+  let t = clock.time(now);
+  const ranOut = sourceAudio.ranOutAt();  // the page came too late to go on with the sound: hold there too
+  if (ranOut !== null && clock.soundStopped(ranOut, now)) t = clock.time(now);
   sourceAudio.sync(clock.offset, now, clock.horizon());
   const pose = t === null ? null : playout.sampleAt(t);
   if (!pose || !joints.length) return;

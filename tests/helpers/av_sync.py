@@ -30,7 +30,10 @@ RECORDING = """(() => {
     pcm[b.frame - r.start + i] = Math.max(-32768, Math.min(32767, Math.round(b.x[i] * 32767)));
   let s = ''; const u8 = new Uint8Array(pcm.buffer);
   for (let i = 0; i < u8.length; i += 8192) s += String.fromCharCode(...u8.subarray(i, i + 8192));
-  return {start: r.start, pcm: btoa(s)};
+  const missed = [];  // [from, to) frames of the recording where the recorder got no block (its thread starved)
+  for (let i = 1; i < r.blocks.length; i++) if (r.blocks[i].frame > r.blocks[i - 1].frame + 128)
+    missed.push([r.blocks[i - 1].frame + 128 - r.start, r.blocks[i].frame - r.start]);
+  return {start: r.start, pcm: btoa(s), missed};
 })()"""
 
 
@@ -38,7 +41,8 @@ SHOWN_NOW = """new Promise((done) => requestAnimationFrame(() => {
   const c = window.dimgestor.sourceAudio.ctx;
   const k = window.dimgestor.clock;
   done({t: c.currentTime, lat: c.outputLatency || 0, pts: window.dimgestor.shownFrame.pts,
-        jumps: k.catchUps + k.underruns});
+        drawing: performance.now() / 1000 - window.dimgestor.shownAt, jumps: k.catchUps + k.underruns,
+        held: k.holdAt !== null});
 }))"""
 
 
@@ -59,15 +63,37 @@ def heard_pts(played: np.ndarray, idx: int, source: np.ndarray, near: float, sea
     return (lo + k + half) / 16000 if corr[k] > 0.8 else None
 
 
+def steady(samples) -> list[dict]:
+    """The SHOWN_NOW reads where the clock was going: not holding (nothing plays then, by design), and neither
+    caught up nor held since the read before (recovering from a stall, counted apart)."""
+    return [s for prev, s in zip([None] + samples[:-1], samples)
+            if not s.get("held") and (prev is None or s["jumps"] == prev["jumps"])]
+
+
+def voiced_at(source: np.ndarray, pts: float, level: float = 0.05) -> bool:
+    """Whether the looped clip (16 kHz) speaks clearly within 50 ms of `pts` (s)."""
+    k = int(pts * 16000)
+    return float(np.sqrt(np.mean(np.take(source, np.arange(k - 800, k + 800), mode="wrap") ** 2))) > level
+
+
+def missed16(rec: dict, rate: int) -> list[tuple[int, int]]:
+    """The stretches (16 kHz indices) the recorder missed: no block came for them, so they read as silence."""
+    return [(int(a * 16000 / rate), int(b * 16000 / rate)) for a, b in rec.get("missed", [])]
+
+
+def recorded_around(missed: list[tuple[int, int]], idx: int, half: int = 1600) -> bool:
+    """Whether the recorder missed nothing within `half` samples (16 kHz) of idx."""
+    return not any(a < idx + half and b > idx - half for a, b in missed)
+
+
 def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray) -> list[float]:
-    """For each SHOWN_NOW read: the pts on screen minus the source time heard then (s), found from the recorded
-    sound (`played16`, 16 kHz, its first sample at context time `start_s`); reads where the clock caught up or
-    ran dry since the one before (recovering from a stall, counted apart) and silent moments are left out."""
+    """For each steady SHOWN_NOW read: the pts on screen minus the source time heard when the page picked it (s),
+    found from the recorded sound (`played16`, 16 kHz, its first sample at context time `start_s`); silent moments
+    left out. (The time the page then took to draw it is the renderer's: on a starved machine SwiftShader takes
+    0.1 s and more.)"""
     sync = []
-    for prev, s in zip([None] + samples[:-1], samples):
-        if prev is not None and s["jumps"] != prev["jumps"]:
-            continue
-        heard_idx = int((s["t"] - s["lat"] - start_s) * 16000)  # index into played16
+    for s in steady(samples):
+        heard_idx = int((s["t"] - s.get("drawing", 0) - s["lat"] - start_s) * 16000)  # index into played16
         heard = heard_pts(played16, heard_idx, source, near=s["pts"])
         if heard is not None:
             sync.append(s["pts"] - heard)
