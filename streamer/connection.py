@@ -1,10 +1,8 @@
 """One WebSocket connection: the I/O around its session machine (`streamer.client_session`).
 
-It carries out the machine's actions (queue this, decode and resample in the worker thread, start the session's
-task, save, take a state) and turns what they do into the machine's next events. One bounded queue and one
-sender task per client: a broadcast frame put in a full queue drops the oldest droppable message and is
-counted, so broadcasting never awaits a slow client; a client's own frames are never dropped: its session waits
-for room instead.
+It reads the socket, carries out the machine's actions (queue this, decode and resample in the worker thread,
+start the session's task, save, take a state) and turns what they do into the machine's next events; its
+outgoing queue is an `Outbox` (streamer/outbox.py).
 """
 
 from __future__ import annotations
@@ -19,40 +17,17 @@ from typing import Callable
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection
+from websockets.exceptions import ConnectionClosed
 
+from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer.frames import Frame
 from streamer.log_limit import ErrorLog
 from streamer.metrics import ServerMetrics
+from streamer.outbox import FrameTotals, MessageBudget, Outbox
 from streamer.sessions import AudioClock, Session
 from streamer.sources import PushSource, make_resampler
-
-DROPPABLE = ("frame", "note", "audio")  # broadcast frames; status, pong and error replies; source audio
-
-
-class MessageBudget:
-    """Token bucket on a client's messages: `rate` per second, bursts of `burst`; a text message also costs
-    one token per KiB (parsing is the event loop's work). Over budget, the client is read more slowly."""
-
-    def __init__(self, rate: float = 250.0, burst: float = 500.0):
-        self.rate, self.burst = rate, burst
-        self.tokens, self.t = burst, time.monotonic()
-
-    def wait_s(self, message: str | bytes) -> float:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
-        self.t = now
-        self.tokens -= 1 + (len(message) / 1024 if isinstance(message, str) else 0)
-        return max(0.0, -self.tokens / self.rate)
-
-
-@dataclass
-class FrameTotals:
-    """Frames sent and dropped over all clients, past and present (the metrics' `sink="ws"` counts)."""
-
-    sent: int = 0
-    dropped: int = 0
 
 
 @dataclass
@@ -69,26 +44,19 @@ class Services:
     session_ended: Callable[[], None]  # (the server gives freed memory back)
 
 
-class Client:
+class Client(Outbox):
     """One connection: its session machine, its outgoing queue and counters, and its own audio session if any."""
 
     def __init__(self, ws: ServerConnection, machine: S.ClientSession, keepalive: S.Keepalive, svc: Services,
                  max_queue: int, totals: FrameTotals | None = None):
-        self.ws, self.machine, self.keepalive, self.svc = ws, machine, keepalive, svc
-        self.queue: deque[tuple[str, str | bytes]] = deque()  # (kind, message)
-        self.max_queue = max_queue
-        self.ready = asyncio.Event()  # something to send
-        self.room = asyncio.Event()  # the queue has room
-        self.frames_sent = 0
-        self.dropped = 0
-        self.totals = totals if totals is not None else FrameTotals()  # the server's, shared by all its clients
+        super().__init__(ws, max_queue, totals)
+        self.machine, self.keepalive, self.svc = machine, keepalive, svc
         self.source: PushSource | None = None  # its streaming session's audio queue (None: not streaming)
         self.resample_from: int | None = None  # its session's audio rate when not 16 kHz
         self.resampler = None  # lives in the worker (built, used and flushed there)
         self.session: Session | None = None
         self.session_task: asyncio.Task | None = None
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
-        self.sending = False  # send_loop is handing a message to the socket
         self.closed = False  # the server closed it (an unsupported protocol)
         self._saving: set[asyncio.Task] = set()  # its periodic saves on their way to the store
         peer = ws.remote_address
@@ -109,61 +77,77 @@ class Client:
     def own(self) -> bool:
         return self.machine.own
 
-    def put(self, message: str | bytes, kind: str = "ctl") -> None:
-        """Queue a message. "ctl" (hello, end) and "own" frames always go in; a droppable one ("frame",
-        "note") finds a full queue -> the oldest droppable message goes (itself if none is older)."""
-        if len(self.queue) >= self.max_queue and kind in DROPPABLE:
-            victim = next((i for i, (k, _) in enumerate(self.queue) if k in DROPPABLE), None)
-            lost = kind == "frame" if victim is None else self.queue[victim][0] == "frame"
-            self.dropped += lost
-            self.totals.dropped += lost
-            if victim is None:
-                return
-            del self.queue[victim]
-        self.queue.append((kind, message))
-        self.ready.set()
-
-    def note(self, message: str) -> None:
-        self.put(message, "note")
-
-    async def put_own(self, messages: list[str | bytes]) -> None:
-        """This client's own frames: wait (bounded by the client reading) for room, never drop."""
-        while len(self.queue) >= self.max_queue:
-            self.room.clear()
-            await self.room.wait()
-        for m in messages:
-            self.put(m, "own")
-
     def encode(self, frames: list[Frame]) -> list[str | bytes]:  # worker thread
         return [(P.frame_binary if self.encoding == "binary" else P.frame_json)(f) for f in frames]
 
-    async def send_loop(self) -> None:
+    async def read_loop(self) -> None:
+        try:
+            async for message in self.ws:
+                self.keepalive.heard(time.monotonic())
+                self.holding = True
+                try:
+                    if isinstance(message, bytes):
+                        await self.on_audio(message)
+                    else:
+                        await self.apply(self.machine.handle(S.Text(message, time.monotonic())))
+                    if self.closed:
+                        break
+                except (ConnectionClosed, asyncio.CancelledError):
+                    raise
+                except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
+                    self.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
+                    self.note(P.error("internal", f"{type(e).__name__}: {e}"))
+                await asyncio.sleep(self.budget.wait_s(message))  # a flood is read only as fast as the budget
+                self.holding = False
+        except ConnectionClosed:
+            pass
+
+    async def keepalive_loop(self, interval: float) -> None:
+        """Ping every `interval`; close (1011) a client not heard from for the keepalive's interval + timeout,
+        counted as `Keepalive` says (a long wait for inference under load is the server's doing, not the
+        client's: 11 of 31 fast senders were closed in one 60 s flood when frames made were counted, not read)."""
+        pong: asyncio.Future | None = None
+
+        def answered(f: asyncio.Future) -> None:
+            if not f.cancelled() and f.exception() is None:
+                self.keepalive.heard(time.monotonic())
+
         while True:
-            while not self.queue:
-                self.ready.clear()
-                await self.ready.wait()
-            kind, message = self.queue.popleft()
-            self.room.set()
-            self.sending = True
-            try:
-                await self.ws.send(message)
-            finally:
-                self.sending = False
-            sent = kind in ("frame", "own")
-            self.frames_sent += sent
-            self.totals.sent += sent
+            await asyncio.sleep(interval)
+            now = time.monotonic()
+            close = self.keepalive.tick(now, self.holding, self.frames_sent, self.awaits_reading)
+            if close is not None:
+                self.errors(logging.WARNING, f"nothing heard for {self.keepalive.silent_s(now):.1f} s (keepalive): "
+                                             f"closing ({'holding its audio, ' if self.holding else ''}"
+                                             f"{self.frames_sent} frames sent, {len(self.queue)} queued)")
+                await self.ws.close(close.code, close.reason)
+                return
+            if pong is None or pong.done():
+                try:
+                    pong = await self.ws.ping()
+                except ConnectionClosed:
+                    return
+                pong.add_done_callback(answered)
 
-    @property
-    def awaits_reading(self) -> bool:
-        """Something waits for the client to read it: messages queued, or one being sent (blocked while the
-        client's socket is full)."""
-        return bool(self.queue) or self.sending
-
-    async def drained(self, deadline: float) -> None:
-        """Wait until everything queued so far has been handed to the socket, or the loop time `deadline`."""
-        loop = asyncio.get_running_loop()
-        while self.queue and loop.time() < deadline:
-            await asyncio.sleep(0.01)
+    async def leave(self, tasks: list[asyncio.Future]) -> float | None:
+        """The client is gone: cancel everything it has in flight (whatever it waits on), free its slot, its
+        queue and its audio now. Returns the seconds of audio queued if a session was cut short, else None."""
+        session = self.session_task
+        running = session is not None and not session.done()
+        backlog_s = self.source.backlog_s if self.source is not None else 0.0
+        self.act(self.machine.handle(S.Left()))  # (frees its seat; StopSession)
+        pending = [*tasks, *([session] if session is not None else [])]
+        for t in pending:
+            t.cancel()
+        self.queue.clear()
+        self.room.set()
+        if self.source is not None:
+            self.source.chunks.clear()
+            self.source.queued = 0
+            await self.source.close()
+        await asyncio.gather(*pending, return_exceptions=True)
+        self.source = self.session = self.session_task = self.resampler = None
+        return backlog_s if running else None
 
     # ---- the session machine's actions ----
 
@@ -252,7 +236,8 @@ class Client:
         session.on_window = session.on_window or self.svc.metrics.window_done
         machine, loop = self.machine, asyncio.get_running_loop()
         if start.save_token is not None:
-            session.on_boundary = lambda: self.act(machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
+            session.on_boundary = lambda: self.act(
+                machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
 
         async def emit(frames: list[Frame]) -> None:
             for a in self.act(machine.handle(S.Frames(len(frames), source.backlog_s, session.stats.window))):
@@ -279,6 +264,41 @@ class Client:
 
         self.session_task = asyncio.create_task(run(), name="ws-session")
         self.session_task.add_done_callback(done)
+
+    def hand_over(self) -> PushSource | None:
+        """The server stops with a state store: the session stops after the audio it holds, unfinished (its
+        resampler is saved, not flushed); returns its audio queue, for the caller to close."""
+        for a in self.act(self.machine.handle(S.HandOver())):
+            if isinstance(a, S.EndAudio):
+                self.session.handover = True
+                source, self.source = self.source, None
+                return source
+        return None
+
+    async def save_handed_over(self, token: str) -> bool:
+        """Its session, stopped by `hand_over`, to the store under `token`, and `goaway` to the client; False
+        if the store failed (the session then ends as without one)."""
+        session, state, m = self.session, self.session.stream.state, self.machine
+        frames, rate, encoding = m.frames, m.audio.rate, m.encoding
+
+        def save():
+            # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz goes
+            # on exactly when the resampler is saved too, and every output it gave reached the stream: the
+            # client then re-sends from the resampler's own input count.
+            samples, extra, r = state.samples_in * rate // SAMPLE_RATE, {}, self.resampler
+            if r is not None and r.outputs == state.samples_in:
+                extra["resampler"], samples = r.get_state(), r.inputs
+            return session.snapshot(frames, state, rate=rate, encoding=encoding, **extra), samples
+
+        loop = asyncio.get_running_loop()
+        try:
+            data, samples = await loop.run_in_executor(self.svc.prep, save)
+            await loop.run_in_executor(self.svc.prep, self.svc.store.put, token, data)
+        except Exception as e:  # the store is down
+            self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
+            return False
+        self.act(m.handle(S.HandedOver(token, samples)))
+        return True
 
     async def _end_audio(self) -> None:
         """The session's audio ended: it sends its last frames and `end` by itself."""

@@ -25,9 +25,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
-from websockets.exceptions import ConnectionClosed
 
-from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer import request_checks as RC
@@ -44,7 +42,6 @@ from streamer.waiting import WaitingRoom
 
 __all__ = ["WsServer", "own_origins"]
 
-log = logging.getLogger("streamer.ws")
 AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
 AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 HANDOVER_S = 5.0  # on SIGTERM with a state store: how long sessions may take to finish the audio held and be saved
@@ -126,7 +123,7 @@ class WsServer:
                     create_connection=self.waiting_room.connection,
                     open_timeout=2 * self.waiting_room.timeout_s,  # reading the request, then sending the answer
                     max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
-                    ping_interval=None,  # our own keepalive (_keepalive): knows back pressure
+                    ping_interval=None,  # our own keepalive (Client.keepalive_loop): knows back pressure
                     compression=None))  # no deflate: CPU per frame per client, and a bomb risk
         except OSError as e:
             for server in self._servers:
@@ -224,14 +221,8 @@ class WsServer:
         from .handover import new_token
 
         loop = asyncio.get_running_loop()
-        sources = []
-        for c in own:  # all of them before any await: audio that arrives meanwhile is ignored, never refused
-            if c.session is None:  # (left meanwhile)
-                continue
-            c.machine.handle(S.HandOver())  # (-> EndAudio(handover): its resampler is saved, not flushed)
-            c.session.handover = True
-            sources.append(c.source)
-            c.source = None
+        # all of them before any await: audio that arrives meanwhile is ignored, never refused
+        sources = [c.hand_over() for c in own if c.session is not None]  # (None: left meanwhile)
         for source in sources:
             if source is not None:
                 await source.close()
@@ -240,27 +231,8 @@ class WsServer:
         for c, task in own.items():
             if task not in done or task.cancelled() or task.exception() is not None or c.session is None:
                 continue  # (not finished in time, failed, or its client left)
-            session, state, m = c.session, c.session.stream.state, c.machine
-            frames, rate, encoding = m.frames, m.audio.rate, m.encoding
-
-            def save(c=c, session=session, state=state, frames=frames, rate=rate, encoding=encoding):
-                # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz
-                # goes on exactly when the resampler is saved too, and every output it gave reached the stream:
-                # the client then re-sends from the resampler's own input count.
-                samples, extra, r = state.samples_in * rate // SAMPLE_RATE, {}, c.resampler
-                if r is not None and r.outputs == state.samples_in:
-                    extra["resampler"], samples = r.get_state(), r.inputs
-                return session.snapshot(frames, state, rate=rate, encoding=encoding, **extra), samples
-
-            token = new_token()
-            try:
-                data, samples = await loop.run_in_executor(self.prep, save)
-                await loop.run_in_executor(self.prep, self.store.put, token, data)
-            except Exception as e:  # the store is down: this client's session ends as without one
-                self.departures(logging.WARNING, f"session of {c.who} not saved ({type(e).__name__}: {e}): ended")
-                continue
-            c.act(m.handle(S.HandedOver(token, samples)))
-            handed.add(c)
+            if await c.save_handed_over(new_token()):
+                handed.add(c)
         return handed
 
     # ---- broadcast (the server's own source) -----------------------------------------------------
@@ -321,84 +293,19 @@ class WsServer:
         self.clients.add(client)
         client.put(json.dumps(self.hello))
         tasks = [asyncio.create_task(client.send_loop(), name="ws-sender"),
-                 asyncio.create_task(self._read_loop(client), name="ws-reader"),
+                 asyncio.create_task(client.read_loop(), name="ws-reader"),
                  asyncio.ensure_future(ws.wait_closed())]
         if self.ping_interval:
-            tasks.append(asyncio.create_task(self._keepalive(client), name="ws-keepalive"))
+            tasks.append(asyncio.create_task(client.keepalive_loop(self.ping_interval), name="ws-keepalive"))
         try:  # whichever ends first (the connection closed, the sender failed, the reader is done) ends it all
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
             await self._leave(client, tasks)
 
-    async def _read_loop(self, client: Client) -> None:
-        try:
-            async for message in client.ws:
-                client.keepalive.heard(time.monotonic())
-                client.holding = True
-                try:
-                    if isinstance(message, bytes):
-                        await client.on_audio(message)
-                    else:
-                        await client.apply(client.machine.handle(S.Text(message, time.monotonic())))
-                    if client.closed:
-                        break
-                except (ConnectionClosed, asyncio.CancelledError):
-                    raise
-                except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
-                    client.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
-                    client.note(P.error("internal", f"{type(e).__name__}: {e}"))
-                await asyncio.sleep(client.budget.wait_s(message))  # a flood is read only as fast as the budget
-                client.holding = False
-        except ConnectionClosed:
-            pass
-
-    async def _keepalive(self, client: Client) -> None:
-        """Ping every ping_interval; close (1011) a client not heard from for ping_interval + ping_timeout,
-        counted as `Keepalive` says (a long wait for inference under load is the server's doing, not the
-        client's: 11 of 31 fast senders were closed in one 60 s flood when frames made were counted, not read)."""
-        pong: asyncio.Future | None = None
-
-        def answered(f: asyncio.Future) -> None:
-            if not f.cancelled() and f.exception() is None:
-                client.keepalive.heard(time.monotonic())
-
-        while True:
-            await asyncio.sleep(self.ping_interval)
-            now = time.monotonic()
-            close = client.keepalive.tick(now, client.holding, client.frames_sent, client.awaits_reading)
-            if close is not None:
-                client.errors(logging.WARNING, f"nothing heard for {client.keepalive.silent_s(now):.1f} s (keepalive): "
-                                               f"closing ({'holding its audio, ' if client.holding else ''}"
-                                               f"{client.frames_sent} frames sent, {len(client.queue)} queued)")
-                await client.ws.close(close.code, close.reason)
-                return
-            if pong is None or pong.done():
-                try:
-                    pong = await client.ws.ping()
-                except ConnectionClosed:
-                    return
-                pong.add_done_callback(answered)
-
     async def _leave(self, client: Client, tasks: list[asyncio.Future]) -> None:
-        """The client is gone: cancel everything it has in flight (whatever it waits on), free its slot, its
-        queue and its audio now, and say so once (rate-limited) if a session was cut short."""
         self.clients.discard(client)
-        session = client.session_task
-        running = session is not None and not session.done()
-        backlog_s = client.source.backlog_s if client.source is not None else 0.0
-        client.act(client.machine.handle(S.Left()))  # (frees its seat; StopSession)
-        pending = [*tasks, *([session] if session is not None else [])]
-        for t in pending:
-            t.cancel()
-        client.queue.clear()
-        client.room.set()
-        if client.source is not None:
-            client.source.chunks.clear()
-            client.source.queued = 0
-            await client.source.close()
-        await asyncio.gather(*pending, return_exceptions=True)
-        client.source = client.session = client.session_task = client.resampler = None
-        if running and not self.closing:
+        backlog_s = await client.leave(tasks)
+        if backlog_s is not None and not self.closing:  # (said once per 10 s, however many leave)
             self.departures(logging.WARNING, f"client {client.who} left with its audio session running: session "
                                              f"cancelled, {backlog_s:.1f} s of queued audio and its slot freed")
 
