@@ -467,7 +467,7 @@ class ClientSession:
         return [SaveState(self.session_id, self.save_token, self._samples(e.samples_in), self.frames)]
 
     def _on_Saved(self, e: Saved) -> list[Action]:
-        if e.session_id != self.session_id or not self.running or self.handing_over or self.gone:
+        if e.session_id != self.session_id or self.handing_over or self.gone:
             return []
         return [Send(P.session_saved(e.token, e.samples, e.frames, self.audio.rate)), Count("sessions_saved")]
 

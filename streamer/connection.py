@@ -215,8 +215,10 @@ class Client(Outbox):
         except P.ProtocolError as e:  # bad_audio
             self.act(machine.handle(S.Failed(e)))
             return
-        while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()]:
-            await asyncio.wait([self.session_task])  # the previous session is still finishing
+        # the previous session is still finishing (or has just failed, its end not yet told to the machine)
+        while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()] or (
+                then and self.source is None):
+            await asyncio.wait([self.session_task])
             await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
         if not then:
             return
@@ -256,7 +258,7 @@ class Client(Outbox):
                 if self.source is source:
                     self.source = None
                 await source.close()
-                return S.SessionEnded(error=f"{type(e).__name__}: {e}")
+                return S.SessionEnded(handed_over=session.handover, error=f"{type(e).__name__}: {e}")
 
         def done(task: asyncio.Task) -> None:
             self.svc.session_ended()  # its queued audio is free: give the pages back (streamer/memory.py)

@@ -152,6 +152,9 @@ def test_periodic_saves_between_windows_and_forgotten_at_the_end():
     assert c.handle(Boundary(0, 99999)) == []  # (a session that is not the current one)
     c.handle(text(type="audio_end"))
     assert c.handle(SessionEnded(frames=12))[-1] == Forget("t0")
+    assert kinds(c.handle(Saved(1, "t0", 8000, 10))) == ["session_saved"]  # (a save that lands after the end)
+    c.handle(Left())
+    assert c.handle(Saved(1, "t0", 8000, 10)) == []
 
 
 @pytest.fixture(scope="module")
