@@ -8,9 +8,9 @@ Nothing a client sends costs the event loop more than constant work: audio is de
 frames encoded in a worker thread, in pieces, one job per client at a time (so the jobs of all clients
 interleave first come first served), and inference runs in the sessions' executor. A client's session lives
 exactly as long as its connection: the connection closing cancels whatever its handler is blocked on, frees
-its slot and its queued audio at once and logs one (rate-limited) line. The keepalive is this module's own:
-while the server holds a client's data unread on purpose (its backlog is full), its pongs cannot be read
-either, so that time counts against it only when nothing moves at all.
+its slot and its queued audio at once and logs one (rate-limited) line. The keepalive is the server's own
+(`Keepalive`): while the server holds a client's data unread on purpose (its backlog is full), its pongs cannot
+be read either, so that time counts against it only when nothing moves at all.
 """
 
 from __future__ import annotations

@@ -196,6 +196,7 @@ def test_a_session_handed_over_goes_on_elsewhere_exactly(bundle, speech):
     assert start[0] == StartSession(1, 16000, None, data) and elsewhere.taken == 1
     second = session_of(bundle)
     meta = second.restore(start[0].restore)
+    assert set(meta) == {"frames", "decoder", "rate", "encoding"}  # the stored format of earlier releases
     resumed = new.handle(Restored(int(meta["frames"]), second.stream.samples_in))
     assert resumed[0] == Count("sessions_resumed")
     assert sent(resumed) == [{"type": "session_resumed", "samples": samples, "rate": 16000, "frames": len(frames)}]
