@@ -11,6 +11,7 @@ pts = index / fps on the audio clock.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import inspect
 import time
 import warnings
@@ -196,6 +197,27 @@ class Session:
     def infer_finish(self) -> list[Frame]:
         """The frames after the audio ended, in the calling thread (a scheduler's worker)."""
         return self.frames_of(self.stream.finish())
+
+    def snapshot(self, frames: int, state=None, **meta) -> bytes:
+        """The session as bytes (`dimgestor.savestate`): the stream's state (default: its own now), the pose
+        decoder's root and the `frames` made so far, with `meta` (e.g. the client's rate) beside them."""
+        from dimgestor import savestate
+
+        meta = {"frames": int(frames), "decoder": dataclasses.asdict(self.decoder.state), **meta}
+        return savestate.dumps(self.stream, state, meta)
+
+    def restore(self, data: bytes) -> dict:
+        """Go on from `snapshot`'s bytes (taken by any worker on the same model); returns their meta.
+        Raises `savestate.StateError` when they cannot be resumed exactly (the session is then unchanged)."""
+        from dimgestor import savestate
+        from dimgestor.features import RootState
+
+        state, meta = savestate.loads(self.stream, data)
+        root = dict(meta["decoder"])
+        self.stream.state = state
+        self.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
+        self.clock.audio_s = state.samples_in / SAMPLE_RATE
+        return meta
 
     async def run(self, source: AsyncIterable[AudioChunk], emit: Callable[[list[Frame]], object]) -> int:
         """Stream `source` to the end, calling emit(frames) per call's frames; returns the frame count.

@@ -1,0 +1,539 @@
+"""One WebSocket client's session as a state machine without I/O: events in, actions out (docs/protocol.md).
+
+The shell (`streamer/ws.py`) turns what its socket, worker thread and session task do into events and carries
+out the actions this returns; nothing here awaits, opens a socket, starts a thread or reads a clock (time
+comes with the events), so every rule of a client's session is tested by driving it alone
+(tests/test_client_session.py), and another transport can reuse it.
+
+A client is IDLE (no session), STREAMING (its audio goes to its session) or FINISHING (its audio has ended,
+or is being handed over: the session still runs to its `end` or its save). A session holds one of the
+server's `Seats` from its start until it ends or its client leaves.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Callable, Union
+
+from dimgestor.audio import SAMPLE_RATE
+from streamer import protocol as P
+
+__all__ = ["ClientSession", "Seats", "Keepalive", "Phase", "PIECE_S"]
+
+PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
+
+
+# ---- events: what happened ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Text:
+    """A text message (hello, ping, audio_end, resume_session), not yet parsed; `now`: the server's clock."""
+    text: str
+    now: float = 0.0
+
+
+@dataclass(frozen=True)
+class Audio:
+    """A binary message: audio in the client's format, not yet checked."""
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """The audio of the last `Audio` decoded (`Decode` done): it may go to a session now."""
+
+
+@dataclass(frozen=True)
+class Failed:
+    """Something the client sent was refused on the way (e.g. decoding it): reply with its error."""
+    error: P.ProtocolError
+
+
+@dataclass(frozen=True)
+class Queuing:
+    """A piece of audio is about to be queued for the session, whose queue holds `backlog_s` (full: at the cap)."""
+    backlog_s: float
+    full: bool
+
+
+@dataclass(frozen=True)
+class Frames:
+    """The session emits `count` frames (0: a window's call gave none); its audio queue holds `backlog_s`."""
+    count: int
+    backlog_s: float
+    window: object = None  # the `WindowTiming` they came from (None: the flush after the audio ended)
+
+
+@dataclass(frozen=True)
+class Boundary:
+    """Between two windows of session `session_id` (state, decoder and frames agree): `samples_in` 16 kHz in."""
+    session_id: int
+    samples_in: int
+
+
+@dataclass(frozen=True)
+class Saved:
+    """A periodic save of session `session_id` reached the store (`SaveState` done)."""
+    session_id: int
+    token: str
+    samples: int
+    frames: int
+
+
+@dataclass(frozen=True)
+class HandOver:
+    """The server stops with a state store: this session finishes the audio it holds, then is saved."""
+
+
+@dataclass(frozen=True)
+class HandedOver:
+    """The session's state is in the store under `token`, covering the client's audio up to sample `samples`."""
+    token: str
+    samples: int
+
+
+@dataclass(frozen=True)
+class Taken:
+    """`TakeState` done: the saved state (None: unknown or expired token); `error`: the store failed."""
+    data: bytes | None
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class Restored:
+    """The taken state is the session's now: `frames` made before, `samples_in` 16 kHz covered; the resampler's
+    own input count when it was restored too (None: not)."""
+    frames: int
+    samples_in: int
+    resampler_inputs: int | None = None
+
+
+@dataclass(frozen=True)
+class NotRestored:
+    """The taken state does not fit this server's model (`message` says how)."""
+    message: str
+
+
+@dataclass(frozen=True)
+class SessionEnded:
+    """The session's task is over: `frames` in all; handed_over, failed (`error`) or cancelled."""
+    frames: int = 0
+    handed_over: bool = False
+    error: str | None = None
+    cancelled: bool = False
+
+
+@dataclass(frozen=True)
+class Left:
+    """The connection is gone."""
+
+
+Event = Union[Text, Audio, Decoded, Failed, Queuing, Frames, Boundary, Saved, HandOver, HandedOver, Taken,
+              Restored, NotRestored, SessionEnded, Left]
+
+
+# ---- actions: what to do ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Send:
+    """Queue a message; kind "ctl" is never dropped, "note" may be (streamer/outbox.py)."""
+    message: str
+    kind: str = "ctl"
+
+
+@dataclass(frozen=True)
+class SendFrames:
+    """Encode the session's frames and queue them (never dropped); `window`: also its `timing` message."""
+    window: object = None
+
+
+@dataclass(frozen=True)
+class Close:
+    """Close the connection with `code` once what is queued went out (within `drain_s`)."""
+    code: int
+    reason: str
+    drain_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class ReplaySourceAudio:
+    """Queue the server source's recent audio (a client that asked for it now)."""
+
+
+@dataclass(frozen=True)
+class Charge:
+    """Take `tokens` from the client's message budget (work its message costs beyond the usual)."""
+    tokens: float
+
+
+@dataclass(frozen=True)
+class Decode:
+    """Decode the audio message in the worker; then `Decoded`, or `Failed` with its error."""
+    data: bytes
+    fmt: P.AudioFormat
+
+
+@dataclass(frozen=True)
+class WaitForSession:
+    """The previous session is still finishing: wait for its `SessionEnded`, then deliver `Decoded` again."""
+
+
+@dataclass(frozen=True)
+class StartSession:
+    """Start session `session_id` with a fresh audio queue; resample from `rate` unless it is 16 kHz; its periodic
+    saves go under `save_token` (None: none); `restore`: a saved state to go on from (then `Restored`)."""
+    session_id: int
+    rate: int
+    save_token: str | None = None
+    restore: bytes | None = None
+
+    @property
+    def resample(self) -> bool:
+        return self.rate != SAMPLE_RATE
+
+
+@dataclass(frozen=True)
+class Feed:
+    """Queue the decoded audio for the session in pieces of `piece` samples (a `Queuing` before each)."""
+    piece: int
+
+
+@dataclass(frozen=True)
+class EndAudio:
+    """The session's audio has ended: flush the resampler's tail into its queue and close it. handover: the
+    session stops after the audio held, unfinished (then `HandedOver` once saved)."""
+    handover: bool = False
+
+
+@dataclass(frozen=True)
+class StopSession:
+    """Cancel the session now (its client left): its queued audio and its seat are free."""
+
+
+@dataclass(frozen=True)
+class SaveState:
+    """Snapshot session `session_id` now (between windows) and put it in the store under `token`; then `Saved`."""
+    session_id: int
+    token: str
+    samples: int
+    frames: int
+
+
+@dataclass(frozen=True)
+class Forget:
+    """The session ended: remove its periodic save from the store (nobody will resume it)."""
+    token: str
+
+
+@dataclass(frozen=True)
+class TakeState:
+    """Take the state saved under `token` from the store; then `Taken`."""
+    token: str
+
+
+@dataclass(frozen=True)
+class Count:
+    """Count it in the metrics: "sessions_started", "sessions_saved", "sessions_resumed", "sessions_handed_over"."""
+    name: str
+
+
+@dataclass(frozen=True)
+class Refused:
+    """A session refused for `reason` (counted once per attempt)."""
+    reason: str
+
+
+@dataclass(frozen=True)
+class Log:
+    level: int
+    text: str
+
+
+Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, StartSession, Feed,
+               EndAudio, StopSession, SaveState, Forget, TakeState, Count, Refused, Log]
+
+
+# ---- the server's side ----------------------------------------------------------------------------------
+
+@dataclass
+class Seats:
+    """What every client's session shares: the server's terms and how many sessions run now."""
+
+    max_sessions: int
+    accepts_audio: bool = True       # False: --no-client-audio
+    offers_source_audio: bool = False  # the hello offers the server source's audio
+    max_backlog_s: float = 30.0      # a session's audio queue (slow_down at the cap, resume at half)
+    resumable: bool = False          # a state store: resume_session is served
+    save_every_s: float | None = None  # periodic saves (with a store)
+    taken: int = 0                   # sessions running, including those flushing after audio_end
+    closing: bool = False            # the server is stopping
+
+
+class Phase(Enum):
+    IDLE = "idle"
+    STREAMING = "streaming"
+    FINISHING = "finishing"
+
+
+@dataclass
+class ClientSession:
+    """One client's protocol state; `handle(event) -> actions`. `new_token` names periodic saves."""
+
+    seats: Seats
+    new_token: Callable[[], str]
+    encoding: str = "json"
+    timing: bool = False        # asked for each window's `timing`
+    source_audio: bool = False  # asked for the server source's audio
+    audio: P.AudioFormat = field(default_factory=P.AudioFormat)
+    own: bool = False           # sent audio once: gets its own frames from then on, not the broadcast
+    phase: Phase = Phase.IDLE
+    session_id: int = 0         # the current (or last) session
+    frames: int = 0             # frames of the current session (its `end`, `goaway`, saves)
+    slowed: bool = False        # told slow_down, not yet resume
+    refused: bool = False       # its current audio was refused a session (counted once)
+    handing_over: bool = False  # its session is being saved for hand-over (its audio is ignored meanwhile)
+    gone: bool = False
+    save_token: str | None = None  # its session's periodic saves go under this token
+    saved_audio_s: float = 0.0     # the audio its last periodic save covers
+    after_session: list[str] = field(default_factory=list)  # replies due once the running session sent `end`
+
+    @property
+    def running(self) -> bool:
+        return self.phase is not Phase.IDLE
+
+    def handle(self, event: Event) -> list[Action]:
+        try:
+            return getattr(self, "_on_" + type(event).__name__)(event)
+        except P.ProtocolError as e:
+            return self._on_Failed(Failed(e))
+
+    # ---- messages ----
+
+    def _on_Text(self, e: Text) -> list[Action]:
+        msg = P.parse_text(e.text)
+        kind = msg["type"]
+        if kind == "ping":
+            return [Send(P.dumps({**msg, "type": "pong", "server_time_s": round(e.now, 6)}), "note")]
+        if kind == "hello":
+            return self._hello(msg)
+        if kind == "resume_session":
+            return self._resume(msg["token"])
+        self.refused = False  # audio_end: its next audio is another attempt
+        if self.phase is Phase.STREAMING:
+            return self._end_audio()
+        if self.phase is Phase.IDLE:
+            return [Send(P.end(0))]  # no audio since the last end: an empty stream, ended
+        self.after_session.append(P.end(0))  # the previous session's `end` first, then this empty stream's
+        return []
+
+    def _hello(self, msg: dict) -> list[Action]:
+        out: list[Action] = []
+        self.encoding = msg.get("encoding", self.encoding)
+        self.timing = msg.get("timing", self.timing)
+        if msg.get("source_audio") and not self.source_audio and self.seats.offers_source_audio:
+            out.append(ReplaySourceAudio())  # the audio of the frames still to come
+        self.source_audio = bool(msg.get("source_audio", self.source_audio)) and self.seats.offers_source_audio
+        if "audio" in msg and msg["audio"] != self.audio:
+            out.append(Charge(25))  # a new resampler is designed: costs as much as 25 messages
+            if self.phase is Phase.STREAMING:
+                out += self._end_audio()  # later audio starts a session at the new rate
+            self.audio = msg["audio"]
+        return out
+
+    def _on_Failed(self, e: Failed) -> list[Action]:
+        err = e.error
+        out: list[Action] = [Log(logging.INFO, f"{err.code}: {err}"), Send(P.error(err.code, str(err)), "note")]
+        if err.code == "unsupported_protocol":
+            out.append(Close(1002, "unsupported protocol version", drain_s=1.0))
+        return out
+
+    # ---- audio ----
+
+    def _on_Audio(self, e: Audio) -> list[Action]:
+        if (refusal := self._refusal()) is not None:
+            return refusal
+        P.check_audio(e.data, self.audio)
+        return [Decode(e.data, self.audio)]
+
+    def _refusal(self) -> list[Action] | None:
+        """Audio this server will not take now: [] to ignore it, the refusal, or None (it may)."""
+        if not self.seats.accepts_audio:
+            return self._refuse("audio_disabled", "audio_disabled", "this server does not accept client audio")
+        if self.seats.closing:
+            if self.handing_over:  # its state is being saved: the client re-sends from the goaway's sample
+                return []
+            return self._refuse("draining", "busy", "the server is shutting down")
+        return None
+
+    def _on_Decoded(self, e: Decoded) -> list[Action]:
+        if self.phase is Phase.FINISHING:
+            return [WaitForSession()]
+        if self.phase is Phase.IDLE:
+            if (refusal := self._refusal()) is not None:
+                return refusal
+            if self.seats.taken >= self.seats.max_sessions:
+                return self._busy()
+            out = self._start()
+        else:
+            out = []
+        return [*out, Feed(max(1, int(PIECE_S * self.audio.rate)))]
+
+    def _on_Queuing(self, e: Queuing) -> list[Action]:
+        if e.full and not self.slowed:
+            self.slowed = True  # until the backlog is down to half: `resume` (_on_Frames)
+            return [Send(P.error("slow_down", f"audio arrives faster than it is processed: {e.backlog_s:.0f} s are "
+                                              "queued; pause until `resume` (or the server reads more as it catches "
+                                              "up; nothing is dropped)"))]
+        return []
+
+    def _start(self, restore: bytes | None = None) -> list[Action]:
+        self.own, self.phase, self.refused, self.frames = True, Phase.STREAMING, False, 0
+        self.session_id += 1
+        self.seats.taken += 1
+        self.save_token = self.new_token() if self.seats.save_every_s is not None else None
+        self.saved_audio_s = 0.0
+        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore), Count("sessions_started")]
+
+    def _end_audio(self, handover: bool = False) -> list[Action]:
+        self.phase = Phase.FINISHING
+        return [EndAudio(handover)]
+
+    def _refuse(self, reason: str, code: str, message: str) -> list[Action]:
+        out: list[Action] = []
+        if not self.refused:  # once per stream the client tries (its audio until `audio_end`), not per message
+            self.refused = True
+            out.append(Refused(reason))
+        return [*out, *self._on_Failed(Failed(P.ProtocolError(code, message)))]
+
+    def _busy(self) -> list[Action]:
+        return self._refuse("busy", "busy", f"at most {self.seats.max_sessions} client audio sessions at once")
+
+    # ---- the session's progress ----
+
+    def _on_Frames(self, e: Frames) -> list[Action]:
+        out: list[Action] = []
+        if self.slowed and e.backlog_s <= self.seats.max_backlog_s / 2:
+            self.slowed = False
+            out.append(Send(P.resume(e.backlog_s)))  # a client that paused at slow_down may send again
+        if e.count:
+            self.frames += e.count
+            out.append(SendFrames(e.window if self.timing else None))
+        return out
+
+    def _on_SessionEnded(self, e: SessionEnded) -> list[Action]:
+        if self.gone:
+            return []
+        out: list[Action] = []
+        if e.error is not None:  # the model failed on this audio: tell the client, keep the server up
+            out += [Log(logging.ERROR, f"session failed: {e.error}"), Send(P.error("internal", f"session failed: "
+                                                                                               f"{e.error}"), "note")]
+            if self.phase is Phase.STREAMING:  # (the shell closed its audio queue)
+                self.phase = Phase.FINISHING
+        elif not e.cancelled and not e.handed_over:
+            out.append(Send(P.end(e.frames)))
+        if self.slowed and self.phase is not Phase.STREAMING:  # ended while the client was paused: let it go on
+            self.slowed = False
+            out.append(Send(P.resume(0.0)))
+        if not e.cancelled:
+            out += [Send(m) for m in self.after_session]
+        self.after_session.clear()
+        if self.save_token is not None and not e.cancelled and not e.handed_over and not self.seats.closing:
+            out.append(Forget(self.save_token))  # its periodic save will not be resumed (else the TTL drops it)
+        self.phase = Phase.IDLE
+        self.seats.taken -= 1
+        return out
+
+    def _on_Left(self, e: Left) -> list[Action]:
+        self.gone = True
+        self.after_session.clear()
+        if not self.running:
+            return []
+        self.phase = Phase.IDLE
+        self.seats.taken -= 1
+        return [StopSession()]
+
+    # ---- saves, hand-over, resume ----
+
+    def _on_Boundary(self, e: Boundary) -> list[Action]:
+        """--save-state-every: once the session's audio is save_every_s past its last save, save it (a crash
+        then loses at most that much: the client resumes from the save)."""
+        audio_s = e.samples_in / SAMPLE_RATE
+        if (self.seats.save_every_s is None or self.save_token is None or self.handing_over
+                or e.session_id != self.session_id or audio_s - self.saved_audio_s < self.seats.save_every_s):
+            return []
+        self.saved_audio_s = audio_s
+        return [SaveState(self.session_id, self.save_token, self._samples(e.samples_in), self.frames)]
+
+    def _on_Saved(self, e: Saved) -> list[Action]:
+        if e.session_id != self.session_id or self.handing_over or self.gone:
+            return []
+        return [Send(P.session_saved(e.token, e.samples, e.frames, self.audio.rate)), Count("sessions_saved")]
+
+    def _on_HandOver(self, e: HandOver) -> list[Action]:
+        self.handing_over = True  # audio that arrives meanwhile is ignored, never refused
+        return self._end_audio(handover=True) if self.phase is Phase.STREAMING else []
+
+    def _on_HandedOver(self, e: HandedOver) -> list[Action]:
+        return [Send(P.goaway(e.token, e.samples, self.frames, self.audio.rate)), Count("sessions_handed_over")]
+
+    def _resume(self, token: str) -> list[Action]:
+        """resume_session: the state saved under `token` (by any worker) becomes this client's session."""
+        if not self.seats.resumable:
+            raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
+        if self.seats.closing:  # the token is not taken: it resumes on another worker
+            raise P.ProtocolError("busy", "this worker is stopping: resume_session on another (the token stays valid)")
+        if self.running:
+            raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
+        if not self.seats.accepts_audio:
+            raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
+        if self.seats.taken >= self.seats.max_sessions:
+            return self._busy()
+        return [TakeState(token)]
+
+    def _on_Taken(self, e: Taken) -> list[Action]:
+        if e.error is not None:
+            raise P.ProtocolError("resume_failed", f"the state store failed: {e.error}")
+        if e.data is None:
+            raise P.ProtocolError("resume_failed", "unknown or expired resume token: start a new stream")
+        return self._start(restore=e.data)
+
+    def _on_NotRestored(self, e: NotRestored) -> list[Action]:
+        return [*self._end_audio(), *self._on_Failed(Failed(P.ProtocolError("resume_failed", e.message)))]
+
+    def _on_Restored(self, e: Restored) -> list[Action]:
+        self.frames = e.frames
+        self.saved_audio_s = e.samples_in / SAMPLE_RATE  # (its periodic saves go on from here)
+        samples = e.resampler_inputs if e.resampler_inputs is not None else self._samples(e.samples_in)
+        return [Count("sessions_resumed"), Send(P.session_resumed(samples, self.frames, self.audio.rate))]
+
+    def _samples(self, samples_in: int) -> int:
+        """16 kHz samples -> the client's own (what it re-sends from)."""
+        return samples_in * self.audio.rate // SAMPLE_RATE
+
+
+class Keepalive:
+    """When to ping and when to give up on a client: nothing heard for interval + timeout, counted only while
+    the server reads it or nothing moves (while its handler holds one of its messages the server reads
+    nothing of it, pongs included: then it is blamed only when frames wait for it and none went out)."""
+
+    def __init__(self, interval: float, timeout: float, now: float):
+        self.interval, self.timeout = interval, timeout
+        self.last_heard = now
+        self.sent: int | None = None
+
+    def heard(self, now: float) -> None:
+        self.last_heard = now
+
+    def tick(self, now: float, holding: bool, frames_sent: int, awaits_reading: bool) -> Close | None:
+        """Every interval: None (ping if none is in flight), or close."""
+        if holding and (frames_sent != self.sent or not awaits_reading):
+            self.last_heard = now
+        self.sent = frames_sent
+        if now - self.last_heard > self.interval + self.timeout:
+            return Close(1011, "keepalive ping timeout")
+        return None
+
+    def silent_s(self, now: float) -> float:
+        return now - self.last_heard

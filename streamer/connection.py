@@ -1,0 +1,367 @@
+"""One WebSocket connection: the I/O around its session machine (`streamer.client_session`).
+
+It reads the socket, carries out the machine's actions (queue this, decode and resample in the worker thread,
+start the session's task, save, take a state) and turns what they do into the machine's next events; its
+outgoing queue is an `Outbox` (streamer/outbox.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections import deque
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+from websockets.asyncio.server import ServerConnection
+from websockets.exceptions import ConnectionClosed
+
+from dimgestor.audio import SAMPLE_RATE
+from streamer import client_session as S
+from streamer import protocol as P
+from streamer.frames import Frame
+from streamer.log_limit import ErrorLog
+from streamer.metrics import ServerMetrics
+from streamer.outbox import FrameTotals, MessageBudget, Outbox
+from streamer.sessions import AudioClock, Session
+from streamer.sources import PushSource, make_resampler
+
+
+@dataclass
+class Services:
+    """What a connection's session uses of its server's."""
+
+    prep: Executor  # the worker thread: decode, resample, encode, store calls
+    metrics: ServerMetrics
+    make_session: Callable[[], Session] | None
+    store: object | None  # a `streamer.handover` store
+    max_backlog_s: float
+    audio_recent: deque[bytes]  # the server source's recent audio (for a client that asks for it late)
+    departures: ErrorLog
+    session_ended: Callable[[], None]  # (the server gives freed memory back)
+
+
+class Client(Outbox):
+    """One connection: its session machine, its outgoing queue and counters, and its own audio session if any."""
+
+    def __init__(self, ws: ServerConnection, machine: S.ClientSession, keepalive: S.Keepalive, svc: Services,
+                 max_queue: int, totals: FrameTotals | None = None):
+        super().__init__(ws, max_queue, totals)
+        self.machine, self.keepalive, self.svc = machine, keepalive, svc
+        self.source: PushSource | None = None  # its streaming session's audio queue (None: not streaming)
+        self.resample_from: int | None = None  # its session's audio rate when not 16 kHz
+        self.resampler = None  # lives in the worker (built, used and flushed there)
+        self.session: Session | None = None
+        self.session_task: asyncio.Task | None = None
+        self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
+        self.closed = False  # the server closed it (an unsupported protocol)
+        self._saving: set[asyncio.Task] = set()  # its periodic saves on their way to the store
+        peer = ws.remote_address
+        self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
+        self.errors = ErrorLog(f"client {self.who}")
+        self.budget = MessageBudget()
+        self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
+
+    @property
+    def encoding(self) -> str:
+        return self.machine.encoding
+
+    @property
+    def source_audio(self) -> bool:
+        return self.machine.source_audio
+
+    @property
+    def own(self) -> bool:
+        return self.machine.own
+
+    def encode(self, frames: list[Frame]) -> list[str | bytes]:  # worker thread
+        return P.encode_frames(frames, self.encoding)
+
+    async def read_loop(self) -> None:
+        try:
+            async for message in self.ws:
+                self.keepalive.heard(time.monotonic())
+                self.holding = True
+                try:
+                    if isinstance(message, bytes):
+                        await self.on_audio(message)
+                    else:
+                        await self.apply(self.machine.handle(S.Text(message, time.monotonic())))
+                    if self.closed:
+                        break
+                except (ConnectionClosed, asyncio.CancelledError):
+                    raise
+                except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
+                    self.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
+                    self.note(P.error("internal", f"{type(e).__name__}: {e}"))
+                await asyncio.sleep(self.budget.wait_s(message))  # a flood is read only as fast as the budget
+                self.holding = False
+        except ConnectionClosed:
+            pass
+
+    async def keepalive_loop(self, interval: float) -> None:
+        """Ping every `interval`; close (1011) a client not heard from for the keepalive's interval + timeout,
+        counted as `Keepalive` says (a long wait for inference under load is the server's doing, not the
+        client's: 11 of 31 fast senders were closed in one 60 s flood when frames made were counted, not read)."""
+        pong: asyncio.Future | None = None
+
+        def answered(f: asyncio.Future) -> None:
+            if not f.cancelled() and f.exception() is None:
+                self.keepalive.heard(time.monotonic())
+
+        while True:
+            await asyncio.sleep(interval)
+            now = time.monotonic()
+            close = self.keepalive.tick(now, self.holding, self.frames_sent, self.awaits_reading)
+            if close is not None:
+                self.errors(logging.WARNING, f"nothing heard for {self.keepalive.silent_s(now):.1f} s (keepalive): "
+                                             f"closing ({'holding its audio, ' if self.holding else ''}"
+                                             f"{self.frames_sent} frames sent, {len(self.queue)} queued)")
+                await self.ws.close(close.code, close.reason)
+                return
+            if pong is None or pong.done():
+                try:
+                    pong = await self.ws.ping()
+                except ConnectionClosed:
+                    return
+                pong.add_done_callback(answered)
+
+    async def leave(self, tasks: list[asyncio.Future]) -> float | None:
+        """The client is gone: cancel everything it has in flight (whatever it waits on), free its slot, its
+        queue and its audio now. Returns the seconds of audio queued if a session was cut short, else None."""
+        session = self.session_task
+        running = session is not None and not session.done()
+        backlog_s = self.source.backlog_s if self.source is not None else 0.0
+        self.act(self.machine.handle(S.Left()))  # (frees its seat; StopSession)
+        pending = [*tasks, *([session] if session is not None else [])]
+        for t in pending:
+            t.cancel()
+        self.queue.clear()
+        self.room.set()
+        if self.source is not None:
+            self.source.chunks.clear()
+            self.source.queued = 0
+            await self.source.close()
+        await asyncio.gather(*pending, return_exceptions=True)
+        self.source = self.session = self.session_task = self.resampler = None
+        return backlog_s if running else None
+
+    # ---- the session machine's actions ----
+
+    def act(self, actions: list) -> list:
+        """Carry out the actions that take no waiting; returns the others, in order."""
+        rest = []
+        for a in actions:
+            if isinstance(a, S.Send):
+                self.put(a.message, a.kind)
+            elif isinstance(a, S.Log):
+                self.errors(a.level, a.text)
+            elif isinstance(a, S.Count):
+                getattr(self.svc.metrics, a.name).inc()
+            elif isinstance(a, S.Refused):
+                self.svc.metrics.refused(a.reason)
+            elif isinstance(a, S.Charge):
+                self.budget.tokens -= a.tokens
+            elif isinstance(a, S.ReplaySourceAudio):
+                for m in self.svc.audio_recent:  # the audio of the frames still to come to a client that joins now
+                    self.put(m, "audio")
+            elif isinstance(a, S.StopSession):
+                if self.session_task is not None:
+                    self.session_task.cancel()
+            elif isinstance(a, S.SaveState):
+                self._save(a)
+            elif isinstance(a, S.Forget):
+                asyncio.get_running_loop().run_in_executor(self.svc.prep, _forget, self.svc.store, a.token)
+            else:
+                rest.append(a)
+        return rest
+
+    async def apply(self, actions: list) -> list:
+        """Carry out the actions, waiting where they wait; returns those only the caller can (Decode, Feed,
+        WaitForSession, SendFrames)."""
+        rest = []
+        for a in self.act(actions):
+            if isinstance(a, S.StartSession):
+                self._start_session(a)
+                if a.restore is not None:
+                    await self._restore(a.restore)
+            elif isinstance(a, S.EndAudio):
+                await self._end_audio()
+            elif isinstance(a, S.TakeState):
+                try:
+                    data = await asyncio.get_running_loop().run_in_executor(self.svc.prep, self.svc.store.take, a.token)
+                    taken = S.Taken(data)
+                except Exception as e:
+                    taken = S.Taken(None, f"{type(e).__name__}: {e}")
+                rest += await self.apply(self.machine.handle(taken))
+            elif isinstance(a, S.Close):
+                await self.drained(asyncio.get_running_loop().time() + a.drain_s)
+                await self.ws.close(a.code, a.reason)
+                self.closed = True
+            else:
+                rest.append(a)
+        return rest
+
+    async def on_audio(self, data: bytes) -> None:
+        machine, loop = self.machine, asyncio.get_running_loop()
+        decode = await self.apply(machine.handle(S.Audio(data)))
+        if not decode:  # refused or ignored
+            return
+        try:
+            x = await loop.run_in_executor(self.svc.prep, P.decode_audio, data, decode[0].fmt)
+        except P.ProtocolError as e:  # bad_audio
+            self.act(machine.handle(S.Failed(e)))
+            return
+        # the previous session is still finishing (or has just failed, its end not yet told to the machine)
+        while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()] or (
+                then and self.source is None):
+            await asyncio.wait([self.session_task])
+            await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
+        if not then:
+            return
+        source, piece, rate = self.source, then[-1].piece, decode[0].fmt.rate
+        for a in range(0, len(x), piece):
+            y = await loop.run_in_executor(self.svc.prep, self._resample, x[a : a + piece])
+            self.act(machine.handle(S.Queuing(source.backlog_s, source.full)))
+            await source.put(y, more_s=max(0, len(x) - a - piece) / rate)
+            if self.source is not source:  # the session failed meanwhile
+                return
+
+    def _start_session(self, start: S.StartSession) -> None:
+        self.source = source = PushSource(self.svc.max_backlog_s)
+        self.resampler, self.resample_from = None, start.rate if start.resample else None
+        self.session = session = self.svc.make_session()
+        session.clock = self.clock
+        session.on_window = session.on_window or self.svc.metrics.window_done
+        machine, loop = self.machine, asyncio.get_running_loop()
+        if start.save_token is not None:
+            session.on_boundary = lambda: self.act(
+                machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
+
+        async def emit(frames: list[Frame]) -> None:
+            for a in self.act(machine.handle(S.Frames(len(frames), source.backlog_s, session.stats.window))):
+                messages = await loop.run_in_executor(self.svc.prep, self.encode, frames)
+                if a.window is not None:
+                    messages.append(P.timing(frames[0].index, len(frames), a.window, time.monotonic()))
+                await self.put_own(messages)
+
+        async def run() -> S.SessionEnded:
+            try:
+                return S.SessionEnded(await session.run(source, emit), handed_over=session.handover)
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:  # the model failed on this audio: the client is told, the server stays up
+                self.errors(logging.ERROR, f"session failed: {type(e).__name__}: {e}", exc_info=True)
+                if self.source is source:
+                    self.source = None
+                await source.close()
+                return S.SessionEnded(handed_over=session.handover, error=f"{type(e).__name__}: {e}")
+
+        def done(task: asyncio.Task) -> None:
+            self.svc.session_ended()  # its queued audio is free: give the pages back (streamer/memory.py)
+            self.act(machine.handle(S.SessionEnded(cancelled=True) if task.cancelled() else task.result()))
+
+        self.session_task = asyncio.create_task(run(), name="ws-session")
+        self.session_task.add_done_callback(done)
+
+    def hand_over(self) -> PushSource | None:
+        """The server stops with a state store: the session stops after the audio it holds, unfinished (its
+        resampler is saved, not flushed); returns its audio queue, for the caller to close."""
+        for a in self.act(self.machine.handle(S.HandOver())):
+            if isinstance(a, S.EndAudio):
+                self.session.handover = True
+                source, self.source = self.source, None
+                return source
+        return None
+
+    async def save_handed_over(self, token: str) -> bool:
+        """Its session, stopped by `hand_over`, to the store under `token`, and `goaway` to the client; False
+        if the store failed (the session then ends as without one)."""
+        session, state, m = self.session, self.session.stream.state, self.machine
+        frames, rate, encoding = m.frames, m.audio.rate, m.encoding
+
+        def save():
+            # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz goes
+            # on exactly when the resampler is saved too, and every output it gave reached the stream: the
+            # client then re-sends from the resampler's own input count.
+            samples, extra, r = state.samples_in * rate // SAMPLE_RATE, {}, self.resampler
+            if r is not None and r.outputs == state.samples_in:
+                extra["resampler"], samples = r.get_state(), r.inputs
+            return session.snapshot(frames, state, rate=rate, encoding=encoding, **extra), samples
+
+        loop = asyncio.get_running_loop()
+        try:
+            data, samples = await loop.run_in_executor(self.svc.prep, save)
+            await loop.run_in_executor(self.svc.prep, self.svc.store.put, token, data)
+        except Exception as e:  # the store is down
+            self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
+            return False
+        self.act(m.handle(S.HandedOver(token, samples)))
+        return True
+
+    async def _end_audio(self) -> None:
+        """The session's audio ended: it sends its last frames and `end` by itself."""
+        if self.source is not None:
+            source, self.source = self.source, None
+            if self.resampler is not None:
+                resampler, self.resampler = self.resampler, None
+                tail = await asyncio.get_running_loop().run_in_executor(self.svc.prep, resampler.flush)
+                await source.put(np.asarray(tail, dtype=np.float32))
+            await source.close()
+
+    async def _restore(self, data: bytes) -> None:
+        """resume_session: the taken state becomes the new session's (`Session.restore`)."""
+        from dimgestor.savestate import StateError
+
+        session, rate = self.session, self.machine.audio.rate
+        try:
+            meta = await asyncio.get_running_loop().run_in_executor(self.svc.prep, session.restore, data)
+        except StateError as e:
+            await self.apply(self.machine.handle(S.NotRestored(str(e))))
+            return
+        inputs = None
+        if meta.get("resampler") is not None and int(meta.get("rate", 0)) == rate:  # its rate converter goes on too
+            self.resampler = make_resampler(rate)
+            self.resampler.set_state(meta["resampler"])
+            inputs = self.resampler.inputs
+        self.act(self.machine.handle(S.Restored(int(meta["frames"]), session.stream.state.samples_in,
+                                                           inputs)))
+
+    def _save(self, save: S.SaveState) -> None:
+        """--save-state-every, between two windows: the state, copied now (a few ms for a megabyte: the next
+        window moves it on), goes to the store under the session's standing token (overwritten each time)."""
+        m, loop = self.machine, asyncio.get_running_loop()
+        data = self.session.snapshot(save.frames, rate=m.audio.rate, encoding=m.encoding)
+
+        async def store() -> None:
+            try:
+                await loop.run_in_executor(self.svc.prep, self.svc.store.put, save.token, data)
+            except Exception as e:  # the store is down: the session goes on unsaved, said (rate-limited)
+                self.svc.departures(logging.WARNING, f"periodic save of {self.who}'s session failed "
+                                                 f"({type(e).__name__}: {e})")
+                return
+            self.act(m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames)))
+
+        task = loop.create_task(store())
+        self._saving.add(task)
+        task.add_done_callback(self._saving.discard)
+
+
+
+    def _resample(self, x: np.ndarray) -> np.ndarray:  # worker thread
+        if self.resample_from is None:
+            return x
+        if self.resampler is None:
+            self.resampler = make_resampler(self.resample_from)
+        return self.resampler.process(x)
+
+
+def _forget(store, token: str) -> None:  # worker thread
+    """An ended session's periodic save: nobody will resume it (a store that is down forgets it by its TTL)."""
+    try:
+        store.take(token)
+    except Exception:
+        pass

@@ -1,0 +1,236 @@
+"""A client's session driven without sockets or an event loop: events in, actions out (streamer/client_session.py)."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from streamer import protocol as P
+from streamer.client_session import (
+    Audio, Boundary, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames, HandedOver,
+    HandOver, Keepalive, Left, Phase, Queuing, Refused, Restored, SaveState, Saved, Seats, Send, SendFrames,
+    SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
+from streamer.sessions import Session
+
+
+def client(seats: Seats) -> ClientSession:
+    tokens = itertools.count()
+    return ClientSession(seats, new_token=lambda: f"t{next(tokens)}")
+
+
+def sent(actions) -> list[dict]:
+    """The JSON messages among the actions."""
+    return [json.loads(a.message) for a in actions if isinstance(a, Send)]
+
+
+def kinds(actions) -> list[str]:
+    return [m.get("code", m["type"]) for m in sent(actions)]
+
+
+def text(**msg) -> Text:
+    return Text(json.dumps(msg), now=12.5)
+
+
+def pcm16(n: int) -> bytes:
+    return np.zeros(n, "<i2").tobytes()
+
+
+def audio_in(c: ClientSession, n: int) -> list:
+    """One audio message of n samples through decoding: the actions after it is decoded."""
+    first = c.handle(Audio(pcm16(n)))
+    assert first == [Decode(pcm16(n), c.audio)]
+    return c.handle(Decoded())
+
+
+def test_a_full_session_with_slow_down_and_resume():
+    seats = Seats(max_sessions=2, max_backlog_s=4.0, save_every_s=None)
+    c = client(seats)
+    assert c.handle(text(type="hello", encoding="binary", audio={"rate": 48000})) == [Charge(25)]
+    assert (c.encoding, c.audio.rate, c.phase) == ("binary", 48000, Phase.IDLE)
+    pong = sent(c.handle(text(type="ping", id=7)))
+    assert pong == [{"type": "pong", "id": 7, "server_time_s": 12.5}]
+
+    start = audio_in(c, 4801)  # odd sizes: the pieces and the resampler are the shell's, the decisions are here
+    assert start[0] == StartSession(1, 48000, None, None) and start[0].resample
+    assert start[1:] == [Count("sessions_started"), Feed(24000)]
+    assert (c.phase, c.own, seats.taken) == (Phase.STREAMING, True, 1)
+    assert audio_in(c, 333) == [Feed(24000)]  # the same session goes on
+
+    assert c.handle(Queuing(backlog_s=1.0, full=False)) == []
+    slow = c.handle(Queuing(backlog_s=4.0, full=True))
+    assert kinds(slow) == ["slow_down"] and slow[0].kind == "ctl" and c.slowed
+    assert c.handle(Queuing(backlog_s=4.0, full=True)) == []  # said once until resumed
+    assert c.handle(Frames(count=2, backlog_s=3.0)) == [SendFrames(None)]  # not yet down to half
+    resumed = c.handle(Frames(count=3, backlog_s=1.5))
+    assert sent(resumed) == [{"type": "resume", "backlog_s": 1.5}] and resumed[1] == SendFrames(None)
+    assert c.frames == 5 and not c.slowed
+
+    assert c.handle(text(type="audio_end")) == [EndAudio(handover=False)]
+    assert c.phase is Phase.FINISHING and seats.taken == 1  # flushing still holds its seat
+    assert audio_in(c, 3) == [WaitForSession()]  # the next stream waits for this one's end
+    assert c.handle(text(type="audio_end")) == []  # an empty stream while the last one finishes: `end` after its
+    ended = c.handle(SessionEnded(frames=9))
+    assert sent(ended) == [{"type": "end", "frames": 9}, {"type": "end", "frames": 0}]
+    assert (c.phase, seats.taken) == (Phase.IDLE, 0)
+    assert sent(c.handle(text(type="audio_end"))) == [{"type": "end", "frames": 0}]
+
+
+def test_a_client_asking_for_timing_gets_the_window_with_its_frames():
+    c = client(Seats(max_sessions=1))
+    c.handle(text(type="hello", timing=True))
+    audio_in(c, 160)
+    assert c.handle(Frames(count=4, backlog_s=0.0, window="w")) == [SendFrames("w")]
+    assert c.handle(Frames(count=0, backlog_s=0.0, window="w")) == []
+
+
+def test_refused_clients_get_one_refusal_per_attempt_and_an_error_per_message():
+    seats = Seats(max_sessions=1)
+    a, b = client(seats), client(seats)
+    audio_in(a, 160)
+    first = audio_in(b, 160)
+    assert first[0] == Refused("busy") and kinds(first) == ["busy"]
+    assert "at most 1 client audio sessions" in sent(first)[0]["message"]
+    again = audio_in(b, 160)
+    assert not any(isinstance(x, Refused) for x in again) and kinds(again) == ["busy"]
+    b.handle(text(type="audio_end"))  # a new attempt: counted again
+    assert audio_in(b, 160)[0] == Refused("busy")
+    assert (seats.taken, b.own, b.phase) == (1, False, Phase.IDLE)
+
+    off = client(Seats(max_sessions=4, accepts_audio=False))
+    refused = off.handle(Audio(pcm16(160)))
+    assert refused[0] == Refused("audio_disabled") and kinds(refused) == ["audio_disabled"]
+    seats.closing = True
+    assert kinds(client(seats).handle(Audio(pcm16(160)))) == ["busy"]
+    assert kinds(a.handle(Audio(pcm16(3)[:5]))) == ["busy"]  # (refused before its bytes are looked at)
+
+
+def test_bad_messages_get_their_error_and_an_unknown_protocol_closes():
+    c = client(Seats(max_sessions=1))
+    assert kinds(c.handle(Text("{not json"))) == ["bad_message"]
+    assert kinds(c.handle(Audio(b"\x00\x01\x02"))) == ["bad_audio"]  # half a sample
+    out = c.handle(text(type="hello", protocol=2))
+    assert kinds(out) == ["unsupported_protocol"] and out[-1] == Close(1002, "unsupported protocol version", 1.0)
+    assert kinds(c.handle(text(type="resume_session", token="x"))) == ["resume_failed"]  # no state store
+
+
+def test_a_client_that_vanishes_mid_audio_frees_its_slot():
+    seats = Seats(max_sessions=1)
+    gone, other = client(seats), client(seats)
+    audio_in(gone, 800)
+    assert kinds(audio_in(other, 160)) == ["busy"]
+    gone.handle(text(type="audio_end"))
+    assert gone.handle(Left()) == [StopSession()]
+    assert seats.taken == 0 and gone.after_session == []
+    assert gone.handle(SessionEnded(cancelled=True)) == []  # its task's end, after it left: nothing more
+    assert seats.taken == 0
+    assert isinstance(audio_in(other, 160)[0], StartSession) and seats.taken == 1
+    assert client(seats).handle(Left()) == []  # (one that never sent audio)
+
+
+def test_a_failed_session_says_why_and_a_paused_client_may_go_on():
+    seats = Seats(max_sessions=1, max_backlog_s=1.0)
+    c = client(seats)
+    audio_in(c, 160)
+    c.handle(Queuing(backlog_s=1.0, full=True))
+    out = c.handle(SessionEnded(error="RuntimeError: boom"))
+    assert kinds(out) == ["internal", "resume"] and (c.phase, seats.taken) == (Phase.IDLE, 0)
+
+
+def test_periodic_saves_between_windows_and_forgotten_at_the_end():
+    seats = Seats(max_sessions=1, resumable=True, save_every_s=1.0)
+    c = client(seats)
+    c.handle(text(type="hello", audio={"rate": 8000}))
+    start = audio_in(c, 800)[0]
+    assert start.save_token == "t0"
+    c.handle(Frames(count=10, backlog_s=0.0))
+    assert c.handle(Boundary(1, 8000)) == []  # 0.5 s of audio: not yet
+    assert c.handle(Boundary(1, 16000)) == [SaveState(1, "t0", 8000, 10)]
+    assert c.handle(Boundary(1, 24000)) == []  # 1.5 s: not yet a second past the last save
+    assert sent(c.handle(Saved(1, "t0", 8000, 10))) == [
+        {"type": "session_saved", "resume_token": "t0", "samples": 8000, "rate": 8000, "frames": 10}]
+    assert c.handle(Boundary(0, 99999)) == []  # (a session that is not the current one)
+    c.handle(text(type="audio_end"))
+    assert c.handle(SessionEnded(frames=12))[-1] == Forget("t0")
+    assert kinds(c.handle(Saved(1, "t0", 8000, 10))) == ["session_saved"]  # (a save that lands after the end)
+    c.handle(Left())
+    assert c.handle(Saved(1, "t0", 8000, 10)) == []
+
+
+@pytest.fixture(scope="module")
+def speech():
+    t = np.arange(16000 * 2) / 16000
+    return (0.3 * np.sin(2 * np.pi * 180 * t) * (1 + np.sin(2 * np.pi * 3 * t))).astype(np.float32)
+
+
+def session_of(bundle) -> Session:
+    return Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)
+
+
+def test_a_session_handed_over_goes_on_elsewhere_exactly(bundle, speech):
+    pieces = [speech[a:b] for a, b in zip([0, 1601, 4000, 12345, 20000], [1601, 4000, 12345, 20000, len(speech)])]
+    whole = session_of(bundle)
+    reference = [f for p in pieces for f in whole.infer(p)] + whole.infer_finish()
+
+    seats = Seats(max_sessions=1, resumable=True)
+    old = client(seats)
+    audio_in(old, 160)
+    first = session_of(bundle)
+    frames = [f for p in pieces[:3] for f in first.infer(p)]
+    old.handle(Frames(count=len(frames), backlog_s=0.0))
+    seats.closing = True
+    assert old.handle(HandOver()) == [EndAudio(handover=True)]
+    assert old.handle(Audio(pcm16(160))) == []  # ignored while it is saved: the client re-sends it
+    data = first.snapshot(old.frames, rate=old.audio.rate, encoding=old.encoding)
+    samples = first.stream.samples_in
+    goaway = old.handle(HandedOver("tok", samples))
+    assert sent(goaway) == [{"type": "goaway", "reason": "restart", "resume_token": "tok", "samples": samples,
+                             "frames": len(frames), "rate": 16000}]
+    old.handle(SessionEnded(frames=len(frames), handed_over=True))
+    assert not any(isinstance(a, Send) for a in old.handle(Left()))
+
+    elsewhere = Seats(max_sessions=1, resumable=True)
+    new = client(elsewhere)
+    assert new.handle(text(type="resume_session", token="tok")) == [TakeState("tok")]
+    start = new.handle(Taken(data))
+    assert start[0] == StartSession(1, 16000, None, data) and elsewhere.taken == 1
+    second = session_of(bundle)
+    meta = second.restore(start[0].restore)
+    assert set(meta) == {"frames", "decoder", "rate", "encoding"}  # the stored format of earlier releases
+    resumed = new.handle(Restored(int(meta["frames"]), second.stream.samples_in))
+    assert resumed[0] == Count("sessions_resumed")
+    assert sent(resumed) == [{"type": "session_resumed", "samples": samples, "rate": 16000, "frames": len(frames)}]
+    frames += [f for p in pieces[3:] for f in second.infer(p)] + second.infer_finish()
+    assert [f.index for f in frames] == [f.index for f in reference]
+    for got, want in zip(frames, reference):
+        assert got.pts == want.pts
+        np.testing.assert_array_equal(got.root_pos, want.root_pos)
+        np.testing.assert_array_equal(got.rotations, want.rotations)
+        np.testing.assert_array_equal(got.features, want.features)
+
+
+def test_resume_is_refused_while_a_session_runs_or_the_token_is_unknown():
+    seats = Seats(max_sessions=1, resumable=True)
+    c = client(seats)
+    assert kinds(c.handle(Taken(None))) == ["resume_failed"]
+    assert "store failed" in sent(c.handle(Taken(None, error="ConnectionError: down")))[0]["message"]
+    audio_in(c, 160)
+    assert kinds(c.handle(text(type="resume_session", token="x"))) == ["resume_failed"]
+    other = client(seats)
+    assert kinds(other.handle(text(type="resume_session", token="x"))) == ["busy"]
+    seats.closing = True
+    assert kinds(other.handle(text(type="resume_session", token="x"))) == ["busy"]
+
+
+def test_keepalive_blames_only_a_client_that_does_not_read():
+    k = Keepalive(interval=1.0, timeout=2.0, now=0.0)
+    assert k.tick(1.0, holding=False, frames_sent=0, awaits_reading=False) is None
+    k.heard(1.5)
+    assert k.tick(4.0, holding=False, frames_sent=0, awaits_reading=False) is None
+    assert k.tick(5.0, holding=False, frames_sent=0, awaits_reading=False) == Close(1011, "keepalive ping timeout")
+    held = Keepalive(interval=1.0, timeout=2.0, now=0.0)
+    for t in range(1, 10):  # held back by the server, frames going out: never blamed
+        assert held.tick(float(t), holding=True, frames_sent=t, awaits_reading=True) is None
+    for t in range(10, 13):  # held, frames waiting and none going out: silence counts
+        assert held.tick(float(t), holding=True, frames_sent=9, awaits_reading=True) is None
+    assert held.tick(13.0, holding=True, frames_sent=9, awaits_reading=True) is not None
