@@ -194,6 +194,10 @@ class Session:
                       np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
                 for i in range(n)]
 
+    def infer(self, samples: np.ndarray) -> list[Frame]:
+        """One window's frames, inferred in the calling thread (what a scheduler runs for `submit_push`)."""
+        return self.frames_of(self.stream.push(samples))
+
     def infer_finish(self) -> list[Frame]:
         """The frames after the audio ended, in the calling thread (a scheduler's worker)."""
         return self.frames_of(self.stream.finish())

@@ -6,7 +6,7 @@ queue and one sender task (`streamer.connection`); the HTTP side of the port is 
 
 Nothing a client sends costs the event loop more than constant work: audio is decoded, resampled and its
 frames encoded in a worker thread, in pieces, one job per client at a time (so the jobs of all clients
-interleave first come first served), and inference runs in the sessions' executor. A client's session lives
+interleave first come first served), and inference runs in the sessions' scheduler. A client's session lives
 exactly as long as its connection: the connection closing cancels whatever its handler is blocked on, frees
 its slot and its queued audio at once and logs one (rate-limited) line. The keepalive is the server's own
 (`Keepalive`): while the server holds a client's data unread on purpose (its backlog is full), its pongs cannot
