@@ -167,7 +167,8 @@ def test_a_test_channel_reaches_a_websocket_client_a_vmc_receiver_and_a_recordin
         async with connect(ws.url) as c:
             hello = await recv_json(c)
             await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
-            await asyncio.sleep(0.2)  # the server has read our hello: frames come binary
+            while not any(c.encoding == "binary" for c in ws.clients):  # the server has read our hello
+                await asyncio.sleep(0.01)
             session = Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)
             n = await session.run(WavSource(tmp_path / "a.wav", realtime=False),
                                   lambda fs: [s.send(fs) for s in sinks])
