@@ -329,7 +329,9 @@ class GestureProcessor(FrameProcessor):
             u.start, gap = begin, 0.0
             u.pts0 = begin - self.origin + self._drift
         else:
-            gap = max(0.0, begin - (u.start + u.pushed_s))
+            gap = begin - (u.start + u.pushed_s)
+            if gap < 0.5 / u.rate:  # (under half a sample: the rounding of sums of clock times, not silence)
+                gap = 0.0
         if gap > 0:
             u.gaps.append((u.audio_s, gap))
         if not u.samples:

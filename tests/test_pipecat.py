@@ -306,6 +306,24 @@ def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypat
     assert shown[11:] == pytest.approx([0.425, 0.475])
 
 
+def test_a_tts_ahead_of_real_time_leaves_no_gap_however_long_the_machine_has_been_up(bundle, monkeypatch):
+    """Chunks pushed ahead of their playout play back to back: no transport gap, so every frame shows audio. The
+    clock's sums round differently from the audio's (picoseconds, more the longer the machine has been up: the
+    monotonic clock counts from boot); a frame at a chunk's edge must not fall into such a "gap". Fake clock."""
+    from streamer import pipecat as sp
+
+    for up in (0.0, 9_876.54321, 15_000.0, 1_234_567.891):
+        clock = SimpleNamespace(monotonic=lambda: up)
+        monkeypatch.setattr(sp, "time", clock)
+        g = sp.GestureProcessor([], bundle=bundle)
+        g.origin = up
+        u = sp._Utterance(0, None, None, None, RATE)
+        for _ in range(100):  # 2 s of 20 ms chunks, all pushed at once
+            assert g._schedule(u, RATE // 50) == 0.0
+        assert u.gaps == []
+        assert [sp._audio_at(u, k / FPS) for k in range(40)] == [k / FPS for k in range(40)]
+
+
 def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_clock(bundle, monkeypatch):
     """Its audio is pushed at 48.7 ms; the transport has not confirmed it when the rest frame due at 50 ms goes out
     (pts 0.05). Its first frame and its audio come after that on the frames' clock, never before (a receiver's
