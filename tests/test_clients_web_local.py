@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from helpers.av_sync import (RECORDER, RECORDING, SHOWN_NOW, assert_sound_starts_at_source_start, late_arrivals,
-                             shown_minus_heard)
+                             missed16, recorded_around, shown_minus_heard, steady, voiced_at)
 from helpers.browser import CHROMIUM, Browser, assert_figure_drawn
 from helpers.clients import REPO, SPEECH_WAV, free_port
 
@@ -322,7 +322,14 @@ def test_local_dropped_wav_is_heard_in_sync_with_its_gestures_and_a_second_drop_
     sync_first = shown_minus_heard(first, played16, start_s, source)
     sync = shown_minus_heard(samples, played16, start_s, source)
     print(f"frame pts - heard pts (s): first {np.round(sync_first, 3)}, second {np.round(sync, 3)}; clock {clock}")
-    assert len(sync) >= 10, f"too few moments with sound to check sync ({len(sync)} of {len(samples)})"
+    # (as the server mode's test: a starved page holds where its sound ran out, so the moments checked are the
+    # steady reads, and where the file speaks at the pts on screen the sound must be heard at most of them)
+    missed = missed16(rec, rate)
+    heard_at = [int((s["t"] - s["drawing"] - s["lat"] - start_s) * 16000) for s in steady(samples)]
+    speaking = sum(voiced_at(source, s["pts"]) and recorded_around(missed, i) for s, i in zip(steady(samples), heard_at))
+    assert len(sync) >= max(4, 2 * speaking // 3), (
+        f"too few moments with sound to check sync ({len(sync)} of {len(samples)} reads; the file speaks at "
+        f"{speaking} steady ones)")
     assert np.all(np.abs(sync_first + sync) < 0.1), f"frames and sound out of sync (s); clock {clock}"
     # The clock may lose itself only where frames came later than anything before by more than its margin (the
     # worker or the page starved on this shared machine: measured in the second stream's arrivals), as watching.
