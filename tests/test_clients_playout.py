@@ -165,17 +165,21 @@ def test_playout_is_the_same_in_every_client(frames_dir, schedule, tmp_path):
                 np.testing.assert_allclose(x["rotations"], y["rotations"], atol=1e-9)
 
 
-def run_clock(tmp_path, head: list[str], arrivals, display) -> tuple[list[dict], dict]:
-    """av_clock_check.mjs on `head` then the arrivals [(t, pts)] and display refreshes in time order."""
-    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
-                    [(t, 1, 0, f"time {t:.6f}") for t in display])
-    sched = tmp_path / "clock.txt"
-    sched.write_text("\n".join(head + [e[3] for e in events]) + "\n")
+def clock_check(sched, lines: list[str]) -> tuple[list[dict], dict]:
+    """av_clock_check.mjs on the schedule `lines` (written to `sched`): its readouts, then its counters."""
+    sched.write_text("\n".join(lines) + "\n")
     r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     out = [json.loads(line) for line in r.stdout.splitlines()]
     return out[:-1], out[-1]
+
+
+def run_clock(tmp_path, head: list[str], arrivals, display) -> tuple[list[dict], dict]:
+    """av_clock_check.mjs on `head` then the arrivals [(t, pts)] and display refreshes in time order."""
+    events = sorted([(t, 0, i, f"arrive {p:.6f} {t:.6f}") for i, (t, p) in enumerate(arrivals)] +
+                    [(t, 1, 0, f"time {t:.6f}") for t in display])
+    return clock_check(tmp_path / "clock.txt", head + [e[3] for e in events])
 
 
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
@@ -336,13 +340,7 @@ def test_web_av_clock_talking_gives_back_the_start_allowance_of_a_slow_page(tmp_
 def run_turns(tmp_path, arrivals, turns) -> tuple[list[dict], dict]:
     """av_clock_check.mjs: the arrivals [(t, pts)] and turns of a page playing the sound, in time order."""
     events = sorted([(t, 0, f"arrive {p:.6f} {t:.6f}") for t, p in arrivals] + [(t, 1, f"turn {t:.6f}") for t in turns])
-    sched = tmp_path / "turns.txt"
-    sched.write_text("\n".join([f"margin {DELAY_S}"] + [e[2] for e in events]) + "\n")
-    r = subprocess.run([NODE, str(REPO / "clients/web/tests/av_clock_check.mjs"), str(sched)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    return out[:-1], out[-1]
+    return clock_check(tmp_path / "turns.txt", [f"margin {DELAY_S}"] + [e[2] for e in events])
 
 
 @pytest.mark.skipif(not NODE, reason="node not installed (Debian: apt-get install nodejs)")
