@@ -86,14 +86,21 @@ def recorded_around(missed: list[tuple[int, int]], idx: int, half: int = 1600) -
     return not any(a < idx + half and b > idx - half for a, b in missed)
 
 
-def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray) -> list[float]:
+def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray,
+                      missed: list[tuple[int, int]] = ()) -> list[float]:
     """For each steady SHOWN_NOW read: the pts on screen minus the source time heard when the page picked it (s),
     found from the recorded sound (`played16`, 16 kHz, its first sample at context time `start_s`); silent moments
     left out. (The time the page then took to draw it is the renderer's: on a starved machine SwiftShader takes
-    0.1 s and more.)"""
+    0.1 s and more.) Reads left out too: where the recorder missed blocks (`missed`, from missed16) between the
+    pick and the read, or around what was heard. There the audio context skipped render quanta, so its clock
+    jumped ahead of the page's between the two, and "the context time of the pick" (the read's time less the
+    page's time since the pick) lands as far after what was really heard as the skip was long."""
     sync = []
     for s in steady(samples):
-        heard_idx = int((s["t"] - s.get("drawing", 0) - s["lat"] - start_s) * 16000)  # index into played16
+        read_idx = int((s["t"] - s["lat"] - start_s) * 16000)
+        heard_idx = read_idx - int(s.get("drawing", 0) * 16000)  # index into played16
+        if any(a < read_idx + 800 and b > heard_idx - 800 for a, b in missed):
+            continue
         heard = heard_pts(played16, heard_idx, source, near=s["pts"])
         if heard is not None:
             sync.append(s["pts"] - heard)
