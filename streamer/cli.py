@@ -168,6 +168,13 @@ def _output_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--vmc-jitter-ms", type=float, metavar="MS",
               help="VMC jitter buffer: frames are sent this long after the earliest they could be (default: one "
                    "window, --window-ms)"),
+        _flag(g, "--face", choices=("vrm0", "vrm1", "arkit", "oculus", "none"),
+              help="the face (mouth, blinks, brows) made from the same speech as the body, and the blendshape "
+                   "names it is sent with over VMC and to WebSocket clients that do not choose their own: 'vrm0' "
+                   "(A I U E O Blink Blink_L Blink_R Joy), 'vrm1' (aa ih ou ee oh blink...), 'arkit' (its 52), "
+                   "'oculus' (viseme_sil... as Ready Player Me names them), 'none' (no face: bones only)"),
+        _flag(g, "--smile", type=float, metavar="W",
+              help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
         _flag(g, "--record", metavar="OUT.bvh",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s)"),

@@ -11,7 +11,7 @@ ignores the channels its map does not name.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 
@@ -26,6 +26,10 @@ class Channel:
     size: int
     description: str = ""
     labels: tuple[str, ...] = ()  # e.g. blendshape names; empty: the values are unnamed
+    # A sink's view of a frame channel: the values of frame channel `source` (default: this name) through
+    # `derive` (e.g. the canonical face as ARKit's 52 names); None: as the frame has them.
+    source: str = ""
+    derive: Callable[[np.ndarray], np.ndarray] | None = field(default=None, compare=False)
 
     def __post_init__(self):
         if not self.name or not self.name.replace("_", "").isalnum() or not self.name.isascii():
@@ -48,10 +52,12 @@ class Frame:
 
 def channel_values(frame: Frame, channel: Channel) -> np.ndarray:
     """The frame's values of `channel` as float64 (size,): zeros when the frame lacks it (e.g. a rest pose)."""
-    values = frame.channels.get(channel.name)
+    values = frame.channels.get(channel.source or channel.name)
     if values is None:
         return np.zeros(channel.size)
     values = np.atleast_1d(np.asarray(values, dtype=np.float64))
+    if channel.derive is not None:
+        values = np.atleast_1d(np.asarray(channel.derive(values), dtype=np.float64))
     if values.shape != (channel.size,):
         raise ValueError(f"frame {frame.index}: channel {channel.name} has shape {values.shape}, "
                          f"its spec says ({channel.size},)")

@@ -83,6 +83,9 @@ class ServeOptions(BaseModel):
     vmc_bones: Literal["all", "upper"] = "all"
     vmc_max_bytes: int = 0
     vmc_jitter_ms: float | None = Field(None, ge=0, le=5000)  # None: one window (window_ms)
+    # the face
+    face: Literal["vrm0", "vrm1", "arkit", "oculus", "none"] = "vrm0"  # the default name set; none: no face
+    smile: float = Field(0.0, ge=0, le=1)
     # the rest
     record: str | None = None  # a BVH path
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json
@@ -108,6 +111,12 @@ class ServeOptions(BaseModel):
         from dimgestor.cli_help import smoothing_from_flag
 
         return smoothing_from_flag(self.smooth)
+
+    def face_options(self):
+        """--face/--smile/--seed as `Session` takes them: `FaceOptions`, or None for --face none."""
+        from dimgestor.face import FaceOptions
+
+        return None if self.face == "none" else FaceOptions(seed=self.seed, smile=self.smile)
 
     def vmc(self):
         """The --vmc-* flags as `VmcOptions`."""

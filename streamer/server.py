@@ -187,10 +187,11 @@ def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: flo
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
-                       scheduler=scheduler, name=name)
+                       scheduler=scheduler, name=name, face=options.face_options())
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
-                               window_ms=options.window_ms, scheduler=scheduler, name=name)
+                               window_ms=options.window_ms, scheduler=scheduler, name=name,
+                               face=options.face_options())
 
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:

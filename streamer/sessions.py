@@ -19,16 +19,20 @@ from collections import deque
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import AsyncIterable, Callable, Mapping
+from typing import TYPE_CHECKING, AsyncIterable, Callable, Mapping
 
 import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
+from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.scheduling import Scheduler, as_scheduler
 from streamer.sources import AudioChunk
 
 __all__ = ["Session", "Stats", "AudioClock", "WindowTiming"]
+
+if TYPE_CHECKING:
+    from dimgestor.face import FaceOptions
 
 
 @dataclass(frozen=True)
@@ -145,7 +149,7 @@ class Session:
 
     def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
                  window_ms: int = 200, scheduler: Scheduler | Executor | None = None, name: str = "session", *,
-                 executor: Executor | None = None):
+                 executor: Executor | None = None, face: "FaceOptions | None" = None):
         if executor is not None:
             if scheduler is not None:
                 raise TypeError("Session: give scheduler= only (executor= is its deprecated name)")
@@ -160,10 +164,18 @@ class Session:
         self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
         self.handover = False  # set before the source closes: stop after its audio, unfinished (handover.py)
         self.on_boundary: Callable[[], None] | None = None  # after each window: state, decoder and frames agree
+        # The face (`dimgestor.face`): made from the same audio in the same call as the body's frames, into each
+        # frame's channel "face". None: frames carry no face.
+        self.face_options = face
+        self._face = None
+        self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
+        self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
+        self._finishing = False
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
                     tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
+        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face)."""
         from dimgestor.features import PoseDecoder
 
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
@@ -188,6 +200,8 @@ class Session:
         feats = np.asarray(self.denormalize(normalized), dtype=np.float64)
         pose = self.decoder.decode(feats)
         made = {name: np.asarray(make(feats)) for name, make in self.channels.items()}
+        if self.face_options is not None:
+            made[FACE] = self._face_rows(n)
         if any(len(v) != n for v in made.values()):
             raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
@@ -196,11 +210,33 @@ class Session:
 
     def infer(self, samples: np.ndarray) -> list[Frame]:
         """One window's frames, inferred in the calling thread (what a scheduler runs for `submit_push`)."""
+        self._face_audio.append(samples)
         return self.frames_of(self.stream.push(samples))
 
     def infer_finish(self) -> list[Frame]:
         """The frames after the audio ended, in the calling thread (a scheduler's worker)."""
+        self._finishing = True
         return self.frames_of(self.stream.finish())
+
+    def set_smile(self, smile: float) -> None:
+        """The expression held under the speech from the next frames on (0..1); no-op without a face."""
+        self.face_options = self.face_options and dataclasses.replace(self.face_options, smile=float(smile))
+        if self._face is not None:
+            self._face.smile = float(smile)
+
+    def _face_rows(self, n: int) -> np.ndarray:
+        """The face of the stream's newest n frames, from the audio given since the last call (the call's own)."""
+        if self._face is None:
+            from dimgestor.face import FaceStream
+
+            lookahead = np.floor(min(self.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
+            sample, frame = self._face_start
+            self._face = FaceStream(self.fps, lookahead, self.face_options, start_sample=sample, start_frame=frame)
+        while self._face_audio:
+            self._face.push(self._face_audio.popleft())
+        if self._finishing and self._face.frames_ready < n:
+            self._face.finish()
+        return self._face.take(n)
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
         """The session as bytes (`dimgestor.savestate`): the stream's state (default: its own now), the pose
@@ -220,6 +256,7 @@ class Session:
         root = dict(meta["decoder"])
         self.stream.state = state
         self.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
+        self._face, self._face_start = None, (int(state.samples_in), int(self.stream.frames_out))  # listens afresh
         self.clock.audio_s = state.samples_in / SAMPLE_RATE
         return meta
 
@@ -275,6 +312,7 @@ class Session:
             t0 = time.perf_counter()
             later = sum(len(c) for c in calls[k + 1:]) / SAMPLE_RATE
             rank = self.clock.rank(len(call) / SAMPLE_RATE, later + waiting_s())
+            self._face_audio.append(call)  # (the worker's frames_of takes it: calls of a session never overlap)
             frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, rank))
             self.clock.audio_s += len(call) / SAMPLE_RATE
             infer_s += time.perf_counter() - t0

@@ -1,0 +1,114 @@
+"""The rest of a speaking face, from the same audio as the mouth: blinks, brows on pitch accents, a smile.
+
+Each is a small state machine stepped once per frame on the stream's clock, deterministic for a seed (a blink's
+time is drawn from a counter-based generator keyed by the seed and the blink's number), so a stream pushed in
+any pieces blinks exactly as the whole recording does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Blinks", "Brows", "pitch_semitones"]
+
+
+def _draw(seed: int, k: int, n: int = 3) -> np.ndarray:
+    """n uniform numbers for the k-th blink of stream `seed`: the same whatever happened before it."""
+    return np.random.Generator(np.random.Philox(key=[seed & 0xFFFFFFFFFFFFFFFF, k])).random(n)
+
+
+def _shape(u: np.ndarray) -> np.ndarray:
+    """Eyelid closure u seconds after a blink began: closes in 80 ms, stays 40 ms, opens over 180 ms."""
+    close, hold, open_ = 0.08, 0.04, 0.18
+    return np.where(u < 0, 0.0, np.where(u < close, u / close, np.where(u < close + hold, 1.0,
+                    np.clip(1 - (u - close - hold) / open_, 0, 1))))
+
+
+@dataclass
+class Blinks:
+    """Spontaneous blinks as people blink while talking: intervals from a gamma distribution (mean `mean_s`,
+    shape 2: irregular, never metronomic, none shorter than `min_s`), and a blink at a phrase's end (speech of at
+    least a second, then a pause) when the eyes have been open long enough. Times are continuous (not on the frame
+    grid); the lids are sampled at each frame."""
+
+    seed: int = 0
+    mean_s: float = 3.6
+    min_s: float = 0.9
+    phrase_p: float = 0.6
+    count: int = 0
+    last: float = -10.0           # when the newest blink began (s)
+    next_at: float | None = None  # when the next spontaneous one begins
+    started: list = field(default_factory=list)  # blink onsets (s), for statistics
+
+    def step(self, t: float, phrase_end: bool) -> tuple[float, float]:
+        """The lids' closure (left, right) at time t (frames in order); `phrase_end`: a pause begins at t."""
+        if self.next_at is None:
+            self.next_at = t + self._interval()
+        if phrase_end and t - self.last > 1.5:
+            u = _draw(self.seed, self.count)
+            if u[2] < self.phrase_p:
+                self._begin(t + 0.05 * u[0])
+        if t >= self.next_at:
+            self._begin(self.next_at)
+        closure = float(_shape(np.array(t - self.last)))
+        right = closure * (0.93 + 0.07 * _draw(self.seed, self.count - 1, 1)[0])  # the eyes are never identical
+        return closure, right
+
+    def _begin(self, at: float) -> None:
+        self.last = at
+        self.started.append(at)
+        self.count += 1
+        self.next_at = at + self._interval()
+
+    def _interval(self) -> float:
+        u = _draw(self.seed, self.count)
+        # gamma(2) by the sum of two exponentials, from two uniforms
+        return max(self.min_s, -self.mean_s / 2 * (np.log1p(-u[0]) + np.log1p(-u[1])))
+
+
+def pitch_semitones(x: np.ndarray, rate: int = 16000, fmin: float = 70.0, fmax: float = 400.0) -> float | None:
+    """The fundamental of a short stretch of speech in semitones above 100 Hz (normalized autocorrelation);
+    None where it is not clearly voiced."""
+    x = np.asarray(x, np.float64) - np.mean(x)
+    if np.sqrt(np.mean(x**2)) < 1e-3:
+        return None
+    lo, hi = int(rate / fmax), int(rate / fmin)
+    if len(x) < 2 * hi:
+        return None
+    n = len(x) - hi
+    a = x[:n]
+    windows = np.lib.stride_tricks.sliding_window_view(x, n)[lo:hi]  # (lags, n): x[k:k + n]
+    sq = np.concatenate([[0.0], np.cumsum(x**2)])
+    energy = sq[lo + n:hi + n] - sq[lo:hi]
+    r = windows @ a / np.sqrt(np.dot(a, a) * energy + 1e-12)
+    k = int(np.argmax(r))
+    best, lag = float(r[k]), lo + k
+    if best < 0.6:
+        return None
+    return float(12 * np.log2(rate / lag / 100.0))
+
+
+@dataclass
+class Brows:
+    """Brows raised on pitch-accented syllables: a voiced frame more than `rise` semitones above the speaker's
+    recent median pitch raises them, and they settle over `release_s`."""
+
+    fps: int = 20
+    rise: float = 1.5
+    span: float = 3.0
+    release_s: float = 0.35
+    gain: float = 0.6
+    level: float = 0.0
+    recent: list = field(default_factory=list)  # voiced pitches of the last 5 s (semitones)
+
+    def step(self, semitones: float | None, loud: float) -> float:
+        accent = 0.0
+        if semitones is not None:
+            self.recent.append(semitones)
+            del self.recent[: max(0, len(self.recent) - 5 * self.fps)]
+            if len(self.recent) >= self.fps:  # a second of voice before judging what is high for this speaker
+                accent = float(np.clip((semitones - np.median(self.recent) - self.rise) / self.span, 0, 1)) * loud
+        self.level = max(accent, self.level * float(np.exp(-1.0 / (self.fps * self.release_s))))
+        return self.gain * self.level

@@ -1,0 +1,122 @@
+"""The face's listener: which speech sound is heard when, from a phone recognizer run on the live stream with a
+bounded lookahead (pocketsphinx's English acoustic model and phone language model, both in its PyPI wheel).
+
+Deterministic whatever the chunking: audio is fed in fixed 10 ms blocks on the stream's absolute clock, and the
+phones at frame i are read from the recognizer's best path right after the block that completes the audio up to
+frame i's time plus the lookahead; so a stream pushed in any pieces reads exactly what the whole recording pushed
+at once reads. The recognizer's utterance restarts at a pause (and at least every `max_utterance_s`) so a
+stream of hours costs the same per frame as its first minute.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dimgestor.face.visemes import canonical_phone
+
+__all__ = ["PhoneListener", "Segment"]
+
+BLOCK = 160  # samples (10 ms at 16 kHz): the recognizer's frame
+RATE = 16000
+
+
+@dataclass(frozen=True)
+class Segment:
+    phone: str
+    start: float  # s on the stream's clock
+    end: float
+
+
+def _decoder(beam: float, pbeam: float, lw: float):
+    from pocketsphinx import Config, Decoder, get_model_path, set_loglevel
+
+    set_loglevel("FATAL")
+    model = get_model_path()
+    config = Config(hmm=os.path.join(model, "en-us", "en-us"),
+                    allphone=os.path.join(model, "en-us", "en-us-phone.lm.bin"),
+                    beam=beam, pbeam=pbeam, lw=lw, loglevel="FATAL")
+    return Decoder(config)
+
+
+@dataclass
+class PhoneListener:
+    """Push 16 kHz audio; `ready` then holds the phone segments around each frame whose lookahead is complete."""
+
+    fps: int
+    lookahead_s: float
+    context_s: float = 0.12          # phones kept each side of a frame's time (coarticulation)
+    max_utterance_s: float = 20.0
+    pause_s: float = 0.3
+    beam: float = 1e-20
+    pbeam: float = 1e-20
+    lw: float = 2.0
+    blocks_in: int = 0               # 10 ms blocks fed so far
+    next_frame: int = 0
+    ready: list = field(default_factory=list)   # [(frame index, [Segment, ...])]
+    _pending: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int16))
+    _done: list = field(default_factory=list)   # final segments of ended utterances (recent ones only)
+    _utt_start: int = 0                         # block where the running utterance began
+    start_sample: int = 0                       # where on the stream's clock listening began (a resumed stream)
+    start_frame: int = 0
+
+    def __post_init__(self):
+        self.blocks_in, self.next_frame = self.start_sample // BLOCK, self.start_frame
+        self._utt_start = self.blocks_in
+        self._pending = np.zeros(self.start_sample % BLOCK, np.int16)
+        if self.lookahead_s < self.context_s:
+            raise ValueError(f"the face's lookahead ({self.lookahead_s} s) must cover its context ({self.context_s} s)")
+        self._decoder = _decoder(self.beam, self.pbeam, self.lw)
+        self._decoder.start_utt()
+
+    def push(self, samples: np.ndarray) -> None:
+        pcm = (np.clip(np.asarray(samples, np.float32), -1, 1) * 32767).astype(np.int16)
+        pcm = np.concatenate([self._pending, pcm])
+        whole = len(pcm) // BLOCK * BLOCK
+        for s in range(0, whole, BLOCK):
+            self._block(pcm[s:s + BLOCK])
+        self._pending = pcm[whole:]
+
+    def finish(self) -> None:
+        """Silence until every frame of the audio pushed is ready."""
+        end_s = (self.blocks_in * BLOCK + len(self._pending)) / RATE
+        frames = int(np.ceil(end_s * self.fps - 1e-9))
+        while self.next_frame < frames:
+            self.push(np.zeros(BLOCK, np.float32))
+
+    def _block(self, pcm: np.ndarray) -> None:
+        self._decoder.process_raw(pcm.tobytes(), False, False)
+        self.blocks_in += 1
+        now = self.blocks_in * BLOCK / RATE
+        while (self.next_frame / self.fps) + self.lookahead_s <= now + 1e-9:
+            t = self.next_frame / self.fps
+            segs = [s for s in self.segments() if s.end > t - self.context_s and s.start < t + self.context_s]
+            self.ready.append((self.next_frame, segs))
+            self.next_frame += 1
+        self._maybe_restart(now)
+
+    def segments(self) -> list[Segment]:
+        """The ended utterances' segments kept, then the running utterance's best path so far."""
+        offset = self._utt_start * BLOCK / RATE
+        running = [Segment(canonical_phone(s.word), offset + s.start_frame / 100, offset + (s.end_frame + 1) / 100)
+                   for s in (self._decoder.seg() or ())]
+        return self._done + running
+
+    def _maybe_restart(self, now: float) -> None:
+        length = now - self._utt_start * BLOCK / RATE
+        if length < 2 * self.lookahead_s + self.pause_s:
+            return
+        tail = [s for s in self.segments() if s.end > now - self.pause_s]
+        paused = tail and all(s.phone == "SIL" for s in tail) and tail[0].start <= now - self.pause_s
+        if not (paused or length >= self.max_utterance_s):
+            return
+        self._decoder.end_utt()
+        offset = self._utt_start * BLOCK / RATE
+        final = [Segment(canonical_phone(s.word), offset + s.start_frame / 100, offset + (s.end_frame + 1) / 100)
+                 for s in (self._decoder.seg() or ())]
+        keep_from = now - self.lookahead_s - 2 * self.context_s
+        self._done = [s for s in self._done + final if s.end > keep_from]
+        self._utt_start = self.blocks_in
+        self._decoder.start_utt()

@@ -1,0 +1,157 @@
+"""A face that streams with the body: push the same 16 kHz audio the gesture stream gets, take one canonical face
+frame (`visemes.FACE_LABELS`) per body frame.
+
+Frame i is made once the audio up to its time plus `lookahead_s` is in: the body's own lookahead, so the face adds
+no latency (a body frame exists only after that audio came). The mouth is the phones heard around frame i
+(`listener.py`), each a viseme and a jaw opening (`visemes.py`), blended over +-`blend_s` the way neighbouring
+sounds shape each other; lips close fully inside M, B, P; the shape scales with how loud the voice is against
+its recent peak, so it rests in silence and pauses. Blinks, brows and a smile come from `life.py`.
+
+Streaming equals offline: every part steps on the stream's absolute clock in fixed blocks, so any chunking of the
+audio gives the same frames.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+import numpy as np
+
+from dimgestor.face.life import Blinks, Brows, pitch_semitones
+from dimgestor.face.listener import BLOCK, PhoneListener, Segment
+from dimgestor.face.visemes import FACE_LABELS, V, phone_targets
+
+__all__ = ["FaceStream", "FaceOptions", "MAX_LOOKAHEAD_S"]
+
+RATE = 16000
+MAX_LOOKAHEAD_S = 0.3   # more adds latency to a model that looks further ahead, and nothing measurable
+_CLOSED = ("M", "B", "P")
+_MOUTH = slice(0, V["jawOpen"] + 1)
+
+
+@dataclass(frozen=True)
+class FaceOptions:
+    """How the face is made (defaults measured on real speech: benchmarks/face.py)."""
+
+    blend_s: float = 0.04        # half width of the triangle over which neighbouring phones blend
+    loud_range_db: float = 30.0  # the mouth scales from this far below the recent peak (closed) to the peak
+    loud_power: float = 0.5
+    peak_s: float = 2.0          # the recent peak: the loudest 40 ms of the last peak_s
+    seed: int = 0                # the blinks' draws
+    smile: float = 0.0           # the expression held under the speech (0..1), settable while streaming
+
+
+class FaceStream:
+    """push(samples) the stream's audio; take(n) the next n face frames, (n, len(FACE_LABELS))."""
+
+    def __init__(self, fps: int, lookahead_s: float, options: FaceOptions = FaceOptions(), *, start_sample: int = 0,
+                 start_frame: int = 0):
+        self.fps, self.options = fps, options
+        self.lookahead_s = min(float(lookahead_s), MAX_LOOKAHEAD_S)
+        self.smile = options.smile
+        self.listener = PhoneListener(fps, self.lookahead_s, context_s=min(0.12, self.lookahead_s),
+                                      start_sample=start_sample, start_frame=start_frame)
+        self.blinks = Blinks(seed=options.seed)
+        self.brows = Brows(fps=fps)
+        self._keep = int((options.peak_s + 2 * self.lookahead_s + 0.1) * RATE)
+        self._buf = np.zeros(2 * self._keep, np.float32)  # the newest samples (at most 2 keep), for loudness, pitch
+        self._held = 0                                    # samples in _buf
+        self._audio_end = start_sample                    # absolute index after the newest sample
+        self._loud = {}                                # frame -> dB of its 40 ms
+        self._speech_run = 0.0                         # seconds of speech before the frame being made
+        self._rows: collections.deque = collections.deque()
+
+    @property
+    def frames_ready(self) -> int:
+        return len(self._rows)
+
+    def push(self, samples: np.ndarray) -> None:
+        """In the listener's 10 ms blocks on the stream's clock, each frame made as soon as its block is in: what
+        a frame reads is the same whatever pieces the audio came in."""
+        samples = np.asarray(samples, np.float32).reshape(-1)
+        at = 0
+        while at < len(samples):
+            piece = samples[at:at + BLOCK - self._audio_end % BLOCK]
+            self._hold(piece)
+            self.listener.push(piece)
+            self._make()
+            at += len(piece)
+
+    def _hold(self, piece: np.ndarray) -> None:
+        if self._held + len(piece) > len(self._buf):
+            self._buf[: self._keep] = self._buf[self._held - self._keep:self._held]
+            self._held = self._keep
+        self._buf[self._held:self._held + len(piece)] = piece
+        self._held += len(piece)
+        self._audio_end += len(piece)
+
+    def finish(self) -> None:
+        """The audio ended: silence after it until every frame of it is made."""
+        pad = int(np.ceil((self.lookahead_s + 0.05) * RATE))
+        self.push(np.zeros(pad, np.float32))
+        self.listener.finish()
+        self._make()
+
+    def take(self, n: int) -> np.ndarray:
+        if n > len(self._rows):
+            raise RuntimeError(f"{n} face frames asked, {len(self._rows)} made: the face's lookahead "
+                               f"({self.lookahead_s} s) exceeds the caller's")
+        return np.array([self._rows.popleft() for _ in range(n)]).reshape(n, len(FACE_LABELS))
+
+    # -- making a frame ---------------------------------------------------------------------------------------
+    def _make(self) -> None:
+        while self.listener.ready:
+            index, segments = self.listener.ready.pop(0)
+            self._rows.append(self._frame(index, segments))
+
+    def _window(self, centre: float, half_s: float) -> np.ndarray:
+        c = int(round(centre * RATE))
+        lo, hi = c - int(half_s * RATE), c + int(half_s * RATE)
+        first = self._audio_end - self._held
+        lo, hi = max(lo, first), min(hi, self._audio_end)
+        if hi <= lo:
+            return np.zeros(0, np.float32)
+        return self._buf[lo - first:hi - first]
+
+    def _db(self, frame: int) -> float:
+        if frame not in self._loud:
+            x = self._window(frame / self.fps, 0.02)
+            self._loud[frame] = 10 * np.log10(np.mean(x.astype(np.float64) ** 2) + 1e-10) if len(x) else -100.0
+        return self._loud[frame]
+
+    def _frame(self, index: int, segments: list[Segment]) -> np.ndarray:
+        o, t = self.options, index / self.fps
+        out = np.zeros(len(FACE_LABELS))
+        # The mouth: phones blended over a triangle around t, lips shut inside a closure.
+        weights = 0.0
+        for u in np.linspace(t - o.blend_s, t + o.blend_s, 9):
+            k = 1 - abs(u - t) / o.blend_s + 1e-3
+            for s in segments:
+                if s.start <= u < s.end:
+                    out += k * phone_targets(s.phone)
+                    weights += k
+                    break
+        if weights:
+            out /= weights
+        now = next((s.phone for s in segments if s.start <= t < s.end), "SIL")
+        if now in _CLOSED:
+            out[_MOUTH] *= 0.2
+            out[V["PP"]] = 1.0
+        # Loudness against the recent peak: the shape in full at the peak, none 30 dB under it.
+        ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
+        peak = max(self._db(j) for j in range(max(0, index - int(o.peak_s * self.fps)), index + ahead + 1))
+        level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
+        out[_MOUTH] *= level
+        out[V["PP"]] = max(out[V["PP"]], 1.0 if now in _CLOSED else 0.0)
+        for old in [k for k in self._loud if k < index - int(o.peak_s * self.fps)]:
+            del self._loud[old]
+        # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
+        speaking = now != "SIL"
+        phrase_end = not speaking and self._speech_run >= 1.0
+        self._speech_run = self._speech_run + 1 / self.fps if speaking else 0.0
+        out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(t, phrase_end)
+        semitones = pitch_semitones(self._window(t, 0.02)) if speaking else None
+        out[V["browUp"]] = self.brows.step(semitones, level)
+        out[V["smile"]] = self.smile * (1 - 0.5 * out[V["jawOpen"]])
+        return out

@@ -1,0 +1,60 @@
+"""The face as a stream: the same frames whatever the chunking, a resting mouth in silence, and its place in every
+session frame (within the body's lookahead, no frame later)."""
+
+import numpy as np
+import pytest
+
+from dimgestor.audio import SAMPLE_RATE, load_wav
+from dimgestor.face import FACE_LABELS, FaceOptions, FaceStream
+from dimgestor.face.visemes import V
+from helpers.clients import SPEECH_WAV
+
+SPEECH = load_wav(SPEECH_WAV)[: 6 * SAMPLE_RATE]  # espeak-ng English, 6 s
+
+
+def stream_face(audio, sizes, lookahead_s=0.3, **options):
+    face, rows, at, k = FaceStream(20, lookahead_s, FaceOptions(**options)), [], 0, 0
+    while at < len(audio):
+        n = sizes[k % len(sizes)]
+        face.push(audio[at:at + n])
+        rows.append(face.take(face.frames_ready))
+        at, k = at + n, k + 1
+    face.finish()
+    rows.append(face.take(face.frames_ready))
+    return np.concatenate(rows)
+
+
+def test_streamed_face_equals_the_whole_recording_for_awkward_chunk_sizes():
+    whole = stream_face(SPEECH, [len(SPEECH)])
+    assert whole.shape[1] == len(FACE_LABELS) and len(whole) >= 6 * 20
+    for sizes in ([1, 159, 161, 3333], [7], [160 * 5 + 1, 17]):
+        pieces = stream_face(SPEECH, sizes)
+        np.testing.assert_array_equal(pieces, whole, err_msg=f"chunk sizes {sizes}")
+
+
+def test_speech_opens_the_mouth_and_silence_rests_it():
+    audio = np.concatenate([np.zeros(SAMPLE_RATE, np.float32), SPEECH[: 3 * SAMPLE_RATE],
+                            np.zeros(2 * SAMPLE_RATE, np.float32)])
+    face = stream_face(audio, [3200])
+    jaw = face[:, V["jawOpen"]]
+    speaking, after = jaw[25:75], jaw[int(4.3 * 20):int(6 * 20)]
+    assert speaking.max() > 0.6 and np.mean(speaking > 0.2) > 0.4, np.round(speaking, 2)
+    assert np.all(jaw[:15] == 0) and np.all(after == 0), (np.round(jaw[:15], 2), np.round(after, 2))
+    vowels = face[25:75][:, [V[v] for v in ("aa", "I", "U", "E", "O")]]
+    assert len({int(np.argmax(r)) for r in vowels if r.max() > 0.2}) >= 3, "the vowels take several shapes"
+
+
+def test_a_silent_stream_blinks_and_never_opens_its_mouth():
+    face = stream_face(np.zeros(30 * SAMPLE_RATE, np.float32), [16000])
+    assert np.all(face[:, V["PP"]: V["jawOpen"] + 1] == 0) and np.all(face[:, V["sil"]] == 1)  # the rest viseme
+    onsets = np.flatnonzero(np.diff((face[:, V["blinkLeft"]] > 0.5).astype(int)) == 1)
+    assert 4 <= len(onsets) <= 14, f"{len(onsets)} blinks in 30 s"
+
+
+def test_the_face_is_ready_within_its_lookahead_and_a_longer_one_is_capped():
+    face = FaceStream(20, 0.35)
+    assert face.lookahead_s == 0.3
+    face.push(SPEECH[: int(1.0 * SAMPLE_RATE)])
+    assert face.frames_ready == int(round((1.0 - 0.3) * 20)) + 1  # frames 0..14: each up to its time + 0.3 s
+    with pytest.raises(RuntimeError, match="lookahead"):
+        face.take(face.frames_ready + 1)
