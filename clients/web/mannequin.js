@@ -11,6 +11,7 @@ const MATERIALS = {
   hair: new THREE.MeshStandardMaterial({ color: 0x2e2724, roughness: 0.75 }),
   eye: new THREE.MeshStandardMaterial({ color: 0x14171c, roughness: 0.15 }),
   lips: new THREE.MeshStandardMaterial({ color: 0xb86f62, roughness: 0.6 }),
+  mouth: new THREE.MeshStandardMaterial({ color: 0x3a1414, roughness: 0.9 }),
   shoe: new THREE.MeshStandardMaterial({ color: 0x39404c, roughness: 0.6 }),
 };
 const SPHERE = new THREE.SphereGeometry(1, 40, 24);
@@ -65,8 +66,10 @@ function profiledTube(y0, y1, prof, capBottom, capTop, rings = 16, around = 36) 
 }
 
 /**
- * Build the mannequin's meshes onto `joints` (Object3Ds in skeleton order, at rest). Returns the meshes and
- * the rest pose's facing: {meshes, forward, up, left, bounds (Box3, file units)}.
+ * Build the mannequin's meshes onto `joints` (Object3Ds in skeleton order, at rest). Returns the meshes, the
+ * rest pose's facing and its face: {meshes, forward, up, left, bounds (Box3, file units), face}; face.set({jaw,
+ * blinkLeft, blinkRight}) (0..1, face.js mouthOf) opens the mouth and closes the eyelids, face.state is what it
+ * shows (a skeleton without a head: nothing to show, the state still kept).
  */
 export function buildMannequin(skeleton, humanoid, joints) {
   const names = skeleton.joints, parents = skeleton.parents;
@@ -178,7 +181,9 @@ export function buildMannequin(skeleton, humanoid, joints) {
     });
   }
 
-  // ---- neck and head, with a face so facing reads at a glance
+  // ---- neck and head, with a face so facing reads at a glance, and speaks: a jaw and eyelids (revision 7's face)
+  const face = { state: { jaw: 0, blinkLeft: 0, blinkRight: 0 }, set(m) { Object.assign(this.state, m); },
+                 parts: { mouth: [], eyes: [] } };  // the meshes of each (to find them on screen)
   const head = bone('Head');
   if (neck >= 0) {
     for (let j = head >= 0 ? head : neck; j !== neck && j >= 0; j = parents[j]) {
@@ -194,16 +199,42 @@ export function buildMannequin(skeleton, humanoid, joints) {
       const z = R.z * Math.sqrt(Math.max(0, 1 - (x / R.x) ** 2 - (y / R.y) ** 2));
       return c.clone().addScaledVector(left, x).addScaledVector(up, y).addScaledVector(forward, z);
     };
+    const lids = [];
     for (const s of [1, -1]) {
       const e = surface(s * 3.1 * u, 1.2 * u).addScaledVector(forward, -0.35 * u);
-      ellipsoid(head, e, 1.05 * u, 1.35 * u, 0.8 * u, MATERIALS.eye);
+      face.parts.eyes.push(ellipsoid(head, e, 1.05 * u, 1.35 * u, 0.8 * u, MATERIALS.eye));
+      lids.push([e, ellipsoid(head, e, 1.2 * u, 1.45 * u, 0.95 * u)]);  // skin over the eye, coming down from above
+      // (an open lid shrinks into the eye rather than being hidden: the avatar menu's toggle stays the only one)
       const brow = surface(s * 3.2 * u, 3.6 * u);
       const tilt = new THREE.Matrix4().makeRotationAxis(forward, s * 0.12).multiply(basis);
       ellipsoid(head, brow, 1.9 * u, 0.38 * u, 0.5 * u, MATERIALS.hair, tilt);
       ellipsoid(head, c.clone().addScaledVector(left, s * R.x * 0.97).addScaledVector(up, 0.5 * u), 1.0 * u, 2.6 * u, 1.7 * u);
     }
     ellipsoid(head, surface(0, -1.6 * u).addScaledVector(forward, 0.2 * u), 1.0 * u, 1.7 * u, 1.2 * u);  // nose
-    ellipsoid(head, surface(0, -5.4 * u), 2.4 * u, 0.55 * u, 0.6 * u, MATERIALS.lips);                  // mouth
+    // The mouth: an upper lip, a lower lip that drops with the jaw along the face, the dark of the mouth between.
+    const upper = ellipsoid(head, surface(0, -5.1 * u), 2.3 * u, 0.42 * u, 0.6 * u, MATERIALS.lips);
+    const inside = ellipsoid(head, surface(0, -5.4 * u), 1.9 * u, 0.3 * u, 0.6 * u, MATERIALS.mouth);
+    const lower = ellipsoid(head, surface(0, -5.7 * u), 2.1 * u, 0.45 * u, 0.6 * u, MATERIALS.lips);
+    face.parts.mouth.push(upper, inside, lower);
+    const restInvHead = restInv[head];
+    const place = (mesh, world, rx, ry, rz) => {  // a part moved on its joint (rigid: restInv has no scale)
+      mesh.position.copy(world).applyMatrix4(restInvHead);
+      mesh.scale.set(rx, ry, rz);
+    };
+    const JAW_DROP = 1.8 * u;  // the lower lip's travel at a wide open jaw
+    face.set = function set(m) {
+      Object.assign(this.state, m);
+      const jaw = THREE.MathUtils.clamp(this.state.jaw, 0, 1);
+      place(lower, surface(0, -5.7 * u - jaw * JAW_DROP), 2.1 * u, 0.45 * u, 0.6 * u);
+      place(inside, surface(0, -5.4 * u - jaw * JAW_DROP / 2).addScaledVector(forward, -0.25 * u),
+            1.9 * u * (1 - 0.25 * jaw), 0.3 * u + jaw * JAW_DROP / 2, 0.6 * u);
+      lids.forEach(([e, lid], i) => {
+        const b = THREE.MathUtils.clamp(i === 0 ? this.state.blinkLeft : this.state.blinkRight, 0, 1);
+        if (b < 0.02) place(lid, e, 1e-3 * u, 1e-3 * u, 1e-3 * u);  // open: tucked away inside the eye
+        else place(lid, e.clone().addScaledVector(up, (1 - b) * 1.4 * u), 1.2 * u, b * 1.45 * u, 0.95 * u);
+      });
+    };
+    face.set({});
     // Hair: the top of a slightly larger ellipsoid, tipped back so the hairline sits above the brow.
     const hair = new THREE.SphereGeometry(1, 40, 20, 0, Math.PI * 2, 0, Math.PI * 0.56);
     const tip = new THREE.Matrix4().makeRotationAxis(left, -0.5).multiply(basis);
@@ -288,5 +319,5 @@ export function buildMannequin(skeleton, humanoid, joints) {
     if (p < 0 || done.has(p) || P(j).distanceTo(P(p)) < 1e-3) return;
     limb(p, P(p), P(j), 3.2 * u, 2.6 * u);
   });
-  return { meshes, forward, up, left, bounds, unit: u };
+  return { meshes, forward, up, left, bounds, unit: u, face };
 }

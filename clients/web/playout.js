@@ -10,6 +10,11 @@
 // The web viewer plays the source's sound too, and sound cannot jump at every late burst: it keeps the queue
 // and interpolation here but takes its clock from av-clock.js (picture and sound on one clock, a jitter
 // buffer sized from the lateness seen) through sampleAt(pts).
+//
+// A frame's face (revision 7) is interpolated with its pose at the same moment (linear per weight, face.js), so the
+// face shown is always that of the pose shown.
+import { lerpFace } from './face.js';
+
 const MAX_QUEUE = 256;
 const LATE_MARGIN_S = 0.02;
 
@@ -38,7 +43,8 @@ export class FramePlayout {
     if (this.queue.length > MAX_QUEUE) this.queue.shift();
   }
 
-  /** The pose to show at local time `now`: {pts, root, rotations}, interpolated; null before any frame. */
+  /** The pose to show at local time `now`: {pts, index, root, rotations, face}, interpolated; null before any
+   *  frame. (face: null when the frames carry none.) */
   sample(now) {
     return this.queue.length ? this.sampleAt(now - this.offset) : null;
   }
@@ -51,13 +57,14 @@ export class FramePlayout {
     const a = q[0];
     const b = q[1];
     if (!b || t <= a.pts || b.rotations.length !== a.rotations.length) {
-      return { pts: a.pts, index: a.index, root: a.root, rotations: a.rotations };  // hold
+      return { pts: a.pts, index: a.index, root: a.root, rotations: a.rotations, face: a.face || null };  // hold
     }
     const u = (t - a.pts) / (b.pts - a.pts);
     return {
       pts: t, index: a.index,
       root: a.root.map((v, i) => v + (b.root[i] - v) * u),
       rotations: a.rotations.map((qa, j) => slerp(qa, b.rotations[j], u)),
+      face: lerpFace(a.face, b.face, u),
     };
   }
 }

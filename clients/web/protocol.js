@@ -1,14 +1,17 @@
-// Protocol v1 (revision 6) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
+// Protocol v1 (revision 7) helpers without DOM or three.js, so they also run under node (clients/web/tests/).
+import { faceFromValues } from './face.js';
 
 /** Decode a DGF1 binary frame: "DGF1" | u32 index | f64 pts | f32[3] root | f32[J*4] wxyz | channels,
  *  little-endian. With the server's `hello`, J is its joint count and each of `hello.channels` (revision 6) is read
  *  at its offset into `channels: {name: [values]}`; bytes past the last listed channel are ignored. Without it,
- *  every byte after the header is a rotation (a frame without channels). */
-export function decodeBinaryFrame(buf, hello = null) {
+ *  every byte after the header is a rotation (a frame without channels). `layout`: the channels the frames carry
+ *  now when a `channels` message (revision 7) changed them since the hello. The "face" channel is also given as
+ *  `face: {label: weight}`, as a JSON frame carries it. */
+export function decodeBinaryFrame(buf, hello = null, layout = null) {
   const dv = new DataView(buf);
   const magic = String.fromCharCode(...new Uint8Array(buf, 0, Math.min(4, buf.byteLength)));
   const joints = hello && hello.skeleton && Array.isArray(hello.skeleton.joints) ? hello.skeleton.joints.length : null;
-  const channels = (hello && Array.isArray(hello.channels)) ? hello.channels : [];
+  const channels = Array.isArray(layout) ? layout : (hello && Array.isArray(hello.channels)) ? hello.channels : [];
   const n = joints === null ? (buf.byteLength - 28) / 16 : joints;
   const end = Math.max(28 + 16 * n, ...channels.map((c) => c.offset + 4 * c.size));
   if (magic !== 'DGF1' || buf.byteLength < 28 || !Number.isInteger(n) || buf.byteLength < end)
@@ -23,6 +26,9 @@ export function decodeBinaryFrame(buf, hello = null) {
     frame.channels = {};
     for (const c of channels)
       frame.channels[c.name] = Array.from({ length: c.size }, (_, i) => dv.getFloat32(c.offset + 4 * i, true));
+    const face = channels.find((c) => c.name === 'face');
+    const named = face ? faceFromValues(frame.channels.face, face.labels) : null;
+    if (named) frame.face = named;
   }
   return frame;
 }

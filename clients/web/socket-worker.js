@@ -13,8 +13,14 @@
 // Page -> worker: init {pageOrigin} | connect {id, url, hello, resume} | close {code, reason} | send {text} |
 //                 ping | mic {port, rate, format} | micStop | audioEnd
 // Worker -> page: open {id} | close {id, code, reason} | message {id, msg, at} | frame {id, frame, at} |
-//                 sourceAudio {id, chunk, at} | bad {id, message} | mic {said, sent, dropped, flow, ...}
-//                 (message: a hello carries `ring`, the SharedArrayBuffer its frames then go to: frame-ring.js)
+//                 ring {id, ring, layout} | sourceAudio {id, chunk, at} | bad {id, message} |
+//                 mic {said, sent, dropped, flow, ...}
+//                 (a hello or `channels` message, and `ring`, carry `ring`, the SharedArrayBuffer the frames go to
+//                 from then on, and its `layout` {joints, channels, faceLabels}: frame-ring.js)
+//
+// The face (revision 7): a JSON frame's `face` is passed on as it is; a binary frame's comes in the channel layout
+// the server's `channels` message announced after our hello asked for a face (protocol.js decodes it into `face`
+// too). A ring holds one layout: a `channels` message, or frames whose face has other names, get a new one.
 // (`at`: arrival, ms on the page's performance.now clock)
 import { AudioFlow } from './audio-flow.js';
 import { FrameRing } from './frame-ring.js';
@@ -34,6 +40,7 @@ let mic = null;        // {port, rate, format, samples} while the microphone fee
 let flow = null;       // AudioFlow of this talk (outlives the microphone: what is held goes at `resume`)
 let ring = null;       // FrameRing of this connection's stream (from its hello on) when memory can be shared
 let serverHello = null;  // this connection's hello from the server: the binary frame layout (joints, channels)
+let layout = null;       // the channels binary frames carry now: the hello's, then each `channels` message's
 let endPending = false;  // audio_end waits for the held audio
 const sent = { chunks: [], samples: 0 };  // [first sample, buffer, samples] of our recent audio; samples sent
 const counts = { sent: 0, dropped: 0 };
@@ -72,6 +79,7 @@ function connect({ id: newId, url, hello, resume }) {
   id = newId;
   ring = null;
   serverHello = null;
+  layout = null;
   talk = !!hello.audio;
   endPending = false;
   if (!resume) {  // a fresh session: what was sent or held belongs to the old one
@@ -105,7 +113,7 @@ function receive(data, myId) {
       if (binaryKind(data) === 'DGA1') {
         const chunk = decodeSourceAudio(data);
         post({ type: 'sourceAudio', id: myId, chunk, at }, [chunk.samples.buffer]);
-      } else sendFrame(decodeBinaryFrame(data, serverHello), true, at, myId);
+      } else sendFrame(decodeBinaryFrame(data, serverHello, layout), true, at, myId);
     } catch (e) { post({ type: 'bad', id: myId, message: e.message }); }
     return;
   }
@@ -115,17 +123,27 @@ function receive(data, myId) {
     return;
   }
   if (msg.type === 'frame') { sendFrame(msg, false, at, myId); return; }
-  if (msg.type === 'hello') serverHello = msg;
+  if (msg.type === 'hello') { serverHello = msg; layout = Array.isArray(msg.channels) ? msg.channels : []; ring = null; }
+  if (msg.type === 'channels' && Array.isArray(msg.channels)) layout = msg.channels;
   if (talk && flow) audioControl(msg);  // before the page hears of it: the page's view of the flow is then current
-  if (msg.type === 'hello' && self.crossOriginIsolated && msg.skeleton && Array.isArray(msg.skeleton.joints)) {
-    ring = FrameRing.create(msg.skeleton.joints.length, msg.channels);
-    post({ type: 'message', id: myId, msg, at, ring: ring.sab });
+  if ((msg.type === 'hello' || (msg.type === 'channels' && ring)) && self.crossOriginIsolated && serverHello &&
+      serverHello.skeleton && Array.isArray(serverHello.skeleton.joints)) {
+    const face = layout.find((c) => c.name === 'face');
+    const labels = face && Array.isArray(face.labels) ? face.labels : (ring ? ring.faceLabels : []);
+    post({ type: 'message', id: myId, msg, at, ...newRing(labels) });
     return;
   }
   post({ type: 'message', id: myId, msg, at });
 }
 
+/** A fresh ring for the current layout and a face of `faceLabels`: {ring, layout} for the page. */
+function newRing(faceLabels) {
+  ring = FrameRing.create(serverHello.skeleton.joints.length, layout, faceLabels);
+  return { ring: ring.sab, layout: { joints: ring.joints, channels: layout, faceLabels: ring.faceLabels } };
+}
+
 function sendFrame(frame, binary, at, myId) {
+  if (ring && !ring.fitsFace(frame)) post({ type: 'ring', id: myId, ...newRing(Object.keys(frame.face)) });
   if (!(ring && ring.write(frame, binary, at))) post({ type: 'frame', id: myId, frame, binary, at });
 }
 

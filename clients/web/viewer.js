@@ -1,5 +1,6 @@
-// dimgestor browser viewer: protocol v1 revision 2 client (docs/protocol.md), the built-in mannequin, your own
-// VRM, the server source's audio in sync, and the microphone (Talk), paused by the server's flow control.
+// dimgestor browser viewer: protocol v1 revision 7 client (docs/protocol.md), the built-in mannequin, your own
+// VRM, the server source's audio in sync, and the microphone (Talk), paused by the server's flow control. The face
+// (revision 7): the page asks for FACE_SET's names (face.js) and shows each frame's face with its pose.
 //
 // Page parameters: ?ws=ws://host:port/  (another server than the one this page came from)
 //                  ?token=T             (when the server requires one)
@@ -16,6 +17,7 @@ import { FramePlayout } from './playout.js';
 import { FrameRing } from './frame-ring.js';
 import { MIC_HOLD_S } from './audio-flow.js';
 import { buildMannequin } from './mannequin.js';
+import { FACE_SET, mouthOf } from './face.js';
 import { SourceAudio } from './source-audio.js';
 
 const params = new URLSearchParams(location.search);
@@ -50,9 +52,15 @@ const api = window.dimgestor = {
   arrivalLog: [],   // [arrival (s, page clock, when this thread could show it), pts] of the last ARRIVAL_LOG frames
   avatar: 'mannequin', vrm: null, paused: false, sourceAudio, renderMs: null, frameMs: null,
   jointNames: () => (api.hello ? api.hello.skeleton.joints.slice() : []),
-  // The frame channels the server sends beside the pose (revision 6: hello.channels); a frame's values are in
-  // lastFrame.channels[name].
-  channelNames: () => ((api.hello && Array.isArray(api.hello.channels)) ? api.hello.channels.map((c) => c.name) : []),
+  // The frame channels the server sends beside the pose (revision 6: hello.channels; revision 7: the latest
+  // `channels` message, e.g. the face once asked for); a frame's values are in lastFrame.channels[name].
+  channels: [],
+  channelNames: () => api.channels.map((c) => c.name),
+  // The face shown (revision 7: the shown frame's `face`, by name; null when the stream has none) and what the
+  // mannequin makes of it: {jaw, blinkLeft, blinkRight, smile} (0..1); a VRM's expressions are api.vrm.expressions.
+  face: null, mouth: { jaw: 0, blinkLeft: 0, blinkRight: 0, smile: 0 }, faceSet: FACE_SET,
+  frameFace: () => frameFace(),
+  faceBox: (part) => faceBox(part),
   jointWorldPositions, talk: () => startTalk(), stopTalk: () => stopTalk(),
   loadAvatarFile: (file) => loadAvatarFile(file), setAvatar: (m) => setAvatar(m), resetView: () => resetView(),
   setPaused: (p) => setPaused(p), setMuted: (m) => setMuted(m),
@@ -267,6 +275,41 @@ function currentForward() {
   return fwd.lengthSq() > 1e-9 ? fwd.normalize() : body.forward.clone();
 }
 
+/** A close-up of the head from the front (key F): the face, as it speaks; R frames the whole body again. */
+function frameFace() {
+  if (!body || !joints.length) return;
+  const jh = api.hello.skeleton.joints.indexOf((api.hello.humanoid || {}).Head);
+  if (jh < 0) return;
+  resetView();  // the lights and framing of the whole body first, then closer along the same line
+  figure.updateMatrixWorld(true);
+  const headAt = joints[jh].getWorldPosition(new THREE.Vector3());
+  const size = 36 * body.unit * skeletonScale;  // about a head and neck in view
+  const target = headAt.addScaledVector(body.up.clone().transformDirection(figure.matrixWorld), size * 0.2);
+  const dir = camera.position.clone().sub(controls ? controls.target : target).setY(0).normalize();
+  const dist = size / 2 / Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2);
+  camera.position.copy(target).addScaledVector(dir, dist);
+  if (controls) { controls.target.copy(target); controls.update(); }
+  camera.lookAt(target);
+  followFrom = joints[roots[0]].getWorldPosition(new THREE.Vector3());
+}
+
+/** Where the mannequin's 'mouth' or 'eyes' are on screen now: [x0, y0, x1, y1] in CSS pixels (for tests and tools). */
+function faceBox(part) {
+  if (!body) return null;
+  figure.updateMatrixWorld(true);
+  const box = new THREE.Box3();
+  for (const m of body.face.parts[part] || []) box.expandByObject(m);
+  if (box.isEmpty()) return null;
+  let [x0, y0, x1, y1] = [Infinity, Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < 8; i++) {
+    const p = new THREE.Vector3(i & 1 ? box.max.x : box.min.x, i & 2 ? box.max.y : box.min.y,
+                                i & 4 ? box.max.z : box.min.z).project(camera);
+    const x = (p.x + 1) / 2 * innerWidth, y = (1 - p.y) / 2 * innerHeight;
+    [x0, y0, x1, y1] = [Math.min(x0, x), Math.min(y0, y), Math.max(x1, x), Math.max(y1, y)];
+  }
+  return [Math.floor(x0), Math.floor(y0), Math.ceil(x1), Math.ceil(y1)];
+}
+
 /** Put the camera in front of the avatar as it stands now, the whole body in view. */
 function resetView() {
   if (!body) return;
@@ -304,6 +347,15 @@ function applyFrame(f) {
     const q = f.rotations[j];
     joints[j].quaternion.set(q[1], q[2], q[3], q[0]);
   }
+  applyFace(f.face || null);
+}
+
+/** The frame's face on the avatars: the mannequin's jaw and eyelids, a VRM's expressions (null: at rest). */
+function applyFace(face) {
+  api.face = face;
+  api.mouth = mouthOf(face);
+  if (body) body.face.set(api.mouth);
+  if (vrmAvatar) vrmAvatar.setFace(face);
 }
 
 // Frames are shown at their presentation time, not on arrival (they come in bursts): playout.js keeps them and
@@ -514,8 +566,9 @@ function fromWorker(m) {
   if (m.type === 'mic') { onMicReport(m); return; }
   if (m.id !== connId) return;  // a connection replaced since
   takeRing();  // frames the worker had before this message come first
-  if (m.ring) ring = new FrameRing(m.ring, m.msg.skeleton.joints.length, m.msg.channels);
+  if (m.ring) ring = new FrameRing(m.ring, m.layout.joints, m.layout.channels, m.layout.faceLabels);
   switch (m.type) {
+    case 'ring': break;  // the frames go to a new ring from here on (another layout)
     case 'open': onOpen(); break;
     case 'close': onClose(m); break;
     case 'frame': onFrame(m.frame, m.at, performance.now()); if (m.binary) api.binaryFramesReceived++; break;
@@ -542,7 +595,8 @@ function connect(audio = null, resume = null) {
   // Watching: ask for the source's audio too (servers without it ignore the field). Talking: never, so nothing
   // but the avatar answers the microphone. Each window's `timing` (revision 5) dates the speech for the speech ->
   // motion readout. The worker sends it (and resume_session) when the socket opens.
-  const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true };
+  // The face (revision 7) in FACE_SET's names, in JSON and binary frames alike; older servers ignore the field.
+  const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true, face: FACE_SET };
   if (audio) hello.audio = audio;
   socketWorker().postMessage({ type: 'connect', id: connId, url: api.url, hello, resume: resume ? resume.token : null });
   setState('connecting');
@@ -620,6 +674,7 @@ function onParsed(msg, at) {
     case 'hello':
       if (msg.protocol !== 1) say(`server speaks protocol ${msg.protocol}; this page expects 1`);
       api.hello = msg;
+      api.channels = Array.isArray(msg.channels) ? msg.channels : [];
       try { buildSkeleton(msg.skeleton, msg.humanoid); } catch (e) { fail(e.message); return; }
       sizePlayout(msg.window_ms ? msg.window_ms / 1000 : null, msg.fps);
       ui.talk.disabled = !(msg.audio && msg.audio.accepts) && !api.talking;
@@ -632,6 +687,9 @@ function onParsed(msg, at) {
       } else ui.talk.classList.remove('hint');
       break;
     case 'frame': onFrame(msg, at, at); break;
+    case 'channels':  // revision 7: the channels binary frames carry from the next frame on (the socket worker reads them)
+      if (Array.isArray(msg.channels)) api.channels = msg.channels;
+      break;
     case 'status': api.status = msg; break;
     case 'pong':
       if (typeof msg.t === 'number') speech.notePong(msg.t / 1000, at / 1000, msg.server_time_s);
@@ -748,6 +806,7 @@ addEventListener('keydown', (e) => {
   if (e.target.tagName === 'INPUT' || e.target.tagName === 'SELECT') return;
   if (e.key === ' ') { e.preventDefault(); setPaused(!api.paused); }
   else if (e.key === 'r' || e.key === 'R') resetView();
+  else if (e.key === 'f' || e.key === 'F') frameFace();
   else if (e.key === 'm' || e.key === 'M') setMuted(!sourceAudio.muted);
 });
 if (params.get('sound') === 'off') setMuted(true);

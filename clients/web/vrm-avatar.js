@@ -10,6 +10,7 @@
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { VRMLoaderPlugin, VRMUtils } from '@pixiv/three-vrm';
+import { vrmExpressions } from './face.js';
 
 /** Unity HumanBodyBones name (the hello's humanoid keys) -> three-vrm's humanoid bone name (VRM 1.0 naming). */
 export function vrmBoneName(unity) {
@@ -137,6 +138,20 @@ export class VrmAvatar {
       this.hips.node.position.copy(target.applyMatrix4(this.hipsParentInv));
     }
     this.vrm.update(dt);
+  }
+
+  /** Show a frame's face (revision 7; null: at rest) through the VRM's preset expressions, VRM 1.0 names for 0.x and
+   *  1.0 models alike (three-vrm maps 0.x presets A, Blink_L, ... onto them); applied by the next drive(). The
+   *  values set, by name, are kept in `expressions` (presets the model lacks are left out). */
+  setFace(face) {
+    const em = this.vrm.expressionManager;
+    this.expressions = {};
+    if (!em) return;
+    for (const [name, w] of Object.entries(vrmExpressions(face))) {
+      if (!em.getExpression(name)) continue;
+      em.setValue(name, w);
+      this.expressions[name] = w;
+    }
   }
 
   /** World positions (metres) of the VRM's raw humanoid bones, by VRM bone name (for tests and tools). */

@@ -1,6 +1,8 @@
 """A small VRM avatar written from scratch for the tests (never downloaded): a skinned glTF binary (GLB) with a
 T-posed humanoid skeleton, one box per bone, and the VRM humanoid extension of VRM 1.0 (`VRMC_vrm`, facing +Z)
-or VRM 0.x (`VRM`, facing -Z as UniVRM exports it)."""
+or VRM 0.x (`VRM`, facing -Z as UniVRM exports it); with `expressions`, the preset expressions a face drives
+(EXPRESSIONS, VRM 1.0 names; VRM 0.x presets a, i, u, e, o, blink, blink_l, blink_r, joy), expression k bound to
+morph target k of the mesh, which moves the head box's lower corners down."""
 
 from __future__ import annotations
 
@@ -23,8 +25,13 @@ for _s, _x in (("left", 1.0), ("right", -1.0)):
     ]
 
 
-def make_vrm(version: str = "1.0") -> bytes:
-    """The avatar as .vrm bytes; version "1.0" or "0.0"."""
+# The preset expressions of a face (VRM 1.0 names) and their VRM 0.x preset names, in morph target order.
+EXPRESSIONS = ("aa", "ih", "ou", "ee", "oh", "blink", "blinkLeft", "blinkRight", "happy")
+V0_PRESETS = ("a", "i", "u", "e", "o", "blink", "blink_l", "blink_r", "joy")
+
+
+def make_vrm(version: str = "1.0", expressions: bool = False) -> bytes:
+    """The avatar as .vrm bytes; version "1.0" or "0.0"; expressions: with EXPRESSIONS (one morph target each)."""
     flip = np.array([-1.0, 1.0, -1.0]) if version == "0.0" else np.ones(3)  # VRM 0.x faces -Z
     names = [b for b, _, _ in BONES]
     local = np.array([t for _, _, t in BONES]) * flip
@@ -43,6 +50,14 @@ def make_vrm(version: str = "1.0") -> bytes:
     ibm = np.tile(np.eye(4, dtype=np.float32), (len(BONES), 1, 1))
     ibm[:, 3, :3] = -world  # column-major: the translation is the last column, stored as the 4th row here
     blobs = [pos.tobytes(), joints.astype(np.uint16).tobytes(), weights.tobytes(), idx.tobytes(), ibm.tobytes()]
+    targets = []
+    if expressions:  # target k: the head box's lower corners down (2 cm for an open A, 1 cm for the others)
+        head = names.index("head")
+        for k in range(len(EXPRESSIONS)):
+            d = np.zeros_like(pos)
+            d[8 * head: 8 * head + 8][corners[:, 1] < 0, 1] = -0.02 if k == 0 else -0.01
+            targets.append(d)
+            blobs.append(d.tobytes())
     views, offset = [], 0
     for b in blobs:
         views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(b)})
@@ -55,7 +70,8 @@ def make_vrm(version: str = "1.0") -> bytes:
         {"bufferView": 2, "componentType": 5126, "count": len(pos), "type": "VEC4"},
         {"bufferView": 3, "componentType": 5123, "count": len(idx), "type": "SCALAR"},
         {"bufferView": 4, "componentType": 5126, "count": len(BONES), "type": "MAT4"},
-    ]
+    ] + [{"bufferView": 5 + k, "componentType": 5126, "count": len(pos), "type": "VEC3", "min": d.min(0).tolist(),
+          "max": d.max(0).tolist()} for k, d in enumerate(targets)]
     nodes = [{"name": n, "translation": local[i].tolist()} for i, n in enumerate(names)]
     for i, (_, parent, _) in enumerate(BONES):
         if parent:
@@ -66,7 +82,9 @@ def make_vrm(version: str = "1.0") -> bytes:
         "asset": {"version": "2.0", "generator": "dimgestor tests"},
         "scene": 0, "scenes": [{"nodes": [armature, body]}], "nodes": nodes,
         "meshes": [{"name": "body", "primitives": [{"attributes": {"POSITION": 0, "JOINTS_0": 1, "WEIGHTS_0": 2},
-                                                     "indices": 3, "material": 0}]}],
+                                                     "indices": 3, "material": 0,
+                                                     **({"targets": [{"POSITION": 5 + k} for k in range(len(targets))]}
+                                                        if targets else {})}]}],
         "materials": [{"name": "skin", "pbrMetallicRoughness": {"baseColorFactor": [0.9, 0.6, 0.5, 1.0]}}],
         "skins": [{"joints": list(range(len(BONES))), "inverseBindMatrices": 4, "skeleton": 0}],
         "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}],
@@ -81,6 +99,9 @@ def make_vrm(version: str = "1.0") -> bytes:
                      "modification": "prohibited"},
             "humanoid": {"humanBones": {n: {"node": i} for i, n in enumerate(names)}},
         }}
+        if expressions:
+            gltf["extensions"]["VRMC_vrm"]["expressions"] = {"preset": {
+                n: {"morphTargetBinds": [{"node": body, "index": k, "weight": 1.0}]} for k, n in enumerate(EXPRESSIONS)}}
     else:
         gltf["extensionsUsed"] = ["VRM"]
         gltf["extensions"] = {"VRM": {
@@ -89,7 +110,9 @@ def make_vrm(version: str = "1.0") -> bytes:
                      "allowedUserName": "OnlyAuthor", "licenseName": "Other"},
             "humanoid": {"humanBones": [{"bone": n, "node": i, "useDefaultValues": True} for i, n in enumerate(names)]},
             "firstPerson": {"firstPersonBone": names.index("head"), "meshAnnotations": []},
-            "blendShapeMaster": {"blendShapeGroups": []},
+            "blendShapeMaster": {"blendShapeGroups": [
+                {"name": p.upper(), "presetName": p, "binds": [{"mesh": 0, "index": k, "weight": 100}]}
+                for k, p in enumerate(V0_PRESETS if expressions else ())]},
             "secondaryAnimation": {"boneGroups": [], "colliderGroups": []},
             "materialProperties": [{"name": "skin", "shader": "VRM_USE_GLTFSHADER"}],
         }}
