@@ -61,7 +61,8 @@ def test_web_reads_the_face_from_json_and_binary_frames_and_plays_it_with_the_po
             json.dumps({"type": "channels", "channels": []}),                       # after `face: "none"`
             server.frame_binary(7, None), server.frame_json(8, None)]
     for i, m in enumerate(msgs):
-        (tmp_path / f"{i:06d}.{'bin' if isinstance(m, bytes) else 'json'}").write_bytes(m if isinstance(m, bytes) else m.encode())
+        binary = isinstance(m, bytes)
+        (tmp_path / f"{i:06d}.{'bin' if binary else 'json'}").write_bytes(m if binary else m.encode())
     r = subprocess.run([node, str(REPO / "clients/web/tests/face_check.mjs"), str(tmp_path)], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0, r.stderr
@@ -86,17 +87,17 @@ def test_web_reads_the_face_from_json_and_binary_frames_and_plays_it_with_the_po
         assert list(f["vrm"]) == list(EXPRESSIONS)
         assert f["vrm"]["aa"] == pytest.approx(want["A" if name_set == "vrm0" else "aa"], abs=6e-5)
     # Played out with the pose: at a frame's pts its own face, halfway between two frames the mean of theirs.
-    samples = [o for o in out if o["event"] == "sample"]
     by_index = {f["index"]: f["ring"] for f in frames}
-    for s in samples:
-        i = s["index"]
-        on_frame = abs(s["pts"] - i / FPS) < 1e-9
-        if on_frame or by_index.get(i + 1) is None or by_index[i] is None or by_index[i].keys() != by_index[i + 1].keys():
-            assert s["face"] == by_index[i] if on_frame else True, s
-            continue
-        for name, w in by_index[i].items():
-            assert s["face"][name] == pytest.approx((w + by_index[i + 1][name]) / 2, abs=1e-9), (s, name)
-    assert sum(1 for s in samples if s["pts"] != s["index"] / FPS and s["face"]) >= 4
+    halfway = 0
+    for s in (o for o in out if o["event"] == "sample"):
+        a, b = by_index[s["index"]], by_index.get(s["index"] + 1)
+        if abs(s["pts"] - s["index"] / FPS) < 1e-9:
+            assert s["face"] == a, s
+        elif a and b and a.keys() == b.keys():
+            halfway += 1
+            for name, w in a.items():
+                assert s["face"][name] == pytest.approx((w + b[name]) / 2, abs=1e-9), (s, name)
+    assert halfway == 5  # 0-1 (vrm0), 2-3, 3-4, 4-5, 5-6 (vrm1)
 
 
 # ---------------------------------------------------------------- in Chromium
@@ -203,7 +204,8 @@ def load_vrm(browser: Browser, version: str) -> None:
 @needs_browser
 def test_web_vrm_expressions_follow_the_face(tmp_path, track):
     influences = """(() => { const v = window.dimgestor.vrm, out = {};
-      v.vrm.scene.traverse((o) => { if (o.morphTargetInfluences && !out.w) out.w = Array.from(o.morphTargetInfluences); });
+      v.vrm.scene.traverse((o) => {
+        if (o.morphTargetInfluences && !out.w) out.w = Array.from(o.morphTargetInfluences); });
       return {w: out.w, expressions: v.expressions, face: window.dimgestor.face}; })()"""
     with FaceServer(track) as server:
         browser = Browser(tmp_path, server.url + "?sound=off")  # JSON frames
@@ -232,3 +234,52 @@ def test_web_vrm_expressions_follow_the_face(tmp_path, track):
         finally:
             browser.close()
     assert png.exists()
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """The fake server's clip as a WAV for `dimgestor serve`: SPEECH_S of speech, then SILENCE_S of silence."""
+    from dimgestor.audio import save_wav
+
+    path = tmp_path_factory.mktemp("face_clip") / "speech_then_silence.wav"
+    save_wav(path, speech_then_silence(SPEECH_S, SILENCE_S), 16000)
+    return path
+
+
+@needs_browser
+def test_web_face_from_dimgestor_serve_end_to_end(tmp_path, checkpoint, clip):  # noqa: F811
+    """`dimgestor serve` (its default face, VRM 0 names) on speech then silence, looped, the page asking for binary
+    frames: the page's hello asks for vrm1, the server's `channels` message lays the face out after the rotations,
+    and the mannequin's jaw opens in the speech and rests in the silence."""
+    from helpers.clients import live_server
+
+    with live_server(tmp_path, str(clip), checkpoint, http=True, loop=True, extra=("--wait-client",)) as server:
+        browser = Browser(tmp_path, server.http_url + "?encoding=binary&sound=off")
+        try:
+            browser.wait_for("window.dimgestor && window.dimgestor.shownFrame && window.dimgestor.shownFrame.face",
+                             60, "a frame with a face on screen")
+            hello = browser.eval("window.dimgestor.hello")
+            assert hello["revision"] >= 7 and hello["face"]["names"] == "vrm0" and hello["channels"] == []
+            layout = browser.eval("window.dimgestor.channels")
+            assert [c["name"] for c in layout] == ["face"] and layout[0]["labels"] == FaceServer.labels("vrm1")
+            assert layout[0]["offset"] == 28 + 16 * len(hello["skeleton"]["joints"])
+            browser.eval("window.dimgestor.frameFace()")
+            reads = []
+            for _ in range(30):  # 6 s: a whole loop of the clip
+                reads.append(read_shown(browser))
+                time.sleep(0.2)
+            errors = browser.eval("window.dimgestor.errors")
+            binary = browser.eval("window.dimgestor.binaryFramesReceived")
+        finally:
+            browser.close()
+    assert errors == [] and binary > 0
+    clip_s = SPEECH_S + SILENCE_S
+    for r in reads:
+        assert list(r["face"]) == FaceServer.labels("vrm1") and all(0 <= w <= 1 for w in r["face"].values()), r
+        assert r["mouth"]["jaw"] == pytest.approx(expected_jaw(r["face"]), abs=1e-6)
+    speech = [r["mouth"]["jaw"] for r in reads if 0.3 <= r["pts"] % clip_s <= SPEECH_S - 0.2]
+    silence = [r["mouth"]["jaw"] for r in reads if SPEECH_S + 0.5 <= r["pts"] % clip_s <= clip_s - 0.1]
+    print(f"jaw in speech {np.round(speech, 2)}; in silence {np.round(silence, 2)}")
+    assert len(speech) >= 5 and len(silence) >= 3, (len(speech), len(silence))
+    assert max(speech) > 0.3 and np.mean(speech) > 0.1, f"the mouth hardly opened in the speech: {np.round(speech, 2)}"
+    assert max(silence) < 0.05, f"the mouth did not rest in the silence: {np.round(silence, 2)}"

@@ -101,7 +101,8 @@ def make_vrm(version: str = "1.0", expressions: bool = False) -> bytes:
         }}
         if expressions:
             gltf["extensions"]["VRMC_vrm"]["expressions"] = {"preset": {
-                n: {"morphTargetBinds": [{"node": body, "index": k, "weight": 1.0}]} for k, n in enumerate(EXPRESSIONS)}}
+                n: {"morphTargetBinds": [{"node": body, "index": k, "weight": 1.0}]}
+                for k, n in enumerate(EXPRESSIONS)}}
     else:
         gltf["extensionsUsed"] = ["VRM"]
         gltf["extensions"] = {"VRM": {
