@@ -70,7 +70,7 @@ def register(subparsers) -> None:
     g.add_argument("--face", default=None, metavar="OUT.csv",
                    help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
                         "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
-                        "frame (the same as `dimgestor serve --record` writes beside its BVH)")
+                        "frame (the format `dimgestor serve --record` writes beside its BVH)")
     g = p.add_argument_group("model and sampling")
     g.add_argument("--checkpoint", default=None,
                    help="checkpoint folder, a file in it, a run folder (its latest), or `live` (the embedded live "
