@@ -266,10 +266,10 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
 def _vmc(options: ServeOptions, rig):
     if options.osc is None:
         return None
-    from streamer.vmc import VmcSink
+    from streamer.vmc import VmcSink, face_channels
 
     return VmcSink(options.osc[0], options.osc[1], rig, pace=not options.fast, jitter_s=_vmc_jitter_ms(options) / 1000,
-                   options=options.vmc())
+                   options=options.vmc(), channels=face_channels(options.face))
 
 
 def _vmc_jitter_ms(options: ServeOptions) -> float:
@@ -286,7 +286,7 @@ def _recording(options: ServeOptions, bundle, source):
     from streamer.record import RecordingSink
 
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
-                         tether_s=options.tether_s)
+                         tether_s=options.tether_s, face=options.face != "none")
 
 
 def read_token(options) -> str | None:
