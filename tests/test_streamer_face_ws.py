@@ -12,6 +12,7 @@ from websockets.asyncio.client import connect
 
 from dimgestor.audio import load_wav
 from dimgestor.face.names import ARKIT, NAME_SETS, names_of
+from streamer.face import face_channel
 from helpers.serve import WAV_SECONDS, follow, serve
 
 pytestmark = pytest.mark.timeout(240)
@@ -149,3 +150,58 @@ def test_a_server_without_a_face_sends_none_and_ignores_a_clients_ask(tiny_check
     assert not [m for m in msgs if m["type"] in ("channels", "error")]
     frames = frames_of(msgs)
     assert len(frames) == WAV_SECONDS * 20 and not [f for f in frames if "face" in f]
+
+
+def test_one_broadcast_reaches_each_watcher_in_its_own_set_and_encoding(bundle, tmp_path):
+    """The server's source (in process): four watchers of the same frames, JSON as it comes, JSON in ARKit names,
+    binary as it comes (revision 5's frames) and binary in Oculus names (after a `channels` message), each get the
+    face the session made, in their own form."""
+    from dimgestor.audio import save_wav
+    from dimgestor.face import FaceOptions, convert
+    from dimgestor.synthetic import synthetic_speech
+    from streamer import protocol as P
+    from streamer.sessions import Session
+    from streamer.sources import WavSource
+    from helpers.ws import make_server, recv_json
+
+    save_wav(tmp_path / "a.wav", synthetic_speech(1.6, seed=2), 16000)
+    asks = [None, {"face": "arkit"}, {"encoding": "binary"}, {"encoding": "binary", "face": "oculus"}]
+
+    async def run():
+        ws = make_server(bundle)
+        ws.hello = {**ws.hello, "face": P.face_hello("vrm0")}  # (what `serve` says with its default --face)
+        await ws.open()
+        clients = [await connect(ws.url) for _ in asks]
+        for c, ask in zip(clients, asks):
+            await recv_json(c)
+            if ask:
+                await c.send(json.dumps({"type": "hello", **ask}))
+        while sorted(str(c.machine.face) + c.encoding for c in ws.clients) != [
+                "Nonebinary", "Nonejson", "arkitjson", "oculusbinary"]:  # the server has read our hellos
+            await asyncio.sleep(0.01)
+        made = []
+        session = Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, face=FaceOptions())
+        n = await session.run(WavSource(tmp_path / "a.wav", realtime=False), lambda fs: (made.extend(fs), ws.send(fs)))
+        got = []
+        for c in clients:
+            msgs = []
+            while len(frames_of(msgs)) < n:
+                m = await asyncio.wait_for(c.recv(), 30)
+                if isinstance(m, bytes) or (m := json.loads(m))["type"] != "status":
+                    msgs.append(m)
+            got.append(msgs)
+            await c.close()
+        await ws.close()
+        return made, got
+
+    made, (plain, arkit, old, oculus) = asyncio.run(run())
+    J = len(bundle.skeleton.names)
+    canonical = np.array([f.channels["face"] for f in made])
+    assert np.allclose(faces(frames_of(plain), names_of("vrm0")), convert(canonical, "vrm0"), atol=5e-5)
+    assert np.allclose(faces(frames_of(arkit), ARKIT), convert(canonical, "arkit"), atol=5e-5)
+    assert arkit[0]["type"] == "channels" and arkit[0]["channels"][0]["size"] == 52  # (the binary layout it asked)
+    assert {len(m) for m in old} == {28 + 16 * J}
+    assert oculus[0] == {"type": "channels", "channels": P.channel_layout(J, {"face": face_channel("oculus")})}
+    assert {len(m) for m in oculus[1:]} == {28 + 16 * J + 4 * 17}
+    values = np.array([np.frombuffer(m, "<f4", offset=28 + 16 * J) for m in oculus[1:]])
+    assert np.allclose(values, convert(canonical, "oculus"), atol=1e-6)
