@@ -250,6 +250,7 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
     hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
                     accepts_audio=not options.no_client_audio, window_ms=options.window_ms,
                     source="ws" if source is None else "mic" if options.source == "mic" else "file",
+                    **({"face": P.face_hello(options.face)} if options.face != "none" else {}),
                     **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
                        if isinstance(source, WavSource) else {}))
     also = [(options.http[0] or options.ws[0], options.http[1])] if options.http is not None else []
