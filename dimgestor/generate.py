@@ -1,4 +1,5 @@
-"""`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH."""
+"""`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH (and, with --face, the
+face track of the same frames as a CSV)."""
 from __future__ import annotations
 
 import argparse
@@ -15,7 +16,7 @@ from .cli_help import smoothing_from_flag
 from .features import features_to_motion
 from .diffusion import check_guidance
 
-__all__ = ["generate_motion", "register"]
+__all__ = ["generate_motion", "generate_face", "register"]
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
@@ -25,6 +26,18 @@ def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None,
     features = bundle.generate(audio, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing,
                                guidance=guidance)
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
+
+
+def generate_face(audio: np.ndarray, frames: int, fps: int, lookahead_s: float, seed: int = 0) -> np.ndarray:
+    """The face of `frames` body frames (frames, len(FACE_LABELS)): a `FaceStream` over the whole audio with the
+    model's lookahead, as a `serve` session makes it (streaming equals offline), so the same rows as its recording."""
+    from .face import FaceOptions, FaceStream
+
+    lookahead = np.floor(min(lookahead_s, 0.3) * 100 + 1e-6) / 100  # as Session: on the listener's 10 ms grid
+    face = FaceStream(fps, lookahead, FaceOptions(seed=seed))
+    face.push(audio)
+    face.finish()
+    return face.take(frames)
 
 
 def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int = 0, smoothing="config",
@@ -48,11 +61,16 @@ def register(subparsers) -> None:
         description="Generate the motion for a speech WAV file, offline (the whole file at once; the same frames "
                     "as `dimgestor serve --record` on that file, seed and steps), and write it as a BVH.",
         epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --face face.csv",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint live --steps 4 --seed 3",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda"))
     g = p.add_argument_group("input and output")
     g.add_argument("--audio", required=True, metavar="FILE.wav", help="speech WAV (any rate, mono or stereo)")
     g.add_argument("--out", required=True, metavar="OUT.bvh", help="output BVH file")
+    g.add_argument("--face", default=None, metavar="OUT.csv",
+                   help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
+                        "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
+                        "frame (the format `dimgestor serve --record` writes beside its BVH)")
     g = p.add_argument_group("model and sampling")
     g.add_argument("--checkpoint", default=None,
                    help="checkpoint folder, a file in it, a run folder (its latest), or `live` (the embedded live "
@@ -98,6 +116,14 @@ def _run(args) -> int:
         raise ValueError(f"--out {out}: expected a .bvh path")
     if not out.parent.exists():
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
+    face_out = Path(args.face) if args.face is not None else None
+    if face_out is not None:
+        if not face_out.parent.exists():
+            raise FileNotFoundError(f"--face {face_out}: folder {face_out.parent} does not exist")
+        if face_out.is_dir():
+            raise IsADirectoryError(f"--face {face_out}: is a folder, expected a .csv path")
+        if face_out.resolve() == out.resolve():
+            raise ValueError(f"--face {face_out}: the same path as --out")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
     bundle = load_checkpoint(args.checkpoint, device=args.device)
@@ -118,6 +144,13 @@ def _run(args) -> int:
     write_bvh(out, motion)
     print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
           f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")
+    if face_out is not None:
+        from .face.track import write_track
+
+        fps = bundle.feature_spec.fps
+        face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
+        write_track(face_out, face, fps)
+        print(f"wrote {face_out}: the face of the same {len(face)} frames")
     return 0
 
 

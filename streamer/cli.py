@@ -177,7 +177,8 @@ def _output_flags(g) -> dict[str, argparse.Action]:
               help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
         _flag(g, "--record", metavar="OUT.bvh",
               help="write the generated motion of the server's source to this BVH file as it is generated "
-                   "(a valid BVH at all times: a crash loses at most the last ~0.5 s)"),
+                   "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "
+                   "OUT.face.csv (as `dimgestor generate --face` writes it; none with --face none)"),
         _flag(g, "--humanoid-map", metavar="FILE.json",
               help="{HumanBodyBones name: joint name} map for VMC and the hello (default: streamer/maps/zeggs.json)"),
     )}

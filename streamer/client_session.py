@@ -8,6 +8,10 @@ comes with the events), so every rule of a client's session is tested by driving
 A client is IDLE (no session), STREAMING (its audio goes to its session) or FINISHING (its audio has ended,
 or is being handed over: the session still runs to its `end` or its save). A session holds one of the
 server's `Seats` from its start until it ends or its client leaves.
+
+Which channels a client's frames carry is its own (revision 7): the face in the name set its hello asked (or the
+server's), in JSON always when the server makes one, in binary only once asked; a `channels` message with the
+binary layout goes out with the first frames after each hello that names a `face`.
 """
 
 from __future__ import annotations
@@ -15,10 +19,13 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Callable, Union
+from functools import lru_cache
+from typing import Callable, Mapping, Union
 
 from dimgestor.audio import SAMPLE_RATE
 from streamer import protocol as P
+from streamer.face import FACE, face_channel
+from streamer.frames import Channel
 
 __all__ = ["ClientSession", "Seats", "Keepalive", "Phase", "PIECE_S"]
 
@@ -64,6 +71,14 @@ class Frames:
     count: int
     backlog_s: float
     window: object = None  # the `WindowTiming` they came from (None: the flush after the audio ended)
+
+
+@dataclass(frozen=True)
+class Broadcast:
+    """The server's own source made `count` frames (from `window`, a `WindowTiming`, or None): due to every
+    client that follows it."""
+    count: int
+    window: object = None
 
 
 @dataclass(frozen=True)
@@ -130,7 +145,7 @@ class Left:
     """The connection is gone."""
 
 
-Event = Union[Text, Audio, Decoded, Failed, Queuing, Frames, Boundary, Saved, HandOver, HandedOver, Taken,
+Event = Union[Text, Audio, Decoded, Failed, Queuing, Frames, Broadcast, Boundary, Saved, HandOver, HandedOver, Taken,
               Restored, NotRestored, SessionEnded, Left]
 
 
@@ -145,8 +160,12 @@ class Send:
 
 @dataclass(frozen=True)
 class SendFrames:
-    """Encode the session's frames and queue them (never dropped); `window`: also its `timing` message."""
+    """Encode the frames (the session's, never dropped; or the broadcast's) in `encoding` with `channels` and
+    queue them; `layout`: a `channels` message to queue just before them; `window`: also its `timing` message."""
     window: object = None
+    encoding: str = "json"
+    channels: Mapping[str, Channel] = field(default_factory=dict)
+    layout: str | None = None
 
 
 @dataclass(frozen=True)
@@ -183,11 +202,13 @@ class WaitForSession:
 @dataclass(frozen=True)
 class StartSession:
     """Start session `session_id` with a fresh audio queue; resample from `rate` unless it is 16 kHz; its periodic
-    saves go under `save_token` (None: none); `restore`: a saved state to go on from (then `Restored`)."""
+    saves go under `save_token` (None: none); `restore`: a saved state to go on from (then `Restored`); `smile`:
+    the expression its face holds (None: the server's)."""
     session_id: int
     rate: int
     save_token: str | None = None
     restore: bytes | None = None
+    smile: float | None = None
 
     @property
     def resample(self) -> bool:
@@ -205,6 +226,12 @@ class EndAudio:
     """The session's audio has ended: flush the resampler's tail into its queue and close it. handover: the
     session stops after the audio held, unfinished (then `HandedOver` once saved)."""
     handover: bool = False
+
+
+@dataclass(frozen=True)
+class SetSmile:
+    """The running session's face holds this expression (0..1) from its next frames on (`Session.set_smile`)."""
+    smile: float
 
 
 @dataclass(frozen=True)
@@ -252,7 +279,7 @@ class Log:
 
 
 Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, StartSession, Feed,
-               EndAudio, StopSession, SaveState, Forget, TakeState, Count, Refused, Log]
+               EndAudio, SetSmile, StopSession, SaveState, Forget, TakeState, Count, Refused, Log]
 
 
 # ---- the server's side ----------------------------------------------------------------------------------
@@ -267,6 +294,8 @@ class Seats:
     max_backlog_s: float = 30.0      # a session's audio queue (slow_down at the cap, resume at half)
     resumable: bool = False          # a state store: resume_session is served
     save_every_s: float | None = None  # periodic saves (with a store)
+    face: str | None = None          # the face's name set unless a client asks another (None: the server makes none)
+    joints: int = 0                  # a frame's joints (the offsets of a binary layout)
     taken: int = 0                   # sessions running, including those flushing after audio_end
     closing: bool = False            # the server is stopping
 
@@ -297,11 +326,29 @@ class ClientSession:
     gone: bool = False
     save_token: str | None = None  # its session's periodic saves go under this token
     saved_audio_s: float = 0.0     # the audio its last periodic save covers
+    face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
+    smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
+    layout_due: bool = False       # a `channels` message goes with its next frames
     after_session: list[str] = field(default_factory=list)  # replies due once the running session sent `end`
 
     @property
     def running(self) -> bool:
         return self.phase is not Phase.IDLE
+
+    def channels(self, encoding: str) -> Mapping[str, Channel]:
+        """The channels of its frames in `encoding`: the server's (`P.WS_CHANNELS`), then the face when the server
+        makes one and the client did not say "none" (in binary only once it asked: an old client's layout stays)."""
+        names = None if self.face == "none" else self.face or self.seats.face
+        if names is None or self.seats.face is None or (encoding == "binary" and self.face is None):
+            return dict(P.WS_CHANNELS)
+        return {**P.WS_CHANNELS, FACE: _face_channel(names)}
+
+    def _send_frames(self, window) -> SendFrames:
+        layout = None
+        if self.layout_due:
+            self.layout_due = False
+            layout = P.channels_message(P.channel_layout(self.seats.joints, self.channels("binary")))
+        return SendFrames(window, self.encoding, self.channels(self.encoding), layout)
 
     def handle(self, event: Event) -> list[Action]:
         try:
@@ -335,6 +382,12 @@ class ClientSession:
         if msg.get("source_audio") and not self.source_audio and self.seats.offers_source_audio:
             out.append(ReplaySourceAudio())  # the audio of the frames still to come
         self.source_audio = bool(msg.get("source_audio", self.source_audio)) and self.seats.offers_source_audio
+        if "face" in msg and self.seats.face is not None:  # (a server that makes no face ignores it)
+            self.face, self.layout_due = msg["face"], True
+        if "smile" in msg:
+            self.smile = msg["smile"]
+            if self.running:
+                out.append(SetSmile(self.smile))
         if "audio" in msg and msg["audio"] != self.audio:
             out.append(Charge(25))  # a new resampler is designed: costs as much as 25 messages
             if self.phase is Phase.STREAMING:
@@ -394,7 +447,8 @@ class ClientSession:
         self.seats.taken += 1
         self.save_token = self.new_token() if self.seats.save_every_s is not None else None
         self.saved_audio_s = 0.0
-        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore), Count("sessions_started")]
+        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore, self.smile),
+                Count("sessions_started")]
 
     def _end_audio(self, handover: bool = False) -> list[Action]:
         self.phase = Phase.FINISHING
@@ -419,8 +473,13 @@ class ClientSession:
             out.append(Send(P.resume(e.backlog_s)))  # a client that paused at slow_down may send again
         if e.count:
             self.frames += e.count
-            out.append(SendFrames(e.window if self.timing else None))
+            out.append(self._send_frames(e.window if self.timing else None))
         return out
+
+    def _on_Broadcast(self, e: Broadcast) -> list[Action]:
+        if self.own or self.gone or not e.count:  # (a client with audio of its own gets its own frames)
+            return []
+        return [self._send_frames(e.window if self.timing else None)]
 
     def _on_SessionEnded(self, e: SessionEnded) -> list[Action]:
         if self.gone:
@@ -511,6 +570,11 @@ class ClientSession:
     def _samples(self, samples_in: int) -> int:
         """16 kHz samples -> the client's own (what it re-sends from)."""
         return samples_in * self.audio.rate // SAMPLE_RATE
+
+
+@lru_cache(maxsize=None)
+def _face_channel(names: str) -> Channel:
+    return face_channel(names)
 
 
 class Keepalive:

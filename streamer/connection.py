@@ -77,8 +77,9 @@ class Client(Outbox):
     def own(self) -> bool:
         return self.machine.own
 
-    def encode(self, frames: list[Frame]) -> list[str | bytes]:  # worker thread
-        return P.encode_frames(frames, self.encoding)
+    def encode(self, frames: list[Frame], send: S.SendFrames) -> list[str | bytes]:  # worker thread
+        """The frames as `send` (the machine's `SendFrames`) says: its encoding and its channels."""
+        return P.encode_frames(frames, send.encoding, send.channels)
 
     async def read_loop(self) -> None:
         try:
@@ -168,6 +169,9 @@ class Client(Outbox):
             elif isinstance(a, S.ReplaySourceAudio):
                 for m in self.svc.audio_recent:  # the audio of the frames still to come to a client that joins now
                     self.put(m, "audio")
+            elif isinstance(a, S.SetSmile):
+                if self.session is not None:
+                    self.session.set_smile(a.smile)
             elif isinstance(a, S.StopSession):
                 if self.session_task is not None:
                     self.session_task.cancel()
@@ -235,6 +239,8 @@ class Client(Outbox):
         self.resampler, self.resample_from = None, start.rate if start.resample else None
         self.session = session = self.svc.make_session()
         session.clock = self.clock
+        if start.smile is not None:  # the client's own expression (its hello's `smile`)
+            session.set_smile(start.smile)
         session.on_window = session.on_window or self.svc.metrics.window_done
         machine, loop = self.machine, asyncio.get_running_loop()
         if start.save_token is not None:
@@ -243,9 +249,11 @@ class Client(Outbox):
 
         async def emit(frames: list[Frame]) -> None:
             for a in self.act(machine.handle(S.Frames(len(frames), source.backlog_s, session.stats.window))):
-                messages = await loop.run_in_executor(self.svc.prep, self.encode, frames)
+                messages = await loop.run_in_executor(self.svc.prep, self.encode, frames, a)
                 if a.window is not None:
                     messages.append(P.timing(frames[0].index, len(frames), a.window, time.monotonic()))
+                if a.layout is not None:  # after the encoding: no frame of the old layout follows it
+                    self.put(a.layout)
                 await self.put_own(messages)
 
         async def run() -> S.SessionEnded:

@@ -11,6 +11,8 @@ import numpy as np
 
 from dimgestor import __version__
 from dimgestor.audio import SAMPLE_RATE
+from dimgestor.face.names import NAME_SETS, check_name_set, names_of
+from streamer.face import FACE
 from streamer.frames import Channel, Frame, channel_values
 
 PROTOCOL = 1
@@ -26,7 +28,8 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
-REVISION = 6  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 7  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+FACE_DECIMALS = 4  # a JSON frame's face weights (0..1): 1e-4 is below what any rig shows
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
 
@@ -34,7 +37,8 @@ AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sa
 # The WebSocket sink's channel map: the channels every frame sent to a client carries, in this order (after the
 # rotations of a binary frame, under "channels" in a JSON frame), and what `hello.channels` announces. Empty: the
 # frames are exactly those of revision 5. A new channel is one entry here (name -> its `Channel`), made before the
-# server's hello is built (the hello announces the layout every frame then has).
+# server's hello is built (the hello announces the layout every frame then has). The face is not one of them: it
+# is each client's own (its name set, asked in its hello: `streamer.client_session.ClientSession.channels`).
 WS_CHANNELS: dict[str, Channel] = {}
 
 
@@ -89,6 +93,16 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
     }
 
 
+def face_hello(name_set: str) -> dict:
+    """`hello.face` (revision 7) of a server whose frames carry the face in `name_set`'s names by default."""
+    return {"names": check_name_set(name_set), "sets": list(NAME_SETS), "labels": list(names_of(name_set))}
+
+
+def channels_message(layout: list[dict]) -> str:
+    """Revision 7: the binary layout (`channel_layout`) of this client's frames from the next one on."""
+    return json.dumps({"type": "channels", "channels": layout}, separators=(",", ":"))
+
+
 def channel_layout(joints: int, channels: Mapping[str, Channel] | None = None) -> list[dict]:
     """`hello.channels` (revision 6): each sent channel's name, size, byte offset in a binary frame of `joints`
     joints, and its labels and description where it has them."""
@@ -108,9 +122,12 @@ def frame_json(frame: Frame, channels: Mapping[str, Channel] | None = None) -> s
         "rotations": np.round(np.nan_to_num(frame.rotations), 6).tolist(),
     }  # nan_to_num: a model failure must not make unparseable JSON
     channels = WS_CHANNELS if channels is None else channels
-    if channels:
-        msg["channels"] = {c.name: np.round(np.nan_to_num(channel_values(frame, c)), 6).tolist()
-                           for c in channels.values()}
+    for c in channels.values():
+        values = np.nan_to_num(channel_values(frame, c))
+        if c.name == FACE and c.labels:  # revision 7: the face as weight by name, not under "channels"
+            msg[FACE] = dict(zip(c.labels, np.round(values, FACE_DECIMALS).tolist()))
+        else:
+            msg.setdefault("channels", {})[c.name] = np.round(values, 6).tolist()
     return json.dumps(msg, separators=(",", ":"))
 
 
@@ -122,9 +139,11 @@ def frame_binary(frame: Frame, channels: Mapping[str, Channel] | None = None) ->
     return b"".join(parts)
 
 
-def encode_frames(frames: Sequence[Frame], encoding: str) -> list[str | bytes]:
-    """A client's frame messages in its encoding ("json" or "binary"), with the channels of `WS_CHANNELS`."""
-    channels = dict(WS_CHANNELS)  # one layout for the whole call
+def encode_frames(frames: Sequence[Frame], encoding: str,
+                  channels: Mapping[str, Channel] | None = None) -> list[str | bytes]:
+    """A client's frame messages in its encoding ("json" or "binary") with its channels (None: `WS_CHANNELS`);
+    a JSON frame carries the face channel as `"face": {name: weight}`."""
+    channels = dict(WS_CHANNELS if channels is None else channels)  # one layout for the whole call
     if encoding == "binary":
         return [frame_binary(f, channels) for f in frames]
     return [frame_json(f, channels) for f in frames]
@@ -282,6 +301,19 @@ def _parse_hello(msg: dict) -> dict:
         if not isinstance(msg["timing"], bool):
             raise ProtocolError("bad_message", f"timing must be true or false, got {msg['timing']!r}")
         out["timing"] = msg["timing"]
+    if "face" in msg:
+        face = msg["face"]
+        if face != "none":
+            try:
+                check_name_set(face if isinstance(face, str) else repr(face))
+            except ValueError as e:
+                raise ProtocolError("bad_message", f'face: {e} (or "none")') from None
+        out["face"] = face
+    if "smile" in msg:
+        smile = msg["smile"]
+        if not isinstance(smile, (int, float)) or isinstance(smile, bool) or not 0 <= smile <= 1:
+            raise ProtocolError("bad_message", f"smile must be a number from 0 to 1, got {smile!r}")
+        out["smile"] = float(smile)
     if "audio" in msg:
         a = msg["audio"]
         if not isinstance(a, dict):

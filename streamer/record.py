@@ -7,8 +7,11 @@ frames of the last flush. The root is integrated across chunks exactly as `featu
 the whole recording, so the file equals `dimgestor generate` on the same audio, seed and steps. A full
 disk (or any write error) stops the recording with one message and keeps what was written.
 
-The frame channels named in `RECORD_CHANNELS` go to a CSV beside the BVH (`OUT.channels.csv`: one line per frame,
-`index,pts`, then one column per value), written at the same flushes; with the map empty there is no CSV.
+With `face=True` (the server makes a face) the face track goes beside it, `OUT.face.csv`, in the format of
+`dimgestor generate --face` (`dimgestor.face.track`: `time,` then the VRM 0 and ARKit names, one row per BVH
+frame). Other frame channels named in the recording's map (`RECORD_CHANNELS` by default) go to `OUT.channels.csv`
+(one line per frame, `index,pts`, then one column per value); with the map empty there is no such CSV. Both are
+written at the BVH's flushes, so each holds whole rows at all times.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from typing import Mapping
 
 import numpy as np
 
+from streamer.face import FACE
 from streamer.frames import Channel, Frame, channel_values
 
 COUNT_WIDTH = 12  # room for the frame count in the header (space-padded, so any reader takes it)
@@ -39,25 +43,30 @@ def channels_path(path: str | Path) -> Path:
     return path.with_name(path.stem + ".channels.csv")
 
 
-class ChannelTable:
-    """The mapped channels of each frame, appended as CSV lines; a write error stops it with one message."""
+def face_path(path: str | Path) -> Path:
+    """Where a recording's face track goes: OUT.bvh -> OUT.face.csv."""
+    path = Path(path)
+    return path.with_name(path.stem + ".face.csv")
 
-    def __init__(self, path: Path, channels: list[Channel]):
-        self.path, self.channels = path, channels
-        self.pending: list[str] = []
+
+class CsvLog:
+    """Whole lines appended to a CSV file at each flush (after its header); a write error stops it with one
+    message and keeps the lines written before it."""
+
+    def __init__(self, path: Path, header: str, what: str):
+        self.path, self.what = path, what
+        self.pending: list[str] = [header]
         self.size, self.failed = 0, ""
         try:
+            if path.is_dir():
+                raise IsADirectoryError(21, "is a folder")
             self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         except OSError as e:
             raise RecordError(f"cannot record to {path}: {e.strerror or e}") from None
-        names = [f"{c.name}.{label}" for c in channels for label in (c.labels or range(c.size))]
-        self.pending.append(",".join(["index", "pts", *names]) + "\n")
         self.flush()
 
-    def add(self, frames: list[Frame]) -> None:
-        for f in frames:
-            values = np.concatenate([channel_values(f, c) for c in self.channels])
-            self.pending.append(f"{f.index},{f.pts!r}," + ",".join(f"{v:.6g}" for v in values) + "\n")
+    def add(self, lines: list[str]) -> None:
+        self.pending += lines
 
     def flush(self) -> None:
         if self.failed or not self.pending:
@@ -75,7 +84,7 @@ class ChannelTable:
                 os.ftruncate(self.fd, self.size)  # no partial line
             except OSError:
                 pass
-            print(f"dimgestor: channel recording stopped: cannot write {self.path}: {self.failed}",
+            print(f"dimgestor: {self.what} recording stopped: cannot write {self.path}: {self.failed}",
                   file=sys.stderr, flush=True)
             return
         self.size = at
@@ -85,9 +94,44 @@ class ChannelTable:
         os.close(self.fd)
 
 
+class ChannelTable(CsvLog):
+    """The mapped channels of each frame: `index,pts`, then one column per value."""
+
+    def __init__(self, path: Path, channels: list[Channel]):
+        self.channels = channels
+        names = [f"{c.name}.{label}" for c in channels for label in (c.labels or range(c.size))]
+        super().__init__(path, ",".join(["index", "pts", *names]) + "\n", "channel")
+
+    def add_frames(self, frames: list[Frame]) -> None:
+        for f in frames:
+            values = np.concatenate([channel_values(f, c) for c in self.channels])
+            self.add([f"{f.index},{f.pts!r}," + ",".join(f"{v:.6g}" for v in values) + "\n"])
+
+
+class FaceTable(CsvLog):
+    """The face track (`dimgestor.face.track`: the format of `dimgestor generate --face`), row i beside the BVH's
+    frame i (its time i / fps); a frame without a face (none made for it) is the resting face, all zeros."""
+
+    def __init__(self, path: Path, fps: float):
+        from dimgestor.face import FACE_LABELS
+        from dimgestor.face.track import track_header
+
+        self.fps, self.rows = fps, 0
+        self.canonical = Channel(FACE, len(FACE_LABELS))  # the frame channel as the session makes it
+        super().__init__(path, track_header(), "face")
+
+    def add_frames(self, frames: list[Frame]) -> None:
+        from dimgestor.face.track import track_rows
+
+        if frames:
+            face = np.stack([channel_values(f, self.canonical) for f in frames])
+            self.add(track_rows(face, self.fps, self.rows))
+            self.rows += len(frames)
+
+
 class BvhRecorder:
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
-                 flush_every_s: float = 0.5, channels: Mapping[str, Channel] | None = None):
+                 flush_every_s: float = 0.5, channels: Mapping[str, Channel] | None = None, face: bool = False):
         from dimgestor.bvh import format_hierarchy
         from dimgestor.features import PoseDecoder
 
@@ -118,10 +162,16 @@ class BvhRecorder:
         if not self._append(head.encode()) or not self._set_count(0):
             os.close(self.fd)
             raise RecordError(f"cannot record to {self.path}: {self.failed}")
-        channels = list((RECORD_CHANNELS if channels is None else channels).values())
+        channels = [c for c in (RECORD_CHANNELS if channels is None else channels).values() if c.name != FACE]
+        self.tables: list[CsvLog] = []  # the CSVs beside the BVH, flushed with it
         try:
-            self.table = ChannelTable(channels_path(self.path), channels) if channels else None
+            if face:
+                self.tables.append(FaceTable(face_path(self.path), feature_spec.fps))
+            if channels:
+                self.tables.append(ChannelTable(channels_path(self.path), channels))
         except RecordError:
+            for t in self.tables:
+                t.close()
             os.close(self.fd)
             raise
 
@@ -140,8 +190,8 @@ class BvhRecorder:
         self.last = values[-1, self.rot_cols]
         self.pending.append(format_frames(values))
         self.pending_frames += n
-        if self.table is not None:
-            self.table.add(frames)
+        for t in self.tables:
+            t.add_frames(frames)
         if time.monotonic() - self.last_flush >= self.flush_every_s:
             self.flush()
 
@@ -154,8 +204,8 @@ class BvhRecorder:
         self.pending, self.pending_frames = [], 0
         if self._append(data):
             self._set_count(self.frames + n)
-        if self.table is not None:
-            self.table.flush()
+        for t in self.tables:
+            t.flush()
 
     def _append(self, data: bytes) -> bool:
         at = self.size
@@ -197,8 +247,8 @@ class BvhRecorder:
         self.flush()
         self.closed = True
         os.close(self.fd)
-        if self.table is not None:
-            self.table.close()
+        for t in self.tables:
+            t.close()
         return None if self.failed else self.path
 
 
@@ -207,14 +257,15 @@ class RecordingSink:
     that a failure to start anything else leaves an old recording alone."""
 
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
-                 channels: Mapping[str, Channel] | None = None):
+                 channels: Mapping[str, Channel] | None = None, face: bool = False):
         self.path = Path(path)
         self.args = (skeleton, feature_spec, root, tether_s)
-        self.channels = channels
+        self.channels, self.face = channels, face
         self.recorder: BvhRecorder | None = None
 
     async def open(self) -> None:
-        self.recorder = BvhRecorder(self.path, *self.args, channels=self.channels)  # RecordError says why not
+        # (RecordError says why not)
+        self.recorder = BvhRecorder(self.path, *self.args, channels=self.channels, face=self.face)
 
     def send(self, frames: list[Frame]) -> None:
         self.recorder.on_frames(frames)
@@ -226,7 +277,9 @@ class RecordingSink:
 
     def describe(self) -> str:
         channels = RECORD_CHANNELS if self.channels is None else self.channels
-        return f"recording  {self.path}" + (f" (channels: {channels_path(self.path)})" if channels else "")
+        beside = ([f"face: {face_path(self.path)}"] if self.face else []) + (
+            [f"channels: {channels_path(self.path)}"] if any(c != FACE for c in channels) else [])
+        return f"recording  {self.path}" + (f" ({', '.join(beside)})" if beside else "")
 
     def status(self) -> str:
         return ""

@@ -250,6 +250,7 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
     hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
                     accepts_audio=not options.no_client_audio, window_ms=options.window_ms,
                     source="ws" if source is None else "mic" if options.source == "mic" else "file",
+                    **({"face": P.face_hello(options.face)} if options.face != "none" else {}),
                     **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
                        if isinstance(source, WavSource) else {}))
     also = [(options.http[0] or options.ws[0], options.http[1])] if options.http is not None else []
@@ -266,10 +267,10 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
 def _vmc(options: ServeOptions, rig):
     if options.osc is None:
         return None
-    from streamer.vmc import VmcSink
+    from streamer.vmc import VmcSink, face_channels
 
     return VmcSink(options.osc[0], options.osc[1], rig, pace=not options.fast, jitter_s=_vmc_jitter_ms(options) / 1000,
-                   options=options.vmc())
+                   options=options.vmc(), channels=face_channels(options.face))
 
 
 def _vmc_jitter_ms(options: ServeOptions) -> float:
@@ -286,7 +287,7 @@ def _recording(options: ServeOptions, bundle, source):
     from streamer.record import RecordingSink
 
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
-                         tether_s=options.tether_s)
+                         tether_s=options.tether_s, face=options.face != "none")
 
 
 def read_token(options) -> str | None:

@@ -3,13 +3,14 @@
 Per frame, one bundle (types as in the VMC Marionette spec; EVMC4U checks each of them):
   /VMC/Ext/Root/Pos (s)"root" (f)p.x p.y p.z (f)q.x q.y q.z q.w      the fixed root pose (`VmcOptions.root`)
   /VMC/Ext/Bone/Pos (s)HumanBodyBones name (f)p.x p.y p.z (f)q.x q.y q.z q.w   per sent bone, local
-  ... each channel of `VMC_CHANNELS` (e.g. /VMC/Ext/Blend/Val (s)name (f)value per blendshape)
+  /VMC/Ext/Blend/Val (s)name (f)value   per value of each channel of the sink's map (`face_channels`: the face,
+                                        every name of the server's --face set; a frame without one: zeros)
   /VMC/Ext/Blend/Apply
   /VMC/Ext/OK (i)1
   /VMC/Ext/T (f)the frame's presentation time, seconds on the stream's audio clock
 in Unity's left-handed frame and metres (streamer.pose). With `max_bytes` a frame is split into several
-bundles of at most that size (the root in the first, OK and T in the last), for receivers on a LAN
-that drop fragmented UDP datagrams. Receivers apply each bundle on arrival, so frames are released by
+bundles of at most that size (the root in the first; Apply, OK and T in the last, after every Blend/Val), for
+receivers on a LAN that drop fragmented UDP datagrams. Receivers apply each bundle on arrival, so frames are released by
 a `Pacer` at their presentation time plus a jitter buffer, not in the bursts inference makes them in.
 
 Bundles are packed with `struct` from per-bone headers built once (`VmcEncoder.packets`);
@@ -90,9 +91,19 @@ class BlendValues:
         return [("/VMC/Ext/Blend/Val", [name, float(v)]) for name, v in zip(labels, values)]
 
 
-# The VMC sink's channel map: frame channel name -> how it is sent. Empty: the bundles are those of the pose
-# alone. A new channel is one entry here (e.g. the face: `BlendValues(FACE)`).
+# The VMC sink's default channel map: frame channel name -> how it is sent. Empty: the bundles are those of the
+# pose alone. A sink given its own map (`channels=`, e.g. `face_channels`) sends that instead.
 VMC_CHANNELS: dict[str, VmcChannel] = {}
+
+
+def face_channels(name_set: str) -> dict[str, VmcChannel]:
+    """A VMC sink's channel map for the face in `name_set`'s names ("none": no face; ValueError for an unknown set,
+    listing the known ones)."""
+    if name_set == "none":
+        return {}
+    from streamer.face import FACE, face_channel
+
+    return {FACE: BlendValues(face_channel(name_set))}
 
 
 # ---- OSC packing ---------------------------------------------------------------------------------

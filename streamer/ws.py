@@ -242,19 +242,21 @@ class WsServer:
         if not frames:
             return
         self.broadcast_frames += len(frames)
-        encoded: dict[str, list] = {}
+        encoded: dict[tuple, list] = {}  # (encoding, channels) -> messages: each form encoded once
         window = self.broadcast_stats.window if self.broadcast_stats is not None else None
         timing = None
-        for c in self.clients:
-            if c.own:
-                continue
-            if c.encoding not in encoded:
-                encoded[c.encoding] = c.encode(frames)
-            for m in encoded[c.encoding]:
-                c.put(m, "frame")
-            if c.machine.timing and window is not None:
-                timing = timing or P.timing(frames[0].index, len(frames), window, time.monotonic())
-                c.put(timing, "note")
+        for c in list(self.clients):
+            for a in c.act(c.machine.handle(S.Broadcast(len(frames), window))):
+                key = (a.encoding, tuple(a.channels.values()))
+                if key not in encoded:
+                    encoded[key] = c.encode(frames, a)
+                if a.layout is not None:
+                    c.put(a.layout)
+                for m in encoded[key]:
+                    c.put(m, "frame")
+                if a.window is not None:
+                    timing = timing or P.timing(frames[0].index, len(frames), a.window, time.monotonic())
+                    c.put(timing, "note")
 
     def broadcast_audio(self, pts: float, samples: np.ndarray) -> None:
         """The server source's audio, sent in DGA1 messages of AUDIO_BATCH_S to clients that asked for it."""
@@ -286,6 +288,8 @@ class WsServer:
 
         self.seats.accepts_audio = self.make_session is not None  # (the terms as they are now)
         self.seats.offers_source_audio = "source_audio" in self.hello
+        self.seats.face = self.hello["face"]["names"] if "face" in self.hello else None
+        self.seats.joints = len(self.hello["skeleton"]["joints"])
         svc = Services(self.prep, self.metrics, self.make_session, self.store, self.max_backlog_s, self.audio_recent,
                        self.departures, self._trim_later)
         client = Client(ws, S.ClientSession(self.seats, new_token), S.Keepalive(

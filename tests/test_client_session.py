@@ -8,9 +8,9 @@ import pytest
 
 from streamer import protocol as P
 from streamer.client_session import (
-    Audio, Boundary, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames, HandedOver,
-    HandOver, Keepalive, Left, Phase, Queuing, Refused, Restored, SaveState, Saved, Seats, Send, SendFrames,
-    SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
+    Audio, Boundary, Broadcast, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames,
+    HandedOver, HandOver, Keepalive, Left, Phase, Queuing, Refused, Restored, SaveState, Saved, Seats, Send, SendFrames,
+    SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
 from streamer.sessions import Session
 
 
@@ -61,9 +61,10 @@ def test_a_full_session_with_slow_down_and_resume():
     slow = c.handle(Queuing(backlog_s=4.0, full=True))
     assert kinds(slow) == ["slow_down"] and slow[0].kind == "ctl" and c.slowed
     assert c.handle(Queuing(backlog_s=4.0, full=True)) == []  # said once until resumed
-    assert c.handle(Frames(count=2, backlog_s=3.0)) == [SendFrames(None)]  # not yet down to half
+    # (frames go out in the encoding in force when they are made: binary, with no channel here)
+    assert c.handle(Frames(count=2, backlog_s=3.0)) == [SendFrames(None, "binary")]  # not yet down to half
     resumed = c.handle(Frames(count=3, backlog_s=1.5))
-    assert sent(resumed) == [{"type": "resume", "backlog_s": 1.5}] and resumed[1] == SendFrames(None)
+    assert sent(resumed) == [{"type": "resume", "backlog_s": 1.5}] and resumed[1] == SendFrames(None, "binary")
     assert c.frames == 5 and not c.slowed
 
     assert c.handle(text(type="audio_end")) == [EndAudio(handover=False)]
@@ -234,3 +235,72 @@ def test_keepalive_blames_only_a_client_that_does_not_read():
     for t in range(10, 13):  # held, frames waiting and none going out: silence counts
         assert held.tick(float(t), holding=True, frames_sent=9, awaits_reading=True) is None
     assert held.tick(13.0, holding=True, frames_sent=9, awaits_reading=True) is not None
+
+
+# ---- the face (revision 7): each client's own name set, smile and binary layout ------------------------------
+
+def face_of(action: SendFrames):
+    """The face channel an action's frames carry (None: none), and the `channels` message before them."""
+    ch = action.channels.get("face")
+    return (ch.labels if ch is not None else None), (json.loads(action.layout) if action.layout else None)
+
+
+def test_json_frames_carry_the_servers_face_and_binary_frames_only_once_asked():
+    from dimgestor.face.names import ARKIT, names_of
+
+    vrm0 = names_of("vrm0")
+    json_client, old_binary = client(Seats(4, face="vrm0", joints=3)), client(Seats(4, face="vrm0", joints=3))
+    old_binary.handle(text(type="hello", encoding="binary"))
+    assert face_of(json_client.handle(Broadcast(2))[0]) == (vrm0, None)  # nothing asked: the server's set
+    assert old_binary.handle(Broadcast(2)) == [SendFrames(None, "binary")]  # revision 5's frames for an old client
+
+    c = old_binary
+    assert c.handle(text(type="hello", encoding="binary", face="arkit")) == []  # said with the next frames
+    first, later = c.handle(Broadcast(2))[0], c.handle(Broadcast(1))[0]
+    labels, layout = face_of(first)
+    assert labels == ARKIT and layout == {"type": "channels", "channels": [
+        {"name": "face", "size": 52, "offset": 28 + 16 * 3, "labels": list(ARKIT),
+         "description": "face blendshape weights 0..1, arkit names"}]}
+    assert face_of(later) == (ARKIT, None)  # the layout is told once
+    c.handle(text(type="hello", encoding="json"))  # (a hello without `face` keeps it)
+    assert face_of(c.handle(Broadcast(1))[0]) == (ARKIT, None) and c.handle(Broadcast(1))[0].encoding == "json"
+
+    # an unknown set: bad_message listing the known ones; nothing of that hello applies, the client goes on
+    bad = c.handle(text(type="hello", encoding="binary", face="vrm2"))
+    assert kinds(bad) == ["bad_message"] and all(s in sent(bad)[0]["message"] for s in ("vrm0", "vrm1", "arkit",
+                                                                                         "oculus", "none"))
+    assert c.encoding == "json" and face_of(c.handle(Broadcast(1))[0]) == (ARKIT, None)
+
+    c.handle(text(type="hello", face="none"))  # no face at all, and an empty layout
+    assert face_of(c.handle(Broadcast(1))[0]) == (None, {"type": "channels", "channels": []})
+    c.handle(text(type="hello", encoding="binary"))
+    assert c.handle(Broadcast(1)) == [SendFrames(None, "binary")]
+
+
+def test_own_frames_follow_the_clients_set_and_a_faceless_server_ignores_the_ask():
+    c = client(Seats(4, face="arkit", joints=2))
+    c.handle(text(type="hello", face="oculus", timing=True))
+    audio_in(c, 160)
+    assert c.handle(Broadcast(3)) == []  # a client with audio of its own follows its own frames only
+    send = c.handle(Frames(count=2, backlog_s=0.0, window="w"))[0]
+    assert send.window == "w" and face_of(send)[0][:2] == ("viseme_sil", "viseme_PP")
+    assert face_of(send)[1]["channels"][0]["size"] == 17
+
+    plain = client(Seats(4, face=None, joints=2))  # --face none: the field is ignored, no `channels` message
+    plain.handle(text(type="hello", encoding="binary", face="arkit"))
+    assert plain.handle(Broadcast(1)) == [SendFrames(None, "binary")]
+    plain.handle(text(type="hello", encoding="json"))
+    assert plain.handle(Broadcast(1)) == [SendFrames(None, "json")]
+
+
+def test_smile_goes_to_the_clients_own_sessions_only():
+    c = client(Seats(4, face="vrm0"))
+    assert c.handle(text(type="hello", smile=0.75)) == []  # no session yet: its next one starts with it
+    assert audio_in(c, 160)[0] == StartSession(1, 16000, None, None, smile=0.75)
+    assert c.handle(text(type="hello", smile=0)) == [SetSmile(0.0)]  # the running session, from its next frames
+    for bad in (1.5, -0.1, "big", True, None):
+        assert kinds(c.handle(text(type="hello", smile=bad))) == ["bad_message"]
+    assert c.smile == 0.0
+    c.handle(text(type="audio_end"))
+    c.handle(SessionEnded(frames=4))
+    assert audio_in(c, 160)[0].smile == 0.0

@@ -293,3 +293,70 @@ def test_python_client_names_a_bad_wav_before_connecting(tmp_path):
         r = subprocess.run([sys.executable, str(CLIENT), "--url", "ws://127.0.0.1:9/", "--wav", str(path)],
                            capture_output=True, text=True, timeout=60)
         assert r.returncode == 1 and str(path) in r.stderr and says in r.stderr, r.stderr
+
+
+def test_python_client_reads_the_face_of_json_and_binary_frames_and_writes_it_as_csv(tmp_path):
+    """Revision 7 without a server: a binary frame's face read through a `channels` message's layout comes out as
+    the JSON frame's `face` (weight by name); --face-csv's rows are `time` (index / fps) then one column per name."""
+    import json
+
+    from dimgestor.face.names import ARKIT, convert
+    from dimgestor.synthetic import synthetic_skeleton
+    from streamer import protocol as P
+    from streamer.face import face_channel
+    from streamer.frames import Frame
+
+    client = load_client()
+    sk = synthetic_skeleton()
+    J = len(sk.names)
+    hello = P.hello(P.SkeletonInfo.from_skeleton(sk), {}, 20, 0.25, True, face=P.face_hello("vrm0"))
+    chans = {"face": face_channel("arkit")}
+    layout = P.channels_message(P.channel_layout(J, chans))
+    canonical = np.linspace(0.0, 1.0, 20)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (J, 1))
+    frames = [Frame(i, i / 20, np.zeros(3), q, np.zeros(3), {"face": canonical * (i + 1) / 3}) for i in range(3)]
+    args = client.parse_args(["--quiet", "--face-csv", str(tmp_path / "face.csv")])
+    assert args.face == "vrm0"  # --face-csv asks for a set: VRM 0's unless --face names another
+    printer, csv = client.Printer(args), client.FaceCsv(args.face_csv)
+    got = [printer.handle(json.dumps(hello)), printer.handle(layout)]
+    got += [printer.handle(m) for m in (P.encode_frames(frames[:2], "binary", chans)
+                                        + P.encode_frames(frames[2:], "json", chans))]
+    for m in got[2:]:
+        csv.add(m)
+    assert [list(m["face"]) for m in got[2:]] == [list(ARKIT)] * 3 and "channels" not in got[2]
+    for m, f in zip(got[2:], frames):  # float32 (binary) and 4 decimals (JSON) of the same weights
+        assert np.allclose(list(m["face"].values()), convert(f.channels["face"], "arkit"), rtol=0, atol=5e-5)
+    assert max(got[4]["face"].values()) > 0.5
+    assert csv.write() == 3
+    rows = (tmp_path / "face.csv").read_text().splitlines()
+    assert rows[0] == ",".join(["time", *ARKIT]) and len(rows) == 4
+    assert [r.split(",")[0] for r in rows[1:]] == ["0.0000", "0.0500", "0.1000"]
+    table = np.array([r.split(",")[1:] for r in rows[1:]], dtype=float)
+    assert np.allclose(table, [list(m["face"].values()) for m in got[2:]], atol=5e-5)
+    with pytest.raises(SystemExit):
+        client.parse_args(["--face", "none", "--face-csv", "x.csv"])
+
+
+def test_python_client_writes_the_face_csv_of_its_own_session_in_json_and_binary(tmp_path, checkpoint):
+    """Against a live server (its default --face vrm0): --face-csv from JSON frames (nothing asked: the server's
+    set) and from binary frames (asked: vrm0) hold the same face, one row per frame of the session."""
+    from dimgestor.face.names import names_of
+
+    with live_server(tmp_path, "ws", checkpoint) as server:
+        as_json, as_binary = tmp_path / "json.csv", tmp_path / "binary.csv"
+        r = run_client("--url", server.ws_url, "--wav", str(SPEECH_WAV), "--fast", "--quiet", "--face-csv",
+                       str(as_json))
+        b = run_client("--url", server.ws_url, "--wav", str(SPEECH_WAV), "--fast", "--binary", "--face", "vrm0",
+                       "--save", str(tmp_path / "saved"), "--face-csv", str(as_binary))
+    frames = int(r.stderr.split("received ")[1].split()[0])
+    assert f"wrote the face of {frames} frames to {as_json}" in r.stderr, r.stderr
+    assert f"wrote the face of {frames} frames to {as_binary}" in b.stderr, b.stderr
+    assert "channels: face (9 values at byte" in b.stdout and " face A " in b.stdout
+    tables = []
+    for path in (as_json, as_binary):
+        rows = path.read_text().splitlines()
+        assert rows[0] == "time," + ",".join(names_of("vrm0")) and len(rows) == frames + 1
+        table = np.array([row.split(",") for row in rows[1:]], dtype=float)
+        assert np.allclose(table[:, 0], np.arange(frames) / 20, atol=5e-5)
+        tables.append(table[:, 1:])
+    assert np.abs(tables[0] - tables[1]).max() <= 1e-4 and tables[0][:, :5].max() > 0.3  # the mouth speaks

@@ -58,3 +58,18 @@ def test_the_face_is_ready_within_its_lookahead_and_a_longer_one_is_capped():
     assert face.frames_ready == int(round((1.0 - 0.3) * 20)) + 1  # frames 0..14: each up to its time + 0.3 s
     with pytest.raises(RuntimeError, match="lookahead"):
         face.take(face.frames_ready + 1)
+
+
+def test_a_frame_rate_given_as_a_float_makes_the_same_face():
+    np.testing.assert_array_equal(stream_face(SPEECH[:SAMPLE_RATE * 3], [4000]),
+                                  _stream_face_at(20.0, SPEECH[:SAMPLE_RATE * 3], [4000]))
+
+
+def _stream_face_at(fps, audio, sizes):
+    face, rows = FaceStream(fps, 0.3), []
+    for at in range(0, len(audio), sizes[0]):
+        face.push(audio[at:at + sizes[0]])
+        rows.append(face.take(face.frames_ready))
+    face.finish()
+    rows.append(face.take(face.frames_ready))
+    return np.concatenate(rows)

@@ -54,7 +54,7 @@ def test_wav_file_to_websocket_client_and_vmc(tiny_checkpoint, wav, tmp_path):
 @pytest.mark.parametrize("root,guidance", [("free", None), ("tether", None), ("tether", "2.5")])
 def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, guidance):
     """Streaming (--record, window 150 ms) == `dimgestor generate` on the same file, seed, steps, root mode and
-    guidance scale."""
+    guidance scale; the face track beside the recording == `generate --face`'s, row for row (one per BVH frame)."""
     out_stream, out_offline = tmp_path / "stream.bvh", tmp_path / "offline.bvh"
     extra = ["--guidance", guidance] if guidance else []
     s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--no-ws", "--seed", "7", "--steps", "3",
@@ -64,6 +64,7 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
                         "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
+                        "--face", str(tmp_path / "offline.csv"),
                         "--root", root, "--tether-s", "0.5", *extra],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -71,6 +72,10 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
     assert a.values.shape == b.values.shape and a.num_frames == int(SECONDS * 20)
     assert a.frame_time == pytest.approx(b.frame_time)
     assert np.abs(a.values - b.values).max() < 1e-3
+    face = (tmp_path / "stream.face.csv").read_text()
+    assert face == (tmp_path / "offline.csv").read_text()
+    assert face.startswith("time,A,I,U,E,O,Blink,Blink_L,Blink_R,Joy,eyeBlinkLeft,")
+    assert face.count("\n") == 1 + a.num_frames
 
 
 def test_ctrl_c_stops_cleanly_and_finishes_the_recording(tiny_checkpoint, wav, tmp_path):

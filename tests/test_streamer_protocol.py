@@ -92,3 +92,54 @@ def test_source_audio_messages_round_trip_and_the_hello_field_is_checked():
     with pytest.raises(P.ProtocolError) as e:
         P.parse_text('{"type": "hello", "source_audio": "yes"}')
     assert e.value.code == "bad_message"
+
+
+def test_the_face_in_the_hello_a_json_frame_and_a_binary_frame():
+    """Revision 7: hello.face names the server's set and the known ones; a JSON frame carries the face channel as
+    weight by name (4 decimals, every name of the set), a binary frame its floats at the layout's offset."""
+    from dimgestor.face import FACE_LABELS, convert
+    from dimgestor.face.names import ARKIT
+    from streamer.face import face_channel
+
+    sk = synthetic_skeleton()
+    h = P.hello(P.SkeletonInfo.from_skeleton(sk), {}, 20, 0.25, True, face=P.face_hello("vrm1"))
+    assert h["revision"] == 7 and h["channels"] == []  # binary frames carry no face until a client asks
+    assert h["face"] == {"names": "vrm1", "sets": ["vrm0", "vrm1", "arkit", "oculus"],
+                         "labels": ["aa", "ih", "ou", "ee", "oh", "blink", "blinkLeft", "blinkRight", "happy"]}
+    with pytest.raises(ValueError, match="known sets are vrm0, vrm1, arkit, oculus"):
+        P.face_hello("vrm2")
+
+    J = len(sk.names)
+    canonical = np.linspace(0.0, 1.0, len(FACE_LABELS)) ** 2 / 3 + 1e-5  # (weights that need rounding)
+    f = Frame(3, 0.15, np.zeros(3), frame(J).rotations, np.zeros(5), {"face": canonical})
+    arkit = {"face": face_channel("arkit")}
+    j = json.loads(P.encode_frames([f], "json", arkit)[0])
+    assert list(j["face"]) == list(ARKIT) and "channels" not in j
+    assert list(j["face"].values()) == np.round(convert(canonical, "arkit"), 4).tolist()
+    layout = P.channel_layout(J, arkit)
+    assert layout == [{"name": "face", "size": 52, "offset": 28 + 16 * J, "labels": list(ARKIT),
+                       "description": "face blendshape weights 0..1, arkit names"}]
+    b = P.encode_frames([f], "binary", arkit)[0]
+    assert len(b) == 28 + 16 * J + 4 * 52
+    assert np.allclose(P.parse_frame_binary(b, J, layout)["channels"]["face"], convert(canonical, "arkit"), atol=1e-7)
+    assert json.loads(P.channels_message(layout)) == {"type": "channels", "channels": layout}
+    # no map: WS_CHANNELS (empty), the frames of revision 5
+    assert "face" not in json.loads(P.encode_frames([f], "json")[0]) and len(P.encode_frames([f], "binary")[0]) \
+        == 28 + 16 * J
+
+
+@pytest.mark.parametrize("hello, says", [
+    ({"face": "vrm2"}, "known sets are vrm0, vrm1, arkit, oculus"), ({"face": 3}, "known sets"),
+    ({"face": ["arkit"]}, "known sets"), ({"smile": 2}, "smile must be a number from 0 to 1"),
+    ({"smile": "yes"}, "smile"), ({"smile": False}, "smile"),
+])
+def test_a_client_hello_with_a_bad_face_or_smile_is_a_bad_message(hello, says):
+    with pytest.raises(P.ProtocolError, match=says) as e:
+        P.parse_text(json.dumps({"type": "hello", **hello}))
+    assert e.value.code == "bad_message"
+
+
+def test_a_client_hello_asks_for_a_face_set_none_or_a_smile():
+    assert P.parse_text('{"type": "hello", "face": "oculus", "smile": 1}') == {"type": "hello", "face": "oculus",
+                                                                               "smile": 1.0}
+    assert P.parse_text('{"type": "hello", "face": "none", "smile": 0.25}')["face"] == "none"

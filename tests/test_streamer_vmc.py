@@ -1,4 +1,5 @@
-"""VMC over OSC: a python-osc server receives one bundle per frame with the spec's argument types."""
+"""VMC over OSC: a python-osc server receives one bundle per frame with the spec's argument types, the face as
+Blend/Val of every name of the sink's set before Blend/Apply."""
 
 import asyncio
 import os
@@ -12,11 +13,14 @@ from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_message import OscMessage
 
 from dimgestor.bvh import read_bvh
+from dimgestor.face import FACE_LABELS, NAME_SETS, convert, names_of
+from dimgestor.face.visemes import V
 from dimgestor.rotations import quat_normalize
 from dimgestor.synthetic import synthetic_skeleton
+from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.pose import HumanoidRig, load_humanoid_map
-from streamer.vmc import VmcEncoder, VmcOptions, VmcSink, reference_bundle
+from streamer.vmc import VMC_CHANNELS, VmcEncoder, VmcOptions, VmcSink, face_channels, reference_bundle
 from helpers.stalls import runnable_waiting_s
 from helpers.vmc import bundles, check_vmc_bundle, osc_server, type_tags
 
@@ -149,3 +153,97 @@ def test_a_late_frame_is_dropped_not_burst_and_close_is_quick():
     assert sink.sent + sink.dropped == 60
     # at once, but for the time this thread waited, runnable, for a CPU (the machine's other work)
     assert close_s - waited < 0.5, f"close took {close_s:.2f} s, of which {waited:.2f} s waiting for a CPU"
+
+
+# ---- the face: /VMC/Ext/Blend/Val per name of the --face set, then /VMC/Ext/Blend/Apply --------------------------
+
+
+def synthetic_rig():
+    sk = synthetic_skeleton()
+    return sk, HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
+
+
+def speaking_face():
+    """A canonical face with every value apart (an open A, a half blink, raised brows, a smile)."""
+    face = np.linspace(0.05, 0.95, len(FACE_LABELS))
+    face[V["PP"]] = 0.0
+    return face
+
+
+@pytest.mark.parametrize("name_set", list(NAME_SETS))
+@pytest.mark.parametrize("max_bytes", [0, 300])
+def test_the_face_is_every_name_of_its_set_before_apply(name_set, max_bytes):
+    """Each frame: the bones, one Blend/Val (s)name (f)value per name of the set in its order and nothing else,
+    then Blend/Apply after the last of them (in the last datagram when split); packed == python-osc's reference."""
+    sk, rig = synthetic_rig()
+    enc = VmcEncoder(rig, VmcOptions(max_bytes=max_bytes), channels=face_channels(name_set))
+    face = speaking_face()
+    f = Frame(3, 0.15, np.zeros(3), quat_normalize(np.random.default_rng(3).normal(size=(len(sk.names), 4))),
+              np.zeros(3), {FACE: face})
+    packets = enc.packets(f)
+    assert packets == [reference_bundle(m) for m in enc.messages(f)]
+    got = bundles(packets)
+    if max_bytes:
+        assert len(packets) > 1 and all(len(p) <= max_bytes for p in packets)
+    msgs = [m for b in got for m in b]
+    check_vmc_bundle(msgs, bones_expected=enc.names)
+    addresses = [a for a, _, _ in msgs]
+    vals = [p for a, _, p in msgs if a == "/VMC/Ext/Blend/Val"]
+    assert [name for name, _ in vals] == list(names_of(name_set))
+    np.testing.assert_allclose([v for _, v in vals], convert(face, name_set).astype(np.float32), rtol=0, atol=0)
+    last_val = max(i for i, a in enumerate(addresses) if a == "/VMC/Ext/Blend/Val")
+    assert addresses.index("/VMC/Ext/Blend/Apply") == last_val + 1 > max(
+        i for i, a in enumerate(addresses) if a == "/VMC/Ext/Bone/Pos")
+    assert "/VMC/Ext/Blend/Apply" in [a for a, _, _ in got[-1]]  # with the frame's OK and T
+    if name_set == "arkit":
+        assert set(names_of("arkit")) >= {name for name, _ in vals} and "A" not in {name for name, _ in vals}
+
+
+def test_a_frame_without_a_face_sends_the_resting_face_and_none_sends_no_face():
+    """A rest frame (made without a face, e.g. pipecat's spring between utterances) sends every name at 0;
+    `--face none` sends no Blend/Val at all; an unknown set is refused with the known ones."""
+    sk, rig = synthetic_rig()
+    pose = np.tile([1.0, 0, 0, 0], (len(sk.names), 1))
+    rest = Frame(0, 0.0, np.zeros(3), pose, np.zeros(3))
+    for name_set in NAME_SETS:
+        vals = [p for a, _, p in bundles(VmcEncoder(rig, channels=face_channels(name_set)).packets(rest))[0]
+                if a == "/VMC/Ext/Blend/Val"]
+        assert [n for n, _ in vals] == list(names_of(name_set)) and all(v == 0.0 for _, v in vals), name_set
+    assert face_channels("none") == {}
+    msgs = bundles(VmcEncoder(rig, channels=face_channels("none")).packets(
+        Frame(0, 0.0, np.zeros(3), pose, np.zeros(3), {FACE: speaking_face()})))[0]
+    assert "/VMC/Ext/Blend/Val" not in [a for a, _, _ in msgs] and msgs[-3][0] == "/VMC/Ext/Blend/Apply"
+    with pytest.raises(ValueError, match="vrm0, vrm1, arkit, oculus"):
+        face_channels("vrm2")
+
+
+def test_each_sink_sends_the_face_in_its_own_names():
+    """Two sinks on one stream, two name sets: each receiver gets its own names; the module's map stays empty."""
+    sk, rig = synthetic_rig()
+    pose = np.tile([1.0, 0, 0, 0], (len(sk.names), 1))
+    frames = [Frame(i, i / 20, np.zeros(3), pose, np.zeros(3), {FACE: speaking_face() * (i + 1) / 4}) for i in range(3)]
+    servers = [osc_server() for _ in range(2)]
+
+    async def run():
+        sinks = [VmcSink("127.0.0.1", srv.server_address[1], rig, pace=False, channels=face_channels(s))
+                 for (srv, _), s in zip(servers, ("vrm0", "arkit"))]
+        for s in sinks:
+            await s.open()
+            s.send(frames)
+        for s in sinks:
+            await s.close()
+
+    asyncio.run(run())
+    for _ in range(100):
+        if all(len(bundles(rec.packets)) >= 3 for _, rec in servers):
+            break
+        threading.Event().wait(0.02)
+    for (srv, rec), name_set in zip(servers, ("vrm0", "arkit")):
+        srv.shutdown()
+        got = bundles(rec.packets)
+        assert len(got) == 3
+        for f, msgs in zip(frames, got):
+            vals = [p for a, _, p in msgs if a == "/VMC/Ext/Blend/Val"]
+            assert [n for n, _ in vals] == list(names_of(name_set))
+            np.testing.assert_allclose([v for _, v in vals], convert(f.channels[FACE], name_set), atol=1e-6)
+    assert VMC_CHANNELS == {}

@@ -1,8 +1,10 @@
 """Live VMC output read by independent receivers: PyPI `vmcp` (a VMC protocol implementation on osc4py3)
 and npm `osc` under node with EVMC4U's per-address type checks. Every bundle of a live run (each
-receiver option) must parse, and the bones vmcp receives, put through forward kinematics, must equal
-the `--record` BVH of the same run."""
+receiver option) must parse, the bones vmcp receives, put through forward kinematics, must equal
+the `--record` BVH of the same run, and the face it receives (Blend/Val of every name of the --face set, then
+Blend/Apply) must equal the face track recorded beside that BVH."""
 
+import csv
 import json
 import os
 import shutil
@@ -18,6 +20,7 @@ import pytest
 
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import read_bvh
+from dimgestor.face import names_of
 from dimgestor.rotations import quat_mul, quat_rotate
 from streamer.pose import HumanoidRig, load_humanoid_map, to_unity_quat
 from streamer.sources import DEMO_WAV
@@ -27,11 +30,16 @@ from helpers.udp_capture import UdpCapture
 REPO = Path(__file__).resolve().parents[1]
 NODE_DIR = REPO / "tests" / "node"
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
-MODES = {
+MODES = {  # (the face: vrm0 by default)
     "default": [],
-    "all-positions-scaled-rooted": ["--vmc-positions", "all", "--vmc-hips-height", "0.9", "--vmc-root", "0.5,0,1,90"],
-    "upper-split": ["--vmc-bones", "upper", "--vmc-max-bytes", "1400"],
+    "all-positions-scaled-rooted-no-face": ["--vmc-positions", "all", "--vmc-hips-height", "0.9", "--vmc-root",
+                                            "0.5,0,1,90", "--face", "none"],
+    "upper-split-arkit": ["--vmc-bones", "upper", "--vmc-max-bytes", "1400", "--face", "arkit"],
 }
+
+
+def face_set(mode: str) -> str:
+    return "none" if mode.endswith("no-face") else "arkit" if mode.endswith("arkit") else "vrm0"
 
 
 Capture = UdpCapture  # every datagram, raw
@@ -58,7 +66,7 @@ def live_run(request, clip, tmp_path_factory):
     cap.stop = True
     cap.join(2)
     assert r.returncode == 0, r.stderr
-    return request.param, cap.datagrams, read_bvh(out)
+    return request.param, cap.datagrams, read_bvh(out), out.with_name("rec.face.csv")
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +83,8 @@ def vmcp_osc():
 
 def vmcp_receive(osc, datagrams, name):
     """Replay the captured datagrams to a vmcp receiver; the events it decodes, in order."""
-    from vmcp.events import BoneTransformEvent, RelativeTimeEvent, RootTransformEvent, StateEvent
+    from vmcp.events import (BlendShapeApplyEvent, BlendShapeEvent, BoneTransformEvent, RelativeTimeEvent,
+                             RootTransformEvent, StateEvent)
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -86,7 +95,8 @@ def vmcp_receive(osc, datagrams, name):
     handlers = [rx.register_handler(ev.ADDRESS_PATTERN,  # as vmcp.facades.on_receive, keeping the handles
                                     lambda *a, ev=ev: events.append(ev.from_message_data(*a)),
                                     backend.ARG_READERNAME + backend.ARG_ADDRESS + backend.ARG_DATA)
-                for ev in (RootTransformEvent, BoneTransformEvent, StateEvent, RelativeTimeEvent)]
+                for ev in (RootTransformEvent, BoneTransformEvent, BlendShapeEvent, BlendShapeApplyEvent, StateEvent,
+                           RelativeTimeEvent)]
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
         for d in datagrams:
             tx.sendto(d, ("127.0.0.1", port))
@@ -121,6 +131,31 @@ def frames_of(events):
     return frames
 
 
+def faces_of(events):
+    """vmcp events -> [(T, [(name, value)...] before Blend/Apply, [name...] after it)], one per /VMC/Ext/T after bone
+    data; None in place of the list before Apply when no Apply came."""
+    from vmcp.events import BlendShapeApplyEvent, BlendShapeEvent, BoneTransformEvent, RelativeTimeEvent
+
+    faces, vals, late, applied, bones = [], [], [], False, False
+    for e in events:
+        if isinstance(e, BoneTransformEvent):
+            bones = True
+        elif isinstance(e, BlendShapeEvent):
+            (late if applied else vals).append((str(e.key.value if hasattr(e.key, "value") else e.key), e.value))
+        elif isinstance(e, BlendShapeApplyEvent):
+            applied = True
+        elif isinstance(e, RelativeTimeEvent) and bones:
+            faces.append((float(e.delta), vals if applied else None, [n for n, _ in late]))
+            vals, late, applied, bones = [], [], False, False
+    return faces
+
+
+def read_face_track(path):
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    return rows[0], np.array(rows[1:], dtype=float)
+
+
 def wxyz(q_xyzw):
     return np.concatenate([q_xyzw[..., 3:], q_xyzw[..., :3]], -1)
 
@@ -141,16 +176,16 @@ def same_rotation(a, b):
 
 
 def test_vmcp_parses_every_bundle_and_fk_equals_the_recording(live_run, vmcp_osc):
-    mode, datagrams, motion = live_run
+    mode, datagrams, motion, _ = live_run
     sk = motion.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
     frames = frames_of(vmcp_receive(vmcp_osc, datagrams, f"dimgestor-{mode}"))
     # Paced live output on a loaded 2-core machine may drop a late frame; what arrives must be whole.
     assert len(frames) >= 0.7 * motion.num_frames, f"{len(frames)} frames received, {motion.num_frames} recorded"
-    if mode == "upper-split":
+    if mode.startswith("upper-split"):
         assert all(len(d) <= 1400 for d in datagrams)
         assert sum(d.startswith(b"#bundle") for d in datagrams) >= 2 * len(frames)
-    expected = set(rig.bones) if mode != "upper-split" else set(rig.bones) & set(UPPER_BODY)
+    expected = set(rig.bones) if not mode.startswith("upper-split") else set(rig.bones) & set(UPPER_BODY)
     world_q, world_p = recorded_world(motion)
     parent = {b: (rig.bones[p] if p >= 0 else None) for b, p in zip(rig.bones, rig.parents)}
     scale = 0.9 / (rig.rest_hips_height() * 0.01) if mode.startswith("all") else 1.0
@@ -180,11 +215,38 @@ def test_vmcp_parses_every_bundle_and_fk_equals_the_recording(live_run, vmcp_osc
                                                err_msg=f"{mode}: {b} at {t}")
 
 
+def test_vmcp_gets_the_face_in_the_configured_names_then_apply_equal_to_the_recorded_track(live_run, vmcp_osc):
+    """Each frame vmcp decodes carries one Blend/Val per name of the --face set (vrm0 by default; only ARKit's 52
+    with --face arkit), all before the frame's Blend/Apply, with the values of the track recorded beside the BVH;
+    --face none: no Blend/Val and no track."""
+    mode, datagrams, motion, track = live_run
+    name_set = face_set(mode)
+    faces = faces_of(vmcp_receive(vmcp_osc, datagrams, f"dimgestor-face-{mode}"))
+    assert len(faces) >= 0.7 * motion.num_frames
+    assert all(vals is not None and not late for _, vals, late in faces), "every frame: Blend/Apply after its values"
+    if name_set == "none":
+        assert all(vals == [] for _, vals, _ in faces) and not track.exists()
+        return
+    header, table = read_face_track(track)
+    assert header[:10] == ["time", "A", "I", "U", "E", "O", "Blink", "Blink_L", "Blink_R", "Joy"]
+    assert len(header) == 1 + 9 + 52 and len(table) == motion.num_frames
+    names = list(names_of(name_set))
+    columns = [header.index(n) for n in names]
+    for t, vals, _ in faces:
+        assert [n for n, _ in vals] == names, (mode, t)
+        i = round(t * 20)
+        np.testing.assert_allclose([v for _, v in vals], table[i, columns], rtol=0, atol=1e-4, err_msg=f"{mode} {t}")
+    if name_set == "arkit":
+        assert not {"A", "I", "U", "E", "O", "Blink", "Joy"} & {n for _, vals, _ in faces for n, _ in vals}
+    opened = table[:, [header.index(n) for n in ("A", "I", "U", "E", "O")]].max(axis=1)
+    assert opened.max() > 0.3, "the clip's speech opens the mouth"
+
+
 @pytest.mark.skipif(shutil.which("node") is None, reason="node not installed (Debian: apt install nodejs)")
 def test_npm_osc_parser_accepts_every_bundle_with_evmc4u_types(live_run, tmp_path):
     if not (NODE_DIR / "node_modules" / "osc").is_dir():
         pytest.skip(f"npm osc not installed: run `make setup` (npm ci in {NODE_DIR})")
-    mode, datagrams, motion = live_run
+    mode, datagrams, motion, _ = live_run
     f = tmp_path / "datagrams.bin"
     f.write_bytes(b"".join(struct.pack(">I", len(d)) + d for d in datagrams))
     r = subprocess.run(["node", str(NODE_DIR / "check-vmc.js"), str(f)], capture_output=True, text=True, timeout=60)
@@ -195,3 +257,5 @@ def test_npm_osc_parser_accepts_every_bundle_with_evmc4u_types(live_run, tmp_pat
     assert 0.7 * motion.num_frames <= len(frames) <= motion.num_frames
     assert out["messages"]["/VMC/Ext/OK"] >= len(frames)
     assert out["messages"]["/VMC/Ext/Bone/Pos"] == sum(n for _, n in frames)
+    names = 0 if face_set(mode) == "none" else len(names_of(face_set(mode)))
+    assert out["messages"].get("/VMC/Ext/Blend/Val", 0) == names * len(frames)

@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
-"""Example dimgestor client (protocol v1 revision 6, docs/protocol.md): print frames, optionally send a WAV or the mic.
+"""Example dimgestor client (protocol v1 revision 7, docs/protocol.md): print frames, optionally send a WAV or the mic.
 
     python clients/python/client.py                                # watch the server's source
     python clients/python/client.py --wav speech.wav --binary      # own session from a WAV file
     python clients/python/client.py --mic                          # own session from the microphone (Ctrl-C ends)
     python clients/python/client.py --save DIR --frames 50         # keep every message verbatim (NNNNNN.json/.bin)
     python clients/python/client.py --wav speech.wav --bvh out.bvh  # the frames received, as a BVH file
+    python clients/python/client.py --wav speech.wav --face arkit --face-csv face.csv  # the face, as a CSV file
 
 Needs `websockets` and `numpy`; `--mic` also needs `sounddevice`.
 """
@@ -36,8 +37,9 @@ MIC_HOLD_S = 10.0  # microphone audio held while the server has us paused; beyon
 
 def decode_binary_frame(buf: bytes, hello: dict | None = None) -> dict:
     """Decode a DGF1 binary frame into the same dict a JSON frame parses to. With the server's hello the frame has
-    its joint count of rotations, then each of `hello["channels"]` (revision 6) at its offset; without it every
-    byte after the header is a rotation (a frame without channels)."""
+    its joint count of rotations, then each of `hello["channels"]` (revision 6; after a `channels` message, its
+    layout) at its offset; without it every byte after the header is a rotation (a frame without channels). The
+    face channel (revision 7) becomes `"face": {name: weight}`, as in a JSON frame."""
     channels = (hello or {}).get("channels") or []
     joints = len(hello["skeleton"]["joints"]) if hello else (len(buf) - BINARY_HEADER.size) // 16
     end = max([BINARY_HEADER.size + 16 * joints] + [c["offset"] + 4 * c["size"] for c in channels])
@@ -48,9 +50,12 @@ def decode_binary_frame(buf: bytes, hello: dict | None = None) -> dict:
         raise ValueError(f"binary frame magic {magic!r}, expected b'DGF1'")
     rotations = np.frombuffer(buf, "<f4", count=4 * joints, offset=BINARY_HEADER.size).reshape(-1, 4)
     msg = {"type": "frame", "index": index, "pts": pts, "root": root, "rotations": rotations.tolist()}
-    if channels:  # bytes past the last channel the hello names (a later revision's) are ignored
-        msg["channels"] = {c["name"]: np.frombuffer(buf, "<f4", count=c["size"], offset=c["offset"]).tolist()
-                           for c in channels}
+    for c in channels:  # bytes past the last channel the layout names (a later revision's) are ignored
+        values = np.frombuffer(buf, "<f4", count=c["size"], offset=c["offset"]).tolist()
+        if c["name"] == "face" and c.get("labels"):
+            msg["face"] = dict(zip(c["labels"], values))
+        else:
+            msg.setdefault("channels", {})[c["name"]] = values
     return msg
 
 
@@ -214,6 +219,33 @@ class BvhWriter:
         return len(values)
 
 
+class FaceCsv:
+    """--face-csv OUT: the face of the frames of our own session (or of the broadcast we follow), by index, written
+    when the client stops: a header `time,` + the set's names, then one row per frame (time = index / fps)."""
+
+    def __init__(self, path: str):
+        self.path = Path(path)
+        self.fps = 20.0
+        self.names: list[str] | None = None
+        self.rows: dict[int, dict] = {}
+
+    def add(self, msg: dict, offset: int = 0) -> None:
+        if "face" in msg:
+            self.names = self.names or list(msg["face"])
+            self.rows[offset + msg["index"]] = msg["face"]
+
+    def write(self) -> int:
+        """Write the file (frames in index order) -> rows written."""
+        if not self.rows:
+            return 0
+        lines = [",".join(["time", *self.names])]
+        for i in sorted(self.rows):
+            lines.append(",".join([f"{i / self.fps:.4f}", *(f"{self.rows[i].get(n, 0.0):.4f}" for n in self.names)]))
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text("\n".join(lines) + "\n")
+        return len(self.rows)
+
+
 class Printer:
     """Prints messages (and saves them verbatim with --save); counts frames."""
 
@@ -241,6 +273,9 @@ class Printer:
                 q = ", ".join(f"{v:+.3f}" for v in msg["rotations"][min(1, len(msg["rotations"]) - 1)])
                 extra = "".join(f"  {k} [{', '.join(f'{v:+.3f}' for v in vals[:3])}{', ...' if len(vals) > 3 else ''}]"
                                 for k, vals in msg.get("channels", {}).items())
+                if msg.get("face"):
+                    face = [f"{k} {v:.2f}" for k, v in msg["face"].items()]
+                    extra += f"  face {', '.join(face[:5])}" + (", ..." if len(face) > 5 else "")
                 print(f"frame {msg['index']:5d}  pts {msg['pts']:7.3f}  root [{root}]  {name} [{q}]{extra}")
         elif kind == "hello":
             self.hello = msg
@@ -248,7 +283,14 @@ class Printer:
             print(f"hello: {msg.get('server')} protocol {msg.get('protocol')}, {len(self.skeleton)} joints "
                   f"({msg['skeleton'].get('units')}), {msg.get('fps')} fps, lookahead {msg.get('lookahead_s')} s, "
                   f"audio {msg.get('audio')}"
-                  + "".join(f", channel {c['name']} ({c['size']} values)" for c in msg.get("channels") or []))
+                  + "".join(f", channel {c['name']} ({c['size']} values)" for c in msg.get("channels") or [])
+                  + (f", face in {msg['face']['names']} names (sets {', '.join(msg['face']['sets'])})"
+                     if msg.get("face") else ""))
+        elif kind == "channels":  # (revision 7) the binary frames' layout from the next frame on
+            self.hello = {**(self.hello or {}), "channels": msg["channels"]}
+            if not self.args.quiet:
+                print("channels: " + (", ".join(f"{c['name']} ({c['size']} values at byte {c['offset']})"
+                                                for c in msg["channels"]) or "none"))
         elif kind == "status" and not self.args.quiet:
             print(f"status: latency {msg.get('latency_ms')} ms, rtf {msg.get('rtf')}, sent {msg.get('frames_sent')}, "
                   f"dropped {msg.get('dropped')}, clients {msg.get('clients')}")
@@ -261,19 +303,22 @@ class Printer:
         return msg
 
 
-def client_hello(binary: bool, audio: dict | None = None) -> str:
-    """Our hello; every hello states the encoding, since a later hello replaces the earlier one."""
+def client_hello(binary: bool, audio: dict | None = None, face: str | None = None) -> str:
+    """Our hello; every hello states the encoding, since a later hello replaces the earlier one. `face`: the name
+    set our frames' face is in (revision 7; binary frames carry it only once asked), or "none"."""
     hello = {"type": "hello", "protocol": 1, "encoding": "binary" if binary else "json"}
     if audio:
         hello["audio"] = audio
+    if face:
+        hello["face"] = face
     return json.dumps(hello)
 
 
 async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, flow: AudioFlow, start: int = 0,
-                   hello: bool = True) -> None:
+                   hello: bool = True, face: str | None = None) -> None:
     """Send audio[start:] (paced like a talker unless not pace), then audio_end."""
     if hello:
-        await ws.send(client_hello(binary, wav_format(audio, rate)))
+        await ws.send(client_hello(binary, wav_format(audio, rate), face))
     step = max(1, int(rate * (CHUNK_S if pace else FAST_CHUNK_S)))
     for i in range(start, len(audio), step):
         await flow.ready()  # paused by slow_down, or too far ahead of the frames we got back
@@ -291,10 +336,10 @@ def wav_format(audio: np.ndarray, rate: int) -> dict:
     return {"rate": rate, "format": "float32", "channels": audio.shape[1]}
 
 
-async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate: int) -> int:
+async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate: int, face: str | None = None) -> int:
     """After a `goaway`: on a new connection, hello and resume_session with its token; returns the audio sample
     to send from (the server's `session_resumed`). Raises ResumeFailed when the server cannot resume it."""
-    await ws.send(client_hello(binary, wav_format(audio, rate)))
+    await ws.send(client_hello(binary, wav_format(audio, rate), face))
     await ws.send(json.dumps({"type": "resume_session", "token": goaway["resume_token"]}))
     async for message in ws:
         msg = json.loads(message) if isinstance(message, str) else {}
@@ -361,7 +406,7 @@ class MicHold:
         return self.dropped_samples / self.rate
 
 
-async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicHold:
+async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow, face: str | None = None) -> MicHold:
     import sounddevice as sd
 
     loop = asyncio.get_running_loop()
@@ -378,7 +423,7 @@ async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow) -> MicH
             flow.changed.set()
         loop.call_soon_threadsafe(put)
 
-    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}))
+    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}, face))
     print(f"microphone: {rate} Hz; Ctrl-C to stop", file=sys.stderr)
     with sd.InputStream(samplerate=rate, channels=1, dtype="float32", blocksize=int(rate * CHUNK_S),
                         device=device, callback=on_audio):
@@ -444,6 +489,7 @@ async def reconnect(urls: list[str], token: str | None, attempt: int, within_s: 
 async def run(args) -> int:
     printer = Printer(args)
     bvh = BvhWriter(args.bvh) if args.bvh else None
+    face_csv = FaceCsv(args.face_csv) if args.face_csv else None
     wav = read_wav(args.wav) if args.wav else None  # a bad file or device fails before we connect
     mic = open_mic(args.device, args.rate) if args.mic else None
     flow = AudioFlow(AHEAD_S if args.wav else float("inf"))  # a microphone is clocked by the talker
@@ -453,7 +499,7 @@ async def run(args) -> int:
     try:
         while True:  # one connection; a goaway with a resume token (the worker is stopping) goes on on another
             try:
-                result = await _connection(ws, args, printer, flow, wav, mic, start, hello, bvh)
+                result = await _connection(ws, args, printer, flow, wav, mic, start, hello, bvh, face_csv)
             except ConnectionClosedError as e:  # no goaway, no close frame: the worker died (or the network)
                 if not args.wav:
                     raise
@@ -483,7 +529,7 @@ async def run(args) -> int:
                 resumes += 1
                 ws = await reconnect(urls, args.token, resumes, max(0.5, deadline - loop.time()))
                 try:
-                    start = base + await resume_session(ws, goaway, args.binary, *wav)
+                    start = base + await resume_session(ws, goaway, args.binary, *wav, face=args.face)
                     print(f"resumed from sample {start} (frame {flow.frames})", file=sys.stderr)
                     flow.on_resumed(start / wav[1], base / wav[1] + goaway.get("frames", 0) / printer.fps)
                     break
@@ -504,24 +550,29 @@ async def run(args) -> int:
             written = bvh.write()
             print(f"wrote {written} frames to {bvh.path}" if written else f"no frames came: {bvh.path} not written",
                   file=sys.stderr)
+        if face_csv is not None:
+            written = face_csv.write()
+            print(f"wrote the face of {written} frames to {face_csv.path}" if written else
+                  f"no face came: {face_csv.path} not written (the server runs --face none, or before revision 7)",
+                  file=sys.stderr)
 
 
-async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: bool = True, bvh=None):
+async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: bool = True, bvh=None, face_csv=None):
     """One connection: send our audio (a WAV from sample `start`), print what comes. Returns the exit status,
     or the `goaway` message when the server hands our session over (only with --wav, which can re-send)."""
     sender = None
     if args.wav:
-        sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow, start, hello))
+        sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow, start, hello, args.face))
     elif args.mic:
-        sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow))
+        sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow, args.face))
         loop = asyncio.get_running_loop()
 
         def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
             loop.remove_signal_handler(signal.SIGINT)
             sender.cancel()
         loop.add_signal_handler(signal.SIGINT, stop_talking)
-    elif args.binary:
-        await ws.send(client_hello(True))
+    elif args.binary or args.face:
+        await ws.send(client_hello(args.binary, face=args.face))
     goaway = None
 
     async def receive():
@@ -536,6 +587,11 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
                     bvh.skeleton, bvh.fps = msg["skeleton"], float(msg.get("fps", bvh.fps))
                 elif msg.get("type") == "frame" and (flow.own or not (args.wav or args.mic)):
                     bvh.add(msg, round(flow.offset_s * fps))  # our own session's (or the broadcast we follow)
+            if face_csv is not None:
+                if msg.get("type") == "hello":
+                    face_csv.fps = float(msg.get("fps", face_csv.fps))
+                elif msg.get("type") == "frame" and (flow.own or not (args.wav or args.mic)):
+                    face_csv.add(msg, round(flow.offset_s * fps))
             if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:  # (the worker stops)
                 goaway = msg
                 return
@@ -579,9 +635,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--save", help="write every received message verbatim into this folder")
     p.add_argument("--bvh", metavar="OUT", help="write the frames received as a BVH file (the hello's skeleton; "
                    "a resumed session's frames go on in the same file)")
+    p.add_argument("--face", choices=("vrm0", "vrm1", "arkit", "oculus", "none"),
+                   help="ask for the face in these blendshape names (revision 7; binary frames carry it only when "
+                   "asked), or none for no face (default: the server's set, JSON frames only)")
+    p.add_argument("--face-csv", metavar="OUT", help="write the face of the frames received as a CSV file: time, then "
+                   "one column per name (asks for --face, vrm0 when not given)")
     p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
     args = p.parse_args(argv)
     args.url = args.url or ["ws://127.0.0.1:8765/"]
+    if args.face_csv and args.face == "none":
+        p.error("--face-csv needs a face: not --face none")
+    if args.face_csv and not args.face:
+        args.face = "vrm0"
     return args
 
 

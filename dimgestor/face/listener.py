@@ -37,6 +37,7 @@ def _decoder(beam: float, pbeam: float, lw: float):
     model = get_model_path()
     config = Config(hmm=os.path.join(model, "en-us", "en-us"),
                     allphone=os.path.join(model, "en-us", "en-us-phone.lm.bin"),
+                    lm=None, dict=None,  # (the defaults load the 26 MB word model and dictionary: 29 MB a decoder)
                     beam=beam, pbeam=pbeam, lw=lw, loglevel="FATAL")
     return Decoder(config)
 

@@ -15,6 +15,7 @@ from streamer.pose import HUMAN_BODY_BONES
 SPEC_TYPES = {
     "/VMC/Ext/Root/Pos": "sfffffff",
     "/VMC/Ext/Bone/Pos": "sfffffff",
+    "/VMC/Ext/Blend/Val": "sf",
     "/VMC/Ext/Blend/Apply": "",
     "/VMC/Ext/OK": "i",
     "/VMC/Ext/T": "f",

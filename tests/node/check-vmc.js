@@ -13,6 +13,7 @@ const osc = require("osc");
 const EXPECTED = {
   "/VMC/Ext/Root/Pos": "sfffffff",
   "/VMC/Ext/Bone/Pos": "sfffffff",
+  "/VMC/Ext/Blend/Val": "sf",
   "/VMC/Ext/Blend/Apply": "",
   "/VMC/Ext/OK": "i",
   "/VMC/Ext/T": "f",
