@@ -134,6 +134,21 @@ def face_box(browser: Browser, part: str) -> tuple[int, int, int, int]:
     return max(0, x0 - 3), max(0, y0 - 3), x1 + 3, y1 + 3
 
 
+def dark_in(png, box) -> int:
+    """Pixels in `box` darker than the lips and the skin: the inside of an open mouth."""
+    x0, y0, x1, y1 = box
+    return int((read_png(png)[y0:y1, x0:x1].max(axis=2) < 0.3).sum())
+
+
+def paused_close_up(browser: Browser, condition: str, what: str, png) -> tuple[dict, tuple]:
+    """Held at the first draw where `condition` holds, the face framed close up: (what is shown, the mouth's box)."""
+    shown = wait_and_pause(browser, condition, what)
+    browser.eval("window.dimgestor.frameFace()")
+    time.sleep(0.5)
+    browser.screenshot(png)
+    return shown, face_box(browser, "mouth")
+
+
 @needs_browser
 def test_web_mannequin_binary_opens_its_mouth_on_speech_and_closes_it_in_silence(tmp_path, track):
     with FaceServer(track) as server:
@@ -178,14 +193,16 @@ def test_web_mannequin_binary_opens_its_mouth_on_speech_and_closes_it_in_silence
             browser.close()
     assert blink["mouth"]["blinkLeft"] > 0.7
     a, b, c = read_png(png_open), read_png(png_closed), read_png(png_blink)
-    # Same pose, same camera: the open mouth changes the mouth's pixels and little else; the blink the eyes'.
+    # Same pose, same camera: the open mouth changes the mouth's pixels and little else (right of the HUD, whose
+    # counters change); the blink the eyes'.
     diff = np.abs(a - b).max(axis=2) > 0.1
+    diff[:, :300] = False
     x0, y0, x1, y1 = box
     inside = diff[y0:y1, x0:x1].sum()
     assert inside > 60, f"the open mouth changed {inside} pixels around the mouth {box}"
     assert diff.sum() - inside < 0.25 * inside, f"the open mouth changed {diff.sum() - inside} pixels elsewhere"
-    dark = lambda img: (img[y0:y1, x0:x1].max(axis=2) < 0.3).sum()  # noqa: E731 (the inside of the mouth)
-    assert dark(a) > dark(b) + 30, f"no dark opening: {dark(a)} vs {dark(b)} dark pixels in {box}"
+    assert dark_in(png_open, box) > dark_in(png_closed, box) + 30, \
+        f"no dark opening: {dark_in(png_open, box)} vs {dark_in(png_closed, box)} dark pixels in {box}"
     blink_diff = np.abs(c - b).max(axis=2) > 0.1
     ex0, ey0, ex1, ey1 = eyes
     assert blink_diff[ey0:ey1, ex0:ex1].sum() > 40, f"the blink changed nothing around the eyes {eyes}"
@@ -247,7 +264,7 @@ def clip(tmp_path_factory):
 
 
 @needs_browser
-def test_web_face_from_dimgestor_serve_end_to_end(tmp_path, checkpoint, clip):  # noqa: F811
+def test_web_face_from_dimgestor_serve_end_to_end(tmp_path, checkpoint, clip):
     """`dimgestor serve` (its default face, VRM 0 names) on speech then silence, looped, the page asking for binary
     frames: the page's hello asks for vrm1, the server's `channels` message lays the face out after the rotations,
     and the mannequin's jaw opens in the speech and rests in the silence."""
@@ -268,11 +285,22 @@ def test_web_face_from_dimgestor_serve_end_to_end(tmp_path, checkpoint, clip):  
             for _ in range(30):  # 6 s: a whole loop of the clip
                 reads.append(read_shown(browser))
                 time.sleep(0.2)
+            # Screenshots: on a vowel the mouth open, in the silence closed (the body moves: each framed as held)
+            vowel, box_open = paused_close_up(browser, "d.mouth.jaw > 0.5", "an open vowel on screen",
+                                              tmp_path / "web_face_serve_vowel.png")
+            browser.eval("window.dimgestor.setPaused(false)")
+            quiet, box_closed = paused_close_up(
+                browser, f"d.shownFrame.pts % {SPEECH_S + SILENCE_S} > {SPEECH_S + 0.5}", "the silence on screen",
+                tmp_path / "web_face_serve_silence.png")
             errors = browser.eval("window.dimgestor.errors")
             binary = browser.eval("window.dimgestor.binaryFramesReceived")
         finally:
             browser.close()
     assert errors == [] and binary > 0
+    assert vowel["mouth"]["jaw"] > 0.5 and quiet["mouth"]["jaw"] < 0.05, (vowel, quiet)
+    dark_open, dark_closed = (dark_in(tmp_path / "web_face_serve_vowel.png", box_open),
+                              dark_in(tmp_path / "web_face_serve_silence.png", box_closed))
+    assert dark_open > dark_closed + 30, f"no dark opening: {dark_open} vs {dark_closed} dark pixels"
     clip_s = SPEECH_S + SILENCE_S
     for r in reads:
         assert list(r["face"]) == FaceServer.labels("vrm1") and all(0 <= w <= 1 for w in r["face"].values()), r
