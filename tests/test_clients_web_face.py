@@ -238,6 +238,8 @@ def test_web_vrm_expressions_follow_the_face(tmp_path, track):
                 w = browser.eval(influences)
                 for k, name in enumerate(EXPRESSIONS):
                     assert w["w"][k] == pytest.approx(w["expressions"][name], abs=1e-6), (version, name, w)
+                browser.eval("window.dimgestor.frameFace()")
+                time.sleep(0.4)
                 png = browser.screenshot(tmp_path / f"web_face_vrm_{version}.png")
                 browser.eval("window.dimgestor.setPaused(false)")
                 n = len(track)

@@ -123,7 +123,11 @@ function receive(data, myId) {
     return;
   }
   if (msg.type === 'frame') { sendFrame(msg, false, at, myId); return; }
-  if (msg.type === 'hello') { serverHello = msg; layout = Array.isArray(msg.channels) ? msg.channels : []; ring = null; }
+  if (msg.type === 'hello') {
+    serverHello = msg;
+    layout = Array.isArray(msg.channels) ? msg.channels : [];
+    ring = null;
+  }
   if (msg.type === 'channels' && Array.isArray(msg.channels)) layout = msg.channels;
   if (talk && flow) audioControl(msg);  // before the page hears of it: the page's view of the flow is then current
   if ((msg.type === 'hello' || (msg.type === 'channels' && ring)) && self.crossOriginIsolated && serverHello &&

@@ -282,9 +282,11 @@ function frameFace() {
   if (jh < 0) return;
   resetView();  // the lights and framing of the whole body first, then closer along the same line
   figure.updateMatrixWorld(true);
-  const headAt = joints[jh].getWorldPosition(new THREE.Vector3());
-  const size = 36 * body.unit * skeletonScale;  // about a head and neck in view
-  const target = headAt.addScaledVector(body.up.clone().transformDirection(figure.matrixWorld), size * 0.2);
+  const vrmHead = vrmAvatar && api.avatar === 'vrm' ? vrmAvatar.vrm.humanoid.getNormalizedBoneNode('head') : null;
+  const headAt = (vrmHead || joints[jh]).getWorldPosition(new THREE.Vector3());
+  // About a head and neck in view: 36 of the mannequin's centimetres, or a fifth of the VRM's height.
+  const size = vrmHead ? 0.2 * (vrmAvatar.restBounds.max.y - vrmAvatar.restBounds.min.y) : 36 * body.unit * skeletonScale;
+  const target = headAt.add(new THREE.Vector3(0, size * 0.2, 0));
   const dir = camera.position.clone().sub(controls ? controls.target : target).setY(0).normalize();
   const dist = size / 2 / Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2);
   camera.position.copy(target).addScaledVector(dir, dist);
