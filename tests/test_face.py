@@ -58,3 +58,17 @@ def test_the_face_is_ready_within_its_lookahead_and_a_longer_one_is_capped():
     assert face.frames_ready == int(round((1.0 - 0.3) * 20)) + 1  # frames 0..14: each up to its time + 0.3 s
     with pytest.raises(RuntimeError, match="lookahead"):
         face.take(face.frames_ready + 1)
+
+
+def test_a_float_frame_rate_makes_the_same_face():
+    """A checkpoint's fps is a float (20.0), as a Session passes it: the same frames as 20, however long the
+    speech (the brows keep 5 s of pitch, a count of frames)."""
+    audio = np.concatenate([SPEECH, SPEECH])
+    np.testing.assert_array_equal(stream_face_at(20.0, audio), stream_face_at(20, audio))
+
+
+def stream_face_at(fps, audio):
+    face = FaceStream(fps, 0.3)
+    face.push(audio)
+    face.finish()
+    return face.take(face.frames_ready)

@@ -107,7 +107,7 @@ class Brows:
         accent = 0.0
         if semitones is not None:
             self.recent.append(semitones)
-            del self.recent[: max(0, len(self.recent) - 5 * self.fps)]
+            del self.recent[: max(0, len(self.recent) - int(5 * self.fps))]
             if len(self.recent) >= self.fps:  # a second of voice before judging what is high for this speaker
                 accent = float(np.clip((semitones - np.median(self.recent) - self.rise) / self.span, 0, 1)) * loud
         self.level = max(accent, self.level * float(np.exp(-1.0 / (self.fps * self.release_s))))
