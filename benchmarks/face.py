@@ -126,8 +126,10 @@ def mouth(takes: dict, args) -> dict:
                              "openness_r_grid": {k: v["openness_r"] for k, v in grid.items()}}
         flat, _ = stream_face(audio, 20, 0.3, FaceOptions(loud_range_db=1e6), chunk)
         r["no_loudness"] = mouth_scores(flat, phones, 20)
-        face50, _ = stream_face(audio, 50, 0.3, FaceOptions(), RATE * args.chunk_ms // 1000)
-        r["face_50fps"] = mouth_scores(face50, phones, 50)
+        t0 = time.perf_counter()
+        face50, _ = stream_face(audio, 50, 0.3, FaceOptions(), chunk)
+        r["face_50fps"] = {**mouth_scores(face50, phones, 50),
+                           "face_s_per_audio_s": (time.perf_counter() - t0) / (len(audio) / RATE)}
         r["face_20fps_at_50"] = mouth_scores(resample_face(face, 20, 50), phones, 50)
         out[name] = rounded(r)
         print(f"{name}: " + ", ".join(f"{s} r {v['openness_r']:.3f}" for s, v in r.items()), flush=True)
