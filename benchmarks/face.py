@@ -16,7 +16,8 @@ blinks   the first `--blink-s` seconds of each take, seeds 0-4: blinks a minute,
          intervals between blinks alike within 50 ms (issue: 10-25 a minute, at most a third alike)
 compute  a `streamer.sessions.Session` window (`infer`: the model at K, pose decoding, and the face when it has one)
          with and without `face=FaceOptions()`, the embedded default model, `--window-ms` windows of a take,
-         alternating, one torch thread: ms per window, and the face's share
+         alternating, one torch thread: ms per window (wall, and this thread's CPU time: what it cost whatever
+         else ran on the machine), and what the face adds
 
     .venv/bin/python benchmarks/face.py                    # writes results/face.json and face.png
     .venv/bin/python benchmarks/face.py --windows 100 --steps 4
@@ -172,20 +173,23 @@ def compute(audio: np.ndarray, args) -> dict:
     arms = {"body": Session.from_bundle(bundle, steps=args.steps, seed=0),
             "body_face": Session.from_bundle(bundle, steps=args.steps, seed=0, face=FaceOptions())}
     times = {name: [] for name in arms}
+    cpu = {name: [] for name in arms}  # this thread's CPU time: what the window cost, whatever else ran meanwhile
     with torch.inference_mode():
         for k in range(args.windows + 10):
             x = audio[k * window:(k + 1) * window]
             for name in (list(arms) if k % 2 == 0 else list(arms)[::-1]):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 arms[name].infer(x)
                 if k >= 10:  # past the lookahead: frames come every window
                     times[name].append(time.perf_counter() - t0)
-    rows = {name: {"ms_p50": percentile_ms(t, 50), "ms_p95": percentile_ms(t, 95), "ms_mean": 1000 * float(np.mean(t))}
-            for name, t in times.items()}
+                    cpu[name].append(time.thread_time() - c0)
+    rows = {name: {"ms_p50": percentile_ms(t, 50), "ms_p95": percentile_ms(t, 95), "ms_mean": 1000 * float(np.mean(t)),
+                   "cpu_ms_mean": 1000 * float(np.mean(cpu[name]))} for name, t in times.items()}
     return {"model": f"checkpoint {args.checkpoint or 'embedded default'}", "steps": args.steps,
             "window_ms": args.window_ms, "windows": args.windows, **rows,
             "added_p50": rows["body_face"]["ms_p50"] / rows["body"]["ms_p50"] - 1,
-            "added_mean": rows["body_face"]["ms_mean"] / rows["body"]["ms_mean"] - 1}
+            "added_mean": rows["body_face"]["ms_mean"] / rows["body"]["ms_mean"] - 1,
+            "added_cpu": rows["body_face"]["cpu_ms_mean"] / rows["body"]["cpu_ms_mean"] - 1}
 
 
 def verdict(result: dict) -> dict:
@@ -203,8 +207,8 @@ def verdict(result: dict) -> dict:
         worst = result["blinks"]["alike_share_max"]
         out["alike_share"] = {"worst": worst, "target": TARGETS["alike_share"], "met": _met(worst, TARGETS["alike_share"])}
     c = result["compute"]
-    out["compute_added"] = {"worst": max(c["added_p50"], c["added_mean"]), "target": TARGETS["compute_added"],
-                            "met": _met(max(c["added_p50"], c["added_mean"]), TARGETS["compute_added"])}
+    out["compute_added"] = {"cpu": c["added_cpu"], "target": TARGETS["compute_added"],
+                            "met": _met(c["added_cpu"], TARGETS["compute_added"])}
     return out
 
 
@@ -253,7 +257,8 @@ def plot(result: dict, path: Path) -> None:
         ax.scatter(i, c[arm]["ms_p95"], color="k", marker="_", s=150, zorder=3)
     ax.set_xticks([0, 1], ["body", "body+face"])
     ax.set_ylabel("ms per window (p50; p95 -)", fontsize=8)
-    ax.set_title(f"Session window, K={c['steps']}, {c['window_ms']} ms: +{100 * c['added_p50']:.1f} %", fontsize=9)
+    ax.set_title(f"Session window, K={c['steps']}, {c['window_ms']} ms: +{100 * c['added_p50']:.0f} % p50, "
+                 f"+{100 * c['added_cpu']:.0f} % CPU", fontsize=9)
     save_panels(fig, axes, f"face ({result['code_version']}, {result['device'][:60]})", path)
 
 
@@ -281,7 +286,8 @@ def main(argv=None) -> int:
     result["compute"] = compute(speech, args)
     c = result["compute"]
     print(f"Session window K={args.steps}: {c['body']['ms_p50']:.2f} ms, with the face {c['body_face']['ms_p50']:.2f} ms "
-          f"(+{100 * c['added_p50']:.1f} % p50, +{100 * c['added_mean']:.1f} % mean)", flush=True)
+          f"(+{100 * c['added_p50']:.1f} % p50, +{100 * c['added_mean']:.1f} % mean, +{100 * c['added_cpu']:.1f} % CPU "
+          f"time)", flush=True)
     result["targets_met"] = verdict(result)
     result["load_avg_after"] = load_average()
     write_json(args.out, result)
