@@ -3,10 +3,12 @@ real time, `streamer.pipecat.GestureProcessor` turns the voice into gestures, an
 audio in real time (to nowhere: a machine without a sound device, like a server; the web viewer plays it).
 
     python examples/pipecat_avatar.py --wav speech.wav --ws 127.0.0.1:8765 [--vmc 127.0.0.1:39539] [--burst 5]
+        [--face vrm0|vrm1|arkit|oculus|none]
 
 It waits for its first WebSocket client (open http://127.0.0.1:8765/ and press Sound), then speaks the file
-(`--times` over, `--pause` seconds apart) and exits once it is heard. Needs `pip install 'dimgestor[pipecat]'`.
-The guide: docs/pipecat.md. `--ws` and `--vmc` take HOST:PORT as `dimgestor serve`'s do.
+(`--times` over, `--pause` seconds apart) and exits once it is heard. The face speaks with the body; VMC sends it
+in `--face`'s blendshape names (VRM 0 presets by default, as `dimgestor serve`). Needs `pip install
+'dimgestor[pipecat]'`. The guide: docs/pipecat.md. `--ws` and `--vmc` take HOST:PORT as `dimgestor serve`'s do.
 """
 
 from __future__ import annotations
@@ -126,19 +128,24 @@ async def run(args, speech: np.ndarray, bundle) -> int:
     ws = WsServer(args.ws[0], args.ws[1], hello_for(bundle, args.window_ms), None, origins=["*"])
     sinks = [ws]
     if args.vmc is not None:
+        from streamer.face import FACE, face_channel
         from streamer.pose import HumanoidRig, load_humanoid_map
-        from streamer.vmc import VmcSink
+        from streamer.vmc import BlendValues, VmcSink
 
         sk = bundle.skeleton
         rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
-        sinks.append(VmcSink(args.vmc[0], args.vmc[1], rig, pace=False))  # the processor paces
+        face = {} if args.face == "none" else {FACE: BlendValues(face_channel(args.face))}  # Blend/Val per name
+        sinks.append(VmcSink(args.vmc[0], args.vmc[1], rig, pace=False, channels=face))  # the processor paces
     for sink in sinks:
         await sink.open()
     try:
         for line in ws.describe().splitlines():
             print(f"pipecat_avatar: {line}", file=sys.stderr, flush=True)
+        from dimgestor.face import FaceOptions
+
         gestures = GestureProcessor(sinks, bundle=bundle, steps=args.steps, seed=args.seed,
-                                    window_ms=args.window_ms, on_audio=ws.broadcast_audio)
+                                    window_ms=args.window_ms, on_audio=ws.broadcast_audio,
+                                    face=None if args.face == "none" else FaceOptions())
         ws.broadcast_stats = gestures.inference  # each second's `status`: the model's latency and real-time factor
         tts = WavTTS(speech, args.rate, speed=args.burst, burst_s=args.burst_s)
         output = PacedAudioOutput(args.rate)
@@ -180,6 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ws", type=host_port, default=("127.0.0.1", 8765), metavar="HOST:PORT",
                    help="WebSocket and web viewer (default 127.0.0.1:8765)")
     p.add_argument("--vmc", type=host_port, default=None, metavar="HOST:PORT", help="also send VMC (OSC/UDP) there")
+    p.add_argument("--face", default="vrm0", help="the face's blendshape names over VMC: vrm0 (default), vrm1, arkit, "
+                   "oculus, or none (no face)")
     p.add_argument("--burst", type=float, default=5.0, help="TTS speed: audio made per second of wall time (5)")
     p.add_argument("--burst-s", type=float, default=1.0, help="audio per TTS burst, seconds (1.0)")
     p.add_argument("--rate", type=int, default=24000, help="the TTS's sample rate (24000)")
@@ -197,6 +206,13 @@ def main(argv: list[str] | None = None) -> int:
     logger.add(sys.stderr, level="DEBUG" if args.verbose else "WARNING")
     if not Path(args.wav).is_file():
         p.error(f"--wav {args.wav}: no such file")
+    if args.face != "none":
+        from dimgestor.face import check_name_set
+
+        try:
+            check_name_set(args.face)
+        except ValueError as e:
+            p.error(f"--face: {e}")
     if args.times < 1 or args.burst <= 0 or args.burst_s <= 0 or args.rate <= 0:
         p.error("--times, --burst, --burst-s and --rate must be positive")
     from dimgestor.audio import AudioError

@@ -5,11 +5,14 @@ Each utterance's audio runs through its own engine `Session` (seed + i: past the
 frames), and frame k goes to the sinks at the utterance's start + k / fps on the playout clock the transport
 reports (`playout_observer`), i.e. when its audio is heard. The first audio waits (at most `max_hold_s`) for the
 first frames, so the body moves with the first word; between utterances a critically damped spring eases to rest.
+The face (`dimgestor.face`) comes from the same session as the body, in each frame's channel "face", so it is
+released with its frame when its audio is heard; between utterances the mouth rests and the eyes still blink.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 import warnings
@@ -30,7 +33,11 @@ except ImportError as e:  # the engine works without pipecat; only this module n
     raise ImportError("streamer.pipecat needs pipecat-ai: pip install 'dimgestor[pipecat]'") from e
 
 from dimgestor.audio import SAMPLE_RATE
+from dimgestor.face import FACE_LABELS, FaceOptions
+from dimgestor.face.life import Blinks
+from dimgestor.face.visemes import V
 from dimgestor.rotations import expmap_to_quat, quat_conj, quat_mul, quat_to_expmap
+from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.sessions import Session
 from streamer.sink import Sink
@@ -171,7 +178,8 @@ class GestureProcessor(FrameProcessor):
     bundle or checkpoint: the model (default: the embedded one). on_audio(pts, samples): the agent's audio at
     16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
     web viewer plays it in sync; audio an interruption cut is never given).
-    on_release(Released): every frame sent, for measurements. scheduler: where inference runs (a
+    on_release(Released): every frame sent, for measurements. face: how the face is made (each utterance's seeded
+    like its body), None for frames without one. scheduler: where inference runs (a
     `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its deprecated name.
     """
 
@@ -179,7 +187,8 @@ class GestureProcessor(FrameProcessor):
                  seed: int = 0, window_ms: int = 200, scheduler=None, max_hold_s: float = 0.3,
                  blend_in_s: float = 0.5, rest_hz: float = 1.3,
                  on_audio: Callable[[float, np.ndarray], None] | None = None,
-                 on_release: Callable[[Released], None] | None = None, executor=None, **kwargs):
+                 on_release: Callable[[Released], None] | None = None, executor=None,
+                 face: FaceOptions | None = FaceOptions(), **kwargs):
         if executor is not None:
             if scheduler is not None:
                 raise TypeError("GestureProcessor: give scheduler= only (executor= is its deprecated name)")
@@ -200,6 +209,8 @@ class GestureProcessor(FrameProcessor):
         self.seed, self.window_ms, self.scheduler = seed, window_ms, scheduler
         self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
         self.on_audio, self.on_release = on_audio, on_release
+        self.face = face
+        self._rest_blinks = Blinks(seed=seed if face is None else face.seed + seed)  # the eyes between utterances
         self.rest = RestPose.of_silence(bundle, self.steps, seed)
         self.spring = _Spring(len(self.rest.tangent(self._rest_frame())), 2 * np.pi * rest_hz)
         self.stats = GestureStats()
@@ -286,9 +297,11 @@ class GestureProcessor(FrameProcessor):
         number = self.stats.utterances
         self.stats.utterances += 1
         b = self.bundle
+        face = None if self.face is None else dataclasses.replace(self.face, seed=self.face.seed + self.seed + number)
         session = Session(b.stream(steps=self.steps, seed=self.seed + number),
                           PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
-                          window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}")
+                          window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}",
+                          face=face)  # (seeded as its body is)
         self.inference.session = session.stats
         u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
                        None if rate == SAMPLE_RATE else make_resampler(rate), rate)
@@ -543,8 +556,17 @@ class GestureProcessor(FrameProcessor):
     def _release_rest(self, due: float) -> None:
         root, rot, feats = self.rest.pose(self.spring.step(1 / self.fps))
         self.stats.rest_frames += 1
-        self._send(Frame(self._index, due - self.origin + self._drift, root, rot, feats), due, -1, -1, None,
-                   time.monotonic())
+        pts = due - self.origin + self._drift
+        channels = {} if self.face is None else {FACE: self._rest_face(pts)}
+        self._send(Frame(self._index, pts, root, rot, feats, channels), due, -1, -1, None, time.monotonic())
+
+    def _rest_face(self, pts: float) -> np.ndarray:
+        """The face between utterances: the mouth at rest, the eyes blinking on the frames' clock, the smile."""
+        out = np.zeros(len(FACE_LABELS))
+        out[V["sil"]] = 1.0
+        out[V["blinkLeft"]], out[V["blinkRight"]] = self._rest_blinks.step(pts, False)
+        out[V["smile"]] = self.face.smile
+        return out
 
     def _send(self, frame: Frame, due: float, utterance: int, k: int, audio_s: float | None, now: float) -> None:
         """`now`: the release's instant, the one its lateness was counted from (`Released.wall` says the same)."""

@@ -169,6 +169,23 @@ def test_burst_tts_gestures_are_released_when_their_audio_is_heard(bundle, speec
     # rest frames before it, at the same 20 fps (after it: the interruption test)
     assert [r.utterance for r in run.released[:9]] == [-1] * 9
 
+    # (3) the face travels with its frame, released when its audio is heard: the utterance's session made it from
+    # the same audio (the face of the audio alone, seeded as the body); the mouth opens on speech, rests before it
+    from dimgestor.face import FaceOptions, FaceStream
+    from dimgestor.face.visemes import V
+
+    alone = FaceStream(FPS, 0.3, FaceOptions(seed=3))
+    alone.push(resample(speech.astype(np.float32) / 32768, RATE, 16000))
+    alone.finish()
+    expected_face = alone.take(alone.frames_ready)[: len(speech_frames)]
+    face = np.stack([r.frame.channels["face"] for r in speech_frames])
+    jaw = face[:, V["jawOpen"]]
+    assert jaw.max() > 0.6 and np.mean(jaw > 0.2) > 0.3, np.round(jaw, 2)
+    assert np.corrcoef(jaw, expected_face[:, V["jawOpen"]])[0, 1] > 0.95
+    np.testing.assert_array_equal(face[:, V["blinkLeft"]] > 0.5, expected_face[:, V["blinkLeft"]] > 0.5)
+    rest = np.stack([r.frame.channels["face"] for r in run.released[:9]])
+    assert np.all(rest[:, V["jawOpen"]] == 0) and np.all(rest[:, V["sil"]] == 1)
+
 
 def test_interruption_sends_nothing_unheard_and_eases_to_rest(bundle, speech):
     """The user barges in 2 s into a 6 s answer (all of it already sent by the TTS): no frame of the audio that
@@ -360,6 +377,41 @@ def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_cloc
     assert sink.frames[3].pts > pts[2]
 
 
+def test_between_utterances_the_face_rests_and_blinks(bundle, monkeypatch):
+    """Rest frames (the spring's, between utterances) carry a face too: the mouth at rest, the eyes blinking as a
+    stream's do in silence (irregularly, 4-14 times in 30 s), the smile held; face=None: frames without a face.
+    On a fake clock."""
+    from dimgestor.face import FaceOptions
+    from dimgestor.face.visemes import V
+    from streamer import pipecat as sp
+
+    class Keep:
+        def __init__(self):
+            self.frames = []
+
+        def send(self, frames):
+            self.frames += frames
+
+    clock = SimpleNamespace(monotonic=lambda: 0.0)
+    monkeypatch.setattr(sp, "time", clock)
+    sink = Keep()
+    g = sp.GestureProcessor([sink], bundle=bundle, face=FaceOptions(smile=0.4))
+    g.origin = 0.0
+    for k in range(30 * FPS):
+        g._release_rest(k / FPS)
+    face = np.stack([f.channels["face"] for f in sink.frames])
+    assert np.all(face[:, V["PP"]: V["jawOpen"] + 1] == 0) and np.all(face[:, V["sil"]] == 1)
+    assert np.allclose(face[:, V["smile"]], 0.4)
+    onsets = np.flatnonzero(np.diff((face[:, V["blinkLeft"]] > 0.5).astype(int)) == 1) / FPS
+    assert 4 <= len(onsets) <= 14, f"{len(onsets)} blinks in 30 s"
+    assert len(set(np.round(np.diff(onsets), 2))) > len(onsets) // 2, "metronomic blinks"
+
+    bare = sp.GestureProcessor([Keep()], bundle=bundle, face=None)
+    bare.origin = 0.0
+    bare._release_rest(0.0)
+    assert bare.sinks[0].frames[0].channels == {}
+
+
 def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     """examples/pipecat_avatar.py end to end: it waits for a WebSocket client, speaks the file in bursts and
     serves continuous frames with the agent's audio (DGA1) to the viewer's protocol, and VMC to a receiver."""
@@ -410,10 +462,21 @@ def test_example_speaks_to_a_websocket_client_and_a_vmc_receiver(tmp_path):
     assert sum(len(a["samples"]) for a in audio) >= int(2.95 * 16000), "the agent's audio did not reach the client"
     assert all(a["rate"] == 16000 for a in audio)
     assert frames[0]["pts"] <= audio[0]["pts"] <= frames[-1]["pts"]
-    frames_vmc = [m for m in bundles(vmc.datagrams) if m[-1][0] == "/VMC/Ext/T"]  # one bundle per frame
+    frames_vmc, msgs = [], []  # each frame's messages (its bundles: the last ends with its time)
+    for b in bundles(vmc.datagrams):
+        msgs += b
+        if b[-1][0] == "/VMC/Ext/T":
+            frames_vmc, msgs = frames_vmc + [msgs], []
     assert len(frames_vmc) >= 3 * FPS
     for msgs in frames_vmc:
-        check_vmc_bundle(msgs)
+        check_vmc_bundle([m for m in msgs if m[0] != "/VMC/Ext/Blend/Val"])  # (the face's: below)
+    # the face with every frame, in VRM 0 names (the example's default --face): the mouth speaks
+    from dimgestor.face import names_of
+
+    faces = [[(p[0], p[1]) for a, tags, p in msgs if a == "/VMC/Ext/Blend/Val" and tags == "sf"] for msgs in frames_vmc]
+    assert all([name for name, _ in f] == list(names_of("vrm0")) for f in faces), faces[0]
+    mouth = np.array([[v for name, v in f if name in ("A", "I", "U", "E", "O")] for f in faces])
+    assert mouth.max() > 0.5 and np.sum(mouth.max(axis=1) > 0.2) >= 10, np.round(mouth.max(axis=1), 2)
     times = [m[-1][2][0] for m in frames_vmc]  # the frames' pts, in order: the receiver got the same clock
     assert np.all(np.diff(times) > 0)
     assert "1 utterances" in proc.output

@@ -34,8 +34,8 @@ _MOUTH = slice(0, V["jawOpen"] + 1)
 class FaceOptions:
     """How the face is made (defaults measured on real speech: benchmarks/face.py)."""
 
-    blend_s: float = 0.04        # half width of the triangle over which neighbouring phones blend
-    loud_range_db: float = 30.0  # the mouth scales from this far below the recent peak (closed) to the peak
+    blend_s: float = 0.03        # half width of the triangle over which neighbouring phones blend
+    loud_range_db: float = 35.0  # the mouth scales from this far below the recent peak (closed) to the peak
     loud_power: float = 0.5
     peak_s: float = 2.0          # the recent peak: the loudest 40 ms of the last peak_s
     seed: int = 0                # the blinks' draws
@@ -138,7 +138,7 @@ class FaceStream:
         if now in _CLOSED:
             out[_MOUTH] *= 0.2
             out[V["PP"]] = 1.0
-        # Loudness against the recent peak: the shape in full at the peak, none 30 dB under it.
+        # Loudness against the recent peak: the shape in full at the peak, none loud_range_db under it.
         ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
         peak = max(self._db(j) for j in range(max(0, index - int(o.peak_s * self.fps)), index + ahead + 1))
         level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
