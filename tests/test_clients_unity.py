@@ -15,7 +15,7 @@ import pytest
 
 from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
-from helpers.face_frames import check_face_frames, face_messages, interpolated
+from helpers.face_frames import check_face_frames, check_recorded_face, face_messages, interpolated
 
 UNITY = REPO / "clients" / "unity"
 MCS, MONO = shutil.which("mcs"), shutil.which("mono")
@@ -62,7 +62,9 @@ def recordings(tmp_path_factory, checkpoint):  # noqa: F811
 def test_unity_decoder_gives_back_what_the_server_sent(decoder, recordings, encoding):
     files = recordings[encoding]
     assert sum(p.suffix == (".bin" if encoding == "binary" else ".json") for p in files) >= 12
-    check_decoded(files, decode(decoder, files[0].parent))
+    out = decode(decoder, files[0].parent)
+    check_decoded(files, out)
+    check_recorded_face(files, out)
 
 
 def test_unity_conversion_is_the_same_rotation_in_unity_axes(decoder, recordings):
@@ -145,7 +147,8 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
 def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint):  # noqa: F811
     """DimgestorClient run as Unity runs it (OnEnable, LateUpdate at 60 Hz, SendAudio/EndAudio from another
     thread) with Mono's ClientWebSocket against a live server: its own audio comes back as gestures, shown
-    smoothly (pose changes on most display ticks, not once per 200 ms burst)."""
+    smoothly (pose changes on most display ticks, not once per 200 ms burst), and with a server that makes a face
+    the ARKit face it asked for moves a face mesh's jaw and eyelids."""
     exe = tmp_path / "LiveCheck.exe"
     mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "LiveCheck.cs")
     seconds = 4
@@ -157,6 +160,11 @@ def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint): 
     assert out["state"] == "open" and out["sent"] and out["error"] == "", out
     assert out["frames"] >= seconds * 20 - 2, out
     assert out["moved"] > 1e-3 and out["changed"] > 1.5 * out["frames"], out
+    if out["server_face"]:  # revision 7: it asked for ARKit names; the mouth opens and moves with the speech
+        assert out["face_weights_set"] == 4 and out["face_changed"] > out["frames"] / 2, out
+        assert out["face_max"][0] > 10 and "jawOpen" not in out["face_unmatched"], out
+    else:  # a server without a face: the client sets none
+        assert out["face_weights_set"] == 0 and out["face_unmatched"] == "", out
 
 
 def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path, bundle):

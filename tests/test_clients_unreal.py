@@ -14,7 +14,7 @@ import pytest
 
 from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
-from helpers.face_frames import check_face_frames, face_messages, interpolated
+from helpers.face_frames import check_face_frames, check_recorded_face, face_messages, interpolated
 
 UNREAL = REPO / "clients" / "unreal"
 GXX = shutil.which("g++")
@@ -53,6 +53,7 @@ def test_unreal_decoder_gives_back_what_the_server_sent(decoder, recordings, enc
     out = decode(decoder, files[0].parent)
     assert all("unreal_rotations" in d for d in out if d["type"] == "frame")
     check_decoded(files, out)
+    check_recorded_face(files, out)
 
 
 def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordings):

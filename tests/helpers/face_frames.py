@@ -96,3 +96,14 @@ def check_face_frames(out: list[dict], expected: list[dict], exact: bool) -> Non
                                    atol=0 if exact else 1e-12)
         if want["pair"] is not None:
             assert got["channels"]["pair"] == want["pair"]
+
+
+def check_recorded_face(records: list[Path], decoded: list[dict]) -> None:
+    """A compiled decoder's frames of a live server's recording carry the face exactly as it was sent: a JSON
+    frame's `face` (the server's default set: the recording client did not ask), none in binary frames (not asked)."""
+    by_file = {d["file"]: d for d in decoded}
+    for path in records:
+        if path.suffix == ".bin":
+            assert "face" not in by_file[path.name], path.name
+        elif (ref := json.loads(path.read_text()))["type"] == "frame":
+            assert by_file[path.name].get("face") == ref.get("face"), path.name
