@@ -223,11 +223,13 @@ def test_unreal_decoder_names_what_is_wrong_with_a_face(decoder, tmp_path):
     assert out[1]["error"] == "channels[0]: bad size or offset"
 
 
-@pytest.mark.parametrize("encoding,metahuman", [("binary", True), ("json", False)])
-def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, encoding, metahuman):
+@pytest.mark.parametrize("encoding,metahuman,face_mesh", [("binary", True, True), ("json", False, True),
+                                                          ("json", True, False)])
+def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, encoding, metahuman, face_mesh):
     """UDimgestorComponent (engine stand-ins) asks for ARKit names in its hello, follows the server's `channels`
     layout, and each tick sets the face it shows (interpolated with the pose) as FaceMesh's morph targets (the face
-    names, or the name map's) and as curves (MetaHuman's capitalisation: jawOpen -> JawOpen, or the map's), 0..1."""
+    names, or the name map's) and as curves (MetaHuman's capitalisation: jawOpen -> JawOpen, or the map's), 0..1;
+    without a FaceMesh, curves only."""
     expected = face_messages(tmp_path / "msgs", encoding, "arkit")
     name_map = {"mouthFunnel": "Mouth_O", "eyeBlinkRight": "Blink_R"}
     times = [0.0, 0.0125, 0.07, 0.2375, 0.26]
@@ -237,7 +239,7 @@ def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, en
         return name_map.get(n) or (n[0].upper() + n[1:] if curve and metahuman else n)
 
     spec = {"face_names": "arkit", "map": [[k, v] for k, v in name_map.items()], "metahuman": metahuman,
-            "times": times, "curves_to_read": [target(n, True) for n in names] + ["NoSuchCurve"]}
+            "face_mesh": face_mesh, "times": times, "curves_to_read": [target(n, True) for n in names] + ["NoSuchCurve"]}
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     exe = tmp_path / "face_check"
     cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
@@ -254,9 +256,10 @@ def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, en
     assert [o["t"] for o in out] == times and all(o["frames"] == len(expected) for o in out)
     for o in out:
         face, _ = interpolated(expected[:-1] if encoding == "binary" else expected, o["t"])
-        assert o["morphs"].keys() == {target(n, False) for n in names}
+        assert o["morphs"].keys() == ({target(n, False) for n in names} if face_mesh else set())
         for n, w in face.items():
-            assert o["morphs"][target(n, False)] == pytest.approx(w, abs=1e-6), (o["t"], n)
+            if face_mesh:
+                assert o["morphs"][target(n, False)] == pytest.approx(w, abs=1e-6), (o["t"], n)
             assert o["curves"][target(n, True)] == pytest.approx(w, abs=1e-6), (o["t"], n)
         assert o["curves"]["NoSuchCurve"] == 0 and o["curve_count"] == len(names)
-    assert len({o["morphs"]["jawOpen"] for o in out}) == len(times), "the face did not move"
+    assert len({o["curves"][target("jawOpen", True)] for o in out}) == len(times), "the face did not move"

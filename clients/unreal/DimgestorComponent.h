@@ -64,7 +64,7 @@ public:
 
 	/** Skeletal mesh whose morph targets the face sets (SetMorphTarget by name); empty: curves only. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
-	TObjectPtr<USkeletalMeshComponent> FaceMesh;
+	TObjectPtr<USkeletalMeshComponent> FaceMesh = nullptr;
 
 	/** Face name -> your morph target / curve name, where they differ (e.g. jawOpen -> Mouth_Open). */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")

@@ -2,13 +2,16 @@
 // messages in FOLDER (NNNNNN.json / .bin) are fired through its WebSocket events (binary frames in two fragments),
 // each frame at its pts on the stand-in clock; then at each of SPEC's times the component ticks one playout delay
 // later and shows the frame due (interpolated), setting FaceMesh's morph targets and FaceCurves. SPEC is JSON:
-// {"face_names": "arkit", "map": [[face, target], ...], "metahuman": bool, "times": [pts, ...], "curves_to_read": [...]}. Prints the hello
+// {"face_names": "arkit", "map": [[face, target], ...], "metahuman": bool, "face_mesh": bool, "times": [pts, ...],
+// "curves_to_read": [...]}. Prints the hello
 // the component sent, then one JSON line per time; tests/test_clients_unreal.py checks them.
 #include <algorithm>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iterator>
+#include <new>
 #include <string>
 #include <vector>
 
@@ -46,9 +49,13 @@ int main(int argc, char** argv) {
   UPoseableMeshComponent body;
   OneBoneMesh(body);
   USkeletalMeshComponent face;
-  UDimgestorComponent component;
+  // Made on garbage, as a member the component leaves uninitialised would be (the engine zeroes a UObject's
+  // memory, the stand-ins do not): whatever it reads must be set by itself or by us.
+  alignas(UDimgestorComponent) static unsigned char storage[sizeof(UDimgestorComponent)];
+  std::memset(storage, 0xA5, sizeof storage);
+  UDimgestorComponent& component = *new (storage) UDimgestorComponent;
   component.TargetMesh = &body;
-  component.FaceMesh = &face;
+  if (spec.Get("face_mesh")->b) component.FaceMesh = &face;  // else left as it is: curves only
   component.FaceNames = Wide(spec.Get("face_names")->s);
   component.bMetaHumanCurveNames = spec.Get("metahuman")->b;
   for (const JsonValue& e : spec.Get("map")->items) component.FaceNameMap.Add(Wide(e.items[0].s), FName(*Wide(e.items[1].s)));
