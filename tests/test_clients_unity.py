@@ -1,7 +1,9 @@
 """The Unity client's decoder (clients/unity/DimgestorProtocol.cs) compiled with mcs, run with mono on
 messages recorded from a live `streamer serve` (JSON and binary), gives back what the server sent; the
 MonoBehaviour, built against stand-ins of the UnityEngine types it uses, retargets onto an avatar with other
-bone axes like the server's FK, and really connects to a live server, talks and gestures."""
+bone axes like the server's FK, and really connects to a live server, talks and gestures; the face (revision 7) is
+read from JSON and binary frames laid out by the server's `channels` message and set on blendshapes through a name
+map, and on a VRM through UniVRM's proxy."""
 
 import json
 import os
@@ -13,6 +15,7 @@ import pytest
 
 from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
+from helpers.face_frames import check_face_frames, check_recorded_face, face_messages, interpolated
 
 UNITY = REPO / "clients" / "unity"
 MCS, MONO = shutil.which("mcs"), shutil.which("mono")
@@ -21,9 +24,15 @@ pytestmark = [pytest.mark.timeout(180),
                                  "mono-mcs; .ci/run installs it)")]
 
 
-def mcs(out, *sources, library=False):
+# The MonoBehaviour and what it needs, with the stand-ins of the UnityEngine types it uses.
+CLIENT_SOURCES = tuple(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
+                                           "DimgestorAudioFlow.cs", "DimgestorClient.cs", "DimgestorFace.cs",
+                                           "tests/UnityEngineStubs.cs"))
+
+
+def mcs(out, *sources, library=False, defines=()):
     cmd = [MCS, "-langversion:7", "-warnaserror", f"-out:{out}", *(["-target:library"] if library else []),
-           *map(str, sources)]
+           *(f"-define:{d}" for d in defines), *map(str, sources)]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, f"mcs failed:\n{r.stdout}\n{r.stderr}"
 
@@ -53,7 +62,9 @@ def recordings(tmp_path_factory, checkpoint):  # noqa: F811
 def test_unity_decoder_gives_back_what_the_server_sent(decoder, recordings, encoding):
     files = recordings[encoding]
     assert sum(p.suffix == (".bin" if encoding == "binary" else ".json") for p in files) >= 12
-    check_decoded(files, decode(decoder, files[0].parent))
+    out = decode(decoder, files[0].parent)
+    check_decoded(files, out)
+    check_recorded_face(files, out)
 
 
 def test_unity_conversion_is_the_same_rotation_in_unity_axes(decoder, recordings):
@@ -94,9 +105,7 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
     """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
     the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
     exe = tmp_path / "RetargetCheck.exe"
-    mcs(exe, UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs", UNITY / "DimgestorPlayout.cs",
-        UNITY / "DimgestorAudioFlow.cs", UNITY / "DimgestorClient.cs", UNITY / "tests" / "UnityEngineStubs.cs",
-        UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "RetargetCheck.cs")
+    mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "RetargetCheck.cs")
     folder = recordings["binary"][0].parent
     r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
@@ -138,11 +147,10 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
 def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint):  # noqa: F811
     """DimgestorClient run as Unity runs it (OnEnable, LateUpdate at 60 Hz, SendAudio/EndAudio from another
     thread) with Mono's ClientWebSocket against a live server: its own audio comes back as gestures, shown
-    smoothly (pose changes on most display ticks, not once per 200 ms burst)."""
+    smoothly (pose changes on most display ticks, not once per 200 ms burst), and with a server that makes a face
+    the ARKit face it asked for moves a face mesh's jaw and eyelids."""
     exe = tmp_path / "LiveCheck.exe"
-    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs", "tests/StubAvatar.cs",
-                                   "tests/LiveCheck.cs")))
+    mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "LiveCheck.cs")
     seconds = 4
     with live_server(tmp_path, "ws", checkpoint) as server:
         r = subprocess.run([MONO, str(exe), server.ws_url, str(SPEECH_WAV), str(seconds)], capture_output=True,
@@ -152,6 +160,11 @@ def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint): 
     assert out["state"] == "open" and out["sent"] and out["error"] == "", out
     assert out["frames"] >= seconds * 20 - 2, out
     assert out["moved"] > 1e-3 and out["changed"] > 1.5 * out["frames"], out
+    if out["server_face"]:  # revision 7: it asked for ARKit names; the mouth opens and moves with the speech
+        assert out["face_weights_set"] == 4 and out["face_changed"] > out["frames"] / 2, out
+        assert out["face_max"][0] > 10 and "jawOpen" not in out["face_unmatched"], out
+    else:  # a server without a face: the client sets none
+        assert out["face_weights_set"] == 0 and out["face_unmatched"] == "", out
 
 
 def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path, bundle):
@@ -164,9 +177,7 @@ def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path
     from helpers.ws import SlowExecutor, make_server, running
 
     exe = tmp_path / "LiveCheck.exe"
-    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs",
-                                   "tests/StubAvatar.cs", "tests/LiveCheck.cs")))
+    mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "LiveCheck.cs")
     seconds = 5
     executor = SlowExecutor(1, delay_s=3.0)  # at most 1 s of audio per call: a third of real time
     ws = make_server(bundle, max_backlog_s=0.5, files=None)
@@ -197,9 +208,7 @@ def test_unity_client_moves_with_its_session_when_its_worker_stops(tmp_path, che
     from helpers.cluster import Cluster
 
     exe = tmp_path / "LiveCheck.exe"
-    mcs(exe, *(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                   "DimgestorAudioFlow.cs", "DimgestorClient.cs", "tests/UnityEngineStubs.cs",
-                                   "tests/StubAvatar.cs", "tests/LiveCheck.cs")))
+    mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "LiveCheck.cs")
     seconds = 6
 
     def streams(port: int) -> float:
@@ -229,11 +238,96 @@ def test_unity_client_moves_with_its_session_when_its_worker_stops(tmp_path, che
 
 
 def test_unity_monobehaviour_compiles_against_unityengine_stubs(tmp_path):
-    mcs(tmp_path / "DimgestorClient.dll", UNITY / "DimgestorProtocol.cs", UNITY / "DimgestorJson.cs",
-        UNITY / "DimgestorPlayout.cs", UNITY / "DimgestorAudioFlow.cs", UNITY / "DimgestorClient.cs",
-        UNITY / "tests" / "UnityEngineStubs.cs", library=True)
+    mcs(tmp_path / "DimgestorClient.dll", *CLIENT_SOURCES, library=True)
+    # With UniVRM (the DIMGESTOR_UNIVRM define) against stand-ins of the UniVRM 0.x types it uses.
+    mcs(tmp_path / "DimgestorClientVrm.dll", *CLIENT_SOURCES, UNITY / "tests" / "UniVrmStubs.cs", library=True,
+        defines=["DIMGESTOR_UNIVRM"])
     # The stubs must only declare what Unity really has; the client must use nothing Unity lacks.
     stub = (UNITY / "tests" / "UnityEngineStubs.cs").read_text()
     assert "namespace UnityEngine" in stub and "GetBoneTransform(HumanBodyBones" in stub
     client = (UNITY / "DimgestorClient.cs").read_text()
     assert "ClientWebSocket" in client and "GetBoneTransform(" in client
+    face = (UNITY / "DimgestorFace.cs").read_text()
+    assert "SetBlendShapeWeight(" in face and "VRMBlendShapeProxy" in face
+    assert "using VRM" not in face + client, "UniVRM must stay optional: only under #if DIMGESTOR_UNIVRM"
+
+
+# ---- the face (protocol revision 7)
+
+@pytest.mark.parametrize("encoding,name_set", [("binary", "arkit"), ("json", "vrm1"), ("binary", "oculus")])
+def test_unity_decoder_reads_the_face(decoder, tmp_path, encoding, name_set):
+    """MessageDecoder on what a client that asked for `name_set` receives (made by streamer.protocol with
+    streamer.face.face_channel): hello.face, then for binary the `channels` layout (another channel, then the face)
+    that the frames follow, bytes past it ignored, and a `channels` [] after which frames carry no face."""
+    expected = face_messages(tmp_path, encoding, name_set)
+    out = decode(decoder, tmp_path)
+    assert "error" not in str(out), out
+    hello = out[0]
+    assert hello["face"]["names"] == "vrm0" and hello["face"]["sets"] == ["vrm0", "vrm1", "arkit", "oculus"]
+    assert hello["face"]["labels"] == ["A", "I", "U", "E", "O", "Blink", "Blink_L", "Blink_R", "Joy"]
+    if encoding == "binary":
+        layouts = [d["layout"] for d in out if d["type"] == "channels"]
+        joints_end = 28 + 16 * len(expected[0]["rotations"])
+        assert layouts == [[["pair", 2, joints_end], ["face", len(expected[0]["face"]), joints_end + 8]], []]
+    check_face_frames(out, expected, exact=encoding == "binary")
+
+
+def run_face_check(tmp_path, folder, spec: dict, vrm: bool = False) -> tuple[list, list[dict]]:
+    exe = tmp_path / "FaceCheck.exe"
+    mcs(exe, *CLIENT_SOURCES, *([UNITY / "tests" / "UniVrmStubs.cs"] if vrm else []), UNITY / "tests" / "FaceCheck.cs",
+        defines=["DIMGESTOR_UNIVRM"] if vrm else [])
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    r = subprocess.run([MONO, str(exe), str(folder), str(tmp_path / "spec.json")], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    return lines[0]["hellos"], lines[1:]
+
+
+def test_unity_client_sets_the_face_on_blendshapes_through_the_name_map(tmp_path):
+    """DimgestorClient's ApplyFace (what LateUpdate runs with the frame it shows) on two stand-in meshes, with ARKit
+    frames decoded from binary: each face name drives the blendshape the map names (else its own name: exact,
+    ignoring case, or after a '.'), weight x 100, interpolated with the pose between frames; the map overrides
+    the same-named blendshape; what drives nothing is listed; and the hello asks for the configured set."""
+    expected = face_messages(tmp_path / "msgs", "binary", "arkit")
+    meshes = [["blendShape1.jawOpen", "EYEBLINKLEFT", "mouthSmileLeft", "Mouth_O", "Blink_R_shape", "eyeblinkright_2",
+               "unused"], ["jawOpen", "mouthFunnel"]]
+    name_map = [["mouthFunnel", "Mouth_O"], ["eyeBlinkRight", "Blink_R_shape"], ["eyeBlinkRight", "EyeBlinkRight_2"]]
+    drives = [{"blendShape1.jawOpen": "jawOpen", "EYEBLINKLEFT": "eyeBlinkLeft", "mouthSmileLeft": "mouthSmileLeft",
+               "Mouth_O": "mouthFunnel", "Blink_R_shape": "eyeBlinkRight", "eyeblinkright_2": "eyeBlinkRight"},
+              {"jawOpen": "jawOpen"}]  # (the second mesh's mouthFunnel is not driven: the map sends it to Mouth_O)
+    times = [0.0, 0.0125, 0.07, 0.1, 0.2375, 0.26]
+    hellos, out = run_face_check(tmp_path, tmp_path / "msgs", {"meshes": meshes, "map": name_map, "times": times})
+    assert [h.get("face") for h in hellos] == ["arkit", "vrm0", 'a"b\\', None]
+    assert hellos[1]["audio"] == {"rate": 48000, "format": "float32", "channels": 2} and hellos[0]["encoding"] == "binary"
+    assert [o["t"] for o in out] == times
+    unmatched = sorted(set(expected[0]["face"]) - {n for d in drives for n in d.values()})
+    for o in out:
+        face, root = interpolated(expected[:-1], o["t"])  # (the last frame has no face: the one before stays)
+        np.testing.assert_allclose([o["face"][n] for n in face], list(face.values()), rtol=0, atol=1e-9)
+        if o["t"] < expected[-2]["pts"]:  # the pose at the same instant as the face
+            np.testing.assert_allclose(o["root"], interpolated(expected, o["t"])[1], atol=1e-5)
+        for got, want in zip(o["weights"], drives):
+            assert got.keys() == want.keys(), o["t"]
+            for shape, name in want.items():
+                assert got[shape] == pytest.approx(100 * face[name], abs=1e-4), (o["t"], shape)
+        assert o["unmatched"].split(", ") == unmatched
+    assert any(0 < w < 100 for o in out for w in o["weights"][0].values())
+
+
+def test_unity_client_sets_a_vrm_through_univrm(tmp_path):
+    """With DIMGESTOR_UNIVRM, ApplyFace gives a VRM's VRMBlendShapeProxy (a stand-in with UniVRM's key rules) the
+    vrm0 face of JSON frames: presets by preset (A I U E O Blink Blink_L Blink_R), a name the map sends elsewhere as
+    a custom clip (Joy -> Smile), weights 0..1, interpolated, then Apply."""
+    expected = face_messages(tmp_path / "msgs", "json", "vrm0")
+    times = [0.0, 0.03, 0.11]
+    _, out = run_face_check(tmp_path, tmp_path / "msgs", {"meshes": [], "map": [["Joy", "Smile"]], "times": times,
+                                                          "vrm": True}, vrm=True)
+    for o in out:
+        face, _ = interpolated(expected, o["t"])
+        assert o["vrm"][-1] == "apply" and len(o["vrm"]) == len(face) + 1
+        got = dict(x.split("=") for x in o["vrm"][:-1])
+        key = {n: "Unknown_Smile" if n == "Joy" else n for n in face}
+        assert got.keys() == set(key.values())
+        for n, w in face.items():
+            assert float(got[key[n]]) == pytest.approx(w, abs=1e-6), (o["t"], n)

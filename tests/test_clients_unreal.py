@@ -1,7 +1,9 @@
 """The Unreal client's engine-independent decoder (clients/unreal/DimgestorProtocol.cpp) compiled with g++
 (C++17, no exceptions, like an Unreal module), run on messages recorded from a live `streamer serve`
 (JSON and binary), gives back what the server sent, in BVH, Unity and Unreal axes; the ActorComponent, built
-against engine stand-ins (clients/unreal/tests/stubs), poses a mesh from those messages like the server's FK."""
+against engine stand-ins (clients/unreal/tests/stubs), poses a mesh from those messages like the server's FK; the
+face (revision 7) is read from JSON and binary frames laid out by the server's `channels` message and set as morph
+targets and curves (MetaHuman's names, or through a name map)."""
 
 import json
 import shutil
@@ -12,6 +14,7 @@ import pytest
 
 from helpers.clients import (FLOW_SCRIPT, REPO, SPEECH_WAV, check_axis_conversion, check_decoded, check_flow,
                              global_rotations, live_server, quat_matrix, record, reference_decode)
+from helpers.face_frames import check_face_frames, check_recorded_face, face_messages, interpolated
 
 UNREAL = REPO / "clients" / "unreal"
 GXX = shutil.which("g++")
@@ -50,6 +53,7 @@ def test_unreal_decoder_gives_back_what_the_server_sent(decoder, recordings, enc
     out = decode(decoder, files[0].parent)
     assert all("unreal_rotations" in d for d in out if d["type"] == "frame")
     check_decoded(files, out)
+    check_recorded_face(files, out)
 
 
 def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordings):
@@ -115,7 +119,7 @@ def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path)
     out = run_component_check(tmp_path, "component_flow_check")
     assert out["ok"] and out["paused"] and not out["paused_after"] and out["last_error"] == "", out
     assert out["sent_while_paused"] == 2, out  # the audio hello and chunk 1, before the slow_down
-    assert out["log"] == ['text:{"type":"hello","encoding":"binary"}', "binary:1:1600", "binary:5:1600",
+    assert out["log"] == ['text:{"type":"hello","encoding":"binary","face":"arkit"}', "binary:1:1600", "binary:5:1600",
                           "binary:6:1600", 'text:{"type":"audio_end"}'], out["log"]
     assert out["dropped_s"] == pytest.approx(1.2) and "slow down" in out["notice"], out
 
@@ -128,7 +132,7 @@ def test_unreal_component_moves_with_its_session_at_goaway(tmp_path):
     out = run_component_check(tmp_path, "component_handover_check")
     assert out["ok"] and out["moving"] == "moving" and out["reconnected"], out
     assert out["handovers"] == 1 and out["resumed"] == 1 and not out["paused_after"] and out["last_error"] == "", out
-    hello = 'text:{"type":"hello","encoding":"binary"}'  # (the stubs' JSON writer keeps the string fields only)
+    hello = 'text:{"type":"hello","encoding":"binary","face":"arkit"}'  # (the stubs' JSON writer: string fields only)
     assert out["first"] == [hello, "binary:1:1600", "binary:2:1600"], out["first"]  # 3 held from the goaway on
     assert out["held_until_resumed"] == 2  # the new connection's hello (with the audio format) and resume_session
     assert out["second"] == [hello, 'text:{"type":"resume_session","token":"k3J-x_9"}', "binary:2:1600",
@@ -189,3 +193,73 @@ def test_unreal_decoder_names_what_is_wrong_with_bad_input(decoder, tmp_path):
     assert "server speaks protocol 2, this client 1" in out[2]["error"]
     assert out[3] == {"file": "000003.json", "type": "future_thing"}
 
+
+# ---- the face (protocol revision 7)
+
+@pytest.mark.parametrize("encoding,name_set", [("binary", "arkit"), ("json", "vrm1"), ("binary", "oculus")])
+def test_unreal_decoder_reads_the_face(decoder, tmp_path, encoding, name_set):
+    """ParseMessage / DecodeBinaryFrame on what a client that asked for `name_set` receives (made by
+    streamer.protocol with streamer.face.face_channel): hello.face, then for binary the `channels` layout (another
+    channel, then the face) the frames follow, bytes past it ignored, and a `channels` [] after which frames carry no
+    face."""
+    expected = face_messages(tmp_path, encoding, name_set)
+    out = decode(decoder, tmp_path)
+    assert "error" not in str(out), out
+    assert out[0]["face"] == {"names": "vrm0", "sets": ["vrm0", "vrm1", "arkit", "oculus"],
+                              "labels": ["A", "I", "U", "E", "O", "Blink", "Blink_L", "Blink_R", "Joy"]}
+    if encoding == "binary":
+        layouts = [d["layout"] for d in out if d["type"] == "channels"]
+        joints_end = 28 + 16 * len(expected[0]["rotations"])
+        assert layouts == [[["pair", 2, joints_end], ["face", len(expected[0]["face"]), joints_end + 8]], []]
+    check_face_frames(out, expected, exact=encoding == "binary")
+
+
+def test_unreal_decoder_names_what_is_wrong_with_a_face(decoder, tmp_path):
+    (tmp_path / "000000.json").write_text('{"type": "frame", "index": 1, "pts": 0, "root": [1, 2, 3], "rotations": [], '
+                                          '"face": {"jawOpen": "wide"}}')
+    (tmp_path / "000001.json").write_text('{"type": "channels", "channels": [{"name": "face", "size": -1}]}')
+    out = decode(decoder, tmp_path)
+    assert out[0]["error"] == "frame.face.jawOpen is not a number"
+    assert out[1]["error"] == "channels[0]: bad size or offset"
+
+
+@pytest.mark.parametrize("encoding,metahuman,face_mesh", [("binary", True, True), ("json", False, True),
+                                                          ("json", True, False)])
+def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, encoding, metahuman, face_mesh):
+    """UDimgestorComponent (engine stand-ins) asks for ARKit names in its hello, follows the server's `channels`
+    layout, and each tick sets the face it shows (interpolated with the pose) as FaceMesh's morph targets (the face
+    names, or the name map's) and as curves (MetaHuman's capitalisation: jawOpen -> JawOpen, or the map's), 0..1;
+    without a FaceMesh, curves only."""
+    expected = face_messages(tmp_path / "msgs", encoding, "arkit")
+    name_map = {"mouthFunnel": "Mouth_O", "eyeBlinkRight": "Blink_R"}
+    times = [0.0, 0.0125, 0.07, 0.2375, 0.26]
+    names = list(expected[0]["face"])
+
+    def target(n, curve):
+        return name_map.get(n) or (n[0].upper() + n[1:] if curve and metahuman else n)
+
+    spec = {"face_names": "arkit", "map": [[k, v] for k, v in name_map.items()], "metahuman": metahuman,
+            "face_mesh": face_mesh, "times": times, "curves_to_read": [target(n, True) for n in names] + ["NoSuchCurve"]}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    exe = tmp_path / "face_check"
+    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
+           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "face_check.cpp"),
+           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    r = subprocess.run([str(exe), str(tmp_path / "msgs"), str(tmp_path / "spec.json")], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    assert lines[0]["hello"] == '{"type":"hello","encoding":"binary","face":"arkit"}'  # (the stubs' writer: strings only)
+    out = lines[1:]
+    assert [o["t"] for o in out] == times and all(o["frames"] == len(expected) for o in out)
+    for o in out:
+        face, _ = interpolated(expected[:-1] if encoding == "binary" else expected, o["t"])
+        assert o["morphs"].keys() == ({target(n, False) for n in names} if face_mesh else set())
+        for n, w in face.items():
+            if face_mesh:
+                assert o["morphs"][target(n, False)] == pytest.approx(w, abs=1e-6), (o["t"], n)
+            assert o["curves"][target(n, True)] == pytest.approx(w, abs=1e-6), (o["t"], n)
+        assert o["curves"]["NoSuchCurve"] == 0 and o["curve_count"] == len(names)
+    assert len({o["curves"][target("jawOpen", True)] for o in out}) == len(times), "the face did not move"

@@ -1,5 +1,6 @@
-// Unity client for dimgestor (protocol v1 revision 6): receives gesture frames over a WebSocket and drives a Humanoid
-// avatar through Animator.GetBoneTransform. No third-party package: System.Net.WebSockets.ClientWebSocket.
+// Unity client for dimgestor (protocol v1 revision 7): receives gesture frames over a WebSocket and drives a Humanoid
+// avatar through Animator.GetBoneTransform, and its face's blendshapes (DimgestorFace.cs). No third-party package:
+// System.Net.WebSockets.ClientWebSocket (UniVRM only with the DIMGESTOR_UNIVRM define).
 //
 // Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
 // be copied. For each mapped bone we take the source joint's global rotation relative to the source rest
@@ -31,6 +32,20 @@ namespace Dimgestor
         [Tooltip("Audio held while the server has us paused (slow_down until resume); beyond it the oldest is dropped")]
         public float maxHeldAudioS = (float)AudioFlow.DefaultMaxHeldS;
 
+        [Header("Face")]
+        [Tooltip("Face name set to ask for: vrm0 (VRM 0.x presets A I U E O Blink...), vrm1, arkit (52 ARKit names), oculus (visemes); none: no face")]
+        public string face = "vrm0";
+        [Tooltip("Meshes whose blendshapes the face drives (face name -> blendshape of the same name, or through Face Name Map)")]
+        public SkinnedMeshRenderer[] faceMeshes = new SkinnedMeshRenderer[0];
+        [Tooltip("Face name -> your blendshape's name, where they differ (e.g. A -> Fcl_MTH_A)")]
+        public FaceName[] faceNameMap = new FaceName[0];
+        [Tooltip("Blendshape weight for a face weight of 1 (Unity blendshapes run 0..100)")]
+        public float blendShapeScale = 100f;
+#if DIMGESTOR_UNIVRM
+        [Tooltip("VRM 0.x model's proxy; defaults to the one on this GameObject")]
+        public VRM.VRMBlendShapeProxy vrmBlendShapeProxy;
+#endif
+
         [Header("Read only")]
         public string connectionState = "idle";
         public long framesReceived;
@@ -42,6 +57,7 @@ namespace Dimgestor
         public float droppedAudioS;               // held beyond maxHeldAudioS: dropped (oldest first)
         public int handovers;                     // goaways while we had our own session (the worker stopped)
         public int resumed;                       // sessions resumed on another worker after a goaway
+        public string faceUnmatched = "";         // face names that drive no blendshape (check faceNameMap)
 
         class Binding { public Transform bone; public int joint; public Quaternion rest; }
 
@@ -50,6 +66,7 @@ namespace Dimgestor
         readonly FramePlayout playout = new FramePlayout();  // frames come in bursts: show each at its pts
         readonly System.Diagnostics.Stopwatch clock = System.Diagnostics.Stopwatch.StartNew();
         Frame shown;
+        readonly FaceApplier faceApplier = new FaceApplier();
         Hello hello;
         Quat[] sourceRestGlobal;
         readonly List<Binding> bindings = new List<Binding>();
@@ -80,6 +97,9 @@ namespace Dimgestor
         void OnEnable()
         {
             if (animator == null) animator = GetComponent<Animator>();
+#if DIMGESTOR_UNIVRM
+            if (vrmBlendShapeProxy == null) vrmBlendShapeProxy = GetComponent<VRM.VRMBlendShapeProxy>();
+#endif
             cts = new CancellationTokenSource();
             var ct = cts.Token;
             Task.Run(() => RunAsync(ct));
@@ -113,7 +133,7 @@ namespace Dimgestor
                         {
                             connectionState = "resuming";
                             audioFormatKey = audioRate * 16 + audioChannels;
-                            await SendText(Protocol.ClientHello(binaryFrames, audioRate, "float32", audioChannels), ct).ConfigureAwait(false);
+                            await SendText(Protocol.ClientHello(binaryFrames, audioRate, "float32", audioChannels, face), ct).ConfigureAwait(false);
                             await SendText(Protocol.ResumeSession(resumeToken), ct).ConfigureAwait(false);
                         }
                         else
@@ -123,7 +143,7 @@ namespace Dimgestor
                             audioPaused = false;
                             lock (sent) { sent.Clear(); sentSamples = 0; }
                             connectionState = "open";
-                            await SendText(Protocol.ClientHello(binaryFrames), ct).ConfigureAwait(false);
+                            await SendText(Protocol.ClientHello(binaryFrames, face: face), ct).ConfigureAwait(false);
                         }
                         await ReceiveLoop(ws, ct).ConfigureAwait(false);
                     }
@@ -145,7 +165,7 @@ namespace Dimgestor
         {
             var buffer = new byte[64 * 1024];
             var message = new System.IO.MemoryStream();
-            Hello layout = null;  // this connection's hello
+            var decoder = new MessageDecoder();  // this connection's binary layout: its hello's, then each `channels` message's
             while (ws.State == WebSocketState.Open && !ct.IsCancellationRequested)
             {
                 var r = await ws.ReceiveAsync(new ArraySegment<byte>(buffer), ct).ConfigureAwait(false);
@@ -156,13 +176,8 @@ namespace Dimgestor
                 message.SetLength(0);
                 try
                 {
-                    if (r.MessageType == WebSocketMessageType.Binary) Handle(Protocol.DecodeBinaryFrame(data, 0, data.Length, layout));
-                    else
-                    {
-                        var m = Protocol.Parse(Encoding.UTF8.GetString(data));
-                        if (m is Hello) layout = (Hello)m;  // the binary frames' layout: joints and channels
-                        Handle(m);
-                    }
+                    if (r.MessageType == WebSocketMessageType.Binary) Handle(decoder.Binary(data, 0, data.Length));
+                    else Handle(decoder.Text(Encoding.UTF8.GetString(data)));
                 }
                 catch (ProtocolException e) { lastError = e.Message; }  // one bad message does not end the stream
             }
@@ -261,7 +276,23 @@ namespace Dimgestor
             Hello h; Frame f;
             lock (gate) { h = pendingHello; pendingHello = null; f = playout.Sample(clock.Elapsed.TotalSeconds); }
             if (h != null) Bind(h);
-            if (f != null && f != shown && hello != null) { Apply(f); shown = f; }
+            if (f != null && f != shown && hello != null) { Apply(f); ApplyFace(f); shown = f; }
+        }
+
+        // The inspector changed a field (e.g. the meshes or the name map): work the face's blendshapes out again.
+        void OnValidate() { faceApplier.Reset(); }
+
+        /// <summary>The face of the frame shown (interpolated with its pose) on the meshes and the VRM.</summary>
+        void ApplyFace(Frame f)
+        {
+            if (f.Face.Count == 0) return;
+            faceApplier.Scale = blendShapeScale;
+            faceApplier.Apply(f.Face, faceMeshes, faceNameMap);
+#if DIMGESTOR_UNIVRM
+            FaceApplier.ApplyVrm(f.Face, vrmBlendShapeProxy, faceNameMap);
+            if (vrmBlendShapeProxy != null) { faceUnmatched = ""; return; }  // the proxy takes every name it has a clip for
+#endif
+            faceUnmatched = faceApplier.Unmatched;
         }
 
         void Bind(Hello h)
@@ -269,6 +300,7 @@ namespace Dimgestor
             if (animator == null || !animator.isHuman) { lastError = "needs a Humanoid Animator"; return; }
             if (hello != null) RestoreRest();  // a reconnect: measure the avatar's rest, not the last pose
             bindings.Clear();
+            faceApplier.Reset();
             hello = h;
             sourceRestGlobal = Protocol.GlobalRotations(h.Skeleton, h.Skeleton.RestRotations);
             Quaternion rootInv = Quaternion.Inverse(animator.transform.rotation);
@@ -347,7 +379,7 @@ namespace Dimgestor
                 if (!moving && sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
                 {
                     flow.DropHeld();  // (held audio of another format cannot follow the new hello)
-                    await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels)),
+                    await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels, face)),
                                WebSocketMessageType.Text, ct).ConfigureAwait(false);
                     audioFormatKey = sampleRate * 16 + channels;
                     audioRate = sampleRate;

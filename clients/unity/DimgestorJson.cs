@@ -23,6 +23,19 @@ namespace Dimgestor
             return v;
         }
 
+        /// <summary>A string as a JSON string literal (quotes, backslashes and control characters escaped).</summary>
+        public static string Quote(string s)
+        {
+            var sb = new StringBuilder("\"");
+            foreach (char c in s)
+            {
+                if (c == '"' || c == '\\') sb.Append('\\').Append(c);
+                else if (c < 0x20) sb.Append("\\u").Append(((int)c).ToString("x4", CultureInfo.InvariantCulture));
+                else sb.Append(c);
+            }
+            return sb.Append('"').ToString();
+        }
+
         // ---- typed field access with clear errors
 
         public static double ToNum(object v, string what)

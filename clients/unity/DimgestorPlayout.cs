@@ -1,7 +1,8 @@
 // Playout buffer: the server computes motion window by window, so frames arrive in bursts (e.g. 4 frames
 // every 200 ms). Applying each on arrival would animate at 5 fps; instead every frame is shown at its own
 // presentation time, pts + offset on the local clock, interpolating between neighbours (root: linear,
-// rotations: slerp). The same rules are in clients/web/playout.js and clients/unreal/DimgestorPlayout.h.
+// rotations: slerp, face weights: linear, so the mouth moves with the body). The same rules are in
+// clients/web/playout.js and clients/unreal/DimgestorPlayout.h.
 //
 // Offset is set when a stream starts (first frame shown Delay seconds after it arrived), grows when a frame
 // arrives too late to be shown on time, and shrinks when more than 2 x Delay is buffered. Plain C#, no
@@ -64,6 +65,19 @@ namespace Dimgestor
             var r = new Frame { Type = "frame", Index = a.Index, Pts = t, Root = a.Root + (b.Root - a.Root) * u,
                                 Rotations = new Quat[a.Rotations.Length] };
             for (int j = 0; j < r.Rotations.Length; j++) r.Rotations[j] = Slerp(a.Rotations[j], b.Rotations[j], u);
+            r.Face = LerpFace(a.Face, b.Face, u);
+            return r;
+        }
+
+        /// <summary>Face weights between two frames; a name the later frame lacks (another set) keeps a's weight.</summary>
+        public static Dictionary<string, double> LerpFace(Dictionary<string, double> a, Dictionary<string, double> b, double u)
+        {
+            var r = new Dictionary<string, double>(a.Count);
+            foreach (var kv in a)
+            {
+                double w;
+                r[kv.Key] = b.TryGetValue(kv.Key, out w) ? kv.Value + (w - kv.Value) * u : kv.Value;
+            }
             return r;
         }
 

@@ -1,4 +1,4 @@
-// dimgestor protocol v1 revision 6 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
+// dimgestor protocol v1 revision 7 decoding (docs/protocol.md) in plain C#: no Unity dependency, so it compiles
 // and is tested outside Unity (clients/unity/tests/). The Unity glue is DimgestorClient.cs.
 //
 // Spaces: the wire is BVH space (right-handed, Y up, file units). Unity is left-handed, Y up, metres:
@@ -72,6 +72,24 @@ namespace Dimgestor
         public double LookaheadS;
         public double WindowMs;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
         public ChannelSpec[] Channels = new ChannelSpec[0];  // revision 6: what each frame carries beside the pose
+        public FaceInfo Face;  // revision 7: the server makes a face (null: it does not)
+
+        /// <summary>The same hello with another binary layout (a `channels` message's); this one is left as it is.</summary>
+        public Hello WithChannels(ChannelSpec[] channels)
+        {
+            var h = (Hello)MemberwiseClone();
+            h.Channels = channels;
+            return h;
+        }
+    }
+
+    /// <summary>Revision 7: hello.face, the server's face: the name set JSON frames use until the client asks for
+    /// another (Names), the sets it knows, and the set's names in order.</summary>
+    public class FaceInfo
+    {
+        public string Names = "";
+        public string[] Sets = new string[0];
+        public string[] Labels = new string[0];
     }
 
     /// <summary>Revision 6: one channel of every frame (e.g. blendshape weights): Size values, in a binary frame
@@ -90,7 +108,12 @@ namespace Dimgestor
         public Vec3 Root;              // root joint position, BVH space, file units
         public Quat[] Rotations;       // local rotations, skeleton order
         public Dictionary<string, double[]> Channels = new Dictionary<string, double[]>();  // revision 6: name -> values
+        /// <summary>Revision 7: blendshape weight (0..1) by name, in the set the client asked for; empty without a face.</summary>
+        public Dictionary<string, double> Face = new Dictionary<string, double>();
     }
+
+    /// <summary>Revision 7: the binary frames' layout from the next frame on (the answer to a client hello's `face`).</summary>
+    public class ChannelsMessage : Message { public ChannelSpec[] Channels = new ChannelSpec[0]; }
 
     public class Status : Message
     {
@@ -116,6 +139,23 @@ namespace Dimgestor
     /// <summary>A type this client does not know; the protocol says to ignore it.</summary>
     public class UnknownMessage : Message { }
 
+    /// <summary>One connection's decoding: it keeps the binary frames' layout, the hello's skeleton and channels, then
+    /// each `channels` message's (revision 7: the face is laid out after the client asks for it). No I/O.</summary>
+    public class MessageDecoder
+    {
+        public Hello Layout;  // null until the hello: binary frames are then read as rotations only
+
+        public Message Text(string text)
+        {
+            var m = Protocol.Parse(text);
+            if (m is Hello) Layout = (Hello)m;
+            else if (m is ChannelsMessage && Layout != null) Layout = Layout.WithChannels(((ChannelsMessage)m).Channels);
+            return m;
+        }
+
+        public Frame Binary(byte[] data, int offset, int count) { return Protocol.DecodeBinaryFrame(data, offset, count, Layout); }
+    }
+
     public class ProtocolException : Exception
     {
         public ProtocolException(string message) : base(message) { }
@@ -124,8 +164,9 @@ namespace Dimgestor
     public static class Protocol
     {
         public const int Version = 1;
-        public const int Revision = 6;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+        public const int Revision = 7;  // the optional additions this client knows (docs/protocol.md, "Revisions")
         public const int BinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
+        public const string FaceChannel = "face";  // the binary layout's channel of the face (its labels name the values)
 
         /// <summary>Parse one text message. Throws ProtocolException (with the position) on bad input.</summary>
         public static Message Parse(string text)
@@ -138,6 +179,7 @@ namespace Dimgestor
             {
                 case "hello": return ParseHello(o);
                 case "frame": return ParseFrame(o);
+                case "channels": return new ChannelsMessage { Type = type, Channels = ParseChannels(Json.Arr(o, "channels"), "channels") };
                 case "status":
                     return new Status
                     {
@@ -214,29 +256,41 @@ namespace Dimgestor
                     for (int i = 0; i < f.Count; i++) h.AudioFormats[i] = f[i] as string;
                 }
             }
-            if (o.ContainsKey("channels"))
+            if (o.ContainsKey("channels")) h.Channels = ParseChannels(Json.Arr(o, "channels"), "hello.channels");
+            if (o.ContainsKey("face") && o["face"] is Dictionary<string, object>)
             {
-                var cs = Json.Arr(o, "channels");
-                h.Channels = new ChannelSpec[cs.Count];
-                for (int i = 0; i < cs.Count; i++)
-                {
-                    var c = cs[i] as Dictionary<string, object>;
-                    string what = "hello.channels[" + i + "]";
-                    if (c == null) throw new ProtocolException(what + " is not an object");
-                    h.Channels[i] = new ChannelSpec
-                    {
-                        Name = Json.Str(c, "name", ""), Size = (int)Json.Num(c, "size", 0), Offset = (int)Json.Num(c, "offset", 0),
-                    };
-                    if (h.Channels[i].Size < 0 || h.Channels[i].Offset < 0) throw new ProtocolException(what + ": negative size or offset");
-                    if (c.ContainsKey("labels"))
-                    {
-                        var l = Json.Arr(c, "labels");
-                        h.Channels[i].Labels = new string[l.Count];
-                        for (int k = 0; k < l.Count; k++) h.Channels[i].Labels[k] = l[k] as string;
-                    }
-                }
+                var fo = (Dictionary<string, object>)o["face"];
+                h.Face = new FaceInfo { Names = Json.Str(fo, "names", ""), Sets = Strings(fo, "sets"), Labels = Strings(fo, "labels") };
             }
             return h;
+        }
+
+        /// <summary>A binary layout (hello.channels or a `channels` message): each channel's name, size, byte offset, labels.</summary>
+        static ChannelSpec[] ParseChannels(List<object> cs, string where)
+        {
+            var specs = new ChannelSpec[cs.Count];
+            for (int i = 0; i < cs.Count; i++)
+            {
+                var c = cs[i] as Dictionary<string, object>;
+                string what = where + "[" + i + "]";
+                if (c == null) throw new ProtocolException(what + " is not an object");
+                specs[i] = new ChannelSpec
+                {
+                    Name = Json.Str(c, "name", ""), Size = (int)Json.Num(c, "size", 0), Offset = (int)Json.Num(c, "offset", 0),
+                    Labels = Strings(c, "labels"),
+                };
+                if (specs[i].Size < 0 || specs[i].Offset < 0) throw new ProtocolException(what + ": negative size or offset");
+            }
+            return specs;
+        }
+
+        static string[] Strings(Dictionary<string, object> o, string key)
+        {
+            if (!o.ContainsKey(key)) return new string[0];
+            var l = Json.Arr(o, key);
+            var s = new string[l.Count];
+            for (int k = 0; k < l.Count; k++) s[k] = l[k] as string ?? "";
+            return s;
         }
 
         static Frame ParseFrame(Dictionary<string, object> o)
@@ -257,6 +311,9 @@ namespace Dimgestor
                     for (int i = 0; i < a.Count; i++) values[i] = Json.ToNum(a[i], "frame.channels." + kv.Key);
                     f.Channels[kv.Key] = values;
                 }
+            if (o.ContainsKey("face"))
+                foreach (var kv in Json.Obj(o, "face"))
+                    f.Face[kv.Key] = Json.ToNum(kv.Value, "frame.face." + kv.Key);
             return f;
         }
 
@@ -300,6 +357,8 @@ namespace Dimgestor
                     var values = new double[c.Size];
                     for (int i = 0; i < c.Size; i++) values[i] = ReadF32(data, offset + c.Offset + 4 * i);
                     f.Channels[c.Name] = values;
+                    if (c.Name == FaceChannel && c.Labels.Length == c.Size)  // the face by name, as in a JSON frame
+                        for (int i = 0; i < c.Size; i++) f.Face[c.Labels[i]] = values[i];
                 }
             return f;
         }
@@ -316,11 +375,14 @@ namespace Dimgestor
         static double ReadF32(byte[] d, int p) { return BitConverter.ToSingle(LE(d, p, 4), 0); }
         static double ReadF64(byte[] d, int p) { return BitConverter.ToDouble(LE(d, p, 8), 0); }
 
-        /// <summary>The client hello: frame encoding and, when audio will be sent, its format.</summary>
-        public static string ClientHello(bool binaryFrames, int audioRate = 0, string audioFormat = "float32", int channels = 1)
+        /// <summary>The client hello: frame encoding, when audio will be sent its format, and (revision 7) the face's
+        /// name set to receive ("vrm0", "vrm1", "arkit", "oculus"; "none": no face; null or "": the server's default).</summary>
+        public static string ClientHello(bool binaryFrames, int audioRate = 0, string audioFormat = "float32", int channels = 1,
+                                         string face = null)
         {
             var sb = new StringBuilder("{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"");
             sb.Append(binaryFrames ? "binary" : "json").Append('"');
+            if (!string.IsNullOrEmpty(face)) sb.Append(",\"face\":").Append(Json.Quote(face));
             if (audioRate > 0)
                 sb.Append(",\"audio\":{\"rate\":").Append(audioRate.ToString(CultureInfo.InvariantCulture))
                   .Append(",\"format\":\"").Append(audioFormat).Append("\",\"channels\":")

@@ -8,6 +8,7 @@
 #include <algorithm>
 
 #include "Components/PoseableMeshComponent.h"
+#include "Components/SkeletalMeshComponent.h"
 #include "Dom/JsonObject.h"
 #include "IWebSocket.h"
 #include "Modules/ModuleManager.h"
@@ -136,7 +137,7 @@ void UDimgestorComponent::HandleConnected()
 	if (!ResumeToken.empty())  // our session goes on here: its audio format, then the token
 	{
 		ConnectionState = TEXT("resuming");
-		SendAudioHello();
+		SendHello(true);
 		SendText(UTF8_TO_TCHAR(dimgestor::ResumeSession(ResumeToken).c_str()));
 		return;
 	}
@@ -146,11 +147,7 @@ void UDimgestorComponent::HandleConnected()
 	bAudioPaused = false;
 	Sent.clear();
 	SentSamples = 0;
-	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
-	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
-	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
-	ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
-	SendText(Condensed(ClientHello));
+	SendHello(false);
 }
 
 void UDimgestorComponent::HandleConnectionError(const FString& Error)
@@ -212,6 +209,9 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 		if (!bKeepStream) Playout.Reset();
 		// Buffer one inference window (the burst length) plus some network jitter.
 		Playout.delay_s = (Hello.window_ms > 0 ? Hello.window_ms / 1000.0 : 0.25) + 0.06;
+		break;
+	case dimgestor::MessageType::Channels:  // the binary frames' layout from the next frame on (e.g. with the face)
+		Hello.channels = Message.channels;
 		break;
 	case dimgestor::MessageType::Status:
 		LatencyMs = float(Message.status.latency_ms);
@@ -287,13 +287,48 @@ void UDimgestorComponent::TickComponent(float DeltaTime, ELevelTick TickType, FA
 	if (ReconnectIn > 0.f && (ReconnectIn -= DeltaTime) <= 0.f) Connect();
 	if (!TargetMesh || !bHaveHello) return;
 	if (bNeedBind) Bind();
-	if (Playout.Sample(FPlatformTime::Seconds(), Shown)) Apply(Shown);
+	if (Playout.Sample(FPlatformTime::Seconds(), Shown))
+	{
+		Apply(Shown);
+		ApplyFace(Shown);
+	}
+}
+
+float UDimgestorComponent::GetFaceCurve(FName Curve) const
+{
+	const float* Weight = FaceCurves.Find(Curve);
+	return Weight ? *Weight : 0.f;
+}
+
+// The face of the frame shown (interpolated with its pose): each name's weight (0..1) as the morph target of
+// FaceMesh and the curve in FaceCurves, named through FaceNameMap, else as the face names it (curves in MetaHuman's
+// capitalisation).
+void UDimgestorComponent::ApplyFace(const dimgestor::Frame& Frame)
+{
+	for (const auto& Pair : Frame.face)
+	{
+		auto It = FaceTargets.find(Pair.first);
+		if (It == FaceTargets.end())
+		{
+			FFaceTarget Target;
+			const FName* Mapped = FaceNameMap.Find(FString(UTF8_TO_TCHAR(Pair.first.c_str())));
+			std::string Curve = Pair.first;
+			if (bMetaHumanCurveNames && !Curve.empty() && Curve[0] >= 'a' && Curve[0] <= 'z') Curve[0] = char(Curve[0] - 'a' + 'A');
+			Target.Morph = Mapped ? *Mapped : FName(UTF8_TO_TCHAR(Pair.first.c_str()));
+			Target.Curve = Mapped ? *Mapped : FName(UTF8_TO_TCHAR(Curve.c_str()));
+			It = FaceTargets.emplace(Pair.first, Target).first;
+		}
+		const float Weight = float(std::min(1.0, std::max(0.0, Pair.second)));
+		FaceCurves.Add(It->second.Curve, Weight);
+		if (FaceMesh) FaceMesh->SetMorphTarget(It->second.Morph, Weight);
+	}
 }
 
 void UDimgestorComponent::Bind()
 {
 	bNeedBind = false;
 	Bindings.Reset();
+	FaceTargets.clear();  // (FaceNameMap may have changed meanwhile)
 	SourceRestGlobal = dimgestor::GlobalRotations(Hello.skeleton, Hello.skeleton.rest_rotations);
 	auto AddBinding = [this](FName Bone, int32 Joint) {
 		const FTransform* Rest = RestPose.Find(Bone);
@@ -358,19 +393,25 @@ void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
 	}
 }
 
-void UDimgestorComponent::SendAudioHello()
+// Our hello: the frames' encoding, the face's name set (revision 7: the server then lays the face out in binary
+// frames and says so with a `channels` message) and, once we send audio, its format.
+void UDimgestorComponent::SendHello(bool bWithAudio)
 {
-	TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();
-	Audio->SetNumberField(TEXT("rate"), AudioRate);
-	Audio->SetStringField(TEXT("format"), TEXT("float32"));
-	Audio->SetNumberField(TEXT("channels"), AudioChannels);
 	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
 	ClientHello->SetStringField(TEXT("type"), TEXT("hello"));
 	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
 	ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
-	ClientHello->SetObjectField(TEXT("audio"), Audio);
+	if (!FaceNames.IsEmpty()) ClientHello->SetStringField(TEXT("face"), FaceNames);
+	if (bWithAudio)
+	{
+		TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();
+		Audio->SetNumberField(TEXT("rate"), AudioRate);
+		Audio->SetStringField(TEXT("format"), TEXT("float32"));
+		Audio->SetNumberField(TEXT("channels"), AudioChannels);
+		ClientHello->SetObjectField(TEXT("audio"), Audio);
+		AudioFormatKey = AudioRate * 16 + AudioChannels;
+	}
 	SendText(Condensed(ClientHello));
-	AudioFormatKey = AudioRate * 16 + AudioChannels;
 }
 
 void UDimgestorComponent::KeepSent(const dimgestor::AudioFlow::Chunk& Chunk)
@@ -393,7 +434,7 @@ bool UDimgestorComponent::SendAudio(const TArray<float>& Samples, int32 SampleRa
 		AudioChannels = Channels;
 		Sent.clear();
 		SentSamples = 0;
-		SendAudioHello();
+		SendHello(true);
 	}
 	// float32 little-endian on the wire; every platform Unreal ships on is little-endian.
 	const uint8* Bytes = reinterpret_cast<const uint8*>(Samples.GetData());

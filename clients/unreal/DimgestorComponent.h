@@ -1,5 +1,6 @@
-// Unreal client for dimgestor (protocol v1 revision 2): receives gesture frames over a WebSocket (WebSockets module)
-// and poses a UPoseableMeshComponent by bone name. Decoding is in the engine-independent DimgestorProtocol.
+// Unreal client for dimgestor (protocol v1 revision 7): receives gesture frames over a WebSocket (WebSockets module)
+// and poses a UPoseableMeshComponent by bone name; the face sets morph targets of a skeletal mesh and/or curves by
+// name for an Animation Blueprint (MetaHuman). Decoding is in the engine-independent DimgestorProtocol.
 #pragma once
 
 #include "CoreMinimal.h"
@@ -11,6 +12,7 @@
 
 class IWebSocket;
 class UPoseableMeshComponent;
+class USkeletalMeshComponent;
 
 UCLASS(ClassGroup = (Animation), meta = (BlueprintSpawnableComponent))
 class UDimgestorComponent : public UActorComponent
@@ -54,6 +56,33 @@ public:
 	/** Move the root bone with the source root (scaled to the mesh's hip height). */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
 	bool bApplyRootPosition = true;
+
+	/** Face name set to ask the server for: arkit (52 ARKit names: MetaHuman, Live Link Face, Ready Player Me),
+	 *  vrm0, vrm1, oculus (visemes); none: no face. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
+	FString FaceNames = TEXT("arkit");
+
+	/** Skeletal mesh whose morph targets the face sets (SetMorphTarget by name); empty: curves only. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
+	TObjectPtr<USkeletalMeshComponent> FaceMesh = nullptr;
+
+	/** Face name -> your morph target / curve name, where they differ (e.g. jawOpen -> Mouth_Open). */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
+	TMap<FString, FName> FaceNameMap;
+
+	/** Curves named as MetaHuman's ARKit mapping and Live Link Face name them (jawOpen -> JawOpen); morph targets
+	 *  keep the face name. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
+	bool bMetaHumanCurveNames = true;
+
+	/** The face shown now (interpolated with the pose), curve name -> weight 0..1: feed it to a Modify Curve node
+	 *  (its Curve Map pin) in your face's Animation Blueprint. */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Face")
+	TMap<FName, float> FaceCurves;
+
+	/** One curve of FaceCurves (0 when the face has no such name). */
+	UFUNCTION(BlueprintPure, Category = "Dimgestor|Face")
+	float GetFaceCurve(FName Curve) const;
 
 	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
 	FString ConnectionState = TEXT("idle");
@@ -122,10 +151,11 @@ private:
 	void Handle(const dimgestor::Message& Message);
 	void Bind();
 	void Apply(const dimgestor::Frame& Frame);
+	void ApplyFace(const dimgestor::Frame& Frame);
+	void SendHello(bool bWithAudio);
 	void SendText(const FString& Text);
 	void SendChunks(const std::vector<dimgestor::AudioFlow::Chunk>& Chunks);
 	void SendAudioEnd();
-	void SendAudioHello();
 	void KeepSent(const dimgestor::AudioFlow::Chunk& Chunk);
 
 	TSharedPtr<IWebSocket> Socket;
@@ -157,4 +187,6 @@ private:
 	dimgestor::Vec3 RootReference;
 	float RootScale = 1.f;
 	int64 LastIndex = -1;
+	struct FFaceTarget { FName Morph, Curve; };
+	std::map<std::string, FFaceTarget> FaceTargets;  // face name -> its names here (worked out once per hello)
 };

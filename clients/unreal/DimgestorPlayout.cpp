@@ -47,7 +47,18 @@ bool FramePlayout::Sample(double now, Frame& out) {
   out.rotations.resize(a.rotations.size());
   for (size_t j = 0; j < a.rotations.size(); ++j)
     out.rotations[j] = Slerp(a.rotations[j], b.rotations[j], u);
+  out.face = LerpFace(a.face, b.face, u);
   return true;
+}
+
+std::map<std::string, double> LerpFace(const std::map<std::string, double>& a, const std::map<std::string, double>& b,
+                                       double u) {
+  std::map<std::string, double> r;
+  for (const auto& kv : a) {
+    auto it = b.find(kv.first);
+    r[kv.first] = it == b.end() ? kv.second : kv.second + (it->second - kv.second) * u;
+  }
+  return r;
 }
 
 Quat Slerp(const Quat& a, const Quat& b, double u) {

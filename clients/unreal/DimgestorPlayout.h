@@ -1,7 +1,8 @@
 // Playout buffer: the server computes motion window by window, so frames arrive in bursts (e.g. 4 frames
 // every 200 ms). Applying each on arrival would animate at 5 fps; instead every frame is shown at its own
 // presentation time, pts + offset on the local clock, interpolating between neighbours (root: linear,
-// rotations: slerp). The same rules are in clients/web/playout.js and clients/unity/DimgestorPlayout.cs.
+// rotations: slerp, face weights: linear, so the mouth moves with the body). The same rules are in
+// clients/web/playout.js and clients/unity/DimgestorPlayout.cs.
 //
 // offset is set when a stream starts (first frame shown delay_s after it arrived), grows when a frame
 // arrives too late to be shown on time, and shrinks when more than 2 x delay_s is buffered. Standard
@@ -9,6 +10,8 @@
 #pragma once
 
 #include <deque>
+#include <map>
+#include <string>
 
 #include "DimgestorProtocol.h"
 
@@ -37,5 +40,9 @@ class FramePlayout {
 
 // Spherical interpolation of unit quaternions along the shorter arc.
 Quat Slerp(const Quat& a, const Quat& b, double u);
+
+// Face weights between two frames; a name the later frame lacks (another set) keeps a's weight.
+std::map<std::string, double> LerpFace(const std::map<std::string, double>& a, const std::map<std::string, double>& b,
+                                       double u);
 
 }  // namespace dimgestor

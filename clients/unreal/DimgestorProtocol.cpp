@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <cstdio>
 #include <cstring>
 
 #include "DimgestorJson.h"
@@ -58,6 +59,32 @@ struct Fields {
     return true;
   }
 };
+
+void Strings(const JsonValue* l, std::vector<std::string>& out) {
+  if (l && l->kind == JsonValue::Array)
+    for (const JsonValue& x : l->items) out.push_back(x.kind == JsonValue::String ? x.s : "");
+}
+
+// A binary layout (hello.channels or a `channels` message): each channel's name, size, byte offset, labels.
+bool ParseChannels(const JsonValue& cs, const std::string& where, std::vector<ChannelSpec>& out, std::string& error) {
+  Fields f{error};
+  if (cs.kind != JsonValue::Array) { error = where + " is not an array"; return false; }
+  out.clear();
+  for (size_t i = 0; i < cs.items.size(); ++i) {
+    const JsonValue& c = cs.items[i];
+    std::string at = where + "[" + std::to_string(i) + "]";
+    ChannelSpec spec;
+    double size, offset;
+    if (c.kind != JsonValue::Object) { error = at + " is not an object"; return false; }
+    if (!f.Str(c, "name", "", spec.name) || !f.Num(c, "size", 0, size) || !f.Num(c, "offset", 0, offset)) return false;
+    if (size < 0 || offset < 0 || size > 1e6 || offset > 1e9) { error = at + ": bad size or offset"; return false; }
+    spec.size = size_t(size);
+    spec.offset = size_t(offset);
+    Strings(c.Get("labels"), spec.labels);
+    out.push_back(spec);
+  }
+  return true;
+}
 
 bool ParseHello(const JsonValue& o, Hello& h, std::string& error) {
   Fields f{error};
@@ -122,22 +149,14 @@ bool ParseHello(const JsonValue& o, Hello& h, std::string& error) {
             if (x.kind == JsonValue::String) h.audio_formats.push_back(x.s);
     }
   }
-  if (const JsonValue* cs = o.Get("channels")) {
-    if (cs->kind != JsonValue::Array) { error = "hello.channels is not an array"; return false; }
-    for (size_t i = 0; i < cs->items.size(); ++i) {
-      const JsonValue& c = cs->items[i];
-      std::string at = "hello.channels[" + std::to_string(i) + "]";
-      ChannelSpec spec;
-      double size, offset;
-      if (c.kind != JsonValue::Object) { error = at + " is not an object"; return false; }
-      if (!f.Str(c, "name", "", spec.name) || !f.Num(c, "size", 0, size) || !f.Num(c, "offset", 0, offset)) return false;
-      if (size < 0 || offset < 0 || size > 1e6 || offset > 1e9) { error = at + ": bad size or offset"; return false; }
-      spec.size = size_t(size);
-      spec.offset = size_t(offset);
-      if (const JsonValue* l = c.Get("labels"))
-        if (l->kind == JsonValue::Array)
-          for (const JsonValue& x : l->items) spec.labels.push_back(x.kind == JsonValue::String ? x.s : "");
-      h.channels.push_back(spec);
+  if (const JsonValue* cs = o.Get("channels"))
+    if (!ParseChannels(*cs, "hello.channels", h.channels, error)) return false;
+  if (const JsonValue* fo = o.Get("face")) {
+    if (fo->kind == JsonValue::Object) {
+      h.face.present = true;
+      if (!f.Str(*fo, "names", "", h.face.names)) return false;
+      Strings(fo->Get("sets"), h.face.sets);
+      Strings(fo->Get("labels"), h.face.labels);
     }
   }
   return true;
@@ -170,6 +189,14 @@ bool ParseFrame(const JsonValue& o, Frame& fr, std::string& error) {
           values.push_back(x.n);
         }
       }
+  }
+  fr.face.clear();
+  if (const JsonValue* fo = o.Get("face")) {
+    if (fo->kind != JsonValue::Object) { error = "frame.face is not an object"; return false; }
+    for (size_t i = 0; i < fo->keys.size(); ++i) {
+      if (fo->items[i].kind != JsonValue::Number) { error = "frame.face." + fo->keys[i] + " is not a number"; return false; }
+      fr.face[fo->keys[i]] = fo->items[i].n;
+    }
   }
   return true;
 }
@@ -214,6 +241,12 @@ bool ParseMessage(const std::string& text, Message& out, std::string& error) {
   const std::string& t = type->s;
   if (t == "hello") { out.type = MessageType::Hello; return ParseHello(v, out.hello, error); }
   if (t == "frame") { out.type = MessageType::Frame; return ParseFrame(v, out.frame, error); }
+  if (t == "channels") {
+    out.type = MessageType::Channels;
+    const JsonValue* cs = v.Get("channels");
+    if (!cs) { error = "\"channels\" is missing or not an array"; return false; }
+    return ParseChannels(*cs, "channels", out.channels, error);
+  }
   if (t == "status") {
     out.type = MessageType::Status;
     double sent, dropped, clients;
@@ -277,17 +310,30 @@ bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string
     out.rotations[j] = Quat{ReadLE<float>(p), ReadLE<float>(p + 4), ReadLE<float>(p + 8), ReadLE<float>(p + 12)};
   }
   out.channels.clear();
+  out.face.clear();
   if (hello)
     for (const ChannelSpec& c : hello->channels) {
       std::vector<double>& values = out.channels[c.name];
       for (size_t i = 0; i < c.size; ++i) values.push_back(ReadLE<float>(data + c.offset + 4 * i));
+      if (c.name == kFaceChannel && c.labels.size() == c.size)  // the face by name, as in a JSON frame
+        for (size_t i = 0; i < c.size; ++i) out.face[c.labels[i]] = values[i];
     }
   return true;
 }
 
-std::string ClientHello(bool binary_frames, int audio_rate, const std::string& audio_format, int channels) {
+std::string ClientHello(bool binary_frames, int audio_rate, const std::string& audio_format, int channels,
+                        const std::string& face) {
   std::string s = "{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"";
   s += binary_frames ? "binary\"" : "json\"";
+  if (!face.empty()) {  // escaped: the server answers an unknown set with the list of known ones
+    s += ",\"face\":\"";
+    for (char c : face) {
+      if (c == '"' || c == '\\') s += '\\';
+      if (static_cast<unsigned char>(c) < 0x20) { char b[8]; std::snprintf(b, sizeof b, "\\u%04x", c); s += b; continue; }
+      s += c;
+    }
+    s += '"';
+  }
   if (audio_rate > 0)
     s += ",\"audio\":{\"rate\":" + std::to_string(audio_rate) + ",\"format\":\"" + audio_format +
          "\",\"channels\":" + std::to_string(channels) + "}";

@@ -1,4 +1,4 @@
-// dimgestor protocol v1 revision 6 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
+// dimgestor protocol v1 revision 7 decoding (docs/protocol.md) in engine-independent C++17: standard library only,
 // no exceptions (Unreal builds without them), so it compiles and is tested outside the engine.
 //
 // The wire is BVH space: right-handed, Y up, file units (cm for ZEGGS). Conversions provided:
@@ -48,6 +48,14 @@ struct ChannelSpec {
   std::vector<std::string> labels;
 };
 
+// Revision 7: hello.face, the server's face: the name set JSON frames use until the client asks for another
+// (`names`), the sets it knows, and the set's names in order. `present` is false when the server makes no face.
+struct FaceInfo {
+  bool present = false;
+  std::string names;
+  std::vector<std::string> sets, labels;
+};
+
 struct Hello {
   int protocol = 0;
   std::string server;
@@ -61,6 +69,7 @@ struct Hello {
   double lookahead_s = 0;
   double window_ms = 0;  // optional: the server's inference window (frames arrive in bursts of it); 0 if absent
   std::vector<ChannelSpec> channels;  // revision 6: what each frame carries beside the pose
+  FaceInfo face;                      // revision 7
 };
 
 struct Frame {
@@ -69,6 +78,7 @@ struct Frame {
   Vec3 root;                  // root joint position, BVH space, file units
   std::vector<Quat> rotations;  // local rotations, skeleton order
   std::map<std::string, std::vector<double>> channels;  // revision 6: name -> values
+  std::map<std::string, double> face;  // revision 7: blendshape weight (0..1) by name, in the set asked for; may be empty
 };
 
 struct Status {
@@ -79,7 +89,8 @@ struct Status {
 // Resume (revision 2): after a `slow_down` error (a notice, not a failure), the server takes our audio again.
 // GoAway / SessionResumed (revision 3): the worker stops and saves our session under a token; we resume it on
 // another worker and re-send our audio from `handover_samples` on.
-enum class MessageType { Hello, Frame, Status, Error, End, Pong, Resume, GoAway, SessionResumed, Unknown };
+// Channels (revision 7): the binary frames' layout from the next frame on (the answer to a client hello's "face").
+enum class MessageType { Hello, Frame, Status, Error, End, Pong, Resume, GoAway, SessionResumed, Channels, Unknown };
 
 // One decoded server message; only the member named by `type` is filled.
 struct Message {
@@ -93,23 +104,27 @@ struct Message {
   double resume_backlog_s = 0;  // Resume: seconds of our audio the server still has queued
   std::string resume_token;     // GoAway: the token for resume_session
   int64_t handover_samples = 0, handover_frames = 0;  // GoAway, SessionResumed: our audio (at our rate) / frames covered
+  std::vector<ChannelSpec> channels;  // Channels: the new layout (replaces hello.channels for binary frames)
 };
 
 constexpr int kProtocolVersion = 1;
-constexpr int kProtocolRevision = 6;  // the optional additions this client knows (docs/protocol.md, "Revisions")
+constexpr int kProtocolRevision = 7;  // the optional additions this client knows (docs/protocol.md, "Revisions")
 constexpr size_t kBinaryHeaderBytes = 28;  // "DGF1" | u32 index | f64 pts | f32[3] root
+constexpr const char* kFaceChannel = "face";  // the binary layout's channel of the face (its labels name the values)
 
 // Parse one text message. On bad input returns false and says what and where in `error`.
 bool ParseMessage(const std::string& text, Message& out, std::string& error);
 
 // Decode one binary (DGF1) frame message of `size` bytes. With the server's hello the frame has its joints'
-// rotations, then each of hello->channels at its offset (bytes past them are ignored); without it every byte after
-// the header is a rotation (a frame without channels).
+// rotations, then each of hello->channels at its offset (bytes past them are ignored; the "face" channel also fills
+// `face` by its labels); without it every byte after the header is a rotation (a frame without channels). After a
+// Channels message, decode with a hello whose `channels` are that message's.
 bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error, const Hello* hello = nullptr);
 
-// The client's hello; with audio_rate > 0 it also declares the audio format that will be sent.
+// The client's hello; with audio_rate > 0 it also declares the audio format that will be sent, and with a `face`
+// (revision 7: "vrm0", "vrm1", "arkit", "oculus"; "none": no face) the face's name set to receive.
 std::string ClientHello(bool binary_frames, int audio_rate = 0, const std::string& audio_format = "float32",
-                        int channels = 1);
+                        int channels = 1, const std::string& face = "");
 
 // resume_session with a goaway's token (URL-safe base64; anything else is refused: empty result).
 std::string ResumeSession(const std::string& token);

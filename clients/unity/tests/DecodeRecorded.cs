@@ -19,14 +19,14 @@ static class DecodeRecorded
     {
         if (args.Length != 1) { Console.Error.WriteLine("usage: DecodeRecorded.exe FOLDER"); return 2; }
         Skeleton skeleton = null;
-        Hello hello = null;  // the binary frames' layout once a hello was read
+        var decoder = new MessageDecoder();  // the binary frames' layout: the hello's, then each `channels` message's
         foreach (var path in Directory.GetFiles(args[0]).OrderBy(p => p, StringComparer.Ordinal))
         {
             Message m;
             try
             {
-                if (path.EndsWith(".bin")) { var b = File.ReadAllBytes(path); m = Protocol.DecodeBinaryFrame(b, 0, b.Length, hello); }
-                else if (path.EndsWith(".json")) m = Protocol.Parse(File.ReadAllText(path, Encoding.UTF8));
+                if (path.EndsWith(".bin")) { var b = File.ReadAllBytes(path); m = decoder.Binary(b, 0, b.Length); }
+                else if (path.EndsWith(".json")) m = decoder.Text(File.ReadAllText(path, Encoding.UTF8));
                 else continue;
             }
             catch (ProtocolException e)
@@ -39,10 +39,17 @@ static class DecodeRecorded
             if (h != null)
             {
                 skeleton = h.Skeleton;
-                hello = h;
                 sb.Append(",\"joints\":" + h.Skeleton.Joints.Length + ",\"humanoid\":" + h.Humanoid.Count);
                 sb.Append(",\"fps\":" + N(h.Fps) + ",\"unit_to_m\":" + N(h.Skeleton.UnitToMeters));
                 sb.Append(",\"audio_rate\":" + h.AudioRate + ",\"offset_last\":" + V(h.Skeleton.Offsets[h.Skeleton.Offsets.Length - 1]));
+                if (h.Face != null)
+                    sb.Append(",\"face\":{\"names\":\"" + h.Face.Names + "\",\"sets\":[" + string.Join(",", h.Face.Sets.Select(x => "\"" + x + "\""))
+                              + "],\"labels\":[" + string.Join(",", h.Face.Labels.Select(x => "\"" + x + "\"")) + "]}");
+            }
+            var cm = m as ChannelsMessage;
+            if (cm != null)
+            {
+                sb.Append(",\"layout\":[" + string.Join(",", cm.Channels.Select(c => "[\"" + c.Name + "\"," + c.Size + "," + c.Offset + "]")) + "]");
             }
             var f = m as Frame;
             if (f != null)
@@ -56,6 +63,9 @@ static class DecodeRecorded
                 if (f.Channels.Count > 0)
                     sb.Append(",\"channels\":{" + string.Join(",", f.Channels.OrderBy(kv => kv.Key, StringComparer.Ordinal)
                         .Select(kv => "\"" + kv.Key + "\":[" + string.Join(",", kv.Value.Select(N)) + "]")) + "}");
+                if (f.Face.Count > 0)
+                    sb.Append(",\"face\":{" + string.Join(",", f.Face.OrderBy(kv => kv.Key, StringComparer.Ordinal)
+                        .Select(kv => "\"" + kv.Key + "\":" + N(kv.Value))) + "}");
             }
             var st = m as Status;
             if (st != null) sb.Append(",\"latency_ms\":" + N(st.LatencyMs) + ",\"dropped\":" + st.Dropped);

@@ -1,7 +1,9 @@
 // Test driver: DimgestorClient against a live `streamer serve`, the way Unity runs it: OnEnable starts the
 // ClientWebSocket task, LateUpdate runs at 60 Hz on the "main" thread and poses a stand-in avatar
 // (StubAvatar.cs), and SendAudio/EndAudio stream the first SECONDS of a 16-bit WAV in real time from
-// another thread (the client's own session), paused by the server's slow_down until its resume. Prints a JSON summary for tests/test_clients_unity.py.
+// another thread (the client's own session), paused by the server's slow_down until its resume. The client asks for
+// the ARKit face and drives a stand-in face mesh with four of its names. Prints a JSON summary for
+// tests/test_clients_unity.py.
 // usage: mono LiveCheck.exe URL WAV SECONDS
 using System;
 using System.Globalization;
@@ -63,14 +65,19 @@ static class LiveCheck
         int rate;
         float[] audio = ReadWav(args[1], out rate);
         double seconds = double.Parse(args[2], CultureInfo.InvariantCulture);
-        var avatar = new StubAvatar(ReadHello(url), 20f, 3);
-        var client = new DimgestorClient { animator = avatar.Animator, url = url, binaryFrames = true };
+        var serverHello = ReadHello(url);
+        var avatar = new StubAvatar(serverHello, 20f, 3);
+        var faceMesh = new SkinnedMeshRenderer { sharedMesh = new Mesh { StubBlendShapes = { "jawOpen", "eyeBlinkLeft", "eyeBlinkRight", "mouthClose" } } };
+        var client = new DimgestorClient { animator = avatar.Animator, url = url, binaryFrames = true, face = "arkit",
+                                           faceMeshes = new[] { faceMesh } };
         var flags = BindingFlags.NonPublic | BindingFlags.Instance;
         typeof(DimgestorClient).GetMethod("OnEnable", flags).Invoke(client, null);
         var lateUpdate = typeof(DimgestorClient).GetMethod("LateUpdate", flags);
 
         Task sender = null;
-        int ticks = 0, changed = 0;
+        int ticks = 0, changed = 0, faceChanged = 0;
+        var faceMax = new float[4];
+        float[] facePrevious = null;
         double moved = 0;
         var bones = avatar.ByJoint.Values.ToArray();
         Vector3[] first = null, previous = null;
@@ -102,6 +109,10 @@ static class LiveCheck
             if (previous != null && now.Zip(previous, (a, c) => Math.Abs(a.x - c.x) + Math.Abs(a.y - c.y) + Math.Abs(a.z - c.z)).Max() > 1e-7) changed++;
             moved = Math.Max(moved, now.Zip(first, (a, c) => Math.Abs(a.x - c.x) + Math.Abs(a.y - c.y) + Math.Abs(a.z - c.z)).Max());
             previous = now;
+            var face = Enumerable.Range(0, 4).Select(faceMesh.GetBlendShapeWeight).ToArray();
+            if (facePrevious != null && face.Zip(facePrevious, (a, c) => Math.Abs(a - c)).Max() > 1e-4) faceChanged++;
+            for (int k = 0; k < 4; k++) faceMax[k] = Math.Max(faceMax[k], face[k]);
+            facePrevious = face;
             if (sender != null && sender.IsCompleted && client.framesReceived >= (long)(seconds * 20) - 2 && changed > 0
                 && clock.Elapsed.TotalSeconds > seconds + 2) break;
             Thread.Sleep(16);
@@ -114,6 +125,9 @@ static class LiveCheck
             + (sender != null && sender.Status == TaskStatus.RanToCompletion ? "true" : "false")
             + ",\"pauses\":" + flow.Pauses + ",\"resumes\":" + flow.Resumes + ",\"paused\":" + (client.audioPaused ? "true" : "false")
             + ",\"dropped_s\":" + flow.DroppedS.ToString("R", CultureInfo.InvariantCulture)
+            + ",\"server_face\":" + (serverHello.Face != null ? "true" : "false") + ",\"face_weights_set\":" + faceMesh.StubWeights.Count
+            + ",\"face_changed\":" + faceChanged + ",\"face_max\":[" + string.Join(",", faceMax.Select(w => w.ToString("R", CultureInfo.InvariantCulture))) + "]"
+            + ",\"face_unmatched\":\"" + client.faceUnmatched + "\""
             + ",\"handovers\":" + client.handovers + ",\"resumed\":" + client.resumed + ",\"error\":\""
             + (error ?? "").Replace("\\", "\\\\").Replace("\"", "\\\"") + "\"}");
         return 0;

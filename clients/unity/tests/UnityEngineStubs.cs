@@ -76,6 +76,25 @@ namespace UnityEngine
         }
     }
 
+    public class Renderer : Component { }
+
+    /// <summary>Blendshape weights by index; StubWeights keeps what was set.</summary>
+    public class SkinnedMeshRenderer : Renderer
+    {
+        public Mesh sharedMesh { get; set; }
+        public Dictionary<int, float> StubWeights = new Dictionary<int, float>();
+        public void SetBlendShapeWeight(int index, float value) { StubWeights[index] = value; }
+        public float GetBlendShapeWeight(int index) { float w; return StubWeights.TryGetValue(index, out w) ? w : 0f; }
+    }
+
+    public class Mesh : Object
+    {
+        public List<string> StubBlendShapes = new List<string>();
+        public int blendShapeCount { get { return StubBlendShapes.Count; } }
+        public string GetBlendShapeName(int shapeIndex) { return StubBlendShapes[shapeIndex]; }
+        public int GetBlendShapeIndex(string blendShapeName) { return StubBlendShapes.IndexOf(blendShapeName); }
+    }
+
     public class Animator : Behaviour
     {
         public Dictionary<HumanBodyBones, Transform> StubBones = new Dictionary<HumanBodyBones, Transform>();

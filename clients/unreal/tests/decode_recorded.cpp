@@ -35,7 +35,7 @@ int main(int argc, char** argv) {
   for (const auto& e : fs::directory_iterator(argv[1])) files.push_back(e.path());
   std::sort(files.begin(), files.end());
   Skeleton skeleton;
-  Hello hello;  // the binary frames' layout once a hello was read
+  Hello hello;  // the binary frames' layout once a hello was read (its channels: the last `channels` message's)
   bool have_hello = false;
   for (const fs::path& path : files) {
     std::ifstream in(path, std::ios::binary);
@@ -64,6 +64,22 @@ int main(int argc, char** argv) {
               std::to_string(m.hello.humanoid.size()) + ",\"fps\":" + N(m.hello.fps) + ",\"unit_to_m\":" +
               N(skeleton.unit_to_m) + ",\"audio_rate\":" + std::to_string(m.hello.audio_rate) +
               ",\"offset_last\":" + V(skeleton.offsets.back());
+      if (m.hello.face.present) {
+        auto strings = [](const std::vector<std::string>& v) {
+          std::string o = "[";
+          for (size_t i = 0; i < v.size(); ++i) o += (i ? ",\"" : "\"") + Escape(v[i]) + "\"";
+          return o + "]";
+        };
+        line += ",\"face\":{\"names\":\"" + Escape(m.hello.face.names) + "\",\"sets\":" + strings(m.hello.face.sets) +
+                ",\"labels\":" + strings(m.hello.face.labels) + "}";
+      }
+    } else if (m.type == MessageType::Channels) {
+      if (have_hello) hello.channels = m.channels;
+      line += ",\"layout\":[";
+      for (size_t i = 0; i < m.channels.size(); ++i)
+        line += (i ? ",[\"" : "[\"") + Escape(m.channels[i].name) + "\"," + std::to_string(m.channels[i].size) + "," +
+                std::to_string(m.channels[i].offset) + "]";
+      line += "]";
     } else if (m.type == MessageType::Frame) {
       const Frame& f = m.frame;
       line += ",\"index\":" + std::to_string(f.index) + ",\"pts\":" + N(f.pts) + ",\"root\":" + V(f.root);
@@ -82,6 +98,11 @@ int main(int argc, char** argv) {
           cs += "]";
         }
         line += ",\"channels\":{" + cs + "}";
+      }
+      if (!f.face.empty()) {
+        std::string fs;
+        for (const auto& kv : f.face) fs += std::string(fs.empty() ? "" : ",") + "\"" + Escape(kv.first) + "\":" + N(kv.second);
+        line += ",\"face\":{" + fs + "}";
       }
     } else if (m.type == MessageType::Status) {
       line += ",\"latency_ms\":" + N(m.status.latency_ms) + ",\"dropped\":" + std::to_string(m.status.dropped);

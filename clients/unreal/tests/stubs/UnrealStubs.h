@@ -57,6 +57,7 @@ class FName {
   bool operator==(const FName& o) const { return s_ == o.s_; }
   bool operator!=(const FName& o) const { return s_ != o.s_; }
   bool operator<(const FName& o) const { return s_ < o.s_; }
+  FString ToString() const { return FString(s_.c_str()); }
  private:
   std::wstring s_;
 };
@@ -101,6 +102,7 @@ template <typename K, typename V> class TMap {
   V* Find(const K& k) { auto it = m_.find(k); return it == m_.end() ? nullptr : &it->second; }
   const V* Find(const K& k) const { auto it = m_.find(k); return it == m_.end() ? nullptr : &it->second; }
   V& operator[](const K& k) { return m_[k]; }
+  int32 Num() const { return int32(m_.size()); }
  private:
   std::map<K, V> m_;
 };
