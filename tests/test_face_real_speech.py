@@ -10,7 +10,7 @@ import pytest
 
 from dimgestor.audio import SAMPLE_RATE, load_wav
 from dimgestor.face import FaceOptions, FaceStream
-from dimgestor.face.evaluate import mouth_scores
+from dimgestor.face.evaluate import mouth_lag, mouth_scores
 from dimgestor.face.textgrid import read_tiers
 from dimgestor.face.visemes import V
 
@@ -45,6 +45,15 @@ def test_the_mouth_meets_the_targets_on_real_speech(take):
     assert s["vowel_mean_recall"] >= 0.55, summary  # ... for every class, not just the frequent "A"
     assert s["closures"] >= 0.5, summary            # lips shut at M, B, P centres
     assert s["rest"] <= 0.15, summary               # the mouth rests in pauses
+
+
+def test_the_mouth_shows_a_sound_within_40_ms_of_when_it_was_said(take):
+    """The frame at pts t shows the sound said at t: the jaw (held over each 50 ms frame, as a 20 fps client holds
+    it; half a frame is its own 25 ms) correlates best with the alignment within 40 ms of no lag."""
+    face, phones, _ = take
+    lag, r = mouth_lag(face, phones, 20)
+    print(f"best lag {lag * 1000:.0f} ms (r {r[lag]:.3f}; at 0: {r[0.0]:.3f})")
+    assert abs(lag) <= 0.04, {k: round(v, 3) for k, v in r.items() if abs(k) <= 0.1}
 
 
 def test_blinks_as_people_blink_while_talking(take):

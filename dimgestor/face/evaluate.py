@@ -14,7 +14,7 @@ import numpy as np
 
 from dimgestor.face.visemes import OPENNESS, V, VOWEL_CLASS, canonical_phone
 
-__all__ = ["mouth_scores", "VOWEL_SHAPES"]
+__all__ = ["mouth_scores", "mouth_lag", "VOWEL_SHAPES"]
 
 VOWEL_SHAPES = ("A", "I", "U", "E", "O")
 _SHAPE_INDEX = [V["aa"], V["I"], V["U"], V["E"], V["O"]]
@@ -52,3 +52,22 @@ def mouth_scores(face: np.ndarray, phones: list[tuple[float, float, str]], fps: 
     out["rest"] = float(np.mean(rest) / max(median, 1e-9)) if rest else float("nan")
     out["vowel_median_jaw"] = median
     return out
+
+
+def mouth_lag(face: np.ndarray, phones: list[tuple[float, float, str]], fps: int, rate: int = 100,
+              max_s: float = 0.2) -> tuple[float, dict[float, float]]:
+    """When the mouth shows a sound against when it was said: the lag (s, positive = the mouth late) at which the
+    jaw, held at its frames and read at `rate` Hz, best correlates with the alignment's openness, and the
+    correlation at each lag tried (within +-max_s, a 1/rate step)."""
+    from dimgestor.face.textgrid import phones_at
+
+    times = np.arange(int(len(face) / fps * rate)) / rate
+    jaw = face[np.minimum((times * fps + 1e-9).astype(int), len(face) - 1), V["jawOpen"]]
+    ref = np.array([OPENNESS[canonical_phone(p)] for p in phones_at(phones, times)])
+    k = int(round(max_s * rate))
+    r = {}
+    for lag in range(-k, k + 1):  # jaw[t + lag] against ref[t]
+        a, b = (jaw[lag:], ref[:len(ref) - lag]) if lag >= 0 else (jaw[:lag], ref[-lag:])
+        r[lag / rate] = float(np.corrcoef(a, b)[0, 1])
+    best = max(r, key=r.get)
+    return best, r

@@ -91,12 +91,15 @@ class PhoneListener:
         self._decoder.process_raw(pcm.tobytes(), False, False)
         self.blocks_in += 1
         now = self.blocks_in * BLOCK / RATE
+        if (self.next_frame / self.fps) + self.lookahead_s > now + 1e-9:
+            return  # no frame completes in this block: the best path is read only when one does (it is costly)
+        segments = self.segments()
         while (self.next_frame / self.fps) + self.lookahead_s <= now + 1e-9:
             t = self.next_frame / self.fps
-            segs = [s for s in self.segments() if s.end > t - self.context_s and s.start < t + self.context_s]
+            segs = [s for s in segments if s.end > t - self.context_s and s.start < t + self.context_s]
             self.ready.append((self.next_frame, segs))
             self.next_frame += 1
-        self._maybe_restart(now)
+        self._maybe_restart(now, segments)
 
     def segments(self) -> list[Segment]:
         """The ended utterances' segments kept, then the running utterance's best path so far."""
@@ -105,11 +108,12 @@ class PhoneListener:
                    for s in (self._decoder.seg() or ())]
         return self._done + running
 
-    def _maybe_restart(self, now: float) -> None:
+    def _maybe_restart(self, now: float, segments: list[Segment]) -> None:
+        """At a frame's block: end the utterance where the best path ends in a pause (or it grew too long)."""
         length = now - self._utt_start * BLOCK / RATE
         if length < 2 * self.lookahead_s + self.pause_s:
             return
-        tail = [s for s in self.segments() if s.end > now - self.pause_s]
+        tail = [s for s in segments if s.end > now - self.pause_s]
         paused = tail and all(s.phone == "SIL" for s in tail) and tail[0].start <= now - self.pause_s
         if not (paused or length >= self.max_utterance_s):
             return
