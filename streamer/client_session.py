@@ -203,12 +203,14 @@ class WaitForSession:
 class StartSession:
     """Start session `session_id` with a fresh audio queue; resample from `rate` unless it is 16 kHz; its periodic
     saves go under `save_token` (None: none); `restore`: a saved state to go on from (then `Restored`); `smile`:
-    the expression its face holds (None: the server's)."""
+    the expression its face holds (None: the server's); `face`: whether it makes a face (the client asked for one:
+    a face costs its listener ~5 % of a core per stream, which a client that shows none should not pay)."""
     session_id: int
     rate: int
     save_token: str | None = None
     restore: bytes | None = None
     smile: float | None = None
+    face: bool = False
 
     @property
     def resample(self) -> bool:
@@ -337,9 +339,10 @@ class ClientSession:
 
     def channels(self, encoding: str) -> Mapping[str, Channel]:
         """The channels of its frames in `encoding`: the server's (`P.WS_CHANNELS`), then the face when the server
-        makes one and the client did not say "none" (in binary only once it asked: an old client's layout stays)."""
+        makes one and the client did not say "none" (in binary only once it asked: an old client's layout stays;
+        its own audio's frames only once it asked: they have a face only then, see `StartSession.face`)."""
         names = None if self.face == "none" else self.face or self.seats.face
-        if names is None or self.seats.face is None or (encoding == "binary" and self.face is None):
+        if names is None or self.seats.face is None or (self.face is None and (encoding == "binary" or self.own)):
             return dict(P.WS_CHANNELS)
         return {**P.WS_CHANNELS, FACE: _face_channel(names)}
 
@@ -447,7 +450,8 @@ class ClientSession:
         self.seats.taken += 1
         self.save_token = self.new_token() if self.seats.save_every_s is not None else None
         self.saved_audio_s = 0.0
-        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore, self.smile),
+        face = self.seats.face is not None and self.face not in (None, "none")
+        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore, self.smile, face),
                 Count("sessions_started")]
 
     def _end_audio(self, handover: bool = False) -> list[Action]:

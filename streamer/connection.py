@@ -239,6 +239,8 @@ class Client(Outbox):
         self.resampler, self.resample_from = None, start.rate if start.resample else None
         self.session = session = self.svc.make_session()
         session.clock = self.clock
+        if not start.face:  # the client asked for no face: its session makes none (nor pays for one)
+            session.face_options = None
         if start.smile is not None:  # the client's own expression (its hello's `smile`)
             session.set_smile(start.smile)
         session.on_window = session.on_window or self.svc.metrics.window_done

@@ -256,6 +256,8 @@ class Session:
         root = dict(meta["decoder"])
         self.stream.state = state
         self.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
+        if self._face is not None:
+            self._face.close()
         self._face, self._face_start = None, (int(state.samples_in), int(self.stream.frames_out))  # listens afresh
         self.clock.audio_s = state.samples_in / SAMPLE_RATE
         return meta
@@ -286,6 +288,8 @@ class Session:
             self.stats.ended = True
             return self.stream.frames_out
         finally:
+            if self._face is not None:  # its listener's decoder goes back to the pool (a handed-over one too)
+                self._face.close()
             if not reader.done():
                 reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)

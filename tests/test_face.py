@@ -72,3 +72,16 @@ def stream_face_at(fps, audio):
     face.push(audio)
     face.finish()
     return face.take(face.frames_ready)
+
+
+def test_a_decoder_back_from_an_ended_stream_hears_as_a_new_one():
+    """Decoders are pooled across streams (a server's short sessions would each pay for a new one): one that has
+    listened to other speech makes exactly the frames a new one makes."""
+    from dimgestor.face.listener import _POOL
+
+    _POOL.idle.clear()
+    first = stream_face(SPEECH[:SAMPLE_RATE * 2], [3200])  # a new decoder, given back at the end
+    other = stream_face(SPEECH[SAMPLE_RATE * 2:], [3200])  # the pooled one, after other speech
+    again = stream_face(SPEECH[:SAMPLE_RATE * 2], [3200])  # pooled again
+    assert sum(len(v) for v in _POOL.idle.values()) == 1 and len(other)
+    np.testing.assert_array_equal(again, first)

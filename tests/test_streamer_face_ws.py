@@ -74,10 +74,16 @@ def talker(tiny_checkpoint):
     s.finish()
 
 
-def test_json_frames_carry_the_servers_face_and_old_binary_clients_get_revision_5_frames(talker, pcm):
+def test_a_talker_gets_a_face_once_it_asks_and_old_clients_get_the_frames_they_know(talker, pcm):
+    # a client that never asks (written for revision 6 or before): its own audio makes no face (nor costs one)
     hello, msgs = asyncio.run(talk(talker, None, pcm))
     assert hello["revision"] == 7 and hello["channels"] == []
     assert hello["face"] == {"names": "vrm0", "sets": SETS, "labels": list(names_of("vrm0"))}
+    frames = frames_of(msgs)
+    assert len(frames) == WAV_SECONDS * 20 and not any("face" in f for f in frames)
+
+    # asking for the server's set: every JSON frame has it
+    _, msgs = asyncio.run(talk(talker, {"face": "vrm0"}, pcm))
     frames = frames_of(msgs)
     assert len(frames) == WAV_SECONDS * 20 and msgs[-1] == {"type": "end", "frames": len(frames)}
     table = faces(frames, names_of("vrm0"))
@@ -115,16 +121,18 @@ def test_an_unknown_set_is_refused_with_the_known_ones_and_the_connection_keeps_
     assert error["type"] == "error" and error["code"] == "bad_message"
     assert "vrm2" in error["message"] and all(s in error["message"] for s in SETS)
     assert pong["type"] == "pong" and pong["n"] == 1
-    # the refused hello changed nothing (still JSON), and the frames still carry the server's face
-    faces(frames_of(msgs[2:]), names_of("vrm0"))
+    # the refused hello changed nothing: still JSON, and no face asked
+    frames = frames_of(msgs[2:])
+    assert frames and all(isinstance(f, dict) and "face" not in f for f in frames)
 
 
 def test_none_means_no_face_and_a_smile_is_the_clients_own(talker, pcm):
     async def both():  # at once: each session holds its own smile
-        return await asyncio.gather(talk(talker, {"face": "none"}, pcm), talk(talker, {"smile": 1.0}, pcm))
+        return await asyncio.gather(talk(talker, {"face": "none"}, pcm), talk(talker, {"face": "vrm0", "smile": 1.0}, pcm))
 
     (_, none), (_, smiling) = asyncio.run(both())
     assert none[0] == {"type": "channels", "channels": []}
+    smiling = [m for m in smiling if not (isinstance(m, dict) and m["type"] == "channels")]
     assert all(set(f) == {"type", "index", "pts", "root", "rotations"} for f in frames_of(none[1:]))
     joy = faces(frames_of(smiling), names_of("vrm0"))[:, 8]
     assert joy.min() >= 0.5  # held under the speech (half of it at a fully open jaw)

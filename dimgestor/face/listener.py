@@ -11,6 +11,7 @@ stream of hours costs the same per frame as its first minute.
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,44 @@ def _decoder(beam: float, pbeam: float, lw: float):
     return Decoder(config)
 
 
+class _Pool:
+    """Decoders of ended streams kept for the next ones: making one costs ~16 ms and 7 MB, which a server whose
+    clients start many short sessions pays at each. A decoder taken from here starts as a new one does: its
+    cepstral mean (which it learns as it listens) is reset (tests/test_face.py: a pooled decoder hears as a new one)."""
+
+    KEEP = 8
+
+    def __init__(self):
+        self.idle: dict[tuple, list] = {}
+        self.fresh_cmn: dict[tuple, str] = {}
+        self.lock = threading.Lock()
+
+    def take(self, key: tuple):
+        with self.lock:
+            d = self.idle.get(key, []).pop() if self.idle.get(key) else None
+        if d is None:
+            d = _decoder(*key)
+            with self.lock:
+                self.fresh_cmn.setdefault(key, d.get_cmn())
+        else:
+            d.set_cmn(self.fresh_cmn[key])
+        d.start_utt()
+        return d
+
+    def give(self, key: tuple, d) -> None:
+        try:
+            d.end_utt()
+        except RuntimeError:
+            pass  # not in an utterance
+        with self.lock:
+            idle = self.idle.setdefault(key, [])
+            if len(idle) < self.KEEP:
+                idle.append(d)
+
+
+_POOL = _Pool()
+
+
 @dataclass
 class PhoneListener:
     """Push 16 kHz audio; `ready` then holds the phone segments around each frame whose lookahead is complete."""
@@ -69,8 +108,7 @@ class PhoneListener:
         self._pending = np.zeros(self.start_sample % BLOCK, np.int16)
         if self.lookahead_s < self.context_s:
             raise ValueError(f"the face's lookahead ({self.lookahead_s} s) must cover its context ({self.context_s} s)")
-        self._decoder = _decoder(self.beam, self.pbeam, self.lw)
-        self._decoder.start_utt()
+        self._decoder = _POOL.take((self.beam, self.pbeam, self.lw))
 
     def push(self, samples: np.ndarray) -> None:
         pcm = (np.clip(np.asarray(samples, np.float32), -1, 1) * 32767).astype(np.int16)
@@ -80,12 +118,27 @@ class PhoneListener:
             self._block(pcm[s:s + BLOCK])
         self._pending = pcm[whole:]
 
-    def finish(self) -> None:
-        """Silence until every frame of the audio pushed is ready."""
-        end_s = (self.blocks_in * BLOCK + len(self._pending)) / RATE
-        frames = int(np.ceil(end_s * self.fps - 1e-9))
+    def finish(self, frames: int) -> None:
+        """The audio ended: the utterance's final best path gives every frame left up to `frames` (silence after
+        the audio's end); the decoder goes back to the pool."""
+        if self._decoder is None:
+            return
+        if len(self._pending):
+            self._decoder.process_raw(self._pending.tobytes(), False, False)
+        self._end_utterance()
+        segments = self._done
         while self.next_frame < frames:
-            self.push(np.zeros(BLOCK, np.float32))
+            t = self.next_frame / self.fps
+            self.ready.append((self.next_frame, [s for s in segments if s.end > t - self.context_s
+                                                 and s.start < t + self.context_s]))
+            self.next_frame += 1
+        self.close()
+
+    def close(self) -> None:
+        """Done listening: the decoder goes back to the pool (idempotent)."""
+        if self._decoder is not None:
+            _POOL.give((self.beam, self.pbeam, self.lw), self._decoder)
+            self._decoder = None
 
     def _block(self, pcm: np.ndarray) -> None:
         self._decoder.process_raw(pcm.tobytes(), False, False)
@@ -117,11 +170,13 @@ class PhoneListener:
         paused = tail and all(s.phone == "SIL" for s in tail) and tail[0].start <= now - self.pause_s
         if not (paused or length >= self.max_utterance_s):
             return
+        self._end_utterance(keep_from=now - self.lookahead_s - 2 * self.context_s)
+        self._utt_start = self.blocks_in
+        self._decoder.start_utt()
+
+    def _end_utterance(self, keep_from: float = -np.inf) -> None:
         self._decoder.end_utt()
         offset = self._utt_start * BLOCK / RATE
         final = [Segment(canonical_phone(s.word), offset + s.start_frame / 100, offset + (s.end_frame + 1) / 100)
                  for s in (self._decoder.seg() or ())]
-        keep_from = now - self.lookahead_s - 2 * self.context_s
         self._done = [s for s in self._done + final if s.end > keep_from]
-        self._utt_start = self.blocks_in
-        self._decoder.start_utt()

@@ -87,11 +87,16 @@ class FaceStream:
         self._audio_end += len(piece)
 
     def finish(self) -> None:
-        """The audio ended: silence after it until every frame of it is made."""
+        """The audio ended: every frame up to its end plus the lookahead is made, silence after it."""
         pad = int(np.ceil((self.lookahead_s + 0.05) * RATE))
-        self.push(np.zeros(pad, np.float32))
-        self.listener.finish()
+        frames = int(np.ceil((self._audio_end + pad) / RATE * self.fps - 1e-9))
+        self._hold(np.zeros(pad, np.float32))  # (heard as silence by loudness and pitch; the listener has ended)
+        self.listener.finish(frames)
         self._make()
+
+    def close(self) -> None:
+        """Done: the listener's decoder is given back for another stream."""
+        self.listener.close()
 
     def take(self, n: int) -> np.ndarray:
         if n > len(self._rows):
@@ -127,11 +132,9 @@ class FaceStream:
         weights = 0.0
         for u in np.linspace(t - o.blend_s, t + o.blend_s, 9):
             k = 1 - abs(u - t) / o.blend_s + 1e-3
-            for s in segments:
-                if s.start <= u < s.end:
-                    out += k * phone_targets(s.phone)
-                    weights += k
-                    break
+            phone = next((s.phone for s in segments if s.start <= u < s.end), "SIL")  # nothing heard: silence
+            out += k * phone_targets(phone)
+            weights += k
         if weights:
             out /= weights
         now = next((s.phone for s in segments if s.start <= t < s.end), "SIL")
