@@ -85,3 +85,29 @@ def test_a_decoder_back_from_an_ended_stream_hears_as_a_new_one():
     again = stream_face(SPEECH[:SAMPLE_RATE * 2], [3200])  # pooled again
     assert sum(len(v) for v in _POOL.idle.values()) == 1 and len(other)
     np.testing.assert_array_equal(again, first)
+
+
+def test_a_sessions_frames_carry_the_same_face_whatever_the_chunks_and_none_without_one(bundle):
+    """Through `Session` (what the server, pipecat and the recorder run): the face in each frame's channel is the
+    same for awkward chunkings as for the whole recording, ends with the body's last frame, and a session made
+    without a face carries none."""
+    from streamer.sessions import Session
+
+    audio = SPEECH[: 3 * SAMPLE_RATE]
+
+    def faces(sizes, face=FaceOptions()):
+        s, frames, at, k = Session.from_bundle(bundle, face=face), [], 0, 0
+        while at < len(audio):
+            frames += s.infer(audio[at:at + sizes[k % len(sizes)]])
+            at, k = at + sizes[k % len(sizes)], k + 1
+        frames += s.infer_finish()
+        return frames
+
+    whole = faces([len(audio)])
+    table = np.array([f.channels["face"] for f in whole])
+    assert table.shape == (len(whole), len(FACE_LABELS)) and table[:, V["jawOpen"]].max() > 0.5
+    for sizes in ([1, 1599, 3333], [800 * 3 + 7]):
+        pieces = faces(sizes)
+        assert [f.index for f in pieces] == [f.index for f in whole]
+        np.testing.assert_array_equal(np.array([f.channels["face"] for f in pieces]), table, err_msg=str(sizes))
+    assert all("face" not in f.channels for f in faces([4000], face=None))
