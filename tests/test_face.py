@@ -80,9 +80,10 @@ def test_a_decoder_back_from_an_ended_stream_hears_as_a_new_one():
     from dimgestor.face.listener import _POOL
 
     _POOL.idle.clear()
-    first = stream_face(SPEECH[:SAMPLE_RATE * 2], [3200])  # a new decoder, given back at the end
-    other = stream_face(SPEECH[SAMPLE_RATE * 2:], [3200])  # the pooled one, after other speech
-    again = stream_face(SPEECH[:SAMPLE_RATE * 2], [3200])  # pooled again
+    noisy = SPEECH[::-1] * 0.3 + np.random.default_rng(0).normal(0, 0.02, len(SPEECH)).astype(np.float32)
+    first = stream_face(SPEECH, [3200])  # a new decoder, given back at the end
+    other = stream_face(noisy, [3200])   # the pooled one, after other sounds (its cepstral mean and noise move)
+    again = stream_face(SPEECH, [3200])  # pooled again
     assert sum(len(v) for v in _POOL.idle.values()) == 1 and len(other)
     np.testing.assert_array_equal(again, first)
 

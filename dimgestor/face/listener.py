@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import threading
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,7 +47,8 @@ def _decoder(beam: float, pbeam: float, lw: float):
 class _Pool:
     """Decoders of ended streams kept for the next ones: making one costs ~16 ms and 7 MB, which a server whose
     clients start many short sessions pays at each. A decoder taken from here starts as a new one does: its
-    cepstral mean (which it learns as it listens) is reset (tests/test_face.py: a pooled decoder hears as a new one)."""
+    cepstral mean and noise statistics (which it learns as it listens) are reset: it hears as a new one
+    (tests/test_face.py)."""
 
     KEEP = 8
 
@@ -64,6 +66,9 @@ class _Pool:
                 self.fresh_cmn.setdefault(key, d.get_cmn())
         else:
             d.set_cmn(self.fresh_cmn[key])
+            with warnings.catch_warnings():  # (pocketsphinx 5 calls it unnecessary, yet without it the noise
+                warnings.simplefilter("ignore", DeprecationWarning)  # statistics of the last stream carry over)
+                d.start_stream()
         d.start_utt()
         return d
 
