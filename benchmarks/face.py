@@ -6,6 +6,7 @@ mouth    the two phone-aligned takes (`../shared/data/phone_aligned_speech`: BEA
          lips closed at M/B/P centres, rest in silences). Systems:
            face            the shipped `FaceStream` at 20 fps, lookahead 0.3 s
            face_la0.35     asked for 0.35 s (the default model's lookahead): capped to 0.3, the same frames
+           face_la0.15     the live model's lookahead (0.15 s): what a face made with it gets
            loudness_jaw    a jaw from loudness alone (40 ms RMS against the recent peak, as the face scales its
                            mouth; no vowels): the best of a small grid of its range and power, per take
            no_loudness     the pocketsphinx listener and mapping without the loudness scale (loud_range_db 1e6:
@@ -119,6 +120,8 @@ def mouth(takes: dict, args) -> dict:
         capped, stream35 = stream_face(audio, 20, 0.35, FaceOptions(), chunk)
         r["face_la0.35"] = {**mouth_scores(capped, phones, 20), "lookahead_used_s": stream35.lookahead_s,
                             "same_frames_as_0.3": bool(np.array_equal(capped, face))}
+        live, stream15 = stream_face(audio, 20, 0.15, FaceOptions(), chunk)  # the live model's lookahead
+        r["face_la0.15"] = {**mouth_scores(live, phones, 20), "lookahead_used_s": stream15.lookahead_s}
         grid = {f"{rng:g}dB^{pw:g}": mouth_scores(loudness_jaw(audio, 20, 0.3, rng, pw), phones, 20)
                 for rng in (20, 30, 40) for pw in (0.5, 1.0)}
         best = max(grid, key=lambda k: grid[k]["openness_r"])
