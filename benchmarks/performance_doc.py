@@ -31,8 +31,9 @@ SOURCES = {
     "vmc_jitter": "latency_vmc_jitter50.json",  # the same with --vmc-jitter-ms 50
     "talk": "latency_talk_worker.json",  # the viewer's Talk button (the newest run of each avatar)
     "gpu": "onnx_cuda.json",  # many streams on one GPU
+    "face": "face.json",  # a Session window with and without the face
 }
-CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")
+CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk", "face")
 
 
 class ResultsError(ValueError):
@@ -213,6 +214,20 @@ def gpu(r: dict[str, dict]) -> list[str]:
             *table(["streams B", "torch CUDA ms a round", "ONNX Runtime CUDA ms a round"], rows), "", source("gpu"), ""]
 
 
+def face(r: dict[str, dict]) -> list[str]:
+    c = r["face"]["compute"]
+    rows = [["body", ms(c["body"]["ms_p50"]), ms(c["body"]["cpu_ms_mean"])],
+            ["body and face", ms(c["body_face"]["ms_p50"]), ms(c["body_face"]["cpu_ms_mean"])]]
+    return ["## The face's cost", "",
+            "The face's phone listener runs on each stream that has a face (the server's own source, and the clients "
+            f"that ask for one), beside the model: one `Session` window of the embedded default model, K = {c['steps']}, "
+            f"{c['window_ms']} ms windows, one thread. Streams without a face (`--face none`, or clients that do not "
+            "ask) cost what the streams-per-process counts above say; each stream with one costs the difference "
+            f"more (+{100 * c['added_cpu']:.0f} % CPU on this model), and the listener is not batched across "
+            "streams.", "",
+            *table(["", "ms a window (median)", "CPU ms a window (mean)"], rows), "", source("face"), ""]
+
+
 def render(results: Path = RESULTS) -> str:
     r = load(results)
     head = ["# Performance", "",
@@ -223,7 +238,7 @@ def render(results: Path = RESULTS) -> str:
             "[benchmarks/README.md](../benchmarks/README.md). "
             "After a benchmark is re-run, `python benchmarks/performance_doc.py` rewrites this page "
             "(`--check` says whether it is current).", ""]
-    body = one_stream(r) + streams(r) + model_cost(r) + presets(r) + latency(r) + gpu(r)
+    body = one_stream(r) + streams(r) + model_cost(r) + face(r) + presets(r) + latency(r) + gpu(r)
     return "\n".join(head + body).rstrip("\n") + "\n"
 
 
