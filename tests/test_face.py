@@ -112,3 +112,18 @@ def test_a_sessions_frames_carry_the_same_face_whatever_the_chunks_and_none_with
         assert [f.index for f in pieces] == [f.index for f in whole]
         np.testing.assert_array_equal(np.array([f.channels["face"] for f in pieces]), table, err_msg=str(sizes))
     assert all("face" not in f.channels for f in faces([4000], face=None))
+
+
+def test_brows_rise_on_a_vowel_at_the_voices_peak_more_with_a_pitch_rise_and_settle():
+    from dimgestor.face.life import Brows
+
+    b = Brows(fps=20)
+    for _ in range(40):  # two seconds of voice at 0 semitones, quiet vowels: no raise
+        assert b.step(0.0, -8.0, True) == 0.0
+    plain = b.step(0.0, 0.0, True)  # a vowel at the peak, pitch as before
+    assert 0.3 < plain < 0.4
+    assert b.step(None, 0.0, False) < plain  # settling (a consonant raises nothing)
+    rise = Brows(fps=20, recent=[0.0] * 40).step(4.0, 0.0, True)  # the same vowel, 4 semitones up
+    assert rise > plain and rise <= 0.6
+    settle = [b.step(None, -20.0, False) for _ in range(30)]
+    assert all(x > y for x, y in zip(settle, settle[1:])) and settle[-1] < 0.01

@@ -93,23 +93,31 @@ def pitch_semitones(x: np.ndarray, rate: int = 16000, fmin: float = 70.0, fmax: 
 
 @dataclass
 class Brows:
-    """Brows raised on pitch-accented syllables: a voiced frame more than `rise` semitones above the speaker's
-    recent median pitch raises them, and they settle over `release_s`."""
+    """Brows raised on prominent syllables, as speakers raise them on the words they stress: a vowel within a few
+    dB of the voice's recent peak (stressed syllables are louder: on real speech loudness tells a stressed vowel
+    from an unstressed one better than pitch does), more when its pitch also rises above the speaker's recent
+    median; they settle over `release_s`."""
 
     fps: int = 20
-    rise: float = 1.5
+    loud_db: tuple[float, float] = (-2.0, 0.0)  # below the recent peak: no raise at the first, full at the second
+    rise: float = 1.0
     span: float = 3.0
-    release_s: float = 0.35
+    release_s: float = 0.3
     gain: float = 0.6
     level: float = 0.0
     recent: list = field(default_factory=list)  # voiced pitches of the last 5 s (semitones)
 
-    def step(self, semitones: float | None, loud: float) -> float:
+    def step(self, semitones: float | None, below_peak_db: float, vowel: bool) -> float:
         accent = 0.0
         if semitones is not None:
             self.recent.append(semitones)
             del self.recent[: max(0, len(self.recent) - int(5 * self.fps))]
-            if len(self.recent) >= self.fps:  # a second of voice before judging what is high for this speaker
-                accent = float(np.clip((semitones - np.median(self.recent) - self.rise) / self.span, 0, 1)) * loud
+        if vowel:
+            lo, hi = self.loud_db
+            accent = float(np.clip((below_peak_db - lo) / (hi - lo), 0, 1))
+            if semitones is not None and len(self.recent) >= self.fps:  # a second of voice to know what is high
+                accent *= 0.6 + 0.4 * float(np.clip((semitones - np.median(self.recent) - self.rise) / self.span, 0, 1))
+            else:
+                accent *= 0.6
         self.level = max(accent, self.level * float(np.exp(-1.0 / (self.fps * self.release_s))))
         return self.gain * self.level

@@ -20,7 +20,7 @@ import numpy as np
 
 from dimgestor.face.life import Blinks, Brows, pitch_semitones
 from dimgestor.face.listener import BLOCK, PhoneListener, Segment
-from dimgestor.face.visemes import FACE_LABELS, V, phone_targets
+from dimgestor.face.visemes import FACE_LABELS, V, VOWEL_CLASS, phone_targets
 
 __all__ = ["FaceStream", "FaceOptions", "MAX_LOOKAHEAD_S"]
 
@@ -155,6 +155,6 @@ class FaceStream:
         self._speech_run = self._speech_run + 1 / self.fps if speaking else 0.0
         out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(t, phrase_end)
         semitones = pitch_semitones(self._window(t, 0.02)) if speaking else None
-        out[V["browUp"]] = self.brows.step(semitones, level)
+        out[V["browUp"]] = self.brows.step(semitones, self._db(index) - peak, now in VOWEL_CLASS or now == "ER")
         out[V["smile"]] = self.smile * (1 - 0.5 * out[V["jawOpen"]])
         return out
