@@ -118,10 +118,18 @@ class PhoneListener:
     def push(self, samples: np.ndarray) -> None:
         pcm = (np.clip(np.asarray(samples, np.float32), -1, 1) * 32767).astype(np.int16)
         pcm = np.concatenate([self._pending, pcm])
-        whole = len(pcm) // BLOCK * BLOCK
-        for s in range(0, whole, BLOCK):
-            self._block(pcm[s:s + BLOCK])
+        whole, at = len(pcm) // BLOCK * BLOCK, 0
+        while at < whole:  # the blocks up to the one that completes the next frame, in one call
+            n = min(whole - at, max(1, self._due_block() - self.blocks_in) * BLOCK)
+            self._decoder.process_raw(pcm[at:at + n].tobytes(), False, False)
+            self.blocks_in += n // BLOCK
+            at += n
+            self._frames_due()
         self._pending = pcm[whole:]
+
+    def _due_block(self) -> int:
+        """The block count at which the next frame's lookahead is complete."""
+        return int(np.ceil((self.next_frame / self.fps + self.lookahead_s) * RATE / BLOCK - 1e-6))
 
     def finish(self, frames: int) -> None:
         """The audio ended: the utterance's final best path gives every frame left up to `frames` (silence after
@@ -145,9 +153,7 @@ class PhoneListener:
             _POOL.give((self.beam, self.pbeam, self.lw), self._decoder)
             self._decoder = None
 
-    def _block(self, pcm: np.ndarray) -> None:
-        self._decoder.process_raw(pcm.tobytes(), False, False)
-        self.blocks_in += 1
+    def _frames_due(self) -> None:
         now = self.blocks_in * BLOCK / RATE
         if (self.next_frame / self.fps) + self.lookahead_s > now + 1e-9:
             return  # no frame completes in this block: the best path is read only when one does (it is costly)

@@ -67,16 +67,21 @@ class FaceStream:
         return len(self._rows)
 
     def push(self, samples: np.ndarray) -> None:
-        """In the listener's 10 ms blocks on the stream's clock, each frame made as soon as its block is in: what
-        a frame reads is the same whatever pieces the audio came in."""
+        """Each frame made as soon as the listener's 10 ms block that completes its lookahead is in (pieces cut at
+        those blocks on the stream's clock): what a frame reads is the same whatever pieces the audio came in."""
         samples = np.asarray(samples, np.float32).reshape(-1)
         at = 0
         while at < len(samples):
-            piece = samples[at:at + BLOCK - self._audio_end % BLOCK]
+            piece = samples[at:at + max(1, self._due() - self._audio_end)]
             self._hold(piece)
             self.listener.push(piece)
             self._make()
             at += len(piece)
+
+    def _due(self) -> int:
+        """The sample (stream clock) after the block in which the next frame's lookahead completes."""
+        need = (self.listener.next_frame / self.fps + self.lookahead_s) * RATE
+        return int(np.ceil(need / BLOCK - 1e-6)) * BLOCK
 
     def _hold(self, piece: np.ndarray) -> None:
         if self._held + len(piece) > len(self._buf):
