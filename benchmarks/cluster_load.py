@@ -172,8 +172,8 @@ async def simulate(args, cluster: Cluster, clips, rng: random.Random) -> tuple[l
 
     resume_session = client.resume_session
 
-    async def timed_resume(ws, goaway, *a):
-        sample = await resume_session(ws, goaway, *a)
+    async def timed_resume(ws, goaway, *a, **kw):
+        sample = await resume_session(ws, goaway, *a, **kw)
         sessions[tokens[goaway["resume_token"]]]["resumed"].append(time.monotonic() - t0)
         return sample
 

@@ -233,8 +233,8 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
 
     resume_session = client.resume_session
 
-    async def timed_resume(ws, goaway, *args):
-        sample = await resume_session(ws, goaway, *args)
+    async def timed_resume(ws, goaway, *args, **kw):
+        sample = await resume_session(ws, goaway, *args, **kw)
         resumed_in.append(time.monotonic() - goaway_at[goaway["resume_token"]])
         return sample
 

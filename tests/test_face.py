@@ -77,14 +77,14 @@ def stream_face_at(fps, audio):
 def test_a_decoder_back_from_an_ended_stream_hears_as_a_new_one():
     """Decoders are pooled across streams (a server's short sessions would each pay for a new one): one that has
     listened to other speech makes exactly the frames a new one makes."""
-    from dimgestor.face.listener import _POOL
+    from dimgestor.face.listener import DECODERS
 
-    _POOL.idle.clear()
+    DECODERS.idle.clear()
     noisy = SPEECH[::-1] * 0.3 + np.random.default_rng(0).normal(0, 0.02, len(SPEECH)).astype(np.float32)
     first = stream_face(SPEECH, [3200])  # a new decoder, given back at the end
     other = stream_face(noisy, [3200])   # the pooled one, after other sounds (its cepstral mean and noise move)
     again = stream_face(SPEECH, [3200])  # pooled again
-    assert sum(len(v) for v in _POOL.idle.values()) == 1 and len(other)
+    assert sum(len(v) for v in DECODERS.idle.values()) == 1 and len(other)
     np.testing.assert_array_equal(again, first)
 
 

@@ -44,7 +44,7 @@ def _decoder(beam: float, pbeam: float, lw: float):
     return Decoder(config)
 
 
-class _Pool:
+class DecoderPool:
     """Decoders of ended streams kept for the next ones: making one costs ~16 ms and 7 MB, which a server whose
     clients start many short sessions pays at each. A decoder taken from here starts as a new one does: its
     cepstral mean and noise statistics (which it learns as it listens) are reset: it hears as a new one
@@ -83,7 +83,7 @@ class _Pool:
                 idle.append(d)
 
 
-_POOL = _Pool()
+DECODERS = DecoderPool()
 
 
 @dataclass
@@ -113,7 +113,7 @@ class PhoneListener:
         self._pending = np.zeros(self.start_sample % BLOCK, np.int16)
         if self.lookahead_s < self.context_s:
             raise ValueError(f"the face's lookahead ({self.lookahead_s} s) must cover its context ({self.context_s} s)")
-        self._decoder = _POOL.take((self.beam, self.pbeam, self.lw))
+        self._decoder = DECODERS.take((self.beam, self.pbeam, self.lw))
 
     def push(self, samples: np.ndarray) -> None:
         pcm = (np.clip(np.asarray(samples, np.float32), -1, 1) * 32767).astype(np.int16)
@@ -150,7 +150,7 @@ class PhoneListener:
     def close(self) -> None:
         """Done listening: the decoder goes back to the pool (idempotent)."""
         if self._decoder is not None:
-            _POOL.give((self.beam, self.pbeam, self.lw), self._decoder)
+            DECODERS.give((self.beam, self.pbeam, self.lw), self._decoder)
             self._decoder = None
 
     def _frames_due(self) -> None:
