@@ -40,6 +40,7 @@ def test_speech_opens_the_mouth_and_silence_rests_it():
     speaking, after = jaw[25:75], jaw[int(4.3 * 20):int(6 * 20)]
     assert speaking.max() > 0.6 and np.mean(speaking > 0.2) > 0.4, np.round(speaking, 2)
     assert np.all(jaw[:15] == 0) and np.all(after == 0), (np.round(jaw[:15], 2), np.round(after, 2))
+    assert np.all(face[int(4.3 * 20):int(6 * 20), V["sil"]] == 1)  # the rest viseme in the pause after speech
     vowels = face[25:75][:, [V[v] for v in ("aa", "I", "U", "E", "O")]]
     assert len({int(np.argmax(r)) for r in vowels if r.max() > 0.2}) >= 3, "the vowels take several shapes"
 

@@ -152,6 +152,7 @@ class FaceStream:
         level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
         out[_MOUTH] *= level
         out[V["PP"]] = max(out[V["PP"]], 1.0 if now in _CLOSED else 0.0)
+        out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
         for old in [k for k in self._loud if k < index - int(o.peak_s * self.fps)]:
             del self._loud[old]
         # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
