@@ -38,6 +38,16 @@ LOOKBACK_S = 1.0
 FPS = 20
 
 
+class KeptFrames:
+    """A sink that keeps what it is sent (GestureProcessor's sinks: `send(frames)`)."""
+
+    def __init__(self):
+        self.frames = []
+
+    def send(self, frames):
+        self.frames += frames
+
+
 @pytest.fixture(scope="module")
 def bundle():
     from dimgestor.checkpoint import load_checkpoint
@@ -348,17 +358,10 @@ def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_cloc
     from streamer import pipecat as sp
     from streamer.frames import Frame
 
-    class Keep:
-        def __init__(self):
-            self.frames = []
-
-        def send(self, frames):
-            self.frames += frames
-
     clock = SimpleNamespace(monotonic=lambda: 0.0)
     monkeypatch.setattr(sp, "time", clock)
     heard = []
-    sink = Keep()
+    sink = KeptFrames()
     g = sp.GestureProcessor([sink], bundle=bundle, on_audio=lambda pts, y: heard.append((pts, len(y))))
     g.origin, g._observed = 0.0, True
     g._release_rest(0.0)
@@ -385,16 +388,9 @@ def test_between_utterances_the_face_rests_and_blinks(bundle, monkeypatch):
     from dimgestor.face.visemes import V
     from streamer import pipecat as sp
 
-    class Keep:
-        def __init__(self):
-            self.frames = []
-
-        def send(self, frames):
-            self.frames += frames
-
     clock = SimpleNamespace(monotonic=lambda: 0.0)
     monkeypatch.setattr(sp, "time", clock)
-    sink = Keep()
+    sink = KeptFrames()
     g = sp.GestureProcessor([sink], bundle=bundle, face=FaceOptions(smile=0.4))
     g.origin = 0.0
     for k in range(30 * FPS):
@@ -406,7 +402,7 @@ def test_between_utterances_the_face_rests_and_blinks(bundle, monkeypatch):
     assert 4 <= len(onsets) <= 14, f"{len(onsets)} blinks in 30 s"
     assert len(set(np.round(np.diff(onsets), 2))) > len(onsets) // 2, "metronomic blinks"
 
-    bare = sp.GestureProcessor([Keep()], bundle=bundle, face=None)
+    bare = sp.GestureProcessor([KeptFrames()], bundle=bundle, face=None)
     bare.origin = 0.0
     bare._release_rest(0.0)
     assert bare.sinks[0].frames[0].channels == {}
