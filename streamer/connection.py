@@ -13,7 +13,7 @@ import time
 from collections import deque
 from concurrent.futures import Executor
 from dataclasses import dataclass
-from typing import Callable
+from typing import Awaitable, Callable
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection
@@ -38,6 +38,7 @@ class Services:
     metrics: ServerMetrics
     make_session: Callable[[], Session] | None
     store: object | None  # a `streamer.handover` store
+    store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method, off this thread
     max_backlog_s: float
     audio_recent: deque[bytes]  # the server source's recent audio (for a client that asks for it late)
     departures: ErrorLog
@@ -178,7 +179,7 @@ class Client(Outbox):
             elif isinstance(a, S.SaveState):
                 self._save(a)
             elif isinstance(a, S.Forget):
-                asyncio.get_running_loop().run_in_executor(self.svc.prep, _forget, self.svc.store, a.token)
+                self._forget(a.token)
             else:
                 rest.append(a)
         return rest
@@ -196,7 +197,7 @@ class Client(Outbox):
                 await self._end_audio()
             elif isinstance(a, S.TakeState):
                 try:
-                    data = await asyncio.get_running_loop().run_in_executor(self.svc.prep, self.svc.store.take, a.token)
+                    data = await self.svc.store_call("take", a.token)
                     taken = S.Taken(data)
                 except Exception as e:
                     taken = S.Taken(None, f"{type(e).__name__}: {e}")
@@ -305,7 +306,7 @@ class Client(Outbox):
         loop = asyncio.get_running_loop()
         try:
             data, samples = await loop.run_in_executor(self.svc.prep, save)
-            await loop.run_in_executor(self.svc.prep, self.svc.store.put, token, data)
+            await self.svc.store_call("put", token, data)
         except Exception as e:  # the store is down
             self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
             return False
@@ -348,7 +349,7 @@ class Client(Outbox):
 
         async def store() -> None:
             try:
-                await loop.run_in_executor(self.svc.prep, self.svc.store.put, save.token, data)
+                await self.svc.store_call("put", save.token, data)
             except Exception as e:  # the store is down: the session goes on unsaved, said (rate-limited)
                 self.svc.departures(logging.WARNING, f"periodic save of {self.who}'s session failed "
                                                  f"({type(e).__name__}: {e})")
@@ -361,17 +362,22 @@ class Client(Outbox):
 
 
 
+    def _forget(self, token: str) -> None:
+        """An ended session's periodic save: nobody will resume it (a store that is down forgets it by its TTL)."""
+
+        async def forget() -> None:
+            try:
+                await self.svc.store_call("take", token)
+            except Exception:
+                pass
+
+        task = asyncio.get_running_loop().create_task(forget())
+        self._saving.add(task)
+        task.add_done_callback(self._saving.discard)
+
     def _resample(self, x: np.ndarray) -> np.ndarray:  # worker thread
         if self.resample_from is None:
             return x
         if self.resampler is None:
             self.resampler = make_resampler(self.resample_from)
         return self.resampler.process(x)
-
-
-def _forget(store, token: str) -> None:  # worker thread
-    """An ended session's periodic save: nobody will resume it (a store that is down forgets it by its TTL)."""
-    try:
-        store.take(token)
-    except Exception:
-        pass

@@ -235,6 +235,10 @@ class WsServer:
                 handed.add(c)
         return handed
 
+    async def _store_call(self, name: str, *args):
+        """The state store's method `name` on the worker thread (its calls block)."""
+        return await asyncio.get_running_loop().run_in_executor(self.prep, getattr(self.store, name), *args)
+
     # ---- broadcast (the server's own source) -----------------------------------------------------
 
     def send(self, frames: list[Frame]) -> None:
@@ -290,8 +294,8 @@ class WsServer:
         self.seats.offers_source_audio = "source_audio" in self.hello
         self.seats.face = self.hello["face"]["names"] if "face" in self.hello else None
         self.seats.joints = len(self.hello["skeleton"]["joints"])
-        svc = Services(self.prep, self.metrics, self.make_session, self.store, self.max_backlog_s, self.audio_recent,
-                       self.departures, self._trim_later)
+        svc = Services(self.prep, self.metrics, self.make_session, self.store, self._store_call, self.max_backlog_s,
+                       self.audio_recent, self.departures, self._trim_later)
         client = Client(ws, S.ClientSession(self.seats, new_token), S.Keepalive(
             self.ping_interval or 0.0, self.ping_timeout, time.monotonic()), svc, self.max_queue, self.totals)
         self.clients.add(client)

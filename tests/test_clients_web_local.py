@@ -209,11 +209,14 @@ def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_serve
                 "busy: window.dimgestorLocal.runMs / 1000, "
                 "shown: window.dimgestor.shownFrame && window.dimgestor.shownFrame.index})")
         a = browser.eval(read)
-        poses = []
+        poses, backlogs = [], [a["backlog"]]
         for _ in range(8):
             time.sleep(0.5)
-            poses.append(browser.eval("window.dimgestor.jointWorldPositions()"))
+            r = browser.eval("({p: window.dimgestor.jointWorldPositions(), backlog: window.dimgestorLocal.backlogS})")
+            poses.append(r["p"])
+            backlogs.append(r["backlog"])
         b = browser.eval(read)
+        backlogs.append(b["backlog"])
         hud = browser.eval("({state: document.getElementById('state').textContent, "
                            "url: document.getElementById('url').textContent, "
                            "rtf: document.getElementById('rtf').textContent})")
@@ -235,9 +238,12 @@ def test_local_fake_microphone_moves_the_avatar_in_real_time(tmp_path, web_serve
     # includes any time the CPU was taken away), or the page's main thread (which answers the worker) so late
     # that our 8 reads of half a second between sleeps took over 30% longer than the sleeps. A starved page falls
     # behind by design (bounded, counted): then only the bookkeeping above is checked.
+    # One read is a snapshot: the worker's answers reach the page on its main thread, which also draws, so a read
+    # taken while answers queue behind a slow draw sees them as backlog (CI saw 0.5 s at the last read with the
+    # worker busy 10% of the time). Falling behind is a backlog that stays: the smallest of the last four reads.
     busy, stalled = b["busy"] - a["busy"], wall - 8 * 0.5
     if busy < 0.7 * wall and stalled < 0.3 * wall:
-        assert b["backlog"] < a["backlog"] + 0.5 and b["dropped"] == a["dropped"], (busy, a, b)
+        assert min(backlogs[-4:]) < a["backlog"] + 0.5 and b["dropped"] == a["dropped"], (busy, backlogs, a, b)
     else:
         print(f"starved: the worker busy {busy:.1f} s, reads {stalled:.1f} s late, of {wall:.1f} s: keeping up "
               "not checked")
