@@ -232,6 +232,9 @@ def _operations_flags(g) -> dict[str, argparse.Action]:
               help="also save each session to the state store every S seconds of its audio (between two windows; "
                    "the client is told with session_saved): after a crash (SIGKILL, a lost machine) the client "
                    "resumes from the last save, exactly. Needs --state-store"),
+        _flag(g, "--state-max-bytes", type=int, metavar="N",
+              help="the largest session state the store takes: a larger one is not saved (counted in /metrics; "
+                   "the default model's is ~1.2 MB)"),
         _flag(g, "--status-every", type=float, metavar="S", help="seconds between status lines on stderr (0 = none)"),
         _flag(g, "--max-seconds", type=float, metavar="S",
               help="stop (cleanly, as on Ctrl-C) after S seconds of running (default: run until stopped)"),

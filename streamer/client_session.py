@@ -111,9 +111,11 @@ class HandedOver:
 
 @dataclass(frozen=True)
 class Taken:
-    """`TakeState` done: the saved state (None: unknown or expired token); `error`: the store failed."""
+    """`TakeState` done: the saved state (None: unknown, expired or used token); `error`: the store failed;
+    `live_s`: refused, the token's session is live on a connection (its lease runs this many seconds more)."""
     data: bytes | None
     error: str | None = None
+    live_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -252,7 +254,14 @@ class SaveState:
 
 @dataclass(frozen=True)
 class Forget:
-    """The session ended: remove its periodic save from the store (nobody will resume it)."""
+    """The session ended (or was handed over under another token): remove its periodic save from the store and
+    consume its token (nobody will resume it)."""
+    token: str
+
+
+@dataclass(frozen=True)
+class Release:
+    """The connection is gone: its session's periodic-save token is no longer live (it may be resumed now)."""
     token: str
 
 
@@ -281,7 +290,7 @@ class Log:
 
 
 Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, StartSession, Feed,
-               EndAudio, SetSmile, StopSession, SaveState, Forget, TakeState, Count, Refused, Log]
+               EndAudio, SetSmile, StopSession, SaveState, Forget, Release, TakeState, Count, Refused, Log]
 
 
 # ---- the server's side ----------------------------------------------------------------------------------
@@ -326,7 +335,7 @@ class ClientSession:
     refused: bool = False       # its current audio was refused a session (counted once)
     handing_over: bool = False  # its session is being saved for hand-over (its audio is ignored meanwhile)
     gone: bool = False
-    save_token: str | None = None  # its session's periodic saves go under this token
+    save_token: str | None = None  # its session's periodic saves go under this token (live: its lease is held)
     saved_audio_s: float = 0.0     # the audio its last periodic save covers
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
     smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
@@ -504,6 +513,7 @@ class ClientSession:
         self.after_session.clear()
         if self.save_token is not None and not e.cancelled and not e.handed_over and not self.seats.closing:
             out.append(Forget(self.save_token))  # its periodic save will not be resumed (else the TTL drops it)
+            self.save_token = None
         self.phase = Phase.IDLE
         self.seats.taken -= 1
         return out
@@ -511,11 +521,15 @@ class ClientSession:
     def _on_Left(self, e: Left) -> list[Action]:
         self.gone = True
         self.after_session.clear()
-        if not self.running:
-            return []
-        self.phase = Phase.IDLE
-        self.seats.taken -= 1
-        return [StopSession()]
+        out: list[Action] = []
+        if self.running:
+            self.phase = Phase.IDLE
+            self.seats.taken -= 1
+            out.append(StopSession())
+        if self.save_token is not None:  # a lost connection: its last periodic save may be resumed now
+            out.append(Release(self.save_token))
+            self.save_token = None
+        return out
 
     # ---- saves, hand-over, resume ----
 
@@ -539,7 +553,12 @@ class ClientSession:
         return self._end_audio(handover=True) if self.phase is Phase.STREAMING else []
 
     def _on_HandedOver(self, e: HandedOver) -> list[Action]:
-        return [Send(P.goaway(e.token, e.samples, self.frames, self.audio.rate)), Count("sessions_handed_over")]
+        out: list[Action] = [Send(P.goaway(e.token, e.samples, self.frames, self.audio.rate)),
+                             Count("sessions_handed_over")]
+        if self.save_token is not None:  # the goaway's token goes on from later: the periodic save must not fork it
+            out.append(Forget(self.save_token))
+            self.save_token = None
+        return out
 
     def _resume(self, token: str) -> list[Action]:
         """resume_session: the state saved under `token` (by any worker) becomes this client's session."""
@@ -558,8 +577,12 @@ class ClientSession:
     def _on_Taken(self, e: Taken) -> list[Action]:
         if e.error is not None:
             raise P.ProtocolError("resume_failed", f"the state store failed: {e.error}")
+        if e.live_s is not None:  # a periodic-save token is for a lost connection only: its owner still talks
+            return [Log(logging.INFO, "session_live: resume_session refused, its session is live"),
+                    Send(P.session_live(e.live_s))]
         if e.data is None:
-            raise P.ProtocolError("resume_failed", "unknown or expired resume token: start a new stream")
+            raise P.ProtocolError("resume_failed", "unknown or expired resume token (or one already used): start a "
+                                                   "new stream")
         return self._start(restore=e.data)
 
     def _on_NotRestored(self, e: NotRestored) -> list[Action]:

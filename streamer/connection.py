@@ -179,7 +179,9 @@ class Client(Outbox):
             elif isinstance(a, S.SaveState):
                 self._save(a)
             elif isinstance(a, S.Forget):
-                self._forget(a.token)
+                self._store_later("forget", a.token)
+            elif isinstance(a, S.Release):
+                self._store_later("release", a.token)
             else:
                 rest.append(a)
         return rest
@@ -196,9 +198,13 @@ class Client(Outbox):
             elif isinstance(a, S.EndAudio):
                 await self._end_audio()
             elif isinstance(a, S.TakeState):
+                from streamer.handover import SessionLive
+
                 try:
                     data = await self.svc.store_call("take", a.token)
                     taken = S.Taken(data)
+                except SessionLive as e:
+                    taken = S.Taken(None, live_s=e.retry_after_s)
                 except Exception as e:
                     taken = S.Taken(None, f"{type(e).__name__}: {e}")
                 rest += await self.apply(self.machine.handle(taken))
@@ -306,8 +312,8 @@ class Client(Outbox):
         loop = asyncio.get_running_loop()
         try:
             data, samples = await loop.run_in_executor(self.svc.prep, save)
-            await self.svc.store_call("put", token, data)
-        except Exception as e:  # the store is down
+            await self._put(token, data, live=False)  # (a fresh token: no lease, resumable at once)
+        except Exception as e:  # the store is down, or refused it (too large)
             self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
             return False
         self.act(m.handle(S.HandedOver(token, samples)))
@@ -349,8 +355,8 @@ class Client(Outbox):
 
         async def store() -> None:
             try:
-                await self.svc.store_call("put", save.token, data)
-            except Exception as e:  # the store is down: the session goes on unsaved, said (rate-limited)
+                await self._put(save.token, data, live=True)
+            except Exception as e:  # the store is down or refused it: the session goes on unsaved, said (rate-limited)
                 self.svc.departures(logging.WARNING, f"periodic save of {self.who}'s session failed "
                                                  f"({type(e).__name__}: {e})")
                 return
@@ -360,18 +366,31 @@ class Client(Outbox):
         self._saving.add(task)
         task.add_done_callback(self._saving.discard)
 
+    async def _put(self, token: str, data: bytes, live: bool) -> None:
+        """A state to the store, counted (streamer/metrics.py); raises what the store raises (StateRefused: counted
+        by its reason)."""
+        from streamer.handover import StateRefused
 
+        metrics = self.svc.metrics
+        try:
+            await self.svc.store_call("put", token, data, live)
+        except StateRefused as e:
+            metrics.state_puts_refused.labels(e.reason).inc()
+            raise
+        metrics.states_put.inc()
+        metrics.state_bytes_put.inc(len(data))
 
-    def _forget(self, token: str) -> None:
-        """An ended session's periodic save: nobody will resume it (a store that is down forgets it by its TTL)."""
+    def _store_later(self, name: str, token: str) -> None:
+        """forget (an ended session's periodic save: nobody will resume it) or release (the connection is gone:
+        its last save may be resumed now); a store that is down drops them by their TTLs."""
 
-        async def forget() -> None:
+        async def call() -> None:
             try:
-                await self.svc.store_call("take", token)
+                await self.svc.store_call(name, token)
             except Exception:
                 pass
 
-        task = asyncio.get_running_loop().create_task(forget())
+        task = asyncio.get_running_loop().create_task(call())
         self._saving.add(task)
         task.add_done_callback(self._saving.discard)
 

@@ -45,6 +45,13 @@ class ServerMetrics:
         self.sessions_saved = Counter("dimgestor_sessions_saved",
                                       "Periodic saves of client sessions to the state store (--save-state-every)",
                                       registry=r)
+        self.states_put = Counter("dimgestor_states_put", "Session states written to the state store (periodic "
+                                  "saves and hand-overs)", registry=r)
+        self.state_bytes_put = Counter("dimgestor_state_bytes_put", "Bytes of session states written to the state "
+                                       "store", registry=r)
+        self.state_puts_refused = Counter(
+            "dimgestor_state_puts_refused", "Session states the store refused: too_large (over --state-max-bytes) "
+            "or spent (its token was already taken or its session ended)", ["reason"], registry=r)
         self.sessions_refused = Counter(
             "dimgestor_sessions_refused", "Client audio refused a session: busy (--max-sessions reached), "
             "draining (shutting down) or audio_disabled (--no-client-audio)", ["reason"], registry=r)

@@ -14,6 +14,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from streamer.handover import DEFAULT_MAX_BYTES as DEFAULT_STATE_MAX_BYTES
+
 MAX_SESSIONS = 32  # most WebSocket clients sending their own audio at once
 PING_INTERVAL_S, PING_TIMEOUT_S = 20.0, 20.0  # the WebSocket keepalive
 
@@ -75,6 +77,7 @@ class ServeOptions(BaseModel):
     state_store: str | None = None  # "memory" or redis://...: sessions are handed over on SIGTERM (handover.py)
     state_ttl: float = Field(300.0, gt=0, le=86400)
     save_state_every: float | None = Field(None, gt=0, le=3600)  # s of audio between a session's periodic saves
+    state_max_bytes: int = Field(DEFAULT_STATE_MAX_BYTES, gt=0)  # a larger state is not saved (counted)
     # VMC (OSC over UDP)
     osc: HostPort | None = None  # --vmc HOST:PORT
     vmc_positions: Literal["hips", "all"] = "hips"

@@ -205,6 +205,14 @@ def error(code: str, message: str) -> str:
     return json.dumps({"type": "error", "code": code, "message": message})
 
 
+def session_live(retry_after_s: float) -> str:
+    """resume_session refused: the token's session is still live on a connection (a periodic-save token is for a
+    lost connection only); try again after `retry_after_s`, once the server sees that connection gone."""
+    return json.dumps({"type": "error", "code": "session_live", "retry_after_s": round(float(retry_after_s), 3),
+                       "message": "this session is live on another connection: its token resumes it only once "
+                                  "that connection is gone (try again after retry_after_s)"})
+
+
 def end(frames: int) -> str:
     return json.dumps({"type": "end", "frames": frames})
 

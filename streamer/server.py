@@ -260,7 +260,7 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     origins=options.allow_origin, also=also, max_sessions=options.max_sessions,
                     ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
                     metrics=metrics, serve_metrics=not options.no_metrics,
-                    store=open_store(options.state_store, options.state_ttl),
+                    store=open_store(options.state_store, options.state_ttl, options.state_max_bytes),
                     save_every_s=options.save_state_every)
 
 

@@ -95,6 +95,7 @@ class WsServer:
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []
         self._status_task: asyncio.Task | None = None
+        self._lease_task: asyncio.Task | None = None
         self.totals = FrameTotals()
         self.metrics = metrics if metrics is not None else ServerMetrics()
         self.serve_metrics = serve_metrics
@@ -136,6 +137,8 @@ class WsServer:
         if "*" not in self.origins:
             self.origins |= {o for host, port in self.addresses for o in own_origins(host, port)}
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
+        if self.seats.save_every_s is not None:
+            self._lease_task = asyncio.create_task(self._lease_loop(), name="ws-leases")
 
     @property
     def url(self) -> str:
@@ -203,6 +206,8 @@ class WsServer:
                              return_exceptions=True)
         if self._status_task:
             self._status_task.cancel()
+        if self._lease_task:  # (the sessions are gone: their leases run out by themselves)
+            self._lease_task.cancel()
         if self._servers:
             for server in self._servers:
                 server.close()  # closing handshakes (1001 going away), each given close_timeout
@@ -238,6 +243,22 @@ class WsServer:
     async def _store_call(self, name: str, *args):
         """The state store's method `name` on the worker thread (its calls block)."""
         return await asyncio.get_running_loop().run_in_executor(self.prep, getattr(self.store, name), *args)
+
+    async def _lease_loop(self) -> None:
+        """Renews the leases of the sessions live here, all in one store call every TOUCH_EVERY_S: their periodic-
+        save tokens resume nothing while their connections last (streamer/handover.py)."""
+        from .handover import TOUCH_EVERY_S
+
+        while True:
+            await asyncio.sleep(TOUCH_EVERY_S)
+            tokens = [c.machine.save_token for c in list(self.clients) if c.machine.save_token is not None]
+            if not tokens:
+                continue
+            try:
+                await self._store_call("touch", tokens)
+            except Exception as e:  # the store is down: the leases run out, the sessions go on
+                self.departures(logging.WARNING, f"state store: leases of {len(tokens)} sessions not renewed "
+                                                 f"({type(e).__name__}: {e})")
 
     # ---- broadcast (the server's own source) -----------------------------------------------------
 

@@ -9,7 +9,8 @@ import pytest
 from streamer import protocol as P
 from streamer.client_session import (
     Audio, Boundary, Broadcast, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames,
-    HandedOver, HandOver, Keepalive, Left, Phase, Queuing, Refused, Restored, SaveState, Saved, Seats, Send, SendFrames,
+    HandedOver, HandOver, Keepalive, Left, Phase, Queuing, Refused, Release, Restored, SaveState, Saved, Seats, Send,
+    SendFrames,
     SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
 from streamer.sessions import Session
 
@@ -154,7 +155,7 @@ def test_periodic_saves_between_windows_and_forgotten_at_the_end():
     c.handle(text(type="audio_end"))
     assert c.handle(SessionEnded(frames=12))[-1] == Forget("t0")
     assert kinds(c.handle(Saved(1, "t0", 8000, 10))) == ["session_saved"]  # (a save that lands after the end)
-    c.handle(Left())
+    assert c.handle(Left()) == []  # (its token was consumed: nothing to release)
     assert c.handle(Saved(1, "t0", 8000, 10)) == []
 
 
@@ -221,6 +222,44 @@ def test_resume_is_refused_while_a_session_runs_or_the_token_is_unknown():
     assert kinds(other.handle(text(type="resume_session", token="x"))) == ["busy"]
     seats.closing = True
     assert kinds(other.handle(text(type="resume_session", token="x"))) == ["busy"]
+
+
+def test_a_periodic_save_token_is_released_when_its_connection_goes_and_forgotten_when_handed_over():
+    """A lost connection releases its session's lease (its last save may be resumed now); a hand-over consumes
+    the periodic-save token (the goaway's state goes on from later: resuming both would fork the session)."""
+    seats = Seats(max_sessions=2, resumable=True, save_every_s=1.0)
+    lost = client(seats)
+    audio_in(lost, 160)
+    assert lost.handle(Left()) == [StopSession(), Release("t0")] and lost.save_token is None
+    assert lost.handle(Left()) == []  # (once)
+    handed = client(seats)
+    audio_in(handed, 160)
+    seats.closing = True
+    handed.handle(HandOver())
+    out = handed.handle(HandedOver("fresh", 160))
+    assert kinds(out) == ["goaway"] and out[-1] == Forget("t0") and handed.save_token is None
+    handed.handle(SessionEnded(frames=3, handed_over=True))
+    assert handed.handle(Left()) == []  # (nothing left to release)
+
+
+def test_a_session_that_stopped_sending_saves_nothing_more():
+    """Boundaries come only with audio, but one without new audio since the last save (a silent client, a
+    restored session) saves nothing: abandoned sessions do not fill the store."""
+    seats = Seats(max_sessions=1, resumable=True, save_every_s=1.0)
+    c = client(seats)
+    audio_in(c, 160)
+    assert c.handle(Boundary(1, 16000)) == [SaveState(1, "t0", 16000, 0)]
+    assert all(c.handle(Boundary(1, 16000)) == [] for _ in range(100))  # no new audio: no save
+    assert c.handle(Boundary(1, 32000)) == [SaveState(1, "t0", 32000, 0)]
+
+
+def test_a_resume_of_a_live_session_is_refused_with_when_to_try_again():
+    c = client(Seats(max_sessions=1, resumable=True, save_every_s=1.0))
+    assert c.handle(text(type="resume_session", token="x")) == [TakeState("x")]
+    refused = sent(c.handle(Taken(None, live_s=2.5)))
+    assert refused[0]["code"] == "session_live" and refused[0]["retry_after_s"] == 2.5
+    assert c.phase is Phase.IDLE  # nothing started: the client tries again later
+    assert c.handle(text(type="resume_session", token="x")) == [TakeState("x")]
 
 
 def test_keepalive_blames_only_a_client_that_does_not_read():

@@ -1,8 +1,10 @@
 """Sessions that outlive their worker (issue 22, item 3): a worker given SIGTERM saves each client session to the
 state store and sends `goaway` with a resume token; the client resumes on another worker, and the frames go on
 as in an uninterrupted run."""
+import contextlib
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -29,6 +31,109 @@ def test_a_memory_store_gives_a_state_once_and_forgets_it_after_its_ttl():
     assert open_store(None) is None and isinstance(open_store("memory"), MemoryStore)
     with pytest.raises(SystemExit, match="redis://"):
         open_store("postgres://x")
+
+
+@pytest.fixture(params=["memory", "redis"])
+def stores(request):
+    """() -> a store of each kind with a 1 s lease and a 1,000-byte cap, and `wait(s)`: time passes for it."""
+    if request.param == "memory":
+        now = [0.0]
+
+        def wait(s):
+            now[0] += s
+
+        return lambda: MemoryStore(ttl_s=60, now=lambda: now[0], lease_s=1.0, max_bytes=1000), wait
+    from streamer.handover import RedisStore
+
+    url = request.getfixturevalue("redis_url")
+    return lambda: RedisStore(url, ttl_s=60, lease_s=1.0, max_bytes=1000), time.sleep
+
+
+def _keys(store) -> list[str]:
+    return store.keys() if isinstance(store, MemoryStore) else [k.decode() for k in store.client.keys("*")]
+
+
+def test_a_token_is_a_capability_hashed_single_use_and_never_taken_while_its_session_is_live(stores):
+    """Both stores alike (streamer/handover.py): the keys name no token; a take while the session's lease holds is
+    refused with how long it runs; release (the connection went) or the lease running out (a crash) makes the
+    save resumable, once; a consumed token saves nothing more (the live owner's next save cannot revive it)."""
+    from streamer.handover import SessionLive, StateRefused, token_hash
+
+    make, wait = stores
+    store = make()
+    store.put("tok-A", b"save 1", live=True)  # a periodic save: its session is live
+    store.put("tok-B", b"handed over")  # a hand-over: a fresh token, no lease
+    listed = " ".join(_keys(store))
+    assert "tok-A" not in listed and "tok-B" not in listed and token_hash("tok-A") in listed
+    with pytest.raises(SessionLive) as live:
+        store.take("tok-A")
+    assert 0 < live.value.retry_after_s <= 1.0
+    store.touch(["tok-A"])  # its worker renews it ...
+    wait(0.3)
+    store.touch(["tok-A"])
+    wait(0.3)
+    with pytest.raises(SessionLive):  # ... past the first lease's end: still live
+        store.take("tok-A")
+    store.put("tok-A", b"save 2", live=True)  # the owner's next save: still live
+    with pytest.raises(SessionLive):
+        store.take("tok-A")
+    store.release("tok-A")  # its connection is gone
+    assert store.take("tok-A") == b"save 2"
+    assert store.take("tok-A") is None  # once
+    with pytest.raises(StateRefused) as spent:
+        store.put("tok-A", b"save 3", live=True)  # a save of the old owner that lands later: refused
+    assert spent.value.reason == "spent" and store.take("tok-A") is None
+    assert store.take("tok-B") == b"handed over" and store.take("tok-B") is None
+
+    store.put("tok-C", b"save", live=True)  # the worker crashed: nobody releases, the lease runs out
+    wait(1.1)
+    assert store.take("tok-C") == b"save"
+
+    store.put("tok-D", b"save", live=True)
+    store.forget("tok-D")  # its session ended: gone, consumed
+    with pytest.raises(StateRefused):
+        store.put("tok-D", b"late save", live=True)
+    assert store.take("tok-D") is None
+    store.touch([])  # (nothing live)
+
+
+def test_a_state_over_the_cap_is_refused(stores):
+    from streamer.handover import StateRefused
+
+    store = stores[0]()
+    store.put("small", b"x" * 1000)
+    with pytest.raises(StateRefused) as big:
+        store.put("big", b"x" * 1001)
+    assert big.value.reason == "too_large" and "1001" in str(big.value) and store.take("big") is None
+    assert store.take("small") == b"x" * 1000
+
+
+def test_the_store_url_takes_a_password_or_an_acl_user_and_never_shows_the_password(tmp_path):
+    """docs/deploy.md: set a password (or an ACL user that reaches only dimgestor's keys); the URL carries it,
+    describe() and the log never do."""
+    import redis
+
+    from streamer.handover import RedisStore
+    from streamer.redact import RedactTokens
+
+    acl = "alice on >al1ce-Pass ~dimgestor:* +@all"
+    with redis_server(tmp_path, "--requirepass", "s3cret-Pass", "--user", *acl.split()) as port:
+        try:
+            for url in (f"redis://:s3cret-Pass@127.0.0.1:{port}/0", f"redis://alice:al1ce-Pass@127.0.0.1:{port}/0"):
+                store = open_store(url, 60.0)
+                store.put(url, b"state", live=True)
+                store.release(url)
+                assert store.take(url) == b"state"
+                assert "Pass" not in store.describe() and f"127.0.0.1:{port}/0" in store.describe()
+                assert {"s3cret-Pass", "al1ce-Pass"} & RedactTokens.secrets  # masked in every log line
+            with pytest.raises(redis.AuthenticationError):
+                RedisStore(f"redis://127.0.0.1:{port}/0").put("tok", b"state")
+            with pytest.raises(redis.AuthenticationError):
+                RedisStore(f"redis://:wrong@127.0.0.1:{port}/0").put("tok", b"state")
+            with pytest.raises(redis.exceptions.NoPermissionError):  # alice reaches dimgestor's keys only
+                redis.Redis(port=port, username="alice", password="al1ce-Pass").set("other:key", b"x")
+        finally:
+            RedactTokens.secrets.clear()
 
 
 def test_resume_session_is_parsed_and_checked():
@@ -71,27 +176,33 @@ def _interrupted_client(a, b, wav, moved, signum: int, after: int, *extra: str) 
     return err
 
 
-@pytest.fixture
-def redis_url(tmp_path):
+@contextlib.contextmanager
+def redis_server(folder, *extra: str):
+    """A redis-server of its own on a free loopback port (no persistence), with `extra` settings -> its port."""
     pytest.importorskip("redis", reason="the redis client is not installed (pip install 'dimgestor[cluster]')")
     exe = shutil.which("redis-server")
     if exe is None:
         pytest.skip("redis-server is not installed (Debian: apt-get install redis-server)")
     port = free_port()
     proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                             "--dir", str(tmp_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    import redis
+                             "--dir", str(folder), *extra], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(100):
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                time.sleep(0.05)
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
-    client = redis.Redis(port=port)
-    for _ in range(100):
-        try:
-            client.ping()
-            break
-        except redis.ConnectionError:
-            time.sleep(0.05)
-    yield f"redis://127.0.0.1:{port}/0"
-    proc.terminate()
-    proc.wait(10)
+
+@pytest.fixture
+def redis_url(tmp_path):
+    with redis_server(tmp_path) as port:
+        yield f"redis://127.0.0.1:{port}/0"
 
 
 @pytest.mark.parametrize("rate", [16000, 48000])  # 48 kHz: the worker's resampler is handed over too
@@ -224,7 +335,9 @@ def test_audio_decoded_while_the_worker_starts_to_stop_does_not_start_a_new_sess
 def test_after_sigkill_a_session_resumes_from_its_last_periodic_save_exactly(tmp_path, checkpoint, redis_url):
     """Issue 22 item 4 with --save-state-every: the worker is killed (no goaway, no close frame); the client
     reconnects to another worker and resumes from the last `session_saved`, and the motion it ends with is the
-    uninterrupted run's (the frames after the save come twice, equal; --bvh keeps one per index)."""
+    uninterrupted run's (the frames after the save come twice, equal; --bvh keeps one per index). Nobody released
+    the dead worker's lease on the token: the first resume is refused (`session_live`) until it runs out (3 s),
+    and the client tries again."""
     from dimgestor.bvh import forward_kinematics, read_bvh
 
     wav = tmp_path / "speech.wav"
@@ -237,6 +350,7 @@ def test_after_sigkill_a_session_resumes_from_its_last_periodic_save_exactly(tmp
         whole = tmp_path / "whole.bvh"
         run_client("--url", b.ws_url, "--wav", str(wav), "--bvh", str(whole), "--quiet", "--fast")
     assert "resuming from the last saved state" in err and "resumed from sample" in err, err
+    assert "session_live" in err, err  # (the client came back within the lease)
     msgs, frames = _frames(moved)
     saved = [m for m in msgs if m["type"] == "session_saved"]
     gaps = np.diff([0] + [s["samples"] for s in saved])

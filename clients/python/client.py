@@ -346,14 +346,19 @@ async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate
         if msg.get("type") == "session_resumed":
             return int(msg["samples"])
         if msg.get("type") == "error":
-            raise ResumeFailed(f"{msg.get('code')}: {msg.get('message')}", retry=msg.get("code") == "busy")
+            code = msg.get("code")
+            # busy: a stopping or full worker; session_live: the server does not yet see our lost connection
+            # as gone (a crashed worker's lease runs out within seconds)
+            raise ResumeFailed(f"{code}: {msg.get('message')}", retry=code in ("busy", "session_live"),
+                               after_s=float(msg.get("retry_after_s", 0.1)) if code == "session_live" else 0.1)
     raise ResumeFailed("the connection closed before session_resumed", retry=True)
 
 
 class ResumeFailed(Exception):
-    def __init__(self, message: str, retry: bool = False):
+    def __init__(self, message: str, retry: bool = False, after_s: float = 0.1):
         super().__init__(message)
         self.retry = retry  # the token is still good: another worker (or this one, later) may resume it
+        self.after_s = min(max(after_s, 0.1), 5.0)  # ... after this long
 
 
 def open_mic(device: str | None, rate: int | None) -> tuple[int | str | None, int]:
@@ -534,9 +539,10 @@ async def run(args) -> int:
                     flow.on_resumed(start / wav[1], base / wav[1] + goaway.get("frames", 0) / printer.fps)
                     break
                 except ResumeFailed as e:
-                    if e.retry and loop.time() < deadline:
+                    if e.retry and loop.time() + e.after_s < deadline:
+                        print(f"resume refused ({e}): trying again in {e.after_s:.1f} s", file=sys.stderr)
                         await ws.close()
-                        await asyncio.sleep(0.1)
+                        await asyncio.sleep(e.after_s)
                         continue
                     start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
                     print(f"resume failed ({e}): a fresh stream from sample {start} (frame {flow.frames})",
