@@ -362,3 +362,97 @@ def test_after_sigkill_a_session_resumes_from_its_last_periodic_save_exactly(tmp
     got, want = read_bvh(bvh), read_bvh(whole)
     assert got.num_frames == want.num_frames == 8 * 20
     assert np.abs(forward_kinematics(got) - forward_kinematics(want)).max() < 1e-3  # cm (bit-exact here)
+
+
+async def _recv_until(ws, kind: str, into: list | None = None, timeout: float = 30.0) -> dict:
+    """JSON messages until one of type (or error code) `kind`; the frames met meanwhile go to `into`."""
+    import asyncio
+    import json
+
+    while True:
+        message = await asyncio.wait_for(ws.recv(), timeout)
+        if isinstance(message, bytes):
+            continue
+        msg = json.loads(message)
+        if msg["type"] == "frame" and into is not None:
+            into.append(msg)
+        if kind in (msg["type"], msg.get("code")):
+            return msg
+
+
+def test_a_save_token_never_forks_a_live_session_resumes_once_and_no_token_or_password_reaches_the_log(
+        tmp_path, checkpoint):
+    """Issue 40 item 7: B holds A's `session_saved` token while A still talks: refused (`session_live`), after
+    A's next save too; once A's connection is gone B resumes it (its frames are those of an uninterrupted run),
+    and a second resume with that token is refused. The worker ran with -v (every message logged) and a store
+    URL with an ACL user's password: its log holds neither a token nor the password (item 9)."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    from dimgestor.synthetic import synthetic_speech
+
+    speech = synthetic_speech(4.0, rate=16000, seed=5).astype("<f4")
+    hello = json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                        "audio": {"rate": 16000, "format": "float32", "channels": 1}})
+
+    async def fork(url):
+        async with connect(url) as a, connect(url) as b:
+            for ws in (a, b):
+                await _recv_until(ws, "hello")
+                await ws.send(hello)
+            await a.send(speech[:24000].tobytes())  # 1.5 s: one save
+            first = await _recv_until(a, "session_saved")
+            token = first["resume_token"]
+            await b.send(json.dumps({"type": "resume_session", "token": token}))
+            live = [await _recv_until(b, "session_live")]
+            await a.send(speech[24000:44000].tobytes())  # to 2.75 s: the next save
+            second = await _recv_until(a, "session_saved")
+            assert second["resume_token"] == token and second["samples"] > first["samples"]
+            await b.send(json.dumps({"type": "resume_session", "token": token}))
+            live.append(await _recv_until(b, "session_live"))
+        async with connect(url) as b:  # A is gone: B resumes its last save
+            await _recv_until(b, "hello")
+            await b.send(hello)
+            for _ in range(50):
+                await b.send(json.dumps({"type": "resume_session", "token": token}))
+                while (reply := json.loads(await b.recv()))["type"] not in ("session_resumed", "error"):
+                    pass
+                if reply["type"] == "session_resumed":
+                    break
+                assert reply["code"] == "session_live", reply
+                await asyncio.sleep(reply["retry_after_s"])
+            resumed, frames = reply, []
+            await b.send(speech[resumed["samples"]:].tobytes())
+            await b.send(json.dumps({"type": "audio_end"}))
+            end = await _recv_until(b, "end", frames)
+        async with connect(url) as c:  # the same token again: used
+            await _recv_until(c, "hello")
+            await c.send(hello)
+            await c.send(json.dumps({"type": "resume_session", "token": token}))
+            again = await _recv_until(c, "resume_failed")
+            whole = []
+            await c.send(speech.tobytes())
+            await c.send(json.dumps({"type": "audio_end"}))
+            await _recv_until(c, "end", whole)
+        return token, second, live, resumed, frames, end, again, whole
+
+    acl = "alice on >al1ce-Pass ~dimgestor:* +@all"
+    with redis_server(tmp_path, "--user", *acl.split()) as port:
+        store = ("--state-store", f"redis://alice:al1ce-Pass@127.0.0.1:{port}/0", "--save-state-every", "1",
+                 "--window-ms", "100", "-v")
+        with live_server(tmp_path, "ws", checkpoint, extra=store) as server:
+            token, saved, live, resumed, frames, end, again, whole = asyncio.run(fork(server.ws_url))
+            log = server.log.read_text()
+    assert all(0 < m["retry_after_s"] <= 3.0 for m in live), live
+    assert resumed == {"type": "session_resumed", "samples": saved["samples"], "rate": 16000,
+                       "frames": saved["frames"]}
+    assert [f["index"] for f in frames] == list(range(saved["frames"], len(whole))) and end["frames"] == len(whole)
+    rot = np.array([f["rotations"] for f in frames])
+    ref = np.array([f["rotations"] for f in whole[saved["frames"]:]])
+    assert np.abs(rot - ref).max() < 1e-3  # the streaming = offline tolerance
+    assert "unknown or expired" in again["message"]
+    assert "resume_session" in log and "session_saved" in log, log[-3000:]  # (-v logged the messages)
+    assert token[:8] not in log and "al1ce-Pass" not in log, [line for line in log.splitlines()
+                                                              if token[:8] in line or "al1ce-Pass" in line][:5]
