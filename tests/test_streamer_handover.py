@@ -456,3 +456,121 @@ def test_a_save_token_never_forks_a_live_session_resumes_once_and_no_token_or_pa
     assert "resume_session" in log and "session_saved" in log, log[-3000:]  # (-v logged the messages)
     assert token[:8] not in log and "al1ce-Pass" not in log, [line for line in log.splitlines()
                                                               if token[:8] in line or "al1ce-Pass" in line][:5]
+
+
+def _metric(text: str, name: str) -> float:
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name))
+
+
+def test_abandoned_sessions_keep_the_store_under_its_memory_cap_and_the_worker_serving(tmp_path, checkpoint):
+    """Issue 40 item 6: connections that each send 3 s, wait for `session_saved` and drop, in a loop (4 at a time,
+    20 s), against a worker saving every second and a Redis with maxmemory and `volatile-ttl` (as local-cluster
+    starts it): Redis stays under its cap (the saves nearest expiry, the oldest, are evicted), the worker counts
+    what it wrote and serves a new stream to its end."""
+    import asyncio
+    import json
+    import threading
+    import urllib.request
+
+    import redis
+    from websockets.asyncio.client import connect
+
+    from dimgestor.synthetic import synthetic_speech
+
+    speech = synthetic_speech(3.0, rate=16000, seed=5).astype("<f4")
+    hello = json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                        "audio": {"rate": 16000, "format": "float32", "channels": 1}})
+
+    async def abandon(url) -> None:
+        async with connect(url) as ws:
+            await _recv_until(ws, "hello")
+            await ws.send(hello)
+            await ws.send(speech.tobytes())
+            await _recv_until(ws, "session_saved")
+        # (dropped mid-stream: its last save stays in the store, resumable, until evicted or expired)
+
+    async def abandon_for(url, seconds: float) -> int:
+        loop = asyncio.get_running_loop()
+        end, count = loop.time() + seconds, 0
+
+        async def one_lane():
+            nonlocal count
+            while loop.time() < end:
+                await abandon(url)
+                count += 1
+
+        await asyncio.gather(*(one_lane() for _ in range(4)))
+        return count
+
+    async def talk(url) -> tuple[list, dict]:
+        frames = []
+        async with connect(url) as ws:
+            await _recv_until(ws, "hello")
+            await ws.send(hello)
+            await ws.send(speech.tobytes())
+            await ws.send(json.dumps({"type": "audio_end"}))
+            return frames, await _recv_until(ws, "end", frames)
+
+    with redis_server(tmp_path, "--maxmemory-policy", "volatile-ttl") as port:
+        r = redis.Redis(port=port)
+        store = ("--state-store", f"redis://127.0.0.1:{port}/0", "--save-state-every", "1", "--window-ms", "100")
+        with live_server(tmp_path, "ws", checkpoint, extra=store) as server:
+            asyncio.run(abandon(server.ws_url))
+            state = max(r.strlen(k) for k in r.keys("dimgestor:state:*"))
+            cap = int(r.info("memory")["used_memory"]) + 12 * state  # room for a dozen saves
+            r.config_set("maxmemory", cap)
+            peak, done = [0], threading.Event()
+
+            def watch():
+                while not done.wait(0.05):
+                    peak[0] = max(peak[0], int(r.info("memory")["used_memory"]))
+
+            watcher = threading.Thread(target=watch)
+            watcher.start()
+            try:
+                dropped = asyncio.run(abandon_for(server.ws_url, 20.0))
+            finally:
+                done.set()
+                watcher.join()
+            frames, end = asyncio.run(talk(server.ws_url))
+            metrics = urllib.request.urlopen(server.ws_url.replace("ws://", "http://") + "metrics").read().decode()
+        evicted = r.info("stats")["evicted_keys"]
+    print(f"state {state} B, cap {cap} B, {dropped} sessions abandoned, used_memory peak {peak[0]} B, "
+          f"{evicted} keys evicted")
+    assert dropped * state > 2 * cap and evicted > 0  # the saves alone would have filled it twice over
+    assert peak[0] <= cap + 2 * state, (peak[0], cap)  # (a write may pass the cap before Redis evicts)
+    assert len(frames) == 3 * 20 and end["frames"] == 3 * 20  # the worker still serves
+    assert _metric(metrics, "dimgestor_states_put_total") >= dropped + 1
+    assert _metric(metrics, "dimgestor_state_bytes_put_total") >= (dropped + 1) * state * 0.9
+
+
+def test_a_state_over_the_size_cap_is_not_saved_counted_and_the_session_goes_on(bundle):
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    from helpers.ws import make_server, running
+
+    speech = (0.1 * np.sin(np.arange(32000) * 0.05)).astype("<f4")
+
+    async def talk(url):
+        frames = []
+        async with connect(url) as ws:
+            await _recv_until(ws, "hello")
+            await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                                      "audio": {"rate": 16000, "format": "float32", "channels": 1}}))
+            await ws.send(speech.tobytes())
+            await ws.send(json.dumps({"type": "audio_end"}))
+            saved = []
+            while (msg := json.loads(await asyncio.wait_for(ws.recv(), 30)))["type"] != "end":
+                (frames if msg["type"] == "frame" else saved).append(msg)
+            return frames, [m for m in saved if m["type"] == "session_saved"], msg
+
+    store = MemoryStore(max_bytes=1000)
+    with running(make_server(bundle, store=store, save_every_s=0.5)) as server:
+        frames, saved, end = asyncio.run(talk(f"ws://127.0.0.1:{server.port}/"))
+        metrics = server.metrics.exposition()[0].decode()
+    assert not saved and end["frames"] == len(frames) == 2 * 20
+    assert _metric(metrics, 'dimgestor_state_puts_refused_total{reason="too_large"}') >= 2
+    assert _metric(metrics, "dimgestor_states_put_total") == 0 and not [k for k in store.keys() if ":state:" in k]
