@@ -548,3 +548,19 @@ def test_nginx_in_compose_fills_the_tested_template_with_the_worker_service():
         k for k in nginx["environment"] if k.startswith("DIMGESTOR_")}
     assert (DEPLOY / worker["build"]["context"] / worker["build"]["dockerfile"]).resolve() == DEPLOY / "Dockerfile"
     assert "OMP_NUM_THREADS=1" in worker["environment"]
+
+
+def test_the_local_cluster_store_is_capped_and_evicts_the_saves_nearest_expiry_first():
+    """Issue 40 item 6: local-cluster's redis-server runs with maxmemory (--store-maxmemory) and `volatile-ttl`,
+    so abandoned saves cannot grow it until it dies (tests/test_streamer_handover.py fills one such store)."""
+    import redis
+
+    cluster = Cluster("--workers", "1", "--store-maxmemory", "32mb", "--", *WORKER_ARGS)
+    try:
+        port = int(cluster.wait_for(r"state store: redis://127\.0\.0\.1:(\d+)/0").group(1))
+        r = redis.Redis(port=port)
+        assert r.config_get("maxmemory") == {"maxmemory": str(32 * 2**20)}
+        assert r.config_get("maxmemory-policy") == {"maxmemory-policy": "volatile-ttl"}
+        cluster.wait_for(r"^ready: ws://")
+    finally:
+        assert cluster.stop() == 0, cluster.output
