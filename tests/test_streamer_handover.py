@@ -136,6 +136,51 @@ def test_the_store_url_takes_a_password_or_an_acl_user_and_never_shows_the_passw
             RedactTokens.secrets.clear()
 
 
+def test_the_store_url_takes_tls(tmp_path):
+    """`rediss://` with the CA that signed the server's certificate (a query argument of redis-py's)."""
+    import redis
+
+    openssl, exe = shutil.which("openssl"), shutil.which("redis-server")
+    if openssl is None or exe is None:
+        pytest.skip("openssl or redis-server is not installed")
+
+    def run(*args):
+        subprocess.run([openssl, *args], cwd=tmp_path, check=True, capture_output=True)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.crt", "-days", "1",
+        "-subj", "/CN=test-ca")
+    run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=127.0.0.1")
+    (tmp_path / "ext.cnf").write_text("subjectAltName=IP:127.0.0.1\n")
+    run("x509", "-req", "-in", "server.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial", "-out",
+        "server.crt", "-days", "1", "-extfile", "ext.cnf")
+    port = free_port()
+    proc = subprocess.Popen([exe, "--port", "0", "--tls-port", str(port), "--bind", "127.0.0.1", "--save", "",
+                             "--tls-cert-file", "server.crt", "--tls-key-file", "server.key", "--tls-ca-cert-file",
+                             "ca.crt", "--tls-auth-clients", "no", "--requirepass", "s3cret-Pass"], cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        store = open_store(f"rediss://:s3cret-Pass@127.0.0.1:{port}/0?ssl_ca_certs={tmp_path / 'ca.crt'}", 60.0)
+        for _ in range(100):
+            try:
+                store.ping()
+                break
+            except redis.ConnectionError:
+                if proc.poll() is not None:
+                    pytest.skip("this redis-server has no TLS")
+                time.sleep(0.05)
+        store.put("tok", b"state")
+        assert store.take("tok") == b"state"
+        assert store.describe().startswith("redis TLS 127.0.0.1:") and "Pass" not in store.describe()
+        with pytest.raises(redis.ConnectionError):  # plain text to a TLS port
+            open_store(f"redis://:s3cret-Pass@127.0.0.1:{port}/0", 60.0).put("tok", b"state")
+    finally:
+        proc.terminate()
+        proc.wait(10)
+        from streamer.redact import RedactTokens
+
+        RedactTokens.secrets.clear()
+
+
 def test_resume_session_is_parsed_and_checked():
     assert P.parse_text('{"type": "resume_session", "token": "abc"}') == {"type": "resume_session", "token": "abc"}
     for bad in ('{"type": "resume_session"}', '{"type": "resume_session", "token": 5}',
