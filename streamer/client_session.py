@@ -569,7 +569,9 @@ class ClientSession:
         `end`), its seat freed; the client goes on from its own audio, whose next message starts a fresh session."""
         self.phase = Phase.IDLE
         self.seats.taken -= 1
-        return [StopSession(), *self._on_Failed(Failed(P.ProtocolError("resume_failed", e.message)))]
+        return [StopSession(), Log(logging.WARNING, f"a saved session state was refused ({e.message}): its client "
+                                                    "goes on with a fresh session"),
+                Send(P.error("resume_failed", e.message))]
 
     def _on_Restored(self, e: Restored) -> list[Action]:
         self.frames = e.frames

@@ -220,7 +220,7 @@ def test_a_resume_that_fails_validation_drops_its_session_and_the_client_goes_on
     start = c.handle(Taken(b"a state of another model"))
     assert start[0] == StartSession(1, 16000, "t0", b"a state of another model") and seats.taken == 1
     failed = c.handle(NotRestored("saved stream state is of another model (weights or config differ)"))
-    assert failed[0] == StopSession() and kinds(failed) == ["resume_failed"]
+    assert failed[0] == StopSession() and kinds(failed) == ["resume_failed"] and failed[-1].kind == "ctl"
     assert "another model" in sent(failed)[0]["message"]
     assert (c.phase, seats.taken) == (Phase.IDLE, 0)  # its seat is free at once
     assert c.handle(SessionEnded(cancelled=True, session_id=1)) == []  # the dropped task's end: no `end`, no Forget
