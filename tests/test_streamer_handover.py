@@ -411,3 +411,32 @@ def test_the_python_client_finishes_its_file_when_the_resume_after_a_goaway_fail
     assert fresh == list(range(8 * 20 - goaway[0]["frames"]))  # a new stream: its frames start over at 0
     assert read_bvh(bvh).num_frames == 8 * 20  # the whole file's motion, the fresh stream's after the first's
     assert "Traceback" not in log, log[-3000:]
+
+
+def test_the_python_client_finishes_its_file_on_an_earlier_worker_that_sends_a_stray_end(tmp_path, checkpoint, bundle,
+                                                                                        redis_url, monkeypatch):
+    """During a rolling upgrade a client may resume on a worker of the release before, which answered a refused
+    resume with `resume_failed` and then a stray `end {"frames": 0}`: the Python client takes no `end` before its
+    own audio_end, and finishes its file all the same."""
+    from types import SimpleNamespace
+
+    from dimgestor.bvh import read_bvh
+    from helpers.ws import make_server, running
+    from streamer import client_session as S
+
+    def earlier(self, e):  # the release before: the session started for the refused state flushed, with its `end`
+        return [*self._end_audio(), *self._on_Failed(S.Failed(P.ProtocolError("resume_failed", e.message)))]
+    monkeypatch.setattr(S.ClientSession, "_on_NotRestored", earlier)
+
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    store = ("--state-store", redis_url, "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, running(make_server(  # (other weights)
+            bundle, store=open_store(redis_url))) as old:
+        moved, bvh = tmp_path / "moved", tmp_path / "moved.bvh"
+        err = _interrupted_client(a, SimpleNamespace(ws_url=f"ws://127.0.0.1:{old.port}/"), wav, moved,
+                                  signal.SIGTERM, 40, "--bvh", str(bvh))
+    assert "resume failed (resume_failed: saved stream state is of another model" in err, err
+    msgs, _ = _frames(moved)
+    assert [m for m in msgs if m["type"] == "end"][0] == {"type": "end", "frames": 0}  # the stray one came ...
+    assert read_bvh(bvh).num_frames == 8 * 20  # ... and the client went on to the end of its file
