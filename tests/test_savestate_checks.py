@@ -7,6 +7,7 @@ import struct
 
 import numpy as np
 import pytest
+import torch
 
 from dimgestor import savestate
 from dimgestor.stream import GestureStream
@@ -38,10 +39,21 @@ def _same(a, b) -> bool:
     return type(a) is type(b) and a == b
 
 
+def _pretrained_model(folder):
+    """A tiny random wav2vec2 front end (as tests/test_stream.py builds it)."""
+    transformers = pytest.importorskip("transformers", reason="optional extra `pretrained` not installed")
+    torch.manual_seed(0)
+    w2v = transformers.Wav2Vec2Config(hidden_size=16, num_hidden_layers=1, num_attention_heads=2, intermediate_size=32,
+                                      conv_dim=(8,) * 7, num_conv_pos_embeddings=16, num_conv_pos_embedding_groups=2)
+    transformers.Wav2Vec2Model(w2v).save_pretrained(folder)
+    return _model(frontend="pretrained", pretrained_path=str(folder), pretrained_block_ms=200,
+                  pretrained_left_ms=200, pretrained_right_ms=100)
+
+
 @pytest.mark.parametrize("frontend,smoothing,guidance", [("logmel", None, 1.0), ("logmel", (3.0, 0.5), 2.0),
-                                                         ("speech", None, 1.0)])
-def test_every_state_a_stream_passes_through_is_accepted(frontend, smoothing, guidance):
-    model = _model(frontend=frontend)
+                                                         ("speech", None, 1.0), ("pretrained", None, 1.0)])
+def test_every_state_a_stream_passes_through_is_accepted(frontend, smoothing, guidance, tmp_path):
+    model = _pretrained_model(tmp_path) if frontend == "pretrained" else _model(frontend=frontend)
     s = GestureStream(model, steps=2, seed=5, smoothing=smoothing, guidance=guidance)
     audio, rng, at = _audio(3.0), np.random.default_rng(1), 0
     sizes = [0, 1, 159, 160, 161, 1600, 3] + list(rng.integers(0, 4000, 12))
