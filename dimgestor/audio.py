@@ -213,9 +213,10 @@ class StreamingResampler:
         keys = {"up", "down", "buf", "buf_start", "n_in", "m_out"}
         if not isinstance(state, dict) or set(state) != keys:
             raise ValueError(f"a resampler state is an object of {sorted(keys)}")
-        ints = {k: state[k] for k in keys - {"buf"}}
-        if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in ints.values()):
-            raise ValueError(f"a resampler state's counts are integers >= 0, got {ints}")
+        bad = sorted(k for k in keys - {"buf"} if not isinstance(state[k], int) or isinstance(state[k], bool)
+                     or state[k] < 0)
+        if bad:
+            raise ValueError(f"a resampler state's counts are integers >= 0, not its {', '.join(bad)}")
         if (state["up"], state["down"]) != (self.up, self.down):
             raise ValueError(f"a resampler state for {state['down']} -> {state['up']} does not fit "
                              f"{self.down} -> {self.up}")

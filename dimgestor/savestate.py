@@ -129,7 +129,7 @@ def loads(stream: GestureStream, data: bytes) -> tuple[StreamState, dict]:
     if saved != mine:
         diff = sorted(k for k in mine if not isinstance(saved, dict) or saved.get(k) != mine[k])
         raise StateError(f"saved stream state has other sampling settings ({', '.join(diff)}): saved "
-                         f"{[saved.get(k) for k in diff] if isinstance(saved, dict) else saved!r:.200}, "
+                         f"{checks.show([saved.get(k) for k in diff] if isinstance(saved, dict) else saved)}, "
                          f"here {[mine[k] for k in diff]}")
     meta = header.get("meta", {})
     if not isinstance(meta, dict):

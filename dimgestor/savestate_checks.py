@@ -10,12 +10,13 @@ is a `StateError` naming the field: the state is resumed exactly or not at all.
 from __future__ import annotations
 
 import math
+import reprlib
 from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number"]
+__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "show"]
 
 # leaves whose last dimension a running stream moves on: samples and features not yet consumed
 VARYING = {"state.frontend.tail": 1, "state.extractor.buf": 2}
@@ -32,7 +33,17 @@ def is_int(v: Any) -> bool:
 
 
 def finite_number(v: Any) -> bool:
-    return (is_int(v) or isinstance(v, float)) and math.isfinite(v)
+    """An int or a float that is a finite float (an int of 400 digits is not)."""
+    return (isinstance(v, float) and math.isfinite(v)) or (is_int(v) and abs(v) < 1e300)
+
+
+_SHOW = reprlib.Repr()
+_SHOW.maxlevel, _SHOW.maxstring, _SHOW.maxother, _SHOW.maxlong = 2, 40, 40, 40
+
+
+def show(v: Any) -> str:
+    """An untrusted value, abridged for an error message (never deep nor long)."""
+    return _SHOW.repr(v)
 
 
 def _kind(v: Any) -> str:
@@ -61,7 +72,7 @@ def _node(nd: Any, ref: dict, path: str, layout: _Layout, alternatives: dict[str
     if nd["t"] != ref["t"] and path in alternatives:
         ref = alternatives[path]
     if nd["t"] != ref["t"]:
-        raise StateError(f"saved stream state: {path} is a {nd['t']!r}, expected a {ref['t']!r}")
+        raise StateError(f"saved stream state: {path} is a {show(nd['t'])}, expected a {ref['t']!r}")
     if set(nd) != _KEYS.get(ref["t"], {"t", "f"}):
         raise StateError(f"saved stream state: {path} has keys {sorted(nd)}, expected "
                          f"{sorted(_KEYS.get(ref['t'], {'t', 'f'}))}")
@@ -69,7 +80,7 @@ def _node(nd: Any, ref: dict, path: str, layout: _Layout, alternatives: dict[str
     if kind == "value":
         got, want = _kind(nd["v"]), _kind(ref["v"])
         if got != want and not (want == "float" and got == "int"):
-            raise StateError(f"saved stream state: {path} is {got} {nd['v']!r:.40}, expected {want}")
+            raise StateError(f"saved stream state: {path} is {got} {show(nd['v'])}, expected {want}")
         if got == "float" and not math.isfinite(nd["v"]):
             raise StateError(f"saved stream state: {path} is {nd['v']}")
     elif kind in ("tensor", "ndarray"):
@@ -84,7 +95,7 @@ def _node(nd: Any, ref: dict, path: str, layout: _Layout, alternatives: dict[str
         fields = nd["f"]
         if not isinstance(fields, dict) or set(fields) != set(ref["f"]):
             raise StateError(f"saved stream state: {kind} at {path} has fields "
-                             f"{sorted(fields) if isinstance(fields, dict) else fields!r:.80}, expected "
+                             f"{show(sorted(fields) if isinstance(fields, dict) else fields)}, expected "
                              f"{sorted(ref['f'])}")
         for name, r in ref["f"].items():
             _node(fields[name], r, f"{path}.{name}", layout, alternatives)
@@ -92,18 +103,18 @@ def _node(nd: Any, ref: dict, path: str, layout: _Layout, alternatives: dict[str
 
 def _leaf(nd: dict, ref: dict, path: str, layout: _Layout) -> None:
     if nd["dtype"] != ref["dtype"]:
-        raise StateError(f"saved stream state: {path} of dtype {nd['dtype']!r:.40}, expected {ref['dtype']}")
+        raise StateError(f"saved stream state: {path} of dtype {show(nd['dtype'])}, expected {ref['dtype']}")
     shape, want, vary = nd["shape"], ref["shape"], VARYING.get(path)
     if (not isinstance(shape, list) or len(shape) != len(want) or not all(is_int(d) and d >= 0 for d in shape)
             or any(d != w for i, (d, w) in enumerate(zip(shape, want)) if i != vary)):
-        raise StateError(f"saved stream state: {path} of shape {shape!r:.80}, expected {want}"
+        raise StateError(f"saved stream state: {path} of shape {show(shape)}, expected {want}"
                          + (f" (dimension {vary} may differ)" if vary is not None else ""))
     itemsize = np.dtype(ref["dtype"]).itemsize if ref["t"] == "ndarray" else _torch_dtype(ref["dtype"]).itemsize
     n, at = nd["n"], nd["at"]
     if not is_int(n) or n != math.prod(shape) * itemsize:
-        raise StateError(f"saved stream state: {path} of {ref['dtype']} {shape} in {n!r:.40} bytes")
+        raise StateError(f"saved stream state: {path} of {ref['dtype']} {shape} in {show(n)} bytes")
     if not is_int(at) or at != layout.offset:
-        raise StateError(f"saved stream state: {path} at byte {at!r:.40}, expected {layout.offset} (the leaves "
+        raise StateError(f"saved stream state: {path} at byte {show(at)}, expected {layout.offset} (the leaves "
                          "lie one after the other)")
     if at + n > layout.size:
         raise StateError(f"saved stream state cut short at {path}: needs bytes {at}-{at + n}, "

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, AsyncIterable, Callable, Mapping
 import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
-from dimgestor.savestate_checks import StateError, finite_number, is_int
+from dimgestor.savestate_checks import StateError, finite_number, is_int, show
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.protocol import MAX_RATE, MIN_RATE
@@ -346,7 +346,7 @@ def check_meta(meta: dict, state) -> None:
         raise StateError(f"saved session state: meta.{field} {why}")
 
     if meta.get("frames") != state.frames_out or not is_int(meta["frames"]):
-        refuse("frames", f"is {meta.get('frames')!r:.40}, the state made {state.frames_out}")
+        refuse("frames", f"is {show(meta.get('frames'))}, the state made {state.frames_out}")
     root = meta.get("decoder")
     names = [f.name for f in dataclasses.fields(RootState)]
     if not isinstance(root, dict) or set(root) != set(names):
@@ -356,12 +356,12 @@ def check_meta(meta: dict, state) -> None:
     if not isinstance(root["drift"], list) or len(root["drift"]) != 3 or not all(map(finite_number, root["drift"])):
         refuse("decoder.drift", "is 3 finite numbers")
     if not is_int(root["frames"]) or not 0 <= root["frames"] <= state.frames_out:
-        refuse("decoder.frames", f"is {root['frames']!r:.40}, not 0..{state.frames_out}")
+        refuse("decoder.frames", f"is {show(root['frames'])}, not 0..{state.frames_out}")
     if meta.get("encoding", "json") not in ("json", "binary"):
         refuse("encoding", "is json or binary")
     rate = meta.get("rate", SAMPLE_RATE)
     if not is_int(rate) or not MIN_RATE <= rate <= MAX_RATE:
-        refuse("rate", f"is {rate!r:.40}, not an integer in {MIN_RATE}..{MAX_RATE}")
+        refuse("rate", f"is {show(rate)}, not an integer in {MIN_RATE}..{MAX_RATE}")
     if meta.get("resampler") is not None:
         try:
             make_resampler(rate).check_state(meta["resampler"])

@@ -96,6 +96,24 @@ def test_a_header_nested_100000_deep_is_refused(model, saved):
     _refused(model, _pack(None, raw, text), "nested too deep")
 
 
+@pytest.mark.parametrize("depth", [1, 900, 990, 3000])
+def test_values_nested_at_any_depth_anywhere_are_refused_with_a_state_error(bundle, session_saved, depth):
+    """Below the depth where the JSON parser gives up, a nested value reaches the checks (and their messages):
+    a StateError all the same, never a RecursionError."""
+    places = [("model",), ("settings", "seed"), ("meta", "frames"), ("meta", "decoder", "x"), ("meta", "decoder", "drift"),
+              ("meta", "encoding"), ("state", "f", "samples_in", "v"), ("state", "f", "extractor"),
+              ("state", "f", "frontend", "f", "tail", "shape"), ("state", "f", "denoiser", "f", "ssm", "at")]
+    for *up, key in places:
+        header, raw = _header(session_saved)
+        parent = header
+        for k in up:
+            parent = parent[k]
+        parent[key] = "NESTED"
+        text = json.dumps(header).replace('"NESTED"', "[" * depth + "1" + "]" * depth)
+        with pytest.raises(savestate.StateError):
+            _session(bundle).restore(_pack(None, raw, text))
+
+
 def test_a_shape_of_2_to_the_40_is_refused_without_allocating(model, saved):
     header, raw = _header(saved)
     leaf = header["state"]["f"]["frontend"]["f"]["tail"]  # (1, m): its length may vary, its size may not
