@@ -328,9 +328,9 @@ def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_o
             await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
                                       "audio": {"rate": 16000, "format": "float32", "channels": 1}}))
             out = []
-            for reason, data in bad.items():
-                store.put(reason, data)
-                out.append((reason, *await _resume_then_talk(ws, reason)))
+            for i, (reason, data) in enumerate(bad.items()):
+                store.put(f"token-{i}", data)
+                out.append((reason, *await _resume_then_talk(ws, f"token-{i}")))
             return out
 
     with running(make_server(bundle, store=store, max_sessions=1)) as server:
