@@ -201,12 +201,40 @@ class StreamingResampler:
                 "buf_start": int(self._buf_start), "n_in": int(self._n_in), "m_out": int(self._m_out)}
 
     def set_state(self, state: dict) -> None:
-        """A state from `get_state` of a resampler with the same rates: it goes on exactly as that one would."""
+        """A state from `get_state` of a resampler with the same rates: it goes on exactly as that one would.
+        ValueError, saying why, for any other (`check_state`); the resampler is then unchanged."""
+        self.check_state(state)
+        self._buf = np.frombuffer(bytes.fromhex(state["buf"]), "<f8").astype(np.float64)
+        self._buf_start, self._n_in, self._m_out = state["buf_start"], state["n_in"], state["m_out"]
+
+    def check_state(self, state) -> None:
+        """ValueError unless `state` is one `get_state` of this resampler could give (a stored state is untrusted):
+        the same rates, the counts it keeps consistent, the input history it keeps, finite."""
+        keys = {"up", "down", "buf", "buf_start", "n_in", "m_out"}
+        if not isinstance(state, dict) or set(state) != keys:
+            raise ValueError(f"a resampler state is an object of {sorted(keys)}")
+        bad = sorted(k for k in keys - {"buf"} if not isinstance(state[k], int) or isinstance(state[k], bool)
+                     or state[k] < 0)
+        if bad:
+            raise ValueError(f"a resampler state's counts are integers >= 0, not its {', '.join(bad)}")
         if (state["up"], state["down"]) != (self.up, self.down):
             raise ValueError(f"a resampler state for {state['down']} -> {state['up']} does not fit "
                              f"{self.down} -> {self.up}")
-        self._buf = np.frombuffer(bytes.fromhex(state["buf"]), "<f8").astype(np.float64)
-        self._buf_start, self._n_in, self._m_out = int(state["buf_start"]), int(state["n_in"]), int(state["m_out"])
+        n_in, m_out, start = state["n_in"], state["m_out"], state["buf_start"]
+        if m_out != max(0, -((self.delay - n_in * self.up) // self.down)):
+            raise ValueError(f"a resampler state with {n_in} inputs gave {m_out} outputs")
+        keep_from = (m_out * self.down + self.delay) // self.up - (self.taps - 1)
+        if start != min(max(keep_from, 0), n_in):
+            raise ValueError(f"a resampler state keeps its inputs from {start}, not {min(max(keep_from, 0), n_in)}")
+        buf = state["buf"]
+        if not isinstance(buf, str) or len(buf) != 16 * (n_in - start):
+            raise ValueError(f"a resampler state holds {n_in - start} inputs: {16 * (n_in - start)} hex digits")
+        try:
+            x = np.frombuffer(bytes.fromhex(buf), "<f8")
+        except ValueError:
+            raise ValueError("a resampler state's inputs are not hex digits") from None
+        if not np.isfinite(x).all():
+            raise ValueError("a resampler state's inputs hold NaN or infinite values")
 
     def flush(self) -> np.ndarray:
         """The remaining outputs (input padded with zeros); total length ceil(n_in * up / down)."""

@@ -9,7 +9,9 @@ where the header holds the tree (each node's type by name, each leaf's dtype, sh
 fingerprint (its config and every parameter and buffer, hashed), the stream's sampling settings and the caller's
 `meta`. `loads` rebuilds the tree from a fixed list of known types (never pickle: a state may come from a store
 shared by many machines), and refuses, with the reason, a state of another version, of another model or of
-other settings, and bytes that are cut short or do not parse: a state is resumed exactly or not at all.
+other settings, bytes that are cut short or do not parse, and any field that is not what this stream's own state
+would hold (`dimgestor.savestate_checks`, checked before anything is built): a state is resumed exactly or not
+at all.
 Bump STATE_VERSION whenever the tree of any state type changes.
 """
 from __future__ import annotations
@@ -23,11 +25,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from . import savestate_checks as checks
 from .sampler import StepStates
 from .frontend import FrontEndState
 from .frontend_speech import SpeechState
 from .mamba2 import Mamba2State
 from .model import DenoiserState, ExtractorState
+from .savestate_checks import StateError
 from .smoothing import OneEuroState
 from .stream import GestureStream, StreamState
 
@@ -40,10 +44,6 @@ _TYPES = {t.__name__: t for t in (StreamState, FrontEndState, SpeechState, Extra
                                   Mamba2State, StepStates, OneEuroState)}
 _DTYPES = {str(d).removeprefix("torch."): d for d in (torch.float32, torch.float64, torch.float16, torch.bfloat16,
                                                       torch.int64, torch.int32, torch.bool)}
-
-
-class StateError(ValueError):
-    """A saved state that cannot be resumed here; the message says why."""
 
 
 def model_fingerprint(model: torch.nn.Module) -> str:
@@ -71,40 +71,38 @@ def stream_settings(stream: GestureStream) -> dict:
             "smoother": None if s is None else [s.fps, s.min_cutoff_hz, s.beta, s.d_cutoff_hz]}
 
 
-def dumps(stream: GestureStream, state: StreamState | None = None, meta: dict | None = None) -> bytes:
-    """`state` (default: the stream's own) as bytes, with `meta` (JSON-serialisable) beside it."""
-    blobs: list[bytes] = []
-    offset = [0]
-
-    def leaf(kind: str, dtype: str, shape, raw: bytes) -> dict:
-        node = {"t": kind, "dtype": dtype, "shape": list(shape), "at": offset[0], "n": len(raw)}
-        blobs.append(raw)
-        offset[0] += len(raw)
-        return node
-
-    def node(v: Any) -> Any:
-        if v is None or isinstance(v, (bool, int, float, str)):
-            return {"t": "value", "v": v}
-        if isinstance(v, torch.Tensor):
-            t = v.detach().cpu().contiguous()
-            return leaf("tensor", str(t.dtype).removeprefix("torch."), t.shape,
-                        t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-        if isinstance(v, np.ndarray):
-            a = np.ascontiguousarray(v)
-            return leaf("ndarray", a.dtype.str, a.shape, a.tobytes())
-        if isinstance(v, np.generic):
-            return {"t": "value", "v": v.item()}
+def describe(v: Any, blobs: list[bytes]) -> Any:
+    """The header's node of `v` (a state or any part of it); its leaves' bytes are appended to `blobs`."""
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return {"t": "value", "v": v}
+    if isinstance(v, np.generic):
+        return {"t": "value", "v": v.item()}
+    if isinstance(v, torch.Tensor):
+        t = v.detach().cpu().contiguous()
+        raw = t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b""
+        kind, dtype = "tensor", str(t.dtype).removeprefix("torch.")
+    elif isinstance(v, np.ndarray):
+        a = np.ascontiguousarray(v)
+        raw, kind, dtype = a.tobytes(), "ndarray", a.dtype.str
+    else:
         name = type(v).__name__
         if _TYPES.get(name) is type(v):
             fields = v._fields if isinstance(v, tuple) else [f.name for f in dataclasses.fields(v)]
-            return {"t": name, "f": {f: node(getattr(v, f)) for f in fields}}
+            return {"t": name, "f": {f: describe(getattr(v, f), blobs) for f in fields}}
         if isinstance(v, (tuple, list)):
-            return {"t": "tuple", "items": [node(x) for x in v]}
+            return {"t": "tuple", "items": [describe(x, blobs) for x in v]}
         raise TypeError(f"cannot save a {type(v).__name__} in a stream state")
+    node = {"t": kind, "dtype": dtype, "shape": list(v.shape), "at": sum(map(len, blobs)), "n": len(raw)}
+    blobs.append(raw)
+    return node
 
+
+def dumps(stream: GestureStream, state: StreamState | None = None, meta: dict | None = None) -> bytes:
+    """`state` (default: the stream's own) as bytes, with `meta` (JSON-serialisable) beside it."""
+    blobs: list[bytes] = []
     state = stream.state if state is None else state
     header = {"model": model_fingerprint(stream.model), "settings": stream_settings(stream), "meta": meta or {},
-              "state": node(state)}
+              "state": describe(state, blobs)}
     text = json.dumps(header, allow_nan=True).encode()
     return _PREFIX.pack(MAGIC, STATE_VERSION, len(text)) + text + b"".join(blobs)
 
@@ -122,70 +120,63 @@ def loads(stream: GestureStream, data: bytes) -> tuple[StreamState, dict]:
     body = _PREFIX.size + n
     if len(data) < body:
         raise StateError(f"saved stream state cut short: header of {n} bytes, {len(data) - _PREFIX.size} present")
-    try:
-        header = json.loads(data[_PREFIX.size:body])
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise StateError(f"saved stream state header does not parse: {e}") from None
+    header = _parse(data[_PREFIX.size:body])
     if not isinstance(header, dict) or not {"model", "settings", "state"} <= set(header):
         raise StateError("saved stream state header lacks model, settings or state")
     if header["model"] != model_fingerprint(stream.model):
         raise StateError("saved stream state is of another model (weights or config differ): start a fresh stream")
-    mine = stream_settings(stream)
-    if header["settings"] != json.loads(json.dumps(mine)):
-        diff = sorted(k for k in mine if header["settings"].get(k) != json.loads(json.dumps(mine[k])))
-        raise StateError(f"saved stream state has other sampling settings ({', '.join(diff)}): "
-                         f"saved {[header['settings'].get(k) for k in diff]}, here {[mine[k] for k in diff]}")
+    mine, saved = json.loads(json.dumps(stream_settings(stream))), header["settings"]
+    if saved != mine:
+        diff = sorted(k for k in mine if not isinstance(saved, dict) or saved.get(k) != mine[k])
+        raise StateError(f"saved stream state has other sampling settings ({', '.join(diff)}): saved "
+                         f"{checks.show([saved.get(k) for k in diff] if isinstance(saved, dict) else saved)}, "
+                         f"here {[mine[k] for k in diff]}")
+    meta = header.get("meta", {})
+    if not isinstance(meta, dict):
+        raise StateError(f"saved stream state: its meta is {type(meta).__name__}, not an object")
     raw = memoryview(data)[body:]
-    dev = next(stream.model.parameters()).device
-
-    def build(nd: Any, path: str) -> Any:
-        if not isinstance(nd, dict) or "t" not in nd:
-            raise StateError(f"saved stream state: malformed node at {path}")
-        kind = nd["t"]
-        if kind == "value":
-            return nd.get("v")
-        if kind in ("tensor", "ndarray"):
-            at, size, shape = int(nd["at"]), int(nd["n"]), tuple(int(s) for s in nd["shape"])
-            if at < 0 or at + size > len(raw):
-                raise StateError(f"saved stream state cut short at {path}: needs bytes {at}-{at + size}, "
-                                 f"{len(raw)} present")
-            chunk = bytes(raw[at:at + size])
-            if kind == "ndarray":
-                dtype = np.dtype(nd["dtype"])
-                if dtype.kind not in "fiub" or dtype.itemsize * int(np.prod(shape)) != size:
-                    raise StateError(f"saved stream state: array {path} of {nd['dtype']} {shape} in {size} bytes")
-                return np.frombuffer(chunk, dtype).reshape(shape).copy()
-            dtype = _DTYPES.get(nd["dtype"])
-            if dtype is None:
-                raise StateError(f"saved stream state: tensor {path} of unknown dtype {nd['dtype']!r}")
-            t = torch.frombuffer(bytearray(chunk), dtype=torch.uint8) if size else torch.zeros(0, dtype=torch.uint8)
-            if t.numel() != torch.empty(shape, dtype=dtype).element_size() * int(np.prod(shape)):
-                raise StateError(f"saved stream state: tensor {path} of {nd['dtype']} {shape} in {size} bytes")
-            return t.view(dtype).reshape(shape).to(dev)
-        if kind == "tuple":
-            return tuple(build(x, f"{path}[{i}]") for i, x in enumerate(nd.get("items", [])))
-        cls = _TYPES.get(kind)
-        if cls is None:
-            raise StateError(f"saved stream state: unknown type {kind!r} at {path}")
-        names = cls._fields if issubclass(cls, tuple) else [f.name for f in dataclasses.fields(cls)]
-        got = nd.get("f", {})
-        if set(got) != set(names):
-            raise StateError(f"saved stream state: {kind} at {path} has fields {sorted(got)}, expected {sorted(names)}")
-        values = {f: build(got[f], f"{path}.{f}") for f in names}
-        return cls(**values)
-
-    state = build(header["state"], "state")
-    if not isinstance(state, StreamState):
-        raise StateError("saved stream state: its root is not a StreamState")
-    template = stream.initial_state()
-    if _shape_tree(state.denoiser) != _shape_tree(template.denoiser):
-        raise StateError("saved stream state: its denoiser state's shapes differ from this stream's")
-    return state, header.get("meta", {})
+    fresh = stream.initial_state()
+    alternatives = {}
+    if stream.smoother is not None:  # the output filter's state, once it filtered a frame
+        d = stream.model.config.motion_dim
+        alternatives["state.smoother"] = describe(OneEuroState(np.zeros(d), np.zeros(d)), [])
+    checks.check_tree(header["state"], describe(fresh, []), len(raw), alternatives)
+    state = _build(header["state"], raw, next(stream.model.parameters()).device)
+    checks.check_state(stream, state, fresh)
+    return state, meta
 
 
-def _shape_tree(v: Any) -> Any:
-    if isinstance(v, torch.Tensor):
-        return (str(v.dtype), tuple(v.shape))
-    if isinstance(v, tuple):
-        return tuple(_shape_tree(x) for x in v)
-    return None
+def _parse(text: bytes) -> Any:
+    """The header's JSON; StateError for what does not parse, NaN and infinities, and nesting too deep."""
+    def refuse(v):
+        raise StateError(f"saved stream state header holds {v}")
+
+    def number(s: str) -> float:
+        x = float(s)
+        return x if np.isfinite(x) else refuse(s)
+    try:
+        return json.loads(text, parse_constant=refuse, parse_float=number)
+    except RecursionError:
+        raise StateError("saved stream state header is nested too deep") from None
+    except StateError:
+        raise
+    except ValueError as e:  # (not JSON, not UTF-8, an integer of thousands of digits)
+        raise StateError(f"saved stream state header does not parse: {e}") from None
+
+
+def _build(nd: dict, raw: memoryview, dev: torch.device) -> Any:
+    """The value of a node `savestate_checks.check_tree` accepted."""
+    kind = nd["t"]
+    if kind == "value":
+        return nd["v"]
+    if kind in ("tensor", "ndarray"):
+        at, n, shape = nd["at"], nd["n"], tuple(nd["shape"])
+        if kind == "ndarray":
+            return np.frombuffer(raw[at:at + n], np.dtype(nd["dtype"])).reshape(shape).copy()
+        dtype = _DTYPES[nd["dtype"]]
+        if n == 0:
+            return torch.zeros(shape, dtype=dtype, device=dev)
+        return torch.frombuffer(bytearray(raw[at:at + n]), dtype=torch.uint8).view(dtype).reshape(shape).to(dev)
+    if kind == "tuple":
+        return tuple(_build(x, raw, dev) for x in nd["items"])
+    return _TYPES[kind](**{f: _build(x, raw, dev) for f, x in nd["f"].items()})

@@ -135,11 +135,13 @@ class NotRestored:
 
 @dataclass(frozen=True)
 class SessionEnded:
-    """The session's task is over: `frames` in all; handed_over, failed (`error`) or cancelled."""
+    """The session's task is over: `frames` in all; handed_over, failed (`error`) or cancelled; `session_id`:
+    which session (None: the current one)."""
     frames: int = 0
     handed_over: bool = False
     error: str | None = None
     cancelled: bool = False
+    session_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -495,8 +497,8 @@ class ClientSession:
         return [self._send_frames(e.window if self.timing else None)]
 
     def _on_SessionEnded(self, e: SessionEnded) -> list[Action]:
-        if self.gone:
-            return []
+        if self.gone or not self.running or e.session_id not in (None, self.session_id):
+            return []  # (a session already let go: its client left, or its resume failed)
         out: list[Action] = []
         if e.error is not None:  # the model failed on this audio: tell the client, keep the server up
             out += [Log(logging.ERROR, f"session failed: {e.error}"), Send(P.error("internal", f"session failed: "
@@ -586,7 +588,13 @@ class ClientSession:
         return self._start(restore=e.data)
 
     def _on_NotRestored(self, e: NotRestored) -> list[Action]:
-        return [*self._end_audio(), *self._on_Failed(Failed(P.ProtocolError("resume_failed", e.message)))]
+        """The taken state was refused: the session started for it is dropped unseen (it made no frame, so no
+        `end`), its seat freed; the client goes on from its own audio, whose next message starts a fresh session."""
+        self.phase = Phase.IDLE
+        self.seats.taken -= 1
+        return [StopSession(), Log(logging.WARNING, f"a saved session state was refused ({e.message}): its client "
+                                                    "goes on with a fresh session"),
+                Send(P.error("resume_failed", e.message))]
 
     def _on_Restored(self, e: Restored) -> list[Action]:
         self.frames = e.frames

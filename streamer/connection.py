@@ -8,6 +8,7 @@ outgoing queue is an `Outbox` (streamer/outbox.py).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections import deque
@@ -279,7 +280,8 @@ class Client(Outbox):
 
         def done(task: asyncio.Task) -> None:
             self.svc.session_ended()  # its queued audio is free: give the pages back (streamer/memory.py)
-            self.act(machine.handle(S.SessionEnded(cancelled=True) if task.cancelled() else task.result()))
+            ended = S.SessionEnded(cancelled=True) if task.cancelled() else task.result()
+            self.act(machine.handle(dataclasses.replace(ended, session_id=start.session_id)))
 
         self.session_task = asyncio.create_task(run(), name="ws-session")
         self.session_task.add_done_callback(done)
@@ -336,8 +338,13 @@ class Client(Outbox):
         session, rate = self.session, self.machine.audio.rate
         try:
             meta = await asyncio.get_running_loop().run_in_executor(self.svc.prep, session.restore, data)
-        except StateError as e:
+        except StateError as e:  # refused, with the reason: the client goes on with a fresh session
             await self.apply(self.machine.handle(S.NotRestored(str(e))))
+            return
+        except Exception as e:  # a bug (restore raises StateError only): said here, and no resume either
+            self.errors(logging.ERROR, f"restoring a saved state failed: {type(e).__name__}: {e}", exc_info=True)
+            await self.apply(self.machine.handle(S.NotRestored(f"the saved state could not be restored "
+                                                               f"({type(e).__name__})")))
             return
         inputs = None
         if meta.get("resampler") is not None and int(meta.get("rate", 0)) == rate:  # its rate converter goes on too

@@ -24,12 +24,14 @@ from typing import TYPE_CHECKING, AsyncIterable, Callable, Mapping
 import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
+from dimgestor.savestate_checks import StateError, finite_number, is_int, show
 from streamer.face import FACE
 from streamer.frames import Frame
+from streamer.protocol import MAX_RATE, MIN_RATE
 from streamer.scheduling import Scheduler, as_scheduler
-from streamer.sources import AudioChunk
+from streamer.sources import AudioChunk, make_resampler
 
-__all__ = ["Session", "Stats", "AudioClock", "WindowTiming"]
+__all__ = ["Session", "Stats", "AudioClock", "WindowTiming", "check_meta"]
 
 if TYPE_CHECKING:
     from dimgestor.face import FaceOptions
@@ -248,14 +250,16 @@ class Session:
 
     def restore(self, data: bytes) -> dict:
         """Go on from `snapshot`'s bytes (taken by any worker on the same model); returns their meta.
-        Raises `savestate.StateError` when they cannot be resumed exactly (the session is then unchanged)."""
+        Raises `savestate.StateError` when they cannot be resumed exactly (the session is then unchanged): every
+        field is checked first, the stream's (`savestate.loads`) and the meta's (`check_meta`)."""
         from dimgestor import savestate
         from dimgestor.features import RootState
 
         state, meta = savestate.loads(self.stream, data)
-        root = dict(meta["decoder"])
+        check_meta(meta, state)
+        root = meta["decoder"]
         self.stream.state = state
-        self.decoder.state = RootState(**{**root, "drift": tuple(root.get("drift", (0.0, 0.0, 0.0)))})
+        self.decoder.state = RootState(**{**root, "drift": tuple(root["drift"])})
         if self._face is not None:
             self._face.close()
         self._face, self._face_start = None, (int(state.samples_in), int(self.stream.frames_out))  # listens afresh
@@ -331,3 +335,37 @@ class Session:
 async def _emit(emit: Callable[[list[Frame]], object], frames: list[Frame]) -> None:
     if inspect.isawaitable(r := emit(frames)):
         await r
+
+
+def check_meta(meta: dict, state) -> None:
+    """`Session.snapshot`'s meta beside a checked stream `state`: StateError, naming the field, unless it is what a
+    session saves (frames made, the pose decoder's root, the client's rate, encoding and resampler)."""
+    from dimgestor.features import RootState
+
+    def refuse(field: str, why: str):
+        raise StateError(f"saved session state: meta.{field} {why}")
+
+    if meta.get("frames") != state.frames_out or not is_int(meta["frames"]):
+        refuse("frames", f"is {show(meta.get('frames'))}, the state made {state.frames_out}")
+    root = meta.get("decoder")
+    names = [f.name for f in dataclasses.fields(RootState)]
+    if not isinstance(root, dict) or set(root) != set(names):
+        refuse("decoder", f"is not an object of {names}")
+    if not all(finite_number(root[k]) for k in ("x", "z", "heading")):
+        refuse("decoder", "x, z and heading are finite numbers")
+    if not isinstance(root["drift"], list) or len(root["drift"]) != 3 or not all(map(finite_number, root["drift"])):
+        refuse("decoder.drift", "is 3 finite numbers")
+    if not is_int(root["frames"]) or not 0 <= root["frames"] <= state.frames_out:
+        refuse("decoder.frames", f"is {show(root['frames'])}, not 0..{state.frames_out}")
+    if meta.get("encoding", "json") not in ("json", "binary"):
+        refuse("encoding", "is json or binary")
+    rate = meta.get("rate", SAMPLE_RATE)
+    if not is_int(rate) or not MIN_RATE <= rate <= MAX_RATE:
+        refuse("rate", f"is {show(rate)}, not an integer in {MIN_RATE}..{MAX_RATE}")
+    if meta.get("resampler") is not None:
+        try:
+            make_resampler(rate).check_state(meta["resampler"])
+        except ValueError as e:
+            refuse("resampler", f"does not fit: {e}")
+        if meta["resampler"]["m_out"] != state.samples_in:
+            refuse("resampler", f"gave {meta['resampler']['m_out']} samples, the state took {state.samples_in}")

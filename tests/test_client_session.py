@@ -9,8 +9,8 @@ import pytest
 from streamer import protocol as P
 from streamer.client_session import (
     Audio, Boundary, Broadcast, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames,
-    HandedOver, HandOver, Keepalive, Left, Phase, Queuing, Refused, Release, Restored, SaveState, Saved, Seats, Send,
-    SendFrames,
+    HandedOver, HandOver, Keepalive, Left, NotRestored, Phase, Queuing, Refused, Release, Restored, SaveState, Saved,
+    Seats, Send, SendFrames,
     SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
 from streamer.sessions import Session
 
@@ -209,6 +209,31 @@ def test_a_session_handed_over_goes_on_elsewhere_exactly(bundle, speech):
         np.testing.assert_array_equal(got.root_pos, want.root_pos)
         np.testing.assert_array_equal(got.rotations, want.rotations)
         np.testing.assert_array_equal(got.features, want.features)
+
+
+def test_a_resume_that_fails_validation_drops_its_session_and_the_client_goes_on_afresh():
+    """A taken state that `Session.restore` refuses (another model, cut short, bad values): `resume_failed` with
+    the reason and nothing else (no `end` of the session started for it); the client's next audio is a fresh
+    session from frame 0, and the dropped session's task ending, early or late, changes nothing."""
+    seats = Seats(max_sessions=1, resumable=True, save_every_s=2.0)
+    c = client(seats)
+    assert c.handle(text(type="resume_session", token="tok")) == [TakeState("tok")]
+    start = c.handle(Taken(b"a state of another model"))
+    assert start[0] == StartSession(1, 16000, "t0", b"a state of another model") and seats.taken == 1
+    failed = c.handle(NotRestored("saved stream state is of another model (weights or config differ)"))
+    assert failed[0] == StopSession() and kinds(failed) == ["resume_failed"] and failed[-1].kind == "ctl"
+    assert "another model" in sent(failed)[0]["message"]
+    assert (c.phase, seats.taken) == (Phase.IDLE, 0)  # its seat is free at once
+    assert c.handle(SessionEnded(cancelled=True, session_id=1)) == []  # the dropped task's end: no `end`, no Forget
+
+    fresh = audio_in(c, 160)  # the client goes on sending its own audio
+    assert fresh[0] == StartSession(2, 16000, "t1", None) and seats.taken == 1 and c.frames == 0
+    assert c.handle(SessionEnded(cancelled=True, session_id=1)) == []  # (had it come this late: the same)
+    assert c.phase is Phase.STREAMING and seats.taken == 1
+    c.handle(Frames(count=3, backlog_s=0.0))
+    assert c.handle(text(type="audio_end")) == [EndAudio(handover=False)]
+    ended = c.handle(SessionEnded(frames=3, session_id=2))
+    assert sent(ended) == [{"type": "end", "frames": 3}] and ended[-1] == Forget("t1") and seats.taken == 0
 
 
 def test_resume_is_refused_while_a_session_runs_or_the_token_is_unknown():

@@ -2,6 +2,7 @@
 state store and sends `goaway` with a resume token; the client resumes on another worker, and the frames go on
 as in an uninterrupted run."""
 import contextlib
+import re
 import shutil
 import signal
 import socket
@@ -619,3 +620,195 @@ def test_a_state_over_the_size_cap_is_not_saved_counted_and_the_session_goes_on(
     assert not saved and end["frames"] == len(frames) == 2 * 20
     assert _metric(metrics, 'dimgestor_state_puts_refused_total{reason="too_large"}') >= 2
     assert _metric(metrics, "dimgestor_states_put_total") == 0 and not [k for k in store.keys() if ":state:" in k]
+
+
+def _with_nan_in_the_denoiser(data: bytes) -> bytes:
+    """A saved state with one NaN written into its denoiser's SSM state (well-formed, bad values)."""
+    import json
+    import struct
+
+    _, _, n = struct.unpack_from("<7sHI", data)
+    leaf = json.loads(data[13:13 + n])["state"]["f"]["denoiser"]["f"]["ssm"]
+    b = bytearray(data)
+    b[13 + n + leaf["at"]:13 + n + leaf["at"] + 4] = np.float32(np.nan).tobytes()
+    return bytes(b)
+
+
+def _patched(data: bytes, change) -> bytes:
+    import json
+    import struct
+
+    _, _, n = struct.unpack_from("<7sHI", data)
+    header = json.loads(data[13:13 + n])
+    change(header)
+    text = json.dumps(header).encode()
+    return data[:9] + struct.pack("<I", len(text)) + text + data[13 + n:]
+
+
+async def _resume_then_talk(ws, token: str, seconds: float = 1.0):
+    """resume_session with `token`, then (whatever the answer) `seconds` of our audio and audio_end: -> (the answer,
+    every message after it up to `end`)."""
+    import json
+
+    from helpers.ws import recv_json
+
+    await ws.send(json.dumps({"type": "resume_session", "token": token}))
+    reply = await recv_json(ws)
+    speech = (0.1 * np.sin(np.arange(int(16000 * seconds)) * 0.05)).astype("<f4")
+    await ws.send(speech.tobytes())
+    await ws.send(json.dumps({"type": "audio_end"}))
+    msgs = []
+    while (msg := await recv_json(ws, timeout=30))["type"] != "end":
+        msgs.append(msg)
+    return reply, msgs + [msg]
+
+
+def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_on_from_its_own_audio(bundle):
+    """Issue 40 items 4 and 5: a stored state of another model, cut short, or well-formed with bad values gets
+    `resume_failed` with the reason, and nothing else (no stray `end`): the client's own audio then starts a fresh
+    stream at frame 0 on the same connection, in the seat the failed resume freed (one seat here)."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    from dimgestor import savestate
+    from dimgestor.stream import GestureStream
+    from helpers.stream import noise_audio, random_tiny_model
+    from helpers.ws import make_server, recv_json, running
+    from streamer.sessions import Session
+
+    session = Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)  # as make_server's sessions
+    frames = session.infer(noise_audio(1.0))
+    good = session.snapshot(len(frames), rate=16000, encoding="json")
+    bad = {
+        "another model": savestate.dumps(GestureStream(random_tiny_model(), steps=2)),
+        "cut short": good[:-100],
+        r"state\.denoiser\.ssm holds 1 values that are NaN": _with_nan_in_the_denoiser(good),
+        r"state\.samples_in is -1000000000000": _patched(good, lambda h: h["state"]["f"]["samples_in"].update(
+            v=-10 ** 12)),
+        r"meta\.decoder is not an object": _patched(good, lambda h: h["meta"].pop("decoder")),
+        r"state\.frontend\.tail at byte 'x'": _patched(good, lambda h: h["state"]["f"]["frontend"]["f"]["tail"].update(
+            at="x")),
+    }
+    store = MemoryStore()
+
+    async def talk(url):
+        async with connect(url) as ws:
+            assert (await recv_json(ws))["type"] == "hello"
+            await ws.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                                      "audio": {"rate": 16000, "format": "float32", "channels": 1}}))
+            out = []
+            for i, (reason, data) in enumerate(bad.items()):
+                store.put(f"token-{i}", data)
+                out.append((reason, *await _resume_then_talk(ws, f"token-{i}")))
+            return out
+
+    with running(make_server(bundle, store=store, max_sessions=1)) as server:
+        results = asyncio.run(talk(f"ws://127.0.0.1:{server.port}/"))
+        resumed = server.metrics.sessions_resumed._value.get()
+    for reason, reply, msgs in results:
+        assert reply["type"] == "error" and reply["code"] == "resume_failed", (reason, reply)
+        assert re.search(reason, reply["message"]) and "\n" not in reply["message"], (reason, reply)
+        frames = [m for m in msgs if m["type"] == "frame"]
+        assert [m["type"] for m in msgs if m["type"] != "frame"] == ["end"], (reason, msgs)  # no stray `end`
+        assert [f["index"] for f in frames] == list(range(20)) and msgs[-1] == {"type": "end", "frames": 20}
+    assert resumed == 0
+
+
+def test_a_bad_state_in_redis_gets_resume_failed_with_the_reason_and_no_traceback(tmp_path, checkpoint, redis_url):
+    """A state written bad into a real redis-server (NaN in a session's saved denoiser state): the worker answers
+    `resume_failed` naming the field, serves the client's own audio afresh, and logs no traceback."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.client import connect
+
+    from helpers.ws import recv_json
+
+    store = open_store(redis_url)
+    speech = (0.1 * np.sin(np.arange(16000 * 3) * 0.05)).astype("<f4")
+    hello = json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
+                        "audio": {"rate": 16000, "format": "float32", "channels": 1}})
+
+    async def talk(url):
+        async with connect(url) as ws:  # a session saved every second, then the connection lost
+            assert (await recv_json(ws))["type"] == "hello"
+            await ws.send(hello)
+            await ws.send(speech.tobytes())
+            while (saved := await recv_json(ws, timeout=30))["type"] != "session_saved":
+                pass
+        await asyncio.sleep(0.5)
+        key = store._keys(saved["resume_token"])[0]  # the stored state itself, written bad in place
+        store.client.set(key, _with_nan_in_the_denoiser(store.client.get(key)), keepttl=True)
+        async with connect(url) as ws:
+            assert (await recv_json(ws))["type"] == "hello"
+            await ws.send(hello)
+            return await _resume_then_talk(ws, saved["resume_token"])
+
+    extra = ("--state-store", redis_url, "--save-state-every", "1", "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=extra) as server:
+        reply, msgs = asyncio.run(talk(server.ws_url))
+        log = server.log.read_text(errors="replace")
+    assert reply["type"] == "error" and reply["code"] == "resume_failed", reply
+    assert "state.denoiser.ssm holds 1 values that are NaN" in reply["message"], reply
+    assert [m["index"] for m in msgs if m["type"] == "frame"] == list(range(20)) and msgs[-1]["frames"] == 20
+    assert "a saved session state was refused (saved stream state: state.denoiser.ssm" in log, log[-3000:]
+    assert "Traceback" not in log and "internal" not in log, log[-3000:]
+
+
+def test_the_python_client_finishes_its_file_when_the_resume_after_a_goaway_fails(tmp_path, checkpoint,
+                                                                                   tiny_checkpoint, redis_url):
+    """Issue 40 item 4, a rolling upgrade: the worker that stops hands the session over, but the one the client
+    resumes on runs other weights, so the saved state is refused (`resume_failed`). The client goes on with a
+    fresh stream from the frame it lacks and ends with every frame of its file (it exited at 109 of 599)."""
+    from dimgestor.bvh import read_bvh
+
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    store = ("--state-store", redis_url, "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", tiny_checkpoint,
+                                                                              extra=store) as b:
+        moved, bvh = tmp_path / "moved", tmp_path / "moved.bvh"
+        err = _interrupted_client(a, b, wav, moved, signal.SIGTERM, 40, "--bvh", str(bvh))
+        assert a.proc.wait(20) == 0, a.log_tail()
+        log = b.log.read_text(errors="replace")
+    assert "resume failed (resume_failed: saved stream state is of another model" in err, err
+    msgs, frames = _frames(moved)
+    goaway = [m for m in msgs if m["type"] == "goaway"]
+    assert len(goaway) == 1 and 0 < goaway[0]["frames"] < 8 * 20
+    ends = [m for m in msgs if m["type"] == "end"]
+    assert ends == [{"type": "end", "frames": 8 * 20 - goaway[0]["frames"]}], ends  # the fresh stream's, no other
+    fresh = [f["index"] for f in frames[goaway[0]["frames"]:]]
+    assert fresh == list(range(8 * 20 - goaway[0]["frames"]))  # a new stream: its frames start over at 0
+    assert read_bvh(bvh).num_frames == 8 * 20  # the whole file's motion, the fresh stream's after the first's
+    assert "Traceback" not in log, log[-3000:]
+
+
+def test_the_python_client_finishes_its_file_on_an_earlier_worker_that_sends_a_stray_end(tmp_path, checkpoint, bundle,
+                                                                                        redis_url, monkeypatch):
+    """During a rolling upgrade a client may resume on a worker of the release before, which answered a refused
+    resume with `resume_failed` and then a stray `end {"frames": 0}`: the Python client takes no `end` before its
+    own audio_end, and finishes its file all the same."""
+    from types import SimpleNamespace
+
+    from dimgestor.bvh import read_bvh
+    from helpers.ws import make_server, running
+    from streamer import client_session as S
+
+    def earlier(self, e):  # the release before: the session started for the refused state flushed, with its `end`
+        return [*self._end_audio(), *self._on_Failed(S.Failed(P.ProtocolError("resume_failed", e.message)))]
+    monkeypatch.setattr(S.ClientSession, "_on_NotRestored", earlier)
+
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    store = ("--state-store", redis_url, "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, running(make_server(  # (other weights)
+            bundle, store=open_store(redis_url))) as old:
+        moved, bvh = tmp_path / "moved", tmp_path / "moved.bvh"
+        err = _interrupted_client(a, SimpleNamespace(ws_url=f"ws://127.0.0.1:{old.port}/"), wav, moved,
+                                  signal.SIGTERM, 40, "--bvh", str(bvh))
+    assert "resume failed (resume_failed: saved stream state is of another model" in err, err
+    msgs, _ = _frames(moved)
+    assert [m for m in msgs if m["type"] == "end"][0] == {"type": "end", "frames": 0}  # the stray one came ...
+    assert read_bvh(bvh).num_frames == 8 * 20  # ... and the client went on to the end of its file

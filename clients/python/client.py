@@ -601,6 +601,8 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
             if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:  # (the worker stops)
                 goaway = msg
                 return
+            if msg.get("type") == "end" and args.wav and not sender.done():
+                continue  # before our audio_end: the stray `end` earlier servers sent after a resume_failed
             if msg.get("type") == "end" or (args.frames and printer.frames >= args.frames):
                 return
     try:

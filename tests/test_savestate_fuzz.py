@@ -1,0 +1,135 @@
+"""A fuzz of stored session states (issue 40): a real saved state, mutated (its header's values: types, numbers
+negative, huge or NaN, shapes, offsets, removed keys, nesting 100,000 deep; its bytes: truncated, bits flipped,
+NaN written in), is either refused with a StateError or resumed exactly: the same frames as the state it came
+from for the same audio. Only a value every state may hold (a root position, a float of the model's state's
+own bytes) may be accepted and give other frames; nothing raises anything else."""
+import json
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, event, given, settings, strategies as st
+
+from dimgestor import savestate
+from streamer.sessions import Session
+from streamer.sources import make_resampler
+from helpers.stream import noise_audio
+
+AUDIO = noise_audio(1.2, seed=2)
+SAVE_AT = 9001  # samples before the save: odd, so the front end holds a partial frame
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+def _session(bundle) -> Session:
+    return Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)
+
+
+class Saved(tuple):
+    def __repr__(self):
+        return "Saved(...)"  # (hypothesis prints a failing case's arguments)
+
+
+@pytest.fixture(scope="module")
+def original(bundle):
+    """A session's state at 48 kHz (its resampler saved with it) -> (its bytes, the frames after it)."""
+    s = _session(bundle)
+    frames = s.infer(AUDIO[:SAVE_AT])
+    r = make_resampler(48000)
+    r.process(np.zeros(SAVE_AT * 3 + 30))  # exactly SAVE_AT out (30: the filter's delay)
+    data = s.snapshot(len(frames), rate=48000, encoding="binary", resampler=r.get_state())
+    resumed = _session(bundle)
+    resumed.restore(data)
+    return Saved((data, resumed.infer(AUDIO[SAVE_AT:])))
+
+
+def _split(data: bytes):
+    _, _, n = struct.unpack_from("<7sHI", data)
+    return json.loads(data[13:13 + n]), 13 + n
+
+
+def _paths(v, path=()):
+    yield path
+    if isinstance(v, dict):
+        for k, x in v.items():
+            yield from _paths(x, path + (k,))
+    elif isinstance(v, list):
+        for i, x in enumerate(v):
+            yield from _paths(x, path + (i,))
+
+
+def _leaves(v):
+    """The header's tensor and array nodes."""
+    if isinstance(v, dict):
+        if v.get("t") in ("tensor", "ndarray"):
+            yield v
+        for x in v.values():
+            yield from _leaves(x)
+
+
+BAD = st.one_of(st.integers(-2 ** 70, 2 ** 70), st.sampled_from([-1, 0, 1, 2 ** 31, 2 ** 40, 2 ** 63, -10 ** 12, 10 ** 400]),
+                st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=4), st.none(), st.booleans(),
+                st.lists(st.integers(-3, 2 ** 40), max_size=4), st.dictionaries(st.text(max_size=3), st.integers(),
+                                                                                 max_size=2), st.just("DEEP"))
+
+
+@st.composite
+def mutations(draw, data: bytes):
+    """-> (the mutated bytes, what was done, whether it may give other frames when accepted)."""
+    header, body = _split(data)
+    how = draw(st.sampled_from(["replace", "nudge", "remove", "truncate", "flip", "nan"]))
+    if how in ("truncate", "flip", "nan"):
+        b = bytearray(data)
+        if how == "truncate":
+            return bytes(b[:draw(st.integers(0, len(b) - 1))]), how, False
+        if how == "flip":
+            at = draw(st.one_of(st.integers(0, 12), st.integers(body, len(b) - 1)))  # the prefix or the leaves
+            b[at] ^= 1 << draw(st.integers(0, 7))
+            return bytes(b), f"flip byte {at}", at >= body  # a float's bits: any finite value is a state's
+        leaf = draw(st.sampled_from([x for x in _leaves(header["state"]) if x["n"]]))
+        size = np.dtype(leaf["dtype"].replace("float32", "<f4").replace("float64", "<f8")).itemsize
+        i = body + leaf["at"] + size * draw(st.integers(0, leaf["n"] // size - 1))
+        value = draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+        b[i:i + size] = np.array(value, "<f4" if size == 4 else "<f8").tobytes()
+        return bytes(b), f"{value} into {leaf['dtype']} at byte {i - body}", False
+    paths = [p for p in _paths(header) if p]
+    path = draw(st.sampled_from(paths))
+    *up, key = path
+    parent = header
+    for k in up:
+        parent = parent[k]
+    old = parent[key]
+    if how == "remove":
+        if isinstance(parent, dict):
+            del parent[key]
+        else:
+            parent.pop(key)
+    elif how == "nudge" and isinstance(old, (int, float)) and not isinstance(old, bool):
+        parent[key] = draw(st.sampled_from([old + 1, old - 1, -old, old * 2 ** 20, old - 2 ** 31, float(old) + 0.5]))
+    else:
+        parent[key] = draw(BAD)
+    text = json.dumps(header, allow_nan=True).replace('"DEEP"', DEEP)
+    free = path[:2] in (("meta", "decoder"), ("meta", "encoding"))
+    mutated = struct.pack("<7sHI", b"DGSTATE", savestate.STATE_VERSION, len(text)) + text.encode() + data[body:]
+    shown = "" if how == "remove" else f": {parent[key]!r:.60}"
+    return mutated, f"{how} {'.'.join(map(str, path))}{shown}", free
+
+
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_a_mutated_state_is_refused_or_resumed_exactly(bundle, original, data):
+    saved, after = original
+    mutated, what, free = data.draw(mutations(saved), label="mutation")
+    event(what.split(" ")[0])
+    s = _session(bundle)
+    try:
+        s.restore(mutated)
+    except savestate.StateError as e:
+        assert "\n" not in str(e) and str(e), what  # one line, with the reason
+        event("refused")
+        return
+    frames = s.infer(AUDIO[SAVE_AT:])
+    assert [f.index for f in frames] == [f.index for f in after], what
+    same = all(np.array_equal(f.features, g.features) and np.array_equal(f.root_pos, g.root_pos)
+               for f, g in zip(frames, after))
+    assert same or free, f"accepted and resumed otherwise: {what}"
+    event("accepted, the same frames" if same else "accepted, a state's free value changed")
