@@ -34,11 +34,12 @@ from streamer.sources import PushSource, make_resampler
 class Services:
     """What a connection's session uses of its server's."""
 
-    prep: Executor  # the worker thread: decode, resample, encode, store calls
+    prep: Executor  # the worker thread: decode, resample, encode (never a store call: they may block)
     metrics: ServerMetrics
     make_session: Callable[[], Session] | None
     store: object | None  # a `streamer.handover` store
-    store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method, off this thread
+    store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method on the store's
+    #                                       own thread, within a deadline (raises `streamer.store_link.StoreError`)
     max_backlog_s: float
     audio_recent: deque[bytes]  # the server source's recent audio (for a client that asks for it late)
     departures: ErrorLog

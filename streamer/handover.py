@@ -8,7 +8,7 @@ with the token and re-sends its audio from that sample; the frames that follow a
 run. A token resumes once and expires after `ttl_s`.
 
 Stores: `MemoryStore` (one process: tests, a single server) and `RedisStore` (a cluster: every worker reaches
-the same Redis). Both are blocking; the server calls them on a worker thread.
+the same Redis). Both are blocking; the server calls them on a thread of their own (`streamer.store_link`).
 """
 from __future__ import annotations
 
@@ -59,6 +59,9 @@ class MemoryStore:
             item = self._items.pop(token, None)
         return item[1] if item is not None and item[0] > self.now() else None
 
+    def ping(self) -> None:
+        """(Always answers: it is this process's memory.)"""
+
     def describe(self) -> str:
         return f"in-process (states expire after {self.ttl_s:g} s)"
 
@@ -67,7 +70,7 @@ class RedisStore:
     """States in Redis (`redis://HOST:PORT/DB`), set with an expiry and taken with GETDEL (atomic: two workers
     cannot both resume one token)."""
 
-    def __init__(self, url: str, ttl_s: float = DEFAULT_TTL_S, timeout_s: float = 2.0):
+    def __init__(self, url: str, ttl_s: float = DEFAULT_TTL_S, timeout_s: float = 1.0):  # (loopback/LAN: ms)
         import redis
 
         self.url, self.ttl_s = url, float(ttl_s)
