@@ -1,0 +1,225 @@
+"""When the state store is paused, dead or unreachable (issue 40, items 1-3), against a real redis-server and
+real WebSocket clients paced in real time: a live avatar never freezes (its largest frame gap and p95 latency
+stay within bounds from a quiet run of the same test), `/readyz` says "degraded" (200), a drain ends within
+its bound and tells every client why, and the sessions go on (and are saved again) once the store is back."""
+import asyncio
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from contextlib import ExitStack
+
+import numpy as np
+import pytest
+
+from streamer import protocol as P
+from streamer.ws import HANDOVER_S
+
+from helpers.clients import CLIENT, REPO, free_port, live_server
+
+pytestmark = pytest.mark.timeout(120)
+FPS = 20.0
+SERVE = ("--window-ms", "100")
+
+
+@pytest.fixture
+def redis(tmp_path):
+    """A redis-server of its own -> (its URL, its process: SIGSTOP / SIGCONT / SIGKILL it)."""
+    pytest.importorskip("redis", reason="the redis client is not installed (pip install 'dimgestor[cluster]')")
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.skip("redis-server is not installed (Debian: apt-get install redis-server)")
+    port = free_port()
+    proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+                             "--dir", str(tmp_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import redis as client
+
+    for _ in range(100):
+        try:
+            client.Redis(port=port).ping()
+            break
+        except client.ConnectionError:
+            time.sleep(0.05)
+    yield f"redis://127.0.0.1:{port}/0", proc
+    proc.send_signal(signal.SIGCONT)
+    proc.terminate()
+    proc.wait(10)
+
+
+def speech(seconds: float, seed: int) -> bytes:
+    from dimgestor.synthetic import synthetic_speech
+
+    return (np.clip(synthetic_speech(seconds, rate=16000, seed=seed), -1, 1) * 20000).astype("<i2").tobytes()
+
+
+def readyz(http: str) -> tuple[int, str]:
+    try:
+        with urllib.request.urlopen(http + "readyz", timeout=5) as r:
+            return r.status, r.read().decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+
+
+class Talker:
+    """One client talking in real time: its frames' arrival times (by index) and its messages."""
+
+    def __init__(self, url: str, seconds: float, seed: int):
+        self.url, self.pcm = url, speech(seconds, seed)
+        self.t0: float | None = None  # when its first audio was sent
+        self.arrivals: dict[int, float] = {}
+        self.messages: list[tuple[float, dict]] = []  # (arrival, JSON message) other than frames
+
+    async def run(self, stop_after_s: float | None = None) -> None:
+        from websockets.asyncio.client import connect
+
+        async with connect(self.url, max_size=2**24) as c:
+            assert json.loads(await asyncio.wait_for(c.recv(), 30))["type"] == "hello"
+            await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
+
+            async def send():
+                self.t0 = time.monotonic()
+                for k, i in enumerate(range(0, len(self.pcm), 3200)):  # 0.1 s messages, each on time
+                    await asyncio.sleep(max(0.0, self.t0 + k * 0.1 - time.monotonic()))
+                    await c.send(self.pcm[i : i + 3200])
+                await c.send(json.dumps({"type": "audio_end"}))
+
+            sender = asyncio.create_task(send())
+            try:
+                async for m in c:
+                    now = time.monotonic()
+                    if isinstance(m, bytes):
+                        self.arrivals.setdefault(P.parse_frame_binary(m)["index"], now)
+                        continue
+                    msg = json.loads(m)
+                    self.messages.append((now, msg))
+                    if msg["type"] in ("end", "goaway"):
+                        break
+            finally:
+                sender.cancel()
+
+    def of(self, kind: str) -> list[tuple[float, dict]]:
+        return [(t, m) for t, m in self.messages if m["type"] == kind]
+
+    def stats(self) -> tuple[float, float]:
+        """(largest gap between two frames' arrivals, p95 latency: a frame's arrival after its audio was sent)."""
+        index = sorted(self.arrivals)
+        t = np.array([self.arrivals[i] for i in index])
+        latency = t - (self.t0 + (np.array(index) + 1) / FPS)
+        return float(np.diff(t).max()), float(np.percentile(latency, 95))
+
+
+async def talk_together(talkers: list[Talker], during=None):
+    """Every talker at once (and `during()` beside them, if given) -> what `during` returned."""
+    tasks = [asyncio.create_task(t.run()) for t in talkers]
+    side = await during() if during is not None else None
+    await asyncio.gather(*tasks)
+    return side
+
+
+def test_a_paused_store_never_freezes_a_live_avatar_readiness_says_degraded_and_saves_resume(tmp_path, checkpoint,
+                                                                                            redis):
+    url, store = redis
+    n, quiet_s, paused_s, pause_at_s, pause_s = 3, 6.0, 16.0, 2.0, 8.0
+    with live_server(tmp_path, "ws", checkpoint, http=True,
+                     extra=("--state-store", url, "--save-state-every", "2", *SERVE)) as server:
+        quiet = [Talker(server.ws_url, quiet_s, seed) for seed in range(n)]
+        asyncio.run(talk_together(quiet))
+
+        async def pause():
+            await asyncio.sleep(pause_at_s)
+            store.send_signal(signal.SIGSTOP)
+            stopped, said = time.monotonic(), []
+            while time.monotonic() < stopped + pause_s:
+                said.append(await asyncio.to_thread(readyz, server.http_url))
+                await asyncio.sleep(0.25)
+            store.send_signal(signal.SIGCONT)
+            resumed, back = time.monotonic(), None
+            while back is None and time.monotonic() < resumed + 5:
+                if (answer := await asyncio.to_thread(readyz, server.http_url))[1].startswith("ready"):
+                    back = time.monotonic() - resumed
+                await asyncio.sleep(0.1)
+            return stopped, resumed, said, back
+
+        paused = [Talker(server.ws_url, paused_s, 10 + seed) for seed in range(n)]
+        stopped, resumed, said, back = asyncio.run(talk_together(paused, pause))
+    q = np.array([t.stats() for t in quiet])
+    p = np.array([t.stats() for t in paused])
+    print(f"quiet (largest gap, p95 latency) per talker: {q.round(3).tolist()}; paused: {p.round(3).tolist()}; "
+          f"readiness back {back} s after SIGCONT")
+    quiet_gap, quiet_p95 = q[:, 0].max(), q[:, 1].max()
+    assert (p[:, 0] <= max(0.6, 2 * quiet_gap)).all(), (p, q)
+    assert (p[:, 1] <= max(0.5, 1.5 * quiet_p95)).all(), (p, q)  # (the floor: a tiny model's p95 is ~20 ms)
+    for t in paused:  # every frame, on time, and the session ended as usual
+        assert sorted(t.arrivals) == list(range(int(paused_s * FPS))) and t.of("end")[-1][1]["frames"] == paused_s * FPS
+    assert all(code == 200 for code, _ in said) and any(why.startswith("degraded: state store") for _, why in said), said
+    assert back is not None, "readiness never said ready again after SIGCONT"
+    for t in paused:  # saved before the pause, none while it lasted (a second's grace), saved again after
+        times = [at for at, _ in t.of("session_saved")]
+        assert any(at < stopped for at in times) and any(at > resumed for at in times), (stopped, resumed, times)
+        assert not any(stopped + 1.0 < at < resumed for at in times), (stopped, resumed, times)
+
+
+def _stop(server, talkers: list[Talker], after_frames: int = 20) -> float:
+    """Once every talker has `after_frames` frames, SIGTERM to `server` -> seconds until it exited."""
+    deadline = time.monotonic() + 30
+    while min(len(t.arrivals) for t in talkers) < after_frames and time.monotonic() < deadline:
+        time.sleep(0.02)
+    t0 = time.monotonic()
+    server.proc.send_signal(signal.SIGTERM)
+    assert server.proc.wait(30) == 0, server.log_tail()
+    return time.monotonic() - t0
+
+
+def test_a_drain_with_the_store_paused_ends_within_its_bound_and_tells_every_client_why(tmp_path, checkpoint, redis):
+    """SIGTERM to a worker with 2 talking clients, healthy then with Redis SIGSTOPped: the second drain costs at
+    most the hand-over's bound more than the first, and each client gets a `goaway` without a token and why;
+    the reference client then starts a fresh stream on another worker and gets every frame after its last."""
+    import threading
+    import wave
+
+    url, store = redis
+    extra = ("--state-store", url, *SERVE)
+    wav = tmp_path / "speech.wav"
+    with wave.open(str(wav), "wb") as w:
+        w.setnchannels(1), w.setsampwidth(2), w.setframerate(16000)
+        w.writeframes(speech(8.0, seed=7))
+    with ExitStack() as stack:
+        a = stack.enter_context(live_server(tmp_path, "ws", checkpoint, extra=extra))
+        healthy = [Talker(a.ws_url, 10.0, seed) for seed in range(2)]
+        runs = threading.Thread(target=asyncio.run, args=(talk_together(healthy),))
+        runs.start()
+        healthy_s = _stop(a, healthy)
+        runs.join(30)
+
+        b = stack.enter_context(live_server(tmp_path, "ws", checkpoint, extra=extra))
+        c = stack.enter_context(live_server(tmp_path, "ws", checkpoint, extra=extra))
+        talker, saved = Talker(b.ws_url, 10.0, 3), tmp_path / "saved"
+        client = subprocess.Popen([sys.executable, str(CLIENT), "--url", b.ws_url, "--url", c.ws_url, "--wav", str(wav),
+                                   "--binary", "--save", str(saved), "--quiet"], cwd=REPO, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        runs = threading.Thread(target=asyncio.run, args=(talk_together([talker]),))
+        runs.start()
+        deadline = time.monotonic() + 30
+        while not (saved.is_dir() and sum(1 for _ in saved.iterdir()) > 20) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        store.send_signal(signal.SIGSTOP)
+        paused_s = _stop(b, [talker])
+        runs.join(30)
+        _, err = client.communicate(timeout=60)
+    print(f"drain: {healthy_s:.2f} s with the store healthy, {paused_s:.2f} s with it paused")
+    for t in healthy:
+        assert t.of("goaway")[-1][1]["resume_token"], t.messages[-3:]
+    assert paused_s <= healthy_s + HANDOVER_S, (healthy_s, paused_s)
+    goaway = talker.of("goaway")[-1][1]
+    assert goaway["resume_token"] is None and "state store is unreachable" in goaway["message"], goaway
+    assert goaway["frames"] == len(talker.arrivals) > 0
+    assert client.returncode == 0 and "goaway without a token" in err and "a fresh stream from sample" in err, err
+    messages = [json.loads(p.read_text()) for p in sorted(saved.iterdir()) if p.suffix == ".json"]
+    unsaved = next(m for m in messages if m["type"] == "goaway")
+    assert unsaved["resume_token"] is None and messages[-1]["type"] == "end", messages[-3:]
+    # the fresh stream covers the audio from the first frame the goaway did not bring to the end of the file
+    assert unsaved["frames"] + messages[-1]["frames"] == 8 * FPS, (unsaved, messages[-1])
