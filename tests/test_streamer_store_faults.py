@@ -4,6 +4,7 @@ stay within bounds from a quiet run of the same test), `/readyz` says "degraded"
 its bound and tells every client why, and the sessions go on (and are saved again) once the store is back."""
 import asyncio
 import json
+import os
 import shutil
 import signal
 import subprocess
@@ -20,6 +21,7 @@ from streamer import protocol as P
 from streamer.ws import HANDOVER_S
 
 from helpers.clients import CLIENT, REPO, free_port, live_server
+from helpers.cluster import NGINX, Cluster
 
 pytestmark = pytest.mark.timeout(120)
 FPS = 20.0
@@ -223,3 +225,100 @@ def test_a_drain_with_the_store_paused_ends_within_its_bound_and_tells_every_cli
     assert unsaved["resume_token"] is None and messages[-1]["type"] == "end", messages[-3:]
     # the fresh stream covers the audio from the first frame the goaway did not bring to the end of the file
     assert unsaved["frames"] + messages[-1]["frames"] == 8 * FPS, (unsaved, messages[-1])
+
+
+def test_a_killed_store_leaves_every_session_going_new_ones_accepted_and_saves_go_on_once_it_is_back(
+        tmp_path, checkpoint, redis):
+    url, store = redis
+    argv = store.args
+    with live_server(tmp_path, "ws", checkpoint, http=True,
+                     extra=("--state-store", url, "--save-state-every", "2", *SERVE)) as server:
+        talkers, late = [Talker(server.ws_url, 14.0, seed) for seed in range(2)], Talker(server.ws_url, 4.0, 5)
+        restarted = []
+
+        async def kill():
+            await asyncio.sleep(2.0)
+            store.kill()
+            store.wait()
+            killed, said = time.monotonic(), (0, "")
+            while not said[1].startswith("degraded") and time.monotonic() < killed + 5:
+                said = await asyncio.to_thread(readyz, server.http_url)
+                await asyncio.sleep(0.1)
+            await late.run()  # a new session while the store is dead
+            await asyncio.sleep(max(0.0, killed + 6.0 - time.monotonic()))
+            restarted.append(subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            back_at, back = time.monotonic(), None
+            while back is None and time.monotonic() < back_at + 5:
+                if (await asyncio.to_thread(readyz, server.http_url))[1].startswith("ready"):
+                    back = time.monotonic()
+                await asyncio.sleep(0.1)
+            return said, back_at, back
+
+        try:
+            said, back_at, back = asyncio.run(talk_together(talkers, kill))
+            _, text = readyz(server.http_url)
+        finally:
+            for p in restarted:
+                p.terminate()
+                p.wait(10)
+    assert said[0] == 200 and said[1].startswith("degraded: state store unreachable"), said
+    assert back is not None and text.startswith("ready"), text
+    assert sorted(late.arrivals) == list(range(4 * 20)) and late.of("end")[-1][1]["frames"] == 4 * 20
+    for t in talkers:  # every frame, its `end`, and saved again once the store was back
+        assert sorted(t.arrivals) == list(range(14 * 20)) and t.of("end")[-1][1]["frames"] == 14 * 20
+        assert any(at > back_at for at, _ in t.of("session_saved")), (back_at, t.of("session_saved"))
+
+
+@pytest.mark.skipif(NGINX is None, reason="nginx is not installed (Debian: apt-get install nginx)")
+def test_local_cluster_starts_a_killed_store_again_and_serves_throughout(checkpoint):
+    """Redis SIGKILLed under 3 talkers in deploy/local-cluster: it is started again on its port, every session
+    goes on to its `end`, a new one is served meanwhile, the workers are saving again after, and the cluster
+    stops cleanly."""
+    import re
+
+    cluster = Cluster("--", "--checkpoint", str(checkpoint), "--steps", "2", "--status-every", "0",
+                      "--save-state-every", "2", *SERVE)
+    try:
+        cluster.wait_for(r"^ready: .*handed over through the state store")
+        pid = int(cluster.wait_for(r"^state store: redis://\S+ \(pid (\d+)\)").group(1))
+        workers = cluster.workers()
+        talkers, late = [Talker(cluster.url, 12.0, seed) for seed in range(3)], Talker(cluster.url, 3.0, 5)
+
+        def saved() -> float:
+            return sum(metric(f"http://127.0.0.1:{port}/", "dimgestor_sessions_saved_total")
+                       for port, _ in workers.values())
+
+        async def kill():
+            await asyncio.sleep(2.0)
+            os.kill(pid, signal.SIGKILL)
+            new_session = asyncio.create_task(late.run())  # a new session while the store is dead
+            restarted = await asyncio.to_thread(cluster.wait_for, r"^state store restarted: .* \(pid \d+\)", 20)
+            then = await asyncio.to_thread(saved)
+            await new_session
+            return restarted, then
+
+        restarted, saved_then = asyncio.run(talk_together(talkers, kill))
+        ready = {n: readyz(f"http://127.0.0.1:{port}/") for n, (port, _) in workers.items()}
+        deadline = time.monotonic() + 10
+        while any(not why.startswith("ready") for _, why in ready.values()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+            ready = {n: readyz(f"http://127.0.0.1:{port}/") for n, (port, _) in workers.items()}
+        saved_after = saved()
+    finally:
+        code = cluster.stop()
+    assert restarted and "exited" in cluster.output and "restarting the state store" in cluster.output
+    assert all(status == 200 and why.startswith("ready") for status, why in ready.values()), ready
+    assert sorted(late.arrivals) == list(range(3 * 20)) and late.of("end")[-1][1]["frames"] == 3 * 20
+    for t in talkers:  # every frame of every session, its `end`, saved again once the store was back
+        assert sorted(t.arrivals) == list(range(12 * 20)) and t.of("end")[-1][1]["frames"] == 12 * 20
+    assert saved_after > saved_then, (saved_then, saved_after)  # saving again after the restart
+    assert code == 0, cluster.output[-3000:]
+    assert not re.search(r"every worker has exited|exited while serving", cluster.output)
+
+
+def metric(base: str, name: str) -> float:
+    from prometheus_client.parser import text_string_to_metric_families
+
+    with urllib.request.urlopen(base + "metrics", timeout=5) as r:
+        text = r.read().decode()
+    return {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples}[name]
