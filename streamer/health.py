@@ -96,9 +96,11 @@ class Readiness:
             return False, (f"not ready: real-time load {load:.2f} over the last {self.load.window_s:g} s "
                            f"(limit {self.max_load:g}): inference cannot keep real time")
         degraded = self.store.health() if self.store is not None else None
+        note = self.store.note() if self.store is not None else ""
+        note = f"; {note}" if note else ""
         if degraded is not None:  # still ready: it serves every session, only without hand-over
-            return True, f"degraded: {degraded}; real-time load {load:.2f}"
-        return True, f"ready: real-time load {load:.2f}"
+            return True, f"degraded: {degraded}; real-time load {load:.2f}{note}"
+        return True, f"ready: real-time load {load:.2f}{note}"
 
 
 def answer(method: str, target: str, readiness: Readiness, metrics=None) -> Answer | None:

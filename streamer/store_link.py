@@ -25,6 +25,8 @@ import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+from streamer.log_limit import ErrorLog
+
 log = logging.getLogger("dimgestor.store")
 
 MAX_QUEUE = 32  # calls waiting for the store (a save holds a state of ~1 MB: 32 MB at most)
@@ -72,6 +74,9 @@ class StoreLink:
         self.calls = Counter()  # (name, outcome) -> count; outcome: ok, late, failed, timeout, dropped, busy, down
         self.delayed = Counter()  # name -> calls that took over DELAYED_S
         self.seconds = Counter()  # name -> total seconds the calls took (queue + store)
+        # one line when it goes down, one when it is back; a flapping store: at most one of each per 30 s
+        self._down_log = ErrorLog("state store", every_s=30.0, what="outages", logger=log)
+        self._up_log = ErrorLog("state store", every_s=30.0, what="recoveries", logger=log)
         self._lock = threading.Lock()  # (the counts are written by both threads)
         self._queue: deque[_Call] = deque()
         self._wake = threading.Condition()
@@ -128,6 +133,13 @@ class StoreLink:
             return None
         return (f"state store unreachable for {time.monotonic() - self.down_since:.0f} s ({self.down_reason}): "
                 f"sessions go on without hand-over")
+
+    def note(self) -> str:
+        """The saves that did not go as usual so far, for `/readyz`'s body ("" if none)."""
+        calls, delayed = self.counts()
+        lost = sum(n for (name, outcome), n in calls.items() if name == "put" and outcome not in ("ok", "late"))
+        slow = delayed.get("put", 0)
+        return f"state store: {lost} saves not made, {slow} delayed" if lost or slow else ""
 
     def counts(self) -> tuple[dict, dict]:
         """({(call, outcome): calls}, {call: calls delayed}), as they are now (for the metrics)."""
@@ -194,7 +206,7 @@ class StoreLink:
             self._went_down(f"ping: {type(e).__name__}: {e}")
             return
         if not self.up:
-            log.warning(f"state store answers again after {time.monotonic() - self.down_since:.1f} s: "
+            self._up_log(logging.WARNING, f"answers again after {time.monotonic() - self.down_since:.1f} s: "
                         f"sessions are saved and handed over again")
             self.down_since = None
 
@@ -203,7 +215,7 @@ class StoreLink:
         if self.up:
             self.down_since = time.monotonic()
             self.outages += 1
-            log.warning(f"state store unreachable ({why}): sessions go on without hand-over (no saves, no "
+            self._down_log(logging.WARNING, f"unreachable ({why}): sessions go on without hand-over (no saves, no "
                         f"resumes) until it answers again (pinged every {self.ping_every_s:g} s)")
 
 

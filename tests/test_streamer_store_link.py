@@ -62,7 +62,7 @@ def test_calls_run_on_the_links_own_thread_and_a_hanging_store_costs_a_call_its_
             if link.up:
                 break
             await asyncio.sleep(0.05)
-        assert link.up and readiness.check()[1].startswith("ready")
+        assert link.up and readiness.check()[1].startswith("ready") and "saves not made" in readiness.check()[1]
         await link.call("put", "d", b"state d")
         return took, refused, await link.call("take", "d")
 
