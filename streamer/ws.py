@@ -230,8 +230,8 @@ class WsServer:
     async def _hand_over(self, own: dict[Client, asyncio.Task], deadline: float) -> set[Client]:
         """Each session finishes the audio it holds (until `deadline`), then its state goes to the store and the
         client gets `goaway` with the token (streamer/handover.py). Returns the clients handed over; the others
-        (not done in time, a store that failed or did not answer by `deadline`) are told so with a `goaway`
-        without a token (`Client.tell_not_handed_over`): they reconnect and start a fresh stream."""
+        (not done in time, a store that failed or did not answer by `deadline`) get a `goaway` without a token
+        from `close` (`protocol.goaway_unsaved`, with why): they reconnect and start a fresh stream."""
         from .handover import new_token
 
         loop = asyncio.get_running_loop()
@@ -247,8 +247,8 @@ class WsServer:
         saved = await asyncio.gather(*(c.save_handed_over(new_token()) for c in ready))
         for c, ok in zip(ready, saved):
             if not ok:
-                why = self.link.down_reason if not self.link.up else "it failed"
-                self._unsaved[c] = f"could not save the session (the state store is unreachable: {why})"
+                why = f"is unreachable: {self.link.down_reason}" if not self.link.up else "failed or was busy"
+                self._unsaved[c] = f"could not save the session (the state store {why})"
         return {c for c, ok in zip(ready, saved) if ok}
 
     async def _store_call(self, name: str, *args):
