@@ -73,7 +73,6 @@ class StoreLink:
         self.outages = 0
         self.calls = Counter()  # (name, outcome) -> count; outcome: ok, late, failed, timeout, dropped, busy, down
         self.delayed = Counter()  # name -> calls that took over DELAYED_S
-        self.seconds = Counter()  # name -> total seconds the calls took (queue + store)
         # one line when it goes down, one when it is back; a flapping store: at most one of each per 30 s
         self._down_log = ErrorLog("state store", every_s=30.0, what="outages", logger=log)
         self._up_log = ErrorLog("state store", every_s=30.0, what="recoveries", logger=log)
@@ -104,8 +103,7 @@ class StoreLink:
             deadline_s = TAKE_DEADLINE_S if name == "take" else SAVE_DEADLINE_S
         if not self.up:
             self._count(name, "down")
-            raise StoreDown(f"the state store is unreachable ({self.down_reason}; for "
-                            f"{time.monotonic() - self.down_since:.0f} s)")
+            raise StoreDown(f"the state store is unreachable ({self._down_for()})")
         loop = asyncio.get_running_loop()
         job = _Call(name, args, time.monotonic() + max(0.0, deadline_s), loop.create_future(), loop)
         with self._wake:
@@ -121,18 +119,19 @@ class StoreLink:
             self._went_down(f"a {name} took over {deadline_s:g} s")
             raise StoreTimeout(f"the state store did not answer within {deadline_s:g} s") from None
         finally:
-            took = time.monotonic() - job.queued
-            with self._lock:
-                self.seconds[name] += took
-                if took > DELAYED_S:
+            if time.monotonic() - job.queued > DELAYED_S:
+                with self._lock:
                     self.delayed[name] += 1
 
     def health(self) -> str | None:
         """None while the store answers; else why the worker serves without hand-over (`/readyz`'s body)."""
         if self.up:
             return None
-        return (f"state store unreachable for {time.monotonic() - self.down_since:.0f} s ({self.down_reason}): "
-                f"sessions go on without hand-over")
+        return f"state store unreachable ({self._down_for()}): sessions go on without hand-over"
+
+    def _down_for(self) -> str:
+        since = self.down_since  # (the link's thread may clear it meanwhile)
+        return f"{self.down_reason}; for {time.monotonic() - since:.0f} s" if since is not None else "back now"
 
     def note(self) -> str:
         """The saves that did not go as usual so far, for `/readyz`'s body ("" if none)."""
@@ -205,18 +204,21 @@ class StoreLink:
         except Exception as e:
             self._went_down(f"ping: {type(e).__name__}: {e}")
             return
-        if not self.up:
-            self._up_log(logging.WARNING, f"answers again after {time.monotonic() - self.down_since:.1f} s: "
-                        f"sessions are saved and handed over again")
-            self.down_since = None
+        with self._lock:
+            since, self.down_since = self.down_since, None
+        if since is not None:
+            self._up_log(logging.WARNING, f"answers again after {time.monotonic() - since:.1f} s: sessions are "
+                                          f"saved and handed over again")
 
     def _went_down(self, why: str) -> None:
-        self.down_reason = why
-        if self.up:
+        with self._lock:  # (either thread)
+            self.down_reason = why
+            if self.down_since is not None:
+                return
             self.down_since = time.monotonic()
             self.outages += 1
-            self._down_log(logging.WARNING, f"unreachable ({why}): sessions go on without hand-over (no saves, no "
-                        f"resumes) until it answers again (pinged every {self.ping_every_s:g} s)")
+        self._down_log(logging.WARNING, f"unreachable ({why}): sessions go on without hand-over (no saves, no "
+                                        f"resumes) until it answers again (pinged every {self.ping_every_s:g} s)")
 
 
 def _post(loop: asyncio.AbstractEventLoop, fn, *args) -> None:

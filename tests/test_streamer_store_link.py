@@ -17,15 +17,16 @@ pytestmark = pytest.mark.timeout(60)
 class HangingStore(MemoryStore):
     """A MemoryStore that hangs every call (ping included) while `hang` is clear: a paused Redis."""
 
-    def __init__(self):
+    def __init__(self, hang_s: float = 1.0):  # (as a Redis client's socket timeout)
         super().__init__()
+        self.hang_s = hang_s
         self.running = threading.Event()
         self.running.set()
         self.threads: set[str] = set()
 
     def _wait(self):
         self.threads.add(threading.current_thread().name)
-        if not self.running.wait(1.0):  # (as a Redis client's socket timeout)
+        if not self.running.wait(self.hang_s):
             raise TimeoutError("no answer")
 
     def put(self, token, data):
@@ -131,3 +132,23 @@ def test_the_metrics_report_the_store_and_readiness_says_degraded_with_200():
     assert "dimgestor_store_up 0.0" in text and "dimgestor_degraded 1.0" in text and "dimgestor_ready 1.0" in text
     assert "dimgestor_store_outages_total 1.0" in text
     assert got.status == 200 and got.body.startswith(b"degraded: state store unreachable")
+
+
+def test_a_store_call_that_never_returns_marks_the_store_down_all_the_same(monkeypatch):
+    """A client without timeouts: the link's thread is held, yet the worker sees the store down (and says so)."""
+    from streamer import store_link
+
+    monkeypatch.setattr(store_link, "STUCK_S", 0.3)
+    store = HangingStore(hang_s=30.0)
+    store.running.clear()
+    link = StoreLink(store, ping_every_s=0.05)  # (its first ping hangs)
+    try:
+        for _ in range(100):
+            if not link.up:
+                break
+            time.sleep(0.05)
+        why = link.health()
+    finally:
+        store.running.set()
+        link.close()
+    assert why is not None and "has not returned for" in why, why
