@@ -22,7 +22,7 @@ from helpers.clients import CLIENT, REPO, free_port, live_server
 from helpers.cluster import NGINX, Cluster
 from helpers.talkers import FPS, Talker, readyz, speech, talk_together
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]  # (each runs 20-35 s)
 SERVE = ("--window-ms", "100")
 
 
