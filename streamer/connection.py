@@ -35,11 +35,12 @@ from streamer.sources import PushSource, make_resampler
 class Services:
     """What a connection's session uses of its server's."""
 
-    prep: Executor  # the worker thread: decode, resample, encode, store calls
+    prep: Executor  # the worker thread: decode, resample, encode (never a store call: they may block)
     metrics: ServerMetrics
     make_session: Callable[[], Session] | None
     store: object | None  # a `streamer.handover` store
-    store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method, off this thread
+    store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method on the store's
+    #                                       own thread, within a deadline (raises `streamer.store_link.StoreError`)
     max_backlog_s: float
     audio_recent: deque[bytes]  # the server source's recent audio (for a client that asks for it late)
     departures: ErrorLog
@@ -58,6 +59,7 @@ class Client(Outbox):
         self.resampler = None  # lives in the worker (built, used and flushed there)
         self.session: Session | None = None
         self.session_task: asyncio.Task | None = None
+        self.frames_queued = 0  # its session's frames in its queue (or sent): a session cut short ends at this
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
         self.closed = False  # the server closed it (an unsupported protocol)
         self._saving: set[asyncio.Task] = set()  # its periodic saves on their way to the store
@@ -246,6 +248,7 @@ class Client(Outbox):
         self.source = source = PushSource(self.svc.max_backlog_s)
         self.resampler, self.resample_from = None, start.rate if start.resample else None
         self.session = session = self.svc.make_session()
+        self.frames_queued = 0
         session.clock = self.clock
         if not start.face:  # the client asked for no face: its session makes none (nor pays for one)
             session.face_options = None
@@ -265,6 +268,7 @@ class Client(Outbox):
                 if a.layout is not None:  # after the encoding: no frame of the old layout follows it
                     self.put(a.layout)
                 await self.put_own(messages)
+                self.frames_queued += len(frames)
 
         async def run() -> S.SessionEnded:
             try:

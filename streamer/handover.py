@@ -16,8 +16,9 @@ refused with `SessionLive`. After a crash nobody releases: the state becomes res
 (`lease_s`). A hand-over's token is fresh and has no lease.
 
 Stores: `MemoryStore` (one process: tests, a single server) and `RedisStore` (a cluster: every worker reaches
-the same Redis). Both are blocking, with the same semantics; the server calls them off its event loop. A state
-larger than `max_bytes` is refused (`StateRefused`), so one session cannot fill the store.
+the same Redis). Both are blocking, with the same semantics; the server calls them on a thread of their own
+(`streamer.store_link`). A state larger than `max_bytes` is refused (`StateRefused`), so one session cannot fill
+the store.
 """
 from __future__ import annotations
 
@@ -27,8 +28,8 @@ import threading
 import time
 from typing import Iterable, Protocol
 
-__all__ = ["MemoryStore", "RedisStore", "SessionLive", "StateRefused", "StateStore", "new_token", "open_store",
-           "token_hash"]
+__all__ = ["MemoryStore", "RedisStore", "SessionLive", "StateRefused", "StateStore", "StoreAnswer", "new_token",
+           "open_store", "token_hash"]
 
 KEY_PREFIX = "dimgestor:"  # + "state:", "live:" or "spent:" + the token's hash
 DEFAULT_TTL_S = 300.0  # a client reconnects within seconds; a state nobody resumes is gone after 5 minutes
@@ -38,7 +39,11 @@ TOUCH_EVERY_S = 1.0
 DEFAULT_MAX_BYTES = 5 * 2**20
 
 
-class StateRefused(Exception):
+class StoreAnswer(Exception):
+    """The store answered, with a no: not a failure of the store (the link passes it on as it is)."""
+
+
+class StateRefused(StoreAnswer):
     """A put the store refuses: `reason` "too_large" (over `max_bytes`) or "spent" (the token was taken)."""
 
     def __init__(self, reason: str, message: str):
@@ -46,7 +51,7 @@ class StateRefused(Exception):
         self.reason = reason
 
 
-class SessionLive(Exception):
+class SessionLive(StoreAnswer):
     """A take refused: the token's session is live on a connection (its lease runs `retry_after_s` more)."""
 
     def __init__(self, retry_after_s: float):
@@ -168,6 +173,9 @@ class MemoryStore:
             return [KEY_PREFIX + kind + ":" + h for kind, d in (("state", self._states), ("live", self._leases),
                                                                ("spent", self._spent)) for h in d]
 
+    def ping(self) -> None:
+        """(Always answers: it is this process's memory.)"""
+
     def describe(self) -> str:
         return f"in-process (states expire after {self.ttl_s:g} s)"
 
@@ -208,8 +216,8 @@ return 1
 class RedisStore:
     """States in Redis (`redis://[USER:PASSWORD@]HOST:PORT/DB`, `rediss://` for TLS), set with an expiry."""
 
-    def __init__(self, url: str, ttl_s: float = DEFAULT_TTL_S, timeout_s: float = 2.0, lease_s: float = LEASE_S,
-                 max_bytes: int = DEFAULT_MAX_BYTES):
+    def __init__(self, url: str, ttl_s: float = DEFAULT_TTL_S, timeout_s: float = 1.0, lease_s: float = LEASE_S,
+                 max_bytes: int = DEFAULT_MAX_BYTES):  # (timeout: loopback/LAN answers in ms)
         import redis
 
         self.url, self.ttl_s, self.lease_s, self.max_bytes = url, float(ttl_s), float(lease_s), int(max_bytes)

@@ -2,7 +2,8 @@
 
 `/healthz` says the process is alive and its event loop answers (200, always). `/readyz` says whether a load
 balancer or an orchestrator should send it new sessions: 503 while draining (after SIGTERM, until it exits) and
-while its inference cannot keep real time, by this rule (`Readiness`):
+while its inference cannot keep real time, by this rule (`Readiness`); a worker whose state store does not
+answer stays ready (200) and says "degraded: ..." in the body: it serves every session, without hand-over.
 
     not ready  <=>  real-time load > max_load (0.9),
     real-time load = seconds the inference thread(s) spent computing real-time work (a cycle of windows ranked
@@ -84,6 +85,7 @@ class Readiness:
         self.load = load if load is not None else RealtimeLoad()
         self.max_load = max_load
         self.draining = False  # set once on SIGTERM / shutdown; never cleared (the process is on its way out)
+        self.store = None  # a `streamer.store_link.StoreLink` (its `health()`), if the worker has a state store
 
     def check(self) -> tuple[bool, str]:
         """(ready, why): the reason is one line, the body of the `/readyz` answer."""
@@ -93,7 +95,12 @@ class Readiness:
         if load > self.max_load:
             return False, (f"not ready: real-time load {load:.2f} over the last {self.load.window_s:g} s "
                            f"(limit {self.max_load:g}): inference cannot keep real time")
-        return True, f"ready: real-time load {load:.2f}"
+        degraded = self.store.health() if self.store is not None else None
+        note = self.store.note() if self.store is not None else ""
+        note = f"; {note}" if note else ""
+        if degraded is not None:  # still ready: it serves every session, only without hand-over
+            return True, f"degraded: {degraded}; real-time load {load:.2f}{note}"
+        return True, f"ready: real-time load {load:.2f}{note}"
 
 
 def answer(method: str, target: str, readiness: Readiness, metrics=None) -> Answer | None:

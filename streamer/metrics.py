@@ -70,6 +70,7 @@ class ServerMetrics:
         self.clients: Callable[[], int] = lambda: 0
         self.sinks: dict[str, FrameCounts] = {}
         self.queues: dict[str, Callable[[], float]] = {}  # gauge name -> () -> value (see _Live)
+        self.store = None  # the worker's `streamer.store_link.StoreLink`, if it has a state store
         r.register(_Live(self))
         ProcessCollector(registry=r)  # process_cpu_seconds_total, process_resident_memory_bytes, ... (Linux)
 
@@ -130,7 +131,37 @@ class _Live(Collector):
                                 f"spent on real-time work per second of wall time and thread, over the last "
                                 f"{load.window_s:g} s (under 1: keeps real time; /readyz fails above "
                                 f"{m.readiness.max_load:g})", value=load.value())
-        yield GaugeMetricFamily("dimgestor_ready", "1 when /readyz answers 200", value=float(m.readiness.check()[0]))
+        ready, why = m.readiness.check()
+        yield GaugeMetricFamily("dimgestor_ready", "1 when /readyz answers 200", value=float(ready))
+        yield GaugeMetricFamily("dimgestor_degraded", "1 when /readyz says degraded (ready, but the state store "
+                                "does not answer: no hand-over)", value=float(why.startswith("degraded")))
+        if m.store is not None:
+            yield from _store_metrics(m.store)
+
+
+def _store_metrics(link):
+    """The state store as its link (`streamer.store_link`) sees it: up or not, calls by outcome, delays."""
+    yield GaugeMetricFamily("dimgestor_store_up", "1 while the state store answers; 0 while it is taken as down "
+                            "(calls fail at once, pinged until it answers)", value=float(link.up))
+    yield GaugeMetricFamily("dimgestor_store_queue_calls", "State store calls waiting for the store's thread",
+                            value=link.queued)
+    yield CounterMetricFamily("dimgestor_store_outages", "Times the state store was found down (a failed or "
+                              "timed-out call or ping)", value=link.outages)
+    counts, delays = link.counts()
+    calls = CounterMetricFamily("dimgestor_store_calls", "State store calls by method (put: a save, take: a "
+                                "resume, touch, release, forget) and outcome: ok; refused (the store said no: a "
+                                "spent token, a live session, a state too large); late (done after its caller's "
+                                "deadline); failed; timeout (past its deadline); dropped "
+                                "(still queued at its deadline, never run); busy (queue full); down (refused at "
+                                "once while the store is down)", labels=["call", "outcome"])
+    for (name, outcome), n in sorted(counts.items()):
+        calls.add_metric([name, outcome], n)
+    yield calls
+    delayed = CounterMetricFamily("dimgestor_store_calls_delayed", "State store calls that took over 0.5 s from "
+                                  "the request to the answer (queue + store), by method", labels=["call"])
+    for name, n in sorted(delays.items()):
+        delayed.add_metric([name], n)
+    yield delayed
 
 
 QUEUES = {  # the queue-depth gauges a server may register in `ServerMetrics.queues`: name -> (help, unit)

@@ -229,6 +229,13 @@ def goaway(token: str, samples: int, frames: int, rate: int) -> str:
                        "rate": int(rate), "frames": int(frames)})
 
 
+def goaway_unsaved(frames: int, why: str) -> str:
+    """The worker is stopping and could not save the session (`why`): no token; reconnect and start a fresh
+    stream with the audio of the first frame not received (the frames go on from 0 in the new session)."""
+    return json.dumps({"type": "goaway", "reason": "restart", "resume_token": None, "frames": int(frames),
+                       "message": f"the worker is stopping and {why}: connect again and start a fresh stream"})
+
+
 def session_saved(token: str, samples: int, frames: int, rate: int) -> str:
     """A periodic save (--save-state-every): after a lost connection, resume_session with `token` goes on from
     sample `samples` (at `rate`) and frame `frames` of this session."""

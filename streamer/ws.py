@@ -37,6 +37,7 @@ from streamer.memory import Trimmer
 from streamer.metrics import ServerMetrics
 from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
 from streamer.sessions import Session
+from streamer.store_link import StoreLink
 from streamer.viewer import ViewerFiles
 from streamer.waiting import WaitingRoom
 
@@ -45,6 +46,7 @@ __all__ = ["WsServer", "own_origins"]
 AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
 AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 HANDOVER_S = 5.0  # on SIGTERM with a state store: how long sessions may take to finish the audio held and be saved
+STORE_DRAIN_DEADLINE_S = 2.0  # a hand-over's save: a store that takes longer is taken as unreachable
 
 
 class WsServer:
@@ -75,6 +77,9 @@ class WsServer:
         self.files, self.token, self.store = files, token, store
         self.origins = {o for o in map(RC.allowed_origin, origins) if o is not None}
         self.waiting_room = WaitingRoom(max_waiting, request_timeout_s)
+        self.link = StoreLink(store) if store is not None else None  # its calls, off the real-time path
+        self._drain_until: float | None = None  # (loop time) while draining with a store: the puts' deadline
+        self._unsaved: dict[Client, str] = {}  # while draining: the sessions the store could not take, and why
         self.seats = S.Seats(max_sessions, max_backlog_s=max_backlog_s, resumable=store is not None,
                              save_every_s=save_every_s if store is not None else None)
         self.hello, self.make_session = hello, make_session
@@ -105,6 +110,8 @@ class WsServer:
         self.metrics.queues["dimgestor_client_queue_messages"] = lambda: sum(len(c.queue) for c in self.clients)
         self.metrics.queues["dimgestor_audio_backlog_seconds"] = lambda: sum(
             c.source.backlog_s for c in self.clients if c.source is not None)
+        if self.link is not None:
+            self.metrics.store = self.metrics.readiness.store = self.link
 
     @property
     def closing(self) -> bool:
@@ -185,6 +192,7 @@ class WsServer:
         finishing = {c: task for c, task in own.items() if c.source is None}  # past audio_end: nothing to move
         moving = {c: task for c, task in own.items() if c not in finishing}
         until = loop.time() + (HANDOVER_S if self.store else within_s * 0.4)
+        self._drain_until = until  # no store call outlives the hand-over's bound
         handed = await self._hand_over(moving, until) if self.store and moving else set()
         if finishing:
             await asyncio.wait(finishing.values(), timeout=max(0.0, until - loop.time()))
@@ -196,8 +204,13 @@ class WsServer:
         for c in list(self.clients):
             if c in handed or c in ended:  # (goaway sent; or its own `end`, after its last frames)
                 continue
-            if c in own:
-                c.put(P.end(c.machine.frames))
+            # (a session cut short: the frames it queued, not those it counted: a window's frames may have been
+            # encoding when it was cancelled, and they never come)
+            if c in own and self.store is not None and c in moving:  # told why; it goes on elsewhere, afresh
+                c.put(P.goaway_unsaved(c.frames_queued, self._unsaved.get(c, "the session did not finish the "
+                                                                         "audio held within the hand-over's bound")))
+            elif c in own:
+                c.put(P.end(c.frames_queued))
             elif not c.own and not self.broadcast_ended:
                 c.put(P.end(self.broadcast_frames))
         deadline = loop.time() + within_s * 0.6
@@ -218,11 +231,14 @@ class WsServer:
                 for c in list(self.clients):
                     c.ws.transport.abort()
         self.prep.shutdown(wait=False, cancel_futures=True)
+        if self.link is not None:
+            self.link.close()
 
     async def _hand_over(self, own: dict[Client, asyncio.Task], deadline: float) -> set[Client]:
         """Each session finishes the audio it holds (until `deadline`), then its state goes to the store and the
         client gets `goaway` with the token (streamer/handover.py). Returns the clients handed over; the others
-        (not done in time, a store that failed) are ended as without a store."""
+        (not done in time, a store that failed or did not answer by `deadline`) get a `goaway` without a token
+        from `close` (`protocol.goaway_unsaved`, with why): they reconnect and start a fresh stream."""
         from .handover import new_token
 
         loop = asyncio.get_running_loop()
@@ -232,17 +248,24 @@ class WsServer:
             if source is not None:
                 await source.close()
         done, _ = await asyncio.wait(own.values(), timeout=max(0.0, deadline - loop.time()))
-        handed = set()
-        for c, task in own.items():
-            if task not in done or task.cancelled() or task.exception() is not None or c.session is None:
-                continue  # (not finished in time, failed, or its client left)
-            if await c.save_handed_over(new_token()):
-                handed.add(c)
-        return handed
+        ready = [c for c, task in own.items()
+                 if task in done and not task.cancelled() and task.exception() is None and c.session is not None]
+        # (not finished in time, failed, or its client left: not saved) all saved at once, each within `deadline`
+        saved = await asyncio.gather(*(c.save_handed_over(new_token()) for c in ready))
+        for c, ok in zip(ready, saved):
+            if not ok:
+                why = f"is unreachable: {self.link.down_reason}" if not self.link.up else "failed or was busy"
+                self._unsaved[c] = f"could not save the session (the state store {why})"
+        return {c for c, ok in zip(ready, saved) if ok}
 
     async def _store_call(self, name: str, *args):
-        """The state store's method `name` on the worker thread (its calls block)."""
-        return await asyncio.get_running_loop().run_in_executor(self.prep, getattr(self.store, name), *args)
+        """The state store's method `name`, on the store's own thread, within its deadline (`StoreLink`); while
+        draining, within the hand-over's bound too."""
+        deadline_s = None
+        if self._drain_until is not None:
+            deadline_s = max(0.0, min(self._drain_until - asyncio.get_running_loop().time(),
+                                      STORE_DRAIN_DEADLINE_S))
+        return await self.link.call(name, *args, deadline_s=deadline_s)
 
     async def _lease_loop(self) -> None:
         """Renews the leases of the sessions live here, all in one store call every TOUCH_EVERY_S: their periodic-

@@ -261,3 +261,20 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     r = json.loads(out.read_text())
     assert r["groups"] == 2 and "streams" not in r and len(r["profile"]) == 2
     assert all(finite(x["ms_per_window"]["total"]) and x["ms_per_window"]["frontend"] > 0 for x in r["profile"])
+
+
+@pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server is not installed")
+def test_store_faults_benchmark_writes_its_schema(tmp_path):
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    ckpt = make_tiny_checkpoint(tmp_path, seed=1)
+    out = tmp_path / "store_faults.json"
+    run("store_faults.py", "--talkers", "2", "--seconds", "7", "--fault-at", "1", "--fault-s", "3",
+        "--worker-args", f"--checkpoint {ckpt} --steps 2", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert set(r["runs"]) == {"quiet", "paused", "killed"} and r["machine"] and r["code"]
+    for name, one in r["runs"].items():
+        assert one["frames"] == [one["frames_expected"]] * 2 and all(map(finite, one["largest_gap_s"])), name
+    for name in ("paused", "killed"):
+        assert r["runs"][name]["readyz_during"]["status_200"] == r["runs"][name]["readyz_during"]["answers"] > 0
+        assert r["runs"][name]["saves"]["after"] > 0, r["runs"][name]  # saving again once the store is back

@@ -527,6 +527,14 @@ async def run(args) -> int:
                 return result
             goaway, flow.saved = result, None
             await ws.close()
+            if not goaway.get("resume_token"):  # the worker could not save our session: start afresh elsewhere
+                ws = await reconnect(urls, args.token, resumes + lost + 1)
+                start = flow.frames * wav[1] // round(printer.fps)  # the audio of the first frame we lack
+                print(f"goaway without a token ({goaway.get('message', 'not saved')}): a fresh stream from sample "
+                      f"{start} (frame {flow.frames})", file=sys.stderr)
+                flow.on_restarted(start / wav[1])
+                lost, hello = lost + 1, True
+                continue
             loop = asyncio.get_running_loop()
             deadline = loop.time() + RESUME_WITHIN_S
             base = round(flow.offset_s * wav[1])  # where this session's audio began in the file
@@ -598,7 +606,7 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
                     face_csv.fps = float(msg.get("fps", face_csv.fps))
                 elif msg.get("type") == "frame" and (flow.own or not (args.wav or args.mic)):
                     face_csv.add(msg, round(flow.offset_s * fps))
-            if msg.get("type") == "goaway" and msg.get("resume_token") and args.wav:  # (the worker stops)
+            if msg.get("type") == "goaway" and args.wav:  # (the worker stops; no token: it could not save us)
                 goaway = msg
                 return
             if msg.get("type") == "end" and args.wav and not sender.done():
