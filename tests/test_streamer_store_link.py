@@ -152,3 +152,32 @@ def test_a_store_call_that_never_returns_marks_the_store_down_all_the_same(monke
         store.running.set()
         link.close()
     assert why is not None and "has not returned for" in why, why
+
+
+def test_a_healthy_stores_no_reaches_the_caller_as_it_is_and_is_no_outage():
+    """A spent token, a live session, a state too large: the store answered (`StoreAnswer`), so the caller gets
+    that answer (a resume told `session_live`, a save counted too large) and the store stays up."""
+    from streamer.handover import SessionLive, StateRefused
+
+    store = MemoryStore(max_bytes=100)
+    link = StoreLink(store, ping_every_s=0.1)
+
+    async def scenario():
+        await link.call("put", "a", b"state a", True)  # (live: its connection holds it)
+        with pytest.raises(SessionLive):
+            await link.call("take", "a")
+        with pytest.raises(StateRefused, match="cap"):
+            await link.call("put", "b", b"x" * 101)
+        await link.call("release", "a")
+        assert await link.call("take", "a") == b"state a"
+        with pytest.raises(StateRefused) as spent:
+            await link.call("put", "a", b"state a again")
+        return spent.value.reason
+
+    try:
+        assert asyncio.run(scenario()) == "spent"
+        assert link.up and link.outages == 0
+        counts, _ = link.counts()
+        assert counts[("take", "refused")] == 1 and counts[("put", "refused")] == 2, counts
+    finally:
+        link.close()
