@@ -66,10 +66,40 @@ class Talker:
             await c.send(json.dumps({"type": "audio_end"}))
             await asyncio.wait_for(reader, 60)
 
-    def p95(self, t0: float, t1: float) -> float:
+    def percentile(self, t0: float, t1: float, q: float = 95) -> float:
         """Of the frames whose audio was sent between t0 and t1 (however late they came)."""
         lat = [v for t, v in self.latency if t0 <= t <= t1]
-        return float(np.percentile(lat, 95)) if len(lat) >= 10 else float("inf")
+        return float(np.percentile(lat, q)) if len(lat) >= 10 else float("inf")
+
+
+class PacedHighRate:
+    """192 kHz stereo float32 paced in real time in CHUNK_S messages (what a studio interface sends): its intake
+    costs ~100x the talker's, well within its share; counts the errors it is told and the frames it gets."""
+
+    def __init__(self):
+        self.errors: list[str] = []
+        self.frames = 0
+
+    async def run(self, url: str, stop: asyncio.Event) -> None:
+        n = int(FLOOD_FORMAT["rate"] * CHUNK_S)
+        t = np.arange(n) / FLOOD_FORMAT["rate"]
+        chunk = np.repeat((0.3 * np.sin(2 * np.pi * 180 * t)).astype("<f4"), 2).tobytes()
+        async with connect(url, max_size=None) as c:
+            await c.send(json.dumps({"type": "hello", "audio": FLOOD_FORMAT}))
+
+            async def read():
+                async for m in c:
+                    d = json.loads(m)
+                    self.frames += d["type"] == "frame"
+                    if d["type"] == "error":
+                        self.errors.append(d["code"])
+
+            reader, t0, k = asyncio.create_task(read()), time.monotonic(), 0
+            while not stop.is_set():
+                await c.send(chunk)
+                k += 1
+                await asyncio.sleep(max(0.0, t0 + k * CHUNK_S - time.monotonic()))
+            reader.cancel()
 
 
 async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int, connected) -> None:
@@ -91,11 +121,10 @@ async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int
 
         reader = asyncio.create_task(read())
         connected.release()
-        sent = 0
+        counts[f"{k}:sent"] = 0
         while not stop.is_set():
             await c.send(message)
-            sent += 1
-        counts[f"{k}:sent"] = sent
+            counts[f"{k}:sent"] += 1
         reader.cancel()
 
 
@@ -127,12 +156,15 @@ def flood(url: str, clients: int, seconds: float, started, counts) -> None:
 
 
 async def talker_beside_flood(url: str, clients: int, quiet_s: float = 6.0, flood_s: float = 10.0,
-                              settle_s: float = 1.5) -> dict:
+                              settle_s: float = 1.5, paced_high_rate: bool = False) -> dict:
     """One talker: quiet for `quiet_s`, then beside `clients` flooders for `flood_s`, then quiet until its audio
-    ends (2 s more). Returns its p95 latency quiet and flooded, the flooders' counts and the talker's frames."""
+    ends (2 s more); with `paced_high_rate` a `PacedHighRate` sender throughout. Returns the talker's p95 latency
+    quiet and flooded, the flooders' counts, the talker and the paced sender (None without)."""
     talker = Talker(quiet_s + flood_s + 2.0)
     spawn = multiprocessing.get_context("spawn")
     task = asyncio.create_task(talker.run(url))
+    paced, paced_stop = (PacedHighRate() if paced_high_rate else None), asyncio.Event()
+    paced_task = asyncio.create_task(paced.run(url, paced_stop)) if paced else None
     t_start = time.monotonic()
     await asyncio.sleep(quiet_s)
     quiet = (t_start + settle_s, time.monotonic())
@@ -153,5 +185,8 @@ async def talker_beside_flood(url: str, clients: int, quiet_s: float = 6.0, floo
         await asyncio.sleep(flood_s)
         flooded = (quiet[1] + 1.0, time.monotonic())
     await task
-    return {"quiet_p95_s": talker.p95(*quiet), "flooded_p95_s": talker.p95(*flooded), "counts": counts,
-            "talker": talker}
+    if paced_task is not None:
+        paced_stop.set()
+        await asyncio.wait_for(paced_task, 10)
+    return {"quiet_p95_s": talker.percentile(*quiet), "flooded_p95_s": talker.percentile(*flooded),
+            "counts": counts, "talker": talker, "paced": paced, "quiet": quiet, "flooded": flooded}
