@@ -29,7 +29,9 @@ from streamer.frames import Channel
 
 __all__ = ["ClientSession", "Seats", "Keepalive", "Phase", "PIECE_S"]
 
-PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
+PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate) ...
+PIECE_SAMPLES = 24000  # ... and samples: a piece's cost (~10 ms whatever the rate) is what another client's job
+#                        may wait behind it on the worker thread (0.125 s of 192 kHz; 0.5 s up to 48 kHz)
 
 
 # ---- events: what happened ----------------------------------------------------------------------------
@@ -449,7 +451,7 @@ class ClientSession:
             out = self._start()
         else:
             out = []
-        return [*out, Feed(max(1, int(PIECE_S * self.audio.rate)))]
+        return [*out, Feed(max(1, min(int(PIECE_S * self.audio.rate), PIECE_SAMPLES)))]
 
     def _on_Queuing(self, e: Queuing) -> list[Action]:
         if e.full and not self.slowed:

@@ -4,7 +4,8 @@ tests/test_streamer_intake.py and benchmarks/intake_fairness.py.
 The talker sends 16 kHz PCM16 speech paced in real time; the latency of its frame i is its arrival minus the
 moment the audio it needs (frame i's end plus the lookahead) had been sent. The flooders run in a process of
 their own (their client-side work is not the talker's), each sending 1 MiB messages as fast as the socket takes
-them and ignoring `slow_down`; they count the `slow_down` and `resume` they are told.
+them and ignoring `slow_down`; they count the `slow_down` and `resume` they are told (once it stops, a flooder
+that was told `slow_down` waits for its `resume`).
 """
 
 from __future__ import annotations
@@ -22,13 +23,17 @@ from dimgestor.synthetic import synthetic_speech
 
 FLOOD_FORMAT = {"rate": 192000, "format": "float32", "channels": 2}
 CHUNK_S = 0.05  # the talker's audio per message
+RESUME_WAIT_S = 8.0  # how long a flooder told slow_down waits for `resume` once it stopped (what the server
+#                     holds of it unread, ~10 messages, is read at its share first)
 
 
 class Talker:
-    """Speech in real time in CHUNK_S messages for `seconds`, then audio_end; every frame's latency is kept."""
+    """Speech in real time in CHUNK_S messages until told to stop (at most `seconds`), then audio_end; every frame's
+    latency is kept."""
 
     def __init__(self, seconds: float, seed: int = 5):
         self.audio = (synthetic_speech(seconds, seed=seed) * 20000).astype("<i2")
+        self.stop = asyncio.Event()
         self.sent: list[tuple[float, float]] = []  # (audio seconds sent so far, time)
         self.latency: list[tuple[float, float]] = []  # (when its audio had been sent, seconds)
         self.errors: list[dict] = []
@@ -60,11 +65,17 @@ class Talker:
             reader = asyncio.create_task(read())
             step, t0 = int(16000 * CHUNK_S), time.monotonic()
             for k, i in enumerate(range(0, len(self.audio), step)):
+                if self.stop.is_set():
+                    break
                 await c.send(self.audio[i : i + step].tobytes())
                 self.sent.append(((i + step) / 16000, time.monotonic()))
                 await asyncio.sleep(max(0.0, t0 + (k + 1) * CHUNK_S - time.monotonic()))
             await c.send(json.dumps({"type": "audio_end"}))
             await asyncio.wait_for(reader, 60)
+
+    @property
+    def sent_s(self) -> float:
+        return self.sent[-1][0] if self.sent else 0.0
 
     def percentile(self, t0: float, t1: float, q: float = 95) -> float:
         """Of the frames whose audio was sent between t0 and t1 (however late they came)."""
@@ -106,6 +117,8 @@ async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int
     async with connect(url, max_size=None) as c:
         await c.send(json.dumps({"type": "hello", "audio": FLOOD_FORMAT}))
 
+        resumed = asyncio.Event()
+
         async def read():
             try:
                 async for m in c:
@@ -116,6 +129,7 @@ async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int
                             counts[key] = counts.get(key, 0) + 1
                         elif d["type"] == "resume":
                             counts[f"{k}:resume"] = counts.get(f"{k}:resume", 0) + 1
+                            resumed.set()
             except ConnectionClosed:
                 pass
 
@@ -125,6 +139,11 @@ async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int
         while not stop.is_set():
             await c.send(message)
             counts[f"{k}:sent"] += 1
+        if counts.get(f"{k}:slow_down"):  # stopped as told: `resume` comes once it is within its share again
+            try:
+                await asyncio.wait_for(resumed.wait(), RESUME_WAIT_S)
+            except asyncio.TimeoutError:
+                pass
         reader.cancel()
 
 
@@ -146,7 +165,7 @@ def flood(url: str, clients: int, seconds: float, started, counts) -> None:
         started.set()
         await asyncio.sleep(seconds)
         stop.set()
-        await asyncio.wait(tasks, timeout=2.0)  # one blocked in a send (back pressure) is cut off
+        await asyncio.wait(tasks, timeout=RESUME_WAIT_S + 2.0)  # one blocked in a send (back pressure) is cut off
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -157,10 +176,10 @@ def flood(url: str, clients: int, seconds: float, started, counts) -> None:
 
 async def talker_beside_flood(url: str, clients: int, quiet_s: float = 6.0, flood_s: float = 10.0,
                               settle_s: float = 1.5, paced_high_rate: bool = False) -> dict:
-    """One talker: quiet for `quiet_s`, then beside `clients` flooders for `flood_s`, then quiet until its audio
-    ends (2 s more); with `paced_high_rate` a `PacedHighRate` sender throughout. Returns the talker's p95 latency
+    """One talker: quiet for `quiet_s`, then beside `clients` flooders for `flood_s`, then 2 s more (and until the
+    flooders are gone); with `paced_high_rate` a `PacedHighRate` sender throughout. Returns the talker's p95 latency
     quiet and flooded, the flooders' counts, the talker and the paced sender (None without)."""
-    talker = Talker(quiet_s + flood_s + 2.0)
+    talker = Talker(quiet_s + flood_s + 60.0)  # (stopped 2 s after the flood)
     spawn = multiprocessing.get_context("spawn")
     task = asyncio.create_task(talker.run(url))
     paced, paced_stop = (PacedHighRate() if paced_high_rate else None), asyncio.Event()
@@ -179,11 +198,13 @@ async def talker_beside_flood(url: str, clients: int, quiet_s: float = 6.0, floo
             t_flood = time.monotonic()
             while proc.is_alive():
                 await asyncio.sleep(0.1)
-            flooded = (t_flood + 1.0, time.monotonic())
+            flooded = (t_flood + 1.0, t_flood + flood_s)
             counts = dict(shared)
     else:
         await asyncio.sleep(flood_s)
         flooded = (quiet[1] + 1.0, time.monotonic())
+    await asyncio.sleep(max(0.0, flooded[1] + 2.0 - time.monotonic()))
+    talker.stop.set()
     await task
     if paced_task is not None:
         paced_stop.set()
