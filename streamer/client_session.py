@@ -161,8 +161,8 @@ class Left:
     """The connection is gone."""
 
 
-Event = Union[Text, Audio, Decoded, Failed, Queuing, OverShare, WithinShare, Frames, Broadcast, Boundary, Saved, HandOver,
-              HandedOver, Taken, Restored, NotRestored, SessionEnded, Left]
+Event = Union[Text, Audio, Decoded, Failed, Queuing, OverShare, WithinShare, Frames, Broadcast, Boundary, Saved,
+              HandOver, HandedOver, Taken, Restored, NotRestored, SessionEnded, Left]
 
 
 # ---- actions: what to do ------------------------------------------------------------------------------

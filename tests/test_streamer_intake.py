@@ -1,10 +1,10 @@
 """Fair shares in compute (streamer/intake.py): the worker thread's fair order and each client's share of it in CPU
-time; and fast senders at a high rate (192 kHz stereo float32, as fast as the socket takes it)
-beside a real-time talker, against a live `dimgestor serve --source ws` (tests/helpers/intake_load.py).
+time; and fast senders at a high rate (192 kHz stereo float32, as fast as the socket takes it) beside a real-time
+talker, against a live `dimgestor serve --source ws` (tests/helpers/intake_load.py).
 
-A 192 kHz stereo float32 second costs tens of times a 16 kHz one to take in (decode, channel mix, resample): the flooders'
-intake is charged to them, so they are read more slowly and told `slow_down`, and the talker's small jobs do not
-queue behind their big ones.
+A 192 kHz stereo float32 second costs ~100x a 16 kHz PCM16 one to take in (decode, channel mix, resample): the
+flooders' intake is charged to them, so they are read more slowly and told `slow_down`, and the talker's small jobs
+do not queue behind their big ones.
 """
 
 import asyncio
