@@ -70,8 +70,7 @@ class Queuing:
 @dataclass(frozen=True)
 class OverShare:
     """The client's work on the worker thread (decode, channel mix, resample, its frames' encoding) went over its
-    share of it (`streamer.intake.ComputeBudget`): its socket is read only `wait_s` from now."""
-    wait_s: float
+    share of it (`streamer.intake.ComputeBudget`): its socket is read more slowly until `WithinShare`."""
 
 
 @dataclass(frozen=True)
@@ -469,9 +468,9 @@ class ClientSession:
         told, self.over_share = self.slowed, True
         a = self.audio
         return [] if told else [Send(P.error(
-            "slow_down", f"your audio ({a.rate} Hz, {a.channels} channel(s), {a.format}) takes more than your share "
-                         f"of the server to take in; it is read {e.wait_s:.1f} s later: pause until `resume` (or "
-                         "the server reads it more slowly; nothing is dropped)"))]
+            "slow_down", f"your audio ({a.rate} Hz, {a.channels} channel(s), {a.format}) costs more than your share of "
+                         "the server to take in at this speed: pause until `resume` (or the server reads it more "
+                         "slowly; nothing is dropped)"))]
 
     def _on_WithinShare(self, e: WithinShare) -> list[Action]:
         if not self.over_share or self.gone:

@@ -107,7 +107,7 @@ class Client(Outbox):
                 now = time.monotonic()
                 wait = max(self.budget.wait_s(message), self.compute.wait_s(now))
                 if self.compute.over:
-                    self._over_share(wait)
+                    self._over_share()
                 await asyncio.sleep(wait)
                 self.holding = False
         except ConnectionClosed:
@@ -389,10 +389,10 @@ class Client(Outbox):
         """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""
         return asyncio.wrap_future(submit_for(self.svc.prep, self.account, fn, *args))
 
-    def _over_share(self, wait_s: float) -> None:
+    def _over_share(self) -> None:
         """Its work on the worker thread went over its share: the machine says so (`slow_down`) and hears when it
         is back within it (`resume`)."""
-        self.act(self.machine.handle(S.OverShare(wait_s)))
+        self.act(self.machine.handle(S.OverShare()))
         if self._within_share is None or self._within_share.done():
             self._within_share = asyncio.create_task(self._until_within_share(), name="ws-share")
 

@@ -48,20 +48,20 @@ def test_a_client_over_its_share_of_the_worker_is_told_slow_down_once_and_resume
     slow_down for both, and `resume` only once it is within its share and its queue is down to half."""
     c = client(Seats(max_sessions=2, max_backlog_s=4.0))
     c.handle(text(type="hello", audio={"rate": 192000, "format": "float32", "channels": 2}))
-    over = c.handle(OverShare(wait_s=0.4))
+    over = c.handle(OverShare())
     assert kinds(over) == ["slow_down"] and over[0].kind == "ctl" and "192000 Hz" in sent(over)[0]["message"]
-    assert c.handle(OverShare(wait_s=0.4)) == []  # said once
+    assert c.handle(OverShare()) == []  # said once
     assert c.handle(Queuing(backlog_s=4.0, full=True)) == [] and c.slowed  # already told
     assert c.handle(Frames(count=0, backlog_s=1.0)) == []  # its queue is down, its share not yet
     assert sent(c.handle(WithinShare(backlog_s=0.5))) == [{"type": "resume", "backlog_s": 0.5}]
     assert c.handle(WithinShare(backlog_s=0.5)) == []  # (once)
     # the other order: within its share first, then its queue
-    c.handle(OverShare(wait_s=0.1))
+    c.handle(OverShare())
     c.handle(Queuing(backlog_s=4.0, full=True))
     assert c.handle(WithinShare(backlog_s=4.0)) == []
     assert kinds(c.handle(Frames(count=0, backlog_s=2.0))) == ["resume"]
     c.handle(Left())
-    assert c.handle(OverShare(wait_s=1.0)) == []  # gone: nobody to tell
+    assert c.handle(OverShare()) == []  # gone: nobody to tell
 
 
 def test_a_full_session_with_slow_down_and_resume():
