@@ -261,3 +261,14 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     r = json.loads(out.read_text())
     assert r["groups"] == 2 and "streams" not in r and len(r["profile"]) == 2
     assert all(finite(x["ms_per_window"]["total"]) and x["ms_per_window"]["frontend"] > 0 for x in r["profile"])
+
+
+def test_intake_fairness_benchmark_writes_its_schema(tmp_path):
+    out = tmp_path / "intake.json"
+    run("intake_fairness.py", "--flooders", "1", "--quiet-s", "3", "--flood-s", "3", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert r["code_version"] and r["device"].startswith("CPU") and len(r["load_average_before"]) == 3
+    [row] = r["runs"]
+    assert row["flooders"] == 1 and len(row["slow_down"]) == len(row["messages_in"]) == 1
+    assert all(finite(row[k]) for k in ("talker_p95_quiet_ms", "talker_p95_flooded_ms", "talker_p50_flooded_ms"))
+    assert row["talker_frames"] == row["talker_end_frames"] > 0 and not row["traceback_in_log"]
