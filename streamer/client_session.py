@@ -29,7 +29,9 @@ from streamer.frames import Channel
 
 __all__ = ["ClientSession", "Seats", "Keepalive", "Phase", "PIECE_S"]
 
-PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate)
+PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate) ...
+PIECE_SAMPLES = 24000  # ... and samples: a piece's cost (~10 ms whatever the rate) is what another client's job
+#                        may wait behind it on the worker thread (0.125 s of 192 kHz; 0.5 s up to 48 kHz)
 
 
 # ---- events: what happened ----------------------------------------------------------------------------
@@ -63,6 +65,19 @@ class Queuing:
     """A piece of audio is about to be queued for the session, whose queue holds `backlog_s` (full: at the cap)."""
     backlog_s: float
     full: bool
+
+
+@dataclass(frozen=True)
+class OverShare:
+    """The client's work on the worker thread (decode, channel mix, resample, its frames' encoding) went over its
+    share of it (`streamer.intake.ComputeBudget`): its socket is read more slowly until `WithinShare`."""
+
+
+@dataclass(frozen=True)
+class WithinShare:
+    """Its budget on the worker thread has refilled (to half): it may send at full speed again; `backlog_s`: its
+    session's audio queue now."""
+    backlog_s: float
 
 
 @dataclass(frozen=True)
@@ -149,8 +164,8 @@ class Left:
     """The connection is gone."""
 
 
-Event = Union[Text, Audio, Decoded, Failed, Queuing, Frames, Broadcast, Boundary, Saved, HandOver, HandedOver, Taken,
-              Restored, NotRestored, SessionEnded, Left]
+Event = Union[Text, Audio, Decoded, Failed, Queuing, OverShare, WithinShare, Frames, Broadcast, Boundary, Saved,
+              HandOver, HandedOver, Taken, Restored, NotRestored, SessionEnded, Left]
 
 
 # ---- actions: what to do ------------------------------------------------------------------------------
@@ -333,7 +348,8 @@ class ClientSession:
     phase: Phase = Phase.IDLE
     session_id: int = 0         # the current (or last) session
     frames: int = 0             # frames of the current session (its `end`, `goaway`, saves)
-    slowed: bool = False        # told slow_down, not yet resume
+    slowed: bool = False        # its audio queue is at the cap: slow_down, until it is down to half
+    over_share: bool = False    # its work on the worker thread is over its share: slow_down, until WithinShare
     refused: bool = False       # its current audio was refused a session (counted once)
     handing_over: bool = False  # its session is being saved for hand-over (its audio is ignored meanwhile)
     gone: bool = False
@@ -445,15 +461,33 @@ class ClientSession:
             out = self._start()
         else:
             out = []
-        return [*out, Feed(max(1, int(PIECE_S * self.audio.rate)))]
+        return [*out, Feed(max(1, min(int(PIECE_S * self.audio.rate), PIECE_SAMPLES)))]
 
     def _on_Queuing(self, e: Queuing) -> list[Action]:
         if e.full and not self.slowed:
-            self.slowed = True  # until the backlog is down to half: `resume` (_on_Frames)
-            return [Send(P.error("slow_down", f"audio arrives faster than it is processed: {e.backlog_s:.0f} s are "
-                                              "queued; pause until `resume` (or the server reads more as it catches "
-                                              "up; nothing is dropped)"))]
+            told, self.slowed = self.over_share, True  # until the backlog is down to half: `resume` (_on_Frames)
+            return [] if told else [Send(P.error(
+                "slow_down", f"audio arrives faster than it is processed: {e.backlog_s:.0f} s are queued; pause until "
+                             "`resume` (or the server reads more as it catches up; nothing is dropped)"))]
         return []
+
+    def _on_OverShare(self, e: OverShare) -> list[Action]:
+        """Fair shares are counted in compute, not in audio seconds: a second of 192 kHz stereo costs ~100x one of
+        16 kHz mono to take in, so a fast sender at a high rate is slowed down sooner."""
+        if self.over_share or self.gone:
+            return []
+        told, self.over_share = self.slowed, True
+        a = self.audio
+        return [] if told else [Send(P.error(
+            "slow_down", f"your audio ({a.rate} Hz, {a.channels} channel(s), {a.format}) costs more than your share of "
+                         "the server to take in at this speed: pause until `resume` (or the server reads it more "
+                         "slowly; nothing is dropped)"))]
+
+    def _on_WithinShare(self, e: WithinShare) -> list[Action]:
+        if not self.over_share or self.gone:
+            return []
+        self.over_share = False
+        return [] if self.slowed else [Send(P.resume(e.backlog_s))]
 
     def _start(self, restore: bytes | None = None) -> list[Action]:
         self.own, self.phase, self.refused, self.frames = True, Phase.STREAMING, False, 0
@@ -485,7 +519,8 @@ class ClientSession:
         out: list[Action] = []
         if self.slowed and e.backlog_s <= self.seats.max_backlog_s / 2:
             self.slowed = False
-            out.append(Send(P.resume(e.backlog_s)))  # a client that paused at slow_down may send again
+            if not self.over_share:  # a client that paused at slow_down may send again
+                out.append(Send(P.resume(e.backlog_s)))
         if e.count:
             self.frames += e.count
             out.append(self._send_frames(e.window if self.timing else None))
@@ -509,7 +544,8 @@ class ClientSession:
             out.append(Send(P.end(e.frames)))
         if self.slowed and self.phase is not Phase.STREAMING:  # ended while the client was paused: let it go on
             self.slowed = False
-            out.append(Send(P.resume(0.0)))
+            if not self.over_share:
+                out.append(Send(P.resume(0.0)))
         if not e.cancelled:
             out += [Send(m) for m in self.after_session]
         self.after_session.clear()

@@ -24,6 +24,7 @@ from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer.frames import Frame
+from streamer.intake import Account, ComputeBudget, submit_for
 from streamer.log_limit import ErrorLog
 from streamer.metrics import ServerMetrics
 from streamer.outbox import FrameTotals, MessageBudget, Outbox
@@ -35,7 +36,7 @@ from streamer.sources import PushSource, make_resampler
 class Services:
     """What a connection's session uses of its server's."""
 
-    prep: Executor  # the worker thread: decode, resample, encode (never a store call: they may block)
+    prep: Executor  # the worker thread (a `streamer.intake.FairWorker`): decode, resample, encode (never a store call)
     metrics: ServerMetrics
     make_session: Callable[[], Session] | None
     store: object | None  # a `streamer.handover` store
@@ -67,6 +68,9 @@ class Client(Outbox):
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.errors = ErrorLog(f"client {self.who}")
         self.budget = MessageBudget()
+        self.account = Account()  # its work on the worker thread, charged to its share of it
+        self.compute = ComputeBudget(self.account)
+        self._within_share: asyncio.Task | None = None  # waits until it is within its share again
         self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
 
     @property
@@ -102,7 +106,12 @@ class Client(Outbox):
                 except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
                     self.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
                     self.note(P.error("internal", f"{type(e).__name__}: {e}"))
-                await asyncio.sleep(self.budget.wait_s(message))  # a flood is read only as fast as the budget
+                # a flood is read only as fast as its budgets: messages, and its share of the worker thread
+                now = time.monotonic()
+                wait = max(self.budget.wait_s(message), self.compute.wait_s(now))
+                if self.compute.over:
+                    self._over_share()
+                await asyncio.sleep(wait)
                 self.holding = False
         except ConnectionClosed:
             pass
@@ -141,7 +150,8 @@ class Client(Outbox):
         running = session is not None and not session.done()
         backlog_s = self.source.backlog_s if self.source is not None else 0.0
         self.act(self.machine.handle(S.Left()))  # (frees its seat; StopSession)
-        pending = [*tasks, *([session] if session is not None else [])]
+        pending = [*tasks, *([session] if session is not None else []),
+                   *([self._within_share] if self._within_share is not None else [])]
         for t in pending:
             t.cancel()
         self.queue.clear()
@@ -220,12 +230,12 @@ class Client(Outbox):
         return rest
 
     async def on_audio(self, data: bytes) -> None:
-        machine, loop = self.machine, asyncio.get_running_loop()
+        machine = self.machine
         decode = await self.apply(machine.handle(S.Audio(data)))
         if not decode:  # refused or ignored
             return
         try:
-            x = await loop.run_in_executor(self.svc.prep, P.decode_audio, data, decode[0].fmt)
+            x = await self._work(P.decode_audio, data, decode[0].fmt)
         except P.ProtocolError as e:  # bad_audio
             self.act(machine.handle(S.Failed(e)))
             return
@@ -238,7 +248,7 @@ class Client(Outbox):
             return
         source, piece, rate = self.source, then[-1].piece, decode[0].fmt.rate
         for a in range(0, len(x), piece):
-            y = await loop.run_in_executor(self.svc.prep, self._resample, x[a : a + piece])
+            y = x[a : a + piece] if self.resample_from is None else await self._work(self._resample, x[a : a + piece])
             self.act(machine.handle(S.Queuing(source.backlog_s, source.full)))
             await source.put(y, more_s=max(0, len(x) - a - piece) / rate)
             if self.source is not source:  # the session failed meanwhile
@@ -255,14 +265,14 @@ class Client(Outbox):
         if start.smile is not None:  # the client's own expression (its hello's `smile`)
             session.set_smile(start.smile)
         session.on_window = session.on_window or self.svc.metrics.window_done
-        machine, loop = self.machine, asyncio.get_running_loop()
+        machine = self.machine
         if start.save_token is not None:
             session.on_boundary = lambda: self.act(
                 machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
 
         async def emit(frames: list[Frame]) -> None:
             for a in self.act(machine.handle(S.Frames(len(frames), source.backlog_s, session.stats.window))):
-                messages = await loop.run_in_executor(self.svc.prep, self.encode, frames, a)
+                messages = await self._work(self.encode, frames, a)
                 if a.window is not None:
                     messages.append(P.timing(frames[0].index, len(frames), a.window, time.monotonic()))
                 if a.layout is not None:  # after the encoding: no frame of the old layout follows it
@@ -331,7 +341,7 @@ class Client(Outbox):
             source, self.source = self.source, None
             if self.resampler is not None:
                 resampler, self.resampler = self.resampler, None
-                tail = await asyncio.get_running_loop().run_in_executor(self.svc.prep, resampler.flush)
+                tail = await self._work(resampler.flush)
                 await source.put(np.asarray(tail, dtype=np.float32))
             await source.close()
 
@@ -404,6 +414,22 @@ class Client(Outbox):
         task = asyncio.get_running_loop().create_task(call())
         self._saving.add(task)
         task.add_done_callback(self._saving.discard)
+
+    def _work(self, fn, *args) -> asyncio.Future:
+        """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""
+        return asyncio.wrap_future(submit_for(self.svc.prep, self.account, fn, *args))
+
+    def _over_share(self) -> None:
+        """Its work on the worker thread went over its share: the machine says so (`slow_down`) and hears when it
+        is back within it (`resume`)."""
+        self.act(self.machine.handle(S.OverShare()))
+        if self._within_share is None or self._within_share.done():
+            self._within_share = asyncio.create_task(self._until_within_share(), name="ws-share")
+
+    async def _until_within_share(self) -> None:
+        while (wait := self.compute.refilled_in(time.monotonic())) > 0:
+            await asyncio.sleep(wait)
+        self.act(self.machine.handle(S.WithinShare(self.source.backlog_s if self.source is not None else 0.0)))
 
     def _resample(self, x: np.ndarray) -> np.ndarray:  # worker thread
         if self.resample_from is None:

@@ -5,8 +5,9 @@ thread and the session's task into events and carries out the actions. Every cli
 queue and one sender task (`streamer.connection`); the HTTP side of the port is `streamer.handshake`'s.
 
 Nothing a client sends costs the event loop more than constant work: audio is decoded, resampled and its
-frames encoded in a worker thread, in pieces, one job per client at a time (so the jobs of all clients
-interleave first come first served), and inference runs in the sessions' scheduler. A client's session lives
+frames encoded in a worker thread, in pieces, one job per client at a time, the client that has used the thread
+least first (fair shares in compute: `streamer.intake`; one over its share is read more slowly and told
+`slow_down`), and inference runs in the sessions' scheduler. A client's session lives
 exactly as long as its connection: the connection closing cancels whatever its handler is blocked on, frees
 its slot and its queued audio at once and logs one (rate-limited) line. The keepalive is the server's own
 (`Keepalive`): while the server holds a client's data unread on purpose (its backlog is full), its pongs cannot
@@ -20,7 +21,6 @@ import json
 import logging
 import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterable
 
 import numpy as np
@@ -32,6 +32,7 @@ from streamer import request_checks as RC
 from streamer.connection import Client, FrameTotals, Services
 from streamer.frames import Frame
 from streamer.handshake import Front, own_origins, refusal
+from streamer.intake import FairWorker
 from streamer.log_limit import ErrorLog
 from streamer.memory import Trimmer
 from streamer.metrics import ServerMetrics
@@ -95,7 +96,7 @@ class WsServer:
         self.clients: set[Client] = set()
         self.broadcast_ended = False
         self.broadcast_frames = 0
-        self.prep = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ws-prep")  # decode, resample, encode
+        self.prep = FairWorker("ws-prep")  # decode, resample, encode: each client's work in its fair turn
         self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []

@@ -278,3 +278,14 @@ def test_store_faults_benchmark_writes_its_schema(tmp_path):
     for name in ("paused", "killed"):
         assert r["runs"][name]["readyz_during"]["status_200"] == r["runs"][name]["readyz_during"]["answers"] > 0
         assert r["runs"][name]["saves"]["after"] > 0, r["runs"][name]  # saving again once the store is back
+
+
+def test_intake_fairness_benchmark_writes_its_schema(tmp_path):
+    out = tmp_path / "intake.json"
+    run("intake_fairness.py", "--flooders", "1", "--quiet-s", "3", "--flood-s", "3", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert r["code_version"] and r["device"].startswith("CPU") and len(r["load_average_before"]) == 3
+    [row] = r["runs"]
+    assert row["flooders"] == 1 and len(row["slow_down"]) == len(row["messages_in"]) == 1
+    assert all(finite(row[k]) for k in ("talker_p95_quiet_ms", "talker_p95_flooded_ms", "talker_p50_flooded_ms"))
+    assert row["talker_frames"] == row["talker_end_frames"] > 0 and not row["traceback_in_log"]

@@ -9,9 +9,9 @@ import pytest
 from streamer import protocol as P
 from streamer.client_session import (
     Audio, Boundary, Broadcast, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames,
-    HandedOver, HandOver, Keepalive, Left, NotRestored, Phase, Queuing, Refused, Release, Restored, SaveState, Saved,
-    Seats, Send, SendFrames,
-    SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken, Text, WaitForSession)
+    HandedOver, HandOver, Keepalive, Left, NotRestored, OverShare, Phase, Queuing, Refused, Release, Restored,
+    SaveState, Saved, Seats, Send, SendFrames, SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken,
+    Text, WaitForSession, WithinShare)
 from streamer.sessions import Session
 
 
@@ -42,6 +42,27 @@ def audio_in(c: ClientSession, n: int) -> list:
     first = c.handle(Audio(pcm16(n)))
     assert first == [Decode(pcm16(n), c.audio)]
     return c.handle(Decoded())
+
+
+def test_a_client_over_its_share_of_the_worker_is_told_slow_down_once_and_resume_when_both_causes_are_gone():
+    """Fair shares in compute: its intake went over its share (OverShare), and its audio queue filled too; one
+    slow_down for both, and `resume` only once it is within its share and its queue is down to half."""
+    c = client(Seats(max_sessions=2, max_backlog_s=4.0))
+    c.handle(text(type="hello", audio={"rate": 192000, "format": "float32", "channels": 2}))
+    over = c.handle(OverShare())
+    assert kinds(over) == ["slow_down"] and over[0].kind == "ctl" and "192000 Hz" in sent(over)[0]["message"]
+    assert c.handle(OverShare()) == []  # said once
+    assert c.handle(Queuing(backlog_s=4.0, full=True)) == [] and c.slowed  # already told
+    assert c.handle(Frames(count=0, backlog_s=1.0)) == []  # its queue is down, its share not yet
+    assert sent(c.handle(WithinShare(backlog_s=0.5))) == [{"type": "resume", "backlog_s": 0.5}]
+    assert c.handle(WithinShare(backlog_s=0.5)) == []  # (once)
+    # the other order: within its share first, then its queue
+    c.handle(OverShare())
+    c.handle(Queuing(backlog_s=4.0, full=True))
+    assert c.handle(WithinShare(backlog_s=4.0)) == []
+    assert kinds(c.handle(Frames(count=0, backlog_s=2.0))) == ["resume"]
+    c.handle(Left())
+    assert c.handle(OverShare()) == []  # gone: nobody to tell
 
 
 def test_a_full_session_with_slow_down_and_resume():
