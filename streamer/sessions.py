@@ -263,7 +263,9 @@ class Session:
         check_meta(meta, state)
         root = meta["decoder"]
         self.stream.state = state
-        self.decoder.state = RootState(**{**root, "drift": tuple(root["drift"])})
+        # (as floats: an int past int64, which the checks take as a finite number, would make numpy's arrays objects)
+        self.decoder.state = RootState(**{**root, **{k: float(root[k]) for k in ("x", "z", "heading")},
+                                          "drift": tuple(map(float, root["drift"]))})
         if self._face is not None:
             self._face.close()
         self._face, self._face_start = None, (int(state.samples_in), int(self.stream.frames_out))  # listens afresh
