@@ -170,9 +170,9 @@ def split(data: bytes) -> tuple[Any, bytes]:
 def pack(header: Any, raw: bytes, key: bytes | None = None) -> bytes:
     """A state of this version from its header (a JSON value, or its text as str or bytes) and raw leaf bytes,
     sealed with `key`; `split`'s inverse."""
-    text = header if isinstance(header, bytes) else (header if isinstance(header, str) else json.dumps(
-        header, allow_nan=True)).encode()
-    return _sealed(text, [raw], key)
+    if not isinstance(header, (str, bytes)):
+        header = json.dumps(header, allow_nan=True)
+    return _sealed(header.encode() if isinstance(header, str) else header, [raw], key)
 
 
 def reseal(data: bytes, key: bytes | None = None) -> bytes:

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from dimgestor.onnx_stream import OnnxModel
     from streamer.ws import WsServer
 
-__all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_token", "run", "serve"]
+__all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret", "read_token", "run", "serve"]
 TOKEN_ENV = "STREAMER_TOKEN"
 STATE_SECRET_ENV = "DIMGESTOR_STATE_SECRET"
 # --backend onnxruntime without --onnx: the batch sizes exported at start beside the single-stream graph (each takes
