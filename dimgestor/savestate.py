@@ -3,21 +3,26 @@
 A `StreamState` (dimgestor.stream) is a small tree of named tuples and frozen dataclasses whose leaves are
 tensors, arrays and numbers. `dumps` writes it as
 
-    b"DGSTATE" | version (u16) | header length (u32) | JSON header | raw leaf bytes
+    b"DGSTATE" | version (u16) | header length (u32) | seal (32 bytes) | JSON header | raw leaf bytes
 
-where the header holds the tree (each node's type by name, each leaf's dtype, shape and byte range), the model's
-fingerprint (its config and every parameter and buffer, hashed), the stream's sampling settings and the caller's
-`meta`. `loads` rebuilds the tree from a fixed list of known types (never pickle: a state may come from a store
-shared by many machines), and refuses, with the reason, a state of another version, of another model or of
-other settings, bytes that are cut short or do not parse, and any field that is not what this stream's own state
-would hold (`dimgestor.savestate_checks`, checked before anything is built): a state is resumed exactly or not
-at all.
+where the seal is over all the rest (the prefix, the header and the leaves): HMAC-SHA256 with the workers'
+shared secret (`dimgestor serve --state-secret-file`) when there is one, else plain SHA-256. Without a secret the
+seal detects corruption and truncation, not forgery (anyone can compute a SHA-256); with one, a state not saved by
+a worker holding the secret is refused, whatever its values. The header holds the tree (each node's type by name,
+each leaf's dtype, shape and byte range), the model's fingerprint (its config and every parameter and buffer,
+hashed), the stream's sampling settings and the caller's `meta`. `loads` checks the seal first, then rebuilds the
+tree from a fixed list of known types (never pickle: a state may come from a store shared by many machines), and
+refuses, with the reason, a state of another version, of another model or of other settings, bytes that are cut
+short or do not parse, and any field that is not what this stream's own state would hold
+(`dimgestor.savestate_checks`, checked before anything is built: what a state re-sealed by someone without the
+secret meets). A state is resumed exactly or not at all.
 Bump STATE_VERSION whenever the tree of any state type changes.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import hmac
 import json
 import struct
 from typing import Any
@@ -35,11 +40,14 @@ from .savestate_checks import StateError
 from .smoothing import OneEuroState
 from .stream import GestureStream, StreamState
 
-__all__ = ["STATE_VERSION", "StateError", "dumps", "loads", "model_fingerprint", "stream_settings"]
+__all__ = ["STATE_VERSION", "StateError", "dumps", "loads", "model_fingerprint", "pack", "reseal", "split",
+           "stream_settings"]
 
 MAGIC = b"DGSTATE"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: sealed
 _PREFIX = struct.Struct("<7sHI")
+SEAL_SIZE = 32
+_BODY = _PREFIX.size + SEAL_SIZE  # where the header begins
 _TYPES = {t.__name__: t for t in (StreamState, FrontEndState, SpeechState, ExtractorState, DenoiserState,
                                   Mamba2State, StepStates, OneEuroState)}
 _DTYPES = {str(d).removeprefix("torch."): d for d in (torch.float32, torch.float64, torch.float16, torch.bfloat16,
@@ -97,19 +105,20 @@ def describe(v: Any, blobs: list[bytes]) -> Any:
     return node
 
 
-def dumps(stream: GestureStream, state: StreamState | None = None, meta: dict | None = None) -> bytes:
-    """`state` (default: the stream's own) as bytes, with `meta` (JSON-serialisable) beside it."""
+def dumps(stream: GestureStream, state: StreamState | None = None, meta: dict | None = None,
+          key: bytes | None = None) -> bytes:
+    """`state` (default: the stream's own) as bytes, with `meta` (JSON-serialisable) beside it, sealed with `key`
+    (the workers' shared secret; None: plain SHA-256)."""
     blobs: list[bytes] = []
     state = stream.state if state is None else state
     header = {"model": model_fingerprint(stream.model), "settings": stream_settings(stream), "meta": meta or {},
               "state": describe(state, blobs)}
-    text = json.dumps(header, allow_nan=True).encode()
-    return _PREFIX.pack(MAGIC, STATE_VERSION, len(text)) + text + b"".join(blobs)
+    return _sealed(json.dumps(header, allow_nan=True).encode(), blobs, key)
 
 
-def loads(stream: GestureStream, data: bytes) -> tuple[StreamState, dict]:
-    """(the state, its meta) of bytes from `dumps`, for `stream` (the same weights and settings), on the stream's
-    device; StateError with the reason when it cannot be resumed exactly."""
+def loads(stream: GestureStream, data: bytes, key: bytes | None = None) -> tuple[StreamState, dict]:
+    """(the state, its meta) of bytes from `dumps` sealed with the same `key`, for `stream` (the same weights and
+    settings), on the stream's device; StateError with the reason when it cannot be resumed exactly."""
     data = bytes(data)
     if len(data) < _PREFIX.size or data[:len(MAGIC)] != MAGIC:
         raise StateError("not a saved stream state (no DGSTATE header)")
@@ -117,10 +126,14 @@ def loads(stream: GestureStream, data: bytes) -> tuple[StreamState, dict]:
     if version != STATE_VERSION:
         raise StateError(f"saved stream state version {version}, this engine reads version {STATE_VERSION} only: "
                          "it was saved by another release; start a fresh stream")
-    body = _PREFIX.size + n
+    if len(data) < _BODY or not hmac.compare_digest(data[_PREFIX.size:_BODY], _seal(key, data[:_PREFIX.size],
+                                                                                     memoryview(data)[_BODY:])):
+        raise StateError("saved stream state seal does not match: corrupted or cut short, or saved by a worker "
+                         "with another state secret (--state-secret-file), or without one")
+    body = _BODY + n
     if len(data) < body:
-        raise StateError(f"saved stream state cut short: header of {n} bytes, {len(data) - _PREFIX.size} present")
-    header = _parse(data[_PREFIX.size:body])
+        raise StateError(f"saved stream state cut short: header of {n} bytes, {len(data) - _BODY} present")
+    header = _parse(data[_BODY:body])
     if not isinstance(header, dict) or not {"model", "settings", "state"} <= set(header):
         raise StateError("saved stream state header lacks model, settings or state")
     if header["model"] != model_fingerprint(stream.model):
@@ -144,6 +157,43 @@ def loads(stream: GestureStream, data: bytes) -> tuple[StreamState, dict]:
     state = _build(header["state"], raw, next(stream.model.parameters()).device)
     checks.check_state(stream, state, fresh)
     return state, meta
+
+
+def split(data: bytes) -> tuple[Any, bytes]:
+    """(the header, the raw leaf bytes) of a state, unchecked and its seal unread: for tools and tests that look
+    into states or change them (then `pack`)."""
+    data = bytes(data)
+    _, _, n = _PREFIX.unpack_from(data)
+    return json.loads(data[_BODY:_BODY + n]), data[_BODY + n:]
+
+
+def pack(header: Any, raw: bytes, key: bytes | None = None) -> bytes:
+    """A state of this version from its header (a JSON value, or its text as str or bytes) and raw leaf bytes,
+    sealed with `key`; `split`'s inverse."""
+    if not isinstance(header, (str, bytes)):
+        header = json.dumps(header, allow_nan=True)
+    return _sealed(header.encode() if isinstance(header, str) else header, [raw], key)
+
+
+def reseal(data: bytes, key: bytes | None = None) -> bytes:
+    """`data` (at least the prefix and a seal's room) with its seal made anew with `key`, all else as it is."""
+    data = bytes(data)
+    if len(data) < _BODY:
+        raise ValueError(f"a state has at least {_BODY} bytes, got {len(data)}")
+    return data[:_PREFIX.size] + _seal(key, data[:_PREFIX.size], memoryview(data)[_BODY:]) + data[_BODY:]
+
+
+def _sealed(text: bytes, blobs: list[bytes], key: bytes | None) -> bytes:
+    prefix = _PREFIX.pack(MAGIC, STATE_VERSION, len(text))
+    return prefix + _seal(key, prefix, text, *blobs) + text + b"".join(blobs)
+
+
+def _seal(key: bytes | None, *parts) -> bytes:
+    """HMAC-SHA256 of the parts with `key`, or their SHA-256 without one (integrity, not authenticity)."""
+    h = hashlib.sha256() if key is None else hmac.new(key, digestmod=hashlib.sha256)
+    for p in parts:
+        h.update(p)
+    return h.digest()
 
 
 def _parse(text: bytes) -> Any:

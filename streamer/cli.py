@@ -235,6 +235,11 @@ def _operations_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--state-max-bytes", type=int, metavar="N",
               help="the largest session state the store takes: a larger one is not saved (counted in /metrics; "
                    "the default model's is ~1.2 MB)"),
+        _flag(g, "--state-secret-file", metavar="FILE",
+              help="a file holding the secret every worker of the cluster shares (or $DIMGESTOR_STATE_SECRET): saved "
+                   "sessions are sealed with it (HMAC-SHA256) and a state not sealed with it is refused. Without "
+                   "one the seal (SHA-256) detects corruption, not forgery: anyone who can write to the store "
+                   "can forge a state (docs/deploy.md, The state store)"),
         _flag(g, "--status-every", type=float, metavar="S", help="seconds between status lines on stderr (0 = none)"),
         _flag(g, "--max-seconds", type=float, metavar="S",
               help="stop (cleanly, as on Ctrl-C) after S seconds of running (default: run until stopped)"),

@@ -78,6 +78,7 @@ class ServeOptions(BaseModel):
     state_ttl: float = Field(300.0, gt=0, le=86400)
     save_state_every: float | None = Field(None, gt=0, le=3600)  # s of audio between a session's periodic saves
     state_max_bytes: int = Field(DEFAULT_STATE_MAX_BYTES, gt=0)  # a larger state is not saved (counted)
+    state_secret_file: str | None = None  # the workers' shared secret sealing saved states ($DIMGESTOR_STATE_SECRET)
     # VMC (OSC over UDP)
     osc: HostPort | None = None  # --vmc HOST:PORT
     vmc_positions: Literal["hips", "all"] = "hips"
@@ -177,6 +178,8 @@ class ServeOptions(BaseModel):
                              "handed over yet (use --backend torch)")
         if self.save_state_every is not None and self.state_store is None:
             raise ValueError("--save-state-every saves sessions to the state store: give --state-store too")
+        if self.state_secret_file is not None and self.state_store is None:
+            raise ValueError("--state-secret-file seals the states of the state store: give --state-store too")
         if self.osc is not None:
             try:
                 self.vmc()

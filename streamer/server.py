@@ -33,8 +33,9 @@ if TYPE_CHECKING:
     from dimgestor.onnx_stream import OnnxModel
     from streamer.ws import WsServer
 
-__all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_token", "run", "serve"]
+__all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret", "read_token", "run", "serve"]
 TOKEN_ENV = "STREAMER_TOKEN"
+STATE_SECRET_ENV = "DIMGESTOR_STATE_SECRET"
 # --backend onnxruntime without --onnx: the batch sizes exported at start beside the single-stream graph (each takes
 # about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of the saving per
 # stream is there by 4 streams a call at K = 8)
@@ -87,6 +88,7 @@ def build(options: ServeOptions) -> Pipeline:
         from streamer.redact import RedactTokens
 
         RedactTokens.add_secret(token)  # -v logs request lines: a token put in the URL path is masked there too
+    state_key = read_state_secret(options)
     source = _source(options)  # fail early: before the model loads
     humanoid = _humanoid_map(options.humanoid_map)
     bundle = _load(options.checkpoint)
@@ -95,7 +97,8 @@ def build(options: ServeOptions) -> Pipeline:
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
     scheduler = _scheduler(options.no_batch, onnx)
     metrics = _metrics(scheduler)
-    make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx)
+    make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
+                                     state_key=state_key)
     session = make_session("source") if source is not None else None
     if session is not None:
         session.on_window = metrics.window_done
@@ -180,7 +183,14 @@ def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> Server
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None) -> Session:
+             onnx: OnnxModel | None = None, state_key: bytes | None = None) -> Session:
+    session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx)
+    session.state_key = state_key  # seals its saved states (--state-secret-file)
+    return session
+
+
+def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str,
+                 onnx: OnnxModel | None) -> Session:
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
 
@@ -311,6 +321,30 @@ def read_token(options) -> str | None:
     return token
 
 
+def read_state_secret(options) -> bytes | None:
+    """The secret that seals saved states, from --state-secret-file or $DIMGESTOR_STATE_SECRET (surrounding
+    whitespace ignored; never empty), only with a --state-store; it is masked in every log line."""
+    if options.state_store is None:
+        return None
+    if options.state_secret_file:
+        try:
+            secret = Path(options.state_secret_file).read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as e:
+            raise ServeError(f"--state-secret-file {options.state_secret_file}: "
+                             f"{getattr(e, 'strerror', None) or e}") from None
+        where = f"--state-secret-file {options.state_secret_file}"
+    elif STATE_SECRET_ENV in os.environ:
+        secret, where = os.environ[STATE_SECRET_ENV].strip(), f"${STATE_SECRET_ENV}"
+    else:
+        return None
+    if not secret:
+        raise ServeError(f"{where} is empty: give the secret every worker of the cluster shares (or none)")
+    from streamer.redact import RedactTokens
+
+    RedactTokens.add_secret(secret)
+    return secret.encode()
+
+
 # ---- run -----------------------------------------------------------------------------------------
 
 async def run(p: Pipeline) -> int:
@@ -424,6 +458,10 @@ def _banner(p: Pipeline) -> str:
              f"lookahead {session.lookahead_s * 1000:.0f} ms"
              + (", backend onnxruntime" if o.backend == "onnxruntime" else "") + f"; source: {what}"]
     lines += [line for sink in p.sinks for line in sink.describe().splitlines()]
+    if o.state_store is not None:
+        lines.append("saved sessions sealed with the workers' shared secret" if session.state_key else
+                     "saved sessions sealed with SHA-256 only (no --state-secret-file: corruption is detected, "
+                     "forgery is not)")
     if o.http is not None:
         lines.append(f"--http is deprecated: the viewer is served on the WebSocket port ({p.ws.viewer_urls[0]}); "
                      f"--http still serves it, and the WebSocket, on port {p.ws.addresses[-1][1]} too")

@@ -173,6 +173,9 @@ class Session:
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._finishing = False
+        # The workers' shared secret that seals saved states (`dimgestor.savestate`; serve --state-secret-file):
+        # None seals with plain SHA-256 (integrity only). Never shown.
+        self.state_key: bytes | None = None
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
@@ -242,24 +245,27 @@ class Session:
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
         """The session as bytes (`dimgestor.savestate`): the stream's state (default: its own now), the pose
-        decoder's root and the `frames` made so far, with `meta` (e.g. the client's rate) beside them."""
+        decoder's root and the `frames` made so far, with `meta` (e.g. the client's rate) beside them, sealed
+        with `state_key`."""
         from dimgestor import savestate
 
         meta = {"frames": int(frames), "decoder": dataclasses.asdict(self.decoder.state), **meta}
-        return savestate.dumps(self.stream, state, meta)
+        return savestate.dumps(self.stream, state, meta, key=self.state_key)
 
     def restore(self, data: bytes) -> dict:
-        """Go on from `snapshot`'s bytes (taken by any worker on the same model); returns their meta.
+        """Go on from `snapshot`'s bytes (taken by any worker on the same model and `state_key`); returns their meta.
         Raises `savestate.StateError` when they cannot be resumed exactly (the session is then unchanged): every
         field is checked first, the stream's (`savestate.loads`) and the meta's (`check_meta`)."""
         from dimgestor import savestate
         from dimgestor.features import RootState
 
-        state, meta = savestate.loads(self.stream, data)
+        state, meta = savestate.loads(self.stream, data, key=self.state_key)
         check_meta(meta, state)
         root = meta["decoder"]
         self.stream.state = state
-        self.decoder.state = RootState(**{**root, "drift": tuple(root["drift"])})
+        # (as floats: an int past int64, which the checks take as a finite number, would make numpy's arrays objects)
+        self.decoder.state = RootState(**{**root, **{k: float(root[k]) for k in ("x", "z", "heading")},
+                                          "drift": tuple(map(float, root["drift"]))})
         if self._face is not None:
             self._face.close()
         self._face, self._face_start = None, (int(state.samples_in), int(self.stream.frames_out))  # listens afresh

@@ -552,7 +552,8 @@ def test_nginx_in_compose_fills_the_tested_template_with_the_worker_service():
 
 def test_the_local_cluster_store_is_capped_and_evicts_the_saves_nearest_expiry_first():
     """Issue 40 item 6: local-cluster's redis-server runs with maxmemory (--store-maxmemory) and `volatile-ttl`,
-    so abandoned saves cannot grow it until it dies (tests/test_streamer_handover.py fills one such store)."""
+    so abandoned saves cannot grow it until it dies (tests/test_streamer_handover.py fills one such store). Its
+    workers seal their saves with a secret made for the cluster (--state-secret-file), never shown."""
     import redis
 
     cluster = Cluster("--workers", "1", "--store-maxmemory", "32mb", "--", *WORKER_ARGS)
@@ -561,6 +562,11 @@ def test_the_local_cluster_store_is_capped_and_evicts_the_saves_nearest_expiry_f
         r = redis.Redis(port=port)
         assert r.config_get("maxmemory") == {"maxmemory": str(32 * 2**20)}
         assert r.config_get("maxmemory-policy") == {"maxmemory-policy": "volatile-ttl"}
+        cluster.wait_for(r"saved sessions sealed with the workers' shared secret")
         cluster.wait_for(r"^ready: ws://")
+        worker = Path(f"/proc/{cluster.workers()[1][1]}/cmdline").read_text().split("\0")  # (Linux)
+        secret = Path(worker[worker.index("--state-secret-file") + 1])
+        assert secret.stat().st_mode & 0o777 == 0o600 and len(secret.read_text()) == 64
+        assert secret.read_text() not in cluster.output
     finally:
         assert cluster.stop() == 0, cluster.output

@@ -50,16 +50,50 @@ def test_the_fresh_state_round_trips_and_the_size_is_the_state(model):
     assert nbytes < len(data) < nbytes + 64 * 1024  # the tensors plus a small header
 
 
-def _header(data):
-    _, _, n = struct.unpack_from("<7sHI", data)
-    return json.loads(data[13:13 + n]), 13 + n
-
-
 def test_a_state_of_another_version_is_refused_not_misread(model):
     data = bytearray(savestate.dumps(GestureStream(model, steps=4)))
-    struct.pack_into("<H", data, 7, savestate.STATE_VERSION - 1)
-    with pytest.raises(savestate.StateError, match=f"version {savestate.STATE_VERSION - 1}.*another release"):
+    struct.pack_into("<H", data, 7, savestate.STATE_VERSION + 1)
+    with pytest.raises(savestate.StateError, match=f"version {savestate.STATE_VERSION + 1}.*another release"):
         savestate.loads(GestureStream(model, steps=4), bytes(data))
+    header, raw = savestate.split(data)  # version 1: no seal, the header right after the prefix
+    text = json.dumps(header).encode()
+    v1 = struct.pack("<7sHI", b"DGSTATE", 1, len(text)) + text + raw
+    with pytest.raises(savestate.StateError, match="version 1, this engine reads version 2 only: .*another release"):
+        savestate.loads(GestureStream(model, steps=4), v1)
+
+
+def test_a_state_resumes_with_the_secret_it_was_sealed_with_and_no_other(model):
+    """The workers' shared secret (serve --state-secret-file) seals a state with HMAC-SHA256: a state sealed with
+    another secret, or with none (plain SHA-256, as anyone can), is refused before its header is read."""
+    s = GestureStream(model, steps=4, seed=3)
+    s.push(_audio(0.5))
+    secret = b"the cluster's secret"
+    sealed = savestate.dumps(s, meta={"a": 1}, key=secret)
+    state, meta = savestate.loads(GestureStream(model, steps=4, seed=3), sealed, key=secret)
+    assert meta == {"a": 1} and state.samples_in == s.samples_in
+    header, raw = savestate.split(sealed)
+    header["meta"]["a"] = 2
+    for data, key in ((sealed, b"another secret"), (sealed, None), (savestate.dumps(s), secret),
+                      (savestate.pack(header, raw), secret), (savestate.pack(header, raw, b"guessed"), secret)):
+        with pytest.raises(savestate.StateError, match=r"seal does not match: .* another state secret "
+                                                       r"\(--state-secret-file\), or without one"):
+            savestate.loads(GestureStream(model, steps=4, seed=3), data, key=key)
+    assert savestate.loads(GestureStream(model, steps=4, seed=3), savestate.pack(header, raw, secret),
+                           key=secret)[1] == {"a": 2}  # (pack: split's inverse)
+
+
+def test_one_changed_bit_anywhere_is_refused(model):
+    """Every byte but the magic and the version (each refused with its own reason) is under the seal: the header's
+    length, the seal, the header and each leaf's bytes."""
+    data = savestate.dumps(GestureStream(model, steps=4))
+    header, raw = savestate.split(data)
+    body = len(data) - len(raw)
+    for at in (*range(9, 13), 13, 44, 45, body - 1, body, body + len(raw) // 2, len(data) - 1):
+        for bit in (0, 7):
+            b = bytearray(data)
+            b[at] ^= 1 << bit
+            with pytest.raises(savestate.StateError, match="seal does not match"):
+                savestate.loads(GestureStream(model, steps=4), bytes(b))
 
 
 def test_a_state_of_another_model_or_other_settings_is_refused(model):
@@ -83,22 +117,26 @@ def test_broken_bytes_are_refused_with_the_reason(model):
     s = GestureStream(model, steps=4)
     s.push(_audio(0.5))
     data = savestate.dumps(s)
-    header, body = _header(data)
+    header, raw = savestate.split(data)
+    body = len(data) - len(raw)
     load = lambda d: savestate.loads(GestureStream(model, steps=4), d)  # noqa: E731
     with pytest.raises(savestate.StateError, match="no DGSTATE header"):
         load(b"hello")
+    for cut in (data[:-10], data[:body - 5], data[:20]):  # the seal finds it first ...
+        with pytest.raises(savestate.StateError, match="seal does not match: corrupted or cut short"):
+            load(cut)
+    # ... and re-sealed (as anyone without the workers' secret can), the checks behind it
     with pytest.raises(savestate.StateError, match="cut short"):
-        load(data[:-10])
+        load(savestate.reseal(data[:-10]))
     with pytest.raises(savestate.StateError, match="cut short"):
-        load(data[:body - 5])
+        load(savestate.reseal(data[:body - 5]))
     with pytest.raises(savestate.StateError, match="does not parse"):
-        load(data[:13] + b"{" * (body - 13) + data[body:])
+        load(savestate.pack(b"{" * (body - 45), raw))
 
     def patched(change):
         h = copy.deepcopy(header)
         change(h)
-        text = json.dumps(h).encode()
-        return struct.pack("<7sHI", b"DGSTATE", savestate.STATE_VERSION, len(text)) + text + data[body:]
+        return savestate.pack(h, raw)
     with pytest.raises(savestate.StateError, match="state.extractor is a 'Popen'"):
         load(patched(lambda h: h["state"]["f"]["extractor"].update(t="Popen")))
     with pytest.raises(savestate.StateError, match="has fields"):

@@ -1,10 +1,13 @@
 """A fuzz of stored session states (issue 40): a real saved state, mutated (its header's values: types, numbers
 negative, huge or NaN, shapes, offsets, removed keys, nesting 100,000 deep; its bytes: truncated, bits flipped,
 NaN written in), is either refused with a StateError or resumed exactly: the same frames as the state it came
-from for the same audio. Only a value every state may hold (a root position, a float of the model's state's
-own bytes) may be accepted and give other frames; nothing raises anything else."""
+from for the same audio; nothing raises anything else.
+With the workers' shared secret (serve --state-secret-file), a mutated state that is not sealed with it (its seal
+left as it was, or made anew without the secret or with another) is refused: no mutation gives other frames.
+Without a secret anyone can seal a state anew (plain SHA-256), so the first fuzz re-seals each mutation and meets
+the field checks behind the seal: there only a value every state may hold (a root position, a float of the
+model's state's own bytes) may be accepted and give other frames."""
 import json
-import struct
 
 import numpy as np
 import pytest
@@ -29,22 +32,39 @@ class Saved(tuple):
         return "Saved(...)"  # (hypothesis prints a failing case's arguments)
 
 
-@pytest.fixture(scope="module")
-def original(bundle):
-    """A session's state at 48 kHz (its resampler saved with it) -> (its bytes, the frames after it)."""
+def _saved(bundle, key: bytes | None) -> Saved:
+    """A session's state at 48 kHz (its resampler saved with it), sealed with `key` -> (its bytes, the frames
+    after it)."""
     s = _session(bundle)
+    s.state_key = key
     frames = s.infer(AUDIO[:SAVE_AT])
     r = make_resampler(48000)
     r.process(np.zeros(SAVE_AT * 3 + 30))  # exactly SAVE_AT out (30: the filter's delay)
     data = s.snapshot(len(frames), rate=48000, encoding="binary", resampler=r.get_state())
     resumed = _session(bundle)
+    resumed.state_key = key
     resumed.restore(data)
     return Saved((data, resumed.infer(AUDIO[SAVE_AT:])))
 
 
+@pytest.fixture(scope="module")
+def original(bundle):
+    return _saved(bundle, None)
+
+
+@pytest.fixture(scope="module")
+def original_sealed(bundle):
+    return _saved(bundle, SECRET)
+
+
+SECRET = b"the cluster's state secret"
+PREFIX = 13  # magic, version, header length (dimgestor/savestate.py); the seal follows
+HEADER_AT = PREFIX + savestate.SEAL_SIZE
+
+
 def _split(data: bytes):
-    _, _, n = struct.unpack_from("<7sHI", data)
-    return json.loads(data[13:13 + n]), 13 + n
+    header, raw = savestate.split(data)
+    return header, len(data) - len(raw)
 
 
 def _paths(v, path=()):
@@ -74,7 +94,8 @@ BAD = st.one_of(st.integers(-2 ** 70, 2 ** 70), st.sampled_from([-1, 0, 1, 2 ** 
 
 @st.composite
 def mutations(draw, data: bytes):
-    """-> (the mutated bytes, what was done, whether it may give other frames when accepted)."""
+    """-> (the mutated bytes, what was done, whether it may give other frames when accepted). Their seal: that of
+    `data` after a change of bytes, made anew without a secret after a change of the header."""
     header, body = _split(data)
     how = draw(st.sampled_from(["replace", "nudge", "remove", "truncate", "flip", "nan"]))
     if how in ("truncate", "flip", "nan"):
@@ -82,7 +103,7 @@ def mutations(draw, data: bytes):
         if how == "truncate":
             return bytes(b[:draw(st.integers(0, len(b) - 1))]), how, False
         if how == "flip":
-            at = draw(st.one_of(st.integers(0, 12), st.integers(body, len(b) - 1)))  # the prefix or the leaves
+            at = draw(st.one_of(st.integers(0, HEADER_AT - 1), st.integers(body, len(b) - 1)))  # before or in leaves
             b[at] ^= 1 << draw(st.integers(0, 7))
             return bytes(b), f"flip byte {at}", at >= body  # a float's bits: any finite value is a state's
         leaf = draw(st.sampled_from([x for x in _leaves(header["state"]) if x["n"]]))
@@ -109,27 +130,58 @@ def mutations(draw, data: bytes):
         parent[key] = draw(BAD)
     text = json.dumps(header, allow_nan=True).replace('"DEEP"', DEEP)
     free = path[:2] in (("meta", "decoder"), ("meta", "encoding"))
-    mutated = struct.pack("<7sHI", b"DGSTATE", savestate.STATE_VERSION, len(text)) + text.encode() + data[body:]
+    mutated = savestate.pack(text, data[body:])
     shown = "" if how == "remove" else f": {parent[key]!r:.60}"
     return mutated, f"{how} {'.'.join(map(str, path))}{shown}", free
 
 
+def _restore(bundle, data: bytes, key: bytes | None, what: str, after) -> bool | None:
+    """None: refused with a StateError (one line, with the reason); else whether it gave `after`'s frames."""
+    s = _session(bundle)
+    s.state_key = key
+    try:
+        s.restore(data)
+    except savestate.StateError as e:
+        assert "\n" not in str(e) and str(e), what
+        if key is None:  # (re-sealed: only bytes too short to hold a seal meet it)
+            assert "seal does not match" not in str(e) or len(data) < HEADER_AT, what
+        event("refused")
+        return None
+    frames = s.infer(AUDIO[SAVE_AT:])
+    assert [f.index for f in frames] == [f.index for f in after], what
+    return all(np.array_equal(f.features, g.features) and np.array_equal(f.root_pos, g.root_pos)
+               for f, g in zip(frames, after))
+
+
 @settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.data())
-def test_a_mutated_state_is_refused_or_resumed_exactly(bundle, original, data):
+def test_a_mutated_state_sealed_anew_is_refused_or_resumed_exactly(bundle, original, data):
+    """No secret: each mutation sealed anew (as anyone can), so the field checks decide."""
     saved, after = original
     mutated, what, free = data.draw(mutations(saved), label="mutation")
     event(what.split(" ")[0])
-    s = _session(bundle)
-    try:
-        s.restore(mutated)
-    except savestate.StateError as e:
-        assert "\n" not in str(e) and str(e), what  # one line, with the reason
-        event("refused")
-        return
-    frames = s.infer(AUDIO[SAVE_AT:])
-    assert [f.index for f in frames] == [f.index for f in after], what
-    same = all(np.array_equal(f.features, g.features) and np.array_equal(f.root_pos, g.root_pos)
-               for f, g in zip(frames, after))
-    assert same or free, f"accepted and resumed otherwise: {what}"
-    event("accepted, the same frames" if same else "accepted, a state's free value changed")
+    if len(mutated) >= HEADER_AT:
+        mutated = savestate.reseal(mutated)
+    same = _restore(bundle, mutated, None, what, after)
+    if same is not None:
+        assert same or free, f"accepted and resumed otherwise: {what}"
+        event("accepted, the same frames" if same else "accepted, a state's free value changed")
+
+
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.data())
+def test_with_a_secret_a_mutated_state_not_sealed_with_it_is_refused(bundle, original_sealed, data):
+    """The workers' secret: a mutation with the seal it had, or sealed anew without the secret or with another,
+    is refused, or it changed nothing (its bytes are the state's again) and resumes exactly: none gives other
+    frames, free values included."""
+    saved, after = original_sealed
+    mutated, what, _ = data.draw(mutations(saved), label="mutation")
+    seal = data.draw(st.sampled_from(["kept", "none", "another"]), label="seal")
+    event(f"{what.split(' ')[0]}, seal {seal}")
+    if len(mutated) >= HEADER_AT:
+        mutated = (mutated[:PREFIX] + saved[PREFIX:HEADER_AT] + mutated[HEADER_AT:] if seal == "kept" else
+                   savestate.reseal(mutated, None if seal == "none" else b"another secret"))
+    same = _restore(bundle, mutated, SECRET, what, after)
+    if same is not None:
+        assert same and mutated == saved, f"accepted without the secret's seal: {what}, seal {seal}"
+        event("accepted, the state unchanged")

@@ -622,27 +622,25 @@ def test_a_state_over_the_size_cap_is_not_saved_counted_and_the_session_goes_on(
     assert _metric(metrics, "dimgestor_states_put_total") == 0 and not [k for k in store.keys() if ":state:" in k]
 
 
-def _with_nan_in_the_denoiser(data: bytes) -> bytes:
-    """A saved state with one NaN written into its denoiser's SSM state (well-formed, bad values)."""
-    import json
-    import struct
+def _with_nan_in_the_denoiser(data: bytes, reseal: bool = False) -> bytes:
+    """A saved state with one NaN written into its denoiser's SSM state (well-formed, bad values): its seal left as
+    it was, or made anew without a secret (as anyone who can write to the store can)."""
+    from dimgestor import savestate
 
-    _, _, n = struct.unpack_from("<7sHI", data)
-    leaf = json.loads(data[13:13 + n])["state"]["f"]["denoiser"]["f"]["ssm"]
+    header, raw = savestate.split(data)
+    at = header["state"]["f"]["denoiser"]["f"]["ssm"]["at"]
     b = bytearray(data)
-    b[13 + n + leaf["at"]:13 + n + leaf["at"] + 4] = np.float32(np.nan).tobytes()
-    return bytes(b)
+    b[len(data) - len(raw) + at:len(data) - len(raw) + at + 4] = np.float32(np.nan).tobytes()
+    return savestate.reseal(b) if reseal else bytes(b)
 
 
 def _patched(data: bytes, change) -> bytes:
-    import json
-    import struct
+    """A saved state with its header changed by `change`, sealed anew without a secret."""
+    from dimgestor import savestate
 
-    _, _, n = struct.unpack_from("<7sHI", data)
-    header = json.loads(data[13:13 + n])
+    header, raw = savestate.split(data)
     change(header)
-    text = json.dumps(header).encode()
-    return data[:9] + struct.pack("<I", len(text)) + text + data[13 + n:]
+    return savestate.pack(header, raw)
 
 
 async def _resume_then_talk(ws, token: str, seconds: float = 1.0):
@@ -684,7 +682,9 @@ def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_o
     bad = {
         "another model": savestate.dumps(GestureStream(random_tiny_model(), steps=2)),
         "cut short": good[:-100],
-        r"state\.denoiser\.ssm holds 1 values that are NaN": _with_nan_in_the_denoiser(good),
+        "seal does not match: corrupted": _with_nan_in_the_denoiser(good),
+        r"seal does not match: .*another state secret": savestate.reseal(good, b"another secret"),
+        r"state\.denoiser\.ssm holds 1 values that are NaN": _with_nan_in_the_denoiser(good, reseal=True),
         r"state\.samples_in is -1000000000000": _patched(good, lambda h: h["state"]["f"]["samples_in"].update(
             v=-10 ** 12)),
         r"meta\.decoder is not an object": _patched(good, lambda h: h["meta"].pop("decoder")),
@@ -716,9 +716,14 @@ def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_o
     assert resumed == 0
 
 
-def test_a_bad_state_in_redis_gets_resume_failed_with_the_reason_and_no_traceback(tmp_path, checkpoint, redis_url):
-    """A state written bad into a real redis-server (NaN in a session's saved denoiser state): the worker answers
-    `resume_failed` naming the field, serves the client's own audio afresh, and logs no traceback."""
+@pytest.mark.parametrize("reseal,reason", [
+    (False, "saved stream state seal does not match: corrupted"),  # the bytes changed in place: the seal finds it
+    (True, "saved stream state: state.denoiser.ssm holds 1 values that are NaN")])  # sealed anew: the checks do
+def test_a_bad_state_in_redis_gets_resume_failed_with_the_reason_and_no_traceback(tmp_path, checkpoint, redis_url,
+                                                                                   reseal, reason):
+    """A state written bad into a real redis-server (NaN in a session's saved denoiser state), as it is or sealed
+    anew (a worker without --state-secret-file seals with plain SHA-256, which anyone can): the worker answers
+    `resume_failed` with the reason, serves the client's own audio afresh, and logs no traceback."""
     import asyncio
     import json
 
@@ -740,7 +745,7 @@ def test_a_bad_state_in_redis_gets_resume_failed_with_the_reason_and_no_tracebac
                 pass
         await asyncio.sleep(0.5)
         key = store._keys(saved["resume_token"])[0]  # the stored state itself, written bad in place
-        store.client.set(key, _with_nan_in_the_denoiser(store.client.get(key)), keepttl=True)
+        store.client.set(key, _with_nan_in_the_denoiser(store.client.get(key), reseal), keepttl=True)
         async with connect(url) as ws:
             assert (await recv_json(ws))["type"] == "hello"
             await ws.send(hello)
@@ -751,10 +756,57 @@ def test_a_bad_state_in_redis_gets_resume_failed_with_the_reason_and_no_tracebac
         reply, msgs = asyncio.run(talk(server.ws_url))
         log = server.log.read_text(errors="replace")
     assert reply["type"] == "error" and reply["code"] == "resume_failed", reply
-    assert "state.denoiser.ssm holds 1 values that are NaN" in reply["message"], reply
+    assert reason in reply["message"], reply
     assert [m["index"] for m in msgs if m["type"] == "frame"] == list(range(20)) and msgs[-1]["frames"] == 20
-    assert "a saved session state was refused (saved stream state: state.denoiser.ssm" in log, log[-3000:]
+    assert f"a saved session state was refused ({reason}" in log, log[-3000:]
     assert "Traceback" not in log and "internal" not in log, log[-3000:]
+
+
+def test_workers_sharing_a_state_secret_hand_a_session_over_exactly_and_one_with_another_refuses_it(
+        tmp_path, checkpoint, redis_url, monkeypatch):
+    """serve --state-secret-file (or $DIMGESTOR_STATE_SECRET): A (the file) hands its session over on SIGTERM to
+    B (the same secret from the environment) and the frames go on as in an uninterrupted run; C, with another
+    secret, refuses what A saves (`resume_failed`, the seal) and the client finishes its file with a fresh stream.
+    No log shows a secret."""
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 8.0)
+    (tmp_path / "secret").write_text("  the cluster's secret\n")
+    (tmp_path / "other").write_text("another cluster's secret")
+    store = ("--state-store", redis_url, "--window-ms", "100")
+    with live_server(tmp_path, "ws", checkpoint, extra=(*store, "--state-secret-file", str(tmp_path / "secret"))) as a:
+        monkeypatch.setenv("DIMGESTOR_STATE_SECRET", "the cluster's secret")
+        with live_server(tmp_path, "ws", checkpoint, extra=store) as b:
+            moved = tmp_path / "moved"
+            err = _interrupted_client(a, b, wav, moved, signal.SIGTERM, 40)
+            assert a.proc.wait(20) == 0, a.log_tail()
+            whole = tmp_path / "whole"
+            run_client("--url", b.ws_url, "--wav", str(wav), "--save", str(whole), "--quiet", "--fast")
+            logs = a.log.read_text(errors="replace") + b.log.read_text(errors="replace")
+    assert "resumed from sample" in err and "resume failed" not in err, err
+    msgs, frames = _frames(moved)
+    assert [f["index"] for f in frames] == list(range(8 * 20)) and msgs[-1] == {"type": "end", "frames": 8 * 20}
+    _, reference = _frames(whole)
+    rot, ref = np.array([f["rotations"] for f in frames]), np.array([f["rotations"] for f in reference])
+    assert np.abs(rot - ref).max() < 1e-3  # the streaming = offline tolerance, after the resume too
+    assert "sealed with the workers' shared secret" in logs and "cluster's secret" not in logs, logs[-3000:]
+
+    monkeypatch.delenv("DIMGESTOR_STATE_SECRET")
+    secret, other = ("--state-secret-file", str(tmp_path / "secret")), ("--state-secret-file", str(tmp_path / "other"))
+    with live_server(tmp_path, "ws", checkpoint, extra=(*store, *secret)) as a, \
+            live_server(tmp_path, "ws", checkpoint, extra=(*store, *other)) as c:
+        moved, bvh = tmp_path / "moved-c", tmp_path / "moved-c.bvh"
+        err = _interrupted_client(a, c, wav, moved, signal.SIGTERM, 40, "--bvh", str(bvh))
+        assert a.proc.wait(20) == 0, a.log_tail()
+        log = c.log.read_text(errors="replace")
+    assert "resume failed (resume_failed: saved stream state seal does not match" in err, err
+    msgs, _ = _frames(moved)
+    goaway = [m for m in msgs if m["type"] == "goaway"]
+    assert len(goaway) == 1 and [m for m in msgs if m["type"] == "end"] == [
+        {"type": "end", "frames": 8 * 20 - goaway[0]["frames"]}]  # the fresh stream's, no other
+    from dimgestor.bvh import read_bvh
+
+    assert read_bvh(bvh).num_frames == 8 * 20
+    assert "Traceback" not in log and "cluster's secret" not in log, log[-3000:]
 
 
 def test_the_python_client_finishes_its_file_when_the_resume_after_a_goaway_fails(tmp_path, checkpoint,

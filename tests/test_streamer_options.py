@@ -73,6 +73,7 @@ def test_options_are_frozen_and_refuse_unknown_names():
     ({"record": "x.bvh", "source": "ws"}, "--record records the server's own source"),
     ({"allow_origin": ["http://a.example/x"]}, "is not an origin"),
     ({"save_state_every": 5.0}, "--save-state-every saves sessions to the state store: give --state-store too"),
+    ({"state_secret_file": "s"}, "--state-secret-file seals the states of the state store: give --state-store too"),
     ({"osc": ("127.0.0.1", 9), "vmc_max_bytes": 100}, "--vmc: "),  # named by its flag, not its field
     ({"osc": "nowhere"}, "--vmc: "),
 ])
@@ -80,6 +81,26 @@ def test_a_bad_option_is_one_message_naming_its_flag(values, message):
     with pytest.raises(ServeError) as e:
         ServeOptions.parse(**values)
     assert message in str(e.value)
+
+
+def test_the_state_secret_comes_from_its_file_or_the_environment_and_only_with_a_store(tmp_path, monkeypatch):
+    from streamer.redact import RedactTokens
+    from streamer.server import read_state_secret
+
+    monkeypatch.setattr(RedactTokens, "secrets", set())
+    (tmp_path / "secret").write_text(" from the file\n")
+    monkeypatch.setenv("DIMGESTOR_STATE_SECRET", "from the environment")
+    store = {"state_store": "memory"}
+    assert read_state_secret(ServeOptions(**store, state_secret_file=str(tmp_path / "secret"))) == b"from the file"
+    assert read_state_secret(ServeOptions(**store)) == b"from the environment"
+    assert read_state_secret(ServeOptions()) is None  # no store: nothing to seal
+    assert {"from the file", "from the environment"} <= RedactTokens.secrets  # masked in every log line
+    monkeypatch.delenv("DIMGESTOR_STATE_SECRET")
+    assert read_state_secret(ServeOptions(**store)) is None
+    (tmp_path / "empty").write_text("\n")
+    for path, message in ((tmp_path / "empty", "is empty"), (tmp_path / "none", "No such file")):
+        with pytest.raises(ServeError, match=f"--state-secret-file {path}: .*{message}|{message}"):
+            read_state_secret(ServeOptions(**store, state_secret_file=str(path)))
 
 
 def test_the_server_pieces_take_their_defaults_from_the_options():
