@@ -8,13 +8,18 @@ paced in real time (tests/helpers/talkers.py) for `--seconds`, three times: quie
 `--fault-at` s into the run for `--fault-s` s; with Redis SIGKILLed at the same moment and started again on its
 port `--fault-s` s later. For each run and talker: the largest gap between two frames' arrivals and the p95
 latency (a frame's arrival after its audio was sent), the `/readyz` answers seen while the fault lasted, and the
-periodic saves before, during and after it. Writes results/store_faults.json.
+periodic saves before, during and after it. Writes results/store_faults.json and a plot beside it (.png: the
+worst talker's largest gap and p95 latency per run, with results/store_faults_before.json's runs beside them when
+that file is there).
+
+    .venv/bin/python benchmarks/store_faults.py --plot-only benchmarks/results/store_faults.json [--before B.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import shlex
 import shutil
 import signal
@@ -99,6 +104,61 @@ def run(fault: str | None, url: str, http: str, args, store: list[subprocess.Pop
     return out
 
 
+def plot(result: dict, path: Path, before: dict | None = None) -> None:
+    """The worst talker's largest frame gap and p95 latency per run as grouped bars (log y), `before`'s runs beside."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(result["runs"])
+    label = {"quiet": "quiet", "paused": "Redis paused\n(SIGSTOP)", "killed": "Redis killed\n(SIGKILL, restarted)"}
+    now = "" if before is None else ", this code"
+    series = [("largest frame gap" + now, "largest_gap_s", result, "tab:blue", ""),
+              ("p95 latency" + now, "p95_latency_s", result, "tab:orange", "")]
+    if before is not None:
+        series += [("largest frame gap, code before", "largest_gap_s", before, "tab:blue", "//"),
+                   ("p95 latency, code before", "p95_latency_s", before, "tab:orange", "//")]
+    fig, ax = plt.subplots(figsize=(9, 5))
+    width = 0.8 / len(series)
+    x = np.arange(len(names))
+    lowest = []
+    for i, (what, key, res, color, hatch) in enumerate(series):
+        values = [max(res["runs"][n][key]) if n in res["runs"] else np.nan for n in names]
+        lowest += [v for v in values if np.isfinite(v) and v > 0]
+        bars = ax.bar(x + (i - (len(series) - 1) / 2) * width, values, width, color=color, hatch=hatch,
+                      edgecolor="k" if hatch else color, alpha=0.55 if hatch else 0.9, label=what)
+        ax.bar_label(bars, labels=[f"{v:.2f}" if np.isfinite(v) else "" for v in values], fontsize=7, padding=2)
+    ax.set_yscale("log")
+    ax.set_xticks(x, [label.get(n, n) for n in names])
+    ax.set_ylabel("seconds, worst talker (log scale)")
+    ax.set_xlabel("run (the store's fault while the talkers send)")
+    ax.grid(axis="y", alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_ylim(min(lowest, default=0.1) / 3, ax.get_ylim()[1] * 2)
+    setup = result["setup"]
+    lines = [f"store faults: {setup['talkers']} talkers x {setup['seconds']:g} s, fault from "
+             f"{setup['fault_at_s']:g} s to {setup['fault_at_s'] + setup['fault_s']:g} s into each run "
+             f"({setup['fault_s']:g} s); saves every {setup['save_state_every_s']} s",
+             f"this code {result['code']}; {result['machine']}"]
+    if before is not None:
+        lines.append(f"code before (hatched): {before['code']}")
+    ax.set_title("\n".join(lines), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    print(f"wrote {path}")
+
+
+def read_before(path: Path, before: Path | None) -> dict | None:
+    """--before, else STEM_before.json beside the results when there is one."""
+    if before is None:
+        before = path.with_name(path.stem + "_before.json")
+        if before == path or not before.exists():
+            return None
+    return json.loads(before.read_text())
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--talkers", type=int, default=4)
@@ -107,7 +167,15 @@ def main() -> int:
     ap.add_argument("--fault-s", type=float, default=8.0, help="how long it stays paused or dead (default 8)")
     ap.add_argument("--worker-args", default="", help="more `dimgestor serve` arguments, e.g. '--checkpoint X'")
     ap.add_argument("--out", type=Path, default=RESULTS / "store_faults.json")
+    ap.add_argument("--plot-only", type=Path, metavar="RESULTS.json",
+                    help="redraw RESULTS.png from an existing results file; measures nothing")
+    ap.add_argument("--before", type=Path, default=None,
+                    help="the older code's results to plot beside (default: STEM_before.json beside the results)")
     args = ap.parse_args()
+    if args.plot_only:
+        plot(json.loads(args.plot_only.read_text()), args.plot_only.with_suffix(".png"),
+             read_before(args.plot_only, args.before))
+        return 0
     folder = tempfile.mkdtemp(prefix="store-faults-")
     port = free_port()
     store = [start_redis(port, folder)]
@@ -130,7 +198,7 @@ def main() -> int:
         print(f"{name:7s} largest gap {max(r['largest_gap_s']):.3f} s, p95 latency {max(r['p95_latency_s']):.3f} s "
               f"(worst talker)" + (f"; readyz degraded {r['readyz_during']['degraded']}/{r['readyz_during']['answers']}"
                                    f", saves before/during/after {r['saves']}" if "saves" in r else ""))
-    write_json(args.out, {
+    result = {
         "what": "a worker's talkers while its state store is quiet, paused (SIGSTOP) or killed and restarted",
         "when": utc_now(), "code": code_version(), "machine": describe_device("cpu"), "load_average": load_average(),
         "setup": {"talkers": args.talkers, "seconds": args.seconds, "fault_at_s": args.fault_at,
@@ -139,7 +207,9 @@ def main() -> int:
         "runs": runs,
         "summary": {name: {"largest_gap_s": float(np.max(r["largest_gap_s"])),
                            "p95_latency_s": float(np.max(r["p95_latency_s"]))} for name, r in runs.items()},
-    })
+    }
+    write_json(args.out, result)
+    plot(result, args.out.with_suffix(".png"), read_before(args.out, args.before))
     return 0
 
 

@@ -278,6 +278,10 @@ def test_store_faults_benchmark_writes_its_schema(tmp_path):
     for name in ("paused", "killed"):
         assert r["runs"][name]["readyz_during"]["status_200"] == r["runs"][name]["readyz_during"]["answers"] > 0
         assert r["runs"][name]["saves"]["after"] > 0, r["runs"][name]  # saving again once the store is back
+    assert out.with_suffix(".png").stat().st_size > 0
+    out.with_suffix(".png").unlink()
+    run("store_faults.py", "--plot-only", str(out))  # redrawn from the JSON alone
+    assert out.with_suffix(".png").stat().st_size > 0
 
 
 def test_intake_fairness_benchmark_writes_its_schema(tmp_path):
@@ -289,3 +293,7 @@ def test_intake_fairness_benchmark_writes_its_schema(tmp_path):
     assert row["flooders"] == 1 and len(row["slow_down"]) == len(row["messages_in"]) == 1
     assert all(finite(row[k]) for k in ("talker_p95_quiet_ms", "talker_p95_flooded_ms", "talker_p50_flooded_ms"))
     assert row["talker_frames"] == row["talker_end_frames"] > 0 and not row["traceback_in_log"]
+    assert out.with_suffix(".png").stat().st_size > 0
+    out.with_suffix(".png").unlink()
+    run("intake_fairness.py", "--plot-only", str(out), "--before", str(out))  # redrawn, with a "before" beside
+    assert out.with_suffix(".png").stat().st_size > 0
