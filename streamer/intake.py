@@ -49,7 +49,7 @@ class FairWorker(Executor):
     Start-time fair queueing with CPU time as the cost: an account's next job is tagged max(V, the virtual time
     its last job ended), V being the tag of the job in service; the lowest tag runs. An account that was idle
     starts at V (it saves up no credit); one that keeps the thread busy falls behind by what it took. `submit`
-    (the server's own jobs: store calls, trims) runs under an account of the server's.
+    (the server's own jobs: a hand-over's snapshot, a resume's restore, trims) runs under an account of the server's.
     """
 
     def __init__(self, name: str = "ws-prep"):
