@@ -72,7 +72,8 @@ class StoreLink:
         self.down_since: float | None = None  # time.monotonic() when the store was last seen failing; None: up
         self.down_reason = ""
         self.outages = 0
-        self.calls = Counter()  # (name, outcome) -> count; outcome: ok, refused, late, failed, timeout, dropped, busy, down
+        # (name, outcome) -> count; outcome: ok, refused, late, failed, timeout, dropped, busy, down
+        self.calls = Counter()
         self.delayed = Counter()  # name -> calls that took over DELAYED_S
         # one line when it goes down, one when it is back; a flapping store: at most one of each per 30 s
         self._down_log = ErrorLog("state store", every_s=30.0, what="outages", logger=log)
