@@ -257,6 +257,16 @@ def test_a_hold_the_clock_counted_is_cut_out_of_the_sound_compared_with_the_sour
     skipped = np.concatenate([np.zeros(500), source[:300], np.zeros(4000), source[2300:]])  # resumed elsewhere
     with pytest.raises(AssertionError, match="is not the source"):
         assert_sound_starts_at_source_start(skipped, 0, source, counters)
+    # a catch-up the clock counted (its sound skipped ahead) or a stretch the recorder missed: its first 25 ms decide
+    jumped = np.concatenate([np.zeros(500), source[:600], source[2600:]])
+    with pytest.raises(AssertionError, match="is not the source"):
+        assert_sound_starts_at_source_start(jumped, 0, source, {"underruns": 0, "catchUps": 0})
+    assert assert_sound_starts_at_source_start(jumped, 0, source, {"underruns": 0, "catchUps": 1}) == 500 + 190
+    assert assert_sound_starts_at_source_start(jumped, 0, source, {"underruns": 0, "catchUps": 0},
+                                               [(1000, 1100)]) == 500 + 190
+    with pytest.raises(AssertionError, match="is not the source"):  # ... and must still be the source's start
+        assert_sound_starts_at_source_start(np.concatenate([np.zeros(500), source[3000:]]), 0, source,
+                                            {"underruns": 0, "catchUps": 1})
 
 
 def test_late_arrivals_counts_each_stall_once():

@@ -314,19 +314,19 @@ def test_local_dropped_wav_is_heard_in_sync_with_its_gestures_and_a_second_drop_
     assert np.abs(played16).max() > 0.1, f"nothing was played ({len(played16)} samples recorded)"
 
     # Heard from the file's first sample: the first sound is the file's start.
-    assert_sound_starts_at_source_start(played16, 0, source, clock)
+    missed = missed16(rec, rate)  # (stretches the recorder missed: the audio context skipped render quanta there)
+    assert_sound_starts_at_source_start(played16, 0, source, clock, missed)
     # The second drop: the first file's sound stops when the second stream begins (within 0.1 s: the output's
     # latency), so the next sound is the second's start, not the first going on; the second is heard from its
     # first sample too. (The page's and the audio context's clocks, read together at the drop, tick alike.)
     stopped = int((second_at["t"] + began - second_at["page"] + 0.1 - start_s) * 16000)
-    onset = assert_sound_starts_at_source_start(played16, stopped, source, clock)
+    onset = assert_sound_starts_at_source_start(played16, stopped, source, clock, missed)
     print(f"the first file's sound stopped {began - second_at['page']:.2f} s after the second drop; the second's "
           f"sound began {onset / 16000 - stopped / 16000 + 0.1:.2f} s after that")
 
     # In sync over the file: the frame on screen is the one whose pts is heard (as the server mode's test, within
     # 0.1 s), read in both streams; the second read ~11 s of its file.
     # (Reads across a stretch the recorder missed are left out: the audio context skipped render quanta there.)
-    missed = missed16(rec, rate)
     sync_first = shown_minus_heard(first, played16, start_s, source, missed)
     sync = shown_minus_heard(samples, played16, start_s, source, missed)
     print(f"frame pts - heard pts (s): first {np.round(sync_first, 3)}, second {np.round(sync, 3)}; clock {clock}; "
