@@ -269,7 +269,9 @@ def test_store_faults_benchmark_writes_its_schema(tmp_path):
 
     ckpt = make_tiny_checkpoint(tmp_path, seed=1)
     out = tmp_path / "store_faults.json"
-    run("store_faults.py", "--talkers", "2", "--seconds", "7", "--fault-at", "1", "--fault-s", "3",
+    # (the store is back 4 s in; saves every 2 s of audio after a ping found it (<= 1 s): 10 s leave 2-3 saves
+    # after it, where 7 s left none once on a loaded machine)
+    run("store_faults.py", "--talkers", "2", "--seconds", "10", "--fault-at", "1", "--fault-s", "3",
         "--worker-args", f"--checkpoint {ckpt} --steps 2", "--out", str(out))
     r = json.loads(out.read_text())
     assert set(r["runs"]) == {"quiet", "paused", "killed"} and r["machine"] and r["code"]

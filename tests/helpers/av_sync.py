@@ -149,9 +149,9 @@ def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source
     """The first sound in `played16` (16 kHz) from index `after` on is the source from its first sample: strong
     correlation, and the source's start lands where the sound starts. Returns that sound's index. `clock`: the
     page's clock counters; a hold it counted (an underrun: frames came late on a loaded machine) may pause the
-    sound, which then resumes where it stopped, so that many pauses are cut out of what is compared. A catch-up it
-    counted (its sound skipped ahead) or a stretch the recorder missed (`missed`, from missed16) may cut into the
-    first 100 ms anywhere: then the first 25 ms alone are compared if the 100 ms do not match."""
+    sound, which then resumes where it stopped, so that many pauses are cut out of what is compared. A hold or a
+    catch-up it counted (its sound skipped ahead) or a stretch the recorder missed (`missed`, from missed16) may
+    cut into the first 100 ms anywhere: then the first 25 ms alone are compared if the 100 ms do not match."""
     onset = after + int(np.argmax(np.abs(played16[after:]) > 0.01))
     assert np.abs(played16[onset]) > 0.01, f"no sound after {after / 16000:.2f} s of the recording; {clock}"
     assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
@@ -165,11 +165,15 @@ def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source
 
     seg, energy, corr, lag = best(1600)  # the first 100 ms of sound
     print(f"sound at {onset / 16000:.3f} s: source from {lag / 16000:.3f} s (correlation {corr[lag]:.3f})")
-    cut = clock.get("catchUps", 0) > 0 or any(a < onset + 3200 and b > onset for a, b in missed)
+    # (a hold whose pause is not cut whole, fading out and in, leaves a glitch in the 100 ms too: seen once, an
+    # underrun, no catch-up, the sound at 0.049 s of the file with correlation 0.76)
+    cut = (clock.get("catchUps", 0) + clock["underruns"] > 0
+           or any(a < onset + 3200 and b > onset for a, b in missed))
     if corr[lag] <= 0.9 and cut:
         seg, energy, corr, lag = best(400)
-        print(f"  (a catch-up or a missed stretch may cut into it: its first 25 ms: source from {lag / 16000:.3f} s, "
-              f"correlation {corr[lag]:.3f}; recorder missed {[(a / 16000, b / 16000) for a, b in missed]})")
+        print(f"  (a hold, a catch-up or a missed stretch may cut into it: its first 25 ms: source from "
+              f"{lag / 16000:.3f} s, correlation {corr[lag]:.3f}; recorder missed "
+              f"{[(a / 16000, b / 16000) for a, b in missed]})")
     assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f}); {clock}"
     # Where the played sound first crosses 0.01 depends on the playback level (the clip fades in over ~50 ms):
     # the source sample that crosses the same level, scaled by the measured gain, is where the sound must start.
