@@ -58,6 +58,15 @@ def write_json(path: Path, data) -> None:
     print(f"wrote {path}")
 
 
+def read_before(path: Path, before: Path | None) -> dict | None:
+    """A benchmark's results from the code before: --before, else STEM_before.json beside the results."""
+    if before is None:
+        before = path.with_name(path.stem + "_before.json")
+        if before == path or not before.exists():
+            return None
+    return json.loads(before.read_text())
+
+
 def utc_now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 

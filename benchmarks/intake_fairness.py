@@ -23,7 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+from common import RESULTS, code_version, describe_device, load_average, read_before, utc_now, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
@@ -100,15 +100,6 @@ def plot(result: dict, path: Path, before: dict | None = None) -> None:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     print(f"wrote {path}")
-
-
-def read_before(path: Path, before: Path | None) -> dict | None:
-    """--before, else STEM_before.json beside the results when there is one."""
-    if before is None:
-        before = path.with_name(path.stem + "_before.json")
-        if before == path or not before.exists():
-            return None
-    return json.loads(before.read_text())
 
 
 def main() -> None:
