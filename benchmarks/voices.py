@@ -10,15 +10,21 @@ and wrist jerk; each a mean over seeds (`dimgestor.eval.voice_report`, the same 
   zeggs_heldout   the training speaker's held-out last 15 s (../shared ZEGGS sample), and the real
                   capture's own numbers on that stretch and on the whole clip (references)
   lawrence_*      BEAT speaker "lawrence", two takes (../shared/data/unseen_speech): unseen, real speech
+  scott_*         BEAT2 speaker "scott", two takes (../shared/data/phone_aligned_speech): unseen, real speech
   demo_en/zh      the bundled espeak clips (dimgestor/assets)
   espeak_*        espeak-ng voices in six languages at several pitches and rates, made at run time from
                   the fixed texts below (sentences joined by fixed pauses, peak-normalized to -1 dBFS)
 
-summary: mean coupling over the unseen voices (lawrence + espeak_*), how many clear their chance level,
-mean onset margin over shuffled and mean silence ratio over them. Rows that need ../shared are skipped
-with a note when it is absent.
+Each row also has its variety: the median distance of its 1 s upper-body windows to the nearest 1 s window of
+the training stretch (`nearest`, cm), over the real actor's own figure (her held-out 15 s against the same
+stretch): 1 = as far from the training motion as the actor herself strays, below 1 = replaying what it saw.
 
-    python benchmarks/voices.py                                  # the embedded default model, ~1-2 min
+summary: per kind of unseen voice, real (lawrence + scott: the targets are on these) and synthetic (espeak_*), and
+over all of them: mean coupling, how many clear their chance level, mean onset margin over shuffled, mean silence
+ratio, jerk and variety. Rows that need ../shared are skipped with a note when it is absent.
+
+    python benchmarks/voices.py                                  # the embedded default model, ~10 min
+    python benchmarks/voices.py --real --checkpoint runs/new     # the real voices only (and the held-out stretch)
     python benchmarks/voices.py --checkpoint runs/new --out /tmp/new.json
     python benchmarks/voices.py --compare benchmarks/results/voices.json /tmp/new.json   # old vs new table
     python benchmarks/voices.py --checkpoint default --checkpoint runs/new --label old --label new
@@ -49,7 +55,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 ZEGGS = SHARED / "zeggs_sample"
 LAWRENCE = SHARED / "unseen_speech"
-SCHEMA = 1
+SCOTT = SHARED / "phone_aligned_speech"
+SCHEMA = 2  # 2: real and synthetic summaries apart, the scott takes, variety
 
 # Fixed texts (written for this benchmark), a sentence per item; pauses between sentences below.
 TEXTS = {
@@ -108,7 +115,8 @@ ESPEAK_VOICES = (
     ("espeak_es_p55_s170", "es", 55, 170, "es"),
     ("espeak_cmn_p35_s165", "cmn", 35, 165, "cmn"),
 )
-UNSEEN_GROUPS = ("lawrence", "espeak")
+KINDS = {"real": ("lawrence", "scott"), "synthetic": ("espeak",)}  # the unseen voices, by kind
+UNSEEN_GROUPS = KINDS["real"] + KINDS["synthetic"]
 
 
 def espeak_version() -> str | None:
@@ -134,7 +142,7 @@ def espeak_clip(voice: str, pitch: int, wpm: int, sentences: list[str], folder: 
     return (audio * (10 ** (-1 / 20) / max(np.abs(audio).max(), 1e-9))).astype(np.float32)
 
 
-def collect_voices(quick: bool, folder: Path) -> tuple[dict, dict]:
+def collect_voices(quick: bool, folder: Path, real_only: bool = False) -> tuple[dict, dict]:
     """({name: {"group", "source", "audio", ["real": raw features]}}, {name: why skipped})."""
     from dimgestor.audio import load_wav
 
@@ -148,6 +156,13 @@ def collect_voices(quick: bool, folder: Path) -> tuple[dict, dict]:
         voices[f"lawrence_{p.stem.split('_', 2)[-1]}"] = {"group": "lawrence", "source": p.name, "audio": load_wav(p)}
     if not takes:
         skipped["lawrence"] = f"{LAWRENCE} not found (BEAT takes live beside the dev checkout)"
+    takes = sorted(SCOTT.glob("*.wav")) if SCOTT.is_dir() else []
+    for p in takes:
+        voices[f"scott_{p.stem.split('_', 2)[-1]}"] = {"group": "scott", "source": p.name, "audio": load_wav(p)}
+    if not takes:
+        skipped["scott"] = f"{SCOTT} not found (BEAT2 takes live beside the dev checkout)"
+    if real_only:
+        return voices, skipped
     for name in ("demo_en", "demo_zh"):
         voices[name] = {"group": "demo", "source": f"dimgestor/assets/{name}.wav",
                         "audio": load_wav(REPO / "dimgestor" / "assets" / f"{name}.wav")}
@@ -180,27 +195,45 @@ def real_row(bundle, audio: np.ndarray, raw: np.ndarray) -> dict:
 
 
 def summarize(rows: dict, groups: dict) -> dict:
-    """Means over the unseen voices (lawrence + espeak) and the count above chance."""
-    unseen = [rows[n] for n in rows if groups[n] in UNSEEN_GROUPS]
-    if not unseen:
-        return {}
-    mean = lambda key: float(np.nanmean([r[key] for r in unseen]))  # noqa: E731
-    return {"unseen_voices": len(unseen), "unseen_coupling": mean("coupling"),
-            "unseen_coupling_min": float(np.nanmin([r["coupling"] for r in unseen])),
-            "unseen_coupling_shifted": mean("coupling_shifted"),
-            "unseen_above_chance": int(sum(r["coupling_above"] for r in unseen)),
-            "unseen_onset_margin": float(np.nanmean([r["onset_align"] - r["onset_shuffled"] for r in unseen])),
-            "unseen_silence_ratio": mean("silence_ratio"), "unseen_contrast": mean("contrast"),
-            "unseen_hand_jerk": mean("hand_jerk")}
+    """Means over the unseen voices of each kind ("real", "synthetic") and over all of them ("unseen"): coupling,
+    the count above chance, onset margin, silence ratio, contrast, jerk (and its ratio) and variety."""
+    out = {}
+    for kind, members in (*KINDS.items(), ("unseen", UNSEEN_GROUPS)):
+        rs = [rows[n] for n in rows if groups[n] in members]
+        if not rs:
+            continue
+        mean = lambda key: float(np.nanmean([r.get(key, np.nan) for r in rs]))  # noqa: E731
+        out[kind] = {"voices": len(rs), "coupling": mean("coupling"),
+                     "coupling_min": float(np.nanmin([r["coupling"] for r in rs])),
+                     "coupling_shifted": mean("coupling_shifted"),
+                     "above_chance": int(sum(r["coupling_above"] for r in rs)),
+                     "onset_margin": float(np.nanmean([r["onset_align"] - r["onset_shuffled"] for r in rs])),
+                     "silence_ratio": mean("silence_ratio"), "silence_ratio_min": float(np.nanmin(
+                         [r["silence_ratio"] for r in rs])), "contrast": mean("contrast"),
+                     "hand_jerk": mean("hand_jerk"), "jerk_ratio": mean("jerk_ratio"),
+                     "jerk_ratio_max": float(np.nanmax([r.get("jerk_ratio", np.nan) for r in rs])),
+                     "nearest": mean("nearest"), "variety": mean("variety")}
+    return out
+
+
+def unseen_summary(m: dict, kind: str = "unseen") -> dict | None:
+    """A model result's summary of one kind of voice, in the keys above; result files of schema 1 had only the
+    flat "unseen_*" keys over lawrence + espeak (read as "unseen")."""
+    s = m.get("summary") or {}
+    if kind in s:
+        return s[kind]
+    if kind == "unseen" and "unseen_coupling" in s:
+        return {k[len("unseen_"):]: v for k, v in s.items() if k.startswith("unseen_")}
+    return None
 
 
 def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int, seed: int,
-             guidance: float | None = None, log=print) -> dict:
+             guidance: float | None = None, log=print, eta: float = 0.0) -> dict:
     """One model's rows over the voices (+ the real capture's reference rows) and its summary."""
     import torch
 
     from dimgestor.checkpoint import load_checkpoint
-    from dimgestor.eval import voice_report
+    from dimgestor.eval import upper_positions, variety_distance, voice_report
 
     bundle = load_checkpoint(checkpoint)
     bundle.model.eval()
@@ -210,24 +243,32 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
         bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": float(guidance)})
     steps = steps or bundle.config.sample_steps
     rows, reference, started = {}, {}, time.time()
+    train_upper, actor_nearest = None, float("nan")
     if "zeggs_heldout" in voices:
         audio, raw, whole_audio, whole_raw = zeggs_real(bundle)
         voices["zeggs_heldout"]["audio"] = audio
         reference["zeggs_heldout_real"] = real_row(bundle, audio, raw)
         reference["zeggs_whole_real"] = real_row(bundle, whole_audio, whole_raw)
+        # variety: against the training stretch (the clip before its held-out tail), over the actor's own figure
+        train_upper = upper_positions(whole_raw[:len(whole_raw) - len(raw)], bundle.skeleton, bundle.feature_spec)
+        actor_nearest = variety_distance(upper_positions(raw, bundle.skeleton, bundle.feature_spec), train_upper,
+                                         float(bundle.feature_spec.fps))
+        reference["zeggs_heldout_real"].update(nearest=actor_nearest, variety=1.0)
     for name, v in voices.items():
         with torch.inference_mode():
-            rows[name] = voice_report(bundle, v["audio"], steps, seeds, seed, smoothing=None)
+            rows[name] = voice_report(bundle, v["audio"], steps, seeds, seed, smoothing=None,
+                                      reference_upper=train_upper, eta=eta)
+        rows[name]["variety"] = rows[name]["nearest"] / actor_nearest
         log(f"{name:28s} coupling {rows[name]['coupling']:+.3f} (shifted {rows[name]['coupling_shifted']:+.3f} "
             f"+- {rows[name]['coupling_shifted_sd']:.3f}), onsets {rows[name]['onset_align']:.3f} vs "
-            f"{rows[name]['onset_shuffled']:.3f}, silence ratio {rows[name]['silence_ratio']:.2f} "
-            f"({time.time() - started:.0f} s)")
+            f"{rows[name]['onset_shuffled']:.3f}, silence ratio {rows[name]['silence_ratio']:.2f}, variety "
+            f"{rows[name]['variety']:.2f} ({time.time() - started:.0f} s)")
     if "zeggs_heldout_real" in reference:
         real_jerk = reference["zeggs_heldout_real"]["hand_jerk"]
         for r in rows.values():
             r["jerk_ratio"] = r["hand_jerk"] / real_jerk
     return {"checkpoint": checkpoint or "embedded default", "steps": steps, "seeds": seeds,
-            "guidance": getattr(bundle.config, "guidance", None), "rows": rows,
+            "guidance": getattr(bundle.config, "guidance", None), "eta": eta, "rows": rows,
             "reference": reference,
             "summary": summarize(rows, {n: v["group"] for n, v in voices.items()})}
 
@@ -238,7 +279,7 @@ COLUMNS = (("coupling", "coupling", "{:+.2f}"), ("coupling_shifted", "shifted", 
            ("coupling_shifted_sd", "sd", "{:.2f}"), ("coupling_above", ">+2sd", "{}"),
            ("onset_align", "onsets", "{:.2f}"), ("onset_shuffled", "shuffled", "{:.2f}"),
            ("contrast", "pauses", "{:.2f}"), ("silence_ratio", "silence", "{:.2f}"),
-           ("hand_jerk", "jerk", "{:.3g}"))
+           ("hand_jerk", "jerk", "{:.3g}"), ("jerk_ratio", "jerk/real", "{:.2f}"), ("variety", "variety", "{:.2f}"))
 
 
 def cell(fmt: str, v) -> str:
@@ -255,12 +296,14 @@ def model_table(result: dict, label: str) -> str:
              head, "|" + "---|" * (len(COLUMNS) + 1)]
     for name, row in list(m["reference"].items()) + list(m["rows"].items()):
         lines.append(f"| {name} | " + " | ".join(cell(f, row.get(k)) for k, _, f in COLUMNS) + " |")
-    s = m["summary"]
-    if s:
-        lines.append(f"| **unseen mean ({s['unseen_voices']} voices)** | {s['unseen_coupling']:+.2f} | "
-                     f"{s['unseen_coupling_shifted']:+.2f} | | {s['unseen_above_chance']}/{s['unseen_voices']} | "
-                     f"margin {s['unseen_onset_margin']:+.2f} | | {s['unseen_contrast']:.2f} | "
-                     f"{s['unseen_silence_ratio']:.2f} | {s['unseen_hand_jerk']:.3g} |")
+    for kind in ("real", "synthetic", "unseen"):
+        t = unseen_summary(m, kind)
+        if t:
+            lines.append(f"| **{kind} unseen mean ({t['voices']} voices)** | {t['coupling']:+.2f} | "
+                         f"{t['coupling_shifted']:+.2f} | | {t['above_chance']}/{t['voices']} | "
+                         f"margin {t['onset_margin']:+.2f} | | {t['contrast']:.2f} | {t['silence_ratio']:.2f} | "
+                         f"{t['hand_jerk']:.3g} | {cell('{:.2f}', t.get('jerk_ratio'))} | "
+                         f"{cell('{:.2f}', t.get('variety'))} |")
     return "\n".join(lines)
 
 
@@ -268,7 +311,7 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
     """Markdown, old against new: per voice coupling (shifted baseline), onset margin, silence ratio, jerk."""
     labels = [lab for lab, _ in models]
     voices = [v for v in dict.fromkeys(v for _, m in models for v in m["rows"])]
-    cols = ["coupling (shifted)", "onsets - shuffled", "silence ratio", "wrist jerk"]
+    cols = ["coupling (shifted)", "onsets - shuffled", "silence ratio", "wrist jerk", "variety"]
     head = "| voice | " + " | ".join(f"{c} {lab}" for c in cols for lab in labels) + " |"
     lines = [head, "|" + "---|" * (1 + len(cols) * len(labels))]
 
@@ -280,21 +323,22 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
             return f"{r['coupling']:+.2f} ({r['coupling_shifted']:+.2f})" + ("" if r["coupling_above"] else " ~")
         if col == 1:
             return cell("{:+.2f}", r["onset_align"] - r["onset_shuffled"])
-        return cell("{:.2f}" if col == 2 else "{:.3g}", r["silence_ratio" if col == 2 else "hand_jerk"])
+        return cell(("{:.2f}", "{:.3g}", "{:.2f}")[col - 2], r.get(("silence_ratio", "hand_jerk", "variety")[col - 2]))
 
     for v in voices:
         lines.append(f"| {v} | " + " | ".join(fmt(m, v, c) for c in range(len(cols)) for _, m in models) + " |")
 
-    def total(m, col):
-        s = m["summary"]
-        if not s:
+    def total(m, col, kind):
+        t = unseen_summary(m, kind)
+        if not t:
             return "-"
-        return [f"{s['unseen_coupling']:+.2f} ({s['unseen_above_chance']}/{s['unseen_voices']} above)",
-                f"{s['unseen_onset_margin']:+.2f}", f"{s['unseen_silence_ratio']:.2f}",
-                f"{s['unseen_hand_jerk']:.3g}"][col]
+        return [f"{t['coupling']:+.2f} ({t['above_chance']}/{t['voices']} above)", f"{t['onset_margin']:+.2f}",
+                f"{t['silence_ratio']:.2f}", f"{t['hand_jerk']:.3g}", cell("{:.2f}", t.get("variety"))][col]
 
-    lines.append("| **unseen mean (lawrence + espeak)** | "
-                 + " | ".join(total(m, c) for c in range(len(cols)) for _, m in models) + " |")
+    for kind, what in (("real", "lawrence + scott"), ("synthetic", "espeak"), ("unseen", "all")):
+        if any(unseen_summary(m, kind) for _, m in models):
+            lines.append(f"| **{kind} unseen mean ({what})** | "
+                         + " | ".join(total(m, c, kind) for c in range(len(cols)) for _, m in models) + " |")
     lines.append("\n~ : coupling not above its shifted baseline + 2 sd. "
                  + "; ".join(f"{lab}: {m['checkpoint']}, K = {m['steps']}, {m.get('seeds', '?')} seeds"
                              + (f", guidance {m['guidance']:g}" if m.get("guidance") is not None else "")
@@ -371,9 +415,13 @@ def main() -> int:
     p.add_argument("--guidance", action="append", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale, one per --checkpoint or one for all (default: the "
                         "checkpoint's)")
+    p.add_argument("--eta", type=float, default=0.0,
+                   help="DDIM eta of every generation (0: deterministic DDIM, 1: DDPM-like fresh noise each step)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn) and one seed")
+    p.add_argument("--real", action="store_true",
+                   help="the real voices only: the training speaker's held-out stretch, lawrence and scott")
     p.add_argument("--out", default=str(RESULTS / "voices.json"))
     p.add_argument("--plot", default=None, help="PNG (default: --out with .png)")
     p.add_argument("--compare", nargs="+", metavar="JSON",
@@ -396,7 +444,7 @@ def main() -> int:
     seeds = 1 if args.quick else args.seeds
     load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="voices_") as tmp:
-        voices, skipped = collect_voices(args.quick, Path(tmp))
+        voices, skipped = collect_voices(args.quick, Path(tmp), real_only=args.real)
     for name, why in skipped.items():
         print(f"skipped {name}: {why}")
     from dimgestor.eval import NOTES
@@ -405,17 +453,19 @@ def main() -> int:
               "device": describe_device("cpu"), "torch": torch.__version__, "espeak_ng": espeak_version(),
               "load_avg_before": load_before,
               "settings": {"steps": args.steps, "seeds": seeds, "seed": args.seed, "quick": args.quick,
+                           "real_only": args.real, "variety_window_s": 1.0, "variety_hop_s": 0.25,
                            "smoothing": "off", "silence_s": 6.0, "coupling_smooth_s": 0.5, "coupling_max_lag_s": 0.2,
                            "coupling_shifts": 20, "onset_window_s": [-0.1, 0.3], "onset_stressed_keep": 0.4,
                            "onset_shuffle_draws": 10},
               "voices": {n: {"group": v["group"], "source": v["source"]} for n, v in voices.items()},
-              "skipped": skipped, "unseen_groups": list(UNSEEN_GROUPS), "models": {},
+              "skipped": skipped, "unseen_groups": list(UNSEEN_GROUPS), "kinds": {k: list(v) for k, v in KINDS.items()},
+              "models": {},
               "notes": {k: NOTES[k] for k in ("coupling", "coupling_shifted", "onset_align", "onset_shuffled",
-                                              "silence_ratio", "hand_jerk")}}
+                                              "silence_ratio", "hand_jerk", "nearest", "variety")}}
     started = time.time()
     for label, ckpt, scale in zip(labels, checkpoints, guidance):
         print(f"== {label}")
-        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed, scale)
+        result["models"][label] = evaluate(ckpt, voices, args.steps, seeds, args.seed, scale, eta=args.eta)
     result["seconds"] = round(time.time() - started, 1)
     result["load_avg_after"] = load_average()
     for name, v in voices.items():

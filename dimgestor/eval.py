@@ -123,11 +123,11 @@ def score(windows: dict, audio: list, skeleton, spec, ae: metrics.MotionAutoenco
 KMETRICS = ("jerk_ratio", "auj_ratio", "hand_jerk", "contrast", "beat_align", "beat_align_shuffled", "fgd_feature",
             "diversity", "net_yaw_deg", "max_yaw_deg", "yaw_speed_deg_s") + (
             "coupling", "coupling_shifted", "coupling_shifted_sd", "coupling_above", "onset_align", "onset_shuffled",
-            "silence_ratio")
+            "silence_ratio", "nearest", "variety")
 # the per-voice table (one row per clip, averaged over seeds): speech-drivenness, rest, smoothness
 VOICE_METRICS = ("coupling", "coupling_seed_sd", "coupling_shifted", "coupling_shifted_sd", "coupling_above",
                  "onset_align", "onset_shuffled", "n_onsets", "onset_align_all", "onset_shuffled_all", "n_onsets_all",
-                 "contrast", "speed_speech", "speed_silence", "silence_ratio", "hand_jerk", "seconds")
+                 "contrast", "speed_speech", "speed_silence", "silence_ratio", "hand_jerk", "nearest", "seconds")
 SILENCE_S = 6.0  # the silence inserted into each clip (issue 20's target: hands >= 3x calmer in it than in speech)
 
 
@@ -225,7 +225,8 @@ def voice_row(seed_stats: list[dict]) -> dict:
            "contrast": _nanmean([metrics.speech_contrast(x["hand_speed"], x["mask"]) for x in s]),
            "speed_speech": _nanmean([x.get("speed_speech", np.nan) for x in s]),
            "speed_silence": _nanmean([x.get("speed_silence", np.nan) for x in s]),
-           "hand_jerk": _nanmean([x["hand_jerk"] for x in s]), "seconds": s[0]["seconds"]}
+           "hand_jerk": _nanmean([x["hand_jerk"] for x in s]), "seconds": s[0]["seconds"],
+           "nearest": _nanmean([x.get("nearest", np.nan) for x in s])}
     row["coupling_above"] = bool(row["coupling"] > row["coupling_shifted"] + 2 * row["coupling_shifted_sd"])
     row["silence_ratio"] = row["speed_speech"] / row["speed_silence"] if row["speed_silence"] > 0 else float("nan")
     return row
@@ -244,7 +245,8 @@ def pool_drive(rows: list[dict]) -> dict:
             "coupling_above": float(np.mean([r["coupling_above"] for r in rows])),
             "onset_align": _nanmean([r["onset_align"] for r in rows], onsets) if sum(onsets) else float("nan"),
             "onset_shuffled": _nanmean([r["onset_shuffled"] for r in rows], onsets) if sum(onsets) else float("nan"),
-            "silence_ratio": speech / silence if silence > 0 else float("nan")}
+            "silence_ratio": speech / silence if silence > 0 else float("nan"),
+            "nearest": _nanmean([r.get("nearest", np.nan) for r in rows], w)}
 
 
 def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, eta: float = 0.0) -> np.ndarray:
@@ -256,40 +258,69 @@ def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=Non
 
 
 def seed_stats(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, sr: int = SAMPLE_RATE,
-               silence_s: float = SILENCE_S) -> tuple[np.ndarray, dict]:
+               silence_s: float = SILENCE_S, reference_upper: np.ndarray | None = None,
+               eta: float = 0.0) -> tuple[np.ndarray, dict]:
     """The model's motion for `audio` under one seed, and its clip_stats with the inserted-silence speeds (the
-    model run again, same seed, on the clip with silence_s of silence inserted)."""
-    raw = generate_raw(bundle, audio, steps, seed, smoothing)
+    model run again, same seed, on the clip with silence_s of silence inserted); with `reference_upper` (the
+    training stretch's upper body, `upper_positions`) also `nearest`: the median distance of its 1 s windows to
+    the nearest window of that stretch (`variety_distance`)."""
+    raw = generate_raw(bundle, audio, steps, seed, smoothing, eta)
     stats = clip_stats(raw, audio, bundle.skeleton, bundle.feature_spec, sr, seed)
+    if reference_upper is not None:
+        stats["nearest"] = variety_distance(stats["upper"], reference_upper, float(bundle.feature_spec.fps))
     gapped, at = silence_probe(audio, sr, silence_s)
-    stats.update(silence_stats(generate_raw(bundle, gapped, steps, seed, smoothing), gapped, at, bundle.skeleton,
+    stats.update(silence_stats(generate_raw(bundle, gapped, steps, seed, smoothing, eta), gapped, at, bundle.skeleton,
                                bundle.feature_spec, sr, silence_s), silence_at_s=at)
     return raw, stats
 
 
-def voice_report(bundle, audio: np.ndarray, steps: int, seeds: int, seed: int = 0, smoothing=None) -> dict:
-    """The per-voice row of one clip: voice_row over seeds seed .. seed + seeds - 1."""
-    return voice_row([seed_stats(bundle, audio, steps, seed + j, smoothing)[1] for j in range(seeds)])
+def voice_report(bundle, audio: np.ndarray, steps: int, seeds: int, seed: int = 0, smoothing=None,
+                 reference_upper: np.ndarray | None = None, eta: float = 0.0) -> dict:
+    """The per-voice row of one clip: voice_row over seeds seed .. seed + seeds - 1 (with `reference_upper`, the
+    training stretch's upper body: its variety too)."""
+    return voice_row([seed_stats(bundle, audio, steps, seed + j, smoothing, reference_upper=reference_upper, eta=eta)[1]
+                      for j in range(seeds)])
+
+
+def upper_positions(raw: np.ndarray, skeleton, spec) -> np.ndarray:
+    """The upper body's joint positions (T, J, 3) of raw features, root-relative in the body frame (file units)."""
+    return joint_positions(raw, skeleton, spec)[:, metrics.upper_body_joints(skeleton.names)]
+
+
+def variety_distance(upper: np.ndarray, reference_upper: np.ndarray, fps: float) -> float:
+    """Median over the 1 s windows of `upper` (every 0.25 s) of the distance to the nearest 1 s window of
+    `reference_upper` (metrics.nearest_window_distances; file units). Over the real actor's own figure (her
+    held-out motion against her training stretch) it is the `variety`: 1 = as far from the training motion as
+    the actor herself strays when she goes on talking, below 1 = replaying what the model saw."""
+    return float(np.median(metrics.nearest_window_distances(upper, reference_upper, fps)))
 
 
 def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list[int], seeds: int, seed: int,
-             ae: metrics.MotionAutoencoder | None, log=print, smoothing=None, names: list[str] | None = None) -> dict:
+             ae: metrics.MotionAutoencoder | None, log=print, smoothing=None, names: list[str] | None = None,
+             train_upper: list[np.ndarray] | None = None) -> dict:
     """{"reference": real motion's numbers or None, "per_k": {K: numbers}, "per_file": {K: {name: voice_row}}}
-    over whole clips (audio, raw or None)."""
+    over whole clips (audio, raw or None). With `train_upper` (the training stretches' upper body): `nearest`,
+    the median distance of 1 s windows to the nearest training window, and `variety`, that over the real
+    motion's own (`variety_distance`)."""
     names = names or [f"clip_{i}" for i in range(len(clips))]
     skeleton, spec = bundle.skeleton, bundle.feature_spec
+    fps = float(spec.fps)
     has_ref = all(raw is not None for _, raw in clips)
     ref = [clip_stats(raw, audio, skeleton, spec) for audio, raw in clips] if has_ref else None
+    if ref and train_upper:
+        for r in ref:
+            r["nearest"] = variety_distance(r["upper"], train_upper, fps)
     real_chunks = np.concatenate([metrics.motion_chunks(raw, ae.chunk, 8) for _, raw in clips]) if has_ref and ae else None
     out = {"reference": {**pool_stats(ref), **pool_drive([voice_row([r]) for r in ref])} if ref else None,
            "per_k": {}, "per_file": {}}
+    real_nearest = out["reference"].get("nearest", float("nan")) if ref else float("nan")
     started = time.time()
     for K in ks:
         per_seed, clip_seed_stats = [], [[] for _ in clips]
         for j in range(seeds):
             gens = []
             for i, (audio, _) in enumerate(clips):
-                raw, st = seed_stats(bundle, audio, K, seed + j, smoothing)
+                raw, st = seed_stats(bundle, audio, K, seed + j, smoothing, reference_upper=train_upper)
                 gens.append(raw)
                 clip_seed_stats[i].append(st)
             per_seed.append(gens)
@@ -297,6 +328,7 @@ def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list
         voices = [voice_row(s) for s in clip_seed_stats]
         out["per_file"][str(K)] = dict(zip(names, voices))
         row = {**pool_stats(stats), **pool_drive(voices)}
+        row["variety"] = row["nearest"] / real_nearest if real_nearest > 0 else float("nan")
         upper = metrics.upper_body_joints(skeleton.names)
         ups = [[joint_positions(g, skeleton, spec)[:, upper] for g in gens] for gens in per_seed]
         pairs = [(a, b) for a in range(seeds) for b in range(a + 1, seeds)]
@@ -470,7 +502,8 @@ def run(args: argparse.Namespace) -> dict:
     gen = generate_systems(bundle, valid, train, ks[0], args.seed, args.max_windows, smoothing=smoothing)
     clips = valid_clips(valid)
     names = [f"{valid.clips[c].name}@{a / valid.fps:.1f}s" for c, a, _ in valid.segments]
-    rep = k_report(bundle, clips, ks, seeds, args.seed, ae, smoothing=smoothing, names=names)
+    train_upper = [upper_positions(raw, bundle.skeleton, valid.spec) for _, raw in valid_clips(train)]
+    rep = k_report(bundle, clips, ks, seeds, args.seed, ae, smoothing=smoothing, names=names, train_upper=train_upper)
     result = {
         "checkpoint": str(args.checkpoint or "embedded default"), "data": str(data), "split": "valid",
         "n_windows": len(gen["audio"]), "window_s": valid.window / valid.fps, "windows": gen["labels"],
@@ -506,6 +539,12 @@ NOTES = {"fgd_reference": "the valid split's real motion (so ground_truth has FG
          "onset_shuffled": "the same for as many onsets placed at random inside speech (10 seeded draws): chance",
          "silence_ratio": f"mean wrist speed in speech / inside {SILENCE_S:g} s of digital silence inserted at the "
                           "quietest frame of each clip's middle third (0.75 s at both ends of it left out)",
+         "nearest": "median over 1 s windows of the upper body (every 0.25 s) of the distance to the nearest 1 s "
+                    "window of the training split's real motion: mean joint distance, root-relative in the body "
+                    "frame (file units; metrics.nearest_window_distances); the reference row's is the real held-out "
+                    "motion's own",
+         "variety": "nearest over the real held-out motion's nearest: 1 = as far from the training motion as the "
+                    "actor's own unseen motion, below 1 = replaying what the model saw",
          "per_file": "per K, one row per clip (mean over seeds): coupling (coupling_seed_sd: its sd over seeds), "
                      "its baseline, onset alignment, contrast in natural pauses, wrist speed in speech and in the "
                      "inserted silence, wrist jerk"}

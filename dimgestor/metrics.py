@@ -588,3 +588,33 @@ def inserted_silence_speeds(hand_speed: np.ndarray, audio: np.ndarray, sr: int, 
     if inside.size == 0 or speaking.size == 0:
         return float("nan"), float("nan")
     return float(speaking.mean()), float(inside.mean())
+
+
+def window_stack(positions: np.ndarray, length: int, hop: int) -> np.ndarray:
+    """(T, J, 3) -> (N, length, J, 3): the windows of `length` frames starting every `hop` frames."""
+    starts = range(0, len(positions) - length + 1, hop)
+    return np.stack([positions[s:s + length] for s in starts]) if len(positions) >= length else \
+        np.zeros((0, length) + positions.shape[1:], positions.dtype)
+
+
+def nearest_window_distances(query: np.ndarray, reference: np.ndarray, fps: float, window_s: float = 1.0,
+                             query_hop_s: float = 0.25, chunk: int = 64) -> np.ndarray:
+    """For each `window_s` window of `query` (every `query_hop_s`), the distance to the nearest window of
+    `reference` (every frame): the mean over the window's frames and joints of the joints' Euclidean distance.
+
+    query, reference: joint positions (T, J, 3) in the same frame (e.g. `eval.joint_positions`' body frame), file
+    units; reference may be a list of such stretches (no window spans two of them). A small distance means the motion replays a stretch of the reference: motion made for new speech that
+    sits closer to its training stretch than the real actor's own unseen motion does repeats what it saw.
+    -> (N,) distances in file units."""
+    n = int(round(window_s * fps))
+    q = window_stack(np.asarray(query, np.float64), n, max(1, int(round(query_hop_s * fps))))
+    stretches = list(reference) if isinstance(reference, (list, tuple)) else [reference]
+    r = np.concatenate([window_stack(np.asarray(x, np.float64), n, 1) for x in stretches])
+    if not len(q) or not len(r):
+        raise ValueError(f"need at least {n} frames in both the query ({len(query)}) and a reference stretch "
+                         f"({', '.join(str(len(x)) for x in stretches)})")
+    best = np.full(len(q), np.inf)
+    for a in range(0, len(r), chunk):
+        d = np.linalg.norm(q[:, None] - r[None, a:a + chunk], axis=-1).mean(axis=(2, 3))  # (Nq, chunk)
+        best = np.minimum(best, d.min(axis=1))
+    return best

@@ -129,14 +129,19 @@ def test_per_k_report_has_every_metric_and_real_motion_scores_as_real(data, tmp_
     ae = ev.fgd_autoencoder(train, tmp_path / "ae", steps=30, log=lambda *_: None)
     clips = ev.valid_clips(valid)
     assert len(clips) == 2 and all(len(a) == len(r) * 800 for a, r in clips)
-    rep = ev.k_report(bundle, clips, [1, 2], seeds=2, seed=0, ae=ae, log=lambda *_: None)
+    train_upper = [ev.upper_positions(raw, train.skeleton, train.spec) for _, raw in ev.valid_clips(train)]
+    rep = ev.k_report(bundle, clips, [1, 2], seeds=2, seed=0, ae=ae, log=lambda *_: None, train_upper=train_upper)
     assert list(rep["per_k"]) == ["1", "2"] and set(rep["per_k"]["2"]) == set(ev.KMETRICS)
     for row in rep["per_k"].values():
         assert all(np.isfinite(row[m]) for m in ev.KMETRICS if m != "contrast")
         assert row["jerk_ratio"] > 0 and row["diversity"] >= 0
+        assert row["variety"] == pytest.approx(row["nearest"] / rep["reference"]["nearest"])
     # the reference's own numbers: a real clip's jerk ratio would be 1, its contrast follows the synthetic rule
     ref = rep["reference"]
     assert ref["hand_jerk"] > 0 and ref["net_yaw_deg"] >= 0 and 0 < ref["beat_align"] <= 1
+    assert ref["nearest"] > 0  # held-out real motion is not a copy of the training motion
+    # a training stretch scored against itself replays it exactly
+    assert ev.variety_distance(train_upper[0], train_upper, float(train.spec.fps)) == pytest.approx(0.0, abs=1e-9)
 
     stats = ev.clip_stats(clips[0][1], clips[0][0], valid.skeleton, valid.spec)
     turned = clips[0][1].copy()

@@ -368,3 +368,22 @@ def test_onset_locked_speed_sizes_the_movement_after_onsets_not_any_nearby_peak(
     late = onsets + 0.5  # the same strokes 0.5 s before these onsets end before the window opens
     assert metrics.onset_locked_speed(late, strokes, fps, speech) < 1.0
     assert np.isnan(metrics.onset_locked_speed(np.zeros(0), strokes, fps, speech))
+
+
+def test_nearest_window_distances_find_a_replayed_stretch_and_measure_a_new_one():
+    """Variety (issue "real voices"): motion that replays a stretch of the reference is at distance 0 from it;
+    the same motion moved by 5 units is 5 away (mean joint distance); windows never span two reference stretches."""
+    from dimgestor.metrics import nearest_window_distances
+
+    rng = np.random.default_rng(0)
+    ref = np.cumsum(rng.normal(scale=10.0, size=(200, 4, 3)), axis=0)  # a random walk: no two windows alike
+    copy = ref[37:117]
+    assert np.allclose(nearest_window_distances(copy, ref, 20.0), 0.0)
+    assert np.allclose(nearest_window_distances(copy + np.array([3.0, 4.0, 0.0]), ref, 20.0), 5.0)
+    d = nearest_window_distances(copy, ref, 20.0, window_s=1.0, query_hop_s=0.25)
+    assert len(d) == (80 - 20) // 5 + 1
+    # two stretches: a window made of the end of one and the start of the other is not in the reference
+    joined = np.concatenate([ref[80:100], ref[0:20]])[10:30]
+    assert nearest_window_distances(joined, [ref[:100], ref[100:]], 20.0).min() > 0.5
+    with pytest.raises(ValueError, match="at least 20 frames"):
+        nearest_window_distances(ref[:10], ref, 20.0)

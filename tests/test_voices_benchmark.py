@@ -24,35 +24,52 @@ def _row(coupling, shifted=0.0, sd=0.05, onset=0.8, shuffled=0.7, ratio=3.0, jer
             "contrast": 2.0, "silence_ratio": ratio, "hand_jerk": jerk}
 
 
-def _result(couplings: dict) -> dict:
-    groups = {"lawrence_a": "lawrence", "espeak_x": "espeak", "demo_en": "demo"}
-    rows = {n: _row(c) for n, c in couplings.items()}
+def _result(couplings: dict, variety: float = 0.8) -> dict:
+    groups = {"lawrence_a": "lawrence", "scott_b": "scott", "espeak_x": "espeak", "demo_en": "demo"}
+    rows = {n: {**_row(c), "jerk_ratio": 1.2, "nearest": 5.0 * variety, "variety": variety}
+            for n, c in couplings.items()}
     model = {"checkpoint": "ck", "steps": 4, "rows": rows, "reference": {}, "summary": voices.summarize(rows, groups)}
     return {"settings": {"seeds": 2, "steps": 4}, "models": {"m": model}}
 
 
-def test_summary_is_over_unseen_voices_only():
-    s = _result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": -0.5})["models"]["m"]["summary"]
-    assert s["unseen_voices"] == 2 and s["unseen_coupling"] == pytest.approx(0.25)  # the demo clip is not unseen
-    assert s["unseen_above_chance"] == 1 and s["unseen_coupling_min"] == pytest.approx(0.1)  # 0.1 is not > 0 + 0.1
-    assert s["unseen_onset_margin"] == pytest.approx(0.1)
+def test_summary_keeps_real_and_synthetic_voices_apart():
+    s = _result({"lawrence_a": 0.4, "scott_b": 0.2, "espeak_x": 0.1, "demo_en": -0.5})["models"]["m"]["summary"]
+    assert s["real"]["voices"] == 2 and s["real"]["coupling"] == pytest.approx(0.3)  # lawrence + scott
+    assert s["synthetic"]["voices"] == 1 and s["synthetic"]["coupling"] == pytest.approx(0.1)
+    assert s["unseen"]["voices"] == 3 and s["unseen"]["coupling"] == pytest.approx(0.7 / 3)  # the demo clip is not unseen
+    assert s["unseen"]["above_chance"] == 2 and s["unseen"]["coupling_min"] == pytest.approx(0.1)  # 0.1 is not > 0 + 0.1
+    assert s["real"]["onset_margin"] == pytest.approx(0.1) and s["real"]["variety"] == pytest.approx(0.8)
+    assert s["real"]["jerk_ratio_max"] == pytest.approx(1.2) and s["real"]["silence_ratio_min"] == pytest.approx(3.0)
 
 
 def test_compare_table_puts_old_beside_new(tmp_path):
     old, new = tmp_path / "old.json", tmp_path / "new.json"
-    old.write_text(json.dumps(_result({"lawrence_a": 0.21, "espeak_x": 0.05, "demo_en": 0.1})))
-    new.write_text(json.dumps(_result({"lawrence_a": 0.52, "espeak_x": 0.47, "demo_en": 0.3})))
+    old.write_text(json.dumps(_result({"lawrence_a": 0.21, "scott_b": 0.31, "espeak_x": 0.05, "demo_en": 0.1}, 0.7)))
+    new.write_text(json.dumps(_result({"lawrence_a": 0.52, "scott_b": 0.48, "espeak_x": 0.47, "demo_en": 0.3}, 0.9)))
     table = voices.compare_table(voices.labelled_models([str(old), str(new)]))
     lines = {line.split("|")[1].strip(): line for line in table.splitlines() if line.startswith("| ")}
-    assert "coupling (shifted) old:m" in lines["voice"] and "coupling (shifted) new:m" in lines["voice"]
+    assert "coupling (shifted) old:m" in lines["voice"] and "variety new:m" in lines["voice"]
     assert "+0.21 (+0.00) |" in lines["lawrence_a"] and "+0.52 (+0.00) |" in lines["lawrence_a"]
     assert "+0.05 (+0.00) ~" in lines["espeak_x"]  # not above its shifted baseline + 2 sd: marked
-    total = lines["**unseen mean (lawrence + espeak)**"]
-    assert "+0.13 (1/2 above)" in total and "+0.49 (2/2 above)" in total
-    assert total.count("|") == lines["voice"].count("|")  # one cell per column
-    md = voices.model_table({**_result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": 0.0}),
-                             "models": _result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": 0.0})["models"]}, "m")
-    assert "| lawrence_a | +0.40 | +0.00 | 0.05 | yes |" in md and "unseen mean (2 voices)" in md
+    real = lines["**real unseen mean (lawrence + scott)**"]
+    assert "+0.26 (2/2 above)" in real and "+0.50 (2/2 above)" in real and "| 0.70 | 0.90 |" in real
+    assert "+0.05 (0/1 above)" in lines["**synthetic unseen mean (espeak)**"]
+    for total in (real, lines["**unseen unseen mean (all)**"]):
+        assert total.count("|") == lines["voice"].count("|")  # one cell per column
+    md = voices.model_table(_result({"lawrence_a": 0.4, "espeak_x": 0.1, "demo_en": 0.0}), "m")
+    assert "| lawrence_a | +0.40 | +0.00 | 0.05 | yes |" in md and "real unseen mean (1 voices)" in md
+
+
+def test_results_of_the_first_schema_still_compare(tmp_path):
+    """Files written before real and synthetic voices were apart (flat unseen_* keys over lawrence + espeak)."""
+    old = _result({"lawrence_a": 0.2, "espeak_x": 0.4})
+    old["models"]["m"]["summary"] = {"unseen_voices": 2, "unseen_coupling": 0.3, "unseen_above_chance": 2,
+                                     "unseen_onset_margin": 0.1, "unseen_silence_ratio": 3.5, "unseen_hand_jerk": 2e4}
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    table = voices.compare_table(voices.labelled_models([str(path), str(path)]))
+    assert "| **unseen unseen mean (all)** | +0.30 (2/2 above) | +0.30 (2/2 above) |" in table
+    assert "real unseen mean" not in table
 
 
 @needs_espeak
@@ -92,7 +109,13 @@ def test_quick_run_writes_the_per_voice_json(tmp_path):
         assert 14 < r["voices"]["zeggs_heldout"]["seconds"] < 16
     else:
         assert "zeggs_heldout" in r["skipped"]
-    assert m["summary"]["unseen_voices"] == 3 + sum(n.startswith("lawrence") for n in m["rows"])
+    real = sum(n.startswith(("lawrence", "scott")) for n in m["rows"])
+    assert m["summary"]["synthetic"]["voices"] == 3 and m["summary"]["unseen"]["voices"] == 3 + real
+    assert (m["summary"].get("real") or {}).get("voices", 0) == real
+    if voices.ZEGGS.is_dir():  # variety: against the training stretch, over the actor's own held-out figure
+        assert m["reference"]["zeggs_heldout_real"]["variety"] == 1.0
+        assert 3.0 < m["reference"]["zeggs_heldout_real"]["nearest"] < 10.0  # cm (6.0 measured)
+        assert all(0.2 < row["variety"] < 2.0 for row in m["rows"].values())
     compared = subprocess.run([sys.executable, str(REPO / "benchmarks" / "voices.py"), "--compare", str(out), str(out)],
                               cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert compared.returncode == 0 and "espeak_de_p40_s150" in compared.stdout
