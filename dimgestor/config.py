@@ -43,7 +43,8 @@ class ModelConfig(BaseModel):
     # --- audio front end ---
     # logmel: the paper-style spectrum; speech: level-free bands + prosody relative to each stream's running
     # statistics (dimgestor/frontend_speech.py), so gestures follow what is said, not the voice or microphone
-    frontend: Literal["logmel", "speech", "pretrained"] = "logmel"
+    # embedding: speech + a pretrained speech embedding (dimgestor/frontend_embed.py; needs openwakeword 0.5.1)
+    frontend: Literal["logmel", "speech", "embedding", "pretrained"] = "logmel"
     pretrained_path: str | None = None  # LOCAL wav2vec2/HuBERT folder when frontend == "pretrained"
     pretrained_block_ms: int = 1000  # pretrained encoder runs on fixed blocks of this length ...
     pretrained_left_ms: int = 1000  # ... with this much past audio as context ...

@@ -161,4 +161,7 @@ def build_frontend(config: ModelConfig) -> AudioFrontEnd:
         return LogMelFrontEnd(config)
     if config.frontend == "speech":
         return SpeechFrontEnd(config)
+    if config.frontend == "embedding":
+        from .frontend_embed import EmbeddingFrontEnd
+        return EmbeddingFrontEnd(config)
     return PretrainedFrontEnd(config)

@@ -100,8 +100,9 @@ def _warmup(model: DiMGestor) -> int:
 def state_specs(model: DiMGestor, steps: int, rows: int, batch: int = 1) -> list[StateSpec]:
     """The graph's carried tensors in input order: front end, extractor, denoiser (K steps, `rows` branches), for
     `batch` streams (their rows stacked on each spec's `dim`: the batch dim of the torch layouts)."""
-    if model.config.frontend == "pretrained":
-        raise ValueError("ONNX export supports the logmel and speech front ends, not a pretrained encoder")
+    if model.config.frontend in ("pretrained", "embedding"):
+        raise ValueError(f"ONNX export supports the logmel and speech front ends, not '{model.config.frontend}' "
+                         "(a pretrained encoder runs outside the graph)")
     fe = model.frontend.init_state(batch)
     specs = [StateSpec(f"frontend_{k}", v) for k, v in fe._asdict().items() if torch.is_tensor(v)]
     ex = model.extractor

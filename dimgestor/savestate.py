@@ -33,6 +33,7 @@ import torch
 from . import savestate_checks as checks
 from .sampler import StepStates
 from .frontend import FrontEndState
+from .frontend_embed import EmbeddingState
 from .frontend_speech import SpeechState
 from .mamba2 import Mamba2State
 from .model import DenoiserState, ExtractorState
@@ -48,8 +49,8 @@ STATE_VERSION = 2  # 2: sealed
 _PREFIX = struct.Struct("<7sHI")
 SEAL_SIZE = 32
 _BODY = _PREFIX.size + SEAL_SIZE  # where the header begins
-_TYPES = {t.__name__: t for t in (StreamState, FrontEndState, SpeechState, ExtractorState, DenoiserState,
-                                  Mamba2State, StepStates, OneEuroState)}
+_TYPES = {t.__name__: t for t in (StreamState, FrontEndState, SpeechState, EmbeddingState, ExtractorState,
+                                  DenoiserState, Mamba2State, StepStates, OneEuroState)}
 _DTYPES = {str(d).removeprefix("torch."): d for d in (torch.float32, torch.float64, torch.float16, torch.bfloat16,
                                                       torch.int64, torch.int32, torch.bool)}
 

@@ -19,7 +19,7 @@ import torch
 __all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "show"]
 
 # leaves whose last dimension a running stream moves on: samples and features not yet consumed
-VARYING = {"state.frontend.tail": 1, "state.extractor.buf": 2}
+VARYING = {"state.frontend.tail": 1, "state.frontend.speech.tail": 1, "state.extractor.buf": 2}
 _KEYS = {"value": {"t", "v"}, "tuple": {"t", "items"}, "tensor": {"t", "dtype", "shape", "at", "n"},
          "ndarray": {"t", "dtype", "shape", "at", "n"}}
 
@@ -144,6 +144,12 @@ def check_state(stream, state, fresh) -> None:
         raise StateError(f"saved stream state: state.frontend holds {held} samples beyond its start, but "
                          f"samples_in {state.samples_in} less {consumed} x {step} consumed leaves "
                          f"{state.samples_in - consumed * step}")
+    inner = getattr(state.frontend, "speech", None)  # the embedding front end's speech front end, in step
+    if inner is not None and (inner.consumed != consumed or inner.tail.shape[1] - fresh.frontend.speech.tail.shape[1]
+                              != held):
+        raise StateError(f"saved stream state: state.frontend.speech consumed {inner.consumed} frames and holds "
+                         f"{inner.tail.shape[1] - fresh.frontend.speech.tail.shape[1]} samples, the embedding "
+                         f"{consumed} and {held}")
     # the extractor holds the features not yet made into frames
     feats = consumed * (fe.block // fe.stride * fe.repeat if hasattr(fe, "block") else 1)
     buf = state.extractor.buf.shape[2]
