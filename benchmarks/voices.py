@@ -299,7 +299,7 @@ def model_table(result: dict, label: str) -> str:
     for kind in ("real", "synthetic", "unseen"):
         t = unseen_summary(m, kind)
         if t:
-            lines.append(f"| **{kind} unseen mean ({t['voices']} voices)** | {t['coupling']:+.2f} | "
+            lines.append(f"| **{'all' if kind == 'unseen' else kind} unseen mean ({t['voices']} voices)** | {t['coupling']:+.2f} | "
                          f"{t['coupling_shifted']:+.2f} | | {t['above_chance']}/{t['voices']} | "
                          f"margin {t['onset_margin']:+.2f} | | {t['contrast']:.2f} | {t['silence_ratio']:.2f} | "
                          f"{t['hand_jerk']:.3g} | {cell('{:.2f}', t.get('jerk_ratio'))} | "
@@ -335,9 +335,10 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
         return [f"{t['coupling']:+.2f} ({t['above_chance']}/{t['voices']} above)", f"{t['onset_margin']:+.2f}",
                 f"{t['silence_ratio']:.2f}", f"{t['hand_jerk']:.3g}", cell("{:.2f}", t.get("variety"))][col]
 
-    for kind, what in (("real", "lawrence + scott"), ("synthetic", "espeak"), ("unseen", "all")):
+    for kind, what in (("real", "real unseen mean (lawrence + scott)"), ("synthetic", "synthetic unseen mean (espeak)"),
+                       ("unseen", "all unseen mean")):
         if any(unseen_summary(m, kind) for _, m in models):
-            lines.append(f"| **{kind} unseen mean ({what})** | "
+            lines.append(f"| **{what}** | "
                          + " | ".join(total(m, c, kind) for c in range(len(cols)) for _, m in models) + " |")
     lines.append("\n~ : coupling not above its shifted baseline + 2 sd. "
                  + "; ".join(f"{lab}: {m['checkpoint']}, K = {m['steps']}, {m.get('seeds', '?')} seeds"
