@@ -18,6 +18,7 @@ Needs ../shared (the ZEGGS clip and the real voices).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -59,6 +60,10 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
     "warp": ("more time warping: 0.8x, 0.9x, 1.1x, 1.25x speed-perturbed copies", {"speeds": (0.8, 0.9, 1.1, 1.25)}),
     "drop30": ("condition dropout 0.3 and 1600 steps (more of the unconditional motion, longer)",
                {"cond_drop": 0.3, "max_steps": 1600}),
+    # how far the training seed alone moves the numbers: compare a candidate with these, not with `default` alone
+    "default_seed1": ("the default recipe, training seed 1", {"seed": 1}),
+    "default_seed2": ("the default recipe, training seed 2", {"seed": 2}),
+    "embed_seed1": ("`embed`, training seed 1", {"overrides": {"frontend": "embedding"}, "seed": 1}),
 }
 
 
@@ -76,7 +81,8 @@ def main() -> int:
     p.add_argument("--only", action="append", choices=list(CANDIDATES), help="these candidates (repeatable)")
     p.add_argument("--no-train", action="store_true", help="score the run folders already in --runs")
     p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--out", default=str(RESULTS / "listeners.json"))
+    p.add_argument("--out", default=str(RESULTS / "listeners.json"),
+                   help="results file; candidates already in it and not run now are kept")
     args = p.parse_args()
     if not ZEGGS.is_dir():
         print(f"skipped: {ZEGGS} not found (the ZEGGS clip and the real voices live beside the dev checkout)")
@@ -95,6 +101,10 @@ def main() -> int:
               "settings": {"steps": 4, "seeds": args.seeds, "guidance": "each checkpoint's (1.25)"},
               "voices": {n: {"group": v["group"], "source": v["source"]} for n, v in heard.items()},
               "skipped": skipped, "candidates": {}}
+    out = Path(args.out)
+    if out.is_file():  # keep the candidates scored before and not run now (each records its own code version)
+        kept = json.loads(out.read_text()).get("candidates", {})
+        result["candidates"] = {n: m for n, m in kept.items() if n not in names}
     for name in names:
         what, _ = CANDIDATES[name]
         folder = runs / name
@@ -113,13 +123,14 @@ def main() -> int:
             checkpoint = None  # the embedded default model: `make default-model` trains it bit for bit
         print(f"== {name}: {what}")
         m = voices.evaluate(checkpoint, dict(heard), None, args.seeds, 0)
-        m["what"], m["train_seconds"] = what, trained_s
+        m["what"], m["train_seconds"], m["code_version"] = what, trained_s, result["code_version"]
         m["train_options"] = train_config(name, runs).model_dump(mode="json", exclude={"data", "out", "progress"})
         result["candidates"][name] = m
+    result["candidates"] = {n: result["candidates"][n] for n in CANDIDATES if n in result["candidates"]}
     result["load_avg_after"] = load_average()
-    write_json(Path(args.out), result)
+    write_json(out, result)
     print("\n" + table(result))
-    plot(result, Path(args.out).with_suffix(".png"))
+    plot(result, out.with_suffix(".png"))
     return 0
 
 
