@@ -111,8 +111,10 @@ def telephone(x: np.ndarray) -> np.ndarray:
 
 
 def at_level(x: np.ndarray, dbfs: float) -> np.ndarray:
+    """x scaled so that its active speech level (`augment.active_level`, a mean power) is `dbfs`."""
     from dimgestor.augment import active_level
-    return (x * 10 ** ((dbfs - active_level(x, SAMPLE_RATE)) / 20)).astype(np.float32)
+    level_db = 10 * np.log10(max(active_level(x, SAMPLE_RATE), 1e-20))
+    return (x * 10 ** ((dbfs - level_db) / 20)).astype(np.float32)
 
 
 def main() -> int:

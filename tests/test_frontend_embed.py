@@ -68,7 +68,8 @@ def test_the_embedding_is_causal_and_held_for_80_ms(fe):
 
 
 def _level(x, dbfs):
-    return (x * 10 ** ((dbfs - active_level(x, SAMPLE_RATE)) / 20)).astype(np.float32)
+    """x at an active speech level of `dbfs` (`active_level` is a mean power)."""
+    return (x * 10 ** ((dbfs - 10 * np.log10(active_level(x, SAMPLE_RATE))) / 20)).astype(np.float32)
 
 
 def _nmse(a, b):
