@@ -116,3 +116,16 @@ def save_panels(fig, axes, title: str, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")
+
+
+def save_against_before(fig, ax, lines: list[str], before_code: str | None, path) -> None:
+    """Title a one-panel plot of this code beside the code before it (hatched bars), and write the PNG."""
+    if before_code is not None:
+        lines = lines + [f"code before (hatched): {before_code}"]
+    ax.set_title("\n".join(lines), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    print(f"wrote {path}")

@@ -23,7 +23,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from common import RESULTS, code_version, describe_device, load_average, read_before, utc_now, write_json
+from common import (RESULTS, code_version, describe_device, load_average, read_before,  # noqa: E402
+                    save_against_before, utc_now, write_json)
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
@@ -93,13 +94,7 @@ def plot(result: dict, path: Path, before: dict | None = None) -> None:
     lines = [f"a real-time talker beside fast senders: quiet {result['quiet_s']:g} s, then flooded "
              f"{result['flood_s']:g} s; {result['checkpoint']}",
              f"this code {result['code_version']}; {result['device']}"]
-    if before is not None:
-        lines.append(f"code before (hatched): {before['code_version']}")
-    ax.set_title("\n".join(lines), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}")
+    save_against_before(fig, ax, lines, before["code_version"] if before is not None else None, path)
 
 
 def main() -> None:

@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, code_version, describe_device, load_average, read_before, utc_now, write_json
+from common import (RESULTS, code_version, describe_device, load_average, read_before,  # noqa: E402
+                    save_against_before, utc_now, write_json)
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -141,13 +142,7 @@ def plot(result: dict, path: Path, before: dict | None = None) -> None:
              f"{setup['fault_at_s']:g} s to {setup['fault_at_s'] + setup['fault_s']:g} s into each run "
              f"({setup['fault_s']:g} s); saves every {setup['save_state_every_s']} s",
              f"this code {result['code']}; {result['machine']}"]
-    if before is not None:
-        lines.append(f"code before (hatched): {before['code']}")
-    ax.set_title("\n".join(lines), fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    print(f"wrote {path}")
+    save_against_before(fig, ax, lines, before["code"] if before is not None else None, path)
 
 
 def main() -> int:
