@@ -1,5 +1,6 @@
-"""`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH (and, with --face, the
-face track of the same frames as a CSV)."""
+"""`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH, glTF binary or VRM
+Animation, on our skeleton or retargeted onto the user's rig (and, with --face, the face track of the same frames as
+a CSV)."""
 from __future__ import annotations
 
 import argparse
@@ -10,7 +11,7 @@ import numpy as np
 import torch
 
 from .audio import SAMPLE_RATE, AudioError, load_wav
-from .bvh import BvhMotion, write_bvh
+from .bvh import BvhMotion
 from .checkpoint import Bundle, load_checkpoint
 from .cli_help import smoothing_from_flag
 from .features import features_to_motion
@@ -59,14 +60,29 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "generate", help="generate a BVH for a WAV file (offline, whole file)",
         description="Generate the motion for a speech WAV file, offline (the whole file at once; the same frames "
-                    "as `dimgestor serve --record` on that file, seed and steps), and write it as a BVH.",
+                    "as `dimgestor serve --record` on that file, seed and steps), and write it as a BVH, a glTF "
+                    "binary (.glb: Blender, Unity, Unreal, three.js) or a VRM Animation (.vrma, with the face), on "
+                    "our skeleton or retargeted onto your rig (--target).",
         epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
                         "dimgestor generate --audio speech.wav --out motion.bvh --face face.csv",
+                        "dimgestor generate --audio speech.wav --out motion.vrma",
+                        "dimgestor generate --audio speech.wav --out mine.glb --target my_avatar.vrm",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --target mannequin.bvh --target-map map.json",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint live --steps 4 --seed 3",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda"))
     g = p.add_argument_group("input and output")
     g.add_argument("--audio", required=True, metavar="FILE.wav", help="speech WAV (any rate, mono or stereo)")
-    g.add_argument("--out", required=True, metavar="OUT.bvh", help="output BVH file")
+    g.add_argument("--out", required=True, metavar="OUT.bvh|.glb|.vrma",
+                   help="output file, by its suffix: .bvh (motion capture), .glb (glTF 2.0 binary: a skinned skeleton "
+                        "with one animation, or your --target GLB/VRM with the animation added), .vrma (VRM "
+                        "Animation: plays on any VRM, the face's expressions included)")
+    g.add_argument("--target", default=None, metavar="RIG.bvh|.glb|.vrm",
+                   help="retarget onto this rig, whatever its rest pose (A-pose, T-pose), bone lengths and names "
+                        "(Mixamo, Unreal Mannequin, SMPL-X, VRoid, VRM): a BVH skeleton (for .bvh or .glb output) "
+                        "or a glTF/GLB/VRM (for .glb output) (default: our training skeleton)")
+    g.add_argument("--target-map", default=None, metavar="MAP.json",
+                   help="which joint of --target is which humanoid bone, over the names recognised: "
+                        "{\"leftUpperArm\": \"arm_L\", \"rightToes\": null, ...} (VRM 1.0 bone names)")
     g.add_argument("--face", default=None, metavar="OUT.csv",
                    help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
                         "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
@@ -111,9 +127,17 @@ def _run(args) -> int:
         check_guidance(args.guidance)
     if not args.tether_s > 0:
         raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
+    from .retarget import load_rig, resolve_map
+    from .retarget.export import check_output, write_motion
+
     out = Path(args.out)
-    if out.suffix.lower() != ".bvh":
-        raise ValueError(f"--out {out}: expected a .bvh path")
+    check_output(out, args.target)
+    if args.target_map is not None and args.target is None:
+        raise ValueError("--target-map needs --target (the rig it maps)")
+    target = None
+    if args.target is not None:  # read and map the rig before the model runs: a bad rig fails at once
+        target = load_rig(args.target)
+        resolve_map(target, args.target_map)
     if not out.parent.exists():
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
     face_out = Path(args.face) if args.face is not None else None
@@ -141,14 +165,21 @@ def _run(args) -> int:
     else:
         motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
                                  args.tether_s, args.guidance)
-    write_bvh(out, motion)
-    print(f"wrote {out}: {motion.values.shape[0]} frames at {1 / motion.frame_time:g} fps "
-          f"({len(audio) / SAMPLE_RATE:.2f} s of audio) from {bundle.path}")
+    fps = bundle.feature_spec.fps
+    face = None
+    if face_out is not None or out.suffix.lower() == ".vrma":
+        face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
+    expressions = None
+    if out.suffix.lower() == ".vrma":
+        from .face.names import convert, names_of
+
+        expressions = dict(zip(names_of("vrm1"), convert(face, "vrm1").T))
+    what = write_motion(out, motion, args.target, args.target_map, expressions)
+    print(f"wrote {out} ({what}) at {1 / motion.frame_time:g} fps ({len(audio) / SAMPLE_RATE:.2f} s of audio) "
+          f"from {bundle.path}")
     if face_out is not None:
         from .face.track import write_track
 
-        fps = bundle.feature_spec.fps
-        face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
         write_track(face_out, face, fps)
         print(f"wrote {face_out}: the face of the same {len(face)} frames")
     return 0

@@ -1,0 +1,89 @@
+"""Writing a motion as a file engines and tools open: BVH (ours or on a target BVH skeleton), glTF binary (on our
+skeleton, a target BVH's, or added to the user's own GLB/VRM) and VRM Animation; what `dimgestor generate` and the
+recorder call."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dimgestor.bvh import BvhMotion, write_bvh
+from dimgestor.retarget import gltf as io
+from dimgestor.retarget.rig import Rig, RigError, load_rig
+from dimgestor.retarget.transfer import Retarget, resolve_map
+from dimgestor.retarget.vrma import write_vrma
+
+__all__ = ["OUT_SUFFIXES", "check_output", "write_motion", "metres_per_unit"]
+
+OUT_SUFFIXES = (".bvh", ".glb", ".vrma")
+
+
+def metres_per_unit(rig: Rig) -> float:
+    """A BVH's unit, guessed from its rest height: over 20 units tall is centimetres, else metres; glTF is metres."""
+    if rig.skeleton is None:
+        return 1.0
+    _, p = rig.rest_world()
+    return 0.01 if np.ptp(p[:, 1]) > 20 else 1.0
+
+
+def check_output(out: Path, target: str | None) -> None:
+    """Refuse an output/target pair that cannot be written, before any work."""
+    suffix = out.suffix.lower()
+    if suffix not in OUT_SUFFIXES:
+        raise ValueError(f"--out {out}: expected a .bvh, .glb or .vrma path")
+    if target is not None and suffix == ".vrma":
+        raise ValueError(f"--out {out}: a VRM Animation plays on any VRM as it is; --target is for .bvh and .glb")
+    if target is not None and suffix == ".bvh" and Path(target).suffix.lower() != ".bvh":
+        raise ValueError(f"--target {target}: a .bvh output needs a BVH target skeleton; write .glb for a glTF/VRM rig")
+
+
+def write_motion(out: str | Path, motion: BvhMotion, target: str | Path | None = None,
+                 target_map: str | Path | None = None, face: dict[str, np.ndarray] | None = None) -> str:
+    """Write `motion` (on our skeleton) to `out` by its suffix; returns what was written, for the user."""
+    out = Path(out)
+    check_output(out, None if target is None else str(target))
+    source = Rig.from_skeleton(motion.skeleton, "ours")
+    q, t = motion.rotations(), motion.translations()
+    suffix = out.suffix.lower()
+    if suffix == ".vrma":
+        write_vrma(out, source, resolve_map(source, what="source"), q, t, motion.fps, metres_per_unit(source), face)
+        return f"VRM Animation, {len(q)} frames" + (f", {len(face)} expressions" if face else "")
+    if target is None:
+        if suffix == ".bvh":
+            write_bvh(out, motion)
+            return f"BVH, {motion.num_frames} frames"
+        return _write_glb(out, source, q, t, motion.fps, moved=_moving(source))
+    rig = load_rig(target)
+    rt = Retarget(source, rig, resolve_map(source, what="source"), resolve_map(rig, target_map))
+    what = f"on {Path(target).name} ({len(rt.bones)} bones mapped)"
+    if suffix == ".bvh":
+        write_bvh(out, rt.motion(motion))
+        return f"BVH {what}, {motion.num_frames} frames"
+    tq, tt = rt(q, t)
+    moved = sorted(set(int(j) for j in rt.target_joints)), [j for j in range(rig.num_joints)
+                                                              if np.ptp(tt[:, j], axis=0).max() > 1e-9]
+    if rig.nodes is None:
+        return _write_glb(out, rig, tq, tt, motion.fps, moved) + f" {what}"
+    gltf = io.load_for_animation(target)
+    io.add_animation(gltf, rig.nodes, motion.fps, tq, tt, rotate=moved[0], translate=moved[1])
+    io.save_glb(gltf, out)
+    return f"glTF binary: {Path(target).name} with the animation added ({len(rt.bones)} bones mapped), {len(tq)} frames"
+
+
+def _moving(rig: Rig) -> tuple[list[int], list[int]]:
+    """A BVH rig's joints with rotation channels and with position channels."""
+    sk = rig.skeleton
+    return ([j for j in range(sk.num_joints) if sk.rotation_order(j)],
+            [j for j in range(sk.num_joints) if sk.has_position(j)])
+
+
+def _write_glb(out: Path, rig: Rig, q: np.ndarray, t: np.ndarray, fps: float, moved) -> str:
+    units = metres_per_unit(rig)
+    gltf, nodes = io.skeleton_gltf(rig, units)
+    io.add_animation(gltf, nodes, fps, q, t * units, rotate=moved[0], translate=moved[1])
+    io.save_glb(gltf, out)
+    return f"glTF binary, {rig.num_joints} joints skinned to a stick figure, {len(q)} frames"
+
+
+__all__ += ["RigError"]
