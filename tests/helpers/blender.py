@@ -29,7 +29,7 @@ BLENDER_TO_FILE = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # Blender (X, 
 
 
 class BonePositions(NamedTuple):
-    names: list[str]  # armature bones: glTF joint node names, BVH joint names (End Sites have none)
+    names: list[str]  # armature bones: glTF skin joints' node names, BVH joint names (End Sites have none)
     times: np.ndarray  # (T,) seconds from the animation's start, one per key (see bone_world_positions)
     positions: np.ndarray  # (T, J, 3) bone heads in world space, file coordinates and units
 
@@ -40,7 +40,8 @@ def bone_world_positions(path: str | Path, timeout: float = 120) -> BonePosition
     BVH: every frame of the file, frame k at k * Frame Time. glTF: every keyframe time of the first animation (the
     union over its channels), in seconds; Blender keys time t at frame t * fps and is evaluated there, between two
     frames when t is not on one. Between keys Blender interpolates quaternion components linearly, not by slerp,
-    so only the keys are sampled. A file without animation gives its rest pose once, at time 0."""
+    so only the keys are sampled. A file without animation gives its rest pose once, at time 0. glTF nodes become
+    bones only as a skin's joints: the bare nodes of a VRMA come in as empties, which this does not read."""
     if BLENDER is None:
         pytest.skip(SKIP_REASON)
     with tempfile.TemporaryDirectory(prefix="blender-") as tmp:
