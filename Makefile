@@ -37,15 +37,16 @@ $(VENV)/.test-installed: pyproject.toml $(VENV)/.torch-installed
 	@$(PIP) -e '.[test]'
 	@touch $@ $(VENV)/.serve-installed $(VENV)/.onnx-installed
 
-# Test tooling from npm (an independent OSC parser for the VMC checks), pinned by tests/node/package-lock.json.
-# Without npm the tests that need it skip and say so.
+# Test tooling from npm, pinned by tests/node/package-lock.json: an independent OSC parser for the VMC checks and the
+# Khronos glTF validator for exported animation. Without npm the tests that need them skip and say so.
 VMC_CHECK := tests/node
 $(VMC_CHECK)/node_modules/.package-lock.json: $(VMC_CHECK)/package.json $(VMC_CHECK)/package-lock.json
 	@if command -v npm >/dev/null; then cd $(VMC_CHECK) && npm ci --omit=optional --no-audit --no-fund --loglevel=error; \
-	else echo "npm not found: the VMC receiver check in $(VMC_CHECK) will be skipped (Debian: apt install npm)" >&2; fi
+	else echo "npm not found: the VMC receiver and glTF validator checks in $(VMC_CHECK) will be skipped (Debian: apt install npm)" >&2; fi
 
-# The web viewer's JavaScript dependencies (three.js, three-vrm) from npm, pinned by clients/web/package-lock.json;
-# the viewer's HTTP server serves them from clients/web/node_modules (no CDN, no internet at run time).
+# The web viewer's JavaScript dependencies (three.js, three-vrm; three-vrm-animation for the tests' VRMA checks) from
+# npm, pinned by clients/web/package-lock.json; the viewer's HTTP server serves them from clients/web/node_modules
+# (no CDN, no internet at run time).
 WEB := clients/web
 $(WEB)/node_modules/.package-lock.json: $(WEB)/package.json $(WEB)/package-lock.json
 	@if command -v npm >/dev/null; then echo "Installing the web viewer's three.js and three-vrm (npm ci in $(WEB))"; \
