@@ -175,10 +175,19 @@ def _output_flags(g) -> dict[str, argparse.Action]:
                    "'oculus' (viseme_sil... as Ready Player Me names them), 'none' (no face: bones only)"),
         _flag(g, "--smile", type=float, metavar="W",
               help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
-        _flag(g, "--record", metavar="OUT.bvh",
+        _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "
-                   "OUT.face.csv (as `dimgestor generate --face` writes it; none with --face none)"),
+                   "OUT.face.csv (as `dimgestor generate --face` writes it; none with --face none); OUT.glb or "
+                   "OUT.vrma: that file too, made from OUT.bvh when the source ends (.bvh and .glb on --target "
+                   "where it fits: a BVH target for .bvh)"),
+        _flag(g, "--target", metavar="RIG.bvh|.glb|.vrm",
+              help="send the motion on this rig, retargeted whatever its rest pose (A-pose, T-pose), bone lengths "
+                   "and names: WebSocket clients get its joints in the hello and its local rotations in every "
+                   "frame, VMC receivers its humanoid bones (default: the model's skeleton)"),
+        _flag(g, "--target-map", metavar="MAP.json",
+              help="which joint of --target is which humanoid bone, over the names recognised "
+                   "({\"leftUpperArm\": \"arm_L\", ...}, VRM 1.0 bone names)"),
         _flag(g, "--humanoid-map", metavar="FILE.json",
               help="{HumanBodyBones name: joint name} map for VMC and the hello (default: streamer/maps/zeggs.json)"),
     )}

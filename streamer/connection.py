@@ -46,6 +46,7 @@ class Services:
     audio_recent: deque[bytes]  # the server source's recent audio (for a client that asks for it late)
     departures: ErrorLog
     session_ended: Callable[[], None]  # (the server gives freed memory back)
+    pose: Callable[[list[Frame]], list[Frame]] | None = None  # frames onto the rig clients get (serve --target)
 
 
 class Client(Outbox):
@@ -87,6 +88,8 @@ class Client(Outbox):
 
     def encode(self, frames: list[Frame], send: S.SendFrames) -> list[str | bytes]:  # worker thread
         """The frames as `send` (the machine's `SendFrames`) says: its encoding and its channels."""
+        if self.svc.pose is not None:
+            frames = self.svc.pose(frames)
         return P.encode_frames(frames, send.encoding, send.channels)
 
     async def read_loop(self) -> None:

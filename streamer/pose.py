@@ -9,12 +9,13 @@ axis u into one by a about -M u (an axis is a pseudo-vector), i.e. (ux, -uy, -uz
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from dimgestor.rotations import quat_mul, quat_rotate
+from streamer.frames import Frame
 
 MAPS_DIR = Path(__file__).resolve().parent / "maps"
 DEFAULT_MAP = MAPS_DIR / "zeggs.json"
@@ -97,6 +98,7 @@ class HumanoidRig:
     offsets: np.ndarray             # (J, 3) skeleton offsets, BVH space
     root_joint: int                 # skeleton root joint index
     skeleton_parents: tuple[int, ...] = ()  # parent of each skeleton joint (-1: root), for the rest pose
+    rest_rotations: np.ndarray | None = None  # (J, 4) rest local rotations; None: identity (BVH skeletons)
 
     def __post_init__(self):
         # The padded path tables of `local_pose`: joint index (L, B) (J = identity), offset (L, B, 3), is-root (L, B).
@@ -112,8 +114,14 @@ class HumanoidRig:
                     offs[d, b] = self.offsets[k]
         object.__setattr__(self, "_chains", (idx, offs, is_root))
 
+    def rest_pose(self) -> np.ndarray:
+        """(J, 4) the skeleton's rest local rotations."""
+        if self.rest_rotations is None:
+            return np.tile([1.0, 0.0, 0.0, 0.0], (len(self.offsets), 1))
+        return np.asarray(self.rest_rotations, dtype=np.float64)
+
     @classmethod
-    def build(cls, names, parents, offsets, humanoid: dict[str, str]) -> "HumanoidRig":
+    def build(cls, names, parents, offsets, humanoid: dict[str, str], rest_rotations=None) -> "HumanoidRig":
         index = {n: i for i, n in enumerate(names)}
         joint_to_bone = {index[j]: b for b, j in humanoid.items() if j in index}
         bones, joints, bparents, paths = [], [], [], []
@@ -129,7 +137,7 @@ class HumanoidRig:
             bparents.append(joints.index(a) if a != -1 else -1)
             paths.append(tuple(reversed(path)))
         return cls(tuple(bones), tuple(joints), tuple(bparents), tuple(paths),
-                   np.asarray(offsets, dtype=np.float64), list(parents).index(-1), tuple(parents))
+                   np.asarray(offsets, dtype=np.float64), list(parents).index(-1), tuple(parents), rest_rotations)
 
     def mapping(self, names) -> dict[str, str]:
         """{HumanBodyBones name: joint name} for the bones this skeleton has (the hello's `humanoid`)."""
@@ -174,6 +182,58 @@ class HumanoidRig:
         """Standing height of the top bone (Hips) in the rest pose, file units: its rest height above the
         ground (y = 0), or above the lowest joint where the rest pose reaches below the ground."""
         world = np.zeros_like(self.offsets)
+        turn = self.rest_pose().copy()  # each joint's rest world rotation
         for j, a in enumerate(self.skeleton_parents):  # parents come first in skeleton order
-            world[j] = self.offsets[j] + (world[a] if a >= 0 else 0.0)
+            if a >= 0:
+                world[j] = world[a] + quat_rotate(turn[a], self.offsets[j])
+                turn[j] = quat_mul(turn[a], turn[j])
+            else:
+                world[j] = self.offsets[j]
         return float(world[self.joints[0], 1] - min(0.0, world[:, 1].min()))
+
+
+# ---- a user's rig (serve --target) ----------------------------------------------------------------
+
+
+class TargetPose:
+    """Frames on the model's skeleton -> frames on a target rig (`dimgestor.retarget`): its joints' local
+    rotations (rest rotations included) and its root's position, for every sink that sends them (WebSocket
+    clients get the rig in the hello, VMC receivers its humanoid bones' local pose)."""
+
+    def __init__(self, skeleton, target: str, target_map: str | None = None):
+        from dimgestor.retarget import Retarget, Rig, load_rig, resolve_map
+        from dimgestor.retarget.export import metres_per_unit
+
+        self.source = Rig.from_skeleton(skeleton, "the model's skeleton")
+        self.rig = load_rig(target)
+        self.bones = resolve_map(self.rig, target_map)
+        self.retarget = Retarget(self.source, self.rig, resolve_map(self.source, what="source"), self.bones,
+                                 move="root")
+        self.metres_per_unit = metres_per_unit(self.rig)
+        self.offsets = np.asarray(skeleton.offsets, dtype=np.float64)
+
+    def skeleton_info(self):
+        from streamer.protocol import SkeletonInfo
+
+        units = {1.0: "m", 0.01: "cm"}[self.metres_per_unit]
+        return SkeletonInfo(list(self.rig.names), list(self.rig.parents), self.rig.translations.copy(), units,
+                            self.rig.rotations.copy())
+
+    def humanoid(self) -> dict[str, str]:
+        """{HumanBodyBones name: target joint}, the hello's `humanoid` and the VMC bones."""
+        from dimgestor.retarget.names import unity_name
+
+        return {unity_name(b): j for b, j in self.bones.items() if unity_name(b) in HUMAN_BODY_BONES}
+
+    def humanoid_rig(self) -> HumanoidRig:
+        return HumanoidRig.build(self.rig.names, self.rig.parents, self.rig.translations, self.humanoid(),
+                                 self.rig.rotations)
+
+    def __call__(self, frames: list[Frame]) -> list[Frame]:
+        if not frames:
+            return frames
+        rotations = np.stack([f.rotations for f in frames])
+        translations = np.broadcast_to(self.offsets, rotations.shape[:2] + (3,)).copy()
+        translations[:, self.source.parents.index(-1)] = np.stack([f.root_pos for f in frames])
+        q, t = self.retarget(rotations, translations)
+        return [replace(f, rotations=q[k], root_pos=t[k, 0]) for k, f in enumerate(frames)]

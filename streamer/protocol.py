@@ -56,6 +56,7 @@ class SkeletonInfo:
     parents: list[int]
     offsets: np.ndarray  # (J, 3)
     units: str = "cm"
+    rest_rotations: np.ndarray | None = None  # (J, 4) wxyz; None: identity (BVH skeletons)
 
     @classmethod
     def from_skeleton(cls, skeleton, units: str = "cm") -> "SkeletonInfo":
@@ -80,7 +81,8 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
         "skeleton": {
             "joints": skeleton.names, "parents": skeleton.parents,
             "offsets": np.round(skeleton.offsets, 6).tolist(),
-            "rest_rotations": [[1.0, 0.0, 0.0, 0.0]] * j,
+            "rest_rotations": ([[1.0, 0.0, 0.0, 0.0]] * j if skeleton.rest_rotations is None
+                               else np.round(skeleton.rest_rotations, 6).tolist()),
             "units": skeleton.units, "handedness": "right", "up": "y",
         },
         "humanoid": humanoid,

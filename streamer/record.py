@@ -252,34 +252,73 @@ class BvhRecorder:
         return None if self.failed else self.path
 
 
+def bvh_path(path: str | Path) -> Path:
+    """Where a recording's BVH goes: OUT.bvh itself; beside OUT.glb or OUT.vrma, OUT.bvh (written as it comes,
+    so a crash keeps it; the .glb/.vrma is made from it when the recording ends)."""
+    path = Path(path)
+    return path if path.suffix.lower() == ".bvh" else path.with_suffix(".bvh")
+
+
 class RecordingSink:
     """`BvhRecorder` as a `Sink` (streamer/sink.py): the file is created by `open`, last of all the sinks, so
-    that a failure to start anything else leaves an old recording alone."""
+    that a failure to start anything else leaves an old recording alone. A .glb or .vrma path (optionally on a
+    `target` rig) is written at the end from the BVH beside it (and the face, for .vrma)."""
 
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
-                 channels: Mapping[str, Channel] | None = None, face: bool = False):
+                 channels: Mapping[str, Channel] | None = None, face: bool = False, target: str | None = None,
+                 target_map: str | None = None):
         self.path = Path(path)
         self.args = (skeleton, feature_spec, root, tether_s)
         self.channels, self.face = channels, face
+        self.target, self.target_map = target, target_map
         self.recorder: BvhRecorder | None = None
+        self.faces: list[np.ndarray] = []  # for a .vrma: the canonical face of each frame
 
     async def open(self) -> None:
         # (RecordError says why not)
-        self.recorder = BvhRecorder(self.path, *self.args, channels=self.channels, face=self.face)
+        self.recorder = BvhRecorder(bvh_path(self.path), *self.args, channels=self.channels, face=self.face)
 
     def send(self, frames: list[Frame]) -> None:
         self.recorder.on_frames(frames)
+        if self.path.suffix.lower() == ".vrma" and self.face:
+            from dimgestor.face import FACE_LABELS
+
+            canonical = Channel(FACE, len(FACE_LABELS))
+            self.faces += [channel_values(f, canonical) for f in frames]
 
     async def close(self, drain: bool = True) -> None:
         path = self.recorder.close() if self.recorder is not None else None
         if path:
             print(f"dimgestor: wrote {self.recorder.frames} frames to {path}", file=sys.stderr)
+        if path and (path != self.path or self.target is not None):
+            self._convert(path)
+
+    def _convert(self, bvh: Path) -> None:
+        """The finished BVH as the file asked for (on the target rig); an error says so and keeps the BVH."""
+        from dimgestor.bvh import read_bvh
+        from dimgestor.retarget.export import write_motion
+
+        try:
+            motion = read_bvh(bvh)
+            face = None
+            if self.faces:
+                from dimgestor.face.names import convert, names_of
+
+                weights = convert(np.stack(self.faces[:motion.num_frames]), "vrm1")
+                face = dict(zip(names_of("vrm1"), weights.T))
+            out = self.path if self.path != bvh else bvh
+            what = write_motion(out, motion, self.target, self.target_map, face)
+            print(f"dimgestor: wrote {out} ({what})", file=sys.stderr)
+        except (OSError, ValueError) as e:
+            print(f"dimgestor: could not write {self.path} ({e}); the recording is in {bvh}", file=sys.stderr)
 
     def describe(self) -> str:
         channels = RECORD_CHANNELS if self.channels is None else self.channels
-        beside = ([f"face: {face_path(self.path)}"] if self.face else []) + (
-            [f"channels: {channels_path(self.path)}"] if any(c != FACE for c in channels) else [])
-        return f"recording  {self.path}" + (f" ({', '.join(beside)})" if beside else "")
+        bvh = bvh_path(self.path)
+        beside = ([f"face: {face_path(bvh)}"] if self.face else []) + (
+            [f"channels: {channels_path(bvh)}"] if any(c != FACE for c in channels) else [])
+        also = f" and {self.path} at the end" if bvh != self.path else ""
+        return f"recording  {bvh}{also}" + (f" ({', '.join(beside)})" if beside else "")
 
     def status(self) -> str:
         return ""

@@ -104,9 +104,10 @@ def build(options: ServeOptions) -> Pipeline:
         session.on_window = metrics.window_done
         metrics.streams.append(lambda: int(not session.stats.ended))
     sk = bundle.skeleton
-    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid)
-    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics)
-    vmc, recording = _vmc(options, rig), _recording(options, bundle, source)
+    target = _target(options, sk)
+    rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid) if target is None else target.humanoid_rig()
+    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics, target)
+    vmc, recording = _vmc(options, rig, target), _recording(options, bundle, source)
     if vmc is not None:
         metrics.sinks["vmc"] = lambda: (vmc.sent, vmc.dropped)
     if recording is not None:  # (frames on disk; after a write error the rest are not counted anywhere)
@@ -122,6 +123,20 @@ def _source(options: ServeOptions):
     if isinstance(source, MicSource):
         source.warn = lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True)
     return source
+
+
+def _target(options: ServeOptions, skeleton):
+    """The rig the frames are sent on (--target), or None: the model's skeleton."""
+    if options.target is None:
+        return None
+    from dimgestor.retarget import RigError
+    from dimgestor.retarget.names import MapError
+    from streamer.pose import TargetPose
+
+    try:
+        return TargetPose(skeleton, options.target, options.target_map)
+    except (RigError, MapError) as e:
+        raise ServeError(f"--target: {e}") from None
 
 
 def _humanoid_map(path: str | None):
@@ -250,14 +265,15 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
-        metrics: ServerMetrics):
+        metrics: ServerMetrics, target=None):
     from streamer import protocol as P
     from streamer.ws import WsServer
 
     sk, fps = bundle.skeleton, bundle.feature_spec.fps
     fps = int(fps) if float(fps).is_integer() else fps
     lookahead = (session or make_session()).lookahead_s
-    hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), fps, lookahead,
+    info = P.SkeletonInfo.from_skeleton(sk) if target is None else target.skeleton_info()
+    hello = P.hello(info, rig.mapping(info.names), fps, lookahead,
                     accepts_audio=not options.no_client_audio, window_ms=options.window_ms,
                     source="ws" if source is None else "mic" if options.source == "mic" else "file",
                     **({"face": P.face_hello(options.face)} if options.face != "none" else {}),
@@ -271,16 +287,18 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
                     metrics=metrics, serve_metrics=not options.no_metrics,
                     store=open_store(options.state_store, options.state_ttl, options.state_max_bytes),
-                    save_every_s=options.save_state_every)
+                    save_every_s=options.save_state_every, pose=target)
 
 
-def _vmc(options: ServeOptions, rig):
+def _vmc(options: ServeOptions, rig, target=None):
     if options.osc is None:
         return None
     from streamer.vmc import VmcSink, face_channels
 
-    return VmcSink(options.osc[0], options.osc[1], rig, pace=not options.fast, jitter_s=_vmc_jitter_ms(options) / 1000,
-                   options=options.vmc(), channels=face_channels(options.face))
+    scale = 0.01 if target is None else target.metres_per_unit
+    return VmcSink(options.osc[0], options.osc[1], rig, scale=scale, pace=not options.fast,
+                   jitter_s=_vmc_jitter_ms(options) / 1000, options=options.vmc(),
+                   channels=face_channels(options.face), pose=target)
 
 
 def _vmc_jitter_ms(options: ServeOptions) -> float:
@@ -296,8 +314,12 @@ def _recording(options: ServeOptions, bundle, source):
         return None
     from streamer.record import RecordingSink
 
+    suffix = Path(options.record).suffix.lower()
+    fits = options.target is not None and (suffix == ".glb" or suffix == ".bvh"
+                                           and Path(options.target).suffix.lower() == ".bvh")
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
-                         tether_s=options.tether_s, face=options.face != "none")
+                         tether_s=options.tether_s, face=options.face != "none",
+                         target=options.target if fits else None, target_map=options.target_map if fits else None)
 
 
 def read_token(options) -> str | None:

@@ -165,7 +165,7 @@ class VmcEncoder:
         self.hips = rig.bones.index("Hips") if "Hips" in rig.bones else 0
         # Rest local positions (Unity, metres): what "hips" sends for every bone but the hips.
         J = len(rig.offsets)
-        rest, _ = rig.local_pose(np.zeros((1, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (1, J, 1)))
+        rest, _ = rig.local_pose(rig.offsets[rig.root_joint][None], rig.rest_pose()[None])
         self.rest = to_unity_position(rest[0], scale)
         x, y, z, yaw = options.root
         half = math.radians(yaw) / 2
@@ -248,8 +248,9 @@ class VmcSink:
 
     def __init__(self, host: str, port: int, rig: HumanoidRig, scale: float = 0.01, pace: bool = True,
                  jitter_s: float = 0.25, max_queue: int = 200, options: VmcOptions = VmcOptions(),
-                 drain_s: float = 2.0, channels: Mapping[str, VmcChannel] | None = None):
+                 drain_s: float = 2.0, channels: Mapping[str, VmcChannel] | None = None, pose=None):
         self.sock: socket.socket | None = None
+        self.pose = pose  # frames -> frames on `rig`'s skeleton (a `streamer.pose.TargetPose`), None: as made
         self.host, self.port = host, port
         self.drain_s = drain_s
         self.reported_dropped = 0  # drops already told in a status line
@@ -282,6 +283,8 @@ class VmcSink:
         self._send(self.encoder.heartbeat(self.last_t))
 
     def send(self, frames: list[Frame]) -> None:
+        if self.pose is not None:
+            frames = self.pose(frames)
         now = time.monotonic()
         if frames and self.pace and self.pacer.anchor is not None:
             log.debug("frames %d..%d in, due in %.3f..%.3f s", frames[0].index, frames[-1].index,

@@ -21,8 +21,8 @@ import json
 import re
 from pathlib import Path
 
-__all__ = ["HUMAN_BONES", "HUMAN_PARENT", "CONVENTIONS", "MapError", "canonical_bone", "auto_map", "load_map",
-           "effective_parents"]
+__all__ = ["HUMAN_BONES", "HUMAN_PARENT", "CONVENTIONS", "MapError", "canonical_bone", "unity_name", "auto_map",
+           "load_map", "effective_parents"]
 
 _SIDES = ("left", "right")
 _FINGERS = ("Thumb", "Index", "Middle", "Ring", "Little")
@@ -71,6 +71,15 @@ def canonical_bone(name: str, old_thumbs: bool = False) -> str | None:
         return key
     lowered = {b.lower(): b for b in HUMAN_PARENT}
     return lowered.get(name.lower())
+
+
+def unity_name(bone: str) -> str:
+    """A VRM 1.0 bone's name in Unity's HumanBodyBones (the names VMC and our WebSocket hello use)."""
+    for old, new in _OLD_THUMB.items():
+        if bone == new:
+            bone = old
+            break
+    return bone[:1].upper() + bone[1:]
 
 
 def _fingers(fmt: str, names: dict[str, str], digits=("1", "2", "3")) -> dict[str, str]:

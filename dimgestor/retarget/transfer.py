@@ -106,11 +106,15 @@ class Retarget:
 
     The joints carried are the humanoid bones both maps name, and besides them the joints both rigs call by the
     same name under the same carried parent (twist and end joints of a rig and its copy): a rig onto itself is the
-    identity. `labels` name them (a VRM 1.0 bone or the joint's name), source order, parents first.
+    identity. `labels` name them (a VRM 1.0 bone or the joint's name), source order, parents first. `move`:
+    where the hips' travel goes, "hips" (its own translation, where the rig lets it) or "root" (the root joint's:
+    streams carry one position per frame).
     """
 
-    def __init__(self, source: Rig, target: Rig, source_map: dict[str, str], target_map: dict[str, str]):
+    def __init__(self, source: Rig, target: Rig, source_map: dict[str, str], target_map: dict[str, str],
+                 move: str = "hips"):
         self.source, self.target = source, target
+        self.move = move  # where the hips' travel goes: "hips" (its own translation where it may have one) or "root"
         bones = [b for b in HUMAN_BONES if b in source_map and b in target_map]
         if "hips" not in bones:
             raise RigError(f"{target.path}: the two rigs share no hips bone; cannot place the motion")
@@ -258,7 +262,7 @@ class Retarget:
         want = self.target_rest_p[hips_t] + self.scale * R.quat_rotate(np.broadcast_to(self.facing, moved.shape[:1] + (4,)), moved)
         world_q, world_p = tgt.world(local_q, local_t)
         error = want - world_p[:, hips_t]
-        joint = hips_t if tgt.can_translate(hips_t) else (0 if tgt.can_translate(0) else None)
+        joint = hips_t if tgt.can_translate(hips_t) and self.move == "hips" else (0 if tgt.can_translate(0) else None)
         if joint is None:
             return  # a rig that cannot translate (a BVH without position channels) stays in place
         parent = tgt.parents[joint]

@@ -1,0 +1,95 @@
+"""`dimgestor serve --target RIG`: WebSocket clients and VMC receivers get the motion on the user's rig (here an
+A-posed copy of the model's skeleton, renamed and resized), equal to retargeting what it sends without a target;
+`--record OUT.glb` writes the same on it."""
+
+from __future__ import annotations
+
+import asyncio
+import numpy as np
+import pytest
+
+from dimgestor.bvh import BvhMotion, write_bvh
+from dimgestor.checkpoint import load_checkpoint
+from dimgestor.retarget import Retarget, Rig, load_rig, resolve_map
+from helpers.rigs import a_pose
+from helpers.serve import WAV_SECONDS, follow, serve
+from helpers.vmc import bundles, osc_server
+from streamer.pose import HUMAN_BODY_BONES
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def apose(tiny_checkpoint, tmp_path_factory):
+    """The tiny model's skeleton A-posed (45 degrees), renamed as the Unreal Mannequin, in metres, as a BVH."""
+    sk = a_pose(load_checkpoint(tiny_checkpoint).skeleton)
+    path = tmp_path_factory.mktemp("rig") / "mannequin.bvh"
+    write_bvh(path, BvhMotion(sk, 0.05, np.zeros((1, sk.num_channels))))
+    return path
+
+
+def test_clients_and_vmc_get_the_motion_on_the_target(tiny_checkpoint, wav, apose, tmp_path):
+    server, rec = osc_server()
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--wait-client", "--seed", "3", "--steps", "2",
+              "--target", str(apose), "--vmc", f"127.0.0.1:{server.server_address[1]}",
+              "--record", str(tmp_path / "talk.glb"))
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    hello, msgs = asyncio.run(follow(url))
+    assert s.finish() == 0, s.output
+    server.shutdown()
+
+    rig = load_rig(apose)
+    sk = hello["skeleton"]
+    assert sk["joints"] == rig.names and sk["units"] == "m" and np.allclose(sk["offsets"], rig.translations)
+    assert hello["humanoid"]["LeftUpperArm"] == "upperarm_l" and set(hello["humanoid"]) <= set(HUMAN_BODY_BONES)
+    frames = [m for m in msgs if m["type"] == "frame"]
+    assert len(frames) == int(WAV_SECONDS * 20)
+    streamed = np.array([f["rotations"] for f in frames])
+    root = np.array([f["root"] for f in frames])
+
+    # The same stream on the model's skeleton, retargeted here.
+    plain = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--wait-client", "--seed", "3", "--steps", "2")
+    hello0, msgs0 = asyncio.run(follow(plain.wait_for(r"WebSocket\s+(ws://\S+)").group(1)))
+    assert plain.finish() == 0, plain.output
+    ours = load_checkpoint(tiny_checkpoint).skeleton
+    q0 = np.array([m["rotations"] for m in msgs0 if m["type"] == "frame"])
+    t0 = np.broadcast_to(ours.offsets, q0.shape[:2] + (3,)).copy()
+    t0[:, 0] = [m["root"] for m in msgs0 if m["type"] == "frame"]
+    source = Rig.from_skeleton(ours)
+    rt = Retarget(source, rig, resolve_map(source), resolve_map(rig), move="root")
+    q, t = rt(q0, t0)
+    assert np.abs(np.abs(np.sum(streamed * q, axis=-1)) - 1).max() < 1e-4  # the same rotations (up to sign)
+    assert np.abs(root - t[:, 0]).max() < 1e-4
+
+    # On the A-pose rig the arms point where ours do (the Mannequin's A-pose error is gone).
+    _, ps = source.world(q0, t0)
+    tt = np.broadcast_to(rig.translations, q.shape[:2] + (3,)).copy()
+    tt[:, 0] = root
+    _, pt = rig.world(streamed, tt)
+    for a, b in (("LeftArm", "LeftForeArm"), ("RightForeArm", "RightHand")):
+        ja, jb = ours.index(a), ours.index(b)
+        u, v = ps[:, jb] - ps[:, ja], pt[:, jb] - pt[:, ja]  # (the copy keeps our joint order)
+        cos = np.sum(u * v, -1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(v, axis=-1)
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.0
+
+    # VMC: the target's humanoid bones, their local rotations on the target rig.
+    got = bundles(rec.packets)
+    assert len(got) == len(frames)
+    bone = {p[0]: p for a, _, p in got[10] if a == "/VMC/Ext/Bone/Pos"}
+    assert set(bone) == set(hello["humanoid"])
+    arm = rig.index("upperarm_l")
+    x, y, z, w = bone["LeftUpperArm"][4:8]
+    want = streamed[10, arm] * [1, 1, -1, -1]  # (Unity: the X axis mirrored)
+    assert abs(abs(np.dot([w, x, y, z], want)) - 1) < 1e-4
+
+    # The recording: OUT.bvh as it came, OUT.glb on the target at the end.
+    assert (tmp_path / "talk.bvh").exists() and (tmp_path / "talk.glb").exists()
+    assert "talk.glb (glTF binary" in s.output
+
+
+def test_a_bad_target_stops_serve_with_its_name(tiny_checkpoint, wav, tmp_path):
+    bad = tmp_path / "rig.bvh"
+    bad.write_text("HIERARCHY\nROOT Hips\n{\n OFFSET 0 x 0\n")
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--target", str(bad))
+    assert s.finish() == 2
+    assert f"--target: {bad}:4: expected a number" in s.output
