@@ -30,11 +30,16 @@ EXPRESSIONS = ("aa", "ih", "ou", "ee", "oh", "blink", "blinkLeft", "blinkRight",
 V0_PRESETS = ("a", "i", "u", "e", "o", "blink", "blink_l", "blink_r", "joy")
 
 
-def make_vrm(version: str = "1.0", expressions: bool = False) -> bytes:
-    """The avatar as .vrm bytes; version "1.0" or "0.0"; expressions: with EXPRESSIONS (one morph target each)."""
+def make_vrm(version: str = "1.0", expressions: bool = False, arms_down: float = 0.0) -> bytes:
+    """The avatar as .vrm bytes; version "1.0" or "0.0"; expressions: with EXPRESSIONS (one morph target each);
+    arms_down: its rest pose with both arms lowered that many degrees at the shoulder joint (45: an A-pose, as
+    many non-VRM rigs and some converted VRMs are)."""
     flip = np.array([-1.0, 1.0, -1.0]) if version == "0.0" else np.ones(3)  # VRM 0.x faces -Z
     names = [b for b, _, _ in BONES]
-    local = np.array([t for _, _, t in BONES]) * flip
+    local = np.array([t for _, _, t in BONES], dtype=np.float64)
+    if arms_down:
+        local = _lower_arms(names, local, np.radians(arms_down))
+    local = local * flip
     world = np.zeros_like(local)
     for i, (_, parent, _) in enumerate(BONES):
         world[i] = local[i] + (world[names.index(parent)] if parent else 0.0)
@@ -121,3 +126,26 @@ def make_vrm(version: str = "1.0", expressions: bool = False) -> bytes:
     text += b" " * ((-len(text)) % 4)
     chunks = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(binary), b"BIN\0") + binary
     return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
+def _lower_arms(names: list[str], local: np.ndarray, angle: float) -> np.ndarray:
+    """Local translations with each arm below the upper arm turned down by `angle` (about +Z, the facing)."""
+    parents = [names.index(p) if p else -1 for _, p, _ in BONES]
+    world = np.zeros_like(local)
+    for i, p in enumerate(parents):
+        world[i] = local[i] + (world[p] if p >= 0 else 0.0)
+    for side, sign in (("left", -1.0), ("right", 1.0)):
+        top = names.index(f"{side}UpperArm")
+        c, s_ = np.cos(sign * angle), np.sin(sign * angle)
+        turn = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        below = [i for i in range(len(names)) if _under(parents, i, top)]
+        world[below] = world[top] + (world[below] - world[top]) @ turn.T
+    return np.array([world[i] - (world[p] if p >= 0 else 0.0) for i, p in enumerate(parents)])
+
+
+def _under(parents: list[int], i: int, top: int) -> bool:
+    while parents[i] >= 0:
+        i = parents[i]
+        if i == top:
+            return True
+    return False
