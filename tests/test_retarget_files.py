@@ -176,3 +176,13 @@ def test_three_vrm_animation_plays_our_vrma_on_a_vrm(motion, files, tmp_path, ve
         cos = np.sum(theirs * ours, -1) / np.linalg.norm(theirs, axis=-1) / np.linalg.norm(ours, axis=-1)
         assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 5.0, (a, b)
     assert all(png.stat().st_size > 2000 for png in played.screenshots)
+
+
+@needs_vrma_browser
+def test_three_vrm_animation_plays_our_vrmas_face(motion, files, tmp_path):
+    """The .vrma's expressions on a VRM with them: `aa` opens over the clip as written, `blink` stays shut."""
+    times = [0.0, 0.5, 1.0, 1.5]
+    played = play_vrma(tmp_path, make_vrm("1.0", expressions=True), files / "out_ours.vrma", times, name="face")
+    aa = np.linspace(0, 1, motion.num_frames)[[round(t * FPS) for t in times]]
+    assert np.allclose(played.expressions["aa"], aa, atol=1e-3)
+    assert np.allclose(played.expressions["blink"], 0.0) and played.expressions["ih"].max() == 0.0

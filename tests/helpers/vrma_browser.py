@@ -40,6 +40,7 @@ class VrmaPlayback:
     positions: np.ndarray  # (T, B, 3) raw bone nodes in world space: metres, Y up, the avatar facing +Z
     screenshots: list[Path]  # one PNG per time
     warnings: list[str]  # console.warn lines (three-vrm-animation says there what it ignores)
+    expressions: dict[str, np.ndarray] = None  # the avatar's expressions' weights (T,) as the clip set them
 
     def position(self, bone: str) -> np.ndarray:
         """(T, 3) one bone's world positions."""
@@ -88,8 +89,10 @@ def play_vrma(tmp: Path, vrm: bytes | Path, vrma: Path, times: Sequence[float], 
             browser.close()
         server.shutdown()
         server.server_close()
-    bones = list(poses[0])
+    bones = list(poses[0]["bones"])
+    names = list(poses[0]["expressions"])
     return VrmaPlayback(
         meta_version=info["metaVersion"], duration=info["duration"], tracks=info["tracks"],
         rest_hips=np.asarray(info["restHipsPosition"]), times=np.asarray(times, np.float64), bones=bones,
-        positions=np.array([[p[b] for b in bones] for p in poses], np.float64), screenshots=shots, warnings=warnings)
+        positions=np.array([[p["bones"][b] for b in bones] for p in poses], np.float64), screenshots=shots,
+        warnings=warnings, expressions={n: np.array([p["expressions"][n] for p in poses]) for n in names})

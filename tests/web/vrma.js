@@ -53,20 +53,23 @@ window.vrmaCheck = {
     };
   },
 
-  /** The pose at t seconds, drawn: each humanoid bone's raw node in world space. */
+  /** The pose at t seconds, drawn: each humanoid bone's raw node in world space, and the expressions' weights. */
   async pose(t) {
     action.reset().play();  // a clamped action stays paused at its end; each time starts from a fresh one
     mixer.setTime(t);
     vrm.update(0);  // normalized bones -> raw bones
     vrm.scene.updateMatrixWorld(true);
-    const out = {};
+    const bones = {};
     for (const name of Object.keys(vrm.humanoid.humanBones)) {
       const node = vrm.humanoid.getRawBoneNode(name);
-      if (node) out[name] = node.getWorldPosition(new THREE.Vector3()).toArray();
+      if (node) bones[name] = node.getWorldPosition(new THREE.Vector3()).toArray();
     }
+    const expressions = {};  // the avatar's expressions as the clip set them (none without an expression track)
+    if (vrm.expressionManager)
+      for (const e of vrm.expressionManager.expressions) expressions[e.expressionName] = e.weight;
     renderer.render(scene, camera);
     await nextFrame();  // on screen before the screenshot
     await nextFrame();
-    return out;
+    return { bones, expressions };
   },
 };
