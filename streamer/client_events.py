@@ -15,7 +15,7 @@ __all__ = ["Text", "Audio", "Decoded", "Failed", "Queuing", "OverShare", "Within
            "Boundary", "Saved", "HandOver", "HandedOver", "Taken", "Restored", "NotRestored", "SessionEnded", "Left",
            "Send", "SendFrames", "Close", "ReplaySourceAudio", "Charge", "Decode", "WaitForSession", "StartSession",
            "Feed", "EndAudio", "SetSmile", "StopSession", "SaveState", "Forget", "Release", "TakeState", "Count",
-           "Refused", "Log", "Event", "Action"]
+           "Refused", "Log", "RigSet", "RigRefused", "SetRig", "Event", "Action"]
 
 
 # ---- events: what happened ----------------------------------------------------------------------------
@@ -36,6 +36,20 @@ class Audio:
 @dataclass(frozen=True)
 class Decoded:
     """The audio of the last `Audio` decoded (`Decode` done): it may go to a session now."""
+
+
+@dataclass(frozen=True)
+class RigSet:
+    """The client's rig (`SetRig`) is in use: its frames carry `joints` rotations, `humanoid` its bones recognised
+    ({HumanBodyBones name: joint}); joints 0: back on the server's skeleton."""
+    joints: int
+    humanoid: dict | None = None
+
+
+@dataclass(frozen=True)
+class RigRefused:
+    """The client's rig could not be used (its joints not recognised, a bad bone map): why."""
+    message: str
 
 
 @dataclass(frozen=True)
@@ -149,7 +163,7 @@ class Left:
 
 
 Event = Union[Text, Audio, Decoded, Failed, Queuing, OverShare, WithinShare, Frames, Broadcast, Boundary, Saved,
-              HandOver, HandedOver, Taken, Restored, NotRestored, SessionEnded, Left]
+              HandOver, HandedOver, Taken, Restored, NotRestored, SessionEnded, Left, RigSet, RigRefused]
 
 
 # ---- actions: what to do ------------------------------------------------------------------------------
@@ -240,6 +254,13 @@ class SetSmile:
 
 
 @dataclass(frozen=True)
+class SetRig:
+    """Send this client's frames on `rig` (a checked `hello.rig`), or on the server's skeleton again (None); then
+    `RigSet` or `RigRefused`."""
+    rig: dict | None
+
+
+@dataclass(frozen=True)
 class StopSession:
     """Cancel the session now (its client left): its queued audio and its seat are free."""
 
@@ -291,4 +312,4 @@ class Log:
 
 
 Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, StartSession, Feed,
-               EndAudio, SetSmile, StopSession, SaveState, Forget, Release, TakeState, Count, Refused, Log]
+               EndAudio, SetSmile, SetRig, StopSession, SaveState, Forget, Release, TakeState, Count, Refused, Log]

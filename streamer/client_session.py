@@ -30,8 +30,8 @@ from streamer import protocol as P
 from streamer.client_events import (  # noqa: F401
     Action, Audio, Boundary, Broadcast, Charge, Close, Count, Decode, Decoded, EndAudio, Event, Failed, Feed, Forget,
     Frames, HandedOver, HandOver, Left, Log, NotRestored, OverShare, Queuing, Refused, Release, ReplaySourceAudio,
-    Restored, Saved, SaveState, Send, SendFrames, SessionEnded, SetSmile, StartSession, StopSession, Taken, TakeState,
-    Text, WaitForSession, WithinShare)
+    Restored, RigRefused, RigSet, Saved, SaveState, Send, SendFrames, SessionEnded, SetRig, SetSmile, StartSession,
+    StopSession, Taken, TakeState, Text, WaitForSession, WithinShare)
 from streamer.face import FACE, face_channel
 from streamer.frames import Channel
 
@@ -90,6 +90,7 @@ class ClientSession:
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
     smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
     layout_due: bool = False       # a `channels` message goes with its next frames
+    joints: int = 0                # its frames' joints on its own rig (revision 8; 0: the server's skeleton's)
     after_session: list[str] = field(default_factory=list)  # replies due once the running session sent `end`
 
     @property
@@ -109,7 +110,7 @@ class ClientSession:
         layout = None
         if self.layout_due:
             self.layout_due = False
-            layout = P.channels_message(P.channel_layout(self.seats.joints, self.channels("binary")))
+            layout = P.channels_message(P.channel_layout(self.joints or self.seats.joints, self.channels("binary")))
         return SendFrames(window, self.encoding, self.channels(self.encoding), layout)
 
     def handle(self, event: Event) -> list[Action]:
@@ -146,6 +147,8 @@ class ClientSession:
         self.source_audio = bool(msg.get("source_audio", self.source_audio)) and self.seats.offers_source_audio
         if "face" in msg and self.seats.face is not None:  # (a server that makes no face ignores it)
             self.face, self.layout_due = msg["face"], True
+        if "rig" in msg:
+            out.append(SetRig(msg["rig"]))  # (then RigSet or RigRefused)
         if "smile" in msg:
             self.smile = msg["smile"]
             if self.running:
@@ -156,6 +159,14 @@ class ClientSession:
                 out += self._end_audio()  # later audio starts a session at the new rate
             self.audio = msg["audio"]
         return out
+
+    def _on_RigSet(self, e: RigSet) -> list[Action]:
+        self.joints, self.layout_due = e.joints, True
+        layout = P.channel_layout(self.joints or self.seats.joints, self.channels("binary"))
+        return [Send(P.rig_reply(self.joints or self.seats.joints, e.humanoid, layout), "note")]
+
+    def _on_RigRefused(self, e: RigRefused) -> list[Action]:
+        return [Log(logging.INFO, f"bad_rig: {e.message}"), Send(P.error("bad_rig", e.message), "note")]
 
     def _on_Failed(self, e: Failed) -> list[Action]:
         err = e.error

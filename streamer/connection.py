@@ -47,6 +47,7 @@ class Services:
     departures: ErrorLog
     session_ended: Callable[[], None]  # (the server gives freed memory back)
     pose: Callable[[list[Frame]], list[Frame]] | None = None  # frames onto the rig clients get (serve --target)
+    skeleton: object | None = None  # the model's skeleton (a client's own rig is fitted to it; None: refused)
 
 
 class Client(Outbox):
@@ -73,6 +74,7 @@ class Client(Outbox):
         self.compute = ComputeBudget(self.account)
         self._within_share: asyncio.Task | None = None  # waits until it is within its share again
         self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
+        self.pose = None  # its own rig's `streamer.pose.TargetPose` (revision 8 `hello.rig`), None: the server's
 
     @property
     def encoding(self) -> str:
@@ -88,8 +90,9 @@ class Client(Outbox):
 
     def encode(self, frames: list[Frame], send: S.SendFrames) -> list[str | bytes]:  # worker thread
         """The frames as `send` (the machine's `SendFrames`) says: its encoding and its channels."""
-        if self.svc.pose is not None:
-            frames = self.svc.pose(frames)
+        pose = self.pose or self.svc.pose
+        if pose is not None:
+            frames = pose(frames)
         return P.encode_frames(frames, send.encoding, send.channels)
 
     async def read_loop(self) -> None:
@@ -192,6 +195,8 @@ class Client(Outbox):
             elif isinstance(a, S.StopSession):
                 if self.session_task is not None:
                     self.session_task.cancel()
+            elif isinstance(a, S.SetRig):
+                rest += self.act(self.machine.handle(self._set_rig(a.rig)))
             elif isinstance(a, S.SaveState):
                 self._save(a)
             elif isinstance(a, S.Forget):
@@ -201,6 +206,24 @@ class Client(Outbox):
             else:
                 rest.append(a)
         return rest
+
+    def _set_rig(self, rig: dict | None):
+        """The client's rig fitted to the model's skeleton -> RigSet, or RigRefused saying why."""
+        if rig is None:
+            self.pose = None
+            return S.RigSet(0)
+        if self.svc.skeleton is None:
+            return S.RigRefused("this server does not fit frames to a client's rig")
+        from dimgestor.retarget import RigError
+        from dimgestor.retarget.names import MapError
+        from streamer.pose import TargetPose
+
+        try:
+            pose = TargetPose.from_message(self.svc.skeleton, rig)
+        except (RigError, MapError) as e:
+            return S.RigRefused(str(e))
+        self.pose = pose
+        return S.RigSet(pose.rig.num_joints, pose.humanoid())
 
     async def apply(self, actions: list) -> list:
         """Carry out the actions, waiting where they wait; returns those only the caller can (Decode, Feed,

@@ -195,27 +195,49 @@ class HumanoidRig:
 # ---- a user's rig (serve --target) ----------------------------------------------------------------
 
 
+UNIT_TO_M = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # a skeleton's `units` (the hello's)
+
+
 class TargetPose:
     """Frames on the model's skeleton -> frames on a target rig (`dimgestor.retarget`): its joints' local
     rotations (rest rotations included) and its root's position, for every sink that sends them (WebSocket
     clients get the rig in the hello, VMC receivers its humanoid bones' local pose)."""
 
-    def __init__(self, skeleton, target: str, target_map: str | None = None):
-        from dimgestor.retarget import Retarget, Rig, load_rig, resolve_map
-        from dimgestor.retarget.export import metres_per_unit
+    def __init__(self, skeleton, rig, bone_map=None, metres_per_unit: float | None = None):
+        from dimgestor.retarget import Retarget, Rig, resolve_map
+        from dimgestor.retarget.export import metres_per_unit as guess_unit
 
         self.source = Rig.from_skeleton(skeleton, "the model's skeleton")
-        self.rig = load_rig(target)
-        self.bones = resolve_map(self.rig, target_map)
+        self.rig = rig
+        self.bones = resolve_map(self.rig, bone_map)
         self.retarget = Retarget(self.source, self.rig, resolve_map(self.source, what="source"), self.bones,
                                  move="root")
-        self.metres_per_unit = metres_per_unit(self.rig)
+        self.metres_per_unit = guess_unit(self.rig) if metres_per_unit is None else metres_per_unit
         self.offsets = np.asarray(skeleton.offsets, dtype=np.float64)
+
+    @classmethod
+    def from_file(cls, skeleton, target: str, target_map: str | None = None) -> "TargetPose":
+        """`serve --target RIG --target-map MAP`."""
+        from dimgestor.retarget import load_rig
+
+        return cls(skeleton, load_rig(target), target_map)
+
+    @classmethod
+    def from_message(cls, skeleton, rig: dict) -> "TargetPose":
+        """A client's `hello.rig` (checked by `protocol.parse_text`): its joints, rest pose, units and bone map."""
+        from dimgestor import rotations as R
+        from dimgestor.retarget import Rig
+
+        J = len(rig["joints"])
+        rest = np.asarray(rig["rest_rotations"], dtype=np.float64) if "rest_rotations" in rig else R.quat_identity((J,))
+        target = Rig(list(rig["joints"]), list(rig["parents"]), np.asarray(rig["offsets"], dtype=np.float64), rest,
+                     np.ones(J), path="hello.rig", kind="client")
+        return cls(skeleton, target, rig.get("map"), UNIT_TO_M[rig.get("units", "m")])
 
     def skeleton_info(self):
         from streamer.protocol import SkeletonInfo
 
-        units = {1.0: "m", 0.01: "cm"}[self.metres_per_unit]
+        units = {v: k for k, v in UNIT_TO_M.items()}[self.metres_per_unit]
         return SkeletonInfo(list(self.rig.names), list(self.rig.parents), self.rig.translations.copy(), units,
                             self.rig.rotations.copy())
 

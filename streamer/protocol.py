@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import struct
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -28,7 +29,8 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
-REVISION = 7  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 8  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+MAX_RIG_JOINTS = 512  # a client's rig (revision 8): joints at most (its hello must also fit MAX_TEXT_BYTES)
 FACE_DECIMALS = 4  # a JSON frame's face weights (0..1): 1e-4 is below what any rig shows
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
@@ -219,6 +221,16 @@ def end(frames: int) -> str:
     return json.dumps({"type": "end", "frames": frames})
 
 
+def rig_reply(joints: int, humanoid: dict[str, str] | None, channels: list[dict]) -> str:
+    """Revision 8: the client's rig is taken (`humanoid`: {HumanBodyBones name: its joint} recognised) and its
+    frames from the next one on carry `joints` rotations (binary: `channels`' offsets); humanoid None: back on the
+    server's skeleton."""
+    msg = {"type": "rig", "joints": joints, "channels": channels}
+    if humanoid is not None:
+        msg["humanoid"] = humanoid
+    return json.dumps(msg, separators=(",", ":"))
+
+
 def resume(backlog_s: float) -> str:
     """After a `slow_down`: the client's backlog is down to `backlog_s` (at most half the cap); send again."""
     return json.dumps({"type": "resume", "backlog_s": round(float(backlog_s), 3)})
@@ -331,6 +343,8 @@ def _parse_hello(msg: dict) -> dict:
         if not isinstance(smile, (int, float)) or isinstance(smile, bool) or not 0 <= smile <= 1:
             raise ProtocolError("bad_message", f"smile must be a number from 0 to 1, got {smile!r}")
         out["smile"] = float(smile)
+    if "rig" in msg:
+        out["rig"] = None if msg["rig"] is None else _parse_rig(msg["rig"])
     if "audio" in msg:
         a = msg["audio"]
         if not isinstance(a, dict):
@@ -344,6 +358,50 @@ def _parse_hello(msg: dict) -> dict:
             raise ProtocolError("bad_audio", f"audio.channels must be 1 or 2, got {ch!r}")
         out["audio"] = AudioFormat(rate, fmt, ch)
     return out
+
+
+def _parse_rig(rig) -> dict:
+    """`hello.rig` (revision 8): the client's own skeleton, in the schema of the server's `hello.skeleton`
+    (joints, parents, offsets, optional rest_rotations and units) plus an optional bone `map`."""
+    def bad(text: str) -> ProtocolError:
+        return ProtocolError("bad_rig", f"rig: {text}")
+
+    if not isinstance(rig, dict):
+        raise bad("expected an object {joints, parents, offsets, rest_rotations, units, map}")
+    names, parents, offsets = rig.get("joints"), rig.get("parents"), rig.get("offsets")
+    if not isinstance(names, list) or not 1 <= len(names) <= MAX_RIG_JOINTS:
+        raise bad(f"joints must be a list of 1..{MAX_RIG_JOINTS} names")
+    J = len(names)
+    if not all(isinstance(n, str) and 0 < len(n) <= 128 for n in names) or len(set(names)) != J:
+        raise bad("joints must be distinct non-empty names (at most 128 characters)")
+    if not isinstance(parents, list) or len(parents) != J or not all(
+            isinstance(p, int) and not isinstance(p, bool) for p in parents):
+        raise bad(f"parents must be {J} integers")
+    if parents[0] != -1 or any(not 0 <= p < j for j, p in enumerate(parents) if j > 0):
+        raise bad("parents: the first joint is the root (-1), every other joint's parent comes before it")
+    out = {"joints": list(names), "parents": list(parents), "offsets": _vectors(offsets, J, 3, "offsets", bad)}
+    if "rest_rotations" in rig:
+        q = np.asarray(_vectors(rig["rest_rotations"], J, 4, "rest_rotations", bad))
+        if np.any(np.abs(np.linalg.norm(q, axis=1) - 1) > 1e-2):
+            raise bad("rest_rotations must be unit quaternions [w, x, y, z]")
+        out["rest_rotations"] = (q / np.linalg.norm(q, axis=1, keepdims=True)).tolist()
+    units = rig.get("units", "m")
+    if units not in ("m", "cm", "mm"):
+        raise bad(f'units must be "m", "cm" or "mm", got {units!r}')
+    out["units"] = units
+    if "map" in rig:
+        if not isinstance(rig["map"], dict) or not all(isinstance(v, str) or v is None for v in rig["map"].values()):
+            raise bad("map must be an object {humanoid bone: joint name or null}")
+        out["map"] = dict(rig["map"])
+    return out
+
+
+def _vectors(values, count: int, size: int, what: str, bad) -> list[list[float]]:
+    if not isinstance(values, list) or len(values) != count or not all(
+            isinstance(v, list) and len(v) == size and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                           and math.isfinite(x) for x in v) for v in values):
+        raise bad(f"{what} must be {count} lists of {size} finite numbers")
+    return [[float(x) for x in v] for v in values]
 
 
 def check_audio(data: bytes, fmt: AudioFormat) -> None:

@@ -134,7 +134,7 @@ def _target(options: ServeOptions, skeleton):
     from streamer.pose import TargetPose
 
     try:
-        return TargetPose(skeleton, options.target, options.target_map)
+        return TargetPose.from_file(skeleton, options.target, options.target_map)
     except (RigError, MapError) as e:
         raise ServeError(f"--target: {e}") from None
 
@@ -287,7 +287,7 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
                     metrics=metrics, serve_metrics=not options.no_metrics,
                     store=open_store(options.state_store, options.state_ttl, options.state_max_bytes),
-                    save_every_s=options.save_state_every, pose=target)
+                    save_every_s=options.save_state_every, pose=target, skeleton=sk)
 
 
 def _vmc(options: ServeOptions, rig, target=None):

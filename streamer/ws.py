@@ -72,7 +72,8 @@ class WsServer:
                  ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
                  files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
                  max_waiting: int = 64, request_timeout_s: float = 10.0, metrics: ServerMetrics | None = None,
-                 serve_metrics: bool = True, store=None, save_every_s: float | None = None, pose=None):
+                 serve_metrics: bool = True, store=None, save_every_s: float | None = None, pose=None,
+                 skeleton=None):
         self.host, self.port = host, port
         self.addresses = [(host, port), *also]  # (the real ports once open)
         self.files, self.token, self.store = files, token, store
@@ -85,6 +86,7 @@ class WsServer:
                              save_every_s=save_every_s if store is not None else None)
         self.hello, self.make_session = hello, make_session
         self.pose = pose  # frames -> frames on the hello's skeleton (a `streamer.pose.TargetPose`), None: as made
+        self.skeleton = skeleton  # the model's (clients' own rigs are fitted to it; None: they are refused)
         self.max_queue, self.max_backlog_s = max_queue, max_backlog_s
         self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.trimmer = Trimmer()
@@ -297,7 +299,7 @@ class WsServer:
         timing = None
         for c in list(self.clients):
             for a in c.act(c.machine.handle(S.Broadcast(len(frames), window))):
-                key = (a.encoding, tuple(a.channels.values()))
+                key = (a.encoding, tuple(a.channels.values()), id(c.pose))  # (a client's own rig: its own form)
                 if key not in encoded:
                     encoded[key] = c.encode(frames, a)
                 if a.layout is not None:
@@ -341,7 +343,7 @@ class WsServer:
         self.seats.face = self.hello["face"]["names"] if "face" in self.hello else None
         self.seats.joints = len(self.hello["skeleton"]["joints"])
         svc = Services(self.prep, self.metrics, self.make_session, self.store, self._store_call, self.max_backlog_s,
-                       self.audio_recent, self.departures, self._trim_later, self.pose)
+                       self.audio_recent, self.departures, self._trim_later, self.pose, self.skeleton)
         client = Client(ws, S.ClientSession(self.seats, new_token), S.Keepalive(
             self.ping_interval or 0.0, self.ping_timeout, time.monotonic()), svc, self.max_queue, self.totals)
         self.clients.add(client)

@@ -103,7 +103,7 @@ def test_the_face_in_the_hello_a_json_frame_and_a_binary_frame():
 
     sk = synthetic_skeleton()
     h = P.hello(P.SkeletonInfo.from_skeleton(sk), {}, 20, 0.25, True, face=P.face_hello("vrm1"))
-    assert h["revision"] == 7 and h["channels"] == []  # binary frames carry no face until a client asks
+    assert h["revision"] == P.REVISION and h["channels"] == []  # binary frames carry no face until a client asks
     assert h["face"] == {"names": "vrm1", "sets": ["vrm0", "vrm1", "arkit", "oculus"],
                          "labels": ["aa", "ih", "ou", "ee", "oh", "blink", "blinkLeft", "blinkRight", "happy"]}
     with pytest.raises(ValueError, match="known sets are vrm0, vrm1, arkit, oculus"):

@@ -93,3 +93,99 @@ def test_a_bad_target_stops_serve_with_its_name(tiny_checkpoint, wav, tmp_path):
     s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--target", str(bad))
     assert s.finish() == 2
     assert f"--target: {bad}:4: expected a number" in s.output
+
+
+async def _talk(url: str, audio: np.ndarray, rig: dict | None = None) -> tuple[dict, list[dict]]:
+    """A client with its own audio (16 kHz pcm16): its hello (with `rig`), the audio, its frames; (rig reply, frames)."""
+    import json
+
+    from websockets.asyncio.client import connect
+
+    reply, frames = {}, []
+    async with connect(url) as c:
+        json.loads(await c.recv())  # the server's hello
+        await c.send(json.dumps({"type": "hello", "protocol": 1, **({"rig": rig} if rig is not None else {})}))
+        if rig is not None:
+            while reply.get("type") not in ("rig", "error"):
+                reply = json.loads(await asyncio.wait_for(c.recv(), 30))
+        pcm = (np.clip(audio, -1, 1) * 32767).astype("<i2").tobytes()
+        for k in range(0, len(pcm), 6400):
+            await c.send(pcm[k:k + 6400])
+        await c.send(json.dumps({"type": "audio_end"}))
+        while True:
+            m = json.loads(await asyncio.wait_for(c.recv(), 60))
+            if m["type"] == "frame":
+                frames.append(m)
+            elif m["type"] == "end":
+                return reply, frames
+
+
+def test_a_client_gets_its_own_rig(tiny_checkpoint, wav, apose):
+    """Revision 8: a client's hello.rig (its joints, rest pose and units) -> its frames on that rig, equal to
+    retargeting what a client without one gets; a rig whose joints are not recognised is refused, saying why."""
+    from dimgestor.audio import SAMPLE_RATE, load_wav
+
+    audio = load_wav(wav, SAMPLE_RATE)
+    rig = load_rig(apose)
+    message = {"joints": rig.names, "parents": rig.parents, "offsets": rig.translations.tolist(),
+               "rest_rotations": rig.rotations.tolist(), "units": "m"}
+    s = serve(tiny_checkpoint, "--source", "ws", "--seed", "3", "--steps", "2")
+    url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
+    try:
+        reply, mine = asyncio.run(_talk(url, audio, message))
+        _, plain = asyncio.run(_talk(url, audio))
+        odd = dict(message, joints=[f"bone{j}" for j in range(len(rig.names))])
+        refused, _ = asyncio.run(_talk(url, audio[:3200], odd))
+    finally:
+        s.proc.terminate()
+        s.finish()
+    assert reply["type"] == "rig" and reply["joints"] == rig.num_joints
+    assert reply["humanoid"]["LeftUpperArm"] == "upperarm_l"
+    assert refused["type"] == "error" and refused["code"] == "bad_rig" and "cannot tell which" in refused["message"]
+    assert len(mine) == len(plain) > 0
+    ours = load_checkpoint(tiny_checkpoint).skeleton
+    q0 = np.array([m["rotations"] for m in plain])
+    t0 = np.broadcast_to(ours.offsets, q0.shape[:2] + (3,)).copy()
+    t0[:, 0] = [m["root"] for m in plain]
+    source = Rig.from_skeleton(ours)
+    q, t = Retarget(source, rig, resolve_map(source), resolve_map(rig), move="root")(q0, t0)
+    got = np.array([m["rotations"] for m in mine])
+    assert got.shape == q.shape and np.abs(np.abs(np.sum(got * q, axis=-1)) - 1).max() < 1e-4
+    assert np.abs(np.array([m["root"] for m in mine]) - t[:, 0]).max() < 1e-4
+
+
+@pytest.mark.parametrize("rig, message", [
+    ("bones", "expected an object"),
+    ({"joints": [], "parents": [], "offsets": []}, "joints must be a list of 1..512 names"),
+    ({"joints": ["a", "a"], "parents": [-1, 0], "offsets": [[0, 0, 0]] * 2}, "distinct"),
+    ({"joints": ["a", "b"], "parents": [-1, 1], "offsets": [[0, 0, 0]] * 2}, "parent comes before it"),
+    ({"joints": ["a", "b"], "parents": [-1, 0], "offsets": [[0, 0, 0], [0, "x", 0]]}, "offsets must be 2 lists"),
+    ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "rest_rotations": [[2, 0, 0, 0]]}, "unit quaternions"),
+    ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "units": "in"}, "units must be"),
+    ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "map": {"hips": 3}}, "map must be"),
+])
+def test_a_malformed_rig_gets_an_error_that_says_what_is_wrong(rig, message):
+    import json
+
+    from streamer import protocol as P
+
+    with pytest.raises(P.ProtocolError, match=message) as e:
+        P.parse_text(json.dumps({"type": "hello", "rig": rig}))
+    assert e.value.code == "bad_rig"
+
+
+def test_the_session_machine_takes_a_rig_and_lays_out_its_frames():
+    from streamer import client_session as S
+
+    machine = S.ClientSession(S.Seats(max_sessions=2, joints=75), new_token=lambda: "t")
+    rig = {"joints": ["a", "b"], "parents": [-1, 0], "offsets": [[0, 0, 0], [0, 1, 0]]}
+    import json
+    actions = machine.handle(S.Text(json.dumps({"type": "hello", "rig": rig})))
+    assert [type(a) for a in actions] == [S.SetRig] and actions[0].rig["joints"] == ["a", "b"]
+    sent = machine.handle(S.RigSet(2, {"Hips": "a"}))
+    reply = json.loads(sent[0].message)
+    assert reply == {"type": "rig", "joints": 2, "humanoid": {"Hips": "a"}, "channels": reply["channels"]}
+    assert machine._send_frames(None).layout is not None and machine.joints == 2  # binary offsets: 2 joints now
+    assert json.loads(machine.handle(S.RigRefused("why"))[1].message)["code"] == "bad_rig"
+    back = machine.handle(S.RigSet(0))
+    assert json.loads(back[0].message)["joints"] == 75 and "humanoid" not in json.loads(back[0].message)

@@ -22,7 +22,7 @@ import re
 from pathlib import Path
 
 __all__ = ["HUMAN_BONES", "HUMAN_PARENT", "CONVENTIONS", "MapError", "canonical_bone", "unity_name", "auto_map",
-           "load_map", "effective_parents"]
+           "load_map", "apply_map", "effective_parents"]
 
 _SIDES = ("left", "right")
 _FINGERS = ("Thumb", "Index", "Middle", "Ring", "Little")
@@ -207,27 +207,33 @@ def load_map(path: str | Path, names: list[str], base: dict[str, str] | None = N
         raise MapError(f"{path}: bone map not found") from None
     except json.JSONDecodeError as e:
         raise MapError(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
+    return apply_map(data, names, base, str(path))
+
+
+def apply_map(data, names: list[str], base: dict[str, str] | None = None, where: str = "map") -> dict[str, str]:
+    """A bone map ({bone: joint name or null}) over `base`, checked against the rig's joint `names`; errors
+    start with `where` (a file's path)."""
     if not isinstance(data, dict):
-        raise MapError(f"{path}: expected a JSON object {{humanoid bone: joint name}}")
-    old_thumbs = any(k.lower().endswith("thumbintermediate") for k in data)
+        raise MapError(f"{where}: expected a JSON object {{humanoid bone: joint name}}")
+    old_thumbs = any(str(k).lower().endswith("thumbintermediate") for k in data)
     out = dict(base or {})
     present = set(names)
     for key, joint in data.items():
-        bone = canonical_bone(key, old_thumbs)
+        bone = canonical_bone(str(key), old_thumbs)
         if bone is None:
-            raise MapError(f"{path}: {key!r} is not a humanoid bone name (VRM 1.0 names such as 'leftUpperArm')")
+            raise MapError(f"{where}: {key!r} is not a humanoid bone name (VRM 1.0 names such as 'leftUpperArm')")
         if joint is None:
             out.pop(bone, None)
             continue
         if not isinstance(joint, str) or not joint:
-            raise MapError(f"{path}: {key!r} must map to a joint name or null, got {joint!r}")
+            raise MapError(f"{where}: {key!r} must map to a joint name or null, got {joint!r}")
         if joint not in present:
-            raise MapError(f"{path}: {key!r} names joint {joint!r}, which the rig does not have")
+            raise MapError(f"{where}: {key!r} names joint {joint!r}, which the rig does not have")
         out[bone] = joint
     joints = list(out.values())
     dupes = sorted({j for j in joints if joints.count(j) > 1})
     if dupes:
-        raise MapError(f"{path}: joints mapped to several bones: {dupes}")
+        raise MapError(f"{where}: joints mapped to several bones: {dupes}")
     return {b: out[b] for b in HUMAN_BONES if b in out}
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion
-from dimgestor.retarget.names import HUMAN_BONES, effective_parents, auto_map, load_map
+from dimgestor.retarget.names import HUMAN_BONES, apply_map, auto_map, effective_parents, load_map
 from dimgestor.retarget.rig import Rig, RigError
 
 __all__ = ["Retarget", "swing", "resolve_map"]
@@ -65,12 +65,15 @@ def _roll_fit(q: np.ndarray, axis: np.ndarray, us: list[np.ndarray], vs: list[np
 
 
 def resolve_map(rig: Rig, map_path=None, what: str = "target") -> dict[str, str]:
-    """{VRM 1.0 bone: joint} for a rig: its VRM humanoid, else recognised from its joint names; a map file over it."""
+    """{VRM 1.0 bone: joint} for a rig: its VRM humanoid, else recognised from its joint names; a map (a file, or
+    a dict) over it."""
     mapping = dict(rig.humanoid)
     convention = rig.kind
     if not mapping:
         convention, mapping = auto_map(rig.names, rig.parents)
-    if map_path is not None:
+    if isinstance(map_path, dict):
+        mapping = apply_map(map_path, rig.names, mapping, f"{rig.path}: map")
+    elif map_path is not None:
         mapping = load_map(map_path, rig.names, mapping)
     if "hips" not in mapping or len(mapping) < MIN_BONES:
         raise RigError(f"{rig.path}: cannot tell which of its {rig.num_joints} joints are the humanoid bones "
