@@ -91,7 +91,7 @@ class ServeOptions(BaseModel):
     face: Literal["vrm0", "vrm1", "arkit", "oculus", "none"] = "vrm0"  # the default name set; none: no face
     smile: float = Field(0.0, ge=0, le=1)
     # the rest
-    record: str | None = None  # a .bvh, .glb or .vrma path
+    record: str | None = None  # a BVH path (.glb or .vrma: that file too, from the BVH beside it)
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json
     target: str | None = None  # a rig (.bvh, .glb, .gltf, .vrm): frames for clients and VMC are on it
     target_map: str | None = None  # its bone map over the names recognised
@@ -173,8 +173,6 @@ class ServeOptions(BaseModel):
             raise ValueError("--record records the server's own source; --source ws has none")
         if self.record and not Path(self.record).resolve().parent.is_dir():
             raise ValueError(f"--record {self.record}: folder {Path(self.record).resolve().parent} does not exist")
-        if self.record and Path(self.record).suffix.lower() not in (".bvh", ".glb", ".vrma"):
-            raise ValueError(f"--record {self.record}: expected a .bvh, .glb or .vrma path")
         if self.target_map is not None and self.target is None:
             raise ValueError("--target-map needs --target (the rig it maps)")
         if self.humanoid_map is not None and self.target is not None:

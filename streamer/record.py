@@ -256,7 +256,7 @@ def bvh_path(path: str | Path) -> Path:
     """Where a recording's BVH goes: OUT.bvh itself; beside OUT.glb or OUT.vrma, OUT.bvh (written as it comes,
     so a crash keeps it; the .glb/.vrma is made from it when the recording ends)."""
     path = Path(path)
-    return path if path.suffix.lower() == ".bvh" else path.with_suffix(".bvh")
+    return path.with_suffix(".bvh") if path.suffix.lower() in (".glb", ".vrma") else path
 
 
 class RecordingSink:

@@ -14,6 +14,7 @@ from dimgestor.audio import load_wav
 from dimgestor.face.names import ARKIT, NAME_SETS, names_of
 from streamer.face import face_channel
 from helpers.serve import WAV_SECONDS, follow, serve
+from streamer import protocol as P
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -77,7 +78,7 @@ def talker(tiny_checkpoint):
 def test_a_talker_gets_a_face_once_it_asks_and_old_clients_get_the_frames_they_know(talker, pcm):
     # a client that never asks (written for revision 6 or before): its own audio makes no face (nor costs one)
     hello, msgs = asyncio.run(talk(talker, None, pcm))
-    assert hello["revision"] == 7 and hello["channels"] == []
+    assert hello["revision"] == P.REVISION and hello["channels"] == []
     assert hello["face"] == {"names": "vrm0", "sets": SETS, "labels": list(names_of("vrm0"))}
     frames = frames_of(msgs)
     assert len(frames) == WAV_SECONDS * 20 and not any("face" in f for f in frames)
