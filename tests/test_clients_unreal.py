@@ -139,16 +139,28 @@ def test_unreal_component_moves_with_its_session_at_goaway(tmp_path):
                              "binary:3:1600", "binary:4:1600", "binary:5:1600", 'text:{"type":"audio_end"}'], out["second"]
 
 
-@pytest.mark.parametrize("encoding,yaw", [("binary", 90.0), ("json", -30.0)])
-def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(retarget_check, recordings, encoding, yaw):
+def unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.sum(unit(a) * unit(b), axis=-1), -1.0, 1.0)))
+
+
+@pytest.mark.parametrize("encoding,yaw,rest", [("binary", 90.0, "tpose"), ("json", -30.0, "tpose"),
+                                               ("binary", 90.0, "apose"), ("json", -30.0, "apose")])
+def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(retarget_check, recordings, encoding, yaw, rest):
     """UDimgestorComponent (on engine stand-ins) fed the recorded messages through its WebSocket events poses a
-    Mannequin-named mesh whose bones have other axes so that every bone lands where the server skeleton's
-    forward kinematics puts its joint, in Unreal axes (cm), turned by SourceToComponent."""
+    Mannequin-named mesh whose bones have other axes, in Unreal axes (cm), turned by SourceToComponent. With the
+    skeleton's rest (a T-pose) as the mesh's reference pose, every bone lands where the server skeleton's forward
+    kinematics puts its joint; with an A-pose (arms 45 degrees down), every bone points where the skeleton's does
+    (within 5 degrees: the positions differ where the rest directions were aligned, not copied)."""
     files = recordings[encoding]
-    r = subprocess.run([str(retarget_check), str(files[0].parent), str(yaw)], capture_output=True, text=True,
-                       timeout=60)
+    r = subprocess.run([str(retarget_check), str(files[0].parent), str(yaw), *(["apose"] if rest == "apose" else [])],
+                       capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    out = [json.loads(line)["bones"] for line in r.stdout.splitlines()]
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    reference, out = lines[0]["reference"], [line["bones"] for line in lines[1:]]
     msgs = [reference_decode(p) for p in files]
     hello = next(m for m in msgs if m["type"] == "hello")
     frames = [m for m in msgs if m["type"] == "frame"]
@@ -162,22 +174,32 @@ def test_unreal_component_retargets_onto_a_mesh_with_other_bone_axes(retarget_ch
     direct = [(b, bone_of[parents[j]]) for b, j in joint_of.items() if parents[j] in bone_of]
     assert len(direct) >= 5, "too few bones with a mapped parent to check"
 
-    def fk(frame):  # BVH space, file units (cm)
-        g = global_rotations(parents, np.asarray(frame["rotations"], np.float64))
+    def fk(frame, rotations=None):  # BVH space, file units (cm)
+        g = global_rotations(parents, np.asarray(frame["rotations"] if rotations is None else rotations, np.float64))
         pos = np.zeros((len(parents), 3))
         for j, p in enumerate(parents):
             pos[j] = frame["root"] if p < 0 else pos[p] + quat_matrix(g[p]) @ offsets[j]
         return pos @ to_component.T
 
+    rest_pos = fk({"root": offsets[0]}, sk["rest_rotations"])
+    ref_angle = {(b, p): angle_deg(np.subtract(reference[b], reference[p]), rest_pos[joint_of[b]] - rest_pos[joint_of[p]])
+                 for b, p in direct}
+    for (b, p), a in ref_angle.items():  # the mesh's reference pose: the skeleton's rest, but the arms 45 degrees down
+        lowered = rest == "apose" and p in ("LeftUpperArm", "RightUpperArm", "LeftLowerArm", "RightLowerArm")
+        assert a == pytest.approx(45.0 if lowered else 0.0, abs=1e-6), f"reference pose {p}->{b}"
     hips = bone_of[0]
     root0 = to_component @ np.asarray(frames[0]["root"])
     scale = offsets[0][1] / root0[2] if offsets[0][1] > 10 and root0[2] > 10 else 1.0
+    worst = 0.0
     for frame, bones in zip(frames, out):
         pos = fk(frame)
         for b, p in direct:
-            np.testing.assert_allclose(np.subtract(bones[b], bones[p]), pos[joint_of[b]] - pos[joint_of[p]], atol=1e-3,
-                                       err_msg=f"frame {frame['index']} {p}->{b}")
+            got, want = np.subtract(bones[b], bones[p]), pos[joint_of[b]] - pos[joint_of[p]]
+            if rest == "tpose":
+                np.testing.assert_allclose(got, want, atol=1e-3, err_msg=f"frame {frame['index']} {p}->{b}")
+            worst = max(worst, angle_deg(got, want))
         np.testing.assert_allclose(np.subtract(bones[hips], out[0][hips]), (pos[0] - root0) * scale, atol=1e-3)
+    assert worst < 5.0, f"a bone points {worst:.2f} degrees away from the skeleton's"
     moved = max(np.abs(np.subtract(out[-1][b], out[0][b])).max() for b in joint_of)
     assert moved > 1e-2, "the mesh did not move"
 

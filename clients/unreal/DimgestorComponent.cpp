@@ -1,11 +1,14 @@
-// Retargeting: the server skeleton and the mesh have different bone axes, so local rotations cannot be
-// copied. For each bound bone we take the source joint's global rotation relative to the source rest
-// (delta = G_frame * G_rest^-1, converted to Unreal axes, then into component space by SourceToComponent)
-// and put it on top of the bone's own rest: R_component = delta * R_rest_component. Both rests must be the
-// same pose (a T-pose for ZEGGS/BEAT skeletons; set the mesh's reference pose or an A-pose offset accordingly).
+// Retargeting: the server skeleton and the mesh have different bone axes and may have different rest poses, so
+// local rotations cannot be copied. For each bound bone we take the source joint's global rotation relative to the
+// source rest (delta = G_frame * G_rest^-1, converted to Unreal axes, then into component space by
+// SourceToComponent C) and put it on top of the bone's own reference pose, first aligned onto the source rest:
+// R_component = C * delta * C^-1 * A * R_rest_component. A turns the mesh's reference bone (bone -> its bound child)
+// onto the source skeleton's rest bone between the same joints, so any reference pose works (T or A, e.g. the UE5
+// Mannequin's); a bone without a bound child turns with its parent.
 #include "DimgestorComponent.h"
 
 #include <algorithm>
+#include <set>
 
 #include "Components/PoseableMeshComponent.h"
 #include "Components/SkeletalMeshComponent.h"
@@ -47,7 +50,37 @@ const TCHAR* const GMannequinBones[][2] = {
 	{TEXT("RightLittleDistal"), TEXT("pinky_03_r")},
 };
 
+// Where a humanoid bone points: towards the first of these children the skeleton has, else its first bound child.
+const std::map<std::string, std::vector<std::string>> GDirectionChildren = {
+	{"Hips", {"Spine"}}, {"Spine", {"Chest", "UpperChest", "Neck"}}, {"Chest", {"UpperChest", "Neck"}},
+	{"UpperChest", {"Neck"}}, {"Neck", {"Head"}},
+	{"LeftHand", {"LeftMiddleProximal", "LeftIndexProximal"}}, {"RightHand", {"RightMiddleProximal", "RightIndexProximal"}},
+};
+const std::set<std::string> GNotDirections = {"Jaw", "LeftEye", "RightEye"};  // children that do not say where a bone points
+constexpr double MinBoneCm = 0.01;  // shorter bones have no direction to align
+
 FQuat ToFQuat(const dimgestor::Quat& Q) { return FQuat(Q.x, Q.y, Q.z, Q.w); }  // FQuat takes (X, Y, Z, W)
+
+// The server skeleton's rest joint locations in component space (Unreal axes, cm, turned by C).
+std::vector<FVector> SourceRestLocations(const dimgestor::Skeleton& S, const std::vector<dimgestor::Quat>& RestGlobal, const FQuat& C)
+{
+	std::vector<dimgestor::Vec3> P(S.joints.size());
+	std::vector<FVector> Out(S.joints.size());
+	for (size_t j = 0; j < S.joints.size(); ++j)
+	{
+		P[j] = S.offsets[j];
+		if (S.parents[j] >= 0)
+		{
+			const dimgestor::Quat& G = RestGlobal[size_t(S.parents[j])];
+			const dimgestor::Quat V = G * dimgestor::Quat{0, S.offsets[j].x, S.offsets[j].y, S.offsets[j].z} * dimgestor::Conjugate(G);
+			const dimgestor::Vec3& Q = P[size_t(S.parents[j])];
+			P[j] = dimgestor::Vec3{Q.x + V.x, Q.y + V.y, Q.z + V.z};
+		}
+		const dimgestor::Vec3 U = dimgestor::ToUnrealPosition(P[j], S.unit_to_m * 100.0);
+		Out[j] = C.RotateVector(FVector(U.x, U.y, U.z));
+	}
+	return Out;
+}
 
 // Percent-encode a token for the query string (RFC 3986 unreserved characters pass through).
 FString QueryEscape(const FString& In)
@@ -348,6 +381,7 @@ void UDimgestorComponent::Bind()
 		}
 	}
 	Bindings.Sort([](const FBinding& A, const FBinding& B) { return A.Joint < B.Joint; });  // parents first
+	AlignRests();
 	RootBone = NAME_None;
 	for (const FBinding& B : Bindings)
 		if (Hello.skeleton.parents[B.Joint] < 0) RootBone = B.Bone;
@@ -361,6 +395,61 @@ void UDimgestorComponent::Bind()
 	if (Bindings.Num() == 0) LastError = TEXT("no mesh bone matched: check HumanoidToBone / bMatchJointNames");
 }
 
+// A per bound bone: the rotation from the mesh's reference bone (bone -> its direction child, component space)
+// onto the server skeleton's rest bone between the same joints, so the mesh at rest takes the skeleton's rest
+// pose whatever its reference pose (T or A). A bone without a direction child turns with its bound parent.
+void UDimgestorComponent::AlignRests()
+{
+	const dimgestor::Skeleton& S = Hello.skeleton;
+	const std::vector<FVector> Source = SourceRestLocations(S, SourceRestGlobal, SourceToComponent.Quaternion());
+	std::vector<int32> BindingOf(S.joints.size(), INDEX_NONE);
+	for (int32 i = 0; i < Bindings.Num(); ++i) BindingOf[size_t(Bindings[i].Joint)] = i;
+	for (FBinding& B : Bindings)  // parents first: a parent's A is known before its children need it
+	{
+		const int32 Child = DirectionChild(B.Joint, BindingOf);
+		if (Child == INDEX_NONE)
+		{
+			int32 P = S.parents[size_t(B.Joint)];
+			while (P >= 0 && BindingOf[size_t(P)] == INDEX_NONE) P = S.parents[size_t(P)];
+			B.Align = P >= 0 ? Bindings[BindingOf[size_t(P)]].Align : FQuat::Identity;
+			continue;
+		}
+		const FVector V = RestPose[Bindings[BindingOf[size_t(Child)]].Bone].GetLocation() - RestPose[B.Bone].GetLocation();
+		const FVector Src = Source[size_t(Child)] - Source[size_t(B.Joint)];
+		const bool bDegenerate = V.SizeSquared() < MinBoneCm * MinBoneCm || Src.SizeSquared() < MinBoneCm * MinBoneCm;
+		B.Align = bDegenerate ? FQuat::Identity : FQuat::FindBetweenVectors(V, Src);
+	}
+}
+
+// The bound joint that says where Joint points (INDEX_NONE: none): the one on the way to its preferred humanoid
+// child (the spine for the hips, the neck for the upper chest, the middle finger for a hand), else its first
+// bound child.
+int32 UDimgestorComponent::DirectionChild(int32 Joint, const std::vector<int32>& BindingOf) const
+{
+	const dimgestor::Skeleton& S = Hello.skeleton;
+	std::map<std::string, std::string> HumanoidOf;  // joint -> humanoid name
+	for (const auto& Pair : Hello.humanoid) HumanoidOf[Pair.second] = Pair.first;
+	const auto Own = HumanoidOf.find(S.joints[size_t(Joint)]);
+	const auto Preferred = Own == HumanoidOf.end() ? GDirectionChildren.end() : GDirectionChildren.find(Own->second);
+	if (Preferred != GDirectionChildren.end())
+		for (const std::string& Name : Preferred->second)
+		{
+			const auto It = Hello.humanoid.find(Name);
+			int32 j = It == Hello.humanoid.end() ? -1 : S.IndexOf(It->second), Nearest = INDEX_NONE;
+			for (; j >= 0 && j != Joint; j = S.parents[size_t(j)])
+				if (BindingOf[size_t(j)] != INDEX_NONE) Nearest = j;
+			if (j == Joint && Nearest != INDEX_NONE) return Nearest;
+		}
+	for (const FBinding& B : Bindings)  // by joint index: the first bound child
+	{
+		int32 P = S.parents[size_t(B.Joint)];
+		while (P >= 0 && P != Joint && BindingOf[size_t(P)] == INDEX_NONE) P = S.parents[size_t(P)];
+		const auto Name = HumanoidOf.find(S.joints[size_t(B.Joint)]);
+		if (P == Joint && (Name == HumanoidOf.end() || !GNotDirections.count(Name->second))) return B.Joint;
+	}
+	return INDEX_NONE;
+}
+
 void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
 {
 	const std::vector<dimgestor::Quat> Global = dimgestor::GlobalRotations(Hello.skeleton, Frame.rotations);
@@ -370,7 +459,7 @@ void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
 	{
 		const FQuat Delta = ToFQuat(dimgestor::ToUnrealRotation(Global[B.Joint] * dimgestor::Conjugate(SourceRestGlobal[B.Joint])));
 		FTransform T = TargetMesh->GetBoneTransformByName(B.Bone, EBoneSpaces::ComponentSpace);
-		T.SetRotation((C * Delta * C.Inverse() * B.RestComponent).GetNormalized());
+		T.SetRotation((C * Delta * C.Inverse() * B.Align * B.RestComponent).GetNormalized());
 		TargetMesh->SetBoneTransformByName(B.Bone, T, EBoneSpaces::ComponentSpace);
 	}
 	if (Frame.index < LastIndex) bHaveRootReference = false;  // a new stream (own audio session, --loop)

@@ -140,6 +140,7 @@ private:
 		FName Bone;
 		int32 Joint = INDEX_NONE;
 		FQuat RestComponent;  // the bone's component-space rotation in the mesh's rest pose
+		FQuat Align = FQuat::Identity;  // A: turns the mesh's rest bone onto the server skeleton's rest bone
 	};
 
 	void Connect();
@@ -150,6 +151,8 @@ private:
 	void HandleBinary(const void* Data, SIZE_T Size, bool bIsLastFragment);
 	void Handle(const dimgestor::Message& Message);
 	void Bind();
+	void AlignRests();
+	int32 DirectionChild(int32 Joint, const std::vector<int32>& BindingOf) const;
 	void Apply(const dimgestor::Frame& Frame);
 	void ApplyFace(const dimgestor::Frame& Frame);
 	void SendHello(bool bWithAudio);

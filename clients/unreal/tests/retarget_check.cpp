@@ -2,8 +2,11 @@
 // recorded from a live server: BeginPlay captures the rest pose of a stand-in Mannequin-named mesh whose
 // bones have other axes than the server skeleton (a random rotation per bone, plus an extra "root" bone);
 // the server's messages are fired through the WebSocket events (binary ones in two fragments) on a
-// real-time clock, and TickComponent poses the mesh one playout delay after each frame arrived. Prints, per frame, each bound bone's component-space location (cm);
-// tests/test_clients_unreal.py compares them with the server skeleton's forward kinematics.
+// real-time clock, and TickComponent poses the mesh one playout delay after each frame arrived. Prints the
+// mesh's reference pose, then per frame each bound bone's component-space location (cm);
+// tests/test_clients_unreal.py compares them with the server skeleton's forward kinematics. The mesh's
+// reference pose is the skeleton's rest (a T-pose), or with "apose" an A-pose: each arm (upper arm and below)
+// turned 45 degrees down at the upper arm's joint.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -25,7 +28,10 @@ using namespace dimgestor;
 static FString Wide(const std::string& s) { std::wstring w(s.begin(), s.end()); return FString(w.c_str()); }
 
 int main(int argc, char** argv) {
-  if (argc != 3) { std::fprintf(stderr, "usage: retarget_check FOLDER YAW_DEGREES\n"); return 2; }
+  if (argc < 3 || argc > 4 || (argc == 4 && std::string(argv[3]) != "apose")) {
+    std::fprintf(stderr, "usage: retarget_check FOLDER YAW_DEGREES [apose]\n");
+    return 2;
+  }
   std::vector<fs::path> files;
   for (const auto& e : fs::directory_iterator(argv[1])) files.push_back(e.path());
   std::sort(files.begin(), files.end());
@@ -82,6 +88,32 @@ int main(int argc, char** argv) {
     bone_of_joint[jm.first] = index;
     humanoid_of_bone[index] = jm.second;
   }
+  if (argc == 4) {  // A-pose: each upper arm turned 45 degrees about the axis that lowers it (children follow)
+    for (const char* side : {"Left", "Right"}) {
+      const FName upper = *component.HumanoidToBone.Find(Wide(std::string(side) + "UpperArm"));
+      const FName lower = *component.HumanoidToBone.Find(Wide(std::string(side) + "LowerArm"));
+      FTransform t = mesh.GetBoneTransformByName(upper, EBoneSpaces::ComponentSpace);
+      const FVector d = mesh.GetBoneTransformByName(lower, EBoneSpaces::ComponentSpace).GetLocation() - t.GetLocation();
+      FVector axis(-d.Y, d.X, 0.0);  // d x (0, 0, -1): turns d towards -Z (down)
+      const double half = 3.14159265358979323846 / 8, s = std::sin(half) / std::sqrt(axis.SizeSquared());
+      t.SetRotation(FQuat(axis.X * s, axis.Y * s, 0.0, std::cos(half)) * t.GetRotation());
+      mesh.SetBoneTransformByName(upper, t, EBoneSpaces::ComponentSpace);
+    }
+  }
+
+  auto print_bones = [&](const char* key) {  // {"KEY": {humanoid name: component-space location}}
+    std::string line = std::string("{\"") + key + "\":{";
+    bool first = true;
+    for (const auto& bh : humanoid_of_bone) {
+      FVector t = mesh.GetBoneTransformByName(mesh.StubNames[size_t(bh.first)], EBoneSpaces::ComponentSpace).GetLocation();
+      char buf[160];
+      std::snprintf(buf, sizeof buf, "%s\"%s\":[%.9g,%.9g,%.9g]", first ? "" : ",", bh.second.c_str(), t.X, t.Y, t.Z);
+      line += buf;
+      first = false;
+    }
+    std::printf("%s}}\n", line.c_str());
+  };
+  print_bones("reference");
 
   component.TargetMesh = &mesh;
   component.BeginPlay();
@@ -122,16 +154,7 @@ int main(int argc, char** argv) {
       continue;
     }
     component.TickComponent(1.f / 60.f, LEVELTICK_All, nullptr);
-    std::string line = "{\"bones\":{";
-    bool first = true;
-    for (const auto& bh : humanoid_of_bone) {
-      FVector t = mesh.GetBoneTransformByName(mesh.StubNames[size_t(bh.first)], EBoneSpaces::ComponentSpace).GetLocation();
-      char buf[160];
-      std::snprintf(buf, sizeof buf, "%s\"%s\":[%.9g,%.9g,%.9g]", first ? "" : ",", bh.second.c_str(), t.X, t.Y, t.Z);
-      line += buf;
-      first = false;
-    }
-    std::printf("%s}}\n", line.c_str());
+    print_bones("bones");
   }
   std::fprintf(stderr, "frames received %lld, sent %zu text message(s)\n", (long long)component.FramesReceived,
                socket->StubSentText.size());

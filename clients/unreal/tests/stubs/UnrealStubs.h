@@ -84,6 +84,8 @@ template <typename T> class TArray {
   void Add(const T& v) { v_.push_back(v); }
   void Append(const T* p, SIZE_T n) { v_.insert(v_.end(), p, p + n); }
   int32 Num() const { return int32(v_.size()); }
+  T& operator[](int32 i) { return v_[size_t(i)]; }
+  const T& operator[](int32 i) const { return v_[size_t(i)]; }
   T* GetData() { return v_.data(); }
   const T* GetData() const { return v_.data(); }
   void Reset() { v_.clear(); }
@@ -128,6 +130,7 @@ struct FVector {
   FVector operator+(const FVector& o) const { return {X + o.X, Y + o.Y, Z + o.Z}; }
   FVector operator-(const FVector& o) const { return {X - o.X, Y - o.Y, Z - o.Z}; }
   FVector operator*(float s) const { return {X * s, Y * s, Z * s}; }
+  double SizeSquared() const { return X * X + Y * Y + Z * Z; }
 };
 inline const FVector FVector::ZeroVector{};
 
@@ -135,6 +138,13 @@ struct FQuat {
   double X = 0, Y = 0, Z = 0, W = 1;
   FQuat() = default;
   FQuat(double x, double y, double z, double w) : X(x), Y(y), Z(z), W(w) {}
+  static const FQuat Identity;
+  static FQuat FindBetweenVectors(const FVector& a, const FVector& b) {  // the engine's formula
+    const double norm = std::sqrt(a.SizeSquared() * b.SizeSquared()), w = norm + a.X * b.X + a.Y * b.Y + a.Z * b.Z;
+    const FQuat q = w >= 1e-6 * norm ? FQuat(a.Y * b.Z - a.Z * b.Y, a.Z * b.X - a.X * b.Z, a.X * b.Y - a.Y * b.X, w)
+                    : std::abs(a.X) > std::abs(a.Y) ? FQuat(-a.Z, 0, a.X, 0) : FQuat(0, -a.Z, a.Y, 0);  // opposite
+    return q.GetNormalized();
+  }
   FQuat operator*(const FQuat& b) const {  // apply b first, then this (as in the engine)
     return {W * b.X + X * b.W + Y * b.Z - Z * b.Y, W * b.Y - X * b.Z + Y * b.W + Z * b.X,
             W * b.Z + X * b.Y - Y * b.X + Z * b.W, W * b.W - X * b.X - Y * b.Y - Z * b.Z};
@@ -149,6 +159,7 @@ struct FQuat {
     return {r.X, r.Y, r.Z};
   }
 };
+inline const FQuat FQuat::Identity{};
 
 struct FRotator {
   double Pitch = 0, Yaw = 0, Roll = 0;
