@@ -66,6 +66,16 @@ class Rig:
         """Whether joint j's local translation may be animated (BVH: only joints with position channels)."""
         return self.skeleton is None or self.skeleton.has_position(j)
 
+    @property
+    def levels(self) -> list[np.ndarray]:
+        """Joint indices by depth (the root's level first): forward kinematics one level at a time."""
+        if getattr(self, "_levels", None) is None:
+            depth = np.zeros(self.num_joints, dtype=int)
+            for j, p in enumerate(self.parents):
+                depth[j] = 0 if p < 0 else depth[p] + 1
+            self._levels = [np.flatnonzero(depth == d) for d in range(depth.max() + 1)]
+        return self._levels
+
     def world(self, rotations: np.ndarray, translations: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Local rotations (T, J, 4) (and translations (T, J, 3), default rest) -> world rotations and positions."""
         T = rotations.shape[0]
@@ -73,13 +83,16 @@ class Rig:
             translations = np.broadcast_to(self.translations, (T, self.num_joints, 3))
         wq = np.empty((T, self.num_joints, 4))
         wp = np.empty((T, self.num_joints, 3))
-        ws = np.empty(self.num_joints)  # accumulated scale of each joint's frame
-        for j, p in enumerate(self.parents):
-            pq, pp, ps = ((self.base_rotation, self.base_position, self.base_scale) if p < 0
-                          else (wq[:, p], wp[:, p], ws[p]))
-            wq[:, j] = R.quat_mul(np.broadcast_to(pq, (T, 4)), rotations[:, j])
-            wp[:, j] = pp + ps * R.quat_rotate(np.broadcast_to(pq, (T, 4)), translations[:, j])
-            ws[j] = ps * self.scales[j]
+        ws = self.world_scales()
+        parents = np.asarray(self.parents)
+        root = self.levels[0]
+        wq[:, root] = R.quat_mul(self.base_rotation, rotations[:, root])
+        wp[:, root] = self.base_position + self.base_scale * R.quat_rotate(
+            np.broadcast_to(self.base_rotation, (T, len(root), 4)), translations[:, root])
+        for level in self.levels[1:]:
+            p = parents[level]
+            wq[:, level] = R.quat_mul(wq[:, p], rotations[:, level])
+            wp[:, level] = wp[:, p] + ws[p][:, None] * R.quat_rotate(wq[:, p], translations[:, level])
         return wq, wp
 
     def rest_world(self) -> tuple[np.ndarray, np.ndarray]:

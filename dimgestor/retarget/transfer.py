@@ -224,54 +224,74 @@ class Retarget:
             align[k] = _roll_fit(q, vs[0], us[1:], vs[1:]) if len(kids) > 1 else q
         return align
 
+    def _tables(self) -> None:
+        """The per-joint constants of `__call__`, as arrays over the carried joints."""
+        g, n = self.facing, len(self.labels)
+        self._has_child = np.array([bool(c) for c in self.children])
+        self._child = np.array([self.source_joints[c[0]] if c else s for c, s in zip(self.children, self.source_joints)])
+        self._rest_dir = R.quat_rotate(np.broadcast_to(g, (n, 4)), self.source_rest_p[self._child]
+                                       - self.source_rest_p[self.source_joints])
+        self._rest_inv = R.quat_conj(self.source_rest_q[self.source_joints])
+        self._aligned_rest = R.quat_mul(self.align, self.target_rest_q[self.target_joints])
+        self._slot = np.full(self.target.num_joints, -1)
+        self._slot[self.target_joints] = np.arange(n)
+
     def __call__(self, rotations: np.ndarray, translations: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Source local rotations (T, Js, 4) (+ translations (T, Js, 3)) -> target local rotations (T, Jt, 4) and
-        translations (T, Jt, 3)."""
+        translations (T, Jt, 3). All carried joints at once, then the target one tree level at a time."""
+        if getattr(self, "_slot", None) is None:
+            self._tables()
         src, tgt, g = self.source, self.target, self.facing
         T = rotations.shape[0]
         wq, wp = src.world(rotations, translations)
-        gq = np.broadcast_to(g, (T, 4))
-        bone_world = np.empty((T, len(self.labels), 4))
-        for k in range(len(self.labels)):
-            s = self.source_joints[k]
-            delta = R.quat_mul(wq[:, s], R.quat_conj(self.source_rest_q[s]))
-            delta = R.quat_mul(R.quat_mul(gq, delta), R.quat_conj(gq))
-            if self.children[k]:  # carry the direction to the next carried joint exactly, past the others
-                c = self.source_joints[self.children[k][0]]
-                rest = R.quat_rotate(g, self.source_rest_p[c] - self.source_rest_p[s])
-                now = R.quat_rotate(gq, wp[:, c] - wp[:, s])
-                delta = R.quat_mul(swing(R.quat_rotate(delta, np.broadcast_to(rest, (T, 3))), now), delta)
-            bone_world[:, k] = R.quat_mul(delta, R.quat_mul(self.align[k], self.target_rest_q[self.target_joints[k]]))
-        mapped = {int(j): k for k, j in enumerate(self.target_joints)}
+        s = self.source_joints
+        delta = R.quat_mul(wq[:, s], self._rest_inv)  # each joint's world rotation from its rest
+        delta = R.quat_mul(R.quat_mul(g, delta), R.quat_conj(g))
+        # carry the direction to the next carried joint exactly, past the joints in between
+        now = R.quat_rotate(np.broadcast_to(g, wp[:, s].shape[:-1] + (4,)), wp[:, self._child] - wp[:, s])
+        fix = swing(R.quat_rotate(delta, np.broadcast_to(self._rest_dir, now.shape)), now)
+        delta = np.where(self._has_child[:, None], R.quat_mul(fix, delta), delta)
+        bone_world = R.quat_mul(delta, self._aligned_rest)  # (T, B, 4)
         local_q = np.broadcast_to(tgt.rotations, (T, tgt.num_joints, 4)).copy()
         world_q = np.empty_like(local_q)
-        for j, p in enumerate(tgt.parents):
-            parent_q = np.broadcast_to(tgt.base_rotation, (T, 4)) if p < 0 else world_q[:, p]
-            if j in mapped:
-                world_q[:, j] = bone_world[:, mapped[j]]
-                local_q[:, j] = R.quat_mul(R.quat_conj(parent_q), world_q[:, j])
-            else:
-                world_q[:, j] = R.quat_mul(parent_q, local_q[:, j])
+        parents = np.asarray(tgt.parents)
+        for level in tgt.levels:
+            pq = (np.broadcast_to(tgt.base_rotation, (T, len(level), 4)) if parents[level[0]] < 0
+                  else world_q[:, parents[level]])
+            slot = self._slot[level]
+            carried = slot >= 0
+            w = R.quat_mul(pq, local_q[:, level])  # joints not carried keep their rest local rotation
+            w[:, carried] = bone_world[:, slot[carried]]
+            world_q[:, level] = w
+            local_q[:, level[carried]] = R.quat_mul(R.quat_conj(pq[:, carried]), w[:, carried])
         local_q = R.quat_continuity(local_q, axis=0)
         local_t = np.broadcast_to(tgt.translations, (T, tgt.num_joints, 3)).copy()
-        self._place_hips(wp, local_q, local_t)
+        self._place_hips(wp, world_q, local_t)
         return local_q, local_t
 
-    def _place_hips(self, source_world_p: np.ndarray, local_q: np.ndarray, local_t: np.ndarray) -> None:
+    def _place_hips(self, source_world_p: np.ndarray, world_q: np.ndarray, local_t: np.ndarray) -> None:
         """Move the target's hips as the source's moved from rest, scaled by leg length (in place)."""
         k = self.labels.index("hips")
         tgt, hips_s, hips_t = self.target, self.source_joints[k], self.target_joints[k]
         moved = source_world_p[:, hips_s] - self.source_rest_p[hips_s]
         want = self.target_rest_p[hips_t] + self.scale * R.quat_rotate(np.broadcast_to(self.facing, moved.shape[:1] + (4,)), moved)
-        world_q, world_p = tgt.world(local_q, local_t)
-        error = want - world_p[:, hips_t]
         joint = hips_t if tgt.can_translate(hips_t) and self.move == "hips" else (0 if tgt.can_translate(0) else None)
         if joint is None:
             return  # a rig that cannot translate (a BVH without position channels) stays in place
+        path = [hips_t]  # the hips' position: along its ancestors only
+        while tgt.parents[path[-1]] >= 0:
+            path.append(tgt.parents[path[-1]])
+        ws = tgt.world_scales()
+        pos = np.broadcast_to(tgt.base_position, want.shape).copy()
+        for j in reversed(path):
+            p = tgt.parents[j]
+            frame_q = np.broadcast_to(tgt.base_rotation, world_q[:, 0].shape) if p < 0 else world_q[:, p]
+            frame_s = tgt.base_scale if p < 0 else ws[p]
+            pos = pos + frame_s * R.quat_rotate(frame_q, local_t[:, j])
         parent = tgt.parents[joint]
         frame_q = np.broadcast_to(tgt.base_rotation, world_q[:, 0].shape) if parent < 0 else world_q[:, parent]
-        frame_s = tgt.base_scale if parent < 0 else tgt.world_scales()[parent]
-        local_t[:, joint] += R.quat_rotate(R.quat_conj(frame_q), error) / frame_s
+        frame_s = tgt.base_scale if parent < 0 else ws[parent]
+        local_t[:, joint] += R.quat_rotate(R.quat_conj(frame_q), want - pos) / frame_s
 
     def motion(self, motion: BvhMotion) -> BvhMotion:
         """A BVH motion on the source skeleton -> the same motion on the target's BVH skeleton."""
