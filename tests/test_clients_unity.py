@@ -26,8 +26,8 @@ pytestmark = [pytest.mark.timeout(180),
 
 # The MonoBehaviour and what it needs, with the stand-ins of the UnityEngine types it uses.
 CLIENT_SOURCES = tuple(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                           "DimgestorAudioFlow.cs", "DimgestorClient.cs", "DimgestorFace.cs",
-                                           "tests/UnityEngineStubs.cs"))
+                                           "DimgestorAudioFlow.cs", "DimgestorRestAlignment.cs", "DimgestorClient.cs",
+                                           "DimgestorFace.cs", "tests/UnityEngineStubs.cs"))
 
 
 def mcs(out, *sources, library=False, defines=()):
