@@ -175,6 +175,71 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
     check_retarget(tmp_path, recordings["binary"][0].parent, hello, frames, yaw, arms_down)
 
 
+def humanoid_with_fingers() -> tuple[list[str], list[int], np.ndarray, dict[str, str]]:
+    """A ZEGGS-like T-posed skeleton (cm, facing +Z, left at +X) with legs, an unmapped joint in the spine, an
+    upper chest, jaw and eyes, and five fingers on each hand (the thumb forward); and its humanoid map."""
+    names, parents, offsets, humanoid = [], [], [], {}
+
+    def add(name, parent, offset, bone=None):
+        names.append(name)
+        parents.append(names.index(parent) if parent else -1)
+        offsets.append(offset)
+        if bone:
+            humanoid[bone] = name
+
+    add("Hips", None, (0, 95, 0), "Hips")
+    for side, x in (("Left", 1), ("Right", -1)):
+        add(f"{side}UpLeg", "Hips", (9 * x, -3, 0), f"{side}UpperLeg")
+        add(f"{side}Leg", f"{side}UpLeg", (0, -42, 1), f"{side}LowerLeg")
+        add(f"{side}Foot", f"{side}Leg", (0, -42, -2), f"{side}Foot")
+        add(f"{side}ToeBase", f"{side}Foot", (0, -6, 12), f"{side}Toes")
+    add("Spine", "Hips", (0, 10, 0), "Spine")
+    add("Spine1", "Spine", (0, 12, -1))
+    add("Spine2", "Spine1", (0, 12, 0), "Chest")
+    add("Spine3", "Spine2", (0, 10, 0), "UpperChest")
+    add("Neck", "Spine3", (0, 12, 1), "Neck")
+    add("Head", "Neck", (0, 10, 2), "Head")
+    add("Jaw", "Head", (0, -3, 6), "Jaw")
+    for side, x in (("Left", 1), ("Right", -1)):
+        add(f"{side}Eye", "Head", (3 * x, 4, 8), f"{side}Eye")
+        add(f"{side}Shoulder", "Spine3", (4 * x, 8, 0), f"{side}Shoulder")
+        add(f"{side}Arm", f"{side}Shoulder", (13 * x, 0, 0), f"{side}UpperArm")
+        add(f"{side}ForeArm", f"{side}Arm", (27 * x, 0, 0), f"{side}LowerArm")
+        add(f"{side}Hand", f"{side}ForeArm", (24 * x, 0, 0), f"{side}Hand")
+        for finger, bone, first in (("Thumb", "Thumb", (3, -1, 3)), ("Index", "Index", (9, 0, 2.2)),
+                                    ("Middle", "Middle", (9.5, 0, 0.3)), ("Ring", "Ring", (9, 0, -1.8)),
+                                    ("Pinky", "Little", (8, 0, -3.5))):
+            joint = f"{side}Hand{finger}"
+            add(f"{joint}1", f"{side}Hand", (first[0] * x, first[1], first[2]), f"{side}{bone}Proximal")
+            add(f"{joint}2", f"{joint}1", (3.5 * x, 0, 0), f"{side}{bone}Intermediate")
+            add(f"{joint}3", f"{joint}2", (2.5 * x, 0, 0), f"{side}{bone}Distal")
+    return names, parents, np.asarray(offsets, np.float64), humanoid
+
+
+@pytest.mark.parametrize("arms_down", [0.0, 45.0], ids=["t-pose", "a-pose"])
+def test_unity_client_retargets_a_full_humanoid_with_fingers(tmp_path, arms_down):
+    """The same on a skeleton with legs, upper chest, jaw, eyes and fingers, posed at random: in an A-pose the
+    hand is aligned along its middle finger, so every finger still points where the skeleton's does."""
+    from streamer.protocol import SkeletonInfo, hello as hello_message
+
+    names, parents, offsets, humanoid = humanoid_with_fingers()
+    hello = json.loads(json.dumps(hello_message(SkeletonInfo(names, parents, offsets), humanoid, 30, 0.0, False)))
+    rng = np.random.default_rng(3)
+    frames = []
+    for i in range(8):
+        axes = rng.normal(size=(len(names), 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        angles = np.radians(rng.uniform(-30, 30, size=(len(names), 1)))  # every joint turned up to 30 degrees
+        q = np.concatenate([np.cos(angles / 2), np.sin(angles / 2) * axes], axis=1)
+        frames.append({"type": "frame", "index": i, "pts": i / 30, "root": (offsets[0] + rng.normal(size=3)).tolist(),
+                       "rotations": q.tolist()})
+    folder = tmp_path / "msgs"
+    folder.mkdir()
+    for k, m in enumerate([hello, *frames]):
+        (folder / f"{k:03d}.json").write_text(json.dumps(m))
+    check_retarget(tmp_path, folder, hello, frames, 37.0, arms_down)
+
+
 def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint):  # noqa: F811
     """DimgestorClient run as Unity runs it (OnEnable, LateUpdate at 60 Hz, SendAudio/EndAudio from another
     thread) with Mono's ClientWebSocket against a live server: its own audio comes back as gestures, shown
