@@ -26,8 +26,8 @@ pytestmark = [pytest.mark.timeout(180),
 
 # The MonoBehaviour and what it needs, with the stand-ins of the UnityEngine types it uses.
 CLIENT_SOURCES = tuple(UNITY / f for f in ("DimgestorProtocol.cs", "DimgestorJson.cs", "DimgestorPlayout.cs",
-                                           "DimgestorAudioFlow.cs", "DimgestorClient.cs", "DimgestorFace.cs",
-                                           "tests/UnityEngineStubs.cs"))
+                                           "DimgestorAudioFlow.cs", "DimgestorRestAlignment.cs", "DimgestorClient.cs",
+                                           "DimgestorFace.cs", "tests/UnityEngineStubs.cs"))
 
 
 def mcs(out, *sources, library=False, defines=()):
@@ -100,19 +100,23 @@ def test_unity_audio_flow_pauses_at_slow_down_and_resumes_with_bounded_holding(t
     check_flow([json.loads(line) for line in r.stdout.splitlines()])
 
 
-@pytest.mark.parametrize("yaw", [0.0, 37.0])
-def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, recordings, yaw):
-    """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
-    the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres)."""
+def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    cos = np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def check_retarget(tmp_path, folder, hello: dict, frames: list[dict], yaw: float, arms_down: float) -> float:
+    """RetargetCheck on the messages in `folder` (`hello`, `frames`): in a T-pose bind pose every bone segment is the
+    server skeleton's (Unity space, metres); in an A-pose each points where the skeleton's does within 5 degrees.
+    Returns the worst angle."""
     exe = tmp_path / "RetargetCheck.exe"
     mcs(exe, *CLIENT_SOURCES, UNITY / "tests" / "StubAvatar.cs", UNITY / "tests" / "RetargetCheck.cs")
-    folder = recordings["binary"][0].parent
-    r = subprocess.run([MONO, str(exe), str(folder), str(yaw)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([MONO, str(exe), str(folder), str(yaw), str(arms_down)], capture_output=True, text=True,
+                       timeout=120)
     assert r.returncode == 0, r.stderr
-    out = [json.loads(line) for line in r.stdout.splitlines()]
-    msgs = [reference_decode(p) for p in recordings["binary"]]
-    hello = next(m for m in msgs if m["type"] == "hello")
-    frames = [m for m in msgs if m["type"] == "frame"]
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    assert lines[0]["rest"]
+    rest, out = lines[0]["bones"], lines[1:]
     assert [o["index"] for o in out] == [f["index"] for f in frames]
     sk, to_unity = hello["skeleton"], np.array([-0.01, 0.01, 0.01])
     parents, offsets = sk["parents"], np.asarray(sk["offsets"], np.float64)
@@ -128,20 +132,112 @@ def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, re
             pos[j] = frame["root"] if p < 0 else pos[p] + quat_matrix(g[p]) @ offsets[j]
         return pos * to_unity
 
+    if arms_down:  # the bind pose really is an A-pose: each upper arm that far below the skeleton's rest arm
+        rest_pos = fk({"rotations": sk["rest_rotations"], "root": offsets[0]})
+        for side in ("Left", "Right"):
+            upper, lower = joint_of[f"{side}UpperArm"], joint_of[f"{side}LowerArm"]
+            avatar_arm = np.asarray(rest[f"{side}LowerArm"]) - np.asarray(rest[f"{side}UpperArm"])
+            assert angle_deg(avatar_arm, rest_pos[lower] - rest_pos[upper]) == pytest.approx(arms_down, abs=0.01)
+            assert avatar_arm[1] < rest_pos[lower][1] - rest_pos[upper][1]
+
     hips = bone_of[0]
     root0 = np.asarray(frames[0]["root"]) * to_unity
     avatar_height, source_height = offsets[0][1] * 0.01, root0[1]
     scale = avatar_height / source_height if avatar_height > 0.1 and source_height > 0.1 else 1.0
+    worst = 0.0
     for frame, got in zip(frames, out):
         pos = fk(frame)
         bones = {b: np.asarray(v) for b, v in got["bones"].items()}
         for b, p in direct:  # the bone segment points where the server skeleton's does
-            np.testing.assert_allclose(bones[b] - bones[p], pos[joint_of[b]] - pos[joint_of[p]], atol=2e-4,
-                                       err_msg=f"frame {frame['index']} {p}->{b}")
+            want = pos[joint_of[b]] - pos[joint_of[p]]
+            worst = max(worst, angle_deg(bones[b] - bones[p], want))
+            if not arms_down:
+                np.testing.assert_allclose(bones[b] - bones[p], want, atol=2e-4,
+                                           err_msg=f"frame {frame['index']} {p}->{b}")
         np.testing.assert_allclose(bones[hips] - np.asarray(out[0]["bones"][hips]),
                                    (pos[0] - root0) * scale, atol=2e-4, err_msg=f"hips, frame {frame['index']}")
+    assert worst < 5.0, f"a bone points {worst:.2f} degrees away from the server skeleton's"
     moved = max(np.abs(np.asarray(out[-1]["bones"][b]) - np.asarray(out[0]["bones"][b])).max() for b in joint_of)
     assert moved > 1e-3, "the avatar did not move"
+    return worst
+
+
+@pytest.mark.parametrize("yaw,arms_down", [(0.0, 0.0), (37.0, 0.0), (37.0, 45.0)],
+                         ids=["t-pose", "t-pose-turned", "a-pose-turned"])
+def test_unity_client_retargets_onto_an_avatar_with_other_bone_axes(tmp_path, recordings, yaw, arms_down):
+    """DimgestorClient's Bind/Apply on a stand-in avatar (random bone axes, turned root) put every bone where
+    the server skeleton's forward kinematics puts its joint, in Unity space (mirror X, metres). When the avatar's
+    bind pose is an A-pose (arms 45 degrees down) instead of the skeleton's T-pose, its bones cannot all land on
+    the joints; each bone then points where the skeleton's does, within 5 degrees."""
+    msgs = [reference_decode(p) for p in recordings["binary"]]
+    hello = next(m for m in msgs if m["type"] == "hello")
+    frames = [m for m in msgs if m["type"] == "frame"]
+    check_retarget(tmp_path, recordings["binary"][0].parent, hello, frames, yaw, arms_down)
+
+
+def humanoid_with_fingers() -> tuple[list[str], list[int], np.ndarray, dict[str, str]]:
+    """A ZEGGS-like T-posed skeleton (cm, facing +Z, left at +X) with legs, an unmapped joint in the spine, an
+    upper chest, jaw and eyes, and five fingers on each hand (the thumb forward); and its humanoid map."""
+    names, parents, offsets, humanoid = [], [], [], {}
+
+    def add(name, parent, offset, bone=None):
+        names.append(name)
+        parents.append(names.index(parent) if parent else -1)
+        offsets.append(offset)
+        if bone:
+            humanoid[bone] = name
+
+    add("Hips", None, (0, 95, 0), "Hips")
+    for side, x in (("Left", 1), ("Right", -1)):
+        add(f"{side}UpLeg", "Hips", (9 * x, -3, 0), f"{side}UpperLeg")
+        add(f"{side}Leg", f"{side}UpLeg", (0, -42, 1), f"{side}LowerLeg")
+        add(f"{side}Foot", f"{side}Leg", (0, -42, -2), f"{side}Foot")
+        add(f"{side}ToeBase", f"{side}Foot", (0, -6, 12), f"{side}Toes")
+    add("Spine", "Hips", (0, 10, 0), "Spine")
+    add("Spine1", "Spine", (0, 12, -1))
+    add("Spine2", "Spine1", (0, 12, 0), "Chest")
+    add("Spine3", "Spine2", (0, 10, 0), "UpperChest")
+    add("Neck", "Spine3", (0, 12, 1), "Neck")
+    add("Head", "Neck", (0, 10, 2), "Head")
+    add("Jaw", "Head", (0, -3, 6), "Jaw")
+    for side, x in (("Left", 1), ("Right", -1)):
+        add(f"{side}Eye", "Head", (3 * x, 4, 8), f"{side}Eye")
+        add(f"{side}Shoulder", "Spine3", (4 * x, 8, 0), f"{side}Shoulder")
+        add(f"{side}Arm", f"{side}Shoulder", (13 * x, 0, 0), f"{side}UpperArm")
+        add(f"{side}ForeArm", f"{side}Arm", (27 * x, 0, 0), f"{side}LowerArm")
+        add(f"{side}Hand", f"{side}ForeArm", (24 * x, 0, 0), f"{side}Hand")
+        for finger, bone, first in (("Thumb", "Thumb", (3, -1, 3)), ("Index", "Index", (9, 0, 2.2)),
+                                    ("Middle", "Middle", (9.5, 0, 0.3)), ("Ring", "Ring", (9, 0, -1.8)),
+                                    ("Pinky", "Little", (8, 0, -3.5))):
+            joint = f"{side}Hand{finger}"
+            add(f"{joint}1", f"{side}Hand", (first[0] * x, first[1], first[2]), f"{side}{bone}Proximal")
+            add(f"{joint}2", f"{joint}1", (3.5 * x, 0, 0), f"{side}{bone}Intermediate")
+            add(f"{joint}3", f"{joint}2", (2.5 * x, 0, 0), f"{side}{bone}Distal")
+    return names, parents, np.asarray(offsets, np.float64), humanoid
+
+
+@pytest.mark.parametrize("arms_down", [0.0, 45.0], ids=["t-pose", "a-pose"])
+def test_unity_client_retargets_a_full_humanoid_with_fingers(tmp_path, arms_down):
+    """The same on a skeleton with legs, upper chest, jaw, eyes and fingers, posed at random: in an A-pose the
+    hand is aligned along its middle finger, so every finger still points where the skeleton's does."""
+    from streamer.protocol import SkeletonInfo, hello as hello_message
+
+    names, parents, offsets, humanoid = humanoid_with_fingers()
+    hello = json.loads(json.dumps(hello_message(SkeletonInfo(names, parents, offsets), humanoid, 30, 0.0, False)))
+    rng = np.random.default_rng(3)
+    frames = []
+    for i in range(8):
+        axes = rng.normal(size=(len(names), 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        angles = np.radians(rng.uniform(-30, 30, size=(len(names), 1)))  # every joint turned up to 30 degrees
+        q = np.concatenate([np.cos(angles / 2), np.sin(angles / 2) * axes], axis=1)
+        frames.append({"type": "frame", "index": i, "pts": i / 30, "root": (offsets[0] + rng.normal(size=3)).tolist(),
+                       "rotations": q.tolist()})
+    folder = tmp_path / "msgs"
+    folder.mkdir()
+    for k, m in enumerate([hello, *frames]):
+        (folder / f"{k:03d}.json").write_text(json.dumps(m))
+    check_retarget(tmp_path, folder, hello, frames, 37.0, arms_down)
 
 
 def test_unity_client_really_connects_talks_and_gestures(tmp_path, checkpoint):  # noqa: F811

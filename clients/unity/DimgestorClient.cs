@@ -5,8 +5,9 @@
 // Retargeting: the server's skeleton and the avatar have different bone axes, so local rotations cannot
 // be copied. For each mapped bone we take the source joint's global rotation relative to the source rest
 // pose (delta = G_frame * G_rest^-1, converted to Unity space) and apply it on top of the avatar's own
-// rest: bone.rotation = avatarRoot.rotation * delta * boneRestRelativeToRoot. Both rests must be the same
-// pose (a T-pose for ZEGGS/BEAT skeletons and for Unity humanoids in their bind pose).
+// rest: bone.rotation = avatarRoot.rotation * delta * A * boneRestRelativeToRoot. The avatar's bind pose may
+// differ from the skeleton's rest (an A-pose avatar, a T-pose skeleton): A (DimgestorRestAlignment.cs) first
+// turns the avatar's rest bone onto the skeleton's, so any bind pose works.
 using System;
 using System.Collections.Generic;
 using System.Net.WebSockets;
@@ -59,7 +60,7 @@ namespace Dimgestor
         public int resumed;                       // sessions resumed on another worker after a goaway
         public string faceUnmatched = "";         // face names that drive no blendshape (check faceNameMap)
 
-        class Binding { public Transform bone; public int joint; public Quaternion rest; }
+        class Binding { public Transform bone; public string name; public int joint; public Quaternion rest, align; }
 
         readonly object gate = new object();      // guards the fields the socket thread hands over
         Hello pendingHello;
@@ -311,9 +312,14 @@ namespace Dimgestor
                 Transform bone = animator.GetBoneTransform(id);  // null where the avatar lacks the bone
                 int joint = h.Skeleton.IndexOf(kv.Value);
                 if (bone == null || joint < 0) continue;
-                bindings.Add(new Binding { bone = bone, joint = joint, rest = rootInv * bone.rotation });
+                bindings.Add(new Binding { bone = bone, name = id.ToString(), joint = joint, rest = rootInv * bone.rotation });
             }
             bindings.Sort((a, b) => a.joint.CompareTo(b.joint));  // parents before children
+            // The bind pose need not be the skeleton's rest (an A-pose): each rest bone is turned onto the skeleton's first.
+            Quat[] align = RestAlignment.Compute(h.Skeleton, bindings.ConvertAll(b => b.name).ToArray(),
+                bindings.ConvertAll(b => b.joint).ToArray(),
+                bindings.ConvertAll(b => { Vector3 p = rootInv * b.bone.position; return new Vec3(p.x, p.y, p.z); }).ToArray());
+            for (int i = 0; i < bindings.Count; i++) bindings[i].align = ToQuaternion(align[i]);
             hips = animator.GetBoneTransform(HumanBodyBones.Hips);
             if (hips != null) hipsRest = hips.localPosition;
             if (!keepStream) { rootReference = null; lastIndex = -1; }
@@ -336,7 +342,7 @@ namespace Dimgestor
             foreach (var b in bindings)
             {
                 Quat d = Protocol.ToUnityRotation(g[b.joint] * sourceRestGlobal[b.joint].Conjugate());
-                b.bone.rotation = root * new Quaternion((float)d.X, (float)d.Y, (float)d.Z, (float)d.W) * b.rest;
+                b.bone.rotation = root * ToQuaternion(d) * b.align * b.rest;
             }
             if (f.Index < lastIndex) rootReference = null;  // a new stream (own audio session, --loop)
             lastIndex = f.Index;
@@ -356,6 +362,8 @@ namespace Dimgestor
                 hips.localPosition = local;
             }
         }
+
+        static Quaternion ToQuaternion(Quat q) { return new Quaternion((float)q.X, (float)q.Y, (float)q.Z, (float)q.W); }
 
         // ---- optional: send your own audio (e.g. from Microphone or OnAudioFilterRead) for an own session
 

@@ -431,5 +431,14 @@ namespace Dimgestor
                 g[j] = s.Parents[j] < 0 ? local[j] : g[s.Parents[j]] * local[j];
             return g;
         }
+
+        /// <summary>Global positions (BVH space, file units) of every joint from global rotations: the root at its offset.</summary>
+        public static Vec3[] GlobalPositions(Skeleton s, Quat[] global)
+        {
+            var p = new Vec3[global.Length];
+            for (int j = 0; j < global.Length; j++)
+                p[j] = s.Parents[j] < 0 ? s.Offsets[j] : p[s.Parents[j]] + global[s.Parents[j]].Rotate(s.Offsets[j]);
+            return p;
+        }
     }
 }

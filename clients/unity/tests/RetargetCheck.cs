@@ -1,8 +1,9 @@
 // Test driver: runs DimgestorClient's retargeting (Bind + Apply, the code LateUpdate runs) on frames recorded
 // from a live server, with a stand-in humanoid avatar whose bones have other axes than the server skeleton
-// (StubAvatar.cs: a random rest rotation per bone) and whose root is turned by YAW degrees. Prints, per frame, each bone's
-// position relative to the avatar root (metres); tests/test_clients_unity.py compares them with the
-// server skeleton's forward kinematics in Unity space.
+// (StubAvatar.cs: a random rest rotation per bone), whose root is turned by YAW degrees and whose arms are lowered by
+// ARMS_DOWN degrees in its bind pose (0: a T-pose like the server skeleton's rest, 45: an A-pose). Prints each bone's
+// position relative to the avatar root (metres), first in the bind pose ("rest") and then per frame;
+// tests/test_clients_unity.py compares them with the server skeleton's forward kinematics in Unity space.
 using System;
 using System.Collections.Generic;
 using System.Globalization;
@@ -19,7 +20,7 @@ static class RetargetCheck
 
     static int Main(string[] args)
     {
-        if (args.Length != 2) { Console.Error.WriteLine("usage: RetargetCheck.exe FOLDER YAW_DEGREES"); return 2; }
+        if (args.Length != 3) { Console.Error.WriteLine("usage: RetargetCheck.exe FOLDER YAW_DEGREES ARMS_DOWN_DEGREES"); return 2; }
         Hello hello = null;
         var frames = new List<Frame>();
         foreach (var path in Directory.GetFiles(args[0]).OrderBy(p => p, StringComparer.Ordinal))
@@ -29,11 +30,19 @@ static class RetargetCheck
             if (m is Hello) hello = (Hello)m;
             else if (m is Frame) frames.Add((Frame)m);
         }
-        var avatar = new StubAvatar(hello, float.Parse(args[1], CultureInfo.InvariantCulture), 7);
+        var avatar = new StubAvatar(hello, float.Parse(args[1], CultureInfo.InvariantCulture), 7,
+                                    float.Parse(args[2], CultureInfo.InvariantCulture));
         var root = avatar.Root;
         var animator = avatar.Animator;
         var byJoint = avatar.ByJoint;
         var names = avatar.Names;
+
+        Func<string> bones = () => "\"bones\":{" + string.Join(",", byJoint.Select(kv =>
+        {
+            Vector3 v = Quaternion.Inverse(root.rotation) * (kv.Value.position - root.position);
+            return "\"" + names[kv.Key] + "\":[" + N(v.x) + "," + N(v.y) + "," + N(v.z) + "]";
+        })) + "}";
+        Console.WriteLine("{\"rest\":true," + bones() + "}");
 
         var client = new DimgestorClient { animator = animator };
         var flags = BindingFlags.NonPublic | BindingFlags.Instance;
@@ -42,13 +51,7 @@ static class RetargetCheck
         foreach (var f in frames)
         {
             apply.Invoke(client, new object[] { f });
-            var sb = new StringBuilder("{\"index\":" + f.Index + ",\"bones\":{");
-            sb.Append(string.Join(",", byJoint.Select(kv =>
-            {
-                Vector3 v = Quaternion.Inverse(root.rotation) * (kv.Value.position - root.position);
-                return "\"" + names[kv.Key] + "\":[" + N(v.x) + "," + N(v.y) + "," + N(v.z) + "]";
-            })));
-            Console.WriteLine(sb.Append("}}").ToString());
+            Console.WriteLine("{\"index\":" + f.Index + "," + bones() + "}");
         }
         return 0;
     }

@@ -1,7 +1,8 @@
 // A stand-in humanoid avatar for the Unity client tests: one Transform per bone of the server's humanoid map,
 // parented to the nearest mapped ancestor, with the server skeleton's rest geometry (in Unity space) but
 // every bone with its own random axes, under a root turned by a yaw, like a real rig differs from the
-// training skeleton.
+// training skeleton. With armsDownDegrees its bind pose is an A-pose: each arm (the upper arm and all below it)
+// turned down by that angle about the facing axis at the upper arm joint.
 using System;
 using System.Collections.Generic;
 using System.Linq;
@@ -15,13 +16,10 @@ class StubAvatar
     public readonly Dictionary<int, Transform> ByJoint = new Dictionary<int, Transform>();  // server joint -> bone
     public readonly Dictionary<int, string> Names = new Dictionary<int, string>();          // server joint -> HumanBodyBones name
 
-    public StubAvatar(Hello hello, float yawDegrees, int seed)
+    public StubAvatar(Hello hello, float yawDegrees, int seed, float armsDownDegrees = 0)
     {
         var sk = hello.Skeleton;
-        var restGlobal = Protocol.GlobalRotations(sk, sk.RestRotations);
-        var restPos = new Vec3[sk.Joints.Length];
-        for (int j = 0; j < sk.Joints.Length; j++)
-            restPos[j] = sk.Parents[j] < 0 ? sk.Offsets[j] : restPos[sk.Parents[j]] + restGlobal[sk.Parents[j]].Rotate(sk.Offsets[j]);
+        var restPos = Protocol.GlobalPositions(sk, Protocol.GlobalRotations(sk, sk.RestRotations));
 
         float yaw = yawDegrees * (float)Math.PI / 180f;
         Root = new Transform { localRotation = new Quaternion(0, (float)Math.Sin(yaw / 2), 0, (float)Math.Cos(yaw / 2)), localPosition = new Vector3(1, 0, -2) };
@@ -41,6 +39,17 @@ class StubAvatar
             ByJoint[j] = t;
             Names[j] = kv.Key;
             Animator.StubBones[id] = t;
+        }
+        var arms = new[] { new[] { HumanBodyBones.LeftUpperArm, HumanBodyBones.LeftLowerArm },
+                           new[] { HumanBodyBones.RightUpperArm, HumanBodyBones.RightLowerArm } };
+        foreach (var arm in arms)
+        {
+            Transform upper = Animator.GetBoneTransform(arm[0]), lower = Animator.GetBoneTransform(arm[1]);
+            if (upper == null || lower == null || armsDownDegrees == 0) continue;
+            Vector3 along = Quaternion.Inverse(Root.rotation) * (lower.position - upper.position);
+            float down = -Math.Sign(along.x) * armsDownDegrees * (float)Math.PI / 180f;  // about +Z: +X turns towards +Y
+            var turn = new Quaternion(0, 0, (float)Math.Sin(down / 2), (float)Math.Cos(down / 2));
+            upper.rotation = Root.rotation * turn * Quaternion.Inverse(Root.rotation) * upper.rotation;  // its children follow
         }
     }
 
