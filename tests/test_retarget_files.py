@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dimgestor import rotations as R
-from dimgestor.bvh import BvhMotion, forward_kinematics, read_bvh, write_bvh
+from dimgestor.bvh import BvhMotion, forward_kinematics, write_bvh
 from dimgestor.checkpoint import load_checkpoint
 from dimgestor.retarget import Retarget, load_rig, resolve_map
 from dimgestor.retarget.export import write_motion
@@ -18,7 +18,7 @@ from helpers.clients import REPO
 from helpers.gltf_validator import errors, needs_validator, validate
 from helpers.rigs import a_pose
 from helpers.vrm_model import BONES, make_vrm
-from helpers.vrma_browser import needs_vrma_browser, play_vrma
+from helpers.vrma_browser import needs_vrma_browser, play_gltf, play_vrma
 
 FPS = 20
 
@@ -186,3 +186,22 @@ def test_three_vrm_animation_plays_our_vrmas_face(motion, files, tmp_path):
     aa = np.linspace(0, 1, motion.num_frames)[[round(t * FPS) for t in times]]
     assert np.allclose(played.expressions["aa"], aa, atol=1e-3)
     assert np.allclose(played.expressions["blink"], 0.0) and played.expressions["ih"].max() == 0.0
+
+
+@needs_vrma_browser
+@pytest.mark.parametrize("name", ["ours.glb", "apose.glb"])
+def test_three_js_plays_our_glb_where_we_put_every_bone(motion, files, tmp_path, name):
+    """Our .glb in three.js (GLTFLoader, AnimationMixer) in Chromium: every bone where our forward kinematics
+    puts it (ours, and retargeted onto the A-pose rig), at the first frame and later ones."""
+    frames = [0, 13, 31]
+    played = play_gltf(tmp_path, files / f"out_{name}", [k / FPS for k in frames], name=name.replace(".", "_"))
+    if name == "ours.glb":
+        names, want = motion.skeleton.names, _ours_world(motion)[frames] * 0.01
+    else:
+        target = load_rig(files / "apose.bvh")
+        source = Rig.from_skeleton(motion.skeleton)
+        rt = Retarget(source, target, resolve_map(source), resolve_map(target))
+        names, want = target.names, target.world(*rt(motion.rotations(), motion.translations()))[1][frames]
+    assert sorted(played.bones) == sorted(names)
+    got = played.positions[:, [played.bones.index(n) for n in names]]
+    assert np.abs(got - want).max() < 1e-4  # metres (float32 in the file)

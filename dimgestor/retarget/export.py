@@ -10,7 +10,7 @@ import numpy as np
 
 from dimgestor.bvh import BvhMotion, write_bvh
 from dimgestor.retarget import gltf as io
-from dimgestor.retarget.rig import Rig, RigError, load_rig
+from dimgestor.retarget.rig import Rig, load_rig
 from dimgestor.retarget.transfer import Retarget, resolve_map
 from dimgestor.retarget.vrma import write_vrma
 
@@ -84,6 +84,3 @@ def _write_glb(out: Path, rig: Rig, q: np.ndarray, t: np.ndarray, fps: float, mo
     io.add_animation(gltf, nodes, fps, q, t * units, rotate=moved[0], translate=moved[1])
     io.save_glb(gltf, out)
     return f"glTF binary, {rig.num_joints} joints skinned to a stick figure, {len(q)} frames"
-
-
-__all__ += ["RigError"]

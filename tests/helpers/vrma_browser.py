@@ -55,6 +55,50 @@ class _QuietHandler(SimpleHTTPRequestHandler):
         pass
 
 
+@dataclass
+class GltfPlayback:
+    duration: float  # the first animation's, seconds
+    bones: list[str]  # the skeleton's bones (three.js Bone objects) by name
+    positions: np.ndarray  # (T, B, 3) their world positions, the file's units (metres), Y up
+    screenshots: list[Path]
+
+
+def play_gltf(tmp: Path, glb: Path, times: Sequence[float], name: str = "gltf") -> GltfPlayback:
+    """A .glb loaded by three.js's GLTFLoader and its first animation played by an AnimationMixer in Chromium, as
+    a web application does: its bones' world positions at each of `times`, a screenshot of each."""
+    if SKIP_REASON:
+        pytest.skip(SKIP_REASON)
+    work = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=tmp))
+    site = work / "site"
+    site.mkdir()
+    for f in ("vrma.html", "vrma.js"):
+        (site / f).symlink_to(PAGE / f)
+    (site / "node_modules").symlink_to(NODE_MODULES)
+    (site / "motion.glb").write_bytes(Path(glb).read_bytes())
+    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(site)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    browser = None
+    try:
+        browser = Browser(work, f"http://127.0.0.1:{server.server_address[1]}/vrma.html")
+        browser.wait_page()
+        browser.wait_for("!!window.vrmaCheck", 30, "the page's modules to load")
+        info = browser.eval("vrmaCheck.loadGltf('motion.glb')")
+        poses, shots = [], []
+        for k, t in enumerate(times):
+            poses.append(browser.eval(f"vrmaCheck.gltfPose({float(t)!r})"))
+            shots.append(browser.screenshot(tmp / f"{name}_{k:02d}.png"))
+        errors = browser.eval("vrmaCheck.errors")
+        if errors:
+            raise RuntimeError(f"the page reported errors: {json.dumps(errors)}")
+    finally:
+        if browser is not None:
+            browser.close()
+        server.shutdown()
+        server.server_close()
+    bones = list(poses[0])
+    return GltfPlayback(info["duration"], bones, np.array([[p[b] for b in bones] for p in poses], np.float64), shots)
+
+
 def play_vrma(tmp: Path, vrm: bytes | Path, vrma: Path, times: Sequence[float], name: str = "vrma") -> VrmaPlayback:
     """Load `vrm` (bytes or a file) and `vrma` in the page and pose the avatar at each of `times` (seconds; the
     clip plays once and holds its last key after its end). VRM 0.x avatars are turned to face +Z

@@ -34,8 +34,35 @@ loader.register((parser) => new VRMAnimationLoaderPlugin(parser));
 const nextFrame = () => new Promise((resolve) => requestAnimationFrame(() => resolve()));
 let vrm, mixer, action;
 
+let gltfScene, gltfMixer, gltfAction;
+
 window.vrmaCheck = {
   errors, warnings,
+
+  /** A plain glTF (ours: a skinned skeleton with one animation) as a three.js application loads it. */
+  async loadGltf(url) {
+    const gltf = await loader.loadAsync(url);
+    gltfScene = gltf.scene;
+    scene.add(gltfScene);
+    gltfMixer = new THREE.AnimationMixer(gltfScene);
+    gltfAction = gltfMixer.clipAction(gltf.animations[0]);
+    gltfAction.setLoop(THREE.LoopOnce);
+    gltfAction.clampWhenFinished = true;
+    return { duration: gltf.animations[0].duration, animations: gltf.animations.length };
+  },
+
+  /** Its bones' world positions at t seconds, drawn. */
+  async gltfPose(t) {
+    gltfAction.reset().play();
+    gltfMixer.setTime(t);
+    gltfScene.updateMatrixWorld(true);
+    const bones = {};
+    gltfScene.traverse((o) => { if (o.isBone) bones[o.name] = o.getWorldPosition(new THREE.Vector3()).toArray(); });
+    renderer.render(scene, camera);
+    await nextFrame();
+    await nextFrame();
+    return bones;
+  },
 
   async load(vrmUrl, vrmaUrl) {
     vrm = (await loader.loadAsync(vrmUrl)).userData.vrm;
