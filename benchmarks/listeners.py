@@ -40,6 +40,10 @@ BASE = dict(preset="realtime", recipe="streaming", max_steps=1200, window_s=5.0,
             valid_every=400, seed=0, valid_seconds=15.0, augment=False, mirror=True, speeds=(0.9, 1.1),
             cond_drop=0.15, overrides={"frontend": "speech", "lookahead_ms": 300, "down_kernel": 41})
 
+# Only the loudness contour changes (no voice, room, noise, microphone or level): `flat*` below.
+_ONLY_DYNAMICS = {"p_pitch": 0.0, "p_formant": 0.0, "p_reverb": 0.0, "p_noise": 0.0, "p_eq": 0.0, "p_band": 0.0,
+                  "p_gain": 0.0, "p_dynamics": 0.75, "dynamics_ratio": (0.35, 1.0)}
+
 # name: (what changes, TrainConfig fields replacing BASE's; "overrides" are merged into BASE's)
 CANDIDATES: dict[str, tuple[str, dict]] = {
     "default": ("the default model's own recipe (`make default-model`)", {}),
@@ -60,6 +64,11 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
     "warp": ("more time warping: 0.8x, 0.9x, 1.1x, 1.25x speed-perturbed copies", {"speeds": (0.8, 0.9, 1.1, 1.25)}),
     "drop30": ("condition dropout 0.3 and 1600 steps (more of the unconditional motion, longer)",
                {"cond_drop": 0.3, "max_steps": 1600}),
+    "flat": ("the actor's loudness contour flattened in 3 of 4 extra copies of the training audio (its deviations "
+             "x0.35-1, log-uniform): strangers vary their loudness half to three quarters as much as she does",
+             {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS}),
+    "flat_seed1": ("`flat`, training seed 1", {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS, "seed": 1}),
+    "flat_seed2": ("`flat`, training seed 2", {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS, "seed": 2}),
     # how far the training seed alone moves the numbers: compare a candidate with these, not with `default` alone
     "default_seed1": ("the default recipe, training seed 1", {"seed": 1}),
     "default_seed2": ("the default recipe, training seed 2", {"seed": 2}),

@@ -52,6 +52,8 @@ class AugmentConfig(BaseModel):
     telephone_hz: Range = (300.0, 3400.0)  # the classic narrowband telephone channel (fixed corners)
     lowpass_hz: Range = (4000.0, 7500.0)  # wideband codecs and cheap mics, up to just under 16 kHz audio's Nyquist
     highpass_hz: Range = (100.0, 300.0)  # rumble filters and small loudspeakers
+    p_dynamics: float = Field(0.0, ge=0, le=1)  # speakers vary their loudness more or less than the actor
+    dynamics_ratio: Range = (0.4, 1.0)  # log-uniform; how far loudness strays from its typical level, times this
     p_gain: float = Field(1.0, ge=0, le=1)  # every microphone is at some level
     gain_db: Range = (-30.0, 6.0)  # a distant laptop mic to a hot headset; the limiter catches the top
     limit_knee: float = Field(0.9, gt=0, lt=1)  # samples above this are soft-limited, the level stays
@@ -60,12 +62,12 @@ class AugmentConfig(BaseModel):
     @model_validator(mode="after")
     def _check(self):
         for name in ("semitones", "formant_ratio", "rt60_s", "wet", "snr_db", "babble_talkers", "eq_bands", "eq_db",
-                     "eq_hz", "eq_q", "telephone_hz", "lowpass_hz", "highpass_hz", "gain_db"):
+                     "eq_hz", "eq_q", "telephone_hz", "lowpass_hz", "highpass_hz", "gain_db", "dynamics_ratio"):
             lo, hi = getattr(self, name)
             if lo > hi:
                 raise ValueError(f"{name}: the range ({lo}, {hi}) is reversed")
         if min(self.formant_ratio + self.rt60_s + self.eq_hz + self.eq_q + self.telephone_hz + self.lowpass_hz
-               + self.highpass_hz) <= 0 or self.babble_talkers[0] < 1 or self.eq_bands[0] < 0:
+               + self.highpass_hz + self.dynamics_ratio) <= 0 or self.babble_talkers[0] < 1 or self.eq_bands[0] < 0:
             raise ValueError("ratios, times, frequencies and Q must be positive, babble needs a talker")
         if not 0 <= self.wet[0] <= self.wet[1] <= 1:
             raise ValueError(f"wet must lie in [0, 1], got {self.wet}")
@@ -88,6 +90,7 @@ class AugmentDraw(BaseModel):
     eq: tuple[tuple[str, float, float, float], ...] = ()  # (peak|lowshelf|highshelf, Hz, dB, Q)
     band: tuple[BandKind, float, float] | None = None  # (kind, low Hz, high Hz); 0 / inf where open
     gain_db: float | None = None
+    dynamics: float | None = None  # loudness deviations from the typical level, times this
     noise_seed: int = 0  # the random signals (reverb tail, noise, babble picks)
 
 
@@ -117,6 +120,10 @@ def draw(seed: int | Sequence[int], config: AugmentConfig, babble: bool = False)
                      "highpass": (kind, float(r[5].uniform(*c.highpass_hz)), float("inf"))}[kind]
     if r[6].random() < c.p_gain:
         d["gain_db"] = float(r[6].uniform(*c.gain_db))
+    if c.p_dynamics > 0:  # (its own stream, so configs without it draw exactly as before)
+        rd = np.random.default_rng(np.random.SeedSequence(seed).spawn(9)[8])
+        if rd.random() < c.p_dynamics:
+            d["dynamics"] = float(np.exp(rd.uniform(*np.log(c.dynamics_ratio))))
     return AugmentDraw(**d, noise_seed=int(r[7].integers(2**63)))
 
 
@@ -127,6 +134,8 @@ def apply(audio: np.ndarray, sr: int, d: AugmentDraw, config: AugmentConfig,
     # the filters and the STFT need some length: short audio is padded with silence after its end, cut below
     x = np.pad(np.asarray(audio, dtype=np.float64), (0, max(0, MIN_SAMPLES - n)))
     rng = np.random.default_rng(d.noise_seed)
+    if d.dynamics is not None:
+        x = dynamics(x, d.dynamics, sr)
     if d.semitones is not None:
         x = pitch_shift(x, d.semitones, sr)
     if d.formant_ratio is not None:
@@ -170,6 +179,18 @@ def active_level(x: np.ndarray, sr: int, frame_ms: float = 20.0, floor_db: float
     p = np.mean(np.square(x[: n * f].reshape(n, f)), axis=1)
     ref = np.percentile(p, 95)
     return float(p[p >= ref * 10 ** (floor_db / 10)].mean()) if ref > 0 else 0.0
+
+
+def dynamics(x: np.ndarray, ratio: float, sr: int, window_ms: float = 100.0, max_db: float = 24.0) -> np.ndarray:
+    """x with its loudness contour's deviations from the typical speech level times `ratio` (< 1 flatter, as a
+    monotonous speaker; > 1 livelier), the change at most `max_db`; pauses (30 dB under the speech) untouched."""
+    w = max(1, int(sr * window_ms / 1000))
+    power = np.convolve(np.square(x), np.hanning(2 * w) / np.hanning(2 * w).sum(), mode="same")
+    db = 10 * np.log10(np.maximum(power, 1e-12))
+    level = 10 * np.log10(max(active_level(x, sr), 1e-12))
+    change = np.clip((db - level) * (ratio - 1.0), -max_db, max_db)
+    change = np.where(db > level - 30.0, change, 0.0)
+    return x * 10 ** (change / 20)
 
 
 def gain(x: np.ndarray, db: float) -> np.ndarray:

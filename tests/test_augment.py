@@ -5,7 +5,7 @@ import pytest
 from pydantic import ValidationError
 
 from dimgestor.augment import (AugmentConfig, AugmentDraw, active_level, add_noise, apply, augment, band_limit, draw,
-                               equalize, formant_shift, gain, make_noise, pitch_shift, reverb, soft_limit)
+                               dynamics, equalize, formant_shift, gain, make_noise, pitch_shift, reverb, soft_limit)
 
 SR = 16000
 OFF = dict(p_pitch=0, p_formant=0, p_reverb=0, p_noise=0, p_eq=0, p_band=0, p_gain=0)
@@ -284,3 +284,32 @@ def test_feature_change_benchmark_runs_and_reports_every_effect(tmp_path):
         if "babble" not in name:  # other talkers bring their own onsets; on 3 s of syllables they can win
             assert max(abs(row["onset_lag_ms"]["min"]), abs(row["onset_lag_ms"]["max"])) <= 10, name
     assert r["effects"]["gain -30 dB"]["level_dbfs"]["mean"] < r["clean_level_dbfs"] - 29
+
+
+def test_dynamics_scales_the_loudness_contour_and_leaves_pauses_alone():
+    """Speech-like bursts at -30, -20 and -10 dBFS with pauses between: ratio 0.5 halves their spread in dB about
+    the typical level, ratio 1 changes nothing, the pauses (far under the speech) stay as they were."""
+    sr = 16000
+    t = np.arange(sr) / sr
+    tone = np.sin(2 * np.pi * 180 * t)
+    quiet = np.full(sr // 2, 1e-4)
+    x = np.concatenate([tone * 10 ** (-30 / 20) * np.sqrt(2), quiet, tone * 10 ** (-20 / 20) * np.sqrt(2), quiet,
+                        tone * 10 ** (-10 / 20) * np.sqrt(2)])
+
+    def burst_db(y):
+        return [10 * np.log10(np.mean(np.square(y[k * 3 * sr // 2 + sr // 4: k * 3 * sr // 2 + 3 * sr // 4])))
+                for k in range(3)]
+
+    assert np.allclose(dynamics(x, 1.0, sr), x)
+    before, after = burst_db(x), burst_db(dynamics(x, 0.5, sr))
+    assert np.ptp(after) == pytest.approx(0.5 * np.ptp(before), abs=1.0)
+    pause = slice(sr + sr // 8, sr + 3 * sr // 8)
+    assert np.allclose(dynamics(x, 0.5, sr)[pause], x[pause])
+
+
+def test_configs_without_dynamics_draw_as_before():
+    """The dynamics draw has its own random stream: configs that leave it off draw what they drew before."""
+    plain = draw(7, AugmentConfig())
+    assert plain.dynamics is None
+    with_it = draw(7, AugmentConfig(p_dynamics=1.0))
+    assert with_it.model_copy(update={"dynamics": None}) == plain and 0.4 <= with_it.dynamics <= 1.0
