@@ -8,12 +8,12 @@ axis u into one by a about -M u (an axis is a pseudo-vector), i.e. (ux, -uy, -uz
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from dimgestor.retarget.names import read_json
 from dimgestor.rotations import quat_mul, quat_rotate
 from streamer.frames import Frame
 
@@ -47,12 +47,7 @@ class HumanoidMapError(ValueError):
 def load_humanoid_map(path: str | Path | None = None) -> dict[str, str]:
     """Read a {HumanBodyBones name: joint name} JSON map (the shipped ZEGGS/BEAT map by default)."""
     path = Path(path) if path is not None else DEFAULT_MAP
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise HumanoidMapError(f"{path}: humanoid map not found") from None
-    except json.JSONDecodeError as e:
-        raise HumanoidMapError(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
+    data = read_json(path, "humanoid map", HumanoidMapError)
     if not isinstance(data, dict):
         raise HumanoidMapError(f"{path}: expected a JSON object {{HumanBodyBones name: joint name}}")
     for bone, joint in data.items():

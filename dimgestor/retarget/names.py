@@ -22,7 +22,7 @@ import re
 from pathlib import Path
 
 __all__ = ["HUMAN_BONES", "HUMAN_PARENT", "CONVENTIONS", "MapError", "canonical_bone", "unity_name", "auto_map",
-           "load_map", "apply_map", "effective_parents"]
+           "load_map", "apply_map", "read_json", "effective_parents"]
 
 _SIDES = ("left", "right")
 _FINGERS = ("Thumb", "Index", "Middle", "Ring", "Little")
@@ -197,17 +197,21 @@ def auto_map(names: list[str], parents: list[int]) -> tuple[str | None, dict[str
     return best, {b: best_map[b] for b in HUMAN_BONES if b in best_map}
 
 
+def read_json(path: str | Path, what: str, error: type[ValueError] = MapError):
+    """A JSON file's value; `error` naming the file (and the line) when it is missing or not JSON."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except json.JSONDecodeError as e:
+        raise error(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
+
+
 def load_map(path: str | Path, names: list[str], base: dict[str, str] | None = None) -> dict[str, str]:
     """A map file ({bone: joint name or null}, bones in VRM 0.x/1.0 or Unity names) over `base`, checked against
     the rig's joint `names`."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise MapError(f"{path}: bone map not found") from None
-    except json.JSONDecodeError as e:
-        raise MapError(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
-    return apply_map(data, names, base, str(path))
+    return apply_map(read_json(path, "bone map"), names, base, str(path))
 
 
 def apply_map(data, names: list[str], base: dict[str, str] | None = None, where: str = "map") -> dict[str, str]:

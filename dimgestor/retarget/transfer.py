@@ -147,6 +147,7 @@ class Retarget:
         humanoid_parent = effective_parents(bones)
         self.children = [self._direction_children(k, at, bones, humanoid_parent) for k in range(len(order))]
         self.align = self._align(sp, tp)
+        self._tables()
 
     @property
     def bones(self) -> list[str]:
@@ -239,8 +240,6 @@ class Retarget:
     def __call__(self, rotations: np.ndarray, translations: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Source local rotations (T, Js, 4) (+ translations (T, Js, 3)) -> target local rotations (T, Jt, 4) and
         translations (T, Jt, 3). All carried joints at once, then the target one tree level at a time."""
-        if getattr(self, "_slot", None) is None:
-            self._tables()
         src, tgt, g = self.source, self.target, self.facing
         T = rotations.shape[0]
         wq, wp = src.world(rotations, translations)
@@ -278,20 +277,22 @@ class Retarget:
         joint = hips_t if tgt.can_translate(hips_t) and self.move == "hips" else (0 if tgt.can_translate(0) else None)
         if joint is None:
             return  # a rig that cannot translate (a BVH without position channels) stays in place
+        ws = tgt.world_scales()
+
+        def frame(j: int):  # the rotation and scale a joint's translation is in: its parent's
+            p = tgt.parents[j]
+            return ((np.broadcast_to(tgt.base_rotation, world_q[:, 0].shape), tgt.base_scale) if p < 0
+                    else (world_q[:, p], ws[p]))
+
         path = [hips_t]  # the hips' position: along its ancestors only
         while tgt.parents[path[-1]] >= 0:
             path.append(tgt.parents[path[-1]])
-        ws = tgt.world_scales()
         pos = np.broadcast_to(tgt.base_position, want.shape).copy()
         for j in reversed(path):
-            p = tgt.parents[j]
-            frame_q = np.broadcast_to(tgt.base_rotation, world_q[:, 0].shape) if p < 0 else world_q[:, p]
-            frame_s = tgt.base_scale if p < 0 else ws[p]
-            pos = pos + frame_s * R.quat_rotate(frame_q, local_t[:, j])
-        parent = tgt.parents[joint]
-        frame_q = np.broadcast_to(tgt.base_rotation, world_q[:, 0].shape) if parent < 0 else world_q[:, parent]
-        frame_s = tgt.base_scale if parent < 0 else ws[parent]
-        local_t[:, joint] += R.quat_rotate(R.quat_conj(frame_q), want - pos) / frame_s
+            q, sc = frame(j)
+            pos = pos + sc * R.quat_rotate(q, local_t[:, j])
+        q, sc = frame(joint)
+        local_t[:, joint] += R.quat_rotate(R.quat_conj(q), want - pos) / sc
 
     def motion(self, motion: BvhMotion) -> BvhMotion:
         """A BVH motion on the source skeleton -> the same motion on the target's BVH skeleton."""

@@ -8,6 +8,7 @@ import functools
 import json
 import tempfile
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -63,18 +64,20 @@ class GltfPlayback:
     screenshots: list[Path]
 
 
-def play_gltf(tmp: Path, glb: Path, times: Sequence[float], name: str = "gltf") -> GltfPlayback:
-    """A .glb loaded by three.js's GLTFLoader and its first animation played by an AnimationMixer in Chromium, as
-    a web application does: its bones' world positions at each of `times`, a screenshot of each."""
+@contextmanager
+def _page(tmp: Path, name: str, files: dict[str, bytes]):
+    """The test page in headless Chromium, served with the viewer's node_modules and `files` beside it; yields
+    the browser once the page's modules loaded, and raises if the page reported errors by the end."""
     if SKIP_REASON:
         pytest.skip(SKIP_REASON)
     work = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=tmp))
-    site = work / "site"
+    site = work / "site"  # what the server shows: the page, the viewer's node_modules and the files
     site.mkdir()
     for f in ("vrma.html", "vrma.js"):
         (site / f).symlink_to(PAGE / f)
     (site / "node_modules").symlink_to(NODE_MODULES)
-    (site / "motion.glb").write_bytes(Path(glb).read_bytes())
+    for f, data in files.items():
+        (site / f).write_bytes(data)
     server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(site)))
     threading.Thread(target=server.serve_forever, daemon=True).start()
     browser = None
@@ -82,11 +85,7 @@ def play_gltf(tmp: Path, glb: Path, times: Sequence[float], name: str = "gltf") 
         browser = Browser(work, f"http://127.0.0.1:{server.server_address[1]}/vrma.html")
         browser.wait_page()
         browser.wait_for("!!window.vrmaCheck", 30, "the page's modules to load")
-        info = browser.eval("vrmaCheck.loadGltf('motion.glb')")
-        poses, shots = [], []
-        for k, t in enumerate(times):
-            poses.append(browser.eval(f"vrmaCheck.gltfPose({float(t)!r})"))
-            shots.append(browser.screenshot(tmp / f"{name}_{k:02d}.png"))
+        yield browser
         errors = browser.eval("vrmaCheck.errors")
         if errors:
             raise RuntimeError(f"the page reported errors: {json.dumps(errors)}")
@@ -95,6 +94,23 @@ def play_gltf(tmp: Path, glb: Path, times: Sequence[float], name: str = "gltf") 
             browser.close()
         server.shutdown()
         server.server_close()
+
+
+def _poses(browser, call: str, tmp: Path, name: str, times: Sequence[float]) -> tuple[list, list[Path]]:
+    """`call`(t) evaluated at each of `times`, with a screenshot after each (tmp/NAME_k.png)."""
+    poses, shots = [], []
+    for k, t in enumerate(times):
+        poses.append(browser.eval(f"vrmaCheck.{call}({float(t)!r})"))
+        shots.append(browser.screenshot(tmp / f"{name}_{k:02d}.png"))
+    return poses, shots
+
+
+def play_gltf(tmp: Path, glb: Path, times: Sequence[float], name: str = "gltf") -> GltfPlayback:
+    """A .glb loaded by three.js's GLTFLoader and its first animation played by an AnimationMixer in Chromium, as
+    a web application does: its bones' world positions at each of `times`, a screenshot of each."""
+    with _page(tmp, name, {"motion.glb": Path(glb).read_bytes()}) as browser:
+        info = browser.eval("vrmaCheck.loadGltf('motion.glb')")
+        poses, shots = _poses(browser, "gltfPose", tmp, name, times)
     bones = list(poses[0])
     return GltfPlayback(info["duration"], bones, np.array([[p[b] for b in bones] for p in poses], np.float64), shots)
 
@@ -103,36 +119,12 @@ def play_vrma(tmp: Path, vrm: bytes | Path, vrma: Path, times: Sequence[float], 
     """Load `vrm` (bytes or a file) and `vrma` in the page and pose the avatar at each of `times` (seconds; the
     clip plays once and holds its last key after its end). VRM 0.x avatars are turned to face +Z
     (VRMUtils.rotateVRM0) as viewers do, so positions compare across versions. Screenshots: tmp/NAME_k.png."""
-    if SKIP_REASON:
-        pytest.skip(SKIP_REASON)
-    work = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=tmp))
-    site = work / "site"  # what the server shows: the page, the viewer's node_modules and the two files
-    site.mkdir()
-    for f in ("vrma.html", "vrma.js"):
-        (site / f).symlink_to(PAGE / f)
-    (site / "node_modules").symlink_to(NODE_MODULES)
-    (site / "avatar.vrm").write_bytes(vrm if isinstance(vrm, bytes) else Path(vrm).read_bytes())
-    (site / "clip.vrma").write_bytes(Path(vrma).read_bytes())
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(site)))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    browser = None
-    try:
-        browser = Browser(work, f"http://127.0.0.1:{server.server_address[1]}/vrma.html")
-        browser.wait_page()
-        browser.wait_for("!!window.vrmaCheck", 30, "the page's modules to load")
+    files = {"avatar.vrm": vrm if isinstance(vrm, bytes) else Path(vrm).read_bytes(),
+             "clip.vrma": Path(vrma).read_bytes()}
+    with _page(tmp, name, files) as browser:
         info = browser.eval("vrmaCheck.load('avatar.vrm', 'clip.vrma')")
-        poses, shots = [], []
-        for k, t in enumerate(times):
-            poses.append(browser.eval(f"vrmaCheck.pose({float(t)!r})"))
-            shots.append(browser.screenshot(tmp / f"{name}_{k:02d}.png"))
-        errors, warnings = browser.eval("[vrmaCheck.errors, vrmaCheck.warnings]")
-        if errors:
-            raise RuntimeError(f"the page reported errors: {json.dumps(errors)}")
-    finally:
-        if browser is not None:
-            browser.close()
-        server.shutdown()
-        server.server_close()
+        poses, shots = _poses(browser, "pose", tmp, name, times)
+        warnings = browser.eval("vrmaCheck.warnings")
     bones = list(poses[0]["bones"])
     names = list(poses[0]["expressions"])
     return VrmaPlayback(
