@@ -205,3 +205,19 @@ def test_three_js_plays_our_glb_where_we_put_every_bone(motion, files, tmp_path,
     assert sorted(played.bones) == sorted(names)
     got = played.positions[:, [played.bones.index(n) for n in names]]
     assert np.abs(got - want).max() < 1e-4  # metres (float32 in the file)
+
+
+@pytest.mark.parametrize("name, rig", [("ours.glb", None), ("apose.glb", "apose.bvh")])
+def test_the_stick_figure_is_thin_whatever_the_rigs_unit(motion, files, name, rig):
+    """The .glb's bones are thin double pyramids (at most 3 cm across) around the rest skeleton, in metres, for a
+    centimetre rig (ours) and a metre one (the A-pose copy): the mesh spans the skeleton plus at most 3 cm."""
+    import pygltflib
+
+    from dimgestor.retarget.export import metres_per_unit
+
+    gltf = pygltflib.GLTF2().load_binary(str(files / f"out_{name}"))
+    position = gltf.accessors[gltf.meshes[0].primitives[0].attributes.POSITION]
+    rig = Rig.from_skeleton(motion.skeleton) if rig is None else load_rig(files / rig)
+    rest = rig.rest_world()[1] * metres_per_unit(rig)
+    assert np.all(np.asarray(position.min) >= rest.min(axis=0) - 0.031)
+    assert np.all(np.asarray(position.max) <= rest.max(axis=0) + 0.031)

@@ -95,7 +95,7 @@ def _add_stick_figure(gltf: G.GLTF2, rig: Rig, units: float) -> None:
         side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
         side /= np.linalg.norm(side)
         up = np.cross(axis, side)
-        r = float(np.clip(0.12 * length, 0.004 * units * 100, 0.03 * units * 100))
+        r = float(np.clip(0.12 * length, 0.004, 0.03))  # metres (wp is in metres already)
         mid = a + 0.2 * (b - a)
         ring = [mid + r * (np.cos(t) * side + np.sin(t) * up) for t in np.arange(4) * np.pi / 2]
         base = len(positions)
