@@ -221,3 +221,38 @@ def test_the_stick_figure_is_thin_whatever_the_rigs_unit(motion, files, name, ri
     rest = rig.rest_world()[1] * metres_per_unit(rig)
     assert np.all(np.asarray(position.min) >= rest.min(axis=0) - 0.031)
     assert np.all(np.asarray(position.max) <= rest.max(axis=0) + 0.031)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--out", "{d}/x.fbx"], "expected a .bvh, .glb or .vrma path"),
+    (["--out", "{d}/x.vrma", "--target", "{d}/apose.bvh"], "a VRM Animation plays on any VRM as it is"),
+    (["--out", "{d}/x.bvh", "--target", "{d}/avatar1.vrm"], "a .bvh output needs a BVH target skeleton"),
+    (["--out", "{d}/x.glb", "--target-map", "{d}/map.json"], "--target-map needs --target"),
+    (["--out", "{d}/x.glb", "--target", "{d}/missing.glb"], "missing.glb: no such file"),
+])
+def test_generate_refuses_a_bad_output_or_target_in_one_line_before_any_work(files, capsys, args, message):
+    from dimgestor.cli import main
+
+    wav = files / "speech.wav"
+    wav.write_bytes(b"not read: the arguments fail first")
+    assert main(["generate", "--audio", str(wav), *[a.format(d=files) for a in args]]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_a_recording_that_cannot_become_its_glb_keeps_its_bvh_and_says_so(motion, tmp_path, capsys):
+    """`serve --record OUT.glb`: when the .glb cannot be made at the end (here its target rig vanished), the BVH
+    written as the motion came stays, and one line says where it is."""
+    from streamer.record import RecordingSink
+
+    sink = RecordingSink(tmp_path / "talk.glb", motion.skeleton, None, target=str(tmp_path / "gone.bvh"))
+    sink._convert(_write(motion, tmp_path / "talk.bvh"))
+    err = capsys.readouterr().err
+    assert "could not write" in err and "gone.bvh: no such file" in err
+    assert f"the recording is in {tmp_path / 'talk.bvh'}" in err
+    assert (tmp_path / "talk.bvh").exists() and not (tmp_path / "talk.glb").exists()
+
+
+def _write(motion: BvhMotion, path):
+    write_bvh(path, motion)
+    return path
