@@ -306,9 +306,8 @@ class RecordingSink:
 
                 weights = convert(np.stack(self.faces[:motion.num_frames]), "vrm1")
                 face = dict(zip(names_of("vrm1"), weights.T))
-            out = self.path if self.path != bvh else bvh
-            what = write_motion(out, motion, self.target, self.target_map, face)
-            print(f"dimgestor: wrote {out} ({what})", file=sys.stderr)
+            what = write_motion(self.path, motion, self.target, self.target_map, face)
+            print(f"dimgestor: wrote {self.path} ({what})", file=sys.stderr)
         except (OSError, ValueError) as e:
             print(f"dimgestor: could not write {self.path} ({e}); the recording is in {bvh}", file=sys.stderr)
 
