@@ -69,6 +69,10 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
              {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS}),
     "flat_seed1": ("`flat`, training seed 1", {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS, "seed": 1}),
     "flat_seed2": ("`flat`, training seed 2", {"augment": True, "aug_copies": 4, "aug_config": _ONLY_DYNAMICS, "seed": 2}),
+    "arms": ("body-part mixing: a third copy of every window with one arm's motion on both sides (its mirror "
+             "image on the other, the sides taking turns), on the same speech", {"arm_mix": True}),
+    "arms_seed1": ("`arms`, training seed 1", {"arm_mix": True, "seed": 1}),
+    "arms_seed2": ("`arms`, training seed 2", {"arm_mix": True, "seed": 2}),
     # how far the training seed alone moves the numbers: compare a candidate with these, not with `default` alone
     "default_seed1": ("the default recipe, training seed 1", {"seed": 1}),
     "default_seed2": ("the default recipe, training seed 2", {"seed": 2}),

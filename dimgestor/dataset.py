@@ -26,7 +26,8 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE, align, load_wav
 from dimgestor.bvh import Skeleton, read_bvh
-from dimgestor.features import HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, mirror_features, motion_to_features
+from dimgestor.features import (HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, mirror_features, mix_arms,
+                                motion_to_features)
 
 CACHE_VERSION = 1
 SPLIT_FILES = ("split.json", "split.csv", "split.txt")
@@ -192,7 +193,7 @@ class GestureDataset:
     """Windows of `window_s` seconds (hop `hop_s`, default half a window) over one split of a folder.
 
     Items: {"motion": (W, D) float32 raw features, "audio": (W * 800,) float32, "name", "start_frame",
-    "mirrored"} (+ "audio_features" when audio_feature_fn is given). A stretch shorter than one
+    "mirrored", "arms"} (+ "audio_features" when audio_feature_fn is given). A stretch shorter than one
     window yields one shorter item; `collate_windows` crops a batch to its shortest item.
     cache_dir defaults to $DIMGESTOR_CACHE or ~/.cache/dimgestor/datasets; use_cache=False skips it.
     """
@@ -201,7 +202,7 @@ class GestureDataset:
                  hop_s: float | None = None, split: str = "train", cache_dir: str | Path | None = None,
                  use_cache: bool = True, mirror: bool = False, audio_feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
                  valid_fraction: float = 0.15, valid_seconds: float | None = None, split_file: str | Path | None = None,
-                 speeds: tuple[float, ...] = ()):
+                 speeds: tuple[float, ...] = (), arm_mix: bool = False):
         if split not in ("train", "valid"):
             raise ValueError(f"split must be 'train' or 'valid', got {split!r}")
         self.data_dir = Path(data_dir)
@@ -244,8 +245,13 @@ class GestureDataset:
                     self.segments.append((len(self.clips) - 1, 0, len(self.clips[-1].features)))
         self.window = max(1, int(round(window_s * self.fps)))
         self.hop = max(1, int(round((hop_s if hop_s is not None else window_s / 2) * self.fps)))
-        self.windows = [(c, s, e - s, m) for c, a, b in self.segments for s, e in self._starts(a, b)
-                        for m in ((False, True) if mirror else (False,))]
+        # (clip, first frame, frames, variant): variant False = as captured, True = mirrored, "left"/"right" =
+        # that arm on both sides (mix_arms; training only, one per window, the sides taking turns)
+        starts = [(c, s, e - s) for c, a, b in self.segments for s, e in self._starts(a, b)]
+        self.arm_mix = bool(arm_mix) and split == "train"
+        self.windows = [(c, s, n, m) for k, (c, s, n) in enumerate(starts)
+                        for m in ((False, True) if mirror else (False,))
+                        + ((("left", "right")[k % 2],) if self.arm_mix else ())]
         if not self.windows:
             raise DatasetError(f"{self.data_dir}: the {split!r} split is empty "
                                f"({len(self.clips)} clips; check the split file or valid_fraction)")
@@ -277,13 +283,16 @@ class GestureDataset:
         return len(self.windows)
 
     def __getitem__(self, i: int) -> dict:
-        c, start, n, mirrored = self.windows[i]
+        c, start, n, variant = self.windows[i]
         clip = self.clips[c]
         motion = np.array(clip.features[start:start + n], dtype=np.float32)
-        if mirrored:
+        if variant is True:
             motion = mirror_features(motion, self.spec).astype(np.float32)
+        elif variant:
+            motion = mix_arms(motion, self.spec, self.skeleton, variant).astype(np.float32)
         audio = np.array(clip.audio[start * self.spf:(start + n) * self.spf], dtype=np.float32)
-        item = {"motion": motion, "audio": audio, "name": clip.name, "start_frame": start, "mirrored": mirrored}
+        item = {"motion": motion, "audio": audio, "name": clip.name, "start_frame": start,
+                "mirrored": variant is True, "arms": variant if isinstance(variant, str) else None}
         if self.audio_feature_fn is not None:
             item["audio_features"] = self.audio_feature_fn(audio)
         return item
@@ -304,6 +313,7 @@ class GestureDataset:
         return (f"{self.split}: {len(self.clips)} clips, {seconds:.1f} s, {len(self)} windows of "
                 f"{self.window / self.fps:g} s, {self.motion_dim} features at {self.fps:g} fps"
                 + (", mirrored" if self.mirror else "")
+                + (", arm-mixed" if self.arm_mix else "")
                 + (", with speed-perturbed copies" if len(self.clips) > len(self.pairs) else ""))
 
 

@@ -355,6 +355,51 @@ def mirror_features(features: np.ndarray, spec: FeatureSpec) -> np.ndarray:
     return np.concatenate([root, j.reshape(len(f), -1)], axis=1)
 
 
+def _is_left(name: str) -> bool:
+    """Whether a joint with a mirror partner is on the left (the names mirror_name swaps)."""
+    if re.search(r"Left|left|LEFT|Right|right|RIGHT", name):
+        return re.search(r"Left|left|LEFT", name) is not None
+    return re.search(r"(?:^|(?<=[:_.]))L(?=[A-Z_.0-9])|(?<=[_.])[Ll]$", name) is not None
+
+
+def arm_columns(spec: FeatureSpec, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """Feature columns of the left and the right arm (every kept joint of a side whose nearest joint without a
+    side is not the root: shoulders, arms, hands, fingers; legs hang from the root), in matching order."""
+    joints = list(spec._resolved())
+    partner = mirror_pairs(joints)
+    names = skeleton.names
+
+    def is_arm(name: str) -> bool:
+        j = skeleton.index(name)
+        while j >= 0 and mirror_name(names[j]) != names[j]:
+            j = skeleton.parents[j]
+        return j > 0  # a spine or neck joint, not the root
+
+    def columns(idx: list[int]) -> np.ndarray:
+        return np.array([len(ROOT_COLUMNS) + 3 * i + k for i in idx for k in range(3)], dtype=np.int64)
+
+    left = [i for i, n in enumerate(joints) if partner[i] != i and is_arm(n) and _is_left(n)]
+    return columns(left), columns([partner[i] for i in left])
+
+
+def mix_arms(features: np.ndarray, spec: FeatureSpec, skeleton: Skeleton, side: str) -> np.ndarray:
+    """The same motion with both arms doing what one arm did: `side` ("left" or "right") keeps that arm and
+    puts its mirror image on the other (the rest of the body as it was). Body-part mixing for variety: a
+    one-handed gesture becomes a two-handed one (or both arms rest), on the same timing as the speech."""
+    if side not in ("left", "right"):
+        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+    left, right = arm_columns(spec, skeleton)
+    if not len(left):
+        raise ValueError("cannot mix arms: no left/right arm joints among the kept joints")
+    f = np.array(features, copy=True)
+    m = mirror_features(f, spec)
+    if side == "left":
+        f[:, right] = m[:, right]
+    else:
+        f[:, left] = m[:, left]
+    return f
+
+
 def mirror_motion(motion: BvhMotion) -> BvhMotion:
     """The same motion reflected across x = 0 with left/right joints swapped, on the same skeleton."""
     sk = motion.skeleton

@@ -95,6 +95,7 @@ class TrainConfig(BaseModel):
     window_s: float = Field(10.0, gt=0)
     hop_s: float | None = Field(None, gt=0)  # default: a quarter window (overlapping windows are cheap data)
     mirror: bool = False  # left/right mirrored copies of every window
+    arm_mix: bool = False  # body-part mixing: a copy of every window with one arm on both sides (mix_arms)
     augment: bool = False  # audio augmentation (dimgestor.augment: voice, room, noise, microphone, level)
     aug_copies: int = Field(4, gt=0)  # augmented versions of each window's audio; a batch item takes clean or one
     aug_config: dict[str, Any] | None = None  # AugmentConfig fields replacing its defaults
@@ -368,7 +369,8 @@ def _config_and_data(opts: TrainConfig, resume_from: Path | None):
     spec = FeatureSpec(fps=config.fps, heading=heading)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
                  cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction, valid_seconds=opts.valid_seconds)
-    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=opts.speeds, **ds_kw)
+    train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=opts.speeds,
+                              arm_mix=opts.arm_mix, **ds_kw)
     valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
     if resume_from is None:
         config = get_preset(opts.preset, **{**overrides, "motion_dim": train_ds.motion_dim})
@@ -592,6 +594,9 @@ def register(subparsers) -> None:
                         "facing (bounded, no spin) (default: the recipe's)")
     g.add_argument("--mirror", action=argparse.BooleanOptionalAction, default=None,
                    help="add left/right mirrored windows (default: on when the training split is under 30 min)")
+    g.add_argument("--arm-mix", action=argparse.BooleanOptionalAction, default=None,
+                   help="add a copy of every training window with one arm's motion on both sides (its mirror image "
+                        "on the other; the sides take turns): two-handed versions of one-handed gestures")
     g.add_argument("--speeds", default=None, metavar="R,R",
                    help="speed-perturbed copies of the training audio+motion, e.g. 0.9,1.1 ('' = none; "
                         "default: 0.9,1.1 when the training split is under 30 min)")

@@ -10,7 +10,7 @@ import dimgestor.dataset as dataset_module
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import BvhError, BvhMotion, Skeleton, read_bvh, write_bvh
 from dimgestor.dataset import DatasetError, GestureDataset, collate_windows, compute_stats, find_pairs
-from dimgestor.features import FeatureSpec, mirror_features, motion_to_features
+from dimgestor.features import FeatureSpec, mirror_features, mix_arms, motion_to_features
 from dimgestor.synthetic import loudness_envelope, make_synthetic_pair, synthetic_speech
 
 
@@ -126,6 +126,22 @@ def test_mirroring_adds_mirrored_copies(data_dir, tmp_path):
     assert not item["mirrored"] and twin["mirrored"] and item["start_frame"] == twin["start_frame"]
     np.testing.assert_allclose(twin["motion"], mirror_features(item["motion"], mirrored.spec))
     np.testing.assert_array_equal(twin["audio"], item["audio"])
+
+
+def test_arm_mixing_adds_one_copy_per_training_window_with_the_sides_taking_turns(data_dir, tmp_path):
+    plain, mixed = make(data_dir, tmp_path, mirror=True), make(data_dir, tmp_path, mirror=True, arm_mix=True)
+    assert len(mixed) == 3 * len(plain) // 2 and "arm-mixed" in mixed.summary()
+    items = [mixed[i] for i in range(6)]
+    assert [(it["mirrored"], it["arms"]) for it in items] == [(False, None), (True, None), (False, "left"),
+                                                             (False, None), (True, None), (False, "right")]
+    for it in (items[2], items[5]):
+        base = items[0] if it is items[2] else items[3]
+        assert it["start_frame"] == base["start_frame"]
+        np.testing.assert_allclose(it["motion"], mix_arms(base["motion"], mixed.spec, mixed.skeleton, it["arms"]),
+                                   atol=1e-6)
+        np.testing.assert_array_equal(it["audio"], base["audio"])  # the same speech
+    np.testing.assert_array_equal(mixed.frames(), plain.frames())  # statistics as before
+    assert len(make(data_dir, tmp_path, split="valid", arm_mix=True)) == len(make(data_dir, tmp_path, split="valid"))
 
 
 def test_stats_cover_each_training_frame_once_and_floor_constant_columns(tmp_path):

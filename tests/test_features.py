@@ -9,8 +9,8 @@ import pytest
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion, forward_kinematics, read_bvh, write_bvh
 from dimgestor.features import (
-    FeatureSpec, PoseDecoder, features_to_motion, mirror_features, mirror_motion, mirror_name,
-    motion_to_features, resample_pose,
+    ROOT_COLUMNS, FeatureSpec, PoseDecoder, arm_columns, features_to_motion, mirror_features, mirror_motion,
+    mirror_name, mix_arms, motion_to_features, resample_pose,
 )
 from dimgestor.synthetic import synthetic_motion, synthetic_skeleton
 
@@ -227,6 +227,34 @@ def test_mirroring_swaps_sides_and_reflects():
     np.testing.assert_allclose(mirror_features(f, spec), motion_to_features(mirrored, spec), atol=1e-4)
     np.testing.assert_array_equal(mirror_features(mirror_features(f, spec), spec), f)
     assert np.abs(mirror_features(f, spec) - f).max() > 0.1
+
+
+def test_arm_mixing_puts_one_arms_motion_on_both_sides_and_leaves_the_rest():
+    motion = synthetic_motion(4.0, 20.0, seed=11)
+    sk = motion.skeleton
+    spec = FeatureSpec().resolve(sk)
+    f = motion_to_features(motion, spec)
+    left, right = arm_columns(spec, sk)
+    joints = list(spec._resolved())
+    names = lambda cols: {joints[(c - len(ROOT_COLUMNS)) // 3] for c in cols}  # noqa: E731
+    assert "LeftHand" in names(left) and "RightHand" in names(right) and "LeftArm" in names(left)
+    assert not {"LeftUpLeg", "RightUpLeg", "Spine", "Head"} & (names(left) | names(right))  # legs hang from the root
+    for side, kept in (("left", "LeftHand"), ("right", "RightHand")):
+        mixed = mix_arms(f, spec, sk, side)
+        p = forward_kinematics(features_to_motion(mixed, sk, spec))
+        p0 = forward_kinematics(features_to_motion(f, sk, spec))
+        k = sk.index(kept)
+        np.testing.assert_allclose(p[:, k], p0[:, k], atol=1e-6)  # that arm as it was
+        others = np.setdiff1d(np.arange(f.shape[1]), np.concatenate([left, right]))
+        np.testing.assert_array_equal(mixed[:, others], f[:, others])  # root, spine, head and legs untouched
+        other_side = right if side == "left" else left
+        np.testing.assert_allclose(mixed[:, other_side], mirror_features(f, spec)[:, other_side])
+        assert np.abs(mixed - f).max() > 0.1
+    # mirroring the left arm's copy gives the right-arm copy of the mirrored motion
+    np.testing.assert_allclose(mirror_features(mix_arms(f, spec, sk, "left"), spec),
+                               mix_arms(mirror_features(f, spec), spec, sk, "right"), atol=1e-6)
+    with pytest.raises(ValueError, match="side"):
+        mix_arms(f, spec, sk, "both")
 
 
 def test_zeggs_round_trip_after_resampling(zeggs_dir):

@@ -109,6 +109,9 @@ def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, c
     assert main(common) == 0
     assert seen["opts"].mirror is True and seen["opts"].speeds == (0.9, 1.1) and seen["opts"].recipe == "streaming"
     assert seen["opts"].augment is True and seen["opts"].aug_copies == 4
+    assert seen["opts"].arm_mix is False  # body-part mixing only when asked for
+    seen.clear()
+    assert main(common + ["--arm-mix"]) == 0 and seen["opts"].arm_mix is True
     seen.clear()
     assert main(common + ["--no-mirror", "--speeds", "", "--recipe", "paper", "--no-augment"]) == 0
     assert seen["opts"].mirror is False and seen["opts"].speeds == () and seen["opts"].recipe == "paper"
