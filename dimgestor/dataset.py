@@ -26,8 +26,8 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE, align, load_wav
 from dimgestor.bvh import Skeleton, read_bvh
-from dimgestor.features import (HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, mirror_features, mix_arms,
-                                motion_to_features)
+from dimgestor.features import (HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, arm_columns, mirror_features,
+                                mix_arms, motion_to_features)
 
 CACHE_VERSION = 1
 SPLIT_FILES = ("split.json", "split.csv", "split.txt")
@@ -249,6 +249,9 @@ class GestureDataset:
         # that arm on both sides (mix_arms; training only, one per window, the sides taking turns)
         starts = [(c, s, e - s) for c, a, b in self.segments for s, e in self._starts(a, b)]
         self.arm_mix = bool(arm_mix) and split == "train"
+        if self.arm_mix and not len(arm_columns(self.spec, self.skeleton)[0]):
+            raise DatasetError(f"{self.data_dir}: arm mixing needs left and right arm joints among the features "
+                               f"(joints named Left*/Right*, L_*/R_* or *.l/*.r below the spine); none were found")
         self.windows = [(c, s, n, m) for k, (c, s, n) in enumerate(starts)
                         for m in ((False, True) if mirror else (False,))
                         + ((("left", "right")[k % 2],) if self.arm_mix else ())]

@@ -142,6 +142,8 @@ def test_arm_mixing_adds_one_copy_per_training_window_with_the_sides_taking_turn
         np.testing.assert_array_equal(it["audio"], base["audio"])  # the same speech
     np.testing.assert_array_equal(mixed.frames(), plain.frames())  # statistics as before
     assert len(make(data_dir, tmp_path, split="valid", arm_mix=True)) == len(make(data_dir, tmp_path, split="valid"))
+    with pytest.raises(DatasetError, match="arm mixing needs left and right arm joints"):
+        make(data_dir, tmp_path, spec=FeatureSpec(joints=("Spine", "Head")), arm_mix=True)  # no arms kept
 
 
 def test_stats_cover_each_training_frame_once_and_floor_constant_columns(tmp_path):
