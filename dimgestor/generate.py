@@ -1,5 +1,5 @@
 """`dimgestor generate`: a checkpoint (or the embedded default model) + a WAV -> a 20 fps BVH, glTF binary or VRM
-Animation, on our skeleton or retargeted onto the user's rig (and, with --face, the face track of the same frames as
+Animation, on our skeleton or retargeted onto the user's rig (and, with --face-csv, the face track of the same frames as
 a CSV)."""
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int 
 
 
 def register(subparsers) -> None:
-    from .cli_help import examples
+    from .cli_help import deprecated_alias, examples
 
     p = subparsers.add_parser(
         "generate", help="generate a BVH for a WAV file (offline, whole file)",
@@ -64,12 +64,13 @@ def register(subparsers) -> None:
                     "binary (.glb: Blender, Unity, Unreal, three.js) or a VRM Animation (.vrma, with the face), on "
                     "our skeleton or retargeted onto your rig (--target).",
         epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
-                        "dimgestor generate --audio speech.wav --out motion.bvh --face face.csv",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --face-csv face.csv",
                         "dimgestor generate --audio speech.wav --out motion.vrma",
                         "dimgestor generate --audio speech.wav --out mine.glb --target my_avatar.vrm",
                         "dimgestor generate --audio speech.wav --out motion.bvh --target mannequin.bvh --target-map map.json",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint live --steps 4 --seed 3",
-                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda"))
+                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda",
+                        deprecated="--face OUT.csv (now --face-csv; --face names a face's name set in serve)"))
     g = p.add_argument_group("input and output")
     g.add_argument("--audio", required=True, metavar="FILE.wav", help="speech WAV (any rate, mono or stereo)")
     g.add_argument("--out", required=True, metavar="OUT.bvh|.glb|.vrma",
@@ -83,10 +84,13 @@ def register(subparsers) -> None:
     g.add_argument("--target-map", default=None, metavar="MAP.json",
                    help="which joint of --target is which humanoid bone, over the names recognised: "
                         "{\"leftUpperArm\": \"arm_L\", \"rightToes\": null, ...} (VRM 1.0 bone names)")
-    g.add_argument("--face", default=None, metavar="OUT.csv",
+    face_csv = g.add_argument("--face-csv", default=None, metavar="OUT.csv",
                    help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
                         "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
                         "frame (the format `dimgestor serve --record` writes beside its BVH)")
+    # one release: `--face` meant this file here and a name set everywhere else (serve, client.py, pipecat)
+    deprecated_alias(p, "--face", face_csv, note=" (--face is a name set in serve; the old spelling goes in the "
+                                                 "next release)")
     g = p.add_argument_group("model and sampling")
     g.add_argument("--checkpoint", default=None,
                    help="checkpoint folder, a file in it, a run folder (its latest), or `live` (the embedded live "
@@ -140,14 +144,14 @@ def _run(args) -> int:
         resolve_map(target, args.target_map)
     if not out.parent.exists():
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
-    face_out = Path(args.face) if args.face is not None else None
+    face_out = Path(args.face_csv) if args.face_csv is not None else None
     if face_out is not None:
         if not face_out.parent.exists():
-            raise FileNotFoundError(f"--face {face_out}: folder {face_out.parent} does not exist")
+            raise FileNotFoundError(f"--face-csv {face_out}: folder {face_out.parent} does not exist")
         if face_out.is_dir():
-            raise IsADirectoryError(f"--face {face_out}: is a folder, expected a .csv path")
+            raise IsADirectoryError(f"--face-csv {face_out}: is a folder, expected a .csv path")
         if face_out.resolve() == out.resolve():
-            raise ValueError(f"--face {face_out}: the same path as --out")
+            raise ValueError(f"--face-csv {face_out}: the same path as --out")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
     bundle = load_checkpoint(args.checkpoint, device=args.device)

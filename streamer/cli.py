@@ -178,7 +178,7 @@ def _output_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "
-                   "OUT.face.csv (as `dimgestor generate --face` writes it; none with --face none); OUT.glb or "
+                   "OUT.face.csv (as `dimgestor generate --face-csv` writes it; none with --face none); OUT.glb or "
                    "OUT.vrma: that file too, made from OUT.bvh when the source ends (.bvh and .glb on --target "
                    "where it fits: a BVH target for .bvh)"),
         _flag(g, "--target", metavar="RIG.bvh|.glb|.vrm",

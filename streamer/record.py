@@ -8,7 +8,7 @@ the whole recording, so the file equals `dimgestor generate` on the same audio, 
 disk (or any write error) stops the recording with one message and keeps what was written.
 
 With `face=True` (the server makes a face) the face track goes beside it, `OUT.face.csv`, in the format of
-`dimgestor generate --face` (`dimgestor.face.track`: `time,` then the VRM 0 and ARKit names, one row per BVH
+`dimgestor generate --face-csv` (`dimgestor.face.track`: `time,` then the VRM 0 and ARKit names, one row per BVH
 frame). Other frame channels named in the recording's map (`RECORD_CHANNELS` by default) go to `OUT.channels.csv`
 (one line per frame, `index,pts`, then one column per value); with the map empty there is no such CSV. Both are
 written at the BVH's flushes, so each holds whole rows at all times.
@@ -109,7 +109,7 @@ class ChannelTable(CsvLog):
 
 
 class FaceTable(CsvLog):
-    """The face track (`dimgestor.face.track`: the format of `dimgestor generate --face`), row i beside the BVH's
+    """The face track (`dimgestor.face.track`: the format of `dimgestor generate --face-csv`), row i beside the BVH's
     frame i (its time i / fps); a frame without a face (none made for it) is the resting face, all zeros."""
 
     def __init__(self, path: Path, fps: float):

@@ -116,6 +116,7 @@ def test_the_check_finds_what_it_looks_for():
     (["serve", "--device", "2"], "--device", "--input-device"),
     (["export", "--checkpoint", "c", "--out", "o", "--sample-steps", "4"], "--sample-steps", "--steps"),
     (["eval", "--ks", "1,2,4"], "--ks", "--steps"),
+    (["generate", "--audio", "a.wav", "--out", "a.bvh", "--face", "a.csv"], "--face", "--face-csv"),
 ])
 def test_an_old_spelling_parses_as_the_new_one_and_says_so_once(argv, old, new, capsys):
     args = vars(build_parser().parse_args(argv))

@@ -415,9 +415,32 @@ def compose_services() -> dict:
     return yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
 
 
-def interpolated(text: str) -> str:
-    """A compose value as compose fills it from an empty environment: `${NAME:-default}` -> default."""
-    return re.sub(r"\$\{(\w+)(?::?-([^}]*))?\}", lambda m: m.group(2) or "", text)
+# what an operator sets before `docker compose up` (docs/deploy.md, "The state store"): compose refuses without them
+COMPOSE_SECRETS = {"DIMGESTOR_REDIS_PASSWORD": "redis-pw-0123", "DIMGESTOR_STATE_SECRET": "state-secret-4567"}
+
+
+def interpolated(text: str, env: dict | None = None) -> str:
+    """A compose value as compose fills it from `env` (default: only the secrets set): `${NAME:-default}` -> the
+    value or default; `${NAME:?message}` -> the value, or compose's refusal (ValueError) when it is unset."""
+    env = COMPOSE_SECRETS if env is None else env
+
+    def fill(m):
+        name, op, arg = m.group(1), m.group(2), m.group(3) or ""
+        if op == ":?":
+            if not env.get(name):
+                raise ValueError(f"{name}: {arg}")
+            return env[name]
+        return env.get(name) or (arg if op else "")
+    return re.sub(r"\$\{(\w+)(?:(:\?|:?-)([^}]*))?\}", fill, text)
+
+
+def compose_values(value) -> list[str]:
+    """Every string in a compose value (lists and mappings walked)."""
+    if isinstance(value, dict):
+        return [s for v in value.values() for s in compose_values(v)]
+    if isinstance(value, list):
+        return [s for v in value for s in compose_values(v)]
+    return [value] if isinstance(value, str) else []
 
 
 def dockerfile() -> list[tuple[str, str]]:
@@ -528,6 +551,36 @@ def test_health_checks_poll_what_a_worker_answers_and_the_docs_they_point_to_exi
         for section in re.findall(r'docs/deploy\.md, "([^"]+)"', path.read_text()):
             assert section in headings, (path.name, section)
     assert "Health checks" in headings
+
+
+def test_compose_gives_redis_a_password_and_the_workers_a_state_secret_and_refuses_to_start_without_them(monkeypatch):
+    """The README's advice for operators, in the compose file: Redis requires the password the workers' store URL
+    carries (its health check authenticates with it too), every worker seals its saves with the same secret from
+    the environment (not a flag: other users can read a command line), and an unset one stops compose."""
+    from streamer.handover import open_store
+    from streamer.server import STATE_SECRET_ENV, read_state_secret
+
+    services = compose_services()
+    redis, worker = services["redis"], services["worker"]
+    password = COMPOSE_SECRETS["DIMGESTOR_REDIS_PASSWORD"]
+    command = [interpolated(a) for a in redis["command"]]
+    assert command[command.index("--requirepass") + 1] == password
+    assert interpolated(redis["environment"]["REDISCLI_AUTH"]) == password  # redis-cli ping authenticates
+    options = served(worker_commands()["compose worker"])
+    assert open_store(options.state_store).client.connection_pool.connection_kwargs["password"] == password
+    environment = dict(interpolated(e).split("=", 1) for e in worker["environment"] if "=" in e)
+    assert environment[STATE_SECRET_ENV] == COMPOSE_SECRETS["DIMGESTOR_STATE_SECRET"]
+    assert not any(STATE_SECRET_ENV in a or "--state-secret" in a for a in worker["command"])
+    monkeypatch.setenv(STATE_SECRET_ENV, environment[STATE_SECRET_ENV])
+    assert read_state_secret(options) == COMPOSE_SECRETS["DIMGESTOR_STATE_SECRET"].encode()
+    for name in COMPOSE_SECRETS:  # either one unset: compose says which and where it is documented
+        env = {k: v for k, v in COMPOSE_SECRETS.items() if k != name}
+        with pytest.raises(ValueError, match=rf"{name}: set {name} \(docs/deploy\.md\)"):
+            [interpolated(v, env) for v in compose_values(services)]
+    assert (REPO / "deploy" / ".env").relative_to(REPO).as_posix() in {
+        line.strip("/") for line in (REPO / ".gitignore").read_text().splitlines()}  # the secrets file stays local
+    text = (REPO / "docs" / "deploy.md").read_text()
+    assert all(name in text for name in COMPOSE_SECRETS)
 
 
 def test_nginx_in_compose_fills_the_tested_template_with_the_worker_service():

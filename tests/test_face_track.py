@@ -1,6 +1,6 @@
-"""The face track file: `dimgestor generate --face OUT.csv` and the `OUT.face.csv` that `serve --record OUT.bvh` writes
-beside its BVH share one format (`dimgestor.face.track`): a header `time,` + the VRM 0 names + ARKit's 52, then one
-row per BVH frame; the recording's holds whole rows, as many as the BVH's frames, at every flush."""
+"""The face track file: `dimgestor generate --face-csv OUT.csv` and the `OUT.face.csv` that `serve --record OUT.bvh`
+writes beside its BVH share one format (`dimgestor.face.track`): a header `time,` + the VRM 0 names + ARKit's 52,
+then one row per BVH frame; the recording's holds whole rows, as many as the BVH's frames, at every flush."""
 
 import asyncio
 import csv
@@ -100,7 +100,7 @@ def generate(tiny_checkpoint, tmp_path, audio, name):
     save_wav(tmp_path / f"{name}.wav", audio, SAMPLE_RATE)
     bvh, face = tmp_path / f"{name}.bvh", tmp_path / f"{name}.csv"
     assert main(["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / f"{name}.wav"),
-                 "--out", str(bvh), "--face", str(face), "--steps", "2"]) == 0
+                 "--out", str(bvh), "--face-csv", str(face), "--steps", "2"]) == 0
     return read_bvh(bvh), *read_track(face)
 
 
@@ -122,9 +122,9 @@ def test_generate_face_into_a_missing_folder_is_one_error_line(tiny_checkpoint, 
     save_wav(tmp_path / "a.wav", synthetic_speech(0.5, seed=1), SAMPLE_RATE)
     args = ["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "a.wav"),
             "--out", str(tmp_path / "a.bvh")]
-    assert main([*args, "--face", str(tmp_path / "nowhere" / "a.csv")]) == 2
+    assert main([*args, "--face-csv", str(tmp_path / "nowhere" / "a.csv")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("error: --face ") and str(tmp_path / "nowhere") in err and "does not exist" in err
+    assert err.startswith("error: --face-csv ") and str(tmp_path / "nowhere") in err and "does not exist" in err
     assert not (tmp_path / "a.bvh").exists()  # refused before anything is written
-    assert main([*args, "--face", str(tmp_path / "a.bvh")]) == 2
+    assert main([*args, "--face-csv", str(tmp_path / "a.bvh")]) == 2
     assert "the same path as --out" in capsys.readouterr().err

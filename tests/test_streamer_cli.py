@@ -54,7 +54,7 @@ def test_wav_file_to_websocket_client_and_vmc(tiny_checkpoint, wav, tmp_path):
 @pytest.mark.parametrize("root,guidance", [("free", None), ("tether", None), ("tether", "2.5")])
 def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, guidance):
     """Streaming (--record, window 150 ms) == `dimgestor generate` on the same file, seed, steps, root mode and
-    guidance scale; the face track beside the recording == `generate --face`'s, row for row (one per BVH frame)."""
+    guidance scale; the face track beside the recording == `generate --face-csv`'s, row for row (one per BVH frame)."""
     out_stream, out_offline = tmp_path / "stream.bvh", tmp_path / "offline.bvh"
     extra = ["--guidance", guidance] if guidance else []
     s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--no-ws", "--seed", "7", "--steps", "3",
@@ -64,7 +64,7 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
                         "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
-                        "--face", str(tmp_path / "offline.csv"),
+                        "--face-csv", str(tmp_path / "offline.csv"),
                         "--root", root, "--tether-s", "0.5", *extra],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

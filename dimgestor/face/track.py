@@ -1,4 +1,4 @@
-"""The face track as a file: one CSV that any rig's names can be read from, written by `dimgestor generate --face`
+"""The face track as a file: one CSV that any rig's names can be read from, written by `dimgestor generate --face-csv`
 and beside a `serve --record` BVH.
 
     time,A,I,U,E,O,Blink,Blink_L,Blink_R,Joy,eyeBlinkLeft,...,tongueOut
