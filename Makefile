@@ -81,9 +81,9 @@ web: $(VENV)/.onnx-installed $(WEB)/node_modules/.package-lock.json
 # (level-free bands and prosody), 300 ms of audio lookahead (downsampler kernel 41) and 15 % condition dropout,
 # on the ZEGGS sample clip (last 15 s held out) with the default "streaming" recipe (mirroring and 0.9x/1.1x
 # speed perturbation on, as for any small set; audio augmentation off: it did not raise the unseen-voice
-# coupling on this clip), one CPU thread (deterministic; ~15 min on a quiet machine), 1200 steps (the
-# unseen-voice numbers against steps are in MODEL_CARD.md), then copy its inference files into the package with
-# its sampling default: K = 4 DDIM steps, classifier-free guidance 1.25, no output filter.
+# coupling on this clip), one CPU thread (deterministic; ~12 min on a quiet machine: the shipped run took 697 s),
+# 1200 steps (the unseen-voice numbers against steps are in benchmarks/README.md), then copy its inference files
+# into the package with its sampling default: K = 4 DDIM steps, classifier-free guidance 1.25, no output filter.
 ZEGGS ?= ../shared/data/zeggs_sample
 default-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/default \

@@ -205,10 +205,16 @@ def gpu(r: dict[str, dict]) -> list[str]:
              ms(x["onnxruntime"]["ms_p50"]) + ("" if x["onnxruntime"]["realtime"] else " (not real time)")]
             for x in sorted(g["rows"], key=lambda x: x["batch"])]
     best = g["largest_realtime_batch"]
-    return ["## Many streams on one GPU", "",
-            f"Measured on an {g['device'].split(',')[0]}: the embedded default model, K = {g['steps']}, "
+    # `dimgestor serve` has no device option and its ONNX sessions are CPU-only: this is what a GPU could do, not
+    # what serving does today (issue 47)
+    return ["## Many streams on one GPU (a benchmark, not yet served)", "",
+            "`dimgestor serve` runs on the CPU today: it has no device option, and its ONNX Runtime sessions use the "
+            "CPU provider. A GPU speeds up training (`dimgestor train --device cuda`) and `dimgestor generate "
+            "--device cuda`. What one GPU could serve was measured by `benchmarks/onnx_cuda.py`, which runs the "
+            "same graphs in its own loop: "
+            f"on an {g['device'].split(',')[0]}, the embedded default model, K = {g['steps']}, "
             f"{g['window_ms']:g} ms windows, B streams in lockstep, the median ms of a round from the host's audio to "
-            f"the host's frames (real time: under {g['window_ms']:g} ms). One GPU keeps **{best['onnxruntime']:,} "
+            f"the host's frames (real time: under {g['window_ms']:g} ms). That loop keeps **{best['onnxruntime']:,} "
             f"streams on ONNX Runtime** (its CUDA provider, states kept on the GPU) and **{best['torch']:,} on "
             "torch**.", "",
             *table(["streams B", "torch CUDA ms a round", "ONNX Runtime CUDA ms a round"], rows), "", source("gpu"), ""]
