@@ -16,7 +16,8 @@ Listeners: `logmel` (the first default's front end), `speech` (the default's: 64
 flux, voicing, pitch, pause), its two parts (`speech_bands`, `speech_prosody`), the same front end with 8 and
 2 bands (`speech_mel8`, `speech_mel2`: coarser spectra, less timbre), and with openwakeword installed the
 `embedding` front end (speech + Google's speech embedding) and the embedding alone (`embedding_only`). Models
-trained with each, scored on the same real voices: `benchmarks/listeners.py` (MODEL_CARD.md, "Real voices").
+trained with each, scored on the same real voices: `benchmarks/listeners.py` (benchmarks/README.md, "Real voices:
+what was tried").
 
     python benchmarks/speaker_shift.py            # ~1 min; needs ../shared (the voices)
 """

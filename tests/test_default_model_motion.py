@@ -17,7 +17,7 @@ pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 # Wrist jerk of the real capture, as `dimgestor eval` reports it for the default model's data: the ZEGGS sample
 # clip's held-out last 15 s (the reference row of `dimgestor eval --data ZEGGS --valid-seconds 15`), cm/s^3.
-# The whole 69 s clip, with the actor's still pauses, has 11.9k (see MODEL_CARD.md).
+# The whole 69 s clip, with the actor's still pauses, has 11.9k (benchmarks/results/voices.json, zeggs_whole_real).
 # test_real_capture_reference re-measures it where the clip is present.
 REAL_HAND_JERK = 21680.0
 
@@ -113,7 +113,7 @@ def _real(unseen_rows, take):
 
 # Wrist jerk over the real capture's: within 1.5x on lawrence; scott, who speaks almost without a pause (96 % of
 # his frames are speech, hers 72 %), measures 1.65-1.77x at the shipped guidance (1.3-1.4x at guidance 1): over
-# issue "real voices"' 1.5, held here at 2x (MODEL_CARD.md, "Real voices").
+# issue "real voices"' 1.5, held here at 2x (MODEL_CARD.md, "Voices").
 JERK_LIMIT = {"4_lawrence_0_19_19": 1.5, "4_lawrence_0_35_35": 1.5, "2_scott_0_2_2": 2.0, "2_scott_0_4_4": 2.0}
 
 
@@ -133,7 +133,7 @@ def test_default_model_follows_the_real_unseen_speakers(unseen_rows, take):
 def test_default_model_does_not_only_replay_its_training_clip(unseen_rows, training_upper, take):
     """Variety: the median distance of its 1 s upper-body windows to the nearest window of the training stretch is
     at least 0.6 of the actor's own (her held-out 15 s against the same stretch; the model measures 0.69-0.77 on
-    these takes, the issue's target is 0.85: MODEL_CARD.md, "Real voices")."""
+    these takes, the issue's target is 0.85: MODEL_CARD.md, "Voices")."""
     row = _real(unseen_rows, take)
     if training_upper is None:
         pytest.skip("the ZEGGS clip (the training stretch) is only present beside the dev checkout (../shared)")

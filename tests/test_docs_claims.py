@@ -95,7 +95,7 @@ def test_every_flag_the_docs_write_after_a_dimgestor_command_is_in_its_parser_as
 # ---- numbers quoted from benchmarks/results/ -----------------------------------------------------------------
 
 REFERENCE = re.compile(r"results/([\w.-]+?\.json)")
-NUMBER = re.compile(r"(?<![\w.^/])([-+]?\d+(?:,\d{3})*(?:\.\d+)?)(\s?%)?(?![\w^/]|\.\d)")
+NUMBER = re.compile(r"(?<![\w.^/])([-+]?\d+(?:,\d{3})*(?:\.\d+)?)(\s?%|x)?(?![\w^/]|\.\d)")  # 62 %, 1.5x
 
 
 @cache
@@ -134,16 +134,24 @@ def quoted(file: str, number: str, percent: bool) -> bool:
 
 
 def sentences(text: str) -> list[str]:
-    """A doc's prose sentences and table rows, code blocks and backticked spans left out."""
+    """A doc's prose sentences and table rows, code blocks left out. A table's rows carry the results files its
+    caption names: the sentence just before it that ends with ":", or a `*From ...*` line just after it."""
     text = re.sub(r"^```[^\n]*\n.*?^```", "", text, flags=re.M | re.S)
+    blocks = re.split(r"\n\s*\n", text)
     out = []
-    for block in re.split(r"\n\s*\n", text):
+    for i, block in enumerate(blocks):
         lines = block.splitlines()
         rows = [line for line in lines if line.lstrip().startswith("|")]
-        out += rows
         prose = " ".join(line for line in lines if line not in rows and not line.startswith("#"))
-        out += re.split(r"(?<=[.!?])\s+(?=\S)|\s(?=- )", prose)
-    return [s for s in out if s.strip()]
+        said = [s for s in re.split(r"(?<=[.!?])\s+(?=\S)|\s(?=- )", prose) if s.strip()]
+        if rows:
+            before = said[-1] if said and said[-1].rstrip().endswith(":") else (
+                blocks[i - 1].strip() if i and blocks[i - 1].rstrip().endswith(":") else "")
+            after = blocks[i + 1].strip() if i + 1 < len(blocks) and blocks[i + 1].lstrip().startswith("*From") else ""
+            caption = " ".join(f"(results/{f})" for f in REFERENCE.findall(before + " " + after))
+            rows = [f"{row} {caption}" for row in rows if not re.fullmatch(r"[|\s:-]+", row)]
+        out += said + rows
+    return out
 
 
 def claims(text: str) -> list[tuple[str, list[str], list[tuple[str, bool]]]]:
@@ -153,23 +161,34 @@ def claims(text: str) -> list[tuple[str, list[str], list[tuple[str, bool]]]]:
         files = REFERENCE.findall(sentence)
         if not files:
             continue
-        plain = re.sub(r"`[^`]*`|\[[^\]]*\]\([^)]*\)|\([^()]*\.(?:md|py)[^()]*\)", " ", sentence)
+        # code, links and a parenthesis that starts with a doc's or script's path are not quotes
+        plain = re.sub(r"`[^`]*`|\[[^\]]*\]\([^)]*\)|\(\s*[\w./-]+\.(?:md|py)\b[^()]*\)", " ", sentence)
         plain = REFERENCE.sub(" ", plain)
         plain = re.sub(r"(?<=\d)-(?=\d)", " - ", plain)  # a range: both ends are quoted numbers
-        numbers = [(m.group(1), bool(m.group(2))) for m in NUMBER.finditer(plain)
+        numbers = [(m.group(1), "%" in (m.group(2) or "")) for m in NUMBER.finditer(plain)
                    if not re.fullmatch(r"[-+]?\d", m.group(1))]
         found.append((sentence, files, numbers))
     return found
 
 
 def test_the_number_finder_reads_ranges_percentages_and_leaves_code_and_small_counts_alone():
-    [(sentence, files, numbers)] = claims("Blinks 16-22 a minute, 3 seeds, cost +62 % and r 0.656 "
+    [(sentence, files, numbers)] = claims("Blinks 16-22 a minute, 3 seeds, cost +62 % and r 0.656, 1.5x "
                                          "(`--steps 4`; `results/face.json`). Next sentence 77.")
-    assert files == ["face.json"] and numbers == [("16", False), ("22", False), ("+62", True), ("0.656", False)]
+    assert files == ["face.json"] and numbers == [("16", False), ("22", False), ("+62", True), ("0.656", False),
+                                                  ("1.5", False)]
     assert all(quoted("face.json", n, p) for n, p in numbers)
     assert quoted("face.json", "0.66", False)  # 0.6564 to two digits
     assert not quoted("face.json", "15", False) and not quoted("face.json", "0.6570", False)
     assert written_as(412.5, "412") and written_as(412.5, "413") and not written_as(412.5, "414")
+
+
+def test_a_table_is_checked_against_the_file_its_caption_names():
+    text = "Measured (`results/face.json`):\n\n| take | r |\n|---|---|\n| 1 | 0.656 |\n| 2 | 0.777 |\n\nThen 0.999."
+    rows = [(numbers, files) for _, files, numbers in claims(text)]
+    assert rows[2:] == [([("0.656", False)], ["face.json"]), ([("0.777", False)], ["face.json"])]  # (after the header)
+    assert not quoted("face.json", "0.777", False)
+    assert [n for _, _, n in claims("| a | 12.5 |\n|---|---|\n\n*From `benchmarks/results/face.json`.*")] == [
+        [("12.5", False)], []]
 
 
 @pytest.mark.parametrize("path", CITING_DOCS, ids=name)
