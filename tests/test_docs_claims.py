@@ -203,3 +203,24 @@ def test_every_number_quoted_beside_a_results_file_is_in_that_file(path):
             if not any(quoted(f, number, percent) for f in files):
                 wrong.append(f"{number}{' %' if percent else ''} is not in {', '.join(files)}: {sentence[:160]}")
     assert not wrong, f"{name(path)}:\n" + "\n".join(wrong)
+
+
+# ---- claims one doc makes about another ----------------------------------------------------------------------
+
+NUMBER_WORDS = {w: i for i, w in enumerate("zero one two three four five six seven eight nine ten".split())}
+
+
+def test_the_clients_overview_counts_the_unity_files_the_unity_guide_has_you_copy():
+    said = re.search(r"copy (\w+) `\.cs` files", (ROOT / "clients" / "README.md").read_text()).group(1)
+    guide = (ROOT / "clients" / "unity" / "README.md").read_text()
+    step = re.search(r"^1\. Copy (.*?) into `Assets/", guide, re.M | re.S).group(1)
+    files = re.findall(r"`(\w+\.cs)`", step)
+    assert NUMBER_WORDS[said] == len(files), (said, files)
+    assert all((ROOT / "clients" / "unity" / f).is_file() for f in files), files
+
+
+def test_the_readmes_vtuber_command_is_the_vtuber_guides_one_command():
+    readme = (ROOT / "README.md").read_text().split("## VTubers", 1)[1].split("\n## ", 1)[0]
+    guide = (ROOT / "docs" / "vtuber.md").read_text().split("## The one command", 1)[1].split("\n## ", 1)[0]
+    shown = re.findall(r"^(?:\.venv/bin/)?(dimgestor serve .*)$", readme, re.M)
+    assert shown and shown == re.findall(r"^(dimgestor serve .*)$", guide, re.M)
