@@ -35,6 +35,8 @@ $(VENV)/.onnx-installed: pyproject.toml $(VENV)/.serve-installed
 $(VENV)/.test-installed: pyproject.toml $(VENV)/.torch-installed
 	@echo "Installing dimgestor with its test tools (pip install -e '.[test]')"
 	@$(PIP) -e '.[test]'
+	@echo "Installing openwakeword 0.5.1 without its dependencies, for the embedding front end's two ONNX files"
+	@$(PIP) --no-deps openwakeword==0.5.1
 	@touch $@ $(VENV)/.serve-installed $(VENV)/.onnx-installed
 
 # Test tooling from npm, pinned by tests/node/package-lock.json: an independent OSC parser for the VMC checks and the

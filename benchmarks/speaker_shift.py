@@ -63,10 +63,11 @@ def listeners() -> dict:
 
 def embedding_listeners(base) -> dict:
     """The embedding front end and its pretrained part alone, where openwakeword is installed."""
+    from dimgestor.frontend_embed import model_files
     try:
-        import openwakeword  # noqa: F401
-    except ImportError:
-        print("skipped the embedding: pip install -e '.[embedding]'")
+        model_files()
+    except (ImportError, OSError, ValueError) as e:
+        print(f"skipped the embedding: {e}")
         return {}
     fe = build_frontend(base.model_copy(update={"frontend": "embedding"}))
     return {"embedding": (fe, None), "embedding_only": (fe, list(range(fe.speech.dim, fe.dim)))}

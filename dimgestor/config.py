@@ -43,7 +43,7 @@ class ModelConfig(BaseModel):
     # --- audio front end ---
     # logmel: the paper-style spectrum; speech: level-free bands + prosody relative to each stream's running
     # statistics (dimgestor/frontend_speech.py), so gestures follow what is said, not the voice or microphone
-    # embedding: speech + a pretrained speech embedding (dimgestor/frontend_embed.py; needs openwakeword 0.5.1)
+    # embedding: speech + a pretrained speech embedding (dimgestor/frontend_embed.py; needs openwakeword 0.5.1's ONNX files)
     frontend: Literal["logmel", "speech", "embedding", "pretrained"] = "logmel"
     pretrained_path: str | None = None  # LOCAL wav2vec2/HuBERT folder when frontend == "pretrained"
     pretrained_block_ms: int = 1000  # pretrained encoder runs on fixed blocks of this length ...

@@ -15,6 +15,8 @@ gives bit-identical features (streamed = offline).
 """
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
@@ -36,18 +38,28 @@ EMBED_DIM = 96
 EMBED_SCALE = 0.03  # the embedding's numbers have an sd of about 17 on speech: scaled to the speech channels' ~0.5
 
 
+# The two files as openWakeWord 0.5.1's wheel ships them (sha256, from its RECORD): another release's copy or a
+# damaged one is refused rather than run. The package is only their carrier: its code is never imported, so it can
+# be installed without its dependencies (its `tflite-runtime` has no wheel for Python 3.12 and later).
+MODEL_SHA256 = {"melspectrogram.onnx": "ba2b0e0f8b7b875369a2c89cb13360ff53bac436f2895cced9f479fa65eb176f",
+                "embedding_model.onnx": "70d164290c1d095d1d4ee149bc5e00543250a7316b59f31d056cff7bd3075c1f"}
+INSTALL = "pip install --no-deps openwakeword==0.5.1"
+
+
 def model_files() -> tuple[Path, Path]:
-    """(melspectrogram.onnx, embedding_model.onnx) from the installed openwakeword package."""
-    try:
-        import openwakeword
-    except ImportError as e:
-        raise ImportError("frontend 'embedding' needs openwakeword 0.5.1 (pip install 'dimgestor[embedding]'): "
-                          "its wheel carries the speech embedding's ONNX files") from e
-    root = Path(openwakeword.__file__).parent / "resources" / "models"
-    files = root / "melspectrogram.onnx", root / "embedding_model.onnx"
+    """(melspectrogram.onnx, embedding_model.onnx) from the installed openwakeword package, checked by checksum."""
+    spec = importlib.util.find_spec("openwakeword")  # (finds the package without running its __init__)
+    if spec is None or not spec.submodule_search_locations:
+        raise ImportError(f"frontend 'embedding' needs openwakeword 0.5.1's wheel, which carries the speech "
+                          f"embedding's ONNX files: {INSTALL} (and ONNX Runtime: pip install 'dimgestor[embedding]')")
+    root = Path(list(spec.submodule_search_locations)[0]) / "resources" / "models"
+    files = tuple(root / name for name in MODEL_SHA256)
     for f in files:
         if not f.is_file():
-            raise FileNotFoundError(f"{f} is missing: openwakeword 0.5.1 ships it in its wheel (0.6 downloads it)")
+            raise FileNotFoundError(f"{f} is missing: openwakeword 0.5.1 ships it in its wheel (0.6 downloads it): "
+                                    f"{INSTALL}")
+        if hashlib.sha256(f.read_bytes()).hexdigest() != MODEL_SHA256[f.name]:
+            raise ValueError(f"{f} is not the file openwakeword 0.5.1 ships (its sha256 differs): {INSTALL}")
     return files
 
 

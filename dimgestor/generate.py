@@ -152,6 +152,11 @@ def _run(args) -> int:
             raise IsADirectoryError(f"--face-csv {face_out}: is a folder, expected a .csv path")
         if face_out.resolve() == out.resolve():
             raise ValueError(f"--face-csv {face_out}: the same path as --out")
+    if face_out is not None or out.suffix.lower() == ".vrma":  # (a .vrma carries the face)
+        from .face.listener import unavailable
+
+        if (why := unavailable()) is not None:
+            raise ValueError(f"{'--face-csv' if face_out is not None else out}: {why}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
     bundle = load_checkpoint(args.checkpoint, device=args.device)

@@ -35,6 +35,7 @@ except ImportError as e:  # the engine works without pipecat; only this module n
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.face import FACE_LABELS, FaceOptions
 from dimgestor.face.life import Blinks
+from dimgestor.face.listener import unavailable as face_unavailable
 from dimgestor.face.visemes import V
 from dimgestor.rotations import expmap_to_quat, quat_conj, quat_mul, quat_to_expmap
 from streamer.face import FACE
@@ -195,6 +196,8 @@ class GestureProcessor(FrameProcessor):
             warnings.warn("GestureProcessor(executor=...) is deprecated: use scheduler=", DeprecationWarning,
                           stacklevel=2)
             scheduler = executor
+        if face is not None and (why := face_unavailable()) is not None:  # (no pocketsphinx wheel here)
+            raise ImportError(f"GestureProcessor: {why}; or face=None for frames without a face")
         super().__init__(**kwargs)
         if bundle is None:
             from dimgestor.checkpoint import load_checkpoint

@@ -80,9 +80,13 @@ async def serve(options: ServeOptions) -> int:
 def build(options: ServeOptions) -> Pipeline:
     """The pipeline, nothing opened yet but the source and the model (a bad device, file, checkpoint or map
     fails here, with a ServeError or SourceError that says which)."""
+    from dimgestor.face.listener import unavailable as face_unavailable
     from streamer.pose import HumanoidRig
 
     t0 = time.monotonic()
+    if options.face != "none" and (why := face_unavailable()) is not None:  # (no pocketsphinx wheel here)
+        print(f"dimgestor: no face, bones only: {why}", file=sys.stderr, flush=True)
+        options = options.model_copy(update={"face": "none"})
     token = read_token(options)
     if token is not None:
         from streamer.redact import RedactTokens

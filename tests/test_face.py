@@ -128,3 +128,23 @@ def test_brows_rise_on_a_vowel_at_the_voices_peak_more_with_a_pitch_rise_and_set
     assert rise > plain and rise <= 0.6
     settle = [b.step(None, -20.0, False) for _ in range(30)]
     assert all(x > y for x, y in zip(settle, settle[1:])) and settle[-1] < 0.01
+
+
+def test_without_pocketsphinx_a_server_serves_bones_and_says_why(monkeypatch, tiny_checkpoint, capsys):
+    """Where pocketsphinx has no wheel (Python 3.14; Linux aarch64 on 3.10 and 3.12) the engine installs without it:
+    `serve` then makes no face and says so once, with what to do; a face asked for directly fails saying the same."""
+    import sys
+
+    from dimgestor.face.listener import PhoneListener, unavailable
+    from streamer.options import ServeOptions
+    from streamer.server import build
+
+    assert unavailable() is None
+    monkeypatch.setitem(sys.modules, "pocketsphinx", None)  # as if not installed
+    assert "pip install pocketsphinx" in unavailable()
+    p = build(ServeOptions(source="ws", checkpoint=str(tiny_checkpoint), ws=("127.0.0.1", 0), steps=2,
+                           status_every=0))
+    assert p.options.face == "none" and p.options.face_options() is None
+    assert "no face, bones only: the face's listener needs pocketsphinx" in capsys.readouterr().err
+    with pytest.raises(ImportError, match="pip install pocketsphinx"):
+        PhoneListener(30, 0.3, beam=1e-7)  # (a decoder key no other test pooled: a new decoder is made)

@@ -128,3 +128,18 @@ def test_generate_face_into_a_missing_folder_is_one_error_line(tiny_checkpoint, 
     assert not (tmp_path / "a.bvh").exists()  # refused before anything is written
     assert main([*args, "--face-csv", str(tmp_path / "a.bvh")]) == 2
     assert "the same path as --out" in capsys.readouterr().err
+
+
+def test_generate_without_pocketsphinx_refuses_a_face_in_one_line_before_any_work(tiny_checkpoint, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """Where pocketsphinx has no wheel (pyproject.toml) the face cannot be made: --face and a .vrma say why at once."""
+    import sys
+
+    save_wav(tmp_path / "a.wav", synthetic_speech(0.5, seed=1), SAMPLE_RATE)
+    monkeypatch.setitem(sys.modules, "pocketsphinx", None)  # as if not installed
+    args = ["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "a.wav")]
+    assert main([*args, "--out", str(tmp_path / "a.bvh"), "--face-csv", str(tmp_path / "a.csv")]) == 2
+    assert "error: --face-csv: the face's listener needs pocketsphinx" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "a.vrma")]) == 2
+    assert "a.vrma: the face's listener needs pocketsphinx" in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["a.wav"]  # nothing written

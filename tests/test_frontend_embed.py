@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("openwakeword", reason="openwakeword 0.5.1 (the test extra) carries the embedding's ONNX files")
+pytest.importorskip("onnxruntime", reason="the embedding runs on ONNX Runtime (pip install 'dimgestor[embedding]')")
 
 from dimgestor import savestate  # noqa: E402
 from dimgestor.audio import SAMPLE_RATE, load_wav  # noqa: E402
@@ -18,6 +18,12 @@ from dimgestor.frontend import build_frontend  # noqa: E402
 from dimgestor.frontend_embed import EMBED_DIM, EMBED_FRAMES, EMBED_STEP, EmbeddingFrontEnd  # noqa: E402
 from dimgestor.stream import GestureStream, generate_offline  # noqa: E402
 from helpers.stream import noise_audio, random_tiny_model  # noqa: E402
+
+try:
+    from dimgestor.frontend_embed import model_files
+    model_files()
+except (ImportError, OSError, ValueError) as e:  # (`make test` installs it: pip install --no-deps openwakeword==0.5.1)
+    pytest.skip(f"the embedding's ONNX files are not here: {e}", allow_module_level=True)
 
 DEMO = load_wav(__import__("pathlib").Path(__file__).resolve().parents[1] / "dimgestor" / "assets" / "demo_en.wav")
 
@@ -144,5 +150,22 @@ def test_without_openwakeword_the_error_says_what_to_install(monkeypatch):
     from dimgestor import frontend_embed
 
     monkeypatch.setitem(sys.modules, "openwakeword", None)  # `import openwakeword` now fails
-    with pytest.raises(ImportError, match=r"openwakeword 0.5.1 \(pip install 'dimgestor\[embedding\]'\)"):
+    with pytest.raises(ImportError, match=r"pip install --no-deps openwakeword==0.5.1"):
+        frontend_embed.model_files()
+
+
+def test_a_file_that_is_not_the_one_shipped_is_refused(monkeypatch, tmp_path):
+    import sys
+
+    from dimgestor import frontend_embed
+
+    mel, emb = frontend_embed.model_files()
+    models = tmp_path / "openwakeword" / "resources" / "models"
+    models.mkdir(parents=True)
+    (models / mel.name).write_bytes(mel.read_bytes())
+    (models / emb.name).write_bytes(emb.read_bytes()[:-1])  # cut short by one byte
+    (tmp_path / "openwakeword" / "__init__.py").write_text("raise ImportError('never imported')\n")
+    monkeypatch.delitem(sys.modules, "openwakeword", raising=False)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ValueError, match=r"embedding_model.onnx is not the file openwakeword 0.5.1 ships"):
         frontend_embed.model_files()

@@ -312,6 +312,17 @@ def test_the_old_name_executor_still_works_and_warns(bundle):
             sp.GestureProcessor([], bundle=bundle, scheduler=pool, executor=pool)
 
 
+def test_without_pocketsphinx_a_face_is_refused_at_construction_and_bones_only_works(bundle, monkeypatch):
+    """Where pocketsphinx has no wheel (Python 3.14; Linux aarch64 on 3.10 and 3.12) the face cannot be made: the
+    processor says so when built, not in the middle of a call, and face=None works there."""
+    from streamer import pipecat as sp
+
+    monkeypatch.setitem(sys.modules, "pocketsphinx", None)  # as if not installed
+    with pytest.raises(ImportError, match="needs pocketsphinx.*or face=None"):
+        sp.GestureProcessor([], bundle=bundle)
+    assert sp.GestureProcessor([], bundle=bundle, face=None).face is None
+
+
 def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypatch):
     """A slow TTS sends twenty 20 ms chunks, then nothing until 0.525 s: the transport is silent from 0.4 s. Frame 8
     (pts 0.4) shows that silence, not the audio after it (which is heard only at 0.525 s): the pause begins where

@@ -10,7 +10,9 @@ stream of hours costs the same per frame as its first minute.
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 import threading
 import warnings
 from dataclasses import dataclass, field
@@ -19,7 +21,7 @@ import numpy as np
 
 from dimgestor.face.visemes import canonical_phone
 
-__all__ = ["PhoneListener", "Segment"]
+__all__ = ["PhoneListener", "Segment", "unavailable"]
 
 BLOCK = 160  # samples (10 ms at 16 kHz): the recognizer's frame
 RATE = 16000
@@ -32,7 +34,19 @@ class Segment:
     end: float
 
 
+def unavailable() -> str | None:
+    """Why the listener cannot run here, or None: pocketsphinx publishes no wheel for some Pythons and platforms
+    (Python 3.14; Linux aarch64 on 3.10 and 3.12), where the engine installs without it (pyproject.toml)."""
+    if importlib.util.find_spec("pocketsphinx") is not None:
+        return None
+    return (f"the face's listener needs pocketsphinx, which has no wheel for Python {sys.version_info[0]}."
+            f"{sys.version_info[1]} on this platform: `pip install pocketsphinx` builds it (cmake and a C compiler), "
+            "or use Python 3.11 or 3.13")
+
+
 def _decoder(beam: float, pbeam: float, lw: float):
+    if (why := unavailable()) is not None:
+        raise ImportError(why)
     from pocketsphinx import Config, Decoder, get_model_path, set_loglevel
 
     set_loglevel("FATAL")
