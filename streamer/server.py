@@ -37,8 +37,8 @@ __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret
 TOKEN_ENV = "STREAMER_TOKEN"
 STATE_SECRET_ENV = "DIMGESTOR_STATE_SECRET"
 # --backend onnxruntime without --onnx: the batch sizes exported (once, into the cache) beside the single-stream
-# graph (each takes about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of the saving per
-# stream is there by 4 streams a call at K = 8)
+# graph (each takes about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of
+# the saving per stream is there by 4 streams a call at K = 8)
 SERVE_BATCHES = (4, 8)
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 

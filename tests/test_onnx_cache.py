@@ -218,3 +218,14 @@ def test_onnx_cache_needs_the_onnxruntime_backend_without_onnx():
     for bad in ({"onnx_cache": "c"}, {"backend": "onnxruntime", "onnx": "e", "onnx_cache": "c"}):
         with pytest.raises(ServeError, match="--onnx-cache is where --backend onnxruntime keeps"):
             ServeOptions.parse(**bad)
+
+
+def test_generate_on_onnxruntime_reuses_the_same_cache(entry, exportable, wav, exports, tmp_path, capsys):
+    """`dimgestor generate --backend onnxruntime` without --onnx asks the same cache: serve's export is reused."""
+    from dimgestor.cli import main
+
+    assert main(["generate", "--checkpoint", str(exportable), "--audio", str(wav), "--steps", str(STEPS),
+                 "--backend", "onnxruntime", "--onnx-cache", str(entry.parent), "--out",
+                 str(tmp_path / "g.bvh")]) == 0
+    err = capsys.readouterr().err
+    assert f"{REUSING} {entry}" in err and EXPORTING not in err and exports == []
