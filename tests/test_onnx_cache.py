@@ -190,8 +190,8 @@ def test_concurrent_starts_export_once(entry, tiny_bundle, exports, monkeypatch)
 
     monkeypatch.setattr(onnx_export, "export_bundle", export_bundle)
     results, logs = [], [[], []]
-    threads = [threading.Thread(target=lambda i=i: results.append(
-        cached_export(tiny_bundle, STEPS, tiny_bundle.config.guidance, root=entry.parent, log=logs[i].append))) for i in range(2)]
+    threads = [threading.Thread(target=lambda i=i: results.append(cached_export(
+        tiny_bundle, STEPS, tiny_bundle.config.guidance, root=entry.parent, log=logs[i].append))) for i in range(2)]
     for t in threads:
         t.start()
     for t in threads:
