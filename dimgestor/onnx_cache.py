@@ -202,8 +202,9 @@ def _discard(entry: Path) -> None:
 
 def export_minutes(steps: int, graphs: int) -> int:
     """About how long an export takes: each graph is traced and optimized with its K steps unrolled (the
-    default model on a loaded 2-core machine: ~15 s a graph per step)."""
-    return max(1, round(graphs * steps * 15 / 60))
+    default model on a shared 2-core machine: ~30 s a graph per step, 6 minutes for K = 4 and graphs of 1, 4 and
+    8 streams)."""
+    return max(1, round(graphs * steps * 30 / 60))
 
 
 def cached_export(bundle: Bundle, steps: int, guidance: float, frames: int = 2, batches: Sequence[int] = (),
