@@ -229,3 +229,20 @@ def test_generate_on_onnxruntime_reuses_the_same_cache(entry, exportable, wav, e
                  str(tmp_path / "g.bvh")]) == 0
     err = capsys.readouterr().err
     assert f"{REUSING} {entry}" in err and EXPORTING not in err and exports == []
+
+
+def test_the_start_benchmark_runs_end_to_end_at_tiny_size(first, exportable, tmp_path):
+    """benchmarks/onnx_start.py on a copy of the first start's cache: one cached start, one torch start."""
+    cache = shutil.copytree(first[0], tmp_path / "cache")
+    out = tmp_path / "onnx_start.json"
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "onnx_start.py"), "--checkpoint", str(exportable),
+                        "--steps", str(STEPS), "--no-batch", "--warm", "0", "--torch", "1", "--cache", str(cache),
+                        "--timeout", "300", "--out", str(out)], cwd=REPO, capture_output=True, text=True,
+                       timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(out.read_text())
+    (run,), (base,) = result["runs"], result["torch_runs"]
+    assert not run["exported"] and result["first_start_export_s"] is None
+    assert 0 < run["cache_line_s"] <= run["ws_address_s"] <= run["first_frame_s"] == result["cached_start_s_median"]
+    assert base["backend"] == "torch" and base["first_frame_s"] > 0 and result["code"] and result["machine"]
+    assert out.with_suffix(".png").is_file()
