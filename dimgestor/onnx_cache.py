@@ -227,6 +227,8 @@ def cached_export(bundle: Bundle, steps: int, guidance: float, frames: int = 2, 
         if why != "absent":
             log(f"the cached ONNX export {entry} is damaged ({why}): exporting it again")
             _discard(entry)
+        for stale in root.glob(f".partial-{entry.name}-*"):  # a killed start's (only the lock holder writes)
+            shutil.rmtree(stale, ignore_errors=True)
         graphs = 1 + len(key["batches"])
         log(f"exporting the model for ONNX Runtime (first start with this model and settings, "
             f"~{export_minutes(steps, graphs)} min) into {entry}")

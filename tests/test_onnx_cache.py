@@ -156,6 +156,14 @@ def test_another_models_entry_is_never_served(entry, tiny_bundle, exports, tmp_p
     assert ask(tiny_bundle, entry)[0] == entry and len(exports) == 2
 
 
+def test_a_killed_starts_partial_export_is_cleared_by_the_next(entry, tiny_bundle, exports):
+    shutil.rmtree(entry)
+    partial = entry.with_name(f".partial-{entry.name}-killed")
+    partial.mkdir()
+    (partial / "frame_step.onnx").write_bytes(b"half")
+    assert ask(tiny_bundle, entry)[0] == entry and len(exports) == 1 and not partial.exists()
+
+
 def test_a_changed_k_is_another_export_and_the_first_stays(entry, tiny_bundle, exports):
     folder, lines = ask(tiny_bundle, entry, steps=2)
     assert exports == [(2, [])] and folder != entry and folder.name.startswith("k2-")
