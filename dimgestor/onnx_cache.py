@@ -1,8 +1,8 @@
 """A per-user cache of ONNX exports: `dimgestor serve --backend onnxruntime` exports a model once (minutes) and
 later starts load that export (seconds).
 
-An entry is the folder `export_onnx` writes (graphs and manifest.json) plus `cache.json`: the entry's key and
-the sha256 and size of every file. The key is everything the graphs depend on: the model's fingerprint (config
+An entry is the folder `export_onnx` writes (graphs and manifest.json; the graphs as ONNX Runtime optimizes
+them, `_ort_optimized`) plus `cache.json`: the entry's key and the sha256 and size of every file. The key is everything the graphs depend on: the model's fingerprint (config
 and every weight, `savestate.model_fingerprint`), its normalization, K, guidance, frames per call, the batch
 sizes, the opset, the versions of the exporter's packages and of ONNX Runtime, and a hash of our own code the
 graph is traced from (`traced_modules`). The folder's name is a hash of the key, so a change of any of them is
@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 __all__ = ["CACHE_FILE", "cache_root", "cached_export", "export_key", "problem", "traced_modules"]
 
 CACHE_FILE = "cache.json"  # an entry's key and file checksums, written last
-FORMAT = 1  # of cache.json
+FORMAT = 2  # of an entry and its cache.json (2: the graphs optimized by ONNX Runtime); in the key
 # the packages whose versions change what the exporter writes or what loads it
 PACKAGES = ("torch", "onnx", "onnxscript", "onnx-ir", "onnxruntime")
 # modules of ours that onnx_export imports for other things than tracing (loading, the CLI, the manifest's name)
@@ -95,7 +95,7 @@ def export_key(bundle: Bundle, steps: int, guidance: float, frames: int = 2, bat
     from .savestate import model_fingerprint
 
     norm = hashlib.sha256(np.asarray(bundle.mean, np.float64).tobytes() + np.asarray(bundle.std, np.float64).tobytes())
-    return {"model": model_fingerprint(bundle.model), "normalization": norm.hexdigest(), "steps": int(steps),
+    return {"format": FORMAT, "model": model_fingerprint(bundle.model), "normalization": norm.hexdigest(), "steps": int(steps),
             "guidance": float(guidance), "frames": int(frames), "batches": sorted({int(b) for b in batches} - {1}),
             "opset": OPSET, "versions": {p: _version(p) for p in PACKAGES} | {"dimgestor": __version__},
             "code": _code_sha256()}
@@ -200,6 +200,23 @@ def _discard(entry: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
+def _ort_optimized(graph: Path) -> None:
+    """`graph` replaced by ONNX Runtime's own optimization of it (fusions, constant folding: its extended level,
+    which holds on any CPU, unlike the layout level a session adds at load). A session on the result loads in a
+    third of the time (0.3 against 1.0 s a graph of the default model): the warm start's largest part after
+    Python's imports. The result runs on ONNX Runtime only (its fused ops), which is all the cache is for; the
+    key holds ONNX Runtime's version."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    optimized = graph.with_name(graph.name + ".ort")
+    opts.optimized_model_filepath = str(optimized)
+    ort.InferenceSession(str(graph), opts, providers=["CPUExecutionProvider"])
+    os.replace(optimized, graph)
+
+
 def export_minutes(steps: int, graphs: int) -> int:
     """About how long an export takes: each graph is traced and optimized with its K steps unrolled (the
     default model on a shared 2-core machine: ~30 s a graph per step, 6 minutes for K = 4 and graphs of 1, 4 and
@@ -235,6 +252,8 @@ def cached_export(bundle: Bundle, steps: int, guidance: float, frames: int = 2, 
         tmp = Path(tempfile.mkdtemp(dir=root, prefix=f".partial-{entry.name}-"))
         try:
             export_bundle(bundle, tmp, steps, guidance, frames, key["batches"])
+            for graph in tmp.glob("*.onnx"):
+                _ort_optimized(graph)
             files = {p.name: {"bytes": p.stat().st_size, "sha256": _sha256(p)}
                      for p in sorted(tmp.iterdir()) if p.is_file()}
             if MANIFEST not in files:
