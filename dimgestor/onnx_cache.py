@@ -2,10 +2,11 @@
 later starts load that export (seconds).
 
 An entry is the folder `export_onnx` writes (graphs and manifest.json; the graphs as ONNX Runtime optimizes
-them, `_ort_optimized`) plus `cache.json`: the entry's key and the sha256 and size of every file. The key is everything the graphs depend on: the model's fingerprint (config
-and every weight, `savestate.model_fingerprint`), its normalization, K, guidance, frames per call, the batch
-sizes, the opset, the versions of the exporter's packages and of ONNX Runtime, and a hash of our own code the
-graph is traced from (`traced_modules`). The folder's name is a hash of the key, so a change of any of them is
+them, `_ort_optimized`) plus `cache.json`: the entry's key and the sha256 and size of every file. The key is
+everything the graphs depend on: the entry format, the model's fingerprint (config and every weight,
+`savestate.model_fingerprint`), its normalization, K, guidance, frames per call, the batch sizes, the opset, the
+versions of the exporter's packages and of ONNX Runtime, and a hash of our own code the graph is traced from
+(`traced_modules`). The folder's name is a hash of the key, so a change of any of them is
 another entry and a new export; nothing is ever patched in place.
 
 An entry is served only when `problem` finds nothing wrong with it: cache.json readable and holding the key
@@ -211,7 +212,7 @@ def _ort_optimized(graph: Path) -> None:
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = opts.inter_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
-    optimized = graph.with_name(graph.name + ".ort")
+    optimized = graph.with_name(f".optimized-{graph.name}")  # .onnx: the format ONNX Runtime writes it in
     opts.optimized_model_filepath = str(optimized)
     ort.InferenceSession(str(graph), opts, providers=["CPUExecutionProvider"])
     os.replace(optimized, graph)

@@ -254,3 +254,19 @@ def test_the_start_benchmark_runs_end_to_end_at_tiny_size(first, exportable, tmp
     assert 0 < run["cache_line_s"] <= run["ws_address_s"] <= run["first_frame_s"] == result["cached_start_s_median"]
     assert base["backend"] == "torch" and base["first_frame_s"] > 0 and result["code"] and result["machine"]
     assert out.with_suffix(".png").is_file()
+
+
+def test_the_cached_graphs_make_the_torch_frame_steps_frames(first, tiny_bundle):
+    """The entry's graphs (as ONNX Runtime optimized them) against the module they were traced from, in torch."""
+    from dimgestor.onnx_export import FrameStep
+    from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_stream, torch_runner
+    from dimgestor.synthetic import synthetic_speech
+
+    (e,) = [p for p in first[0].iterdir() if p.is_dir()]
+    audio = synthetic_speech(1.5, seed=2).astype(np.float32)
+    step = FrameStep(tiny_bundle.model.eval(), STEPS, tiny_bundle.config.guidance).eval()
+    reference = FrameStepStream(load_manifest(e), torch_runner(step), seed=SEED)
+    stream = ort_stream(e, seed=SEED)
+    a = np.concatenate([reference.push(audio), reference.finish()])
+    b = np.concatenate([stream.push(audio), stream.finish()])
+    assert a.shape == b.shape and len(a) > 0 and np.abs(a - b).max() < 1e-4
