@@ -246,13 +246,15 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
         return options.onnx
     from dimgestor.onnx_cache import cached_export
 
-    batches = () if options.no_batch else SERVE_BATCHES
+    batches, model = () if options.no_batch else SERVE_BATCHES, options.checkpoint or "the embedded model"
     try:
         return str(cached_export(bundle, steps, guidance, batches=batches, root=options.onnx_cache,
                                  log=lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True)))
-    except (OSError, ValueError) as e:
-        raise ServeError(f"--backend onnxruntime: cannot export {options.checkpoint or 'the embedded model'}: {e}"
-                         ) from None
+    except OSError as e:
+        raise ServeError(f"--backend onnxruntime: cannot keep the export of {model}: {e} (a writable folder: "
+                         "--onnx-cache DIR)") from None
+    except ValueError as e:
+        raise ServeError(f"--backend onnxruntime: cannot export {model}: {e}") from None
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,

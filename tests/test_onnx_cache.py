@@ -272,3 +272,13 @@ def test_the_cached_graphs_make_the_torch_frame_steps_frames(first, tiny_bundle)
     a = np.concatenate([reference.push(audio), reference.finish()])
     b = np.concatenate([stream.push(audio), stream.finish()])
     assert a.shape == b.shape and len(a) > 0 and np.abs(a - b).max() < 1e-4
+
+
+def test_serve_says_which_flag_to_use_when_the_cache_cannot_be_written(tmp_path):
+    from streamer.options import ServeError, ServeOptions
+    from streamer.server import build
+
+    blocker = tmp_path / "a file"
+    blocker.write_text("")
+    with pytest.raises(ServeError, match="a writable folder: --onnx-cache DIR"):
+        build(ServeOptions.parse(backend="onnxruntime", onnx_cache=str(blocker / "cache"), source="ws"))
