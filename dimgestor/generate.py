@@ -4,7 +4,7 @@ a CSV)."""
 from __future__ import annotations
 
 import argparse
-import tempfile
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -117,7 +117,10 @@ def register(subparsers) -> None:
                         "`onnx` extra)")
     g.add_argument("--onnx", default=None, metavar="DIR",
                    help="with --backend onnxruntime: this checkpoint's `dimgestor export-onnx` folder (its K and "
-                        "guidance) (default: export one into a temporary folder first, ~30 s)")
+                        "guidance) (default: the export in --onnx-cache)")
+    g.add_argument("--onnx-cache", default=None, metavar="DIR",
+                   help="with --backend onnxruntime: where the model's export is kept; the first run with a model, K "
+                        "or guidance exports it (minutes), later runs reuse it (default: as `dimgestor serve`'s)")
     p.set_defaults(func=_run)
 
 
@@ -206,8 +209,9 @@ def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given
             raise ValueError(f"--onnx {args.onnx} was exported with K={sampler['steps']} and guidance "
                              f"{sampler['guidance']:g}; pass those (or export again)")
         return generate_motion_onnx(bundle, audio, args.onnx, args.seed, smoothing, args.root, args.tether_s)
-    from .onnx_export import export_onnx
+    from .onnx_cache import cached_export
 
-    with tempfile.TemporaryDirectory(prefix="dimgestor-onnx-") as tmp:
-        export_onnx(args.checkpoint, tmp, args.steps, args.guidance)
-        return generate_motion_onnx(bundle, audio, tmp, args.seed, smoothing, args.root, args.tether_s)
+    guidance = bundle.config.guidance if args.guidance is None else args.guidance
+    folder = cached_export(bundle, args.steps, guidance, root=args.onnx_cache,
+                           log=lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True))
+    return generate_motion_onnx(bundle, audio, folder, args.seed, smoothing, args.root, args.tether_s)

@@ -61,8 +61,8 @@ from .onnx_stream import MANIFEST
 if TYPE_CHECKING:
     from .checkpoint import Bundle
 
-__all__ = ["FrameStep", "StateSpec", "check_export", "export_onnx", "state_specs", "manifest_of", "weights_sha256",
-           "OPSET", "register"]
+__all__ = ["FrameStep", "StateSpec", "check_export", "export_bundle", "export_onnx", "state_specs", "manifest_of",
+           "weights_sha256", "OPSET", "register"]
 
 OPSET = 18
 GRAPH = "frame_step.onnx"
@@ -249,7 +249,12 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
     batches: also a graph of B streams a call for each B (out/frame_step_bB.onnx), for a server's batches."""
     from .checkpoint import load_checkpoint
 
-    bundle = load_checkpoint(checkpoint)
+    return export_bundle(load_checkpoint(checkpoint), out, steps, guidance, frames, batches)
+
+
+def export_bundle(bundle: Bundle, out: str | Path, steps: int | None = None, guidance: float | None = None,
+                  frames: int = 2, batches: Sequence[int] = ()) -> Path:
+    """`export_onnx` of a loaded checkpoint."""
     model = bundle.model.eval()
     c = model.config
     steps = steps or c.sample_steps

@@ -141,7 +141,12 @@ def _model_flags(g) -> dict[str, argparse.Action]:
                    "alone); the same frames to < 1e-4"),
         _flag(g, "--onnx", metavar="DIR",
               help="with --backend onnxruntime: the checkpoint's export-onnx folder (its K and guidance; export it "
-                   "with --batch B... for batches of B streams a call) (default: export it at start)"),
+                   "with --batch B... for batches of B streams a call) (default: the export in --onnx-cache)"),
+        _flag(g, "--onnx-cache", metavar="DIR",
+              help="with --backend onnxruntime: where the model's export is kept; the first start with a model, "
+                   "K, guidance or batch sizes exports it (minutes), later starts reuse it (default: "
+                   "$DIMGESTOR_CACHE/onnx, else ~/.cache/dimgestor/onnx or $XDG_CACHE_HOME/dimgestor/onnx; "
+                   "%%LOCALAPPDATA%%\\dimgestor\\onnx on Windows)"),
     )}
 
 

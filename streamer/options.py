@@ -61,6 +61,7 @@ class ServeOptions(BaseModel):
     no_batch: bool = False
     backend: Literal["torch", "onnxruntime"] = "torch"  # onnxruntime: the ONNX export (its batched graphs)
     onnx: str | None = None  # with backend onnxruntime: an export folder of the checkpoint (else exported at start)
+    onnx_cache: str | None = None  # with backend onnxruntime and no --onnx: where exports are kept (None: per-user)
     # the WebSocket server (and the viewer on its port)
     ws: HostPort = ("127.0.0.1", 8765)
     no_ws: bool = False
@@ -179,6 +180,9 @@ class ServeOptions(BaseModel):
             raise ValueError("--humanoid-map maps the model's skeleton; with --target, map the target (--target-map)")
         if self.onnx is not None and self.backend != "onnxruntime":
             raise ValueError("--onnx is an export for --backend onnxruntime: give that too")
+        if self.onnx_cache is not None and (self.backend != "onnxruntime" or self.onnx is not None):
+            raise ValueError("--onnx-cache is where --backend onnxruntime keeps the exports it makes: give that "
+                             "backend, without --onnx (an export of your own)")
         if self.backend == "onnxruntime" and self.state_store is not None:
             raise ValueError("--state-store saves torch stream states: sessions on --backend onnxruntime are not "
                              "handed over yet (use --backend torch)")

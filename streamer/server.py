@@ -36,9 +36,9 @@ if TYPE_CHECKING:
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret", "read_token", "run", "serve"]
 TOKEN_ENV = "STREAMER_TOKEN"
 STATE_SECRET_ENV = "DIMGESTOR_STATE_SECRET"
-# --backend onnxruntime without --onnx: the batch sizes exported at start beside the single-stream graph (each takes
-# about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of the saving per
-# stream is there by 4 streams a call at K = 8)
+# --backend onnxruntime without --onnx: the batch sizes exported (once, into the cache) beside the single-stream
+# graph (each takes about as long to export as it; benchmarks/results/onnx_runtime.json's per-call table: most of
+# the saving per stream is there by 4 streams a call at K = 8)
 SERVE_BATCHES = (4, 8)
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -232,7 +232,7 @@ def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> O
 
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
     """--backend onnxruntime: the --onnx folder (checked against the checkpoint, K and guidance), or the
-    checkpoint exported now into a folder that lives as long as the process."""
+    checkpoint's export in the per-user cache (`dimgestor.onnx_cache`: exported on the first start, reused after)."""
     from dimgestor.onnx_export import check_export
     from dimgestor.onnx_stream import load_manifest
 
@@ -248,24 +248,17 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
             raise ServeError(f"--onnx {options.onnx} was exported with K={sampler['steps']} and guidance "
                              f"{sampler['guidance']:g}: pass those (or export again)")
         return options.onnx
-    import atexit
-    import shutil
-    import tempfile
+    from dimgestor.onnx_cache import cached_export
 
-    from dimgestor.onnx_export import export_onnx
-
-    folder = tempfile.mkdtemp(prefix="dimgestor-onnx-")
-    atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    batches = () if options.no_batch else SERVE_BATCHES
-    print(f"dimgestor: exporting the model to ONNX (K={steps}, guidance {guidance:g}"
-          + (f", graphs of 1 and {' and '.join(map(str, batches))} streams" if batches else "") + ") ...",
-          file=sys.stderr, flush=True)
+    batches, model = () if options.no_batch else SERVE_BATCHES, options.checkpoint or "the embedded model"
     try:
-        export_onnx(options.checkpoint, folder, steps, guidance, batches=batches)
+        return str(cached_export(bundle, steps, guidance, batches=batches, root=options.onnx_cache,
+                                 log=lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True)))
+    except OSError as e:
+        raise ServeError(f"--backend onnxruntime: cannot keep the export of {model}: {e} (a writable folder: "
+                         "--onnx-cache DIR)") from None
     except ValueError as e:
-        raise ServeError(f"--backend onnxruntime: cannot export {options.checkpoint or 'the embedded model'}: {e}"
-                         ) from None
-    return folder
+        raise ServeError(f"--backend onnxruntime: cannot export {model}: {e}") from None
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,

@@ -13,13 +13,14 @@ from dimgestor.model import DiMGestor
 from dimgestor.synthetic import synthetic_skeleton
 
 
-def make_tiny_checkpoint(folder: Path, seed: int = 0, jitter: float = 0.0) -> Path:
+def make_tiny_checkpoint(folder: Path, seed: int = 0, jitter: float = 0.0, **config) -> Path:
     """`folder`/tiny; jitter: noise on every weight after the init (breaks the zero init so the frames depend on
-    every parameter). Random weights still give motion that follows the audio and the noise."""
+    every parameter); config: fields of the `tiny` preset changed. Random weights still give motion that follows
+    the audio and the noise."""
     skeleton = synthetic_skeleton()
     spec = FeatureSpec.for_skeleton(skeleton)
     torch.manual_seed(seed)
-    model = DiMGestor(get_preset("tiny", motion_dim=spec.dim)).eval()
+    model = DiMGestor(get_preset("tiny", **{"motion_dim": spec.dim, **config})).eval()
     if jitter:
         with torch.no_grad():
             for p in model.parameters():
