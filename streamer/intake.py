@@ -31,7 +31,7 @@ __all__ = ["Account", "FairWorker", "ComputeBudget", "submit_for", "INTAKE_SHARE
 INTAKE_SHARE = 0.1  # of the worker thread, per client, at least (16 kHz PCM16 in real time takes ~0.0003)
 REAL_TIME_HEADROOM = 1.5  # ...or this many times what its own audio in real time costs here, if more
 INTAKE_BURST_S = 0.25  # CPU seconds a client may take at once before its share holds (~6 s of 192 kHz stereo here)
-INTAKE_BURST_AUDIO_S = 6.0  # ...or what this much of its own audio costs, if more (a slower machine)
+INTAKE_BURST_AUDIO_S = 4.0  # ...or what this much of its own audio costs, if more (a slower machine)
 COST_HALF_LIFE_S = 5.0  # how fast the measured cost of a second of its audio follows the machine's load
 COST_MIN_AUDIO_S = 1.0  # recent audio seconds the measured cost needs before it counts (one message says little)
 
