@@ -183,3 +183,72 @@ def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source
         f"the sound started {lag / 16000:.3f} s into the source, where the source reaches the played level at "
         f"{expected / 16000:.3f} s (gain {gain:.2f}): not at its start; {clock}")
     return onset
+
+
+# What the page scheduled to play, piece by piece (source-audio.js `played`): where each piece starts on the
+# audio context's clock, the pts it starts at, how long it plays, what of it the page skipped because it came
+# late, and when it was stopped.
+PLAYED = "window.dimgestor.sourceAudio.played"
+STOP_TAKES_S = 0.03  # how long after the page's `stop()` (its context time then) the sound may still play
+
+
+def streams(pieces: list[dict]) -> list[list[dict]]:
+    """The pieces split where the pts starts over (a new stream: a second drop)."""
+    out: list[list[dict]] = []
+    for p in pieces:
+        if not out or p["pts"] - p["late"] < out[-1][-1]["pts"] - 1.0:
+            out.append([])
+        out[-1].append(p)
+    return out
+
+
+def as_scheduled(pieces: list[dict], start_s: float, n: int, source: np.ndarray, wrap: bool = False,
+                 edge: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """What the pieces make at 16 kHz over `n` samples of a recording whose first sample is at context time
+    `start_s`, and where that is certain: not within `edge` samples of a piece's start or end (the output
+    interpolates across them) nor where a stopped piece may still play (STOP_TAKES_S after the page's stop)."""
+    expected, unsure = np.zeros(n, np.float32), np.zeros(n, bool)
+    for p in pieces:
+        if p["dur"] <= 0:
+            continue
+        a = round((p["at"] - start_s) * 16000)
+        b = round((p["at"] + p["dur"] - start_s) * 16000)
+        if p["stop"] is not None and p["stop"] < p["at"] + p["dur"]:
+            stop = round((p["stop"] - start_s) * 16000)
+            b = min(b, stop + round(STOP_TAKES_S * 16000))
+            unsure[max(0, stop) : max(0, b)] = True
+        if b <= max(a, 0) or a >= n:
+            continue
+        k = round(p["pts"] * 16000)
+        idx = np.arange(k, k + b - a)
+        piece = np.take(source, idx, mode="wrap") if wrap else np.where(idx < len(source),
+                                                                       source[np.clip(idx, 0, len(source) - 1)], 0)
+        lo, hi = max(a, 0), min(b, n)
+        expected[lo:hi] += piece[lo - a : hi - a]
+        unsure[max(0, a - edge) : max(0, a + edge)] = True
+        unsure[max(0, b - edge) : max(0, b + edge)] = True
+    return expected, ~unsure
+
+
+def assert_played_as_scheduled(played16: np.ndarray, start_s: float, pieces: list[dict], source: np.ndarray,
+                               t0: float, seconds: float, missed: list[tuple[int, int]] = (), wrap: bool = False
+                               ) -> float:
+    """What the recording holds over `seconds` from context time t0 is what the page scheduled there: the
+    source's audio at each piece's pts, at the piece's time, and silence between pieces (the page's holds, its
+    catch-ups and what it skipped for coming late are all in `pieces`). Compared where the recorder got every
+    block (`missed`, from missed16). Returns the correlation."""
+    a = max(0, round((t0 - start_s) * 16000))
+    b = min(len(played16), a + round(seconds * 16000))
+    expected, sure = as_scheduled(pieces, start_s, len(played16), source, wrap)
+    for m0, m1 in missed:
+        sure[max(0, m0 - 128) : max(0, m1 + 128)] = False
+    x, e = played16[a:b][sure[a:b]], expected[a:b][sure[a:b]]
+    assert len(x) >= 0.25 * (b - a), f"the recorder missed too much of {t0:.2f}-{t0 + seconds:.2f} s to compare"
+    assert np.linalg.norm(e) > 0, f"the page scheduled no sound at {t0:.2f}-{t0 + seconds:.2f} s"
+    corr = float(np.dot(x, e) / (np.linalg.norm(x) * np.linalg.norm(e) + 1e-9))
+    gain = float(np.dot(x, e) / (np.dot(e, e) + 1e-9))
+    print(f"played {t0 - start_s:.3f}-{t0 - start_s + seconds:.3f} s of the recording: as scheduled with "
+          f"correlation {corr:.3f}, gain {gain:.2f}, over {len(x) / 16000:.2f} s")
+    assert corr > 0.9 and 0.5 < gain < 2.0, (
+        f"the played sound is not what the page scheduled (correlation {corr:.2f}, gain {gain:.2f})")
+    return corr
