@@ -196,7 +196,7 @@ def streams(pieces: list[dict]) -> list[list[dict]]:
     """The pieces split where the pts starts over (a new stream: a second drop)."""
     out: list[list[dict]] = []
     for p in pieces:
-        if not out or p["pts"] - p["late"] < out[-1][-1]["pts"] - 1.0:
+        if not out or p["pts"] - p["late"] < out[-1][-1]["pts"] + out[-1][-1]["dur"] - 1.0:  # (as source-audio.js)
             out.append([])
         out[-1].append(p)
     return out
