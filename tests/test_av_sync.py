@@ -32,8 +32,9 @@ def test_a_recording_of_what_the_page_scheduled_passes_and_anything_else_fails()
     source = (0.3 * np.random.default_rng(0).standard_normal(16000 * 3)).astype(np.float32)
     played = recording(source, PIECES)
     assert [len(s) for s in streams(PIECES)] == [4, 2]
-    expected, sure = as_scheduled(PIECES, START_S, len(played), source)
+    expected, sure, covered = as_scheduled(PIECES, START_S, len(played), source)
     assert np.allclose(expected[sure], played[sure])
+    assert covered.sum() == round(16000 * 2.28)  # (the stopped piece: to 30 ms after its stop)
     assert assert_played_as_scheduled(played, START_S, PIECES, source, 0.9, 3.0) > 0.99
     # not what the page says: the sound resumed after the hold where it stopped, not 20 ms on
     resumed = recording(source, PIECES[:2] + [piece(1.7, 0.15, 0.2)] + PIECES[3:])
@@ -47,6 +48,13 @@ def test_a_recording_of_what_the_page_scheduled_passes_and_anything_else_fails()
     late = np.concatenate([np.zeros(480, np.float32), played[:-480]])
     with pytest.raises(AssertionError, match="not what the page scheduled"):
         assert_played_as_scheduled(late, START_S, PIECES, source, 0.9, 3.0)
+    # a piece asked for 5 ms ahead may start later than asked (the audio thread heard of it late): not compared
+    tight = PIECES[:4] + [piece(2.9, 0.0, 0.0, late=0.01), piece(2.91, 0.01, 0.1) | {"ahead": 0.005},
+                          piece(3.01, 0.11, 0.9) | {"ahead": 0.105}]
+    started_late = recording(source, tight[:5] + [piece(2.93, 0.01, 0.1)] + tight[6:])
+    assert assert_played_as_scheduled(started_late, START_S, tight, source, 2.85, 0.5) > 0.99
+    with pytest.raises(AssertionError, match="not what the page scheduled"):
+        assert_played_as_scheduled(started_late, START_S, PIECES, source, 2.85, 0.5)
     # where the recorder missed blocks nothing is compared
     gap = played.copy()
     gap[8000:12000] = 0

@@ -27,7 +27,9 @@ export class SourceAudio {
     this.samplesScheduled = 0;
     // What was scheduled to play, piece by piece, for whoever checks what was heard (the tests, against a
     // recording): {at: context time it starts, pts: the pts it starts at, dur: s, late: s of it not played at its
-    // start because the page came late (a whole piece: dur 0), stop: context time it was stopped (null: not)}.
+    // start because the page came late (a whole piece: dur 0), ahead: s from the context's time then to `at` (the
+    // audio thread starts a piece later than `at` if it hears of it after that), stop: context time it was
+    // stopped (null: not)}.
     this.played = [];
   }
 
@@ -168,14 +170,17 @@ export class SourceAudio {
     this.next = when + dur;
     const soonest = ctx.currentTime + SOONEST_S;
     const pts = c.pts + i0 / c.rate;
-    if (when + dur <= soonest) { this.log({ at: when, pts, dur: 0, late: dur, stop: null }); return; }  // past
+    if (when + dur <= soonest) {  // already past
+      this.log({ at: when, pts, dur: 0, late: dur, ahead: when - ctx.currentTime, stop: null });
+      return;
+    }
     const skip = Math.max(0, soonest - when);
     const src = ctx.createBufferSource();
     src.buffer = c.buffer;
     src.connect(this.gain);
     src.start(when + skip, i0 / c.rate + skip, dur - skip);
     const entry = { src, chunk: c, log: this.log({ at: when + skip, pts: pts + skip, dur: dur - skip, late: skip,
-                                                   stop: null }) };
+                                                   ahead: when + skip - ctx.currentTime, stop: null }) };
     this.playing.push(entry);
     src.onended = () => { const i = this.playing.indexOf(entry); if (i >= 0) this.playing.splice(i, 1); };
     this.samplesScheduled += Math.round((dur - skip) * c.rate);
