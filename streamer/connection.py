@@ -265,6 +265,7 @@ class Client(Outbox):
         except P.ProtocolError as e:  # bad_audio
             self.act(machine.handle(S.Failed(e)))
             return
+        self.account.audio_s += len(x) / decode[0].fmt.rate  # (its share follows what its audio costs here)
         # the previous session is still finishing (or has just failed, its end not yet told to the machine)
         while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()] or (
                 then and self.source is None):

@@ -6,7 +6,14 @@ a second of 16 kHz PCM16 to take in (~30 ms of CPU against ~0.3 ms). Every job o
 - `FairWorker` runs the job of the account that has used the thread least first (start-time fair queueing on
   that CPU time), so a real-time talker's small jobs never queue behind a fast sender's big ones;
 - `ComputeBudget` turns an account's CPU time into how long its socket is not read (TCP back pressure) once it
-  uses more than `share` of the thread, and says when it is over its share (`slow_down`) and back (`resume`).
+  uses more than its share of the thread, and says when it is over its share (`slow_down`) and back (`resume`).
+
+A fixed share cannot say what real time is: 192 kHz stereo in real time takes 0.03-0.06 of the thread on the
+machine this was built on, over 0.1 on a slower or busier one (issue 47: a client paced in real time was told
+`slow_down`). So a client's share is the larger of `INTAKE_SHARE` and `REAL_TIME_HEADROOM` times what a second of
+its own audio has cost it lately (CPU time over audio seconds taken in, measured on this machine as it goes):
+a client sending in real time spends 1/`REAL_TIME_HEADROOM` of its share on any machine that can serve it,
+while one sending faster than that still goes over it, whatever its format costs.
 """
 
 from __future__ import annotations
@@ -19,17 +26,23 @@ from collections import deque
 from concurrent.futures import Executor, Future
 from typing import Callable
 
-__all__ = ["Account", "FairWorker", "ComputeBudget", "submit_for", "INTAKE_SHARE"]
+__all__ = ["Account", "FairWorker", "ComputeBudget", "submit_for", "INTAKE_SHARE", "REAL_TIME_HEADROOM"]
 
-INTAKE_SHARE = 0.1  # of the worker thread, per client: 192 kHz stereo float32 in real time takes 0.03-0.06 here
-INTAKE_BURST_S = 0.25  # CPU seconds a client may take at once before its share holds (~6 s of 192 kHz stereo)
+INTAKE_SHARE = 0.1  # of the worker thread, per client, at least (16 kHz PCM16 in real time takes ~0.0003)
+REAL_TIME_HEADROOM = 1.5  # ...or this many times what its own audio in real time costs here, if more
+INTAKE_BURST_S = 0.25  # CPU seconds a client may take at once before its share holds (~6 s of 192 kHz stereo here)
+INTAKE_BURST_AUDIO_S = 4.0  # ...or what this much of its own audio costs, if more (a slower machine)
+COST_HALF_LIFE_S = 5.0  # how fast the measured cost of a second of its audio follows the machine's load
+COST_MIN_AUDIO_S = 1.0  # recent audio seconds the measured cost needs before it counts (one message says little)
 
 
 class Account:
-    """The worker thread's CPU time spent on one client (`spent_s`), and its place in `FairWorker`'s queue."""
+    """The worker thread's CPU time spent on one client (`spent_s`), the audio it took in (`audio_s`, counted by
+    its owner), and its place in `FairWorker`'s queue."""
 
     def __init__(self):
         self.spent_s = 0.0
+        self.audio_s = 0.0  # seconds of the client's audio taken in (decoded)
         self.jobs: deque[tuple[Future, Callable, tuple, dict]] = deque()  # waiting in a FairWorker
         self.running = False
         self.finish = 0.0  # virtual time its last job ended (FairWorker)
@@ -136,31 +149,57 @@ def submit_for(executor: Executor, account: Account, fn: Callable, /, *args) -> 
 
 
 class ComputeBudget:
-    """A client's share of the worker thread: `share` CPU seconds per second, bursts of `burst_s`, charged with
-    what its `account` spent. Over budget, its socket is read only after `wait_s` (TCP back pressure); it is
-    `over` from the moment it is in debt until the budget has refilled to half (`refilled_in`)."""
+    """A client's share of the worker thread, charged with what its `account` spent: `rate()` CPU seconds per
+    second, bursts of `cap()`. Both grow with what a second of its own audio costs here (`per_audio_s`): the share
+    is at least `headroom` x that cost (real time with room to spare), the burst at least `burst_audio_s` of it.
+    Over budget, its socket is read only after `wait_s` (TCP back pressure); it is `over` from the moment it is in
+    debt until the budget has refilled to half (`refilled_in`)."""
 
-    def __init__(self, account: Account, share: float = INTAKE_SHARE, burst_s: float = INTAKE_BURST_S):
+    def __init__(self, account: Account, share: float = INTAKE_SHARE, burst_s: float = INTAKE_BURST_S,
+                 headroom: float = REAL_TIME_HEADROOM, burst_audio_s: float = INTAKE_BURST_AUDIO_S,
+                 half_life_s: float = COST_HALF_LIFE_S, now: float | None = None):
         self.account, self.share, self.burst_s = account, share, burst_s
-        self.tokens, self.t, self.charged = burst_s, time.monotonic(), 0.0
+        self.headroom, self.burst_audio_s, self.half_life_s = headroom, burst_audio_s, half_life_s
+        self.tokens, self.charged, self.heard = burst_s, 0.0, 0.0
+        self.t = time.monotonic() if now is None else now
+        self.recent_cpu_s = self.recent_audio_s = 0.0  # spent and taken in lately (halved every half_life_s)
         self.over = False
 
+    @property
+    def per_audio_s(self) -> float | None:
+        """CPU seconds a second of its audio has cost lately (None: too little audio lately to say)."""
+        return self.recent_cpu_s / self.recent_audio_s if self.recent_audio_s >= COST_MIN_AUDIO_S else None
+
+    def rate(self) -> float:
+        """Its share now: CPU seconds per second (at most the whole thread)."""
+        cost = self.per_audio_s
+        return self.share if cost is None else max(self.share, min(1.0, self.headroom * cost))
+
+    def cap(self) -> float:
+        """The CPU seconds it may take at once now."""
+        cost = self.per_audio_s
+        return self.burst_s if cost is None else max(self.burst_s, self.burst_audio_s * cost)
+
     def _update(self, now: float) -> None:
-        spent = self.account.spent_s - self.charged
+        spent, audio = self.account.spent_s - self.charged, self.account.audio_s - self.heard
         self.charged += spent
-        self.tokens = min(self.burst_s, self.tokens + (now - self.t) * self.share) - spent
+        self.heard += audio
+        keep = 0.5 ** (max(0.0, now - self.t) / self.half_life_s)
+        self.recent_cpu_s = self.recent_cpu_s * keep + spent
+        self.recent_audio_s = self.recent_audio_s * keep + audio
+        self.tokens = min(self.cap(), self.tokens + (now - self.t) * self.rate()) - spent
         self.t = now
         if self.tokens < 0:
             self.over = True
-        elif self.tokens >= self.burst_s / 2:
+        elif self.tokens >= self.cap() / 2:
             self.over = False
 
     def wait_s(self, now: float) -> float:
         """How long to leave the socket unread for what was spent so far."""
         self._update(now)
-        return max(0.0, -self.tokens / self.share)
+        return max(0.0, -self.tokens / self.rate())
 
     def refilled_in(self, now: float) -> float:
         """Seconds until it is no longer `over` if it spends nothing more (0: not over now)."""
         self._update(now)
-        return max(0.0, (self.burst_s / 2 - self.tokens) / self.share) if self.over else 0.0
+        return max(0.0, (self.cap() / 2 - self.tokens) / self.rate()) if self.over else 0.0

@@ -20,7 +20,8 @@ from helpers.intake_load import talker_beside_flood
 from helpers.serve import serve
 from helpers.ws import make_server, recv_json
 from streamer import protocol as P
-from streamer.intake import INTAKE_BURST_S, INTAKE_SHARE, Account, ComputeBudget, FairWorker, submit_for
+from streamer.intake import (INTAKE_BURST_AUDIO_S, INTAKE_BURST_S, INTAKE_SHARE, REAL_TIME_HEADROOM, Account,
+                            ComputeBudget, FairWorker, submit_for)
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -127,6 +128,56 @@ def test_a_client_over_its_share_waits_in_proportion_and_is_within_it_again_once
     assert budget.wait_s(now[0]) == 0.0 and budget.tokens == 0.5  # (no credit saved beyond the burst)
 
 
+def stream(budget: ComputeBudget, now: list[float], seconds: float, chunk_s: float, cost_per_audio_s, speed: float = 1.0,
+           stall_every_s: float = 0.0, stall_s: float = 0.0) -> dict:
+    """A client sending `chunk_s` messages at `speed` x real time on a fake clock (`now`), each costing
+    cost_per_audio_s(t) CPU seconds per audio second, its socket read as the connection does (after `wait_s`);
+    every `stall_every_s` the network holds its messages for `stall_s`, then they come at once. Returns how often
+    it was `over`, the audio taken in and the time it took."""
+    t0, account, over, sent = now[0], budget.account, 0, 0.0
+    while sent < seconds:
+        u = sent / speed  # when the client sent this message
+        if stall_every_s and u % stall_every_s >= stall_every_s - stall_s:
+            u = (u // stall_every_s + 1) * stall_every_s  # held, then all at once
+        now[0] = max(now[0], t0 + u)
+        account.spent_s += chunk_s * cost_per_audio_s(now[0] - t0)
+        account.audio_s += chunk_s
+        sent += chunk_s
+        now[0] += budget.wait_s(now[0])
+        over += budget.over
+    return {"over": over, "audio_s": sent, "took_s": now[0] - t0}
+
+
+def test_a_client_in_real_time_is_within_its_share_whatever_its_audio_costs_on_this_machine():
+    """Issue 47: 192 kHz stereo float32 in real time takes 0.03-0.06 of the thread on one machine and more than
+    the fixed 0.1 once was on a slower or busier one. Its share follows what its own audio costs here: sent in
+    real time (with the network holding it 1 s in 3), it is never over, at 0.05 or 0.3 of the thread, or when the
+    machine grows twice as slow under it; a fixed share (no headroom) would have slowed the slow machine's."""
+    for cost in (lambda t: 0.05, lambda t: 0.3, lambda t: 0.1 if t < 20 else 0.2):
+        now = [0.0]
+        r = stream(ComputeBudget(Account(), now=now[0]), now, 60.0, 0.05, cost, stall_every_s=3.0, stall_s=1.0)
+        assert r["over"] == 0 and r["took_s"] == pytest.approx(60.0, abs=1.0), r
+    now = [0.0]
+    fixed = ComputeBudget(Account(), headroom=0.0, burst_audio_s=0.0, now=now[0])
+    assert stream(fixed, now, 60.0, 0.05, lambda t: 0.3)["over"] > 0  # what a slower machine's client was told
+
+
+def test_a_client_faster_than_real_time_is_read_at_its_share_whatever_its_audio_costs():
+    """Sent as fast as it is read (10x real time), a client that is dear to take in is read at REAL_TIME_HEADROOM x
+    real time once its burst is spent, on a fast machine or a slow one; one that is cheap (16 kHz PCM16) at
+    INTAKE_SHARE over its cost, far faster, as before."""
+    for cost in (0.1, 0.3):
+        now = [0.0]
+        budget = ComputeBudget(Account(), now=now[0])
+        r = stream(budget, now, 300.0, 0.5, lambda t: cost, speed=10.0)
+        burst_audio_s = max(INTAKE_BURST_S / cost, INTAKE_BURST_AUDIO_S)
+        assert r["over"] > 0 and budget.over
+        assert (r["audio_s"] - burst_audio_s) / r["took_s"] == pytest.approx(REAL_TIME_HEADROOM, rel=0.05), r
+    now = [0.0]
+    r = stream(ComputeBudget(Account(), now=now[0]), now, 300.0, 0.5, lambda t: 0.001, speed=10.0)
+    assert r["over"] == 0 and r["took_s"] == pytest.approx(30.0, abs=0.5), r
+
+
 class CostlyWorker(FairWorker):
     """Decoding a client's audio costs `cost_s` of CPU per message more (on any machine: CPU time, not a sleep)."""
 
@@ -141,7 +192,8 @@ class CostlyWorker(FairWorker):
 
 
 def test_a_client_over_its_share_is_read_more_slowly_told_slow_down_and_then_resume(bundle):
-    """Each message costs 40 ms of the worker's CPU: after its burst (0.25 s) the client is over its share (0.1 of
+    """Each message (1 s of audio) costs 40 ms of the worker's CPU more, sent as fast as it is read: after its burst
+    the client is over its share (the larger of INTAKE_SHARE and REAL_TIME_HEADROOM x what its audio costs: 0.1 of
     the thread), told `slow_down` once, read at ~2.5 messages a second, and told `resume` once its budget has
     refilled after it stopped; every frame of its audio still comes, then `end`."""
     from websockets.asyncio.client import connect
@@ -157,7 +209,7 @@ def test_a_client_over_its_share_is_read_more_slowly_told_slow_down_and_then_res
                 assert (await recv_json(ws))["type"] == "hello"
                 await ws.send(json.dumps({"type": "hello", "audio": {"rate": 16000, "format": "float32"}}))
                 t0 = time.monotonic()
-                speech = (0.1 * np.sin(np.arange(1600) * 0.05)).astype("<f4").tobytes()  # 0.1 s
+                speech = (0.1 * np.sin(np.arange(16000) * 0.05)).astype("<f4").tobytes()  # 1 s
                 for _ in range(n):
                     await ws.send(speech)
                 await ws.send(json.dumps({"type": "audio_end"}))
@@ -177,5 +229,7 @@ def test_a_client_over_its_share_is_read_more_slowly_told_slow_down_and_then_res
     assert [m.get("code", m["type"]) for m in told] == ["slow_down", "resume"], told
     assert "16000 Hz" in told[0]["message"]
     assert frames == end["frames"] > 0
-    # its messages were read at its share: (n x 40 ms - the 0.25 s burst) / 0.1 of the thread, at least
-    assert took_s >= 0.8 * (n * cost_s - INTAKE_BURST_S) / INTAKE_SHARE, took_s
+    # its messages were read at its share: (n x 40 ms - its burst) / its share of the thread, at least
+    share = max(INTAKE_SHARE, REAL_TIME_HEADROOM * cost_s)
+    burst = max(INTAKE_BURST_S, INTAKE_BURST_AUDIO_S * cost_s)
+    assert took_s >= 0.8 * (n * cost_s - burst) / share, took_s

@@ -10,6 +10,7 @@ const RESYNC_S = 0.03;
 const SOONEST_S = 0.005;  // a piece starts no sooner than this after the context's current time
 const LEAD_SPARE_S = 0.02; // the page's time from reading the clock to scheduling the sound (leadS)
 const KEEP_S = 10;     // audio kept after its time (for rescheduling after a clock move), seconds
+const PLAYED_KEPT = 4096; // pieces kept in `played` (about two minutes of sound)
 
 export class SourceAudio {
   constructor() {
@@ -24,6 +25,12 @@ export class SourceAudio {
     this.paused = false;
     this.chunksReceived = 0;
     this.samplesScheduled = 0;
+    // What was scheduled to play, piece by piece, for whoever checks what was heard (the tests, against a
+    // recording): {at: context time it starts, pts: the pts it starts at, dur: s, late: s of it not played at its
+    // start because the page came late (a whole piece: dur 0), ahead: s from the context's time then to `at` (the
+    // audio thread starts a piece later than `at` if it hears of it after that), stop: context time it was
+    // stopped (null: not)}.
+    this.played = [];
   }
 
   /** The AudioContext, created on first use (browsers start it suspended without a user gesture). */
@@ -81,7 +88,12 @@ export class SourceAudio {
   }
 
   stopAll() {
-    for (const p of this.playing) { try { p.src.stop(); } catch (e) { /* already ended */ } p.src.disconnect(); }
+    const t = this.ctx ? this.ctx.currentTime : null;
+    for (const p of this.playing) {
+      try { p.src.stop(); } catch (e) { /* already ended */ }
+      p.src.disconnect();
+      if (p.log.stop === null && t < p.log.at + p.log.dur) p.log.stop = t;
+    }
     this.playing = [];
     this.next = null;
     this.until = null;
@@ -157,15 +169,26 @@ export class SourceAudio {
     const dur = (i1 - i0) / c.rate;
     this.next = when + dur;
     const soonest = ctx.currentTime + SOONEST_S;
-    if (when + dur <= soonest) return;  // already past
+    const pts = c.pts + i0 / c.rate;
+    if (when + dur <= soonest) {  // already past
+      this.log({ at: when, pts, dur: 0, late: dur, ahead: when - ctx.currentTime, stop: null });
+      return;
+    }
     const skip = Math.max(0, soonest - when);
     const src = ctx.createBufferSource();
     src.buffer = c.buffer;
     src.connect(this.gain);
     src.start(when + skip, i0 / c.rate + skip, dur - skip);
-    const entry = { src, chunk: c };
+    const entry = { src, chunk: c, log: this.log({ at: when + skip, pts: pts + skip, dur: dur - skip, late: skip,
+                                                   ahead: when + skip - ctx.currentTime, stop: null }) };
     this.playing.push(entry);
     src.onended = () => { const i = this.playing.indexOf(entry); if (i >= 0) this.playing.splice(i, 1); };
     this.samplesScheduled += Math.round((dur - skip) * c.rate);
+  }
+
+  log(piece) {
+    this.played.push(piece);
+    if (this.played.length > PLAYED_KEPT) this.played.splice(0, this.played.length - PLAYED_KEPT);
+    return piece;
   }
 }

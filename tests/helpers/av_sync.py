@@ -1,6 +1,7 @@
 """What a page plays against what it shows: a recorder on the page's sound output, the frame on screen with
-the audio clock at that moment, and the comparisons of the recorded sound with the source (where the sound
-starts, the source time heard at each read, late arrivals a playout clock cannot hide)."""
+the audio clock at that moment, what the page scheduled to play, and the comparisons of the recorded sound with
+them (the sound is what the page scheduled of the source, the source time heard at each read, late arrivals a
+playout clock cannot hide)."""
 
 from __future__ import annotations
 
@@ -124,62 +125,82 @@ def late_arrivals(log, margin_s: float, window_s: float = 10.0, apart_s: float =
     return events
 
 
-def without_holds(x: np.ndarray, n: int, holds: int, quiet: float = 1e-4, min_run: int = 320) -> np.ndarray:
-    """The first `n` samples of `x` (16 kHz) with its first `holds` pauses cut out: runs of digital silence of at
-    least `min_run` samples (20 ms), where the page's clock held at its newest frame, playing nothing, to resume
-    the sound where it stopped (av-clock.js). Speech never falls that silent within it (the test clip's first
-    pause is 0.45 s in)."""
-    out, i = [], 0
-    while len(out) < n and i < len(x):
-        want = n - len(out)
-        view = np.abs(x[i : i + want + min_run]) < quiet  # (a pause that begins near the end shows whole)
-        runs = np.flatnonzero(np.convolve(view, np.ones(min_run), "valid") >= min_run) if holds else []
-        start = int(runs[0]) if len(runs) and runs[0] < want else want
-        out.extend(x[i : i + start])
-        if start == want:
-            break
-        holds, i = holds - 1, i + start + min_run
-        while i < len(x) and abs(x[i]) < quiet:
-            i += 1
-    return np.asarray(out, dtype=x.dtype)
+# What the page scheduled to play, piece by piece (source-audio.js `played`): where each piece starts on the
+# audio context's clock, the pts it starts at, how long it plays, what of it the page skipped because it came
+# late, and when it was stopped.
+PLAYED = "window.dimgestor.sourceAudio.played"
+STOP_TAKES_S = 0.03  # how long after the page's `stop()` (its context time then) the sound may still play
+START_TAKES_S = 0.1  # a piece scheduled less than this ahead may start later than the page asked: the audio
+#                      thread hears of it late on a loaded machine (seen: 50 ms asked 5 ms ahead, as 0.86 correlation)
 
 
-def assert_sound_starts_at_source_start(played16: np.ndarray, after: int, source: np.ndarray, clock: dict,
-                                        missed: list[tuple[int, int]] = ()) -> int:
-    """The first sound in `played16` (16 kHz) from index `after` on is the source from its first sample: strong
-    correlation, and the source's start lands where the sound starts. Returns that sound's index. `clock`: the
-    page's clock counters; a hold it counted (an underrun: frames came late on a loaded machine) may pause the
-    sound, which then resumes where it stopped, so that many pauses are cut out of what is compared. A hold or a
-    catch-up it counted (its sound skipped ahead) or a stretch the recorder missed (`missed`, from missed16) may
-    cut into the first 100 ms anywhere: then the first 25 ms alone are compared if the 100 ms do not match."""
-    onset = after + int(np.argmax(np.abs(played16[after:]) > 0.01))
-    assert np.abs(played16[onset]) > 0.01, f"no sound after {after / 16000:.2f} s of the recording; {clock}"
-    assert onset > 0, "the sound had started before the recording (the page played before its first frame?)"
+def streams(pieces: list[dict]) -> list[list[dict]]:
+    """The pieces split where the pts starts over (a new stream: a second drop)."""
+    out: list[list[dict]] = []
+    for p in pieces:
+        if not out or p["pts"] - p["late"] < out[-1][-1]["pts"] + out[-1][-1]["dur"] - 1.0:  # (as source-audio.js)
+            out.append([])
+        out[-1].append(p)
+    return out
 
-    def best(n: int):
-        seg = without_holds(played16[onset:], n, clock["underruns"])
-        window = source[: 2 * n]
-        energy = np.convolve(window**2, np.ones(n), "valid")  # |source[k:k+n]|^2 for every lag k
-        corr = np.correlate(window, seg, mode="valid") / (np.linalg.norm(seg) * np.sqrt(energy) + 1e-9)
-        return seg, energy, corr, int(np.argmax(corr))
 
-    seg, energy, corr, lag = best(1600)  # the first 100 ms of sound
-    print(f"sound at {onset / 16000:.3f} s: source from {lag / 16000:.3f} s (correlation {corr[lag]:.3f})")
-    # (a hold whose pause is not cut whole, fading out and in, leaves a glitch in the 100 ms too: seen once, an
-    # underrun, no catch-up, the sound at 0.049 s of the file with correlation 0.76)
-    cut = (clock.get("catchUps", 0) + clock["underruns"] > 0
-           or any(a < onset + 3200 and b > onset for a, b in missed))
-    if corr[lag] <= 0.9 and cut:
-        seg, energy, corr, lag = best(400)
-        print(f"  (a hold, a catch-up or a missed stretch may cut into it: its first 25 ms: source from "
-              f"{lag / 16000:.3f} s, correlation {corr[lag]:.3f}; recorder missed "
-              f"{[(a / 16000, b / 16000) for a, b in missed]})")
-    assert corr[lag] > 0.9, f"the played sound is not the source (best correlation {corr[lag]:.2f}); {clock}"
-    # Where the played sound first crosses 0.01 depends on the playback level (the clip fades in over ~50 ms):
-    # the source sample that crosses the same level, scaled by the measured gain, is where the sound must start.
-    gain = np.linalg.norm(seg) / (np.sqrt(energy[lag]) + 1e-9)
-    expected = int(np.argmax(np.abs(source) > 0.01 / max(gain, 1e-6)))
-    assert abs(lag - expected) < 0.015 * 16000, (
-        f"the sound started {lag / 16000:.3f} s into the source, where the source reaches the played level at "
-        f"{expected / 16000:.3f} s (gain {gain:.2f}): not at its start; {clock}")
-    return onset
+def as_scheduled(pieces: list[dict], start_s: float, n: int, source: np.ndarray, wrap: bool = False,
+                 edge: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the pieces make at 16 kHz over `n` samples of a recording whose first sample is at context time
+    `start_s`, where that is certain: not within `edge` samples of a piece's start or end (the output
+    interpolates across them), nor where a stopped piece may still play (STOP_TAKES_S after the page's stop), nor
+    where a piece scheduled less than START_TAKES_S ahead may play (it may start that much later); and where a
+    piece plays."""
+    expected, unsure, covered = np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool)
+    for p in pieces:
+        if p["dur"] <= 0:
+            continue
+        a = round((p["at"] - start_s) * 16000)
+        b = round((p["at"] + p["dur"] - start_s) * 16000)
+        if p["stop"] is not None and p["stop"] < p["at"] + p["dur"]:
+            stop = round((p["stop"] - start_s) * 16000)
+            b = min(b, stop + round(STOP_TAKES_S * 16000))
+            unsure[max(0, stop) : max(0, b)] = True
+        if b <= max(a, 0) or a >= n:
+            continue
+        k = round(p["pts"] * 16000)
+        idx = np.arange(k, k + b - a)
+        piece = np.take(source, idx, mode="wrap") if wrap else np.where(idx < len(source),
+                                                                       source[np.clip(idx, 0, len(source) - 1)], 0)
+        lo, hi = max(a, 0), min(b, n)
+        expected[lo:hi] += piece[lo - a : hi - a]
+        covered[lo:hi] = True
+        if p.get("ahead", np.inf) < START_TAKES_S:
+            unsure[lo : max(0, b + round(START_TAKES_S * 16000))] = True
+        unsure[max(0, a - edge) : max(0, a + edge)] = True
+        unsure[max(0, b - edge) : max(0, b + edge)] = True
+    return expected, ~unsure, covered
+
+
+def assert_played_as_scheduled(played16: np.ndarray, start_s: float, pieces: list[dict], source: np.ndarray,
+                               t0: float, seconds: float, missed: list[tuple[int, int]] = (), wrap: bool = False
+                               ) -> float:
+    """What the recording holds from context time t0 on, until `seconds` of scheduled sound have been compared
+    (or to its end), is what the page scheduled there: the source's audio at each piece's pts, at the piece's
+    time, and silence between pieces (the page's holds, its catch-ups and what it skipped for coming late are all
+    in `pieces`). Compared where that is certain (as_scheduled) and the recorder got every block (`missed`, from
+    missed16). Returns the correlation."""
+    expected, sure, covered = as_scheduled(pieces, start_s, len(played16), source, wrap)
+    for m0, m1 in missed:
+        sure[max(0, m0 - 128) : max(0, m1 + 128)] = False
+    a = max(0, round((t0 - start_s) * 16000))
+    counted = np.cumsum(sure[a:] & covered[a:])
+    b = a + (int(np.searchsorted(counted, round(seconds * 16000))) + 1 if counted[-1] >= seconds * 16000 else
+             len(counted))
+    x, e = played16[a:b][sure[a:b]], expected[a:b][sure[a:b]]
+    t1 = start_s + b / 16000
+    assert counted[b - a - 1] >= min(seconds * 16000, 0.25 * (b - a)), (
+        f"too little of {t0:.2f}-{t1:.2f} s was recorded and certain to compare ({counted[b - a - 1] / 16000:.2f} s)")
+    assert np.linalg.norm(e) > 0, f"the page scheduled no sound at {t0:.2f}-{t1:.2f} s"
+    corr = float(np.dot(x, e) / (np.linalg.norm(x) * np.linalg.norm(e) + 1e-9))
+    gain = float(np.dot(x, e) / (np.dot(e, e) + 1e-9))
+    print(f"played {t0 - start_s:.3f}-{t1 - start_s:.3f} s of the recording: as scheduled with "
+          f"correlation {corr:.3f}, gain {gain:.2f}, over {len(x) / 16000:.2f} s")
+    assert corr > 0.9 and 0.5 < gain < 2.0, (
+        f"the played sound is not what the page scheduled (correlation {corr:.2f}, gain {gain:.2f})")
+    return corr

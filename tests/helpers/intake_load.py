@@ -110,7 +110,10 @@ class PacedHighRate:
                 await c.send(chunk)
                 k += 1
                 await asyncio.sleep(max(0.0, t0 + k * CHUNK_S - time.monotonic()))
-            reader.cancel()
+            # its frames are read until the close is answered: a client that stopped reading them would hold up
+            # the server's close behind its own frames (a busy machine has many on their way: > 10 s once)
+            await c.close()
+            await asyncio.gather(reader, return_exceptions=True)
 
 
 async def _flooder(url: str, stop: asyncio.Event, message: bytes, counts, k: int, connected) -> None:
