@@ -357,20 +357,15 @@ class StreamBatcher(_Threads):
                 backlog += len(j.samples)
         ids = {id(j) for j in taken}
         self._pushes = [j for j in self._pushes if id(j) not in ids]
-        # Finishes (solo jobs) of real-time streams all run now; of streams ahead of real time (rank > 0: a client
-        # that sends audio faster, e.g. short sessions back to back), one a cycle, the least ahead first, so a
-        # real-time window waits behind one of them at most (a storm of 30 such clients doubled a talker's latency)
-        jobs = [j for j in self._jobs if j.rank <= 0]
-        ahead = sorted((j for j in self._jobs if j.rank > 0), key=lambda j: j.rank)[:1]
-        self._jobs = deque(j for j in self._jobs if j.rank > 0 and j not in ahead)
-        return taken, [*jobs, *ahead]
+        jobs, self._jobs = list(self._jobs), deque()
+        return taken, jobs
 
     def _run(self, cycle: tuple[list[_PushJob], list[_Job]]) -> None:
         pushes, jobs = cycle
         pushes = [j for j in pushes if j.future.set_running_or_notify_cancel()]
         if pushes:  # (a cycle is all real time or all backlog: `_take`)
             self._observed(pushes[0].rank <= 0, len(pushes), lambda: self._batch(pushes))
-        for job in jobs:  # (a stream's finish, or the server's own job)
+        for job in jobs:  # (a stream's finish: real-time work, whatever its rank)
             self._observed(True, 0, lambda: _settle(job.future, job.fn, job.args, job.kwargs))
 
     def _batch(self, pushes: list[_PushJob]) -> None:

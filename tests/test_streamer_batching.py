@@ -169,32 +169,3 @@ def test_batcher_isolates_a_failing_stream(bundle):
         batcher.shutdown()
     with pytest.raises(RuntimeError, match="shutdown"):
         batcher.submit_push(good, audio)
-
-
-def test_finishes_of_streams_ahead_of_real_time_run_one_a_cycle_so_a_real_time_window_waits_behind_one(bundle):
-    """Finishes (solo jobs) of five streams ahead of real time (rank > 0: e.g. a storm of short sessions sent
-    back to back) and of one real-time stream: the real-time one runs in the next cycle, the others one a cycle,
-    least ahead first, so a real-time window queued meanwhile overtakes those still waiting (before: it waited
-    for all five, and 30 such clients doubled a talker's latency)."""
-    batcher = StreamBatcher()
-    gate, order, live = threading.Event(), [], []
-    session = Session.from_bundle(bundle, steps=2, seed=0, scheduler=batcher)
-
-    def finish(tag):
-        order.append(tag)
-        if tag == 1.2:  # the first of them runs: a talker's window comes now
-            live.append(batcher.submit_push(session, synthetic_speech(0.1, seed=4), rank=0.0))
-            live[0].add_done_callback(lambda _: order.append("live"))
-
-    try:
-        batcher.submit(gate.wait, 30)
-        done = [batcher.submit_ranked(rank, finish, rank) for rank in (3.0, 1.5, 2.5, 1.2, 2.0)]
-        done.append(batcher.submit_ranked(-0.5, finish, "real time"))
-        gate.set()
-        for f in done:
-            f.result(60)
-        live[0].result(60)
-        assert order == ["real time", 1.2, "live", 1.5, 2.0, 2.5, 3.0], order
-    finally:
-        gate.set()
-        batcher.shutdown()
