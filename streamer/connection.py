@@ -65,7 +65,8 @@ class Client(Outbox):
         self.frames_queued = 0  # its session's frames in its queue (or sent): a session cut short ends at this
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
         self.closed = False  # the server closed it (an unsupported protocol)
-        self._saving: set[asyncio.Task] = set()  # its periodic saves on their way to the store
+        self._saving: set[asyncio.Task] = set()  # its store calls under way (periodic saves, forget, release)
+        self._periodic: set[asyncio.Task] = set()  # its periodic saves under way (a session's `end` waits for them)
         peer = ws.remote_address
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.errors = ErrorLog(f"client {self.who}")
@@ -309,7 +310,13 @@ class Client(Outbox):
 
         async def run() -> S.SessionEnded:
             try:
-                return S.SessionEnded(await session.run(source, emit), handed_over=session.handover)
+                frames = await session.run(source, emit)
+                if self._periodic and not session.handover:
+                    # a save under way is answered before `end` (its `session_saved`, or its refusal counted and
+                    # said), so the `Forget` at the end follows it; within the save's deadline (store_link.py).
+                    # (wait, not gather: a client that leaves cancels this task, never the saves)
+                    await asyncio.wait(set(self._periodic))
+                return S.SessionEnded(frames, handed_over=session.handover)
             except asyncio.CancelledError:
                 raise
             except Exception as e:  # the model failed on this audio: the client is told, the server stays up
@@ -411,8 +418,9 @@ class Client(Outbox):
             self.act(m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames)))
 
         task = loop.create_task(store())
-        self._saving.add(task)
-        task.add_done_callback(self._saving.discard)
+        for tasks in (self._saving, self._periodic):
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
 
     async def _put(self, token: str, data: bytes, live: bool) -> None:
         """A state to the store, counted (streamer/metrics.py); raises what the store raises (StateRefused: counted

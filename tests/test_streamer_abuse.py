@@ -108,9 +108,14 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
         return span
 
     def within(quiet, span):
-        # 2x the quiet latency, plus 25 ms for what a shared 2-core machine's scheduler adds to a ~60 ms median
-        # on its own (seen: 124 ms against 2 x 58 ms under a load average of 8, with no abuser effect elsewhere)
-        return watcher.max_gap(*span) < 0.5 and talker.median(*span) <= 2 * talker.median(*quiet) + 0.025
+        # The watcher's largest gap: under 0.5 s (~0.22 quiet here: a 200 ms window's frames come together), or
+        # under 2x the quiet phase's on a machine that stretches it by itself (beside two busy loops, quiet phases
+        # of one run gave 0.25-0.48 s with no abuser, and odd_rates 0.30-0.33 s between them).
+        # The talker: 2x the quiet latency, plus 25 ms for what a shared 2-core machine's scheduler adds to a
+        # ~60 ms median on its own (seen: 124 ms against 2 x 58 ms under a load average of 8, with no abuser
+        # effect elsewhere)
+        return (watcher.max_gap(*span) < max(0.5, 2 * watcher.max_gap(*quiet))
+                and talker.median(*span) <= 2 * talker.median(*quiet) + 0.025)
 
     async def run():
         stop = asyncio.Event()
@@ -136,10 +141,12 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
     s.proc.terminate()
     assert s.finish(10) == 0, s.output
     report = {
-        name: [(round(talker.median(*q), 3), round(watcher.max_gap(*a), 3), round(talker.median(*a), 3)) for q, a in pairs]
+        name: [(round(watcher.max_gap(*q), 3), round(talker.median(*q), 3), round(watcher.max_gap(*a), 3),
+                round(talker.median(*a), 3)) for q, a in pairs]
         for name, pairs in trials.items()
     }
-    print("per pattern and trial: quiet median talker latency s, max watcher gap s, median talker latency s:", report)
+    print("per pattern and trial: quiet max watcher gap s, quiet median talker latency s; abused: max watcher gap "
+          "s, median talker latency s:", report)
     print("server output:\n" + s.output)
     for name, pairs in trials.items():
         assert any(within(*pair) for pair in pairs), f"{name} hurt the bystanders in every trial: {report[name]} ({report})"

@@ -613,10 +613,17 @@ def test_a_state_over_the_size_cap_is_not_saved_counted_and_the_session_goes_on(
                 (frames if msg["type"] == "frame" else saved).append(msg)
             return frames, [m for m in saved if m["type"] == "session_saved"], msg
 
-    store = MemoryStore(max_bytes=1000)
+    class SlowStore(MemoryStore):
+        """A store across a network: its answer to a put comes after the session's last frames are made."""
+
+        def put(self, *args, **kw):
+            time.sleep(0.2)  # (well within the save's deadline, store_link.SAVE_DEADLINE_S)
+            return super().put(*args, **kw)
+
+    store = SlowStore(max_bytes=1000)
     with running(make_server(bundle, store=store, save_every_s=0.5)) as server:
         frames, saved, end = asyncio.run(talk(f"ws://127.0.0.1:{server.port}/"))
-        metrics = server.metrics.exposition()[0].decode()
+        metrics = server.metrics.exposition()[0].decode()  # (after `end`: a save under way is answered before it)
     assert not saved and end["frames"] == len(frames) == 2 * 20
     assert _metric(metrics, 'dimgestor_state_puts_refused_total{reason="too_large"}') >= 1
     assert _metric(metrics, "dimgestor_states_put_total") == 0 and not [k for k in store.keys() if ":state:" in k]
