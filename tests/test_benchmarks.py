@@ -141,7 +141,8 @@ def test_guidance_benchmark_writes_its_schema(tmp_path):
 
 
 def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
-    """Tiny sizes: the world is made, --set and --train-args reach dimgestor train, every checkpoint is scored."""
+    """Tiny sizes: the world is made, --set and --train-args reach dimgestor train, every checkpoint is scored.
+    (--no-augment: under 30 min of data train augments every clip by default, 6x the run's training time here.)"""
     pytest.importorskip("matplotlib")
     import shutil
 
@@ -149,7 +150,7 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
         pytest.skip("espeak-ng is not installed (Debian: apt-get install espeak-ng)")
     out = tmp_path / "voice_world.json"
     run("voice_world.py", "--minutes", "0.25", "--heldout-minutes", "0.7", "--steps", "4", "--ckpt-every", "2",
-        "--preset", "tiny", "--set", "n_mels=16", "--train-args", "--seed 3 --no-mirror",
+        "--preset", "tiny", "--set", "n_mels=16", "--train-args", "--seed 3 --no-mirror --no-augment",
         "--work", str(tmp_path / "work"), "--out", str(out))
     r = json.loads(out.read_text())
     rule, shuffled = r["truth"]["rule"], r["truth"]["rule_shuffled_audio"]
@@ -159,10 +160,12 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
     assert sorted(r["results"]["0.25"], key=int) == ["2", "4"]
     row = r["results"]["0.25"]["4"]
     assert all(finite(row[k]) for k in ("contrast", "stroke_margin", "coupling_margin", "stroke_margin_vs_rule"))
-    assert isinstance(row["passes"], bool) and r["set"] == ["n_mels=16"] and r["train_args"] == "--seed 3 --no-mirror"
+    assert isinstance(row["passes"], bool) and r["set"] == ["n_mels=16"]
+    assert r["train_args"] == "--seed 3 --no-mirror --no-augment"
     run_dir = tmp_path / "work" / "run_0.25min_n_mels=16"
     meta = json.loads((run_dir / "ckpt_0000004" / "config.json").read_text())
     assert meta["model"]["n_mels"] == 16 and meta["info"]["options"]["seed"] == 3
+    assert meta["info"]["options"]["augment"] is False
     assert (tmp_path / "voice_world.png").is_file()
 
 
