@@ -11,11 +11,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import scipy.linalg
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from scipy.signal import argrelextrema
 
 from dimgestor.audio import SAMPLE_RATE
 
@@ -34,6 +32,8 @@ def gaussian_stats(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _sqrtm_product(sigma1: np.ndarray, sigma2: np.ndarray, eps: float) -> np.ndarray:
     """sqrt(sigma1 @ sigma2), retried with eps * I added to both when the product is near singular."""
+    import scipy.linalg  # (scipy here and below, not at the top: every `dimgestor` command imports this module)
+
     with warnings.catch_warnings(record=True) as caught:  # scipy warns when the product is singular
         warnings.simplefilter("always", scipy.linalg.LinAlgWarning)
         covmean = scipy.linalg.sqrtm(sigma1 @ sigma2)
@@ -260,6 +260,8 @@ def motion_beats(positions: np.ndarray, fps: float, threshold: float = 0.1, min_
     Normalizing by the clip mean makes the threshold unit-free (cm or m); it drops the near-zero minima
     of a body at rest, which are jitter rather than beats (as BEAT's velocity mask does).
     """
+    from scipy.signal import argrelextrema
+
     speed = joint_speed(positions, fps).mean(axis=1)
     if speed.mean() <= 1e-12:
         return np.zeros(0)  # a still body has no beats
