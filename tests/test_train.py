@@ -30,16 +30,17 @@ def _log(run):
 
 
 def test_training_lowers_the_validation_loss(data, tmp_path):
-    last = train(_opts(data, tmp_path / "run", tmp_path / "cache", max_steps=300, valid_every=100, ckpt_every=300))
+    last = train(_opts(data, tmp_path / "run", tmp_path / "cache", max_steps=100, valid_every=50, ckpt_every=100))
     log = _log(tmp_path / "run")
-    assert [r["step"] for r in log] == [0, 100, 200, 300]
+    assert [r["step"] for r in log] == [0, 50, 100]
     # the held-out tail of the synthetic clip moves more than the training part, so the floor is well above 0
+    # (seeds 0, 1, 2 reach 0.55-0.57 of the start at step 100, 0.43-0.44 at step 300)
     assert log[-1]["valid_loss"] < 0.85 * log[0]["valid_loss"], log
-    assert last == tmp_path / "run" / "ckpt_0000300" == latest_checkpoint(tmp_path / "run")
+    assert last == tmp_path / "run" / "ckpt_0000100" == latest_checkpoint(tmp_path / "run")
 
     bundle = load_checkpoint(tmp_path / "run")  # a run folder resolves to its latest checkpoint
     assert bundle.path == last and bundle.config.motion_dim == bundle.feature_spec.dim == len(bundle.mean)
-    assert bundle.skeleton.names[0] and bundle.info["step"] == 300
+    assert bundle.skeleton.names[0] and bundle.info["step"] == 100
     audio = np.random.default_rng(0).standard_normal(16000).astype(np.float32) * 0.1
     feats = bundle.generate(audio, steps=4)
     assert feats.shape == (20, bundle.config.motion_dim) and np.isfinite(feats).all()
