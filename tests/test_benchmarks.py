@@ -245,7 +245,7 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     """Both code roots are this checkout here: the smoke run checks the schema, not a speed-up."""
     out = tmp_path / "bc.json"
     run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "1", "--batch", "2",
-        "--rounds", "2", "--repeats", "1", "--streams-s", "1.5", "--streams-max", "2", "--trial-streams", "2",
+        "--rounds", "2", "--repeats", "1", "--streams-s", "1", "--streams-max", "2", "--trial-streams", "2",
         "--sections", "profile", "streams", "trials", "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
