@@ -22,7 +22,8 @@ def run(tmp_path_factory):
     make_synthetic_pair(root / "data", "a", seconds=12.0, seed=0)
     rc = main(["train", "--data", str(root / "data"), "--preset", "tiny", "--out", str(root / "run"),
                "--max-steps", "6", "--batch-size", "2", "--window-s", "2", "--ckpt-every", "3", "--valid-every", "3",
-               "--cache-dir", str(root / "cache"), "--no-progress", "--no-augment", "--set", "hidden=48", "--set", "schedule=sqrt_linear"])
+               "--cache-dir", str(root / "cache"), "--no-progress", "--no-augment", "--set", "hidden=48",
+               "--set", "schedule=sqrt_linear"])
     assert rc == 0
     return root
 

@@ -68,8 +68,9 @@ def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordin
 
 COMPONENT_SOURCES = ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp",
                      "DimgestorAudioFlow.cpp")
+# as the component is built: -Werror, no exceptions
 COMPONENT_FLAGS = ("-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions",
-                   f"-I{UNREAL / 'tests' / 'stubs'}", f"-I{UNREAL}")  # as the component is built: -Werror, no exceptions
+                   f"-I{UNREAL / 'tests' / 'stubs'}", f"-I{UNREAL}")
 
 
 @pytest.fixture(scope="module")

@@ -237,7 +237,8 @@ def test_resume_is_exact_with_condition_dropout(runs):
     for k in a:
         assert torch.allclose(a[k], b[k], atol=1e-6), k
     # and the dropout did change the training (same seed, batches, t and noise otherwise)
-    p, q = load_checkpoint(runs["part_half"]).model.state_dict(), load_checkpoint(runs["no_drop_half"]).model.state_dict()
+    p = load_checkpoint(runs["part_half"]).model.state_dict()
+    q = load_checkpoint(runs["no_drop_half"]).model.state_dict()
     assert any(not torch.allclose(p[k], q[k], atol=1e-4) for k in p)
 
 
