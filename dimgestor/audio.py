@@ -15,7 +15,6 @@ import wave
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import firwin
 
 SAMPLE_RATE = 16000  # what the model consumes
 
@@ -143,6 +142,9 @@ class StreamingResampler:
             self.delay, self.taps = 0, 1
             self.hpoly = np.ones((1, 1))
         else:
+            from scipy.signal import firwin  # here, not at the top: importing scipy.signal takes ~1 s of CPU, and
+            # every server, client and CLI process imports this module, most of them never resampling
+
             half_len = 10 * max(self.up, self.down)
             h = firwin(2 * half_len + 1, 1.0 / max(self.up, self.down), window=("kaiser", 5.0)) * self.up
             self.delay = half_len

@@ -15,7 +15,6 @@ from typing import Literal, Sequence
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy import signal
 
 __all__ = ["AugmentConfig", "AugmentDraw", "augment", "draw", "apply", "active_level", "pitch_shift",
            "time_stretch", "formant_shift", "equalize", "band_limit", "reverb", "make_noise", "add_noise",
@@ -198,6 +197,14 @@ def gain(x: np.ndarray, db: float) -> np.ndarray:
     return x * 10 ** (db / 20)
 
 
+def _signal():
+    """scipy.signal, imported where an augmentation first needs it: the import takes ~1 s of CPU, and every
+    `dimgestor train` process imports this module (for AugmentConfig), most of them never augmenting."""
+    from scipy import signal
+
+    return signal
+
+
 def soft_limit(x: np.ndarray, knee: float = 0.9, ceiling: float = 0.999) -> np.ndarray:
     """Peaks above `knee` bent smoothly (tanh) towards `ceiling`; everything below passes untouched.
 
@@ -217,7 +224,7 @@ def soft_limit(x: np.ndarray, knee: float = 0.9, ceiling: float = 0.999) -> np.n
 def _resample(x: np.ndarray, ratio: float, max_den: int = 100) -> np.ndarray:
     """x resampled to about len(x) * ratio samples (zero-phase polyphase filter: no delay)."""
     q = Fraction(ratio).limit_denominator(max_den)
-    return signal.resample_poly(x, q.numerator, q.denominator)
+    return _signal().resample_poly(x, q.numerator, q.denominator)
 
 
 def time_stretch(x: np.ndarray, n_out: int, win: int = 512, tol: int = 128, pull: float = 0.3) -> np.ndarray:
@@ -231,7 +238,7 @@ def time_stretch(x: np.ndarray, n_out: int, win: int = 512, tol: int = 128, pull
     1-3 ms without worse joins (mean best correlation 0.83 -> 0.85).
     """
     hop = win // 2
-    w = signal.windows.hann(win, sym=False)  # sums to 1 at hop win/2
+    w = _signal().windows.hann(win, sym=False)  # sums to 1 at hop win/2
     rate = len(x) / n_out
     pad = win + tol
     xp = np.concatenate([np.zeros(pad), x, np.zeros(pad + win)])
@@ -279,7 +286,7 @@ def formant_shift(x: np.ndarray, ratio: float, sr: int, n_fft: int = 512, lifter
     if ratio == 1:
         return x.copy()
     hop = n_fft // 4
-    _, _, Z = signal.stft(x, nperseg=n_fft, noverlap=n_fft - hop, window="hann")  # (bins, frames)
+    _, _, Z = _signal().stft(x, nperseg=n_fft, noverlap=n_fft - hop, window="hann")  # (bins, frames)
     log_mag = np.log(np.abs(Z) + 1e-9)
     cut = max(1, int(lifter_ms * sr / 1000))
 
@@ -297,7 +304,7 @@ def formant_shift(x: np.ndarray, ratio: float, sr: int, n_fft: int = 512, lifter
     frac = np.clip(src - i0, 0, 1)[:, None]
     warped = (1 - frac) * env[i0] + frac * env[i1]
     Z = Z * np.exp(np.clip(warped - env, np.log(1e-2), np.log(10.0)))
-    _, y = signal.istft(Z, nperseg=n_fft, noverlap=n_fft - hop, window="hann")
+    _, y = _signal().istft(Z, nperseg=n_fft, noverlap=n_fft - hop, window="hann")
     return np.pad(y, (0, max(0, len(x) - len(y))))[: len(x)]
 
 
@@ -313,10 +320,10 @@ def reverb(x: np.ndarray, rt60: float, wet: float, sr: int, rng: np.random.Gener
     n = max(1, int(rt60 * sr))
     t = np.arange(n) / sr
     tail = rng.standard_normal(n) * np.exp(-3 * np.log(10) * t / rt60)  # amplitude -60 dB at rt60
-    tail = signal.lfilter([0.6], [1, -0.4], tail)  # one-pole low-pass
+    tail = _signal().lfilter([0.6], [1, -0.4], tail)  # one-pole low-pass
     tail /= np.sqrt(np.sum(np.square(tail)))
     h = np.concatenate([np.zeros(pre), tail])
-    return (1 - wet) * x + wet * signal.fftconvolve(x, h)[: len(x)]
+    return (1 - wet) * x + wet * _signal().fftconvolve(x, h)[: len(x)]
 
 
 def _coloured(n: int, sr: int, exponent: float, rng: np.random.Generator) -> np.ndarray:
@@ -398,7 +405,7 @@ def equalize(x: np.ndarray, bands: Sequence[tuple[str, float, float, float]], sr
     if not bands:
         return x.copy()
     sos = np.stack([_biquad(k, f, db / 2, q, sr) for k, f, db, q in bands])
-    return signal.sosfiltfilt(sos, x)
+    return _signal().sosfiltfilt(sos, x)
 
 
 def band_limit(x: np.ndarray, low_hz: float, high_hz: float, sr: int, order: int = 4) -> np.ndarray:
@@ -408,10 +415,10 @@ def band_limit(x: np.ndarray, low_hz: float, high_hz: float, sr: int, order: int
     high_hz = min(high_hz, 0.95 * nyq)
     lo, hi = low_hz > 0, high_hz < 0.95 * nyq
     if lo and hi:
-        sos = signal.butter(order, [low_hz, high_hz], btype="bandpass", fs=sr, output="sos")
+        sos = _signal().butter(order, [low_hz, high_hz], btype="bandpass", fs=sr, output="sos")
     elif lo or hi:
-        sos = signal.butter(order, low_hz if lo else high_hz, btype="highpass" if lo else "lowpass", fs=sr,
+        sos = _signal().butter(order, low_hz if lo else high_hz, btype="highpass" if lo else "lowpass", fs=sr,
                             output="sos")
     else:
         return x.copy()
-    return signal.sosfiltfilt(sos, x)
+    return _signal().sosfiltfilt(sos, x)

@@ -11,11 +11,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import scipy.linalg
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from scipy.signal import argrelextrema
 
 from dimgestor.audio import SAMPLE_RATE
 
@@ -34,6 +32,8 @@ def gaussian_stats(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _sqrtm_product(sigma1: np.ndarray, sigma2: np.ndarray, eps: float) -> np.ndarray:
     """sqrt(sigma1 @ sigma2), retried with eps * I added to both when the product is near singular."""
+    import scipy.linalg  # (scipy here and below, not at the top: every `dimgestor` command imports this module)
+
     with warnings.catch_warnings(record=True) as caught:  # scipy warns when the product is singular
         warnings.simplefilter("always", scipy.linalg.LinAlgWarning)
         covmean = scipy.linalg.sqrtm(sigma1 @ sigma2)
@@ -260,6 +260,8 @@ def motion_beats(positions: np.ndarray, fps: float, threshold: float = 0.1, min_
     Normalizing by the clip mean makes the threshold unit-free (cm or m); it drops the near-zero minima
     of a body at rest, which are jitter rather than beats (as BEAT's velocity mask does).
     """
+    from scipy.signal import argrelextrema
+
     speed = joint_speed(positions, fps).mean(axis=1)
     if speed.mean() <= 1e-12:
         return np.zeros(0)  # a still body has no beats
@@ -598,7 +600,7 @@ def window_stack(positions: np.ndarray, length: int, hop: int) -> np.ndarray:
 
 
 def nearest_window_distances(query: np.ndarray, reference: np.ndarray, fps: float, window_s: float = 1.0,
-                             query_hop_s: float = 0.25, chunk: int = 64) -> np.ndarray:
+                             query_hop_s: float = 0.25, chunk: int = 512) -> np.ndarray:
     """For each `window_s` window of `query` (every `query_hop_s`), the distance to the nearest window of
     `reference` (every frame): the mean over the window's frames and joints of the joints' Euclidean distance.
 
@@ -606,15 +608,32 @@ def nearest_window_distances(query: np.ndarray, reference: np.ndarray, fps: floa
     units; reference may be a list of such stretches (no window spans two of them). A small distance means the motion replays a stretch of the reference: motion made for new speech that
     sits closer to its training stretch than the real actor's own unseen motion does repeats what it saw.
     -> (N,) distances in file units."""
+    # Windows overlap, so rather than comparing every pair of windows frame by frame ((Nq, Nr, n, J, 3)), compare
+    # every query frame with every reference frame once (e[t, u]: the mean joint distance) and sum e along the
+    # diagonals: window (s, a) is sum_f e[s + f, a + f] / n. Reference windows `chunk` at a time bound the memory.
     n = int(round(window_s * fps))
-    q = window_stack(np.asarray(query, np.float64), n, max(1, int(round(query_hop_s * fps))))
-    stretches = list(reference) if isinstance(reference, (list, tuple)) else [reference]
-    r = np.concatenate([window_stack(np.asarray(x, np.float64), n, 1) for x in stretches])
-    if not len(q) or not len(r):
+    hop = max(1, int(round(query_hop_s * fps)))
+    query = np.asarray(query, np.float64)
+    stretches = [np.asarray(x, np.float64) for x in (reference if isinstance(reference, (list, tuple)) else [reference])]
+    starts = np.arange(0, len(query) - n + 1, hop)
+    if not len(starts) or not any(len(x) >= n for x in stretches):
         raise ValueError(f"need at least {n} frames in both the query ({len(query)}) and a reference stretch "
                          f"({', '.join(str(len(x)) for x in stretches)})")
-    best = np.full(len(q), np.inf)
-    for a in range(0, len(r), chunk):
-        d = np.linalg.norm(q[:, None] - r[None, a:a + chunk], axis=-1).mean(axis=(2, 3))  # (Nq, chunk)
-        best = np.minimum(best, d.min(axis=1))
+    q = query[:starts[-1] + n]  # the frames some window covers
+    best = np.full(len(starts), np.inf)
+    for x in stretches:
+        for a in range(0, len(x) - n + 1, chunk):
+            b = min(a + chunk, len(x) - n + 1)  # windows a..b-1 use frames a..b+n-2
+            r = x[a:b + n - 1]
+            e, sq, diff = (np.zeros((len(q), len(r))) for _ in range(3))  # (Tq, Tr)
+            for j in range(q.shape[1]):
+                sq[:] = 0.0
+                for c in range(q.shape[2]):  # one coordinate at a time: no (Tq, Tr, 3) temporary
+                    np.subtract.outer(q[:, j, c], r[:, j, c], out=diff)
+                    sq += np.square(diff, out=diff)
+                e += np.sqrt(sq, out=sq)
+            d = np.zeros((len(starts), b - a))
+            for f in range(n):
+                d += e[starts + f, f:f + b - a]
+            best = np.minimum(best, d.min(axis=1) / (n * q.shape[1]))
     return best

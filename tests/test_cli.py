@@ -15,12 +15,15 @@ from dimgestor.synthetic import make_synthetic_pair
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    """A tiny model trained for a few steps through the CLI."""
+    """A tiny model trained for a few steps through the CLI (--no-augment: the augmented bank was 2/3 of this
+    fixture's time; augmented training is tests/test_train.py's and tests/test_train_ddp.py's, the CLI's
+    small-data defaults tests/test_train.py's)."""
     root = tmp_path_factory.mktemp("cli")
     make_synthetic_pair(root / "data", "a", seconds=12.0, seed=0)
     rc = main(["train", "--data", str(root / "data"), "--preset", "tiny", "--out", str(root / "run"),
                "--max-steps", "6", "--batch-size", "2", "--window-s", "2", "--ckpt-every", "3", "--valid-every", "3",
-               "--cache-dir", str(root / "cache"), "--no-progress", "--set", "hidden=48", "--set", "schedule=sqrt_linear"])
+               "--cache-dir", str(root / "cache"), "--no-progress", "--no-augment", "--set", "hidden=48",
+               "--set", "schedule=sqrt_linear"])
     assert rc == 0
     return root
 

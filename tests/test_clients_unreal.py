@@ -66,30 +66,46 @@ def test_unreal_conversion_is_the_same_rotation_in_unreal_axes(decoder, recordin
         np.testing.assert_allclose(d["unreal_root"], to_unreal @ np.asarray(d["root"]), atol=1e-9)
 
 
+COMPONENT_SOURCES = ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp",
+                     "DimgestorAudioFlow.cpp")
+# as the component is built: -Werror, no exceptions
+COMPONENT_FLAGS = ("-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions",
+                   f"-I{UNREAL / 'tests' / 'stubs'}", f"-I{UNREAL}")
+
+
 @pytest.fixture(scope="module")
-def retarget_check(tmp_path_factory):
-    exe = tmp_path_factory.mktemp("unreal_component") / "retarget_check"
-    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
-           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "retarget_check.cpp"),
-           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+def component_objects(tmp_path_factory) -> list[str]:
+    """The component's sources on the engine stand-ins, compiled once (COMPONENT_FLAGS) for every check to link."""
+    out = tmp_path_factory.mktemp("unreal_component_objects")
+    r = subprocess.run([GXX, *COMPONENT_FLAGS, "-c", *(str(UNREAL / f) for f in COMPONENT_SOURCES)], cwd=out,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    return [str(out / f.replace(".cpp", ".o")) for f in COMPONENT_SOURCES]
+
+
+def build_component_check(out_dir, name: str, objects: list[str]):
+    """tests/NAME.cpp compiled with COMPONENT_FLAGS and linked with the component -> the executable."""
+    exe = out_dir / name
+    r = subprocess.run([GXX, *COMPONENT_FLAGS, "-o", str(exe), str(UNREAL / "tests" / f"{name}.cpp"), *objects],
+                       capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
     return exe
 
 
-COMPONENT_SOURCES = ("DimgestorComponent.cpp", "DimgestorProtocol.cpp", "DimgestorJson.cpp", "DimgestorPlayout.cpp",
-                     "DimgestorAudioFlow.cpp")
+@pytest.fixture(scope="module")
+def retarget_check(tmp_path_factory, component_objects):
+    return build_component_check(tmp_path_factory.mktemp("unreal_component"), "retarget_check", component_objects)
 
 
-def run_component_check(tmp_path, name: str) -> dict:
+@pytest.fixture(scope="module")
+def face_check(tmp_path_factory, component_objects):
+    return build_component_check(tmp_path_factory.mktemp("unreal_face"), "face_check", component_objects)
+
+
+def run_component_check(tmp_path, name: str, objects: list[str]) -> dict:
     """tests/NAME.cpp with the component on the engine stand-ins, compiled as the component is (-Werror, no
     exceptions) and run -> the JSON object it prints."""
-    exe = tmp_path / name
-    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
-           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / f"{name}.cpp"),
-           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
+    exe = build_component_check(tmp_path, name, objects)
     r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
@@ -112,11 +128,11 @@ def test_unreal_audio_flow_pauses_at_slow_down_and_resumes_with_bounded_holding(
     check_flow([json.loads(line) for line in r.stdout.splitlines()])
 
 
-def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path):
+def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path, component_objects):
     """UDimgestorComponent (engine stand-ins) talking: after the server's slow_down nothing more goes out, what
     SendAudio gets is held (at most MaxHeldAudioS = 1 s: the oldest dropped and counted), an EndAudio waits;
     at resume the held chunks go in order, then audio_end. slow_down is no error."""
-    out = run_component_check(tmp_path, "component_flow_check")
+    out = run_component_check(tmp_path, "component_flow_check", component_objects)
     assert out["ok"] and out["paused"] and not out["paused_after"] and out["last_error"] == "", out
     assert out["sent_while_paused"] == 2, out  # the audio hello and chunk 1, before the slow_down
     assert out["log"] == ['text:{"type":"hello","encoding":"binary","face":"arkit"}', "binary:1:1600", "binary:5:1600",
@@ -124,12 +140,12 @@ def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path)
     assert out["dropped_s"] == pytest.approx(1.2) and "slow down" in out["notice"], out
 
 
-def test_unreal_component_moves_with_its_session_at_goaway(tmp_path):
+def test_unreal_component_moves_with_its_session_at_goaway(tmp_path, component_objects):
     """UDimgestorComponent (engine stand-ins) talking when its worker stops (protocol revision 3): goaway, the
     socket closes, the component connects again at once with its audio format and resume_session, holds what
     SendAudio gets, and at session_resumed re-sends its audio from the sample the saved state covers (chunk 2 on),
     then what it held (3, 4), and goes on (5, audio_end). No error."""
-    out = run_component_check(tmp_path, "component_handover_check")
+    out = run_component_check(tmp_path, "component_handover_check", component_objects)
     assert out["ok"] and out["moving"] == "moving" and out["reconnected"], out
     assert out["handovers"] == 1 and out["resumed"] == 1 and not out["paused_after"] and out["last_error"] == "", out
     hello = 'text:{"type":"hello","encoding":"binary","face":"arkit"}'  # (the stubs' JSON writer: string fields only)
@@ -247,7 +263,8 @@ def test_unreal_decoder_names_what_is_wrong_with_a_face(decoder, tmp_path):
 
 @pytest.mark.parametrize("encoding,metahuman,face_mesh", [("binary", True, True), ("json", False, True),
                                                           ("json", True, False)])
-def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, encoding, metahuman, face_mesh):
+def test_unreal_component_sets_the_face_as_morph_targets_and_curves(face_check, tmp_path, encoding, metahuman,
+                                                                   face_mesh):
     """UDimgestorComponent (engine stand-ins) asks for ARKit names in its hello, follows the server's `channels`
     layout, and each tick sets the face it shows (interpolated with the pose) as FaceMesh's morph targets (the face
     names, or the name map's) and as curves (MetaHuman's capitalisation: jawOpen -> JawOpen, or the map's), 0..1;
@@ -263,14 +280,8 @@ def test_unreal_component_sets_the_face_as_morph_targets_and_curves(tmp_path, en
     spec = {"face_names": "arkit", "map": [[k, v] for k, v in name_map.items()], "metahuman": metahuman,
             "face_mesh": face_mesh, "times": times, "curves_to_read": [target(n, True) for n in names] + ["NoSuchCurve"]}
     (tmp_path / "spec.json").write_text(json.dumps(spec))
-    exe = tmp_path / "face_check"
-    cmd = [GXX, "-std=c++17", "-O1", "-Wall", "-Werror", "-Wshadow", "-fno-exceptions", f"-I{UNREAL / 'tests' / 'stubs'}",
-           f"-I{UNREAL}", "-o", str(exe), str(UNREAL / "tests" / "face_check.cpp"),
-           *(str(UNREAL / f) for f in COMPONENT_SOURCES)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, f"g++ failed:\n{r.stderr}"
-    r = subprocess.run([str(exe), str(tmp_path / "msgs"), str(tmp_path / "spec.json")], capture_output=True, text=True,
-                       timeout=60)
+    r = subprocess.run([str(face_check), str(tmp_path / "msgs"), str(tmp_path / "spec.json")], capture_output=True,
+                       text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     lines = [json.loads(line) for line in r.stdout.splitlines()]
     assert lines[0]["hello"] == '{"type":"hello","encoding":"binary","face":"arkit"}'  # (the stubs' writer: strings only)

@@ -209,24 +209,27 @@ def test_dropped_condition_is_the_zero_condition():
         assert torch.allclose(got, want, rtol=1e-6)
 
 
+STEPS = 30  # of the `runs` below: resuming is exact and dropout changes the weights at any length
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """A tiny model trained with condition dropout 0.5: whole, and interrupted then resumed."""
+    """A tiny model trained with condition dropout 0.5: whole, and interrupted halfway then resumed."""
     root = tmp_path_factory.mktemp("cfg")
     make_synthetic_pair(root / "data", "a", seconds=24.0, seed=0)
 
     def opts(out, **kw):
-        base = dict(data=str(root / "data"), out=str(root / out), preset="tiny", max_steps=60, batch_size=4, lr=3e-3,
-                    warmup=10, window_s=2.0, ckpt_every=30, valid_every=30, ema=0.9, seed=0, device="cpu",
-                    cache_dir=str(root / "cache"), progress=False, valid_fraction=0.2, cond_drop=0.5)
+        base = dict(data=str(root / "data"), out=str(root / out), preset="tiny", max_steps=STEPS, batch_size=4,
+                    lr=3e-3, warmup=10, window_s=2.0, ckpt_every=STEPS // 2, valid_every=STEPS // 2, ema=0.9, seed=0,
+                    device="cpu", cache_dir=str(root / "cache"), progress=False, valid_fraction=0.2, cond_drop=0.5)
         return TrainConfig(**{**base, **kw})
 
     whole = train(opts("whole"))
-    train(opts("part", max_steps=30))
+    train(opts("part", max_steps=STEPS // 2))
     resumed = train(opts("part", resume=True))
-    no_drop = train(opts("no_drop", max_steps=30, cond_drop=0.0))
-    return {"root": root, "whole": whole, "resumed": resumed, "part30": root / "part" / "ckpt_0000030",
-            "no_drop30": no_drop}
+    no_drop = train(opts("no_drop", max_steps=STEPS // 2, cond_drop=0.0))
+    return {"root": root, "whole": whole, "resumed": resumed, "part_half": root / "part" / f"ckpt_{STEPS // 2:07d}",
+            "no_drop_half": no_drop}
 
 
 def test_resume_is_exact_with_condition_dropout(runs):
@@ -234,7 +237,8 @@ def test_resume_is_exact_with_condition_dropout(runs):
     for k in a:
         assert torch.allclose(a[k], b[k], atol=1e-6), k
     # and the dropout did change the training (same seed, batches, t and noise otherwise)
-    p, q = load_checkpoint(runs["part30"]).model.state_dict(), load_checkpoint(runs["no_drop30"]).model.state_dict()
+    p = load_checkpoint(runs["part_half"]).model.state_dict()
+    q = load_checkpoint(runs["no_drop_half"]).model.state_dict()
     assert any(not torch.allclose(p[k], q[k], atol=1e-4) for k in p)
 
 

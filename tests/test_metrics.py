@@ -387,3 +387,30 @@ def test_nearest_window_distances_find_a_replayed_stretch_and_measure_a_new_one(
     assert nearest_window_distances(joined, [ref[:100], ref[100:]], 20.0).min() > 0.5
     with pytest.raises(ValueError, match="at least 20 frames"):
         nearest_window_distances(ref[:10], ref, 20.0)
+
+
+def _nearest_window_distances_reference(query, reference, fps, window_s=1.0, query_hop_s=0.25):
+    """The definition, window pair by window pair: every query window against every reference window."""
+    from dimgestor.metrics import window_stack
+
+    n = int(round(window_s * fps))
+    q = window_stack(np.asarray(query, np.float64), n, max(1, int(round(query_hop_s * fps))))
+    stretches = list(reference) if isinstance(reference, (list, tuple)) else [reference]
+    r = np.concatenate([window_stack(np.asarray(x, np.float64), n, 1) for x in stretches])
+    return np.linalg.norm(q[:, None] - r[None], axis=-1).mean(axis=(2, 3)).min(axis=1)
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 512])
+def test_nearest_window_distances_equal_the_window_by_window_definition(chunk):
+    """The diagonal-sum fast path equals comparing every pair of windows, for reference chunks that split the
+    windows anywhere, stretches shorter than a window, odd lengths and hops."""
+    from dimgestor.metrics import nearest_window_distances
+
+    rng = np.random.default_rng(1)
+    query = np.cumsum(rng.normal(scale=3.0, size=(53, 5, 3)), axis=0)
+    stretches = [np.cumsum(rng.normal(scale=3.0, size=(t, 5, 3)), axis=0) for t in (31, 6, 20, 47)]
+    for ref, fps, hop in ((stretches[0], 20.0, 0.25), (stretches, 20.0, 0.25), (stretches, 13.0, 0.1),
+                          (stretches[3], 9.0, 0.5)):
+        got = nearest_window_distances(query, ref, fps, query_hop_s=hop, chunk=chunk)
+        np.testing.assert_allclose(got, _nearest_window_distances_reference(query, ref, fps, query_hop_s=hop),
+                                   rtol=1e-12, atol=1e-12)
