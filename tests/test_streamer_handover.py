@@ -535,13 +535,15 @@ def test_abandoned_sessions_keep_the_store_under_its_memory_cap_and_the_worker_s
             await _recv_until(ws, "session_saved")
         # (dropped mid-stream: its last save stays in the store, resumable, until evicted or expired)
 
-    async def abandon_for(url, seconds: float) -> int:
+    async def abandon_until(url, sessions: int, seconds: float) -> int:
+        """Abandon sessions (4 at a time) until `sessions` have been dropped: a count, so a slow machine takes
+        longer rather than pressing the store less; `seconds` only bounds a server that stopped answering."""
         loop = asyncio.get_running_loop()
         end, count = loop.time() + seconds, 0
 
         async def one_lane():
             nonlocal count
-            while loop.time() < end:
+            while count < sessions and loop.time() < end:
                 await abandon(url)
                 count += 1
 
@@ -574,7 +576,7 @@ def test_abandoned_sessions_keep_the_store_under_its_memory_cap_and_the_worker_s
             watcher = threading.Thread(target=watch)
             watcher.start()
             try:
-                dropped = asyncio.run(abandon_for(server.ws_url, 20.0))
+                dropped = asyncio.run(abandon_until(server.ws_url, 2 * cap // state + 2, 120.0))
             finally:
                 done.set()
                 watcher.join()
