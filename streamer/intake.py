@@ -26,10 +26,11 @@ from collections import deque
 from concurrent.futures import Executor, Future
 from typing import Callable
 
-__all__ = ["Account", "FairWorker", "ComputeBudget", "submit_for", "INTAKE_SHARE", "REAL_TIME_HEADROOM"]
+__all__ = ["Account", "FairWorker", "ComputeBudget", "submit_for", "INTAKE_SHARE", "REAL_TIME_HEADROOM", "MAX_SHARE"]
 
 INTAKE_SHARE = 0.1  # of the worker thread, per client, at least (16 kHz PCM16 in real time takes ~0.0003)
 REAL_TIME_HEADROOM = 1.5  # ...or this many times what its own audio in real time costs here, if more
+MAX_SHARE = 0.5  # ...but never more than half the thread, however costly a client makes its audio look
 INTAKE_BURST_S = 0.25  # CPU seconds a client may take at once before its share holds (~6 s of 192 kHz stereo here)
 INTAKE_BURST_AUDIO_S = 4.0  # ...or what this much of its own audio costs, if more (a slower machine)
 COST_HALF_LIFE_S = 5.0  # how fast the measured cost of a second of its audio follows the machine's load
@@ -157,8 +158,8 @@ class ComputeBudget:
 
     def __init__(self, account: Account, share: float = INTAKE_SHARE, burst_s: float = INTAKE_BURST_S,
                  headroom: float = REAL_TIME_HEADROOM, burst_audio_s: float = INTAKE_BURST_AUDIO_S,
-                 half_life_s: float = COST_HALF_LIFE_S, now: float | None = None):
-        self.account, self.share, self.burst_s = account, share, burst_s
+                 half_life_s: float = COST_HALF_LIFE_S, now: float | None = None, max_share: float = MAX_SHARE):
+        self.account, self.share, self.burst_s, self.max_share = account, share, burst_s, max_share
         self.headroom, self.burst_audio_s, self.half_life_s = headroom, burst_audio_s, half_life_s
         self.tokens, self.charged, self.heard = burst_s, 0.0, 0.0
         self.t = time.monotonic() if now is None else now
@@ -171,9 +172,11 @@ class ComputeBudget:
         return self.recent_cpu_s / self.recent_audio_s if self.recent_audio_s >= COST_MIN_AUDIO_S else None
 
     def rate(self) -> float:
-        """Its share now: CPU seconds per second (at most the whole thread)."""
+        """Its share now: CPU seconds per second (at most `max_share` of the thread: a client whose audio costs more
+        than that in real time, such as one that asks for a new resampler with every message, cannot be served
+        beside others and is held to it)."""
         cost = self.per_audio_s
-        return self.share if cost is None else max(self.share, min(1.0, self.headroom * cost))
+        return self.share if cost is None else max(self.share, min(self.max_share, self.headroom * cost))
 
     def cap(self) -> float:
         """The CPU seconds it may take at once now."""

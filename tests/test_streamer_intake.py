@@ -20,7 +20,7 @@ from helpers.intake_load import talker_beside_flood
 from helpers.serve import serve
 from helpers.ws import make_server, recv_json
 from streamer import protocol as P
-from streamer.intake import (INTAKE_BURST_AUDIO_S, INTAKE_BURST_S, INTAKE_SHARE, REAL_TIME_HEADROOM, Account,
+from streamer.intake import (INTAKE_BURST_AUDIO_S, INTAKE_BURST_S, INTAKE_SHARE, MAX_SHARE, REAL_TIME_HEADROOM, Account,
                             ComputeBudget, FairWorker, submit_for)
 
 pytestmark = pytest.mark.timeout(150)
@@ -128,8 +128,8 @@ def test_a_client_over_its_share_waits_in_proportion_and_is_within_it_again_once
     assert budget.wait_s(now[0]) == 0.0 and budget.tokens == 0.5  # (no credit saved beyond the burst)
 
 
-def stream(budget: ComputeBudget, now: list[float], seconds: float, chunk_s: float, cost_per_audio_s, speed: float = 1.0,
-           stall_every_s: float = 0.0, stall_s: float = 0.0) -> dict:
+def stream(budget: ComputeBudget, now: list[float], seconds: float, chunk_s: float, cost_per_audio_s,
+           speed: float = 1.0, stall_every_s: float = 0.0, stall_s: float = 0.0) -> dict:
     """A client sending `chunk_s` messages at `speed` x real time on a fake clock (`now`), each costing
     cost_per_audio_s(t) CPU seconds per audio second, its socket read as the connection does (after `wait_s`);
     every `stall_every_s` the network holds its messages for `stall_s`, then they come at once. Returns how often
@@ -176,6 +176,18 @@ def test_a_client_faster_than_real_time_is_read_at_its_share_whatever_its_audio_
     now = [0.0]
     r = stream(ComputeBudget(Account(), now=now[0]), now, 300.0, 0.5, lambda t: 0.001, speed=10.0)
     assert r["over"] == 0 and r["took_s"] == pytest.approx(30.0, abs=0.5), r
+
+
+def test_a_client_whose_audio_costs_most_of_the_thread_is_held_to_half_of_it():
+    """However dear a client makes its audio look (a new resampler with every message), its share stops at
+    MAX_SHARE: in real time at 0.8 of the thread per second of audio it is over and read at MAX_SHARE / 0.8 of
+    real time once its burst is spent; the others keep the rest of the thread."""
+    now = [0.0]
+    budget = ComputeBudget(Account(), now=now[0])
+    r = stream(budget, now, 120.0, 0.5, lambda t: 0.8)
+    assert budget.rate() == MAX_SHARE and r["over"] > 0
+    burst_audio_s = max(INTAKE_BURST_S, INTAKE_BURST_AUDIO_S * 0.8) / 0.8
+    assert (r["audio_s"] - burst_audio_s) / r["took_s"] == pytest.approx(MAX_SHARE / 0.8, rel=0.05), r
 
 
 class CostlyWorker(FairWorker):
