@@ -125,6 +125,12 @@ def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:
 # ---- resampling ----------------------------------------------------------------------------------
 
 
+def load_resampling() -> None:
+    """Import what a resampler is made with now (scipy.signal: ~1 s of CPU), e.g. on a server's intake thread at
+    start, so that the first client whose audio needs resampling is not charged for it."""
+    import scipy.signal  # noqa: F401
+
+
 class StreamingResampler:
     """Rational-ratio resampler fed in chunks; the concatenated output equals resample() exactly.
 

@@ -26,6 +26,7 @@ from typing import Callable, Iterable
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 
+from dimgestor.audio import load_resampling
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer import request_checks as RC
@@ -100,6 +101,8 @@ class WsServer:
         self.broadcast_ended = False
         self.broadcast_frames = 0
         self.prep = FairWorker("ws-prep")  # decode, resample, encode: each client's work in its fair turn
+        # (on the server's own account, at once: a client's share is not charged scipy's import)
+        self.prep.submit(load_resampling)
         self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []
