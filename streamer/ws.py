@@ -101,8 +101,9 @@ class WsServer:
         self.broadcast_ended = False
         self.broadcast_frames = 0
         self.prep = FairWorker("ws-prep")  # decode, resample, encode: each client's work in its fair turn
-        # (on the server's own account, at once: a client's share is not charged scipy's import)
-        self.prep.submit(load_resampling)
+        # now, not on the intake thread: no client's share is charged scipy's import, and the server's own account
+        # there (what fair queueing orders its jobs by) is not either
+        load_resampling()
         self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []
