@@ -136,10 +136,10 @@ def main() -> int:
         if not (data / "split.json").is_file():
             started = time.time()
             make_voice_world(data, m, args.heldout_minutes, seed=args.seed, heard_s=args.rule_heard)
+            timing[f"make_{m:g}min_s"] = round(time.time() - started, 1)
         heard = world_rule(data)
         if heard != args.rule_heard:
             raise SystemExit(f"{data} was written with rule_heard {heard}, not {args.rule_heard}: use another --work")
-            timing[f"make_{m:g}min_s"] = round(time.time() - started, 1)
         if not (run / f"ckpt_{args.steps:07d}").is_dir():
             wall = train_run(data, run, args, cache)
             timing[f"train_{m:g}min_s"] = round(wall, 1)

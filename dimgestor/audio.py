@@ -126,8 +126,8 @@ def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:
 
 
 def load_resampling() -> None:
-    """Import what a resampler is made with now (scipy.signal: ~1 s of CPU), e.g. on a server's intake thread at
-    start, so that the first client whose audio needs resampling is not charged for it."""
+    """Import what a resampler is made with now (scipy.signal: ~1 s of CPU), e.g. when a server is made, so that
+    the first client whose audio needs resampling is not charged for it."""
     import scipy.signal  # noqa: F401
 
 

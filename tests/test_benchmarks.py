@@ -162,6 +162,7 @@ def test_voice_world_benchmark_writes_truth_and_a_curve(tmp_path):
     assert all(finite(row[k]) for k in ("contrast", "stroke_margin", "coupling_margin", "stroke_margin_vs_rule"))
     assert isinstance(row["passes"], bool) and r["set"] == ["n_mels=16"]
     assert r["train_args"] == "--seed 3 --no-mirror --no-augment"
+    assert set(r["timing_s"]) == {"make_0.25min_s", "train_0.25min_s"}  # the world was made and trained here
     run_dir = tmp_path / "work" / "run_0.25min_n_mels=16"
     meta = json.loads((run_dir / "ckpt_0000004" / "config.json").read_text())
     assert meta["model"]["n_mels"] == 16 and meta["info"]["options"]["seed"] == 3

@@ -9,6 +9,8 @@ do not queue behind their big ones.
 
 import asyncio
 import json
+import subprocess
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -245,3 +247,12 @@ def test_a_client_over_its_share_is_read_more_slowly_told_slow_down_and_then_res
     share = max(INTAKE_SHARE, REAL_TIME_HEADROOM * cost_s)
     burst = max(INTAKE_BURST_S, INTAKE_BURST_AUDIO_S * cost_s)
     assert took_s >= 0.8 * (n * cost_s - burst) / share, took_s
+
+
+def test_a_server_imports_what_resampling_needs_before_its_first_client():
+    """scipy.signal (~1 s of CPU) is imported when the server is made, not by the first client whose audio needs
+    resampling: charged to that client's account it read as a dear client and was told `slow_down`."""
+    code = ("import sys, streamer.ws; assert 'scipy.signal' not in sys.modules, 'imported with the module'; "
+            "streamer.ws.WsServer('127.0.0.1', 0, {}, None); assert 'scipy.signal' in sys.modules, 'not at start'")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
