@@ -519,13 +519,15 @@ class GestureProcessor(FrameProcessor):
         return moment is not None and moment >= u.heard_s + u.last_chunk_s
 
     async def _wait(self, timeout: float | None) -> bool:
-        """Sleep until `timeout` or until something changed; True: something changed (look again)."""
+        """Sleep until `timeout` or until something changed; True: something changed (look again), also when it
+        changed after the timeout fired and before this task ran again (an interruption that emptied the
+        utterance the clock was about to release from: a loaded event loop made that gap wide enough)."""
         self._changed.clear()
         try:
             await asyncio.wait_for(self._changed.wait(), timeout)
-            return True
         except asyncio.TimeoutError:
-            return False
+            pass
+        return self._changed.is_set()
 
     def _begin(self, u: _Utterance) -> None:
         """Before u's first frame or audio goes out: its pts come after every frame sent. They were set when its

@@ -32,6 +32,9 @@ def test_a_recording_of_what_the_page_scheduled_passes_and_anything_else_fails()
     source = (0.3 * np.random.default_rng(0).standard_normal(16000 * 3)).astype(np.float32)
     played = recording(source, PIECES)
     assert [len(s) for s in streams(PIECES)] == [4, 2]
+    # scheduled 3 s ahead, then again from the pts heard (the clock moved): one stream; a drop after it, another
+    rescheduled = [piece(1.0, 0.0, 3.0, stop=2.0), piece(2.0, 1.0, 2.0), piece(4.0, 0.0, 1.0)]
+    assert [len(s) for s in streams(rescheduled)] == [2, 1]
     expected, sure, covered = as_scheduled(PIECES, START_S, len(played), source)
     assert np.allclose(expected[sure], played[sure])
     assert covered.sum() == round(16000 * 2.28)  # (the stopped piece: to 30 ms after its stop)

@@ -391,6 +391,28 @@ def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_cloc
     assert sink.frames[3].pts > pts[2]
 
 
+def test_a_change_after_the_clocks_wait_timed_out_makes_it_look_again(bundle, monkeypatch):
+    """An interruption that lands after the clock's wait timed out and before the clock task runs again (a loaded
+    event loop widens that gap): the wait says something changed, so the clock looks again instead of releasing
+    from the utterance the interruption emptied (seen in CI: the clock task died on an empty deque, `deque index
+    out of range`, and no frame went out after the interruption)."""
+    from streamer import pipecat as sp
+
+    g = sp.GestureProcessor([KeptFrames()], bundle=bundle)
+
+    async def timed_out_and_meanwhile_changed(waiting, timeout):
+        waiting.close()
+        g._changed.set()  # the interruption, run before this task resumes
+        raise asyncio.TimeoutError
+
+    async def main():
+        quiet = await g._wait(0.01)
+        monkeypatch.setattr(sp.asyncio, "wait_for", timed_out_and_meanwhile_changed)
+        return quiet, await g._wait(0.01)
+
+    assert asyncio.run(main()) == (False, True)
+
+
 def test_between_utterances_the_face_rests_and_blinks(bundle, monkeypatch):
     """Rest frames (the spring's, between utterances) carry a face too: the mouth at rest, the eyes blinking as a
     stream's do in silence (irregularly, 4-14 times in 30 s), the smile held; face=None: frames without a face.

@@ -98,11 +98,16 @@ def test_serve_mic_gestures_while_speech_plays_and_rests_in_silence(vmic, tmp_pa
 
 
 def test_a_silent_microphone_warns_no_signal(vmic):
-    r = dimgestor(vmic, "serve", "--source", "mic", "--input-device", "vmic_quiet", "--no-ws", "--status-every", "0.5",
-                 "--max-seconds", "6")
-    assert r.returncode == 0, r.stderr
-    assert re.search(r"no signal from microphone 'vmic_quiet' for 3 s: is it muted", r.stderr), r.stderr
-    assert "mic NO SIGNAL for" in r.stderr
+    """Once 3 s of silence are captured (however long a loaded machine takes to start capturing: a fixed
+    --max-seconds 6 once ended after 2.7 s of audio), the warning is printed and the status line says so."""
+    s = Serve("--source", "mic", "--input-device", "vmic_quiet", "--no-ws", "--status-every", "0.5", env=vmic.env)
+    try:
+        s.wait_for(r"no signal from microphone 'vmic_quiet' for 3 s: is it muted")
+        s.wait_for(r"mic NO SIGNAL for")
+    finally:
+        s.proc.send_signal(signal.SIGINT)
+    assert s.finish(30) == 0, s.output
+    assert s.output.count("no signal from microphone") == 1, s.output  # said once, not at every block
 
 
 def _index_of(vmic, name: str) -> int:

@@ -135,10 +135,15 @@ START_TAKES_S = 0.1  # a piece scheduled less than this ahead may start later th
 
 
 def streams(pieces: list[dict]) -> list[list[dict]]:
-    """The pieces split where the pts starts over (a new stream: a second drop)."""
+    """The pieces split where the pts starts over (a new stream: a second drop): back by more than a second (as
+    source-audio.js tells a new audio clock) to within a second of where the stream began. A stream whose clock
+    moved (a hold, a catch-up) is scheduled again from the pts heard then: back by as much as the page had
+    scheduled ahead (seconds, where the frames run ahead), but not to the stream's start; it stays one stream."""
     out: list[list[dict]] = []
     for p in pieces:
-        if not out or p["pts"] - p["late"] < out[-1][-1]["pts"] + out[-1][-1]["dur"] - 1.0:  # (as source-audio.js)
+        start = p["pts"] - p["late"]
+        if not out or (start < out[-1][-1]["pts"] + out[-1][-1]["dur"] - 1.0
+                       and start < out[-1][0]["pts"] - out[-1][0]["late"] + 1.0):
             out.append([])
         out[-1].append(p)
     return out
