@@ -221,6 +221,7 @@ class WsServer:
                 c.put(P.end(c.frames_queued))
             elif not c.own and not self.broadcast_ended:
                 c.put(P.end(self.broadcast_frames))
+        self.broadcast_ended = True  # (no status after that `end` while the queues drain: seen under load)
         deadline = loop.time() + within_s * 0.6
         await asyncio.gather(*(c.drained(deadline) for c in list(self.clients)))
         await asyncio.gather(*(c.ws.close(1012, "restart: resume_session with the goaway's token") for c in handed),
