@@ -125,10 +125,14 @@ def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:
 # ---- resampling ----------------------------------------------------------------------------------
 
 
-def load_resampling() -> None:
-    """Import what a resampler is made with now (scipy.signal: ~1 s of CPU), e.g. when a server is made, so that
-    the first client whose audio needs resampling is not charged for it."""
-    import scipy.signal  # noqa: F401
+def kaiser_lowpass(numtaps: int, cutoff: float, beta: float) -> np.ndarray:
+    """A linear-phase low-pass FIR: a sinc cut at `cutoff` (a fraction of the Nyquist frequency) under a Kaiser
+    window of `beta`, scaled to unit gain at 0 Hz. It is scipy.signal.firwin(numtaps, cutoff, window=("kaiser",
+    beta)) to float64 rounding (tests/test_audio.py compares them), written out so that making a resampler does not
+    import scipy.signal (~1 s of CPU: every server start and every client at another sample rate paid it)."""
+    m = np.arange(numtaps) - 0.5 * (numtaps - 1)
+    h = cutoff * np.sinc(cutoff * m) * np.kaiser(numtaps, beta)
+    return h / h.sum()
 
 
 class StreamingResampler:
@@ -148,11 +152,8 @@ class StreamingResampler:
             self.delay, self.taps = 0, 1
             self.hpoly = np.ones((1, 1))
         else:
-            from scipy.signal import firwin  # here, not at the top: importing scipy.signal takes ~1 s of CPU, and
-            # every server, client and CLI process imports this module, most of them never resampling
-
             half_len = 10 * max(self.up, self.down)
-            h = firwin(2 * half_len + 1, 1.0 / max(self.up, self.down), window=("kaiser", 5.0)) * self.up
+            h = kaiser_lowpass(2 * half_len + 1, 1.0 / max(self.up, self.down), 5.0) * self.up
             self.delay = half_len
             self.taps = (len(h) - 1) // self.up + 1
             h = np.concatenate([h, np.zeros(self.taps * self.up - len(h))])

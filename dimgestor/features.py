@@ -212,9 +212,13 @@ def _leaky_cumsum(u: np.ndarray, prev: float, lam: float) -> np.ndarray:
     """y_n = lam * y_{n-1} + u_n from y_{-1} = prev (lam = 1: a plain running sum)."""
     if lam == 1.0:
         return prev + np.cumsum(u)
-    from scipy.signal import lfilter
-
-    return lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0]
+    # A loop, in the order scipy.signal.lfilter([1], [1, -lam], u, zi=[lam * prev]) adds (its output bit for bit,
+    # tests/test_features.py): importing scipy.signal costs ~1 s of CPU, which a server's first frames paid.
+    out, y, lam = np.empty(len(u)), float(prev), float(lam)
+    for n, x in enumerate(np.asarray(u, dtype=np.float64).tolist()):
+        y = lam * y + x
+        out[n] = y
+    return out
 
 
 def _remove_drift(u: np.ndarray, drift, frames: int, n_avg: float) -> tuple[np.ndarray, np.ndarray, int]:

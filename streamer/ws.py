@@ -26,7 +26,6 @@ from typing import Callable, Iterable
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
 
-from dimgestor.audio import load_resampling
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer import request_checks as RC
@@ -101,9 +100,6 @@ class WsServer:
         self.broadcast_ended = False
         self.broadcast_frames = 0
         self.prep = FairWorker("ws-prep")  # decode, resample, encode: each client's work in its fair turn
-        # now, not on the intake thread: no client's share is charged scipy's import, and the server's own account
-        # there (what fair queueing orders its jobs by) is not either
-        load_resampling()
         self.audio_pending: list[tuple[float, np.ndarray]] = []  # source audio not yet sent (< AUDIO_BATCH_S)
         self.audio_recent: deque[bytes] = deque(maxlen=int(AUDIO_RECENT_S / AUDIO_BATCH_S))  # for late joiners
         self._servers: list = []

@@ -6,9 +6,10 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.signal import resample_poly
+from scipy.signal import firwin, resample_poly
 
-from dimgestor.audio import AudioError, StreamingResampler, align, load_wav, read_wav, resample, save_wav
+from dimgestor.audio import (AudioError, StreamingResampler, align, kaiser_lowpass, load_wav, read_wav, resample,
+                             save_wav)
 
 EXTENSIBLE_GUID_TAIL = b"\x00\x00\x00\x00\x10\x00\x80\x00\x00\xaa\x00\x38\x9b\x71"
 
@@ -166,3 +167,12 @@ def test_a_resampler_state_carried_to_another_resampler_goes_on_exactly():
     assert np.array_equal(np.concatenate([part, second.process(x[17011:])]), expected)
     with pytest.raises(ValueError, match="does not fit"):
         StreamingResampler(44100, 16000).set_state(state)
+
+
+@pytest.mark.parametrize("up, down", [(160, 441), (1, 3), (2, 3), (147, 160), (160, 147), (1, 12), (4, 1)])
+def test_the_resamplers_filter_is_scipys_firwin(up, down):
+    """The resampler designs its filter with numpy (no scipy.signal import: ~1 s of CPU at a server's start or its
+    first resampling client): scipy.signal.firwin's Kaiser-windowed sinc to float64 rounding."""
+    half = 10 * max(up, down)
+    want = firwin(2 * half + 1, 1.0 / max(up, down), window=("kaiser", 5.0))
+    np.testing.assert_allclose(kaiser_lowpass(2 * half + 1, 1.0 / max(up, down), 5.0), want, rtol=0, atol=1e-15)

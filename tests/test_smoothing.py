@@ -96,3 +96,21 @@ def test_the_checkpoint_defaults_drive_steps_and_smoothing():
     assert smoothing_from_flag(None) == "config" and smoothing_from_flag(0) is None and smoothing_from_flag(4) == 4
     with pytest.raises(ValueError, match="--smooth"):
         smoothing_from_flag(-1)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_beta_zero_adds_as_scipy_lfilter_does_bit_for_bit(dtype):
+    """The fixed low-pass is a loop of numpy (no scipy.signal import, ~1 s of CPU); its sums are lfilter's, in the
+    same order, so a filtered stream is what it was: from the first frame and from a carried state."""
+    from scipy.signal import lfilter
+
+    f = OneEuroFilter(20.0, 1.5)
+    a = f._alpha(f.min_cutoff_hz)
+    x = np.random.default_rng(1).normal(size=(300, 42)).astype(dtype)
+    out, state = f.step(None, x)
+    want = lfilter([a], [1.0, a - 1.0], x[1:].astype(np.float64), axis=0, zi=((1.0 - a) * x[0].astype(np.float64))[None])[0]
+    assert out.dtype == dtype and np.array_equal(out[0], x[0]) and np.array_equal(out[1:], want.astype(dtype))
+    more = np.random.default_rng(2).normal(size=(50, 42)).astype(dtype)
+    out2, _ = f.step(state, more)
+    want2 = lfilter([a], [1.0, a - 1.0], more.astype(np.float64), axis=0, zi=((1.0 - a) * state.x)[None])[0]
+    assert np.array_equal(out2, want2.astype(dtype))
