@@ -12,11 +12,11 @@ REPO = Path(__file__).resolve().parents[1]
 # The modules that take longest (seconds on the 2-core CI machine, one worker's span), handed out first (`make test`:
 # --dist loadfile --no-loadscope-reorder gives modules to the workers in collection order): a worker that starts one
 # of them near the end of the run would keep the others waiting for it. The rest follow in file order.
-LONGEST_MODULES = ("test_benchmarks.py", "test_clients_web.py", "test_recipe_quality.py", "test_streamer_handover.py",
-                   "test_voiceworld_training.py", "test_onnx.py", "test_clients_web_local.py",
-                   "test_streamer_store_faults.py", "test_clients_python.py", "test_train_ddp.py",
-                   "test_streamer_cli.py", "test_clients_unity.py", "test_deploy.py", "test_streamer_sessions.py",
-                   "test_clients_web_face.py", "test_streamer_mic.py", "test_streamer_abuse.py",
+LONGEST_MODULES = ("test_benchmarks.py", "test_clients_web.py", "test_streamer_handover.py", "test_onnx.py",
+                   "test_clients_web_local.py", "test_recipe_quality.py", "test_voiceworld_training.py",
+                   "test_streamer_store_faults.py", "test_clients_python.py", "test_streamer_cli.py",
+                   "test_train_ddp.py", "test_clients_web_face.py", "test_streamer_sessions.py",
+                   "test_clients_unity.py", "test_streamer_mic.py", "test_streamer_abuse.py", "test_deploy.py",
                    "test_voices_benchmark.py")
 
 
