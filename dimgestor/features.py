@@ -208,7 +208,7 @@ class Pose:
 ROOT_MODES = ("free", "tether", "lock")
 
 
-def _leaky_cumsum(u: np.ndarray, prev: float, lam: float) -> np.ndarray:
+def leaky_cumsum(u: np.ndarray, prev: float, lam: float) -> np.ndarray:
     """y_n = lam * y_{n-1} + u_n from y_{-1} = prev (lam = 1: a plain running sum)."""
     if lam == 1.0:
         return prev + np.cumsum(u)
@@ -271,11 +271,11 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
         if facing:
             heading = anchor.heading + f[:, HEADING_COLUMN]
         else:
-            heading = a.heading + _leaky_cumsum(u[:, 2], state.heading - a.heading, lam)
+            heading = a.heading + leaky_cumsum(u[:, 2], state.heading - a.heading, lam)
         h_prev = np.concatenate([[state.heading], heading[:-1]])
         c, s = np.cos(h_prev), np.sin(h_prev)
-        x = a.x + _leaky_cumsum(c * u[:, 0] + s * u[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
-        z = a.z + _leaky_cumsum(-s * u[:, 0] + c * u[:, 1], state.z - a.z, lam)
+        x = a.x + leaky_cumsum(c * u[:, 0] + s * u[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
+        z = a.z + leaky_cumsum(-s * u[:, 0] + c * u[:, 1], state.z - a.z, lam)
     tilt = np.stack([f[:, 4], np.zeros(n), f[:, 5]], -1)
     rot = R.quat_identity((n, skeleton.num_joints))
     rot[:, 0] = R.quat_mul(R.yaw_quat(heading), R.expmap_to_quat(tilt))

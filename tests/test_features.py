@@ -312,9 +312,9 @@ def test_the_tethers_leaky_sum_adds_as_scipy_lfilter_does_bit_for_bit(lam):
     first frames paid), with lfilter's sums in lfilter's order: the same root, bit for bit."""
     from scipy.signal import lfilter
 
-    from dimgestor.features import _leaky_cumsum
+    from dimgestor.features import leaky_cumsum
 
     rng = np.random.default_rng(int(lam * 1000))
     u, prev = rng.normal(size=500), float(rng.normal())
-    assert np.array_equal(_leaky_cumsum(u, prev, lam), lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0])
-    assert np.array_equal(_leaky_cumsum(u[:0], prev, lam), np.zeros(0))
+    assert np.array_equal(leaky_cumsum(u, prev, lam), lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0])
+    assert np.array_equal(leaky_cumsum(u[:0], prev, lam), np.zeros(0))
