@@ -70,8 +70,9 @@ METHOD = {
              "queued; then network down and playout (talk) or the VMC pacer and UDP (vmc); slack = total - parts",
 }
 # An onset: |x| > ONSET after QUIET_S below QUIET (latency_probe.js finds the first sample above ONSET). QUIET is
-# above the 16 kHz resampler's ringing just before a burst (up to 0.01 at these bursts).
-ONSET, QUIET, QUIET_S = 0.05, 0.03, 0.3
+# above the 16 kHz resampler's ringing just before a burst (up to 0.01 at these bursts). A burst's first samples
+# may land between QUIET and ONSET (where the resampler's grid cuts its first period): up to RISE_S of them.
+ONSET, QUIET, QUIET_S, RISE_S = 0.05, 0.03, 0.3, 0.005
 WARMUP_S = 4.0  # onsets earlier than this on the stream's clock are left out (the playout clock is settling)
 SAID_SPAN_S = 5.0  # the least delayed microphone chunk within this of a moment dates it (as the viewer does)
 
@@ -102,13 +103,21 @@ def write_wav(path: Path, x: np.ndarray) -> Path:
 
 
 def detect_onsets(x: np.ndarray, rate: int) -> list[int]:
-    """Sample indices where |x| first exceeds ONSET after QUIET_S below QUIET."""
-    out, run = [], 0
-    need = int(QUIET_S * rate)
+    """Sample indices where |x| first exceeds ONSET after QUIET_S below QUIET and at most RISE_S between."""
+    out, run, quiet_before, rising = [], 0, 0, 0
+    need, rise = int(QUIET_S * rate), int(RISE_S * rate)
     for i, a in enumerate(np.abs(x)):
-        if a > ONSET and run >= need:
-            out.append(i)
-        run = run + 1 if a < QUIET else 0
+        if a < QUIET:
+            run += 1
+            continue
+        if run:  # the quiet stretch before this sample, and how many rising samples since
+            quiet_before, rising, run = run, 0, 0
+        if a > ONSET:
+            if quiet_before >= need and rising <= rise:
+                out.append(i)
+            quiet_before = 0
+        else:
+            rising += 1
     return out
 
 
@@ -281,14 +290,24 @@ def osc_times(datagram: bytes) -> list[float]:
 
 class Feeder(threading.Thread):
     """Plays samples into the virtual microphone's sink in real time through pacat (10 ms buffer): sample i is
-    played at `t0 + i / RATE` on time.monotonic (plus pacat's buffer, at most its 10 ms)."""
+    played at `t0 + i / RATE` on time.monotonic (plus pacat's buffer, at most its 10 ms). Start it once `ready()`:
+    pacat's stream is connected (before, what it is given waits in its pipe and plays late)."""
 
     def __init__(self, x: np.ndarray, env: dict, sink: str = "mic48", block: int = RATE // 100):
         super().__init__(daemon=True)
-        self.x, self.block, self.t0 = x, block, None
+        self.x, self.block, self.t0, self.env = x, block, None, env
         self.proc = subprocess.Popen(["pacat", "--playback", f"--device={sink}", f"--rate={RATE}", "--channels=1",
-                                      "--format=float32le", "--latency-msec=10", "--raw"],
+                                      "--format=float32le", "--latency-msec=10", "--raw", "--client-name=feeder"],
                                      stdin=subprocess.PIPE, env=env)
+
+    def ready(self, timeout: float = 30.0) -> None:
+        """Wait until the sink has pacat's stream (its client named `feeder`)."""
+        deadline = time.monotonic() + timeout
+        while b"feeder" not in subprocess.run(["pactl", "list", "sink-inputs"], env=self.env,
+                                              capture_output=True).stdout:
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"pacat did not connect to the virtual microphone (exit {self.proc.poll()})")
+            time.sleep(0.05)
 
     def run(self):
         self.t0 = time.monotonic() + 0.05
@@ -303,10 +322,11 @@ class Feeder(threading.Thread):
 
 
 class TappedSource:
-    """The server's microphone source, unchanged, keeping what it yields (stream time, samples, arrival)."""
+    """The server's microphone source, unchanged, keeping what it yields (stream time, samples, arrival); calls
+    `on_first()` when it has the first chunk (the microphone is capturing)."""
 
-    def __init__(self, source):
-        self.source, self.chunks = source, []
+    def __init__(self, source, on_first=None):
+        self.source, self.chunks, self.on_first = source, [], on_first
 
     def __getattr__(self, name):
         return getattr(self.source, name)
@@ -314,6 +334,8 @@ class TappedSource:
     async def __aiter__(self):
         async for chunk in self.source:
             self.chunks.append(chunk)
+            if len(self.chunks) == 1 and self.on_first:
+                self.on_first()
             yield chunk
 
 
@@ -374,13 +396,16 @@ def run_vmc(a, tmp: Path) -> dict:
                 argv += ["--vmc-jitter-ms", str(a.vmc_jitter_ms)]
             args = vars(build_parser().parse_args(argv))
             p = build(ServeOptions.parse(**{k: v for k, v in args.items() if k in ServeOptions.model_fields}))
-            p.source = TappedSource(p.source)
+            # The sound starts once the microphone captures: played earlier, PulseAudio would keep it for the
+            # stream and the server would hear it late by however long it took to open the device.
+            feeder = Feeder(np.concatenate([np.zeros(RATE // 2, np.float32), x]), vmic.env)
+            feeder.ready()
+            p.source = TappedSource(p.source, on_first=feeder.start)
             stamps = WindowStamps(p.session)
             p.sinks.insert(0, stamps)
-            feeder = Feeder(np.concatenate([np.zeros(RATE // 2, np.float32), x]), vmic.env)
-            feeder.start()
             asyncio.run(run(p))
-            feeder.join(30)
+            if feeder.ident is not None:
+                feeder.join(30)
             if feeder.proc.poll() is None:
                 feeder.proc.terminate()
     except pytest.skip.Exception as e:
@@ -388,6 +413,8 @@ def run_vmc(a, tmp: Path) -> dict:
     finally:
         udp.stop = True
     hello = {"fps": p.bundle.feature_spec.fps, "lookahead_s": p.session.lookahead_s, "window_ms": a.window_ms}
+    if feeder.t0 is None:
+        raise RuntimeError("the server's microphone gave no audio: nothing was played")
     played = [feeder.t0 + 0.5 + f for f in file_onsets]
     vmc = next(s for s in p.sinks if hasattr(s, "pacer"))
     if a.raw:
