@@ -14,15 +14,17 @@ const MATERIALS = {
   mouth: new THREE.MeshStandardMaterial({ color: 0x3a1414, roughness: 0.9 }),
   shoe: new THREE.MeshStandardMaterial({ color: 0x39404c, roughness: 0.6 }),
 };
-const SPHERE = new THREE.SphereGeometry(1, 40, 24);
 const X = new THREE.Vector3(1, 0, 0), Y = new THREE.Vector3(0, 1, 0), Z = new THREE.Vector3(0, 0, 1);
 const FINGERS = ['Thumb', 'Index', 'Middle', 'Ring', 'Little'];
 const PHALANGES = ['Proximal', 'Intermediate', 'Distal'];
 
+/** Segments for a curve drawn with `n` at full detail: at least `min`. */
+const seg = (n, detail, min = 3) => Math.max(min, Math.round(n * detail));
+
 /** A capsule from y=0 to y=len whose radius tapers from r0 to r1 (a lathe: smooth, no seams). */
-function taperedCapsule(len, r0, r1) {
+function taperedCapsule(len, r0, r1, detail = 1) {
   const pts = [];
-  const n = 10;
+  const n = seg(10, detail, 2);
   for (let i = 0; i <= n; i++) {  // bottom cap
     const a = -Math.PI / 2 + (i / n) * (Math.PI / 2);
     pts.push(new THREE.Vector2(Math.max(r0 * Math.cos(a), 1e-4), r0 * Math.sin(a)));
@@ -31,16 +33,17 @@ function taperedCapsule(len, r0, r1) {
     const a = (i / n) * (Math.PI / 2);
     pts.push(new THREE.Vector2(Math.max(r1 * Math.cos(a), 1e-4), len + r1 * Math.sin(a)));
   }
-  return new THREE.LatheGeometry(pts, 28);
+  return new THREE.LatheGeometry(pts, seg(28, detail, 6));
 }
 
 /**
  * A closed tube along y from y0 to y1 whose elliptical cross-section is prof(y) = [rx, rz], its ends rounded over
  * capBottom / capTop. Pieces that share a cross-section where they meet join without a seam.
  */
-function profiledTube(y0, y1, prof, capBottom, capTop, rings = 16, around = 36) {
+function profiledTube(y0, y1, prof, capBottom, capTop, detail = 1) {
+  const rings = seg(16, detail, 4), around = seg(36, detail, 8);
   const ys = [];  // [y, shrink] per ring: caps are quarter ellipses, so the ends close smoothly
-  const capRings = 8;
+  const capRings = seg(8, detail, 2);
   for (let i = capRings; i > 0; i--) { const a = (i / capRings) * Math.PI / 2; ys.push([y0 - capBottom * Math.sin(a), Math.cos(a)]); }
   for (let i = 0; i <= rings; i++) ys.push([y0 + ((y1 - y0) * i) / rings, 1]);
   for (let i = 1; i <= capRings; i++) { const a = (i / capRings) * Math.PI / 2; ys.push([y1 + capTop * Math.sin(a), Math.cos(a)]); }
@@ -69,9 +72,11 @@ function profiledTube(y0, y1, prof, capBottom, capTop, rings = 16, around = 36) 
  * Build the mannequin's meshes onto `joints` (Object3Ds in skeleton order, at rest). Returns the meshes, the
  * rest pose's facing and its face: {meshes, forward, up, left, bounds (Box3, file units), face}; face.set({jaw,
  * blinkLeft, blinkRight}) (0..1, face.js mouthOf) opens the mouth and closes the eyelids, face.state is what it
- * shows (a skeleton without a head: nothing to show, the state still kept).
+ * shows (a skeleton without a head: nothing to show, the state still kept). `detail` (0..1] scales the curves'
+ * segments: a software renderer's cost follows the triangles (1: ~113k, 0.4: ~18k).
  */
-export function buildMannequin(skeleton, humanoid, joints) {
+export function buildMannequin(skeleton, humanoid, joints, detail = 1) {
+  const SPHERE = new THREE.SphereGeometry(1, seg(40, detail, 8), seg(24, detail, 6));
   const names = skeleton.joints, parents = skeleton.parents;
   const index = new Map(names.map((n, j) => [n, j]));
   const bone = (b) => (humanoid && humanoid[b] !== undefined && index.has(humanoid[b]) ? index.get(humanoid[b]) : -1);
@@ -127,7 +132,7 @@ export function buildMannequin(skeleton, humanoid, joints) {
     const len = d.length();
     if (len < 1e-6) return null;
     const rot = new THREE.Matrix4().makeRotationFromQuaternion(new THREE.Quaternion().setFromUnitVectors(Y, d.normalize()));
-    return add(j, taperedCapsule(len, r0, r1), material, a, rot);
+    return add(j, taperedCapsule(len, r0, r1, detail), material, a, rot);
   }
   const ball = (j, r, material = MATERIALS.joint) => ellipsoid(j, P(j), r, r, r, material);
   const along = (a, b, t) => new THREE.Vector3().lerpVectors(a, b, t);
@@ -161,7 +166,7 @@ export function buildMannequin(skeleton, humanoid, joints) {
     // The pelvis: below the hips joint, upright in the body's frame, narrowing down to the crotch.
     const [px, pz] = profile(0);
     const pelvis = (y) => { const k = 1 + 0.025 * Math.min(y, 0) / u; return [px * k, pz * (0.5 + 0.5 * k)]; };
-    add(hips, profiledTube(-7 * u, overlap, pelvis, 6 * u, 0), MATERIALS.body, P(hips));
+    add(hips, profiledTube(-7 * u, overlap, pelvis, 6 * u, 0, detail), MATERIALS.body, P(hips));
     let h = 0;
     seg.forEach((j, i) => {
       const a = ends[i], b = ends[i + 1], len = lengths[i];
@@ -176,7 +181,7 @@ export function buildMannequin(skeleton, humanoid, joints) {
       const rot = new THREE.Matrix4().makeBasis(xAxis, yAxis, zAxis);
       const y0 = first ? 0 : -overlap, y1 = last ? len : len + overlap;
       const prof = (y) => profile(h0 + (y / len) * (h1 - h0));
-      add(j, profiledTube(y0, y1, prof, 0, last ? 5 * u : 0), MATERIALS.body, a, rot);
+      add(j, profiledTube(y0, y1, prof, 0, last ? 5 * u : 0, detail), MATERIALS.body, a, rot);
       done.add(j);
     });
   }
@@ -236,7 +241,7 @@ export function buildMannequin(skeleton, humanoid, joints) {
     };
     face.set({});
     // Hair: the top of a slightly larger ellipsoid, tipped back so the hairline sits above the brow.
-    const hair = new THREE.SphereGeometry(1, 40, 20, 0, Math.PI * 2, 0, Math.PI * 0.56);
+    const hair = new THREE.SphereGeometry(1, seg(40, detail, 8), seg(20, detail, 5), 0, Math.PI * 2, 0, Math.PI * 0.56);
     const tip = new THREE.Matrix4().makeRotationAxis(left, -0.5).multiply(basis);
     add(head, hair, MATERIALS.hair, c.clone().addScaledVector(up, 0.4 * u).addScaledVector(forward, -0.3 * u), tip,
         new THREE.Vector3(R.x * 1.07, R.y * 1.04, R.z * 1.08));
@@ -263,7 +268,7 @@ export function buildMannequin(skeleton, humanoid, joints) {
       const normal = new THREE.Vector3().crossVectors(ax, across).normalize();
       across.crossVectors(normal, ax).normalize();
       const rot = new THREE.Matrix4().makeBasis(ax, normal, across);
-      const palm = new RoundedBoxGeometry(1, 1, 1, 3, 0.45);
+      const palm = new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.45);
       add(hand, palm, MATERIALS.body, along(w, m, 0.55), rot, new THREE.Vector3(len * 1.05, 2.8 * u, width));
     }
     for (const f of FINGERS) {
@@ -301,14 +306,14 @@ export function buildMannequin(skeleton, humanoid, joints) {
     const heel = a.clone().addScaledVector(fwd, -5 * u);
     const h = Math.max(a.y - ground + 2 * u, 5 * u);
     const body = new THREE.Vector3().lerpVectors(heel, toeP, 0.5).setY(ground + h / 2);
-    add(ft, new RoundedBoxGeometry(1, 1, 1, 3, 0.35), MATERIALS.shoe, body, rot,
+    add(ft, new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.35), MATERIALS.shoe, body, rot,
         new THREE.Vector3(9 * u, h, heel.distanceTo(toeP) + 2 * u));
     done.add(ft);
     if (toe >= 0) {
       const end = children[toe].map(P).find((p) => p.distanceTo(toeP) > 1e-3) || toeP.clone().addScaledVector(fwd, 7 * u);
       const len = toeP.distanceTo(end) + 1.5 * u;
       const c = along(toeP, end, 0.5).setY(ground + 2.2 * u);
-      add(toe, new RoundedBoxGeometry(1, 1, 1, 3, 0.4), MATERIALS.shoe, c, rot, new THREE.Vector3(8.6 * u, 4.4 * u, len));
+      add(toe, new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.4), MATERIALS.shoe, c, rot, new THREE.Vector3(8.6 * u, 4.4 * u, len));
       done.add(toe);
     }
     bounds.min.y = Math.min(bounds.min.y, ground);

@@ -77,8 +77,16 @@ key.position.set(2.0, 4.0, 3.5);
 key.castShadow = true;
 // A software renderer (no GPU: SwiftShader, llvmpipe) draws every pixel on the CPU: there the viewer draws without
 // MSAA and with a 512 shadow map (in headless Chromium beside other work: ~2 -> ~9 fps for the mannequin,
-// benchmarks/results/latency_talk_worker.json; a page's messages wait for its drawing, README "Latency").
+// benchmarks/results/latency_talk_worker.json; a page's messages wait for its drawing, README "Latency"). Its cost
+// follows the canvas's pixels and the mannequin's triangles, not shadows or tone mapping (headless Chromium on two
+// cores, 960x640, the mannequin streaming: 150 ms a drawing; at half the pixel density 85 ms; with 0.4 of the
+// segments too, 39 ms), so there the canvas has half the page's pixel density, the mannequin fewer segments, and
+// it is drawn at most SOFTWARE_FPS times a second (the stream's own frame rate): ~7 -> ~17-20 drawings a second,
+// each for about a quarter of the CPU, and a page that no longer takes every core it can get.
 const SOFTWARE_GL = softwareGl();
+const SOFTWARE_PIXEL_RATIO = 0.5;
+const SOFTWARE_FPS = 20;
+const SOFTWARE_DETAIL = 0.4;  // the mannequin's curves with 0.4 of their segments (a frame's triangles: 226k -> 37k)
 key.shadow.mapSize.setScalar(SOFTWARE_GL ? 512 : 1024);
 Object.assign(key.shadow.camera, { left: -2, right: 2, top: 2.5, bottom: -0.5, near: 0.5, far: 12 });
 key.shadow.bias = -0.0005;
@@ -109,7 +117,7 @@ let renderer = null;
 let controls = null;
 try {
   renderer = new THREE.WebGLRenderer({ antialias: !SOFTWARE_GL });
-  renderer.setPixelRatio(devicePixelRatio);
+  renderer.setPixelRatio(SOFTWARE_GL ? SOFTWARE_PIXEL_RATIO * devicePixelRatio : devicePixelRatio);
   renderer.setSize(innerWidth, innerHeight);
   renderer.shadowMap.enabled = true;
   renderer.shadowMap.type = THREE.PCFSoftShadowMap;
@@ -124,7 +132,8 @@ try {
   say(`WebGL unavailable: ${e.message}`);
 }
 addEventListener('resize', () => { fitViewport(); });
-api.drawing = { softwareGl: SOFTWARE_GL, antialias: !SOFTWARE_GL, shadowMap: key.shadow.mapSize.x };
+api.drawing = { softwareGl: SOFTWARE_GL, antialias: !SOFTWARE_GL, shadowMap: key.shadow.mapSize.x,
+                pixelRatio: renderer ? renderer.getPixelRatio() : null, maxFps: SOFTWARE_GL ? SOFTWARE_FPS : null };
 
 /** Whether WebGL here is a software renderer (its name says so); false when it cannot be told. */
 function softwareGl() {
@@ -202,7 +211,7 @@ function buildSkeleton(sk, humanoid) {
   if (!(sk.units in UNIT_TO_M)) say(`unknown skeleton units "${sk.units}", assuming cm`);
   skeletonScale = UNIT_TO_M[sk.units] ?? 0.01;
 
-  body = buildMannequin(sk, humanoid, joints);
+  body = buildMannequin(sk, humanoid, joints, SOFTWARE_GL ? SOFTWARE_DETAIL : 1);
   looks = { mannequin: body.meshes, skeleton: buildStickFigure(sk) };
   figure.scale.setScalar(skeletonScale);
   if (vrmAvatar) attachVrm(vrmAvatar.vrm);  // a new skeleton (another server): retarget the VRM to it
@@ -413,6 +422,10 @@ const PAGE_FRAMES_MS = 2000;
 const pageFrames = [];  // [time, interval] of the page's frames in the last PAGE_FRAMES_MS
 
 function render() {
+  // (a software renderer: the next drawing is asked for once its share of a second has passed, less half a display
+  // frame, as display frames come a little before or after their period)
+  const wait = SOFTWARE_GL && renderer ? 1000 / SOFTWARE_FPS - 8 - (performance.now() - lastRender) : 0;
+  if (wait > 0) { setTimeout(() => requestAnimationFrame(render), wait); return; }
   requestAnimationFrame(render);
   showPose();
   if (!renderer) return;
