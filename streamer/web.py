@@ -47,7 +47,10 @@ def prepare_model(folder: str | Path, checkpoint: str | None = None, steps: int 
     if export or (export is None and not (folder / GRAPH).exists()):
         export_onnx(checkpoint, folder, steps, None, frames)
     manifest = json.loads((folder / "manifest.json").read_text())
-    (folder / "web.json").write_text(json.dumps(web_json(manifest["checkpoint"]["path"], root, tether_s)))
+    # (written whole, then renamed into place: a page reading the folder meanwhile sees the old file or the new one)
+    part = folder / "web.json.part"
+    part.write_text(json.dumps(web_json(manifest["checkpoint"]["path"], root, tether_s)))
+    part.replace(folder / "web.json")
     return folder
 
 

@@ -193,20 +193,24 @@ def test_cluster_load_benchmark_runs_a_rolling_restart_and_writes_its_schema(tmp
 @pytest.mark.skipif(not (shutil.which("chromium") or shutil.which("chromium-browser")), reason="chromium not installed")
 @pytest.mark.skipif(not (REPO / "clients/web/node_modules/onnxruntime-web").is_dir(),
                     reason="onnxruntime-web is not installed (make setup runs npm ci in clients/web)")
-def test_web_local_benchmark_writes_its_schema(tmp_path):
-    """One K (exported, ~30 s), one thread setting, a few windows and 4 s of Talk in headless Chromium."""
+def test_web_local_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
+    """One K (the run's shared export, as the local-page tests serve it), one thread setting, a few windows and 4 s
+    of Talk in headless Chromium."""
+    from helpers.web_export import web_export
+
+    exports = web_export(tmp_path_factory, 2, 2).parent
     out = tmp_path / "web_local.json"
-    run("web_local.py", "--steps", "1", "--threads", "1", "--calls", "8", "--talk-s", "4", "--settle", "1",
-        "--out", str(out))
+    run("web_local.py", "--steps", "2", "--exports", str(exports), "--threads", "1", "--calls", "8", "--talk-s", "4",
+        "--settle", "1", "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["code"] and r["device"].startswith("CPU") and "onnxruntime-web" in r["browser"]
     [x] = r["results"]
-    assert x["steps"] == 1 and x["threads"] == 1 and x["window_ms"] == 100 and x["windows"] == 8 - 3 - 2
+    assert x["steps"] == 2 and x["threads"] == 1 and x["window_ms"] == 100 and x["windows"] == 8 - 3 - 2
     assert all(finite(x[k]) and x[k] > 0 for k in ("ms_p50", "ms_p90", "ms_mean", "rtf", "load_ms"))
     [t] = r["talk"]  # the readout is measured (from the microphone's chunks), the buffer and the lag are there
     # (how many reads fit in 4 s is how fast the page draws: a loaded machine's software renderer made 3 of ~12)
-    assert t["steps"] == 1 and t["reads"] >= 1 and t["hud_measured"] == 1.0, t
+    assert t["steps"] == 2 and t["reads"] >= 1 and t["hud_measured"] == 1.0, t
     assert all(finite(t[k]) and t[k] > 0 for k in ("hud_ms_p50", "hud_ms_p90", "lag_ms_p50", "buffer_ms_p50")), t
 
 

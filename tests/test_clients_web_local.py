@@ -42,11 +42,12 @@ SILENCE_S = 2.0  # the known WAV: this much digital silence, then the speech WAV
 
 @pytest.fixture(scope="module")
 def web_model(tmp_path_factory):
-    """The embedded default model exported for the page (graph, manifest, web.json; ~30 s) and the known WAV."""
+    """The embedded default model exported for the page (graph, manifest, web.json; ~30 s, once a run for every
+    test process: helpers/web_export.py) in a folder of this module's, and the known WAV."""
     from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav
-    from streamer.web import prepare_model
+    from helpers.web_export import own_copy, web_export
 
-    folder = prepare_model(tmp_path_factory.mktemp("web_model"), None, steps=STEPS, frames=FRAMES)
+    folder = own_copy(web_export(tmp_path_factory, STEPS, FRAMES), tmp_path_factory.mktemp("web_model"))
     speech = load_wav(SPEECH_WAV)
     save_wav(folder / "known.wav", np.concatenate([np.zeros(int(SILENCE_S * SAMPLE_RATE)), speech]), SAMPLE_RATE)
     return folder
