@@ -480,3 +480,30 @@ def test_web_talk_goes_on_in_a_fresh_session_when_its_worker_is_killed(tmp_path,
         browser.wait_for(f"window.dimgestor.framesReceived >= {before + 40}", 60, "gestures going on")
         api = browser.eval("({talking: dimgestor.talking, errors: dimgestor.errors, state: dimgestor.state})")
         assert api == {"talking": True, "errors": [], "state": "open"}, api
+
+
+def test_web_viewer_on_a_software_renderer_draws_at_half_density_and_at_most_20_fps(tmp_path):
+    """Where WebGL runs on the CPU (headless Chromium here: SwiftShader) the page draws its canvas at half the pixel
+    density and at most 20 times a second (the page asks for the next drawing 8 ms early: >= 42 ms apart). Measured
+    on the page alone (no server: nothing else wants the CPU), where it could draw every ~18 ms without the cap; a
+    GPU page: full density, no cap."""
+    import threading
+
+    from streamer.web import make_server
+
+    httpd = make_server("127.0.0.1", 0, tmp_path)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    browser = Browser(tmp_path, f"http://127.0.0.1:{httpd.server_address[1]}/?sound=off")
+    try:
+        browser.wait_for("!!window.dimgestor && window.dimgestor.frameMs !== null", 60, "the page drawing")
+        time.sleep(3)  # frameMs: a moving average over ~10 drawings
+        drawing = browser.eval("({...window.dimgestor.drawing, dpr: devicePixelRatio, "
+                               "frameMs: window.dimgestor.frameMs})")
+    finally:
+        browser.close()
+        httpd.shutdown()
+    if drawing["softwareGl"]:
+        assert drawing["pixelRatio"] == 0.5 * drawing["dpr"] and drawing["maxFps"] == 20, drawing
+        assert drawing["frameMs"] > 40, drawing
+    else:
+        assert drawing["pixelRatio"] == drawing["dpr"] and drawing["maxFps"] is None, drawing
