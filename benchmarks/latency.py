@@ -396,8 +396,8 @@ def run_vmc(a, tmp: Path) -> dict:
                 argv += ["--vmc-jitter-ms", str(a.vmc_jitter_ms)]
             args = vars(build_parser().parse_args(argv))
             p = build(ServeOptions.parse(**{k: v for k, v in args.items() if k in ServeOptions.model_fields}))
-            # The sound starts once the microphone captures: played earlier, PulseAudio would keep it for the
-            # stream and the server would hear it late by however long it took to open the device.
+            # The sound starts once pacat is connected and the microphone captures: started earlier, every burst
+            # reached the server late by those start-up times (0.8-1.2 s on a loaded machine), counted as capture.
             feeder = Feeder(np.concatenate([np.zeros(RATE // 2, np.float32), x]), vmic.env)
             feeder.ready()
             p.source = TappedSource(p.source, on_first=feeder.start)

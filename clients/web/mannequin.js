@@ -19,12 +19,12 @@ const FINGERS = ['Thumb', 'Index', 'Middle', 'Ring', 'Little'];
 const PHALANGES = ['Proximal', 'Intermediate', 'Distal'];
 
 /** Segments for a curve drawn with `n` at full detail: at least `min`. */
-const seg = (n, detail, min = 3) => Math.max(min, Math.round(n * detail));
+const segments = (n, detail, min = 3) => Math.max(min, Math.round(n * detail));
 
 /** A capsule from y=0 to y=len whose radius tapers from r0 to r1 (a lathe: smooth, no seams). */
 function taperedCapsule(len, r0, r1, detail = 1) {
   const pts = [];
-  const n = seg(10, detail, 2);
+  const n = segments(10, detail, 2);
   for (let i = 0; i <= n; i++) {  // bottom cap
     const a = -Math.PI / 2 + (i / n) * (Math.PI / 2);
     pts.push(new THREE.Vector2(Math.max(r0 * Math.cos(a), 1e-4), r0 * Math.sin(a)));
@@ -33,7 +33,7 @@ function taperedCapsule(len, r0, r1, detail = 1) {
     const a = (i / n) * (Math.PI / 2);
     pts.push(new THREE.Vector2(Math.max(r1 * Math.cos(a), 1e-4), len + r1 * Math.sin(a)));
   }
-  return new THREE.LatheGeometry(pts, seg(28, detail, 6));
+  return new THREE.LatheGeometry(pts, segments(28, detail, 6));
 }
 
 /**
@@ -41,9 +41,9 @@ function taperedCapsule(len, r0, r1, detail = 1) {
  * capBottom / capTop. Pieces that share a cross-section where they meet join without a seam.
  */
 function profiledTube(y0, y1, prof, capBottom, capTop, detail = 1) {
-  const rings = seg(16, detail, 4), around = seg(36, detail, 8);
+  const rings = segments(16, detail, 4), around = segments(36, detail, 8);
   const ys = [];  // [y, shrink] per ring: caps are quarter ellipses, so the ends close smoothly
-  const capRings = seg(8, detail, 2);
+  const capRings = segments(8, detail, 2);
   for (let i = capRings; i > 0; i--) { const a = (i / capRings) * Math.PI / 2; ys.push([y0 - capBottom * Math.sin(a), Math.cos(a)]); }
   for (let i = 0; i <= rings; i++) ys.push([y0 + ((y1 - y0) * i) / rings, 1]);
   for (let i = 1; i <= capRings; i++) { const a = (i / capRings) * Math.PI / 2; ys.push([y1 + capTop * Math.sin(a), Math.cos(a)]); }
@@ -76,7 +76,7 @@ function profiledTube(y0, y1, prof, capBottom, capTop, detail = 1) {
  * segments: a software renderer's cost follows the triangles (1: ~113k, 0.4: ~18k).
  */
 export function buildMannequin(skeleton, humanoid, joints, detail = 1) {
-  const SPHERE = new THREE.SphereGeometry(1, seg(40, detail, 8), seg(24, detail, 6));
+  const SPHERE = new THREE.SphereGeometry(1, segments(40, detail, 8), segments(24, detail, 6));
   const names = skeleton.joints, parents = skeleton.parents;
   const index = new Map(names.map((n, j) => [n, j]));
   const bone = (b) => (humanoid && humanoid[b] !== undefined && index.has(humanoid[b]) ? index.get(humanoid[b]) : -1);
@@ -241,7 +241,7 @@ export function buildMannequin(skeleton, humanoid, joints, detail = 1) {
     };
     face.set({});
     // Hair: the top of a slightly larger ellipsoid, tipped back so the hairline sits above the brow.
-    const hair = new THREE.SphereGeometry(1, seg(40, detail, 8), seg(20, detail, 5), 0, Math.PI * 2, 0, Math.PI * 0.56);
+    const hair = new THREE.SphereGeometry(1, segments(40, detail, 8), segments(20, detail, 5), 0, Math.PI * 2, 0, Math.PI * 0.56);
     const tip = new THREE.Matrix4().makeRotationAxis(left, -0.5).multiply(basis);
     add(head, hair, MATERIALS.hair, c.clone().addScaledVector(up, 0.4 * u).addScaledVector(forward, -0.3 * u), tip,
         new THREE.Vector3(R.x * 1.07, R.y * 1.04, R.z * 1.08));
@@ -268,7 +268,7 @@ export function buildMannequin(skeleton, humanoid, joints, detail = 1) {
       const normal = new THREE.Vector3().crossVectors(ax, across).normalize();
       across.crossVectors(normal, ax).normalize();
       const rot = new THREE.Matrix4().makeBasis(ax, normal, across);
-      const palm = new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.45);
+      const palm = new RoundedBoxGeometry(1, 1, 1, segments(3, detail, 1), 0.45);
       add(hand, palm, MATERIALS.body, along(w, m, 0.55), rot, new THREE.Vector3(len * 1.05, 2.8 * u, width));
     }
     for (const f of FINGERS) {
@@ -306,14 +306,14 @@ export function buildMannequin(skeleton, humanoid, joints, detail = 1) {
     const heel = a.clone().addScaledVector(fwd, -5 * u);
     const h = Math.max(a.y - ground + 2 * u, 5 * u);
     const body = new THREE.Vector3().lerpVectors(heel, toeP, 0.5).setY(ground + h / 2);
-    add(ft, new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.35), MATERIALS.shoe, body, rot,
+    add(ft, new RoundedBoxGeometry(1, 1, 1, segments(3, detail, 1), 0.35), MATERIALS.shoe, body, rot,
         new THREE.Vector3(9 * u, h, heel.distanceTo(toeP) + 2 * u));
     done.add(ft);
     if (toe >= 0) {
       const end = children[toe].map(P).find((p) => p.distanceTo(toeP) > 1e-3) || toeP.clone().addScaledVector(fwd, 7 * u);
       const len = toeP.distanceTo(end) + 1.5 * u;
       const c = along(toeP, end, 0.5).setY(ground + 2.2 * u);
-      add(toe, new RoundedBoxGeometry(1, 1, 1, seg(3, detail, 1), 0.4), MATERIALS.shoe, c, rot, new THREE.Vector3(8.6 * u, 4.4 * u, len));
+      add(toe, new RoundedBoxGeometry(1, 1, 1, segments(3, detail, 1), 0.4), MATERIALS.shoe, c, rot, new THREE.Vector3(8.6 * u, 4.4 * u, len));
       done.add(toe);
     }
     bounds.min.y = Math.min(bounds.min.y, ground);
