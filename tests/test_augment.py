@@ -7,6 +7,8 @@ from pydantic import ValidationError
 from dimgestor.augment import (AugmentConfig, AugmentDraw, active_level, add_noise, apply, augment, band_limit, draw,
                                dynamics, equalize, formant_shift, gain, make_noise, pitch_shift, reverb, soft_limit)
 
+from helpers import warm
+
 SR = 16000
 OFF = dict(p_pitch=0, p_formant=0, p_reverb=0, p_noise=0, p_eq=0, p_band=0, p_gain=0)
 
@@ -273,9 +275,9 @@ def test_feature_change_benchmark_runs_and_reports_every_effect(tmp_path):
     repo = Path(__file__).resolve().parents[1]
     save_wav(tmp_path / "s.wav", syllables(3.0)[0], SR)
     out = tmp_path / "r.json"
-    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "augment_features.py"), "--wav",
-                           str(tmp_path / "s.wav"), "--seeds", "1", "--out", str(out)], cwd=repo, capture_output=True,
-                          text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = warm.run([sys.executable, str(repo / "benchmarks" / "augment_features.py"), "--wav",
+                     str(tmp_path / "s.wav"), "--seeds", "1", "--out", str(out)], cwd=repo, capture_output=True,
+                    text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(out.read_text())
     assert len(r["effects"]) == 16 and r["reference_other_speech_nmse"] > 0.5

@@ -93,6 +93,8 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from helpers import warm
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
@@ -115,7 +117,7 @@ def test_paper_table_runs_and_writes_the_issue_schema(tmp_path):
     out = tmp_path / "pt.json"
     cmd = [sys.executable, str(BENCH / "paper_table.py"), "--preset", "tiny", "--hidden", "0", "--lengths", "2",
            "--repeats", "1", "--out", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = warm.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(out.read_text())
     assert result["lengths_s"] == [2.0] and isinstance(result["device"], str)
@@ -138,7 +140,7 @@ def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
            "--steps", "1", "--windows-ms", "500", "--audio-s", "1", "--hour-preset", "tiny", "--hour-steps", "1",
            "--hour-s", "20", "--streams-preset", "tiny", "--streams-steps", "1", "--streams-window-ms", "500",
            "--streams-s", "1", "--streams-max", "1", "--streams-aligned", "--out", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = warm.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(out.read_text())
     keys = {"preset", "steps", "window_ms", "lookahead_ms", "rtf", "latency_ms_p50", "latency_ms_p95",

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import warm
+
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "benchmarks"
 
@@ -20,8 +22,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 def run(script: str, *args: str) -> str:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-    proc = subprocess.run([sys.executable, str(BENCH / script), *args], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=240)
+    proc = warm.run([sys.executable, str(BENCH / script), *args], cwd=REPO, env=env, capture_output=True,
+                    text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout
 

@@ -12,6 +12,8 @@ from dimgestor.bvh import read_bvh
 from dimgestor.cli import main
 from dimgestor.synthetic import make_synthetic_pair
 
+from helpers import warm
+
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
@@ -106,6 +108,6 @@ def test_bad_inputs_print_one_error_line_and_exit_2(run, tmp_path, capsys, args,
 
 
 def test_console_script_exit_code(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tmp_path),
-                        "--audio", "a.wav", "--out", "o.bvh"], capture_output=True, text=True)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tmp_path),
+                  "--audio", "a.wav", "--out", "o.bvh"], capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr

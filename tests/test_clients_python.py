@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from streamer.sessions import Session
-
+from helpers import warm
 from helpers.clients import CLIENT, REPO, SPEECH_WAV, joint_speed, live_server, record, reference_decode, run_client
 from helpers.ws import SlowExecutor, make_server, running
 
@@ -43,9 +43,9 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
 
     assert f"wrote {len(frames)} frames to {bvh}" in r.stderr
     offline = tmp_path / "offline.bvh"
-    g = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint), "--audio",
-                        str(SPEECH_WAV), "--out", str(offline), "--steps", "2", "--seed", "0", "--root", "tether"],
-                       cwd=REPO, capture_output=True, text=True, timeout=120)
+    g = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint), "--audio",
+                  str(SPEECH_WAV), "--out", str(offline), "--steps", "2", "--seed", "0", "--root", "tether"],
+                 cwd=REPO, capture_output=True, text=True, timeout=120)
     assert g.returncode == 0, g.stderr
     got, want = read_bvh(bvh), read_bvh(offline)
     assert got.skeleton.names == want.skeleton.names and got.num_frames == want.num_frames == len(frames)

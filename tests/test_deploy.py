@@ -27,6 +27,7 @@ from websockets.exceptions import InvalidStatus
 
 from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer import protocol as P
+from helpers import warm
 from helpers.clients import SPEECH_WAV
 from helpers.cluster import LOCAL_CLUSTER, NGINX, Cluster
 from helpers.stalls import LoopStalls
@@ -210,10 +211,10 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
         w.writeframes(speech_pcm16(seconds))
     offline = tmp_path / "offline.bvh"
     # the reference first: beside the cluster it would compete with the surviving worker at the move
-    generate = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
-                               str(offline), "--root", "tether", *sampling], cwd=REPO,
-                              env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True, timeout=120)
+    generate = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
+                         str(offline), "--root", "tether", *sampling], cwd=REPO,
+                        env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
+                        stderr=subprocess.STDOUT, text=True, timeout=120)
     assert generate.returncode == 0, generate.stdout
     client = example_client()
     arrivals: dict[str, list[float]] = {}  # --bvh path -> arrival time of each frame

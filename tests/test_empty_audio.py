@@ -6,7 +6,7 @@ import sys
 import wave
 
 import numpy as np
-
+from helpers import warm
 from helpers.clients import REPO, live_server, run_client
 import pytest
 
@@ -31,15 +31,15 @@ def test_python_client_with_an_empty_wav_gets_end(tmp_path, checkpoint):
 @pytest.mark.parametrize("samples", [0, 100])
 def test_generate_refuses_audio_shorter_than_a_frame(tmp_path, checkpoint, samples):
     wav, out = empty_wav(tmp_path / "short.wav", samples), tmp_path / "out.bvh"
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint),
-                        "--audio", str(wav), "--out", str(out)], cwd=REPO, capture_output=True, text=True,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint),
+                  "--audio", str(wav), "--out", str(out)], cwd=REPO, capture_output=True, text=True,
+                 env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120)
     assert r.returncode == 2 and "nothing to generate" in r.stderr and str(wav) in r.stderr, r.stderr
     assert not out.exists()
 
 
 def test_serve_refuses_an_empty_wav(tmp_path):
     wav = empty_wav(tmp_path / "empty.wav")
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
-                       capture_output=True, text=True, timeout=60)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
+                 capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no audio samples" in r.stderr

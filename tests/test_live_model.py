@@ -17,6 +17,7 @@ from dimgestor.checkpoint import DEFAULT_MODEL_DIR, LIVE_MODEL_DIR, CheckpointEr
 from dimgestor.eval import clip_stats, joint_positions
 from dimgestor.stream import generate_offline
 from streamer.sources import DEMO_WAV
+from helpers import warm
 from helpers.serve import REPO, Serve, follow
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
@@ -77,9 +78,9 @@ def test_serve_with_the_live_model_streams_like_generate(tmp_path):
     hello, msgs = asyncio.run(follow(url))
     assert s.finish() == 0, s.output
     assert hello["lookahead_s"] == pytest.approx(0.2) and msgs[-1] == {"type": "end", "frames": 60}
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", "live", "--audio",
-                        str(clip), "--out", str(off), "--seed", "3", "--root", "tether"], cwd=REPO,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", "live", "--audio",
+                  str(clip), "--out", str(off), "--seed", "3", "--root", "tether"], cwd=REPO,
+                 env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(rec), read_bvh(off)
     assert a.values.shape == b.values.shape == (60, a.skeleton.num_channels)

@@ -16,6 +16,8 @@ from dimgestor.onnx_export import FrameStep  # noqa: E402
 from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
 from dimgestor.synthetic import synthetic_speech  # noqa: E402
 
+from helpers import warm
+
 STEPS, FRAMES, SEED, BATCH = 2, 2, 7, 3  # small graphs: exporting each takes ~15 s
 
 
@@ -291,10 +293,10 @@ def test_serve_on_onnxruntime_records_what_the_torch_backend_records(exported, a
     for backend in ("torch", "onnxruntime"):
         out[backend] = tmp_path / f"{backend}.bvh"
         extra = ["--onnx", str(exported)] if backend == "onnxruntime" else ["--guidance", str(guidance)]
-        r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
-                            "--record", str(out[backend]), "--steps", str(STEPS), "--seed", str(SEED), "--backend",
-                            backend, "--window-ms", "100", *extra], capture_output=True, text=True, timeout=180,
-                           env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+        r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
+                      "--record", str(out[backend]), "--steps", str(STEPS), "--seed", str(SEED), "--backend",
+                      backend, "--window-ms", "100", *extra], capture_output=True, text=True, timeout=180,
+                     env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
         assert r.returncode == 0, r.stderr[-2000:]
     assert "backend onnxruntime" in r.stderr
     a, b = read_bvh(out["torch"]), read_bvh(out["onnxruntime"])
@@ -329,12 +331,12 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     repo = Path(__file__).resolve().parents[1]
     shutil.copytree(exported, tmp_path / "exports" / f"default_k{STEPS}_f{FRAMES}")
     out = tmp_path / "onnx_runtime.json"
-    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
-                           "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
-                           "--streams-max", "2", "--streams-repeats", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
-                           "--call-reps", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
-                          cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
-                          capture_output=True, text=True, timeout=300)
+    proc = warm.run([sys.executable, str(repo / "benchmarks" / "onnx_runtime.py"), "--steps", str(STEPS),
+                     "--audio-s", "1.5", "--rounds", "2", "--streams", str(STEPS), "--streams-s", "1.5",
+                     "--streams-max", "2", "--streams-repeats", "2", "--batches", str(BATCH), "--call-batches", "1", str(BATCH),
+                     "--call-reps", "2", "--exports", str(tmp_path / "exports"), "--out", str(out)],
+                    cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+                    capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(out.read_text())
     (row,) = r["results"]
@@ -368,10 +370,10 @@ def test_gpu_benchmark_runs_end_to_end_on_the_cpu_at_tiny_size(exported, tmp_pat
 
     repo = Path(__file__).resolve().parents[1]
     out = tmp_path / "onnx_cuda.json"
-    proc = subprocess.run([sys.executable, str(repo / "benchmarks" / "onnx_cuda.py"), "--exports", str(exported),
-                           "--device", "cpu", "--rounds", "3", "--warmup-rounds", "1", "--out", str(out)],
-                          cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
-                          capture_output=True, text=True, timeout=300)
+    proc = warm.run([sys.executable, str(repo / "benchmarks" / "onnx_cuda.py"), "--exports", str(exported),
+                     "--device", "cpu", "--rounds", "3", "--warmup-rounds", "1", "--out", str(out)],
+                    cwd=repo, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"},
+                    capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(out.read_text())
     assert r["steps"] == STEPS and [row["batch"] for row in r["rows"]] == [1, BATCH]

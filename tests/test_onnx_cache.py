@@ -22,6 +22,7 @@ pytest.importorskip("onnxscript", reason="the `onnx` extra is not installed")
 from dimgestor import onnx_cache, onnx_export  # noqa: E402
 from dimgestor.checkpoint import load_checkpoint  # noqa: E402
 from dimgestor.onnx_cache import CACHE_FILE, cache_root, cached_export, entry_name, export_key, problem  # noqa: E402
+from helpers import warm
 from helpers.checkpoint import make_tiny_checkpoint  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,11 +43,11 @@ def tiny_bundle(exportable):
 
 def serve(checkpoint, cache: Path, wav, record: Path, *more: str) -> str:
     """`dimgestor serve --backend onnxruntime` on the WAV, recorded; its output (it must succeed)."""
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(checkpoint),
-                        "--backend", "onnxruntime", "--onnx-cache", str(cache), "--no-batch", "--steps", str(STEPS),
-                        "--seed", str(SEED), "--source", str(wav), "--fast", "--no-ws", "--record", str(record),
-                        *more], cwd=REPO, capture_output=True, text=True, timeout=600,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(checkpoint),
+                  "--backend", "onnxruntime", "--onnx-cache", str(cache), "--no-batch", "--steps", str(STEPS),
+                  "--seed", str(SEED), "--source", str(wav), "--fast", "--no-ws", "--record", str(record),
+                  *more], cwd=REPO, capture_output=True, text=True, timeout=600,
+                 env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr[-3000:]
     return r.stderr
 
@@ -245,10 +246,10 @@ def test_the_start_benchmark_runs_end_to_end_at_tiny_size(first, exportable, tmp
     """benchmarks/onnx_start.py on a copy of the first start's cache: one cached start, one torch start."""
     cache = shutil.copytree(first[0], tmp_path / "cache")
     out = tmp_path / "onnx_start.json"
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "onnx_start.py"), "--checkpoint", str(exportable),
-                        "--steps", str(STEPS), "--no-batch", "--warm", "0", "--torch", "1", "--cache", str(cache),
-                        "--timeout", "300", "--out", str(out)], cwd=REPO, capture_output=True, text=True,
-                       timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
+    r = warm.run([sys.executable, str(REPO / "benchmarks" / "onnx_start.py"), "--checkpoint", str(exportable),
+                  "--steps", str(STEPS), "--no-batch", "--warm", "0", "--torch", "1", "--cache", str(cache),
+                  "--timeout", "300", "--out", str(out)], cwd=REPO, capture_output=True, text=True,
+                 timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads(out.read_text())
     (run,), (base,) = result["runs"], result["torch_runs"]

@@ -15,6 +15,7 @@ import pytest
 
 from dimgestor.bvh import read_bvh
 from streamer.pose import HUMAN_BODY_BONES
+from helpers import warm
 from helpers.serve import REPO, WAV_SECONDS as SECONDS, follow, serve
 from helpers.vmc import bundles, check_vmc_bundle, osc_server
 
@@ -62,11 +63,11 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
     assert s.finish() == 0, s.output
     assert f"root {root}" in s.output and (f"guidance {guidance}" in s.output) == bool(guidance)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
-                        "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
-                        "--face-csv", str(tmp_path / "offline.csv"),
-                        "--root", root, "--tether-s", "0.5", *extra],
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
+                  "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
+                  "--face-csv", str(tmp_path / "offline.csv"),
+                  "--root", root, "--tether-s", "0.5", *extra],
+                 cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(out_stream), read_bvh(out_offline)
     assert a.values.shape == b.values.shape and a.num_frames == int(SECONDS * 20)
@@ -120,8 +121,8 @@ async def first_message(url: str) -> dict:
 
 
 def test_mic_without_an_input_device_exits_with_a_clear_message():
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", "mic", "--no-ws"],
-                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", "mic", "--no-ws"],
+                 cwd=REPO, capture_output=True, text=True, timeout=60)
     try:
         import sounddevice as sd
 
@@ -145,8 +146,8 @@ def test_mic_without_an_input_device_exits_with_a_clear_message():
     (["--guidance", "-1"], "--guidance: guidance scale must be"),
 ])
 def test_bad_arguments_exit_2_with_a_message(args, message):
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--no-ws", *args],
-                       cwd=REPO, capture_output=True, text=True, timeout=60)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--no-ws", *args],
+                 cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 

@@ -12,6 +12,7 @@ import pytest
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import forward_kinematics, read_bvh
 from streamer.sources import DEMO_WAV
+from helpers import warm
 from helpers.serve import REPO, Serve, follow
 from helpers.vmc import bundles, check_vmc_bundle, osc_server
 
@@ -32,9 +33,9 @@ def test_default_model_generates_visible_motion_within_human_speeds(tmp_path, cl
     from dimgestor.render import motion_stats
 
     wav, out = DEMO_WAV.parent / clip, tmp_path / "demo.bvh"
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out", str(out)],
-                       cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True,
-                       timeout=240)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out", str(out)],
+                 cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True,
+                 timeout=240)
     assert r.returncode == 0, r.stderr
     motion = read_bvh(out)
     assert motion.num_frames == len(load_wav(wav)) * 20 // 16000
@@ -75,9 +76,9 @@ def test_default_model_streams_the_demo_like_offline_generate(tmp_path):
         check_vmc_bundle(b, bones_expected=hello["humanoid"])
 
     # serve tethers the root by default: generate does the same when asked
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(clip), "--out",
-                        str(off_path), "--steps", "4", "--seed", "2", "--root", "tether"], cwd=REPO,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(clip), "--out",
+                  str(off_path), "--steps", "4", "--seed", "2", "--root", "tether"], cwd=REPO,
+                 env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr
     a, b = read_bvh(rec_path), read_bvh(off_path)
     assert a.values.shape == b.values.shape == (80, a.skeleton.num_channels)

@@ -24,6 +24,7 @@ from streamer.viewer import ViewerFiles
 from streamer.record import BvhRecorder
 from streamer.server import ServeError, ServeOptions, read_token
 from streamer.ws import WsServer, own_origins
+from helpers import warm
 from helpers.serve import REPO, serve
 from helpers.stalls import runnable_waiting_s, wait_counting_cpu_waits
 from helpers.ws import SlowExecutor, make_server, recv_json, running
@@ -174,12 +175,12 @@ def test_the_token_comes_from_a_file_the_flag_or_the_environment_and_is_never_em
 
 def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint):
     env = {**os.environ, "STREAMER_TOKEN": "envs3cret"}
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--token", " ", "--no-ws"], cwd=REPO,
-                       capture_output=True, text=True, timeout=60)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--token", " ", "--no-ws"], cwd=REPO,
+                 capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "empty" in r.stderr and "Traceback" not in r.stderr
-    s = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(tiny_checkpoint),
-                          "--source", "ws", "--ws", "127.0.0.1:0", "-v", "--status-every", "0"], cwd=REPO, env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    s = warm.popen([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(tiny_checkpoint),
+                    "--source", "ws", "--ws", "127.0.0.1:0", "-v", "--status-every", "0"], cwd=REPO, env=env,
+                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         line = ""
         while not line.startswith("dimgestor: WebSocket"):

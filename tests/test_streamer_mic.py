@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from websockets.asyncio.client import connect
-
+from helpers import warm
 from helpers.serve import REPO, Serve
 from helpers.clients import joint_speed
 from helpers.virtual_mic import speech_then_silence, virtual_mic
@@ -28,8 +28,8 @@ def vmic(tmp_path_factory):
 
 
 def dimgestor(vmic, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
-                          capture_output=True, text=True, timeout=120)
+    return warm.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
+                    capture_output=True, text=True, timeout=120)
 
 
 def test_devices_lists_the_virtual_microphones_with_their_rates(vmic):

@@ -6,12 +6,14 @@ from pathlib import Path
 
 import pytest
 
+from helpers import warm
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def dimgestor(*args):
-    return subprocess.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=60)
+    return warm.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, capture_output=True, text=True,
+                    timeout=60)
 
 
 def test_version():

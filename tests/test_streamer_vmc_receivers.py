@@ -25,6 +25,7 @@ from dimgestor.rotations import quat_mul, quat_rotate
 from streamer.pose import HumanoidRig, load_humanoid_map, to_unity_quat
 from streamer.sources import DEMO_WAV
 from streamer.vmc import UPPER_BODY
+from helpers import warm
 from helpers.udp_capture import UdpCapture
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,10 +59,10 @@ def live_run(request, clip, tmp_path_factory):
     cap = Capture()
     cap.start()
     out = tmp_path_factory.mktemp("vmc") / "rec.bvh"
-    r = subprocess.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(clip), "--no-ws",
-                        "--vmc", f"127.0.0.1:{cap.port}", "--record", str(out), "--status-every", "0",
-                        *MODES[request.param]],
-                       cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
+    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(clip), "--no-ws",
+                  "--vmc", f"127.0.0.1:{cap.port}", "--record", str(out), "--status-every", "0",
+                  *MODES[request.param]],
+                 cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     time.sleep(0.3)
     cap.stop = True
     cap.join(2)

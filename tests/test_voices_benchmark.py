@@ -15,6 +15,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 import voices  # noqa: E402
 
+from helpers import warm
+
 needs_espeak = pytest.mark.skipif(shutil.which("espeak-ng") is None, reason="espeak-ng not installed")
 
 
@@ -92,8 +94,8 @@ def test_espeak_clips_are_deterministic_with_pauses_and_long_enough(tmp_path):
 def test_quick_run_writes_the_per_voice_json(tmp_path):
     out = tmp_path / "v.json"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
-    proc = subprocess.run([sys.executable, str(REPO / "benchmarks" / "voices.py"), "--quick", "--out", str(out)],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=500)
+    proc = warm.run([sys.executable, str(REPO / "benchmarks" / "voices.py"), "--quick", "--out", str(out)],
+                    cwd=REPO, env=env, capture_output=True, text=True, timeout=500)
     assert proc.returncode == 0, proc.stderr[-3000:]
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
@@ -116,6 +118,6 @@ def test_quick_run_writes_the_per_voice_json(tmp_path):
         assert m["reference"]["zeggs_heldout_real"]["variety"] == 1.0
         assert 3.0 < m["reference"]["zeggs_heldout_real"]["nearest"] < 10.0  # cm (6.0 measured)
         assert all(0.2 < row["variety"] < 2.0 for row in m["rows"].values())
-    compared = subprocess.run([sys.executable, str(REPO / "benchmarks" / "voices.py"), "--compare", str(out), str(out)],
-                              cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    compared = warm.run([sys.executable, str(REPO / "benchmarks" / "voices.py"), "--compare", str(out), str(out)],
+                        cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert compared.returncode == 0 and "espeak_de_p40_s150" in compared.stdout

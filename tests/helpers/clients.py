@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import warm
+
 REPO = Path(__file__).resolve().parents[2]
 CLIENT = REPO / "clients" / "python" / "client.py"
 SPEECH_WAV = REPO / "dimgestor" / "assets" / "demo_en.wav"  # espeak-ng speech, 16 kHz mono PCM16
@@ -33,7 +35,7 @@ def free_port() -> int:
 class LiveServer:
     ws_url: str
     http_url: str | None
-    proc: subprocess.Popen
+    proc: subprocess.Popen | warm.WarmProcess
     log: Path
 
     def log_tail(self, n: int = 40) -> str:
@@ -58,7 +60,7 @@ def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool =
     log = tmp / f"server_{ws_port}.log"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     with open(log, "w") as out:
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
+        proc = warm.popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, env=env)
     server = LiveServer(f"ws://127.0.0.1:{ws_port}/", f"http://127.0.0.1:{ws_port}/" if http else None, proc, log)
     try:
         deadline = time.monotonic() + 120

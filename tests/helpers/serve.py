@@ -12,6 +12,8 @@ from pathlib import Path
 
 from websockets.asyncio.client import connect
 
+from helpers import warm
+
 REPO = Path(__file__).resolve().parents[2]
 WAV_SECONDS = 3.0  # the length of the `wav` fixture (tests/conftest.py)
 
@@ -22,8 +24,8 @@ class Serve:
 
     def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "dimgestor.cli", "serve")):
         env = {**(env or os.environ), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen([sys.executable, *command, *args], cwd=REPO, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = warm.popen([sys.executable, *command, *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()

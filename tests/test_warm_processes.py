@@ -1,0 +1,88 @@
+"""The tests' warm processes (tests/helpers/warm.py) behave as `python ...` started by `subprocess` would."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from helpers import warm
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux" or os.environ.get("DIMGESTOR_TEST_COLD") == "1",
+                                reason="warm processes are forked on Linux only")
+PY = sys.executable
+
+
+def both(cmd, **kw):
+    """The same command started warm and cold: (warm result, cold result)."""
+    w = warm.run(cmd, capture_output=True, text=True, timeout=60, **kw)
+    c = subprocess.run(cmd, capture_output=True, text=True, timeout=60, **kw)
+    return w, c
+
+
+def test_a_child_is_forked_and_sees_its_own_argv_cwd_environment_path_and_main(tmp_path):
+    code = textwrap.dedent("""
+        import os, sys
+        print(sys.argv, os.getcwd(), os.environ.get("WARM_TEST"), sys.path[0], __name__, "torch" in sys.modules)
+        print("to stderr", file=sys.stderr)
+        sys.exit(3)
+    """)
+    env = {**os.environ, "WARM_TEST": "yes"}
+    p = warm.popen([PY, "-c", code, "a", "b"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                   stderr=subprocess.PIPE, text=True)
+    assert isinstance(p, warm.WarmProcess)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 3 and err == "to stderr\n"
+    argv, rest = out.split("] ", 1)
+    assert argv == "['-c', 'a', 'b'" and rest.split() == [str(tmp_path), "yes", "__main__", "True"], out
+    cold = subprocess.run([PY, "-c", code, "a", "b"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert (cold.returncode, cold.stderr) == (3, "to stderr\n")
+    assert cold.stdout.replace("True", "False") == out.replace("True", "False")  # only torch is already there
+
+
+def test_modules_and_scripts_run_as_main_with_pythons_path_and_exit_statuses(tmp_path):
+    script = tmp_path / "prog.py"
+    script.write_text(textwrap.dedent("""
+        import atexit, sys, threading, time
+        atexit.register(lambda: print("atexit ran", flush=True))
+        threading.Thread(target=lambda: (time.sleep(0.2), print("thread joined", flush=True))).start()
+        print(__name__, sys.argv[1:], sys.path[0])
+        raise SystemExit(sys.argv[1])
+    """))
+    w, c = both([PY, str(script), "7"])
+    assert (w.returncode, w.stdout, w.stderr) == (c.returncode, c.stdout, c.stderr)
+    assert w.stdout.splitlines() == ["__main__ ['7'] " + str(tmp_path), "thread joined", "atexit ran"]
+    assert w.stderr == "7\n" and w.returncode == 1  # SystemExit with a string: printed, status 1
+    w, c = both([PY, "-m", "json.tool", "--help"])
+    assert (w.returncode, w.stdout) == (c.returncode, c.stdout) == (0, c.stdout) and "json.tool" in w.stdout
+    w, c = both([PY, "-c", "raise ValueError('bad')"])
+    assert w.returncode == c.returncode == 1 and w.stderr.endswith("ValueError: bad\n")
+    w, c = both([PY, str(tmp_path / "missing.py")])
+    assert w.returncode == c.returncode == 2 and "can't open file" in w.stderr
+
+
+def test_signals_end_a_child_as_they_end_python_and_wait_times_out():
+    p = warm.popen([PY, "-c", "import time; print('up', flush=True); time.sleep(60)"], stdout=subprocess.PIPE,
+                   text=True)
+    assert p.stdout.readline() == "up\n"
+    with pytest.raises(subprocess.TimeoutExpired):
+        p.wait(0.2)
+    p.send_signal(signal.SIGINT)
+    assert p.wait(30) == -signal.SIGINT  # KeyboardInterrupt unhandled: python ends by SIGINT
+    p.stdout.close()
+    p = warm.popen([PY, "-c", "import time; time.sleep(60)"])
+    p.terminate()
+    assert p.wait(30) == -signal.SIGTERM and p.poll() == -signal.SIGTERM
+    p.kill()  # after it ended: nothing to signal, as Popen
+
+
+def test_what_a_child_cannot_share_with_the_warm_interpreter_starts_cold():
+    threads = {**os.environ, "OMP_NUM_THREADS": "2"}
+    assert isinstance(warm.popen([PY, "-c", "pass"], env=threads), subprocess.Popen)
+    assert isinstance(warm.popen([PY, "-u", "-c", "pass"]), subprocess.Popen)
+    assert isinstance(warm.popen(["true"]), subprocess.Popen)
+    p = warm.popen([PY, "-c", "import os; print(os.environ['OMP_NUM_THREADS'])"], env=threads,
+                   stdout=subprocess.PIPE, text=True)
+    assert p.communicate(timeout=60)[0] == "2\n"
