@@ -266,7 +266,6 @@ def test_feature_change_benchmark_runs_and_reports_every_effect(tmp_path):
     """benchmarks/augment_features.py on a short synthetic clip: every effect measured, onsets in place."""
     import json
     import os
-    import subprocess
     import sys
     from pathlib import Path
 

@@ -89,7 +89,6 @@ def test_refuses_to_continue_from_a_state():
 # ---------------------------------------------------------------- the benchmarks that use the baseline
 
 import json  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 

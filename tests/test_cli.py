@@ -1,6 +1,5 @@
 """The `dimgestor` command: info, train -> generate -> a BVH as long as the audio, clear errors (exit 2)."""
 import json
-import subprocess
 import sys
 
 import bvh as pypi_bvh

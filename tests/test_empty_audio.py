@@ -1,7 +1,6 @@
 """Empty audio is a clear answer everywhere: `end` over the WebSocket, exit 2 with a message from the CLIs."""
 
 import os
-import subprocess
 import sys
 import wave
 

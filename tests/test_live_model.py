@@ -4,7 +4,6 @@ offline generation, and its motion is smooth, speech-driven and calm in silence 
 
 import asyncio
 import os
-import subprocess
 import sys
 
 import numpy as np

@@ -280,7 +280,6 @@ def test_warmup_calls_keep_the_denoiser_state(exported):
 def test_serve_on_onnxruntime_records_what_the_torch_backend_records(exported, audio, tmp_path):
     """`streamer serve --backend onnxruntime --onnx DIR` (the export's K and guidance) records the same motion as
     the torch backend with the same settings: every joint within 1e-3 cm."""
-    import subprocess
     import sys
 
     from dimgestor.audio import save_wav
@@ -324,7 +323,6 @@ def test_onnx_runtime_benchmark_runs_end_to_end_at_tiny_size(exported, tmp_path)
     streams a call."""
     import os
     import shutil
-    import subprocess
     import sys
     from pathlib import Path
 
@@ -364,7 +362,6 @@ def test_gpu_benchmark_runs_end_to_end_on_the_cpu_at_tiny_size(exported, tmp_pat
     streams in lockstep with every input and output bound once to a fixed buffer, their frames agree, the CUDA
     graph row is recorded as not possible, and one profiled call says where the nodes ran."""
     import os
-    import subprocess
     import sys
     from pathlib import Path
 

@@ -7,7 +7,6 @@ copies of that cache with an exporter that copies the real export's files, count
 import json
 import os
 import shutil
-import subprocess
 import sys
 import threading
 import time

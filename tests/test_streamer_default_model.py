@@ -3,7 +3,6 @@
 
 import asyncio
 import os
-import subprocess
 import sys
 
 import numpy as np

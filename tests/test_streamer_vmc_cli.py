@@ -1,6 +1,5 @@
 """`dimgestor serve` flags for VMC receivers and --version, as a user types them."""
 
-import subprocess
 import sys
 from pathlib import Path
 
