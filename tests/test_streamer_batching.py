@@ -157,6 +157,34 @@ def test_tied_backlog_windows_take_turns_in_the_order_they_were_queued(bundle):
         batcher.shutdown()
 
 
+def test_a_crowd_of_backlog_finishes_takes_one_turn_a_cycle_so_a_talkers_window_does_not_wait_behind_them(bundle):
+    """Five sessions far ahead of real time end (their finishes queued at backlog ranks) while a talker's window
+    is queued as the first finish runs: the talker's window runs next, not after the other four finishes (every
+    queued finish used to run in one cycle, whatever its rank); a real-time finish still runs in its cycle."""
+    batcher = StreamBatcher()
+    gate, order = threading.Event(), []
+    try:
+        batcher.submit(gate.wait, 30)
+        talker = Session.from_bundle(bundle, steps=2, seed=0, scheduler=batcher)
+        live = Future()
+
+        def finish(i):
+            order.append(i)
+            if i == 0:  # queued from the inference thread as the first finish runs: before the next cycle is taken
+                f = batcher.submit_push(talker, synthetic_speech(0.1, seed=4), rank=-0.05)
+                f.add_done_callback(lambda f: (order.append("live"), live.set_result(len(f.result()))))
+
+        finishes = [batcher.submit_ranked(1.0 + i, finish, i) for i in range(5)]
+        realtime_finish = batcher.submit_ranked(0.0, order.append, "realtime finish")
+        gate.set()
+        for f in [*finishes, realtime_finish, live]:
+            f.result(60)
+        assert order == ["realtime finish", 0, "live", 1, 2, 3, 4], order
+    finally:
+        gate.set()
+        batcher.shutdown()
+
+
 def test_batcher_isolates_a_failing_stream(bundle):
     """A window that fails (a finished stream) fails its own future only; the batch's others get frames."""
     batcher = StreamBatcher()

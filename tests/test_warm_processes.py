@@ -64,8 +64,12 @@ def test_modules_and_scripts_run_as_main_with_pythons_path_and_exit_statuses(tmp
 
 
 def test_signals_end_a_child_as_they_end_python_and_wait_times_out():
-    p = warm.popen([PY, "-c", "import time; print('up', flush=True); time.sleep(60)"], stdout=subprocess.PIPE,
-                   text=True)
+    # SIGINT as the test process has it (a pytest-xdist worker ignores it, and so does any python it starts)
+    w, c = both([PY, "-c", "import signal; print(signal.getsignal(signal.SIGINT))"])
+    assert w.stdout == c.stdout
+    code = "import signal, time; signal.signal(signal.SIGINT, signal.default_int_handler); print('up', flush=True); " \
+           "time.sleep(60)"
+    p = warm.popen([PY, "-c", code], stdout=subprocess.PIPE, text=True)
     assert p.stdout.readline() == "up\n"
     with pytest.raises(subprocess.TimeoutExpired):
         p.wait(0.2)
