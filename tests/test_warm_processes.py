@@ -64,9 +64,17 @@ def test_modules_and_scripts_run_as_main_with_pythons_path_and_exit_statuses(tmp
 
 
 def test_signals_end_a_child_as_they_end_python_and_wait_times_out():
-    # SIGINT as the test process has it (a pytest-xdist worker ignores it, and so does any python it starts)
-    w, c = both([PY, "-c", "import signal; print(signal.getsignal(signal.SIGINT))"])
-    assert w.stdout == c.stdout
+    # the signals as a new python started by the test process has them: ignored where the test process ignores
+    # them (a test run started in the background ignores SIGINT), else their defaults
+    show = "import signal; print([signal.getsignal(n) for n in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)])"
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        w, c = both([PY, "-c", show])
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+    assert w.stdout == c.stdout and "Handlers.SIG_IGN: 1>]" in w.stdout, (w.stdout, c.stdout)
+    w, c = both([PY, "-c", show])
+    assert w.stdout == c.stdout and "Handlers.SIG_DFL: 0>]" in w.stdout, (w.stdout, c.stdout)
     code = "import signal, time; signal.signal(signal.SIGINT, signal.default_int_handler); print('up', flush=True); " \
            "time.sleep(60)"
     p = warm.popen([PY, "-c", code], stdout=subprocess.PIPE, text=True)

@@ -31,8 +31,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 PRELOAD = ("numpy", "numpy.random", "numpy.ma", "torch", "torch.nn", "pydantic", "websockets.asyncio.server",
            "websockets.asyncio.client", "pythonosc.udp_client", "asyncio", "argparse", "json")
 # What a forked child shares with the warm interpreter from its start: these variables must be the same in both
-SHARED_ENV = ("OMP_", "MKL_", "OPENBLAS_", "KMP_", "GOTO", "TORCH", "PYTORCH", "CUDA", "LD_", "PYTHON")
+SHARED_ENV = ("OMP_", "MKL_", "OPENBLAS_", "KMP_", "GOTO", "ATEN_", "DNNL_", "ONEDNN_", "TORCH", "PYTORCH", "CUDA",
+              "LD_", "PYTHON")
 CHILD_ENV = ("PYTHONUNBUFFERED",)  # what a child sets up for itself
+# Signals a new python has as its parent had them if ignored, else as default (SIGINT: Python's KeyboardInterrupt)
+_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
+            signal.SIGALRM)
 
 
 def _shared(env: dict) -> dict:
@@ -115,8 +119,9 @@ class WarmProcess:
         else:
             err = _fd(stderr, 2, closers)
         fds = [_fd(stdin, 0, closers), out, err]
+        ignored = [int(n) for n in _SIGNALS if signal.getsignal(n) == signal.SIG_IGN]  # exec keeps only these
         request = {"argv": self.args[1:], "cwd": os.path.abspath(cwd or os.getcwd()),
-                   "env": dict(os.environ if env is None else env)}
+                   "env": dict(os.environ if env is None else env), "ignored": ignored}
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             self._sock.connect(_Zygote.get().path)
@@ -230,6 +235,10 @@ def _child(request: dict, fds: list[int]):
         ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    for n in _SIGNALS:  # as exec would leave them for a child of the test process (not of this interpreter)
+        ignored = int(n) in request["ignored"]
+        signal.signal(n, signal.SIG_IGN if ignored else signal.default_int_handler if n == signal.SIGINT
+                      else signal.SIG_DFL)
     os.chdir(request["cwd"])
     os.environ.clear()
     os.environ.update(request["env"])
