@@ -253,7 +253,12 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
                                           "--bvh", str(path)])
                 runs.append(asyncio.create_task(client.run(args)))
                 await asyncio.sleep(0.2)
+            deadline = time.monotonic() + 60  # (6 s of speech each: frames that stop are a failure to report)
             while min(len(arrivals.get(str(p), ())) for p in bvh) < 40:  # mid-sentence: 2 s of frames each
+                assert time.monotonic() < deadline, (
+                    f"frames per client {[len(arrivals.get(str(p), ())) for p in bvh]}, the last "
+                    f"{time.monotonic() - max(max(a) for a in arrivals.values()):.1f} s ago; clients done "
+                    f"{[r.done() for r in runs]}; local-cluster's output:\n{cluster.output[-6000:]}")
                 await asyncio.sleep(0.05)
             os.kill(workers[1][1], signal.SIGTERM)
             try:
@@ -317,7 +322,11 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
                 args = client.parse_args(["--url", cluster.url, "--wav", str(wav), "--binary", "--quiet", "--bvh", path])
                 runs.append(asyncio.create_task(client.run(args)))
                 await asyncio.sleep(0.2)
+            deadline = time.monotonic() + 60
             while min(len(arrivals.get(p, ())) for p in bvh) < 30:
+                assert time.monotonic() < deadline, (
+                    f"frames per client {[len(arrivals.get(p, ())) for p in bvh]}; clients done "
+                    f"{[r.done() for r in runs]}; local-cluster's output:\n{cluster.output[-6000:]}")
                 await asyncio.sleep(0.05)
             os.kill(pid, signal.SIGKILL)
             killed = time.monotonic()
