@@ -27,7 +27,6 @@ import sys
 import tempfile
 import threading
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 PRELOAD = ("numpy", "numpy.random", "numpy.ma", "torch", "torch.nn", "pydantic", "websockets.asyncio.server",
            "websockets.asyncio.client", "pythonosc.udp_client", "asyncio", "argparse", "json")
 # What a forked child shares with the warm interpreter from its start: these variables must be the same in both
