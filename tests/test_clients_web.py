@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from helpers.av_sync import (PLAYED, RECORDER, RECORDING, SHOWN_NOW, assert_played_as_scheduled, late_arrivals,
-                             missed16, recorded_around, shown_minus_heard, steady, voiced_at)
+                             missed16, heard_index, recorded_around, shown_minus_heard, steady,
+                             timestamp_minus_current_time, voiced_at)
 from helpers.browser import CHROMIUM, THREE_JS, Browser, assert_figure_drawn, read_png
 from helpers.clients import REPO, SPEECH_WAV, global_rotations, live_server, quat_matrix
 from helpers.vrm_model import make_vrm
@@ -303,8 +304,8 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     played16 = resample_poly(played, 16000, rate).astype(np.float32) if rate != 16000 else played
     source = load_wav(SPEECH_WAV).astype(np.float32)
 
-    # Sync: at context time T the listener hears what the recording has at T - latency. Which moment of the
-    # source that is, is found from the sound itself (a 100 ms stretch matched against the clip, which loops),
+    # Sync: when the page picked a frame, the output played what the recording has at the context time the
+    # browser's output timestamp gives for that moment (helpers/av_sync.py SHOWN_NOW). Which moment of the source that is, is found from the sound itself (a 100 ms stretch matched against the clip, which loops),
     # so a pause in the sound (the page waiting for late frames) cannot fool the check; silent moments are left
     # out. The frame picked then must be the one with that pts.
     # A starved page (a software-rendered Chromium on two busy cores draws about once a second) holds where the
@@ -313,7 +314,7 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
     # (Reads across a stretch the recorder missed are left out: the audio context skipped render quanta there.)
     missed = missed16(rec, rate)
     sync = shown_minus_heard(samples, played16, rec["start"] / rate, source, missed)
-    heard_at = [int((s["t"] - s["drawing"] - s["lat"] - rec["start"] / rate) * 16000) for s in steady(samples)]
+    heard_at = [heard_index(s, rec["start"] / rate) for s in steady(samples)]
     speaking = sum(voiced_at(source, s["pts"]) and recorded_around(missed, i) for s, i in zip(steady(samples), heard_at))
     print(f"frame pts - heard pts (s): {np.round(sync, 3)}; {speaking} steady reads where the clip speaks; "
           f"drawing (s): {np.round([s['drawing'] for s in samples], 3)}; clock {clock}; "
@@ -322,6 +323,9 @@ def test_web_mannequin_faces_the_camera_moves_and_plays_the_source_audio_in_sync
         f"too few moments with sound to check sync ({len(sync)} of {len(samples)} reads; the clip speaks at "
         f"{speaking} steady ones); clock {clock}")
     assert np.all(np.abs(sync) < 0.1), f"frames and sound out of sync (s): {np.round(sync, 3)}; clock {clock}"
+    # and that timestamp is the output's clock: the context's own current time puts those moments within 50 ms of it
+    stamp = timestamp_minus_current_time(samples)
+    assert not stamp or np.median(np.abs(stamp)) < 0.05, f"output timestamp - current time (s): {np.round(stamp, 3)}"
     # The clock may lose itself only at a stall: frames came later than anything in the 10 s before by more than
     # its margin (the server or the page stalled: CI's other work on its two cores), or the page came back later
     # than the sound it had scheduled lasted (counted by the page: soundHolds); each may cost a hold and the

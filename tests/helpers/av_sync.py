@@ -38,12 +38,20 @@ RECORDING = """(() => {
 })()"""
 
 
+# A read of the frame on screen: its pts, and where the audio context's output was when the page picked it.
+# `out` is that context time as the browser's output timestamp puts it (the context time at the output and the page
+# time it is heard there, extrapolated to the pick); `t - lat - drawing` says the same from the context's current
+# time read later (null `out`: the browser gives no timestamp). The timestamp is the better of the two on a loaded
+# machine: the audio thread renders late there, its current time stands behind the page's clock by as much, and a
+# read from it puts the heard sound earlier than it was (CI saw reads 0.06-0.13 s off that way, all one sign).
 SHOWN_NOW = """new Promise((done) => requestAnimationFrame(() => {
   const c = window.dimgestor.sourceAudio.ctx;
   const k = window.dimgestor.clock;
+  const ts = c.getOutputTimestamp ? c.getOutputTimestamp() : null;
+  const shownAt = window.dimgestor.shownAt;
   done({t: c.currentTime, lat: c.outputLatency || 0, pts: window.dimgestor.shownFrame.pts,
-        drawing: performance.now() / 1000 - window.dimgestor.shownAt, jumps: k.catchUps + k.underruns,
-        held: k.holdAt !== null});
+        drawing: performance.now() / 1000 - shownAt, jumps: k.catchUps + k.underruns, held: k.holdAt !== null,
+        out: ts && ts.performanceTime > 0 ? ts.contextTime + shownAt - ts.performanceTime / 1000 : null});
 }))"""
 
 
@@ -89,6 +97,21 @@ def recorded_around(missed: list[tuple[int, int]], idx: int, half: int = 1600) -
     return not any(a < idx + half and b > idx - half for a, b in missed)
 
 
+def heard_index(read: dict, start_s: float) -> int:
+    """The index (16 kHz) into the recording, its first sample at context time `start_s`, of what the output played
+    when the page picked the frame a SHOWN_NOW read saw."""
+    at = read["out"] if read.get("out") is not None else read["t"] - read["lat"] - read.get("drawing", 0)
+    return int((at - start_s) * 16000)
+
+
+def timestamp_minus_current_time(samples) -> list[float]:
+    """For each steady read with an output timestamp: where it puts the output at the pick less where the context's
+    current time (read later, less the output latency and the page's time since the pick) puts it (s). The two
+    estimates of one moment differ by the audio thread's lateness, a little; much more says the timestamp, which
+    the page's schedule and this test's reads both go by, is not the output's clock."""
+    return [s["out"] - (s["t"] - s["lat"] - s["drawing"]) for s in steady(samples) if s.get("out") is not None]
+
+
 def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.ndarray,
                       missed: list[tuple[int, int]] = ()) -> list[float]:
     """For each steady SHOWN_NOW read: the pts on screen minus the source time heard when the page picked it (s),
@@ -101,8 +124,8 @@ def shown_minus_heard(samples, played16: np.ndarray, start_s: float, source: np.
     sync = []
     for s in steady(samples):
         read_idx = int((s["t"] - s["lat"] - start_s) * 16000)
-        heard_idx = read_idx - int(s.get("drawing", 0) * 16000)  # index into played16
-        if any(a < read_idx + 800 and b > heard_idx - 800 for a, b in missed):
+        heard_idx = heard_index(s, start_s)  # index into played16
+        if any(a < max(read_idx, heard_idx) + 800 and b > min(read_idx, heard_idx) - 800 for a, b in missed):
             continue
         heard = heard_pts(played16, heard_idx, source, near=s["pts"])
         if heard is not None:
