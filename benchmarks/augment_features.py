@@ -32,9 +32,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav  # noqa: E402
-from dimgestor.augment import AugmentConfig, active_level, augment  # noqa: E402
 from dimgestor.config import get_preset  # noqa: E402
-from dimgestor.frontend import build_frontend  # noqa: E402
+from dimgestor.frontend.base import build_frontend  # noqa: E402
+from dimgestor.training.augment import AugmentConfig, active_level, augment  # noqa: E402
 
 OFF = dict(p_pitch=0, p_formant=0, p_reverb=0, p_noise=0, p_eq=0, p_band=0, p_gain=0)
 EFFECTS: dict[str, dict] = {
@@ -127,7 +127,7 @@ def main() -> int:
               f"{np.mean(nmse_c):6.3f}  onset lag {min(lag):+.0f}..{max(lag):+.0f} ms (loudness "
               f"{min(loud_lag):+.0f}..{max(loud_lag):+.0f})  level {np.mean(level):6.1f} dBFS")
     result = {
-        "what": "log-mel feature change under each audio augmentation (dimgestor.augment), NMSE relative to the "
+        "what": "log-mel feature change under each audio augmentation (dimgestor.training.augment), NMSE relative to the "
                 "clean clip's feature variance; loudness-envelope lag; active level",
         "audio": wav.name, "seconds": round(len(x) / SAMPLE_RATE, 1), "seeds": args.seeds,
         "clean_level_dbfs": round(10 * np.log10(active_level(x, SAMPLE_RATE)), 1),

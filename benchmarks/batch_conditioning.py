@@ -1,4 +1,4 @@
-"""Conditioning many streams as one call a group (the front end and the feature extractor, `dimgestor.conditioning`)
+"""Conditioning many streams as one call a group (the front end and the feature extractor, `dimgestor.model.conditioning`)
 against another version of the code, in one run: where one cycle's time goes, and real-time streams per process.
 
 Every measurement runs in a child process that imports `dimgestor` and `streamer` from one code root: this
@@ -96,8 +96,8 @@ def profile(job: dict) -> dict:
     import torch
 
     import dimgestor
-    import dimgestor.batch as batch
-    from dimgestor.stream import GestureStream
+    import dimgestor.streaming.batch as batch
+    from dimgestor.streaming.stream import GestureStream
     from streams import random_bundle
 
     torch.set_num_threads(1)

@@ -139,10 +139,10 @@ def clip_files(folder: Path, rng: random.Random, n: int) -> list[tuple[Path, flo
 
 
 def state_size_bytes(worker_args: list[str]) -> int:
-    """The saved state of one session (dimgestor.savestate) after 2 s of speech, with the workers' model."""
-    from dimgestor import savestate
+    """The saved state of one session (dimgestor.streaming.savestate) after 2 s of speech, with the workers' model."""
     from dimgestor.audio import load_wav
-    from dimgestor.checkpoint import load_checkpoint, resolve_checkpoint
+    from dimgestor.streaming import savestate
+    from dimgestor.streaming.checkpoint import load_checkpoint, resolve_checkpoint
 
     args = dict(zip(worker_args[::2], worker_args[1::2]))
     bundle = load_checkpoint(resolve_checkpoint(args.get("--checkpoint")))

@@ -1,6 +1,6 @@
 """Does the recipe get better with more data, and stay smooth as K rises? (synthetic speech and gestures)
 
-Real paired data here is one 69 s clip; the full datasets are out of reach. `dimgestor.synthetic`'s
+Real paired data here is one 69 s clip; the full datasets are out of reach. `dimgestor.training.synthetic`'s
 speech-and-gesture generator makes paired audio and motion at any length with a known rule (arms up while
 speaking, a beat stroke on each stressed syllable, rest in pauses, idle sway). The `realtime` preset is
 trained with the default recipe on 1, 10 and 60 minutes of it (same steps, seed and settings) and scored
@@ -39,11 +39,11 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from dimgestor.checkpoint import latest_checkpoint, load_checkpoint
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
-    from dimgestor.synthetic import make_gesture_corpus
-    from dimgestor.train import TrainConfig, train
+    from dimgestor.evaluation.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
+    from dimgestor.streaming.checkpoint import latest_checkpoint, load_checkpoint
+    from dimgestor.training.dataset import GestureDataset
+    from dimgestor.training.synthetic import make_gesture_corpus
+    from dimgestor.training.train import TrainConfig, train
 
     work = Path(args.work)
     valid_dir = work / "valid"

@@ -165,8 +165,8 @@ def compute(audio: np.ndarray, args) -> dict:
     """ms per Session window with and without a face, windows alternating between the two sessions."""
     import torch
 
-    from dimgestor.checkpoint import load_checkpoint
     from dimgestor.face import FaceOptions
+    from dimgestor.streaming.checkpoint import load_checkpoint
     from streamer.sessions import Session
 
     bundle = load_checkpoint(args.checkpoint)

@@ -1,6 +1,6 @@
 """What classifier-free guidance costs: per-window compute and real-time factor, guided against unguided.
 
-A guided stream runs its unconditional branch as a second batch row (`dimgestor.sampler`), so its denoiser
+A guided stream runs its unconditional branch as a second batch row (`dimgestor.model.sampler`), so its denoiser
 does twice the rows per sampler step; the front end and the condition are computed once. Measured with
 100 ms windows (the served window size) on one torch thread, at each K:
 
@@ -47,7 +47,7 @@ def load_model(args):
 
     if args.preset:
         from dimgestor.config import get_preset
-        from dimgestor.model import DiMGestor
+        from dimgestor.model.network import DiMGestor
 
         torch.manual_seed(0)
         model = DiMGestor(get_preset(args.preset)).eval()
@@ -55,7 +55,7 @@ def load_model(args):
             for p in model.parameters():
                 p.add_(0.02 * torch.randn_like(p))
         return model, f"preset {args.preset} (random weights)"
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     bundle = load_checkpoint(args.checkpoint)
     return bundle.model.eval(), f"checkpoint {args.checkpoint or 'embedded default'}"
@@ -67,7 +67,7 @@ def _summary(times: list[float], audio_s: float, window_ms: int) -> dict:
 
 
 def _warm(model, steps, window, audio, guidance):
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
 
     s = GestureStream(model, steps=steps, smoothing=None, guidance=guidance)
     for k in range(8):  # past the lookahead: frames come, kernels are picked, buffers allocated
@@ -76,7 +76,7 @@ def _warm(model, steps, window, audio, guidance):
 
 def single(model, steps: int, args) -> dict:
     """One stream at scale 1 and one at scale S, pushed window by window in alternating order."""
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
 
     cfg = model.config
     window = cfg.sample_rate * args.window_ms // 1000
@@ -101,8 +101,8 @@ def single(model, steps: int, args) -> dict:
 
 def batched(model, steps: int, B: int, args) -> dict:
     """B streams at scale 1, B at scale S and 2B at scale 1, one push_many round each, rounds alternating."""
-    from dimgestor.batch import push_many
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.batch import push_many
+    from dimgestor.streaming.stream import GestureStream
 
     cfg = model.config
     window = cfg.sample_rate * args.window_ms // 1000

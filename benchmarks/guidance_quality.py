@@ -1,6 +1,6 @@
 """Does classifier-free guidance make the motion follow the speech more? (synthetic speech and gestures)
 
-`dimgestor.synthetic`'s generator makes paired audio and motion with a known rule (arms up while speaking,
+`dimgestor.training.synthetic`'s generator makes paired audio and motion with a known rule (arms up while speaking,
 a stroke on each stressed syllable, rest in pauses). The `realtime` preset is trained with the default recipe
 on the same data, steps and seed with each condition-dropout probability, then scored on held-out minutes
 (another seed) at each guidance scale and K, filter off: speech/silence wrist-speed contrast (the rule's own
@@ -39,11 +39,11 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from dimgestor.checkpoint import latest_checkpoint, load_checkpoint
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import k_report, parse_ks, valid_clips
-    from dimgestor.synthetic import make_gesture_corpus
-    from dimgestor.train import TrainConfig, train
+    from dimgestor.evaluation.eval import k_report, parse_ks, valid_clips
+    from dimgestor.streaming.checkpoint import latest_checkpoint, load_checkpoint
+    from dimgestor.training.dataset import GestureDataset
+    from dimgestor.training.synthetic import make_gesture_corpus
+    from dimgestor.training.train import TrainConfig, train
 
     work = Path(args.work)
     data, valid_dir = work / f"train_{args.minutes:g}min", work / "valid"

@@ -386,7 +386,7 @@ def run_vmc(a, tmp: Path) -> dict:
             os.environ.update(vmic.env)  # PortAudio in this process must find this PulseAudio: start it again
             sounddevice._terminate()
             sounddevice._initialize()
-            from dimgestor.cli import build_parser
+            from dimgestor_app.cli import build_parser
             from streamer.options import ServeOptions
             from streamer.server import build, run
 

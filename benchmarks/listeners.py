@@ -58,7 +58,7 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
     "mel2": ("2 bands: prosody (loudness, onsets, voicing, pitch, pauses) and spectral tilt only",
              {"overrides": {"n_mels": 2}}),
     "embed": ("the speech front end plus Google's pretrained speech embedding (96 numbers every 80 ms, "
-              "openWakeWord's ONNX copy; dimgestor/frontend_embed.py)", {"overrides": {"frontend": "embedding"}}),
+              "openWakeWord's ONNX copy; dimgestor/frontend/embed.py)", {"overrides": {"frontend": "embedding"}}),
     "embed_mel8": ("the embedding with 8 bands: the embedding carries what was said",
                    {"overrides": {"frontend": "embedding", "n_mels": 8}}),
     "warp": ("more time warping: 0.8x, 0.9x, 1.1x, 1.25x speed-perturbed copies", {"speeds": (0.8, 0.9, 1.1, 1.25)}),
@@ -81,7 +81,7 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
 
 
 def train_config(name: str, runs: Path):
-    from dimgestor.train import TrainConfig
+    from dimgestor.training.train import TrainConfig
 
     fields = {**BASE, **{k: v for k, v in CANDIDATES[name][1].items() if k != "overrides"}}
     fields["overrides"] = {**BASE["overrides"], **CANDIDATES[name][1].get("overrides", {})}
@@ -123,7 +123,7 @@ def main() -> int:
         folder = runs / name
         trained_s = None
         if not args.no_train:
-            from dimgestor.train import train
+            from dimgestor.training.train import train
 
             started = time.time()
             train(train_config(name, runs))

@@ -41,9 +41,9 @@ def models(args) -> dict:
     weights) unguided."""
     import torch
 
-    from dimgestor.checkpoint import load_checkpoint
     from dimgestor.config import get_preset
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     bundle = load_checkpoint(args.checkpoint)
     torch.manual_seed(0)
@@ -61,8 +61,8 @@ def models(args) -> dict:
 
 def timed(arms: dict, steps: int, B: int, args) -> dict:
     """Per-round time (s) of B streams of each model, one push_many round each, rounds alternating."""
-    from dimgestor.batch import push_many
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.batch import push_many
+    from dimgestor.streaming.stream import GestureStream
 
     window = 16 * args.window_ms  # samples at 16 kHz
     n = args.rounds + 6

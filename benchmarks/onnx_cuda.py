@@ -2,7 +2,7 @@
 
 Each backend runs B streams in lockstep, one window of audio each per round, for B in the export's batch sizes:
 
-- torch: the engine's own batched path (`dimgestor.batch.push_many` on B `GestureStream`s of the model on the
+- torch: the engine's own batched path (`dimgestor.streaming.batch.push_many` on B `GestureStream`s of the model on the
   GPU: one front-end and extractor call, then one denoiser forward per sampler step for the whole batch);
 - onnxruntime: the export's graph of B streams (`dimgestor export-onnx --batch B`) on the CUDA execution
   provider, every input and output bound to a fixed GPU buffer (IO binding): the states never leave the GPU,
@@ -79,7 +79,7 @@ class AudioRows:
 
 
 def run_torch(bundle, steps: int, batch: int, audio: AudioRows, rounds: int, device: str, keep: int):
-    from dimgestor.batch import push_many
+    from dimgestor.streaming.batch import push_many
 
     streams = [bundle.stream(steps=steps, seed=i) for i in range(batch)]
     times, frames = [], [[] for _ in range(min(keep, batch))]
@@ -211,8 +211,8 @@ def where_nodes_ran(folder: Path, manifest: dict, device: str) -> dict:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from dimgestor.checkpoint import load_checkpoint
-    from dimgestor.onnx_stream import load_manifest
+    from dimgestor.export.onnx_stream import load_manifest
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     if args.device.startswith("cuda"):
         import onnxruntime as ort

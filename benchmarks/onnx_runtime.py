@@ -75,8 +75,8 @@ def export_for(folder: Path, steps: int, frames: int, batches=()) -> Path:
     """The export of K = steps (with graphs of `batches` streams), reused when its folder already has them."""
     import json
 
-    from dimgestor.onnx_export import export_onnx
-    from dimgestor.onnx_stream import MANIFEST
+    from dimgestor.export.onnx_export import export_onnx
+    from dimgestor.export.onnx_stream import MANIFEST
 
     out = folder / f"default_k{steps}_f{frames}"
     have = {e["batch"] for e in json.loads((out / MANIFEST).read_text()).get("batched", [])} if (
@@ -107,7 +107,7 @@ def summary(times: list[float], window_s: float) -> dict:
 
 
 def measure(bundle, folder: Path, steps: int, args) -> dict:
-    from dimgestor.onnx_stream import ort_stream
+    from dimgestor.export.onnx_stream import ort_stream
 
     c = bundle.config
     frames = args.window_ms * c.fps // 1000
@@ -142,8 +142,8 @@ def streams(bundle, folder: Path, steps: int, args) -> dict:
     """Real-time streams in one process at K = steps: torch batched and unbatched, ONNX Runtime (shared session)."""
     import os
 
-    from dimgestor.onnx_batch import BatchRunner
-    from dimgestor.onnx_stream import OnnxModel
+    from dimgestor.export.onnx_batch import BatchRunner
+    from dimgestor.export.onnx_stream import OnnxModel
     from streams import max_streams
 
     c = bundle.config
@@ -194,8 +194,8 @@ STREAM_ROWS = ("torch_batched", "torch_unbatched", "onnxruntime", "onnxruntime_b
 def call_costs(bundle, folder: Path, steps: int, args) -> dict:
     """One ONNX Runtime call of B streams at K = steps, 1 thread: ms per call and per stream (the median of
     `--call-reps`, the sizes interleaved), and the gather: B streams' states copied into the call's inputs."""
-    from dimgestor.onnx_batch import BatchRunner
-    from dimgestor.onnx_stream import load_manifest
+    from dimgestor.export.onnx_batch import BatchRunner
+    from dimgestor.export.onnx_stream import load_manifest
 
     export = export_for(folder, steps, args.window_ms * bundle.config.fps // 1000, args.batches)
     manifest = load_manifest(export)
@@ -284,7 +284,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import torch
 
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     torch.set_num_threads(1)
     bundle = load_checkpoint(None)

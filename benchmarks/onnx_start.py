@@ -38,7 +38,7 @@ def start(cache: Path | None, extra: list[str], timeout: float) -> dict:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     backend = ["--backend", "torch"] if cache is None else ["--backend", "onnxruntime", "--onnx-cache", str(cache)]
     t0 = time.monotonic()
-    proc = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "serve", *backend, "--ws", "127.0.0.1:0", *extra],
+    proc = subprocess.Popen([sys.executable, "-m", "dimgestor_app.cli", "serve", *backend, "--ws", "127.0.0.1:0", *extra],
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[tuple[float, str]] = []
     reader = threading.Thread(target=lambda: lines.extend((time.monotonic() - t0, ln) for ln in proc.stdout),

@@ -67,8 +67,8 @@ def model_config(args):
 
 
 def build(name: str, config, attention: str):
-    from dimgestor.baselines import AdaLNTransformer
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.baselines import AdaLNTransformer
+    from dimgestor.model.network import DiMGestor
 
     kind, n_blocks = name.rsplit("_", 1)
     if kind == "mamba2":
@@ -80,8 +80,8 @@ def measure(args, name: str, length_s: float) -> dict:
     """In a fresh process: build one model, run it on a `length_s` sequence, report time and peak memory."""
     import torch
 
-    from dimgestor.baselines import denoiser_params
-    from dimgestor.stream import generate_offline
+    from dimgestor.model.baselines import denoiser_params
+    from dimgestor.streaming.stream import generate_offline
 
     if args.threads:
         torch.set_num_threads(args.threads)

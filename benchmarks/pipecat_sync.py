@@ -116,7 +116,7 @@ def main() -> int:
     args = p.parse_args()
     import torch
 
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
     from pipecat_avatar import load_speech
 
     torch.set_num_threads(1)

@@ -37,7 +37,7 @@ CANDIDATES = {
 
 def train_candidate(name: str, args, out: Path) -> Path:
     """The candidate's checkpoint after args.steps steps (trained here unless the run folder has it)."""
-    from dimgestor.train import TrainConfig, train
+    from dimgestor.training.train import TrainConfig, train
 
     ckpt = out / f"ckpt_{args.steps:07d}"
     if (ckpt / "config.json").is_file():
@@ -72,9 +72,9 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from dimgestor.checkpoint import load_checkpoint
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
+    from dimgestor.evaluation.eval import fgd_autoencoder, k_report, parse_ks, valid_clips
+    from dimgestor.streaming.checkpoint import load_checkpoint
+    from dimgestor.training.dataset import GestureDataset
 
     names = args.only.split(",") if args.only else list(CANDIDATES)
     unknown = [n for n in names if n not in CANDIDATES]

@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 from benchmarks.common import RESULTS, code_version, describe_device, load_average, percentile_ms, utc_now, write_json  # noqa: E402
 from dimgestor import rotations as R  # noqa: E402
-from dimgestor.checkpoint import load_checkpoint  # noqa: E402
 from dimgestor.retarget import Retarget, Rig, resolve_map  # noqa: E402
+from dimgestor.streaming.checkpoint import load_checkpoint  # noqa: E402
 from helpers.rigs import a_pose  # noqa: E402  (the tests' A-pose copy)
 
 WINDOWS = (1, 4, 20)

@@ -25,10 +25,10 @@ from common import RESULTS, code_version, describe_device, test_audio, utc_now, 
 def load_model(checkpoint: str | None, preset: str):
     """(model, bundle or None, source text): a checkpoint when one loads, else the preset untrained."""
     from dimgestor.config import get_preset
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
 
     try:
-        from dimgestor.checkpoint import load_checkpoint
+        from dimgestor.streaming.checkpoint import load_checkpoint
 
         bundle = load_checkpoint(checkpoint)
         return bundle.model.eval(), bundle, f"checkpoint {checkpoint or 'embedded default'}"
@@ -47,7 +47,7 @@ def load_model(checkpoint: str | None, preset: str):
 
 def stream_in_windows(model, audio: np.ndarray, window: int, steps: int, seed: int = 0):
     """Frames from pushing `audio` in `window`-sample pieces, and the frame index where each push's output began."""
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
 
     stream = GestureStream(model, steps=steps, seed=seed, smoothing=None)  # a filter would hide a seam
     parts, starts = [], []
@@ -80,7 +80,7 @@ def seam_ratio(trajectory: np.ndarray, boundaries: list[int], fps: float) -> dic
 
 
 def seam_check(model, bundle, window_ms: int, steps: int, audio_s: float, audio: np.ndarray | None = None) -> dict:
-    from dimgestor.stream import generate_offline
+    from dimgestor.streaming.stream import generate_offline
 
     cfg = model.config
     audio = test_audio(audio_s, cfg.sample_rate, seed=3) if audio is None else audio
@@ -91,8 +91,8 @@ def seam_check(model, bundle, window_ms: int, steps: int, audio_s: float, audio:
               "frames": len(streamed), "boundaries": len(boundaries),
               "max_abs_diff_streamed_vs_offline": float(np.abs(streamed - offline).max())}
     if bundle is not None:  # jerk of joint positions, as the metrics measure it
-        from dimgestor.eval import joint_positions
-        from dimgestor.metrics import upper_body_joints
+        from dimgestor.evaluation.eval import joint_positions
+        from dimgestor.evaluation.metrics import upper_body_joints
 
         pos = joint_positions(bundle.denormalize(streamed), bundle.skeleton, bundle.feature_spec)
         trajectory, space = pos[:, upper_body_joints(bundle.skeleton.names)], "upper-body joint positions"

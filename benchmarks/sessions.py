@@ -41,7 +41,7 @@ MIB = 1 << 20
 
 class Server:
     def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "dimgestor.cli", "serve", *args], cwd=REPO,
+        self.proc = subprocess.Popen([sys.executable, "-m", "dimgestor_app.cli", "serve", *args], cwd=REPO,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True).start()
@@ -71,7 +71,7 @@ class Server:
 
 
 def speech(seconds: float, seed: int) -> bytes:
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     return (synthetic_speech(seconds, seed=seed) * 20000).astype("<i2").tobytes()
 

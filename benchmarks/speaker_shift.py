@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from dimgestor.audio import SAMPLE_RATE, load_wav  # noqa: E402
 from dimgestor.config import get_preset  # noqa: E402
-from dimgestor.frontend import build_frontend  # noqa: E402
+from dimgestor.frontend.base import build_frontend  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
 ZEGGS_WAV = SHARED / "zeggs_sample" / "067_Speech_2_x_1_0.wav"
@@ -63,7 +63,7 @@ def listeners() -> dict:
 
 def embedding_listeners(base) -> dict:
     """The embedding front end and its pretrained part alone, where openwakeword is installed."""
-    from dimgestor.frontend_embed import model_files
+    from dimgestor.frontend.embed import model_files
     try:
         model_files()
     except (ImportError, OSError, ValueError) as e:
@@ -108,13 +108,13 @@ def nmse(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def telephone(x: np.ndarray) -> np.ndarray:
-    from dimgestor.augment import band_limit
+    from dimgestor.training.augment import band_limit
     return band_limit(x, 300.0, 3400.0, SAMPLE_RATE)
 
 
 def at_level(x: np.ndarray, dbfs: float) -> np.ndarray:
     """x scaled so that its active speech level (`augment.active_level`, a mean power) is `dbfs`."""
-    from dimgestor.augment import active_level
+    from dimgestor.training.augment import active_level
     level_db = 10 * np.log10(max(active_level(x, SAMPLE_RATE), 1e-20))
     return (x * 10 ** ((dbfs - level_db) / 20)).astype(np.float32)
 

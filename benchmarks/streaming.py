@@ -87,10 +87,10 @@ def build_model(preset: str, args):
     import torch
 
     from dimgestor.config import get_preset
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
 
     if preset == "checkpoint":
-        from dimgestor.checkpoint import load_checkpoint
+        from dimgestor.streaming.checkpoint import load_checkpoint
 
         return load_checkpoint(args.checkpoint).model.to(args.device).eval(), f"checkpoint {args.checkpoint}"
     torch.manual_seed(0)
@@ -112,7 +112,7 @@ def stream_timed(model, steps: int, window_ms: int, audio_s: float, device: str,
 
     import torch
 
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
 
     cfg = model.config
     window = cfg.sample_rate * window_ms // 1000
@@ -220,7 +220,7 @@ def paper(args) -> dict:
 
 def hour_child(args) -> dict:
     """In a fresh process: stream --hour-s of audio as fast as possible, RSS sampled every simulated minute."""
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
 
     model, label = build_model(args.hour_preset, args)
     cfg = model.config

@@ -50,9 +50,9 @@ def random_bundle(preset: str, seed: int = 0):
     """
     import torch
 
-    from dimgestor.checkpoint import Bundle, load_checkpoint
     from dimgestor.config import get_preset
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.streaming.checkpoint import Bundle, load_checkpoint
 
     base = load_checkpoint(None)
     if preset == "default":
@@ -97,7 +97,7 @@ class _CountingStats:
 def make_scheduler(batched: bool, threads: int, batch_runner=None):
     """(scheduler, description): one StreamBatcher thread on `threads` torch threads, or a RankedScheduler as
     `dimgestor serve --no-batch` builds it (min(4, cores) workers) with one torch thread per worker.
-    batch_runner: a `dimgestor.onnx_batch.BatchRunner`, or a list of them: a `BatcherPool` of one StreamBatcher a
+    batch_runner: a `dimgestor.export.onnx_batch.BatchRunner`, or a list of them: a `BatcherPool` of one StreamBatcher a
     runner pushes its windows on them, as `dimgestor serve --backend onnxruntime` does (a runner's session threads
     are its own)."""
     from streamer.scheduling import RankedScheduler, StreamBatcher
@@ -105,7 +105,7 @@ def make_scheduler(batched: bool, threads: int, batch_runner=None):
     if batched and batch_runner is not None:
         import functools
 
-        from dimgestor.onnx_batch import push_many
+        from dimgestor.export.onnx_batch import push_many
         from streamer.scheduling import BatcherPool
 
         runners = batch_runner if isinstance(batch_runner, (list, tuple)) else [batch_runner]
@@ -131,7 +131,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     """n paced sessions on one scheduler for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
-    case for batching) instead of staggered over one window. onnx: a `dimgestor.onnx_stream.OnnxModel`: the
+    case for batching) instead of staggered over one window. onnx: a `dimgestor.export.onnx_stream.OnnxModel`: the
     sessions run on it, as `dimgestor serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
     export's batched graphs; unbatched: each window alone, as with --no-batch)."""
     from streamer.sessions import Session

@@ -18,8 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import RESULTS, code_version, describe_device, load_average, percentile_ms, utc_now, write_json  # noqa: E402
-from dimgestor.checkpoint import load_checkpoint  # noqa: E402
 from dimgestor.rotations import quat_normalize  # noqa: E402
+from dimgestor.streaming.checkpoint import load_checkpoint  # noqa: E402
 from streamer.frames import Frame  # noqa: E402
 from streamer.pose import HumanoidRig, load_humanoid_map, to_unity_position, to_unity_quat  # noqa: E402
 from streamer.vmc import VmcEncoder, VmcOptions, reference_bundle  # noqa: E402

@@ -1,6 +1,6 @@
 """Do the model's strokes follow voices it never heard, where the right answer is known? (issue 20, item 4)
 
-`dimgestor.voiceworld` makes paired speech and motion from espeak-ng voices (11 languages, 10 variants,
+`dimgestor.evaluation.voiceworld` makes paired speech and motion from espeak-ng voices (11 languages, 10 variants,
 pitches, rates, microphone levels) with a rule computed from the audio alone: arms engage while speaking,
 strokes at the onsets of stressed syllables sized by their prominence, rest in pauses. A model is trained on
 the train voices at each data size (10, 30, 60 min) and scored at several training steps on held-out voices
@@ -21,7 +21,7 @@ spacing against louder syllables on both sides), which no streaming model can he
 world whose rule decides each stress on what is heard S seconds past its onset (0.25: what a model with 300 ms
 of lookahead hears when the stroke starts, 0.05 s before the onset), so that everything it asks is learnable.
 
-Measures (dimgestor/metrics.py; every one beside its chance level): speech/silence wrist-speed contrast in
+Measures (dimgestor/evaluation/metrics.py; every one beside its chance level): speech/silence wrist-speed contrast in
 natural pauses; loudness coupling beside circularly shifted audio; stroke alignment: the fraction of the
 rule's stroke onsets (computed from the held-out audio) with a wrist-speed peak from 0.1 s before to 0.3 s
 after, beside as many onsets shuffled inside speech; stroke gain: the mean wrist speed in the 0.35 s after
@@ -53,8 +53,9 @@ def learnt_listener(data: Path, clips, bundle, heard: float | None, seed: int) -
     clips' syllables: full, on-time strokes after a learnt decision, so what a generator with that listening could
     score (its balanced accuracy on the held-out syllables beside it)."""
     from dimgestor.audio import load_wav
+    from dimgestor.evaluation.voiceworld import (StressListener, balanced_accuracy, listener_motion, score_motion,
+                                                 syllables)
     from dimgestor.features import motion_to_features
-    from dimgestor.voiceworld import StressListener, balanced_accuracy, listener_motion, score_motion, syllables
 
     train = [syllables(load_wav(data / f"{name}.wav"), heard_s=heard)
              for name in json.loads((data / "split.json").read_text())["train"]]
@@ -71,7 +72,7 @@ def learnt_listener(data: Path, clips, bundle, heard: float | None, seed: int) -
 
 def train_run(data: Path, run: Path, args, cache: Path) -> float:
     """`dimgestor train` on the world's train split (its split.json holds the held-out voices out); wall s."""
-    from dimgestor.train import register
+    from dimgestor.training.train import register
 
     p = argparse.ArgumentParser()
     register(p.add_subparsers())
@@ -119,12 +120,12 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(1)
-    from dimgestor.checkpoint import load_checkpoint
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import generate_raw, valid_clips
+    from dimgestor.evaluation.eval import generate_raw, valid_clips
     from dimgestor.features import motion_to_features
-    from dimgestor.voiceworld import (make_voice_world, margins, rule_motion, score_motion, verdict, voice_split,
-                                      world_rule)
+    from dimgestor.streaming.checkpoint import load_checkpoint
+    from dimgestor.training.dataset import GestureDataset
+    from dimgestor.evaluation.voiceworld import (make_voice_world, margins, rule_motion, score_motion, verdict,
+                                                 voice_split, world_rule)
 
     work = Path(args.work)
     cache = work / "cache"

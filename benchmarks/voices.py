@@ -4,7 +4,7 @@ For each voice: loudness coupling (metrics.speech_coupling) beside its circularl
 (mean, sd, and whether coupling > mean + 2 sd), onset alignment of the stressed onsets (the strongest 40%;
 of all onsets too, in the JSON) beside as many onsets shuffled inside speech,
 speech/pause contrast, wrist speed in speech over wrist speed in 6 s of silence inserted into the clip,
-and wrist jerk; each a mean over seeds (`dimgestor.eval.voice_report`, the same rows as
+and wrist jerk; each a mean over seeds (`dimgestor.evaluation.eval.voice_report`, the same rows as
 `dimgestor eval --wavs`). Voices:
 
   zeggs_heldout   the training speaker's held-out last 15 s (../shared ZEGGS sample), and the real
@@ -177,8 +177,8 @@ def collect_voices(quick: bool, folder: Path, real_only: bool = False) -> tuple[
 
 def zeggs_real(bundle) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(held-out audio, its real raw features, whole-clip audio, whole-clip features) of the ZEGGS sample."""
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import valid_clips
+    from dimgestor.evaluation.eval import valid_clips
+    from dimgestor.training.dataset import GestureDataset
 
     valid = GestureDataset(ZEGGS, spec=bundle.feature_spec, split="valid", window_s=4.0, valid_seconds=15.0)
     (audio, raw), = valid_clips(valid)
@@ -188,7 +188,7 @@ def zeggs_real(bundle) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 def real_row(bundle, audio: np.ndarray, raw: np.ndarray) -> dict:
     """The per-voice numbers of real capture on its own speech (no inserted silence: it was never recorded)."""
-    from dimgestor.eval import clip_stats, voice_row
+    from dimgestor.evaluation.eval import clip_stats, voice_row
 
     row = voice_row([clip_stats(raw, audio, bundle.skeleton, bundle.feature_spec)])
     return {k: v for k, v in row.items() if k not in ("speed_silence", "silence_ratio")}
@@ -232,8 +232,8 @@ def evaluate(checkpoint: str | None, voices: dict, steps: int | None, seeds: int
     """One model's rows over the voices (+ the real capture's reference rows) and its summary."""
     import torch
 
-    from dimgestor.checkpoint import load_checkpoint
-    from dimgestor.eval import upper_positions, variety_distance, voice_report
+    from dimgestor.evaluation.eval import upper_positions, variety_distance, voice_report
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     bundle = load_checkpoint(checkpoint)
     bundle.model.eval()
@@ -448,7 +448,7 @@ def main() -> int:
         voices, skipped = collect_voices(args.quick, Path(tmp), real_only=args.real)
     for name, why in skipped.items():
         print(f"skipped {name}: {why}")
-    from dimgestor.eval import NOTES
+    from dimgestor.evaluation.eval import NOTES
 
     result = {"benchmark": "voices", "schema": SCHEMA, "created": utc_now(), "code_version": code_version(),
               "device": describe_device("cpu"), "torch": torch.__version__, "espeak_ng": espeak_version(),

@@ -42,8 +42,8 @@ class ModelConfig(BaseModel):
 
     # --- audio front end ---
     # logmel: the paper-style spectrum; speech: level-free bands + prosody relative to each stream's running
-    # statistics (dimgestor/frontend_speech.py), so gestures follow what is said, not the voice or microphone
-    # embedding: speech + a pretrained speech embedding (dimgestor/frontend_embed.py; needs openwakeword 0.5.1's ONNX files)
+    # statistics (dimgestor/frontend/speech.py), so gestures follow what is said, not the voice or microphone
+    # embedding: speech + a pretrained speech embedding (dimgestor/frontend/embed.py; needs openwakeword 0.5.1's ONNX files)
     frontend: Literal["logmel", "speech", "embedding", "pretrained"] = "logmel"
     pretrained_path: str | None = None  # LOCAL wav2vec2/HuBERT folder when frontend == "pretrained"
     pretrained_block_ms: int = 1000  # pretrained encoder runs on fixed blocks of this length ...
@@ -159,7 +159,7 @@ PRESETS: dict[str, dict] = {
     # Live use: ~200 ms algorithmic latency (50 ms frame + 150 ms lookahead); sized for RTF < 0.25
     # with K=8 DDIM steps on 2 CPU cores. Its own diffusion settings (v-prediction over the default 1000
     # linear steps, where alpha_bar(999) ~ e^-42 leaves an eps-model's x0 estimate ill-conditioned) only
-    # apply without a recipe: the shipped model is trained with the "streaming" recipe (dimgestor.train),
+    # apply without a recipe: the shipped model is trained with the "streaming" recipe (dimgestor.training.train),
     # which overrides them with 8 cosine steps predicting x0.
     "realtime": dict(hidden=128, n_blocks=4, d_state=32, d_conv=4, expand=2, headdim=32, chunk_size=64,
                      style_width=64, style_d_state=16, style_headdim=32, down_kernel=31, lookahead_ms=150,

@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.times < 1 or args.burst <= 0 or args.burst_s <= 0 or args.rate <= 0:
         p.error("--times, --burst, --burst-s and --rate must be positive")
     from dimgestor.audio import AudioError
-    from dimgestor.checkpoint import CheckpointError, load_checkpoint
+    from dimgestor.streaming.checkpoint import CheckpointError, load_checkpoint
 
     try:
         speech = load_speech(args.wav, args.rate)

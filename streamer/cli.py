@@ -1,5 +1,5 @@
 """`dimgestor serve` (audio in, gestures out) and `dimgestor devices`, registered into the `dimgestor` command
-(`register_serve`, `register_devices`); `streamer ...`, the old name, is `dimgestor.cli.streamer_main`."""
+(`register_serve`, `register_devices`); `streamer ...`, the old name, is `dimgestor_app.cli.streamer_main`."""
 
 from __future__ import annotations
 

@@ -381,7 +381,7 @@ class Client(Outbox):
 
     async def _restore(self, data: bytes) -> None:
         """resume_session: the taken state becomes the new session's (`Session.restore`)."""
-        from dimgestor.savestate import StateError
+        from dimgestor.streaming.savestate import StateError
 
         session, rate = self.session, self.machine.audio.rate
         try:

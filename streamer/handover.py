@@ -1,7 +1,7 @@
 """Sessions that outlive their worker: a client session's state saved to a store under a resume token.
 
 A worker told to stop (SIGTERM) with a state store (`--state-store`) finishes the audio each client session
-holds, saves the session (the stream's state, `dimgestor.savestate`, with the pose decoder's root and the frame
+holds, saves the session (the stream's state, `dimgestor.streaming.savestate`, with the pose decoder's root and the frame
 count beside it) under a fresh token, sends the client `goaway` with the token and the audio sample its state
 covers, and closes with 1012. The client reconnects (through the balancer: any worker), sends `resume_session`
 with the token and re-sends its audio from that sample; the frames that follow are those of an uninterrupted

@@ -146,7 +146,7 @@ class ServeOptions(BaseModel):
     @field_validator("guidance")
     @classmethod
     def _guidance(cls, value):
-        from dimgestor.diffusion import check_guidance
+        from dimgestor.model.diffusion import check_guidance
 
         if value is not None:
             try:

@@ -200,7 +200,7 @@ class GestureProcessor(FrameProcessor):
             raise ImportError(f"GestureProcessor: {why}; or face=None for frames without a face")
         super().__init__(**kwargs)
         if bundle is None:
-            from dimgestor.checkpoint import load_checkpoint
+            from dimgestor.streaming.checkpoint import load_checkpoint
 
             bundle = load_checkpoint(checkpoint)
         if max_hold_s < 0 or blend_in_s < 0 or rest_hz <= 0:

@@ -2,7 +2,7 @@
 `dimgestor serve`.
 
 Its state (the server's own token) is class-level and lives in this module rather than in the command line's,
-which runs as `__main__` under `python -m dimgestor.cli` (a second copy of its classes when imported).
+which runs as `__main__` under `python -m dimgestor_app.cli` (a second copy of its classes when imported).
 """
 
 from __future__ import annotations

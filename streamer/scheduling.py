@@ -4,7 +4,7 @@ A session hands its scheduler windows of audio (`submit_push(source, samples, ra
 and other jobs (`submit_ranked`: a stream's finish). The rank is how far the session's audio is ahead of real
 time (rank > 0: a backlog); real time goes first, so a talker never waits behind a backlog:
 - `StreamBatcher` (`streamer serve`'s default): one thread runs the due windows of all sessions as batched
-  forwards, the model's weights read once per sampler step for all of them (`dimgestor.batch.push_many`);
+  forwards, the model's weights read once per sampler step for all of them (`dimgestor.streaming.batch.push_many`);
 - `RankedScheduler` (`--no-batch`): worker threads, each window a job of its own, lowest rank first;
 - `PoolScheduler`: any `concurrent.futures.Executor` (None: a shared thread pool), unranked, for tools and tests.
 The scheduler also says how a session's audio becomes calls (`windows` -> `WindowPolicy`).
@@ -306,7 +306,7 @@ class StreamBatcher(_Threads):
     nothing due is not waited for. A backlog cycle takes windows only up to `cycle_s` of estimated compute
     (`CycleCost`; `backlog_s` of audio before a measurement), so a real-time window never waits for more.
     push_many: `(streams, chunks, return_exceptions) -> frames or exception per stream`; None: torch's
-    (`dimgestor.batch.push_many`); `--backend onnxruntime` gives `dimgestor.onnx_batch.push_many`.
+    (`dimgestor.streaming.batch.push_many`); `--backend onnxruntime` gives `dimgestor.export.onnx_batch.push_many`.
     """
 
     def __init__(self, max_batch: int = 256, thread_name: str = "infer-batch", cycle_s: float = 0.1,
@@ -379,7 +379,7 @@ class StreamBatcher(_Threads):
     def _batch(self, pushes: list[_PushJob]) -> None:
         """One batched push of every taken window; a window that fails fails its own future only."""
         if (push_many := self.push_many) is None:
-            from dimgestor.batch import push_many
+            from dimgestor.streaming.batch import push_many
 
         self.stats.add(len(pushes))
         started = self.clock()

@@ -22,15 +22,15 @@ from streamer.frames import Frame
 from streamer.handover import open_store
 from streamer.health import Readiness, RealtimeLoad
 from streamer.metrics import ServerMetrics
+from streamer.options import ServeError, ServeOptions
 from streamer.scheduling import BatcherPool, RankedScheduler, StreamBatcher
 from streamer.sessions import Session
-from streamer.options import ServeError, ServeOptions
 from streamer.sink import Sink
 from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 if TYPE_CHECKING:
-    from dimgestor.checkpoint import Bundle
-    from dimgestor.onnx_stream import OnnxModel
+    from dimgestor.export.onnx_stream import OnnxModel
+    from dimgestor.streaming.checkpoint import Bundle
     from streamer.ws import WsServer
 
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret", "read_token", "run", "serve"]
@@ -153,7 +153,7 @@ def _humanoid_map(path: str | None):
 
 
 def _load(checkpoint: str | None):
-    from dimgestor.checkpoint import CheckpointError, load_checkpoint
+    from dimgestor.streaming.checkpoint import CheckpointError, load_checkpoint
 
     try:
         return load_checkpoint(checkpoint)
@@ -177,7 +177,7 @@ def onnx_batchers(onnx: OnnxModel, lanes: int) -> BatcherPool:
     """`lanes` StreamBatchers on ONNX Runtime, each batching its share of the sessions as calls of the export's
     graphs on its own one-thread sessions: a batched call of this graph keeps one core busy, whatever ONNX
     Runtime's intra-op threads (`BatcherPool`)."""
-    from dimgestor.onnx_batch import BatchRunner, push_many
+    from dimgestor.export.onnx_batch import BatchRunner, push_many
 
     return BatcherPool([StreamBatcher(push_many=functools.partial(push_many, BatchRunner.of(onnx, 1)),
                                       thread_name=f"infer-batch-{i}") for i in range(max(1, lanes))])
@@ -225,16 +225,16 @@ def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance:
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:
     """--backend onnxruntime: the export loaded once for every session (`_onnx_export`)."""
-    from dimgestor.onnx_stream import OnnxModel
+    from dimgestor.export.onnx_stream import OnnxModel
 
     return OnnxModel.load(_onnx_export(options, bundle, steps, guidance))
 
 
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
     """--backend onnxruntime: the --onnx folder (checked against the checkpoint, K and guidance), or the
-    checkpoint's export in the per-user cache (`dimgestor.onnx_cache`: exported on the first start, reused after)."""
-    from dimgestor.onnx_export import check_export
-    from dimgestor.onnx_stream import load_manifest
+    checkpoint's export in the per-user cache (`dimgestor.export.onnx_cache`: exported on the first start, reused after)."""
+    from dimgestor.export.onnx_export import check_export
+    from dimgestor.export.onnx_stream import load_manifest
 
     if options.onnx is not None:
         try:
@@ -248,7 +248,7 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
             raise ServeError(f"--onnx {options.onnx} was exported with K={sampler['steps']} and guidance "
                              f"{sampler['guidance']:g}: pass those (or export again)")
         return options.onnx
-    from dimgestor.onnx_cache import cached_export
+    from dimgestor.export.onnx_cache import cached_export
 
     batches, model = () if options.no_batch else SERVE_BATCHES, options.checkpoint or "the embedded model"
     try:

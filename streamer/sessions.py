@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, AsyncIterable, Callable, Mapping
 import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
-from dimgestor.savestate_checks import StateError, finite_number, is_int, show
+from dimgestor.streaming.savestate_checks import StateError, finite_number, is_int, show
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.protocol import MAX_RATE, MIN_RATE
@@ -173,7 +173,7 @@ class Session:
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._finishing = False
-        # The workers' shared secret that seals saved states (`dimgestor.savestate`; serve --state-secret-file):
+        # The workers' shared secret that seals saved states (`dimgestor.streaming.savestate`; serve --state-secret-file):
         # None seals with plain SHA-256 (integrity only). Never shown.
         self.state_key: bytes | None = None
 
@@ -244,10 +244,10 @@ class Session:
         return self._face.take(n)
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
-        """The session as bytes (`dimgestor.savestate`): the stream's state (default: its own now), the pose
+        """The session as bytes (`dimgestor.streaming.savestate`): the stream's state (default: its own now), the pose
         decoder's root and the `frames` made so far, with `meta` (e.g. the client's rate) beside them, sealed
         with `state_key`."""
-        from dimgestor import savestate
+        from dimgestor.streaming import savestate
 
         meta = {"frames": int(frames), "decoder": dataclasses.asdict(self.decoder.state), **meta}
         return savestate.dumps(self.stream, state, meta, key=self.state_key)
@@ -256,8 +256,8 @@ class Session:
         """Go on from `snapshot`'s bytes (taken by any worker on the same model and `state_key`); returns their meta.
         Raises `savestate.StateError` when they cannot be resumed exactly (the session is then unchanged): every
         field is checked first, the stream's (`savestate.loads`) and the meta's (`check_meta`)."""
-        from dimgestor import savestate
         from dimgestor.features import RootState
+        from dimgestor.streaming import savestate
 
         state, meta = savestate.loads(self.stream, data, key=self.state_key)
         check_meta(meta, state)

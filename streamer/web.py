@@ -21,7 +21,7 @@ __all__ = ["prepare_model", "web_json", "make_server", "register", "run"]
 def web_json(checkpoint: str | None, root: str = "tether", tether_s: float = 5.0,
              humanoid_map: str | None = None) -> dict:
     """What the page needs beside the graph: the hello (skeleton, humanoid map), the feature layout, the root."""
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
     from streamer import protocol as P
     from streamer.pose import HumanoidRig, load_humanoid_map
 
@@ -41,7 +41,7 @@ def web_json(checkpoint: str | None, root: str = "tether", tether_s: float = 5.0
 def prepare_model(folder: str | Path, checkpoint: str | None = None, steps: int | None = 4, frames: int = 2,
                   root: str = "tether", tether_s: float = 5.0, export: bool | None = None) -> Path:
     """folder/ with frame_step.onnx, manifest.json and web.json; exports unless a graph is there (export None)."""
-    from dimgestor.onnx_export import GRAPH, export_onnx
+    from dimgestor.export.onnx_export import GRAPH, export_onnx
 
     folder = Path(folder)
     if export or (export is None and not (folder / GRAPH).exists()):

@@ -47,7 +47,7 @@ def tiny_checkpoint(tmp_path_factory):
 @pytest.fixture(scope="module")
 def bundle(tiny_checkpoint):
     """`tiny_checkpoint` loaded (modules that need another model define their own `bundle`)."""
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     return load_checkpoint(tiny_checkpoint)
 
@@ -56,7 +56,7 @@ def bundle(tiny_checkpoint):
 def wav(tmp_path_factory):
     """WAV_SECONDS of synthetic speech at the model's rate, for `streamer serve --source`."""
     from dimgestor.audio import SAMPLE_RATE, save_wav
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
     from helpers.serve import WAV_SECONDS
 
     path = tmp_path_factory.mktemp("audio") / "speech.wav"

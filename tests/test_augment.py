@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from dimgestor.augment import (AugmentConfig, AugmentDraw, active_level, add_noise, apply, augment, band_limit, draw,
-                               dynamics, equalize, formant_shift, gain, make_noise, pitch_shift, reverb, soft_limit)
+from dimgestor.training.augment import (AugmentConfig, AugmentDraw, active_level, add_noise, apply, augment, band_limit,
+                                        draw, dynamics, equalize, formant_shift, gain, make_noise, pitch_shift, reverb,
+                                        soft_limit)
 
 from helpers import warm
 

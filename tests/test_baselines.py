@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.baselines import AdaLNAttentionBlock, AdaLNTransformer, SelfAttention, denoiser_params, rotary
 from dimgestor.config import get_preset
-from dimgestor.model import DiMGestor, FuzzyFeatureExtractor
-from dimgestor.stream import generate_offline
+from dimgestor.model.baselines import AdaLNAttentionBlock, AdaLNTransformer, SelfAttention, denoiser_params, rotary
+from dimgestor.model.network import DiMGestor, FuzzyFeatureExtractor
+from dimgestor.streaming.stream import generate_offline
 
 
 def _randomize(model: torch.nn.Module, seed: int = 0) -> None:
@@ -154,6 +154,6 @@ def test_streaming_benchmark_runs_and_writes_the_issue_schema(tmp_path):
 
 def test_the_transformer_baseline_refuses_to_stream():
     # it carries no state, so a stream would silently restart every window
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming.stream import GestureStream
     with pytest.raises(ValueError, match="cannot stream"):
         GestureStream(AdaLNTransformer(get_preset("tiny"), n_blocks=1))

@@ -1,12 +1,12 @@
-"""Batched multi-stream denoising (dimgestor.batch): every stream gets the frames it would get alone."""
+"""Batched multi-stream denoising (dimgestor.streaming.batch): every stream gets the frames it would get alone."""
 import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import push_many
-from dimgestor.diffusion import Diffusion
-from dimgestor.sampler import DenoiseRunner, StepStates
-from dimgestor.stream import GestureStream, generate_offline, sample_frames
+from dimgestor.model.diffusion import Diffusion
+from dimgestor.model.sampler import DenoiseRunner, StepStates
+from dimgestor.streaming.batch import push_many
+from dimgestor.streaming.stream import GestureStream, generate_offline, sample_frames
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces
 
 TOL = 1e-5
@@ -164,7 +164,7 @@ def test_runner_follows_weight_changes(model):
 def test_batched_steps_only_read_their_states_and_reuse_the_batch_buffer(model, monkeypatch):
     """step_many maps the step over states: stepping the same old states again gives the same frames (the batch
     never writes into a state a caller holds), yet the same streams coming back together are not copied."""
-    from dimgestor.batch import step_many
+    from dimgestor.streaming.batch import step_many
 
     audios = [_audio(1.5, seed) for seed in range(3)]
     streams = [GestureStream(model, steps=3, seed=seed, smoothing=None) for seed in range(3)]

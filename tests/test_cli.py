@@ -8,8 +8,8 @@ import pytest
 
 from dimgestor.audio import save_wav
 from dimgestor.bvh import read_bvh
-from dimgestor.cli import main
-from dimgestor.synthetic import make_synthetic_pair
+from dimgestor.training.synthetic import make_synthetic_pair
+from dimgestor_app.cli import main
 
 from helpers import warm
 
@@ -107,6 +107,6 @@ def test_bad_inputs_print_one_error_line_and_exit_2(run, tmp_path, capsys, args,
 
 
 def test_console_script_exit_code(tmp_path):
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tmp_path),
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", str(tmp_path),
                   "--audio", "a.wav", "--out", "o.bvh"], capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr

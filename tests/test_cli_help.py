@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from dimgestor.cli import build_parser, streamer_main
-from dimgestor.cli import main as dimgestor_main
 from dimgestor.cli_help import DeprecatedAlias, HelpFormatter
 from dimgestor.config import PRESETS
+from dimgestor_app.cli import build_parser, streamer_main
+from dimgestor_app.cli import main as dimgestor_main
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ["serve", "generate", "train", "render", "eval", "info", "export", "export-onnx", "devices", "web"]

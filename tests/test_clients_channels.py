@@ -11,7 +11,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_skeleton
 from streamer import protocol as P
 from streamer.frames import Channel, Frame
 from helpers.clients import REPO

@@ -43,7 +43,7 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
 
     assert f"wrote {len(frames)} frames to {bvh}" in r.stderr
     offline = tmp_path / "offline.bvh"
-    g = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint), "--audio",
+    g = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", str(checkpoint), "--audio",
                   str(SPEECH_WAV), "--out", str(offline), "--steps", "2", "--seed", "0", "--root", "tether"],
                  cwd=REPO, capture_output=True, text=True, timeout=120)
     assert g.returncode == 0, g.stderr
@@ -57,7 +57,7 @@ def test_python_client_sends_a_wav_and_receives_its_own_session(tmp_path, checkp
 def write_wav(path, seconds: float, rate: int = 16000) -> None:
     import wave
 
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     with wave.open(str(path), "wb") as w:
         w.setnchannels(1), w.setsampwidth(2), w.setframerate(rate)
@@ -301,7 +301,7 @@ def test_python_client_reads_the_face_of_json_and_binary_frames_and_writes_it_as
     import json
 
     from dimgestor.face.names import ARKIT, convert
-    from dimgestor.synthetic import synthetic_skeleton
+    from dimgestor.training.synthetic import synthetic_skeleton
     from streamer import protocol as P
     from streamer.face import face_channel
     from streamer.frames import Frame

@@ -59,7 +59,7 @@ def web_server(web_model, tmp_path_factory):
     """`streamer web` on a free port serving the page and the model folder; yields its base URL."""
     port = free_port()
     log = tmp_path_factory.mktemp("web_server") / "server.log"
-    cmd = [sys.executable, "-c", "import sys; from dimgestor.cli import main; sys.exit(main())", "web",
+    cmd = [sys.executable, "-c", "import sys; from dimgestor_app.cli import main; sys.exit(main())", "web",
            "--model", str(web_model), "--port", str(port)]
     with open(log, "w") as out:
         proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
@@ -81,15 +81,15 @@ def web_server(web_model, tmp_path_factory):
 
 def python_frames(folder: Path, audio: np.ndarray) -> np.ndarray:
     """The reference: Python's FrameStepStream on ONNX Runtime, the whole audio pushed, then finish."""
-    from dimgestor.onnx_stream import ort_stream
+    from dimgestor.export.onnx_stream import ort_stream
 
     stream = ort_stream(folder, seed=SEED)
     return np.concatenate([stream.push(audio), stream.finish()])
 
 
 def python_poses(folder: Path, frames: np.ndarray):
-    from dimgestor.checkpoint import load_checkpoint
     from dimgestor.features import PoseDecoder
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     web = json.loads((folder / "web.json").read_text())
     bundle = load_checkpoint(json.loads((folder / "manifest.json").read_text())["checkpoint"]["path"])
@@ -139,9 +139,9 @@ def test_streamer_web_serves_the_page_and_the_model_as_static_files(web_model, w
 @pytest.mark.parametrize("heading", ["velocity", "facing"])
 @pytest.mark.parametrize("root", ["free", "tether", "lock"])
 def test_pose_decoder_in_javascript_equals_python(tmp_path, checkpoint, root, heading):
-    from dimgestor.checkpoint import load_checkpoint
     from dimgestor.features import PoseDecoder
     from dimgestor.smoothing import OneEuroFilter
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     bundle = load_checkpoint(checkpoint)
     sk, spec = bundle.skeleton, bundle.feature_spec.resolve(bundle.skeleton).model_copy(update={"heading": heading})

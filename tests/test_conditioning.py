@@ -1,12 +1,12 @@
-"""Many streams' front end and feature extractor as one call a group (dimgestor.conditioning): each stream gets the
+"""Many streams' front end and feature extractor as one call a group (dimgestor.model.conditioning): each stream gets the
 condition and the state it gets alone."""
 import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import begin_many, push_many, step_many
-from dimgestor.mamba2 import Mamba2State
-from dimgestor.stream import GestureStream
+from dimgestor.model.mamba2 import Mamba2State
+from dimgestor.streaming.batch import begin_many, push_many, step_many
+from dimgestor.streaming.stream import GestureStream
 from helpers.stream import noise_audio, random_tiny_model
 
 TOL = 1e-5

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import push_many
-from dimgestor.checkpoint import load_checkpoint
+from dimgestor.streaming.batch import push_many
+from dimgestor.streaming.checkpoint import load_checkpoint
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: torch.cuda.is_available() is False")
 

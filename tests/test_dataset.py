@@ -6,12 +6,12 @@ import warnings
 import numpy as np
 import pytest
 
-import dimgestor.dataset as dataset_module
+import dimgestor.training.dataset as dataset_module
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import BvhError, BvhMotion, Skeleton, read_bvh, write_bvh
-from dimgestor.dataset import DatasetError, GestureDataset, collate_windows, compute_stats, find_pairs
 from dimgestor.features import FeatureSpec, mirror_features, mix_arms, motion_to_features
-from dimgestor.synthetic import loudness_envelope, make_synthetic_pair, synthetic_speech
+from dimgestor.training.dataset import DatasetError, GestureDataset, collate_windows, compute_stats, find_pairs
+from dimgestor.training.synthetic import loudness_envelope, make_synthetic_pair, synthetic_speech
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +207,7 @@ def test_zeggs_sample_windows(zeggs_dir, tmp_path):
 
 
 def test_speed_perturbation_adds_faster_and_slower_copies_of_the_training_part_only(tmp_path):
-    from dimgestor.dataset import speed_perturb
+    from dimgestor.training.dataset import speed_perturb
 
     data = tmp_path / "d"
     make_synthetic_pair(data, "a", seconds=10.0, seed=2)

@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dimgestor import metrics
 from dimgestor.audio import load_wav
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.eval import clip_stats, joint_positions
-from dimgestor.stream import generate_offline
+from dimgestor.evaluation import metrics
+from dimgestor.evaluation.eval import clip_stats, joint_positions
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.streaming.stream import generate_offline
 from streamer.sources import DEMO_WAV
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
@@ -57,8 +57,8 @@ def test_default_model_rests_in_silence(bundle):
 
 
 def test_real_capture_reference(zeggs_dir, tmp_path):
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import k_report, valid_clips
+    from dimgestor.evaluation.eval import k_report, valid_clips
+    from dimgestor.training.dataset import GestureDataset
 
     b = load_checkpoint(None)
     valid = GestureDataset(zeggs_dir, split="valid", spec=b.feature_spec, window_s=4.0, valid_seconds=15.0,
@@ -79,8 +79,8 @@ TAKES = {"4_lawrence_0_19_19": SHARED / "unseen_speech" / "4_lawrence_0_19_19.wa
 def training_upper(bundle):
     """(the ZEGGS clip's training stretch's upper body, the actor's own variety figure: her held-out 15 s against
     it), or None without ../shared."""
-    from dimgestor.dataset import GestureDataset
-    from dimgestor.eval import upper_positions, valid_clips, variety_distance
+    from dimgestor.evaluation.eval import upper_positions, valid_clips, variety_distance
+    from dimgestor.training.dataset import GestureDataset
 
     zeggs = SHARED / "zeggs_sample"
     if not zeggs.is_dir():
@@ -96,7 +96,7 @@ def training_upper(bundle):
 def unseen_rows(bundle, training_upper):
     """voice_report (two seeds, the default K and guidance; with ../shared, variety against the training stretch)
     of the demo clips and the real unseen speakers' takes."""
-    from dimgestor.eval import voice_report
+    from dimgestor.evaluation.eval import voice_report
 
     clips = {"demo_en": DEMO_WAV.parent / "demo_en.wav", "demo_zh": DEMO_WAV.parent / "demo_zh.wav", **TAKES}
     reference = training_upper[0] if training_upper else None

@@ -211,7 +211,7 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
         w.writeframes(speech_pcm16(seconds))
     offline = tmp_path / "offline.bvh"
     # the reference first: beside the cluster it would compete with the surviving worker at the move
-    generate = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out",
+    generate = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--audio", str(wav), "--out",
                          str(offline), "--root", "tether", *sampling], cwd=REPO,
                         env={**os.environ, "OMP_NUM_THREADS": "1"}, stdout=subprocess.PIPE,
                         stderr=subprocess.STDOUT, text=True, timeout=120)
@@ -473,7 +473,7 @@ def instruction(name: str) -> list[str]:
 
 def serve_parser():
     """The argument parser `dimgestor serve` runs."""
-    from dimgestor.cli import build_parser
+    from dimgestor_app.cli import build_parser
 
     return build_parser()
 

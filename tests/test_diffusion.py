@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from dimgestor.config import get_preset
-from dimgestor.diffusion import Diffusion, correlate, ddim_pairs, frame_noise, motion_noise, noise_kernel
+from dimgestor.model.diffusion import Diffusion, correlate, ddim_pairs, frame_noise, motion_noise, noise_kernel
 
 
 def test_ddim_pairs_are_exact():
@@ -93,7 +93,7 @@ def test_frame_noise_is_standard_normal():
 
 
 def test_training_loss_is_mse_on_the_target():
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
     torch.manual_seed(0)
     m = DiMGestor(get_preset("tiny"))
     d = Diffusion(m.config)

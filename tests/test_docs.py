@@ -34,7 +34,7 @@ def test_user_docs_hold_no_commit_hashes_or_load_averages():
 
 
 def test_the_protocol_docs_hello_example_is_what_the_server_sends_for_the_default_model():
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
     from streamer.pose import HumanoidRig, load_humanoid_map
 
     text = (ROOT / "docs" / "protocol.md").read_text()

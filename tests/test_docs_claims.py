@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from dimgestor.cli import build_parser
 from dimgestor.cli_help import DeprecatedAlias
+from dimgestor_app.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"

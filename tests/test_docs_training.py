@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from dimgestor.cli import build_parser
 from dimgestor.config import PRESETS, ModelConfig, get_preset
-from dimgestor.train import RECIPES
+from dimgestor.training.train import RECIPES
+from dimgestor_app.cli import build_parser
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "training.md"
 

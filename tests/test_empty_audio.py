@@ -30,7 +30,7 @@ def test_python_client_with_an_empty_wav_gets_end(tmp_path, checkpoint):
 @pytest.mark.parametrize("samples", [0, 100])
 def test_generate_refuses_audio_shorter_than_a_frame(tmp_path, checkpoint, samples):
     wav, out = empty_wav(tmp_path / "short.wav", samples), tmp_path / "out.bvh"
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(checkpoint),
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", str(checkpoint),
                   "--audio", str(wav), "--out", str(out)], cwd=REPO, capture_output=True, text=True,
                  env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120)
     assert r.returncode == 2 and "nothing to generate" in r.stderr and str(wav) in r.stderr, r.stderr
@@ -39,6 +39,6 @@ def test_generate_refuses_audio_shorter_than_a_frame(tmp_path, checkpoint, sampl
 
 def test_serve_refuses_an_empty_wav(tmp_path):
     wav = empty_wav(tmp_path / "empty.wav")
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--source", str(wav), "--no-ws"], cwd=REPO,
                  capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "no audio samples" in r.stderr

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor import eval as ev
-from dimgestor import metrics
 from dimgestor.config import get_preset
-from dimgestor.dataset import GestureDataset, compute_stats
-from dimgestor.model import DiMGestor
-from dimgestor.synthetic import make_synthetic_pair
+from dimgestor.evaluation import eval as ev
+from dimgestor.evaluation import metrics
+from dimgestor.model.network import DiMGestor
+from dimgestor.training.dataset import GestureDataset, compute_stats
+from dimgestor.training.synthetic import make_synthetic_pair
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_register_adds_the_eval_subcommand():
 
 
 def test_eval_command_end_to_end(data, tmp_path, capsys):
-    from dimgestor.checkpoint import save_checkpoint
+    from dimgestor.streaming.checkpoint import save_checkpoint
 
     root, _, train = data
     b = _bundle(train)
@@ -110,7 +110,7 @@ def test_eval_command_end_to_end(data, tmp_path, capsys):
 
 
 def test_eval_refuses_data_of_another_skeleton(data, tmp_path):
-    from dimgestor.checkpoint import save_checkpoint
+    from dimgestor.streaming.checkpoint import save_checkpoint
 
     root, _, train = data
     b = _bundle(train)
@@ -165,7 +165,7 @@ def test_speech_mask_and_contrast():
 
 def test_eval_on_speech_without_motion_and_per_k(data, tmp_path, capsys):
     from dimgestor.audio import save_wav
-    from dimgestor.checkpoint import save_checkpoint
+    from dimgestor.streaming.checkpoint import save_checkpoint
 
     root, _, train = data
     b = _bundle(train)
@@ -229,7 +229,7 @@ def test_voice_row_pools_seeds_and_judges_chance(data):
 def test_the_synthetic_rule_follows_its_speech_and_mismatched_audio_does_not(tmp_path):
     """Known answer: the synthetic world's motion (a stroke on each stressed syllable, rest in pauses) scored
     against its own audio clears both chance levels; against its audio rolled by half a clip it does not."""
-    from dimgestor.synthetic import make_gesture_corpus
+    from dimgestor.training.synthetic import make_gesture_corpus
 
     make_gesture_corpus(tmp_path / "world", 2.0, seed=999)
     ds = GestureDataset(tmp_path / "world", split="train", valid_fraction=0.0, window_s=4.0, cache_dir=tmp_path / "c")

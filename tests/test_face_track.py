@@ -11,12 +11,12 @@ import pytest
 
 from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav
 from dimgestor.bvh import read_bvh
-from dimgestor.cli import main
 from dimgestor.face import FACE_LABELS, FaceOptions, convert, names_of
 from dimgestor.face.names import ARKIT
 from dimgestor.face.track import TRACK_NAMES, track_header, track_rows
 from dimgestor.face.visemes import V
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
+from dimgestor_app.cli import main
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.record import BvhRecorder, RecordError, channels_path, face_path

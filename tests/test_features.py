@@ -12,7 +12,7 @@ from dimgestor.features import (
     ROOT_COLUMNS, FeatureSpec, PoseDecoder, arm_columns, features_to_motion, mirror_features, mirror_motion,
     mirror_name, mix_arms, motion_to_features, resample_pose,
 )
-from dimgestor.synthetic import synthetic_motion, synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_motion, synthetic_skeleton
 
 
 def start_of(motion):

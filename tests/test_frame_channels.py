@@ -13,7 +13,7 @@ import pytest
 from websockets.asyncio.client import connect
 
 from dimgestor.audio import save_wav
-from dimgestor.synthetic import synthetic_skeleton, synthetic_speech
+from dimgestor.training.synthetic import synthetic_skeleton, synthetic_speech
 from streamer import protocol as P
 from streamer import record, vmc
 from streamer.frames import Channel, Frame

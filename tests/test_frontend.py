@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from dimgestor.config import get_preset
-from dimgestor.frontend import LogMelFrontEnd, PretrainedFrontEnd
-from dimgestor.mel import mel_filterbank
+from dimgestor.frontend.base import LogMelFrontEnd, PretrainedFrontEnd
+from dimgestor.frontend.mel import mel_filterbank
 
 
 def _chunked(fe, audio, sizes):

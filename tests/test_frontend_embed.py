@@ -10,17 +10,17 @@ import torch
 
 pytest.importorskip("onnxruntime", reason="the embedding runs on ONNX Runtime (pip install 'dimgestor[embedding]')")
 
-from dimgestor import savestate  # noqa: E402
 from dimgestor.audio import SAMPLE_RATE, load_wav  # noqa: E402
-from dimgestor.augment import active_level, band_limit  # noqa: E402
 from dimgestor.config import get_preset  # noqa: E402
-from dimgestor.frontend import build_frontend  # noqa: E402
-from dimgestor.frontend_embed import EMBED_DIM, EMBED_FRAMES, EMBED_STEP, EmbeddingFrontEnd  # noqa: E402
-from dimgestor.stream import GestureStream, generate_offline  # noqa: E402
+from dimgestor.frontend.base import build_frontend  # noqa: E402
+from dimgestor.frontend.embed import EMBED_DIM, EMBED_FRAMES, EMBED_STEP, EmbeddingFrontEnd  # noqa: E402
+from dimgestor.streaming import savestate  # noqa: E402
+from dimgestor.streaming.stream import GestureStream, generate_offline  # noqa: E402
+from dimgestor.training.augment import active_level, band_limit  # noqa: E402
 from helpers.stream import noise_audio, random_tiny_model  # noqa: E402
 
 try:
-    from dimgestor.frontend_embed import model_files
+    from dimgestor.frontend.embed import model_files
     model_files()
 except (ImportError, OSError, ValueError) as e:  # (`make test` installs it: pip install --no-deps openwakeword==0.5.1)
     pytest.skip(f"the embedding's ONNX files are not here: {e}", allow_module_level=True)
@@ -125,7 +125,7 @@ def test_a_saved_state_whose_two_front_ends_disagree_is_refused(model):
 
 
 def test_streams_batched_together_hear_what_they_hear_alone(model):
-    from dimgestor.conditioning import condition, condition_group
+    from dimgestor.model.conditioning import condition, condition_group
 
     a, b = noise_audio(1.0, seed=1), noise_audio(1.0, seed=2)
     fes = [model.frontend.init_state(1) for _ in range(2)]
@@ -138,7 +138,7 @@ def test_streams_batched_together_hear_what_they_hear_alone(model):
 
 
 def test_onnx_export_says_it_cannot_take_it(model):
-    from dimgestor.onnx_export import state_specs
+    from dimgestor.export.onnx_export import state_specs
 
     with pytest.raises(ValueError, match="not 'embedding'"):
         state_specs(model, steps=4, rows=1)
@@ -147,7 +147,7 @@ def test_onnx_export_says_it_cannot_take_it(model):
 def test_without_openwakeword_the_error_says_what_to_install(monkeypatch):
     import sys
 
-    from dimgestor import frontend_embed
+    from dimgestor.frontend import embed as frontend_embed
 
     monkeypatch.setitem(sys.modules, "openwakeword", None)  # `import openwakeword` now fails
     with pytest.raises(ImportError, match=r"pip install --no-deps openwakeword==0.5.1"):
@@ -157,7 +157,7 @@ def test_without_openwakeword_the_error_says_what_to_install(monkeypatch):
 def test_a_file_that_is_not_the_one_shipped_is_refused(monkeypatch, tmp_path):
     import sys
 
-    from dimgestor import frontend_embed
+    from dimgestor.frontend import embed as frontend_embed
 
     mel, emb = frontend_embed.model_files()
     models = tmp_path / "openwakeword" / "resources" / "models"

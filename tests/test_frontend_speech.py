@@ -6,9 +6,9 @@ from scipy.signal import butter, lfilter
 
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.config import get_preset
-from dimgestor.frontend import build_frontend
-from dimgestor.frontend_speech import SPEECH_CHANNELS, SpeechFrontEnd
-from dimgestor.synthetic import speech_and_gestures
+from dimgestor.frontend.base import build_frontend
+from dimgestor.frontend.speech import SPEECH_CHANNELS, SpeechFrontEnd
+from dimgestor.training.synthetic import speech_and_gestures
 
 RATE, HOP = SAMPLE_RATE, 160
 LOUD, FLUX, VOICING, PITCH, PAUSE = (get_preset("realtime").n_mels + i for i in range(len(SPEECH_CHANNELS)))

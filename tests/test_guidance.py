@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.batch import push_many
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.cli import main
 from dimgestor.config import get_preset
-from dimgestor.diffusion import Diffusion, motion_noise
-from dimgestor.sampler import DenoiseRunner, StepStates
-from dimgestor.stream import GestureStream, generate_offline, sample_frames
-from dimgestor.synthetic import make_synthetic_pair
-from dimgestor.train import TrainConfig, resolve_cond_drop, train
+from dimgestor.model.diffusion import Diffusion, motion_noise
+from dimgestor.model.sampler import DenoiseRunner, StepStates
+from dimgestor.streaming.batch import push_many
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.streaming.stream import GestureStream, generate_offline, sample_frames
+from dimgestor.training.synthetic import make_synthetic_pair
+from dimgestor.training.train import TrainConfig, resolve_cond_drop, train
+from dimgestor_app.cli import main
 from helpers.stream import noise_audio as _audio, push_in_pieces, random_tiny_model as _model, stream_in_pieces
 
 TOL = 1e-5  # batched vs alone, runner vs the model's own forward (as tests/test_batch.py)
@@ -289,7 +289,7 @@ def test_cli_generate_export_and_train_options(runs, tmp_path, monkeypatch, caps
     assert "guidance" in capsys.readouterr().err
     assert main(["export", "--checkpoint", str(runs["whole"]), "--out", str(tmp_path / "e2"), "--guidance", "nan"]) == 2
 
-    import dimgestor.train as train_module
+    import dimgestor.training.train as train_module
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda opts: seen.setdefault("opts", opts) and tmp_path)
     base = ["train", "--data", str(runs["root"] / "data"), "--out", str(tmp_path / "r"),

@@ -1,11 +1,14 @@
-"""The packages import one way: no import cycle among dimgestor/ and streamer/ modules (function-level imports
-count too), and no module, script or test imports a package module's private name (shared code is public, with a
+"""The packages import one way: the model package (`dimgestor`) below the server (`streamer`) below the application
+(`dimgestor_app`), no import of a package above the importer's own, no import cycle among their modules
+(function-level imports count too), the model package in rooms by concern (a few modules at its top, the rest in
+subpackages), and no module, script or test imports a package module's private name (shared code is public, with a
 docstring; tests go through the public API)."""
 import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("dimgestor", "streamer")
+PACKAGES = ("dimgestor", "streamer", "dimgestor_app")  # lowest first: each may import those before it
+TOP_MODULES_MAX = 12  # modules directly in dimgestor/ (the rest are rooms: model, streaming, frontend, export, ...)
 CALLERS = ("examples", "benchmarks", "tests")  # the project's own code outside the packages
 
 
@@ -91,6 +94,47 @@ def private_imports(root: Path, packages=PACKAGES, callers=CALLERS) -> list[str]
     return bad
 
 
+def upward_imports(root: Path, packages=PACKAGES) -> list[str]:
+    """Imports, at any depth, of a package that comes after the importer's own in `packages` (lowest first)."""
+    bad = []
+    for m, path in modules(root, packages).items():
+        mine = packages.index(m.split(".")[0])
+        for base, _, line in imports(path, m):
+            top = base.split(".")[0]
+            if top in packages and packages.index(top) > mine:
+                bad.append(f"{path.relative_to(root)}:{line}: {m} imports {base}")
+    return sorted(set(bad))
+
+
+def test_the_packages_import_only_downwards():
+    assert upward_imports(REPO) == []
+
+
+def rooms(edges: dict[str, set[str]], package: str = "dimgestor") -> dict[str, set[str]]:
+    """The package's rooms (its subpackages, and its top-level modules together as `package`) and the rooms each
+    imports from."""
+    subpackages = {".".join(m.split(".")[:2]) for m in edges if m.split(".")[0] == package and m.count(".") >= 2}
+
+    def room(m):
+        first_two = ".".join(m.split(".")[:2])
+        return first_two if first_two in subpackages else package
+    out = {room(m): set() for m in edges if m.split(".")[0] == package}
+    for m, targets in edges.items():
+        if m.split(".")[0] == package:
+            out[room(m)] |= {room(t) for t in targets if t.split(".")[0] == package and room(t) != room(m)}
+    return out
+
+
+def test_the_model_package_keeps_a_few_modules_at_its_top_and_the_rest_in_rooms_whose_arrows_point_one_way():
+    top = sorted(p.name for p in (REPO / "dimgestor").glob("*.py"))
+    assert len(top) <= TOP_MODULES_MAX, top
+    between = rooms(graph(REPO))
+    assert {"dimgestor.model", "dimgestor.streaming", "dimgestor.frontend", "dimgestor.export", "dimgestor.training",
+            "dimgestor.evaluation", "dimgestor.face", "dimgestor.retarget"} <= set(between)
+    assert between["dimgestor"] == set()  # the top-level modules are the floor every room stands on
+    assert cycles(between) == [], between
+
+
 def test_no_import_cycle_among_the_packages_modules():
     edges = graph(REPO)
     assert len(edges) > 50  # every module was found
@@ -120,6 +164,21 @@ def test_a_cycle_through_a_function_level_import_is_found(tmp_path):
     edges = graph(root, ("pkg",))
     assert edges["pkg.leaf"] == {"pkg.low"} and edges["pkg.sub.deep"] == {"pkg.leaf"}
     assert cycles(edges) == [["pkg.high", "pkg.low"]]
+
+
+def test_an_import_of_a_higher_package_is_found_at_any_depth(tmp_path):
+    root = _package(tmp_path, {
+        "low/__init__.py": "",
+        "low/a.py": "def f():\n    import top.cli\n",
+        "low/sub/__init__.py": "",
+        "low/sub/b.py": "from mid import x\nfrom ..a import f\n",
+        "mid/__init__.py": "from low.a import f\n",
+        "mid/x.py": "from top import cli\n",
+        "top/__init__.py": "",
+        "top/cli.py": "import low.a\nimport mid.x\n",
+    })
+    assert upward_imports(root, ("low", "mid", "top")) == [
+        "low/a.py:2: low.a imports top.cli", "low/sub/b.py:1: low.sub.b imports mid", "mid/x.py:1: mid.x imports top"]
 
 
 def test_a_private_name_imported_across_modules_is_found(tmp_path):

@@ -9,12 +9,13 @@ import sys
 import numpy as np
 import pytest
 
-from dimgestor import metrics
 from dimgestor.audio import load_wav, save_wav
 from dimgestor.bvh import forward_kinematics, read_bvh
-from dimgestor.checkpoint import DEFAULT_MODEL_DIR, LIVE_MODEL_DIR, CheckpointError, load_checkpoint, resolve_checkpoint
-from dimgestor.eval import clip_stats, joint_positions
-from dimgestor.stream import generate_offline
+from dimgestor.streaming.checkpoint import (DEFAULT_MODEL_DIR, LIVE_MODEL_DIR, CheckpointError, load_checkpoint,
+                                            resolve_checkpoint)
+from dimgestor.evaluation import metrics
+from dimgestor.evaluation.eval import clip_stats, joint_positions
+from dimgestor.streaming.stream import generate_offline
 from streamer.sources import DEMO_WAV
 from helpers import warm
 from helpers.serve import REPO, Serve, follow
@@ -77,7 +78,7 @@ def test_serve_with_the_live_model_streams_like_generate(tmp_path):
     hello, msgs = asyncio.run(follow(url))
     assert s.finish() == 0, s.output
     assert hello["lookahead_s"] == pytest.approx(0.2) and msgs[-1] == {"type": "end", "frames": 60}
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", "live", "--audio",
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", "live", "--audio",
                   str(clip), "--out", str(off), "--seed", "3", "--root", "tether"], cwd=REPO,
                  env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr

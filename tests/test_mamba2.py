@@ -2,9 +2,8 @@
 import pytest
 import torch
 
-from dimgestor import mamba2
-from dimgestor.mamba2 import (Mamba2, Mamba2State, ssd_chunked, ssd_naive, ssd_one_chunk, ssd_scan,
-                              ssd_steps)
+from dimgestor.model import mamba2
+from dimgestor.model.mamba2 import Mamba2, Mamba2State, ssd_chunked, ssd_naive, ssd_one_chunk, ssd_scan, ssd_steps
 
 @pytest.fixture(autouse=True)
 def float64():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dimgestor import metrics
+from dimgestor.evaluation import metrics
 
 # ---------------------------------------------------------------- Fréchet distance
 
@@ -373,7 +373,7 @@ def test_onset_locked_speed_sizes_the_movement_after_onsets_not_any_nearby_peak(
 def test_nearest_window_distances_find_a_replayed_stretch_and_measure_a_new_one():
     """Variety (issue "real voices"): motion that replays a stretch of the reference is at distance 0 from it;
     the same motion moved by 5 units is 5 away (mean joint distance); windows never span two reference stretches."""
-    from dimgestor.metrics import nearest_window_distances
+    from dimgestor.evaluation.metrics import nearest_window_distances
 
     rng = np.random.default_rng(0)
     ref = np.cumsum(rng.normal(scale=10.0, size=(200, 4, 3)), axis=0)  # a random walk: no two windows alike
@@ -391,7 +391,7 @@ def test_nearest_window_distances_find_a_replayed_stretch_and_measure_a_new_one(
 
 def _nearest_window_distances_reference(query, reference, fps, window_s=1.0, query_hop_s=0.25):
     """The definition, window pair by window pair: every query window against every reference window."""
-    from dimgestor.metrics import window_stack
+    from dimgestor.evaluation.metrics import window_stack
 
     n = int(round(window_s * fps))
     q = window_stack(np.asarray(query, np.float64), n, max(1, int(round(query_hop_s * fps))))
@@ -404,7 +404,7 @@ def _nearest_window_distances_reference(query, reference, fps, window_s=1.0, que
 def test_nearest_window_distances_equal_the_window_by_window_definition(chunk):
     """The diagonal-sum fast path equals comparing every pair of windows, for reference chunks that split the
     windows anywhere, stretches shorter than a window, odd lengths and hops."""
-    from dimgestor.metrics import nearest_window_distances
+    from dimgestor.evaluation.metrics import nearest_window_distances
 
     rng = np.random.default_rng(1)
     query = np.cumsum(rng.normal(scale=3.0, size=(53, 5, 3)), axis=0)

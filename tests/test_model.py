@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from dimgestor.config import get_preset
-from dimgestor.model import AdaLNMamba2Block, DiMGestor, modulate
+from dimgestor.model.network import AdaLNMamba2Block, DiMGestor, modulate
 
 
 def _randomize(model, scale=0.05):

@@ -10,11 +10,11 @@ ort = pytest.importorskip("onnxruntime", reason="the `onnx` extra is not install
 pytest.importorskip("onnxscript", reason="the `onnx` extra is not installed")
 
 from dimgestor.audio import SAMPLE_RATE  # noqa: E402
-from dimgestor.checkpoint import load_checkpoint  # noqa: E402
-from dimgestor.cli import main, model_info  # noqa: E402
-from dimgestor.onnx_export import FrameStep  # noqa: E402
-from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
-from dimgestor.synthetic import synthetic_speech  # noqa: E402
+from dimgestor.export.onnx_export import FrameStep  # noqa: E402
+from dimgestor.export.onnx_stream import FrameStepStream, load_manifest, ort_runner, ort_stream, torch_runner  # noqa: E402
+from dimgestor.streaming.checkpoint import load_checkpoint  # noqa: E402
+from dimgestor.training.synthetic import synthetic_speech  # noqa: E402
+from dimgestor_app.cli import main, model_info  # noqa: E402
 
 from helpers import warm
 
@@ -203,7 +203,7 @@ def test_streams_sharing_one_session_from_two_threads_equal_streams_alone(export
     several clients' streams on it at once: each stream's frames are those it makes alone."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from dimgestor.onnx_stream import OnnxModel
+    from dimgestor.export.onnx_stream import OnnxModel
 
     model = OnnxModel.load(exported)
     alone = [streamed(ort_stream(exported, seed=s), audio[:SAMPLE_RATE * 2], [1600]) for s in (1, 2)]
@@ -292,7 +292,7 @@ def test_serve_on_onnxruntime_records_what_the_torch_backend_records(exported, a
     for backend in ("torch", "onnxruntime"):
         out[backend] = tmp_path / f"{backend}.bvh"
         extra = ["--onnx", str(exported)] if backend == "onnxruntime" else ["--guidance", str(guidance)]
-        r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
+        r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--source", str(wav), "--fast", "--no-ws",
                       "--record", str(out[backend]), "--steps", str(STEPS), "--seed", str(SEED), "--backend",
                       backend, "--window-ms", "100", *extra], capture_output=True, text=True, timeout=180,
                      env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
@@ -437,7 +437,7 @@ def test_batched_graph_rows_equal_single_stream_calls(exported):
 
 
 def test_plan_mixes_graph_sizes_at_the_least_cost(exported):
-    from dimgestor.onnx_batch import BatchRunner
+    from dimgestor.export.onnx_batch import BatchRunner
 
     m = load_manifest(exported)
     runner = BatchRunner(exported, m, cost={1: 1.0, BATCH: 1.2})
@@ -449,13 +449,13 @@ def test_plan_mixes_graph_sizes_at_the_least_cost(exported):
 
 
 def test_streams_pushed_together_equal_streams_alone(exported, audio):
-    """`dimgestor.onnx_batch.push_many` (each push's calls of all its streams as batched calls, padded with idle
+    """`dimgestor.export.onnx_batch.push_many` (each push's calls of all its streams as batched calls, padded with idle
     rows or mixed with single calls by `plan`) gives each stream the frames it makes alone: different seeds and
     audio, awkward chunks (a window that is no call, several calls at once), streams joining late and missing
     cycles, one pushed alone before it joins, one stream finished mid-way (its exception in its place, the others
     go on)."""
-    from dimgestor.onnx_batch import BatchRunner, push_many
-    from dimgestor.onnx_stream import OnnxModel
+    from dimgestor.export.onnx_batch import BatchRunner, push_many
+    from dimgestor.export.onnx_stream import OnnxModel
 
     model = OnnxModel.load(exported)
     runner = BatchRunner(exported, model.manifest, cost={1: 1.0, BATCH: 1.2})  # pads 2 to 3, 4 as 3 + 1

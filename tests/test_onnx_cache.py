@@ -1,4 +1,4 @@
-"""The per-user cache of ONNX exports (`dimgestor.onnx_cache`): a second `serve --backend onnxruntime` reuses the
+"""The per-user cache of ONNX exports (`dimgestor.export.onnx_cache`): a second `serve --backend onnxruntime` reuses the
 first one's export and makes the same frames; an entry cut short, altered, missing a file or of another model is
 rebuilt, never served; a changed K is another export; concurrent starts export once.
 
@@ -18,9 +18,9 @@ import pytest
 pytest.importorskip("onnxruntime", reason="the `onnx` extra is not installed")
 pytest.importorskip("onnxscript", reason="the `onnx` extra is not installed")
 
-from dimgestor import onnx_cache, onnx_export  # noqa: E402
-from dimgestor.checkpoint import load_checkpoint  # noqa: E402
-from dimgestor.onnx_cache import CACHE_FILE, cache_root, cached_export, entry_name, export_key, problem  # noqa: E402
+from dimgestor.export import onnx_cache, onnx_export  # noqa: E402
+from dimgestor.export.onnx_cache import CACHE_FILE, cache_root, cached_export, entry_name, export_key, problem  # noqa: E402
+from dimgestor.streaming.checkpoint import load_checkpoint  # noqa: E402
 from helpers import warm
 from helpers.checkpoint import make_tiny_checkpoint  # noqa: E402
 
@@ -42,7 +42,7 @@ def tiny_bundle(exportable):
 
 def serve(checkpoint, cache: Path, wav, record: Path, *more: str) -> str:
     """`dimgestor serve --backend onnxruntime` on the WAV, recorded; its output (it must succeed)."""
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(checkpoint),
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--checkpoint", str(checkpoint),
                   "--backend", "onnxruntime", "--onnx-cache", str(cache), "--no-batch", "--steps", str(STEPS),
                   "--seed", str(SEED), "--source", str(wav), "--fast", "--no-ws", "--record", str(record),
                   *more], cwd=REPO, capture_output=True, text=True, timeout=600,
@@ -185,9 +185,9 @@ def test_the_key_holds_every_setting_and_version(tiny_bundle):
 
 def test_the_traced_code_is_in_the_key_and_loading_code_is_not():
     mods = onnx_cache.traced_modules()
-    assert {"onnx_export", "model", "sampler", "diffusion", "mamba2", "frontend", "frontend_speech", "mel",
-            "config"} <= set(mods)
-    assert not {"checkpoint", "onnx_stream", "stream", "cli_help", "onnx_cache"} & set(mods)
+    assert {"export.onnx_export", "model.network", "model.sampler", "model.diffusion", "model.mamba2",
+            "frontend.base", "frontend.speech", "frontend.mel", "config"} <= set(mods)
+    assert not {"streaming.checkpoint", "export.onnx_stream", "streaming.stream", "cli_help", "export.onnx_cache"} & set(mods)
 
 
 def test_concurrent_starts_export_once(entry, tiny_bundle, exports, monkeypatch):
@@ -232,7 +232,7 @@ def test_onnx_cache_needs_the_onnxruntime_backend_without_onnx():
 
 def test_generate_on_onnxruntime_reuses_the_same_cache(entry, exportable, wav, exports, tmp_path, capsys):
     """`dimgestor generate --backend onnxruntime` without --onnx asks the same cache: serve's export is reused."""
-    from dimgestor.cli import main
+    from dimgestor_app.cli import main
 
     assert main(["generate", "--checkpoint", str(exportable), "--audio", str(wav), "--steps", str(STEPS),
                  "--backend", "onnxruntime", "--onnx-cache", str(entry.parent), "--out",
@@ -260,9 +260,9 @@ def test_the_start_benchmark_runs_end_to_end_at_tiny_size(first, exportable, tmp
 
 def test_the_cached_graphs_make_the_torch_frame_steps_frames(first, tiny_bundle):
     """The entry's graphs (as ONNX Runtime optimized them) against the module they were traced from, in torch."""
-    from dimgestor.onnx_export import FrameStep
-    from dimgestor.onnx_stream import FrameStepStream, load_manifest, ort_stream, torch_runner
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.export.onnx_export import FrameStep
+    from dimgestor.export.onnx_stream import FrameStepStream, load_manifest, ort_stream, torch_runner
+    from dimgestor.training.synthetic import synthetic_speech
 
     (e,) = [p for p in first[0].iterdir() if p.is_dir()]
     audio = synthetic_speech(1.5, seed=2).astype(np.float32)

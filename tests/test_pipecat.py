@@ -50,7 +50,7 @@ class KeptFrames:
 
 @pytest.fixture(scope="module")
 def bundle():
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     return load_checkpoint(None)  # the embedded default model (350 ms lookahead)
 

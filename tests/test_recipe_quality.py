@@ -5,11 +5,11 @@ output filter, K = 4 DDIM steps are about as smooth as the ground truth and K = 
 import pytest
 import torch
 
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.dataset import GestureDataset
-from dimgestor.eval import k_report, valid_clips
-from dimgestor.synthetic import make_gesture_corpus
-from dimgestor.train import TrainConfig, train
+from dimgestor.evaluation.eval import k_report, valid_clips
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.training.dataset import GestureDataset
+from dimgestor.training.synthetic import make_gesture_corpus
+from dimgestor.training.train import TrainConfig, train
 
 pytestmark = [pytest.mark.timeout(900), pytest.mark.slow]
 

@@ -7,9 +7,9 @@ import pytest
 from PIL import Image
 
 from dimgestor.bvh import BvhMotion, Skeleton, read_bvh, write_bvh
-from dimgestor.render import (COLORS, facing_yaw, motion_stats, project, register, render_motion, stick_figure,
-                              world_positions)
-from dimgestor.synthetic import synthetic_motion
+from dimgestor_app.render import (COLORS, facing_yaw, motion_stats, project, register, render_motion, stick_figure,
+                                  world_positions)
+from dimgestor.training.synthetic import synthetic_motion
 
 POS = ["Xposition", "Yposition", "Zposition"]
 ROT = ["Zrotation", "Xrotation", "Yrotation"]
@@ -197,7 +197,7 @@ def test_matplotlib_is_imported_only_when_rendering():
     import subprocess
     import sys
 
-    code = "import sys, dimgestor.render; assert 'matplotlib' not in sys.modules, 'imported eagerly'"
+    code = "import sys, dimgestor_app.render; assert 'matplotlib' not in sys.modules, 'imported eagerly'"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

@@ -9,9 +9,9 @@ import pytest
 
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion, read_bvh, write_bvh
-from dimgestor.checkpoint import load_checkpoint
 from dimgestor.retarget import Retarget, Rig, RigError, load_rig, resolve_map
 from dimgestor.retarget.names import MapError, auto_map, load_map
+from dimgestor.streaming.checkpoint import load_checkpoint
 from helpers.rigs import a_pose, renamed, subset, with_rest_rotations
 
 LIMIT_DEG = 5.0

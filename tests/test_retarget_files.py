@@ -8,11 +8,11 @@ import pytest
 
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion, forward_kinematics, write_bvh
-from dimgestor.checkpoint import load_checkpoint
 from dimgestor.retarget import Retarget, load_rig, resolve_map
 from dimgestor.retarget.export import write_motion
 from dimgestor.retarget.names import auto_map
 from dimgestor.retarget.rig import Rig
+from dimgestor.streaming.checkpoint import load_checkpoint
 from helpers.blender import bone_world_positions, needs_blender
 from helpers.clients import REPO
 from helpers.gltf_validator import errors, needs_validator, validate
@@ -234,7 +234,7 @@ def test_the_stick_figure_is_thin_whatever_the_rigs_unit(motion, files, name, ri
     (["--out", "{d}/x.glb", "--target", "{d}/missing.glb"], "missing.glb: no such file"),
 ])
 def test_generate_refuses_a_bad_output_or_target_in_one_line_before_any_work(files, capsys, args, message):
-    from dimgestor.cli import main
+    from dimgestor_app.cli import main
 
     wav = files / "speech.wav"
     wav.write_bytes(b"not read: the arguments fail first")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor import savestate
-from dimgestor.stream import GestureStream, generate_offline
+from dimgestor.streaming import savestate
+from dimgestor.streaming.stream import GestureStream, generate_offline
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model
 
 
@@ -148,7 +148,7 @@ def test_broken_bytes_are_refused_with_the_reason(model):
 
 
 def test_two_loads_of_one_checkpoint_share_a_fingerprint_and_a_changed_weight_does_not():
-    from dimgestor.checkpoint import load_checkpoint
+    from dimgestor.streaming.checkpoint import load_checkpoint
 
     a, b = load_checkpoint(None).model, load_checkpoint(None).model  # the embedded default, as two workers load it
     assert savestate.model_fingerprint(a) == savestate.model_fingerprint(b)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor import savestate
-from dimgestor.stream import GestureStream
+from dimgestor.streaming import savestate
+from dimgestor.streaming.stream import GestureStream
 from streamer.sessions import Session
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model
 

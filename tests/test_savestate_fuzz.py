@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, event, given, settings, strategies as st
 
-from dimgestor import savestate
+from dimgestor.streaming import savestate
 from streamer.sessions import Session
 from streamer.sources import make_resampler
 from helpers.stream import noise_audio
@@ -58,7 +58,7 @@ def original_sealed(bundle):
 
 
 SECRET = b"the cluster's state secret"
-PREFIX = 13  # magic, version, header length (dimgestor/savestate.py); the seal follows
+PREFIX = 13  # magic, version, header length (dimgestor/streaming/savestate.py); the seal follows
 HEADER_AT = PREFIX + savestate.SEAL_SIZE
 
 

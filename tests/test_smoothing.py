@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from dimgestor.smoothing import OneEuroFilter
-from dimgestor.stream import GestureStream, generate_offline
+from dimgestor.streaming.stream import GestureStream, generate_offline
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces as _stream
 
 

@@ -30,7 +30,7 @@ def test_nmse_and_levels():
     f = np.c_[x, 2 * x]
     assert speaker_shift.nmse(f, f) == 0.0
     assert speaker_shift.nmse(f + 0.1, f) == pytest.approx(0.01 / f.var(0).mean(), rel=1e-6)
-    from dimgestor.augment import active_level
+    from dimgestor.training.augment import active_level
 
     for dbfs in (-35.0, -10.0):  # the active level is a mean power
         assert 10 * np.log10(active_level(speaker_shift.at_level(x, dbfs), 16000)) == pytest.approx(dbfs, abs=0.01)

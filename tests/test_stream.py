@@ -3,9 +3,9 @@ import pytest
 import torch
 
 from dimgestor.config import get_preset
-from dimgestor.diffusion import Diffusion
-from dimgestor.model import DiMGestor
-from dimgestor.stream import GestureStream, generate_offline
+from dimgestor.model.diffusion import Diffusion
+from dimgestor.model.network import DiMGestor
+from dimgestor.streaming.stream import GestureStream, generate_offline
 from helpers.stream import noise_audio as _audio, random_tiny_model as _model, stream_in_pieces as _stream
 
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 from helpers.streamer_abusers import PATTERNS, abuse
 from helpers.serve import serve
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from dimgestor.audio import save_wav
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.streaming.stream import generate_offline
+from dimgestor.training.synthetic import synthetic_speech
 from streamer.scheduling import StreamBatcher
 from streamer.sessions import Session
 from streamer.sources import WavSource

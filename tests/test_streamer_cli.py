@@ -62,7 +62,7 @@ def test_record_equals_offline_generate(tiny_checkpoint, wav, tmp_path, root, gu
     assert s.finish() == 0, s.output
     assert f"root {root}" in s.output and (f"guidance {guidance}" in s.output) == bool(guidance)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--checkpoint", str(tiny_checkpoint),
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", str(tiny_checkpoint),
                   "--audio", str(wav), "--out", str(out_offline), "--steps", "3", "--seed", "7",
                   "--face-csv", str(tmp_path / "offline.csv"),
                   "--root", root, "--tether-s", "0.5", *extra],
@@ -120,7 +120,7 @@ async def first_message(url: str) -> dict:
 
 
 def test_mic_without_an_input_device_exits_with_a_clear_message():
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", "mic", "--no-ws"],
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--source", "mic", "--no-ws"],
                  cwd=REPO, capture_output=True, text=True, timeout=60)
     try:
         import sounddevice as sd
@@ -145,7 +145,7 @@ def test_mic_without_an_input_device_exits_with_a_clear_message():
     (["--guidance", "-1"], "--guidance: guidance scale must be"),
 ])
 def test_bad_arguments_exit_2_with_a_message(args, message):
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--no-ws", *args],
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--no-ws", *args],
                  cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
 
@@ -154,10 +154,10 @@ def test_zeggs_skeleton_maps_every_humanoid_bone(zeggs_dir, wav, tmp_path):
     """On the real training skeleton (random tiny weights) the hello and VMC carry all 52 mapped bones."""
     import torch
 
-    from dimgestor.checkpoint import save_checkpoint
     from dimgestor.config import get_preset
     from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.streaming.checkpoint import save_checkpoint
 
     sk = read_bvh(next(zeggs_dir.glob("*.bvh"))).skeleton
     spec = FeatureSpec.for_skeleton(sk)

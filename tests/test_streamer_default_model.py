@@ -29,10 +29,10 @@ def test_the_default_model_is_embedded():
 def test_default_model_generates_visible_motion_within_human_speeds(tmp_path, clip):
     """`dimgestor generate` as a user runs it (embedded model, its default steps and smoothing)."""
     from dimgestor.bvh import forward_kinematics
-    from dimgestor.render import motion_stats
+    from dimgestor_app.render import motion_stats
 
     wav, out = DEMO_WAV.parent / clip, tmp_path / "demo.bvh"
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(wav), "--out", str(out)],
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--audio", str(wav), "--out", str(out)],
                  cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True,
                  timeout=240)
     assert r.returncode == 0, r.stderr
@@ -75,7 +75,7 @@ def test_default_model_streams_the_demo_like_offline_generate(tmp_path):
         check_vmc_bundle(b, bones_expected=hello["humanoid"])
 
     # serve tethers the root by default: generate does the same when asked
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "generate", "--audio", str(clip), "--out",
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--audio", str(clip), "--out",
                   str(off_path), "--steps", "4", "--seed", "2", "--root", "tether"], cwd=REPO,
                  env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr

@@ -8,10 +8,10 @@ import pytest
 from dimgestor.audio import save_wav
 from dimgestor.bvh import read_bvh, write_bvh
 from dimgestor.features import features_to_motion
-from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_speech
-from streamer.sessions import Session
+from dimgestor.streaming.stream import generate_offline
+from dimgestor.training.synthetic import synthetic_speech
 from streamer.record import BvhRecorder
+from streamer.sessions import Session
 from streamer.sources import WavSource
 
 pytestmark = pytest.mark.timeout(120)

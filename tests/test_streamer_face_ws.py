@@ -167,7 +167,7 @@ def test_one_broadcast_reaches_each_watcher_in_its_own_set_and_encoding(bundle, 
     face the session made, in their own form."""
     from dimgestor.audio import save_wav
     from dimgestor.face import FaceOptions, convert
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
     from streamer import protocol as P
     from streamer.sessions import Session
     from streamer.sources import WavSource

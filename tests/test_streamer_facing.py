@@ -8,10 +8,10 @@ import pytest
 
 from dimgestor import rotations as R
 from dimgestor.audio import load_wav
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.cli import build_parser
-from streamer.sessions import Session
 from dimgestor.audio import SAMPLE_RATE
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor_app.cli import build_parser
+from streamer.sessions import Session
 from streamer.sources import DEMO_WAV, AudioChunk
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]

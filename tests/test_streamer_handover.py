@@ -194,7 +194,7 @@ def _wav(path, seconds: float, rate: int = 16000) -> None:
     import wave
 
     from dimgestor.audio import resample
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     x = resample(synthetic_speech(seconds, rate=16000, seed=5), 16000, rate)
     with wave.open(str(path), "wb") as w:
@@ -437,7 +437,7 @@ def test_a_save_token_never_forks_a_live_session_resumes_once_and_no_token_or_pa
 
     from websockets.asyncio.client import connect
 
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     speech = synthetic_speech(4.0, rate=16000, seed=5).astype("<f4")
     hello = json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
@@ -521,7 +521,7 @@ def test_abandoned_sessions_keep_the_store_under_its_memory_cap_and_the_worker_s
     import redis
     from websockets.asyncio.client import connect
 
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     speech = synthetic_speech(3.0, rate=16000, seed=5).astype("<f4")
     hello = json.dumps({"type": "hello", "protocol": 1, "encoding": "json",
@@ -634,7 +634,7 @@ def test_a_state_over_the_size_cap_is_not_saved_counted_and_the_session_goes_on(
 def _with_nan_in_the_denoiser(data: bytes, reseal: bool = False) -> bytes:
     """A saved state with one NaN written into its denoiser's SSM state (well-formed, bad values): its seal left as
     it was, or made anew without a secret (as anyone who can write to the store can)."""
-    from dimgestor import savestate
+    from dimgestor.streaming import savestate
 
     header, raw = savestate.split(data)
     at = header["state"]["f"]["denoiser"]["f"]["ssm"]["at"]
@@ -645,7 +645,7 @@ def _with_nan_in_the_denoiser(data: bytes, reseal: bool = False) -> bytes:
 
 def _patched(data: bytes, change) -> bytes:
     """A saved state with its header changed by `change`, sealed anew without a secret."""
-    from dimgestor import savestate
+    from dimgestor.streaming import savestate
 
     header, raw = savestate.split(data)
     change(header)
@@ -679,8 +679,8 @@ def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_o
 
     from websockets.asyncio.client import connect
 
-    from dimgestor import savestate
-    from dimgestor.stream import GestureStream
+    from dimgestor.streaming import savestate
+    from dimgestor.streaming.stream import GestureStream
     from helpers.stream import noise_audio, random_tiny_model
     from helpers.ws import make_server, recv_json, running
     from streamer.sessions import Session

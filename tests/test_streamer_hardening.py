@@ -16,13 +16,13 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from dimgestor.bvh import read_bvh
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.frames import Frame
-from streamer.sessions import Session
-from streamer.viewer import ViewerFiles
 from streamer.record import BvhRecorder
 from streamer.server import ServeError, ServeOptions, read_token
+from streamer.sessions import Session
+from streamer.viewer import ViewerFiles
 from streamer.ws import WsServer, own_origins
 from helpers import warm
 from helpers.serve import REPO, serve
@@ -175,10 +175,10 @@ def test_the_token_comes_from_a_file_the_flag_or_the_environment_and_is_never_em
 
 def test_token_from_the_environment_is_required_and_never_logged(tiny_checkpoint):
     env = {**os.environ, "STREAMER_TOKEN": "envs3cret"}
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--token", " ", "--no-ws"], cwd=REPO,
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--token", " ", "--no-ws"], cwd=REPO,
                  capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "empty" in r.stderr and "Traceback" not in r.stderr
-    s = warm.popen([sys.executable, "-m", "dimgestor.cli", "serve", "--checkpoint", str(tiny_checkpoint),
+    s = warm.popen([sys.executable, "-m", "dimgestor_app.cli", "serve", "--checkpoint", str(tiny_checkpoint),
                     "--source", "ws", "--ws", "127.0.0.1:0", "-v", "--status-every", "0"], cwd=REPO, env=env,
                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

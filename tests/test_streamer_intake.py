@@ -254,11 +254,11 @@ def test_a_server_serving_a_client_at_another_rate_never_imports_scipy_signal(ti
     a dear client and was told `slow_down`; paid at start, it was a third of every server's start. The resampler's
     filter and the smoothing are numpy (`dimgestor.audio.kaiser_lowpass`), so neither pays it: a real server, run
     with `-X importtime`, serves a 44.1 kHz client's speech to its end and never imports scipy.signal."""
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
     from helpers.serve import Serve
     from websockets.sync.client import connect
 
-    s = Serve("-X", "importtime", "-m", "dimgestor.cli", "serve", "--checkpoint", str(tiny_checkpoint), "--ws",
+    s = Serve("-X", "importtime", "-m", "dimgestor_app.cli", "serve", "--checkpoint", str(tiny_checkpoint), "--ws",
               "127.0.0.1:0", "--steps", "2", "--status-every", "0", command=())
     try:
         url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)

@@ -21,7 +21,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 
 from dimgestor.audio import SAMPLE_RATE
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.health import Readiness, RealtimeLoad, answer
 from streamer.metrics import ServerMetrics
@@ -252,15 +252,15 @@ def test_sessions_refused_are_counted_once_per_attempt(bundle):
 def test_readyz_fails_while_slowed_inference_cannot_keep_real_time(bundle, monkeypatch):
     """Inference slowed to 0.4 s per call while a client streams in real time (0.1 s windows): the thread is
     busy on real-time work back to back, so /readyz turns 503; once the stream ends it turns 200 again."""
-    import dimgestor.batch
+    import dimgestor.streaming.batch
 
-    push_many = dimgestor.batch.push_many
+    push_many = dimgestor.streaming.batch.push_many
 
     def slow(*args, **kw):
         time.sleep(0.4)
         return push_many(*args, **kw)
 
-    monkeypatch.setattr(dimgestor.batch, "push_many", slow)
+    monkeypatch.setattr(dimgestor.streaming.batch, "push_many", slow)
     batcher = StreamBatcher()
     metrics = ServerMetrics(Readiness(RealtimeLoad(window_s=1.0)))
     batcher.observer = metrics

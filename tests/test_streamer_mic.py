@@ -28,7 +28,7 @@ def vmic(tmp_path_factory):
 
 
 def dimgestor(vmic, *args: str) -> subprocess.CompletedProcess:
-    return warm.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
+    return warm.run([sys.executable, "-m", "dimgestor_app.cli", *args], cwd=REPO, env={**vmic.env, "OMP_NUM_THREADS": "1"},
                     capture_output=True, text=True, timeout=120)
 
 

@@ -5,8 +5,8 @@ import inspect
 import pytest
 from pydantic import ValidationError
 
-from dimgestor.cli import build_parser
 from dimgestor.cli_help import DeprecatedAlias
+from dimgestor_app.cli import build_parser
 from streamer.options import FLAGS, ServeError, ServeOptions, flag_of
 from streamer.record import RecordingSink
 from streamer.sink import Sink

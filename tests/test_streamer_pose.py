@@ -7,7 +7,7 @@ import pytest
 
 from dimgestor.bvh import read_bvh
 from dimgestor.rotations import quat_mul, quat_normalize, quat_rotate
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_skeleton
 from streamer.pose import (HUMAN_BODY_BONES, HumanoidMapError, HumanoidRig, load_humanoid_map,
                            to_unity_position, to_unity_quat)
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_skeleton
 from streamer import protocol as P
 from streamer.frames import Frame
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.streaming.stream import generate_offline
+from dimgestor.training.synthetic import synthetic_speech
 from streamer.scheduling import (BatcherPool, PoolScheduler, RankedScheduler, Scheduler, StreamBatcher, WindowPolicy,
                                  as_scheduler)
 from streamer.sessions import Session
@@ -47,7 +47,7 @@ def test_every_scheduler_gives_a_session_its_offline_frames(bundle, kind):
 def test_a_batcher_pool_keeps_each_session_on_one_batcher_and_shares_them_out(bundle):
     """Four sessions on two batchers: two each, every window of a session (and its finish) on the same batcher's
     thread, each session's frames its offline ones."""
-    from dimgestor.batch import push_many
+    from dimgestor.streaming.batch import push_many
 
     threads: dict[int, set] = {}
 
@@ -176,7 +176,7 @@ def test_the_interpreter_exits_with_schedulers_left_running():
 def test_frames_protocol_and_vmc_do_not_import_the_threaded_engine():
     code = ("import sys, streamer.protocol, streamer.vmc, streamer.record; "
             "print(sorted(m for m in sys.modules if m in ('streamer.engine', 'streamer.sessions', "
-            "'streamer.scheduling', 'dimgestor.batch')))")
+            "'streamer.scheduling', 'dimgestor.streaming.batch')))")
     r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-2000:])
 

@@ -18,7 +18,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.sessions import Session
 from helpers.serve import serve

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dimgestor.bvh import BvhMotion, write_bvh
-from dimgestor.checkpoint import load_checkpoint
 from dimgestor.retarget import Retarget, Rig, load_rig, resolve_map
+from dimgestor.streaming.checkpoint import load_checkpoint
 from helpers.rigs import a_pose
 from helpers.serve import WAV_SECONDS, follow, serve
 from helpers.vmc import bundles, osc_server

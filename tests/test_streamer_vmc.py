@@ -16,7 +16,7 @@ from dimgestor.bvh import read_bvh
 from dimgestor.face import FACE_LABELS, NAME_SETS, convert, names_of
 from dimgestor.face.visemes import V
 from dimgestor.rotations import quat_normalize
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_skeleton
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.pose import HumanoidRig, load_humanoid_map

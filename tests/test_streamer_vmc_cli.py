@@ -11,7 +11,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def dimgestor(*args):
-    return warm.run([sys.executable, "-m", "dimgestor.cli", *args], cwd=REPO, capture_output=True, text=True,
+    return warm.run([sys.executable, "-m", "dimgestor_app.cli", *args], cwd=REPO, capture_output=True, text=True,
                     timeout=60)
 
 

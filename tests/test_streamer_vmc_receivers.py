@@ -59,7 +59,7 @@ def live_run(request, clip, tmp_path_factory):
     cap = Capture()
     cap.start()
     out = tmp_path_factory.mktemp("vmc") / "rec.bvh"
-    r = warm.run([sys.executable, "-m", "dimgestor.cli", "serve", "--source", str(clip), "--no-ws",
+    r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "serve", "--source", str(clip), "--no-ws",
                   "--vmc", f"127.0.0.1:{cap.port}", "--record", str(out), "--status-every", "0",
                   *MODES[request.param]],
                  cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=240)

@@ -10,8 +10,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from dimgestor.stream import generate_offline
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.streaming.stream import generate_offline
+from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.frames import Frame
 from helpers.stalls import LoopStalls

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from dimgestor.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, resolve_checkpoint
-from dimgestor.synthetic import make_synthetic_pair
-from dimgestor.train import TrainConfig, train
+from dimgestor.streaming.checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, resolve_checkpoint
+from dimgestor.training.synthetic import make_synthetic_pair
+from dimgestor.training.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
@@ -96,14 +96,14 @@ def test_clear_errors(data, tmp_path):
 
 
 def test_no_embedded_default_model_is_a_clear_error(tmp_path, monkeypatch):
-    import dimgestor.checkpoint as ckpt
+    import dimgestor.streaming.checkpoint as ckpt
     monkeypatch.setattr(ckpt, "DEFAULT_MODEL_DIR", tmp_path / "default_model")
     with pytest.raises(CheckpointError, match="no embedded default model"):
         load_checkpoint(None)
 
 
 def test_recipes_set_the_diffusion_and_the_losses():
-    from dimgestor.train import RECIPES, resolve_recipe
+    from dimgestor.training.train import RECIPES, resolve_recipe
 
     cfg, w = resolve_recipe(TrainConfig(data="", out="", recipe="paper"))
     assert (cfg["n_steps"], cfg["schedule"], cfg["prediction"]) == (1000, "linear", "eps")
@@ -118,8 +118,8 @@ def test_recipes_set_the_diffusion_and_the_losses():
 
 
 def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, capsys):
-    import dimgestor.train as train_module
-    from dimgestor.cli import main
+    import dimgestor.training.train as train_module
+    from dimgestor_app.cli import main
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda opts: seen.setdefault("opts", opts) and tmp_path)
@@ -143,12 +143,12 @@ def test_cli_turns_augmentation_on_for_small_data(data, tmp_path, monkeypatch, c
 
 
 def test_augmented_bank_holds_front_end_features_of_seeded_augmented_audio(data, tmp_path):
-    from dimgestor.augment import AugmentConfig, augment
     from dimgestor.config import get_preset
-    from dimgestor.dataset import GestureDataset, compute_stats
     from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
-    from dimgestor.train import WindowBank
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.training.augment import AugmentConfig, augment
+    from dimgestor.training.dataset import GestureDataset, compute_stats
+    from dimgestor.training.train import WindowBank
 
     ds = GestureDataset(data, FeatureSpec(), window_s=2.0, hop_s=0.5, mirror=True, cache_dir=tmp_path, valid_fraction=0.2)
     model = DiMGestor(get_preset("tiny", motion_dim=ds.motion_dim))
@@ -181,10 +181,10 @@ def test_bank_features_are_those_a_stream_computes_mid_clip(data, tmp_path):
     """A window's features come from a front end that heard the clip before it (as a live stream has), not a
     cold one: equal to the whole clip's features at the window's place when the clip starts within WARM_S."""
     from dimgestor.config import get_preset
-    from dimgestor.dataset import GestureDataset, compute_stats
     from dimgestor.features import FeatureSpec
-    from dimgestor.model import DiMGestor
-    from dimgestor.train import WindowBank
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.training.dataset import GestureDataset, compute_stats
+    from dimgestor.training.train import WindowBank
 
     ds = GestureDataset(data, FeatureSpec(), window_s=2.0, hop_s=0.5, cache_dir=tmp_path, valid_fraction=0.2)
     model = DiMGestor(get_preset("tiny", frontend="speech", motion_dim=ds.motion_dim))
@@ -221,7 +221,7 @@ def test_resume_with_augmentation_continues_exactly(data, tmp_path):
 def test_train_config_is_validated_once_and_frozen():
     from pydantic import ValidationError
 
-    from dimgestor.train import TrainConfig
+    from dimgestor.training.train import TrainConfig
 
     c = TrainConfig(data=Path("d"), out="o", speeds=[0.9, 1.1])
     assert c.speeds == (0.9, 1.1) and c.data == "d" and c.warmup == 200 and c.grad_clip == 1.0
@@ -245,8 +245,8 @@ OPTIONS_BEFORE_TRAIN_CONFIG = {
 
 
 def test_saved_options_read_back_including_a_checkpoint_from_before_train_config():
-    from dimgestor.checkpoint import DEFAULT_MODEL_DIR
-    from dimgestor.train import TrainConfig
+    from dimgestor.streaming.checkpoint import DEFAULT_MODEL_DIR
+    from dimgestor.training.train import TrainConfig
 
     shipped = json.loads((DEFAULT_MODEL_DIR / "config.json").read_text())["info"]["options"]
     c = TrainConfig.from_saved(shipped)  # saved by TrainConfig itself
@@ -276,8 +276,8 @@ def test_a_run_saved_by_the_previous_code_resumes_exactly(data, interrupted, tmp
 
 
 def test_cli_sets_warmup_weight_decay_and_grad_clip(data, tmp_path, monkeypatch, capsys):
-    import dimgestor.train as train_module
-    from dimgestor.cli import main
+    import dimgestor.training.train as train_module
+    from dimgestor_app.cli import main
 
     seen = {}
     monkeypatch.setattr(train_module, "train", lambda opts: seen.setdefault("opts", opts) and tmp_path)

@@ -20,9 +20,9 @@ import sys
 import pytest
 import torch
 
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.synthetic import make_synthetic_pair
-from dimgestor.train import TrainConfig, train
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.training.synthetic import make_synthetic_pair
+from dimgestor.training.train import TrainConfig, train
 
 pytestmark = pytest.mark.timeout(300)
 TORCHRUN = shutil.which("torchrun", path=os.path.dirname(sys.executable)) or shutil.which("torchrun")
@@ -59,7 +59,7 @@ def test_two_processes_take_the_same_steps_as_one_with_the_same_global_batch_and
     make_synthetic_pair(data, "a", seconds=24.0, seed=0)
 
     def cli(out: str, max_steps: int, *extra: str, launcher: tuple[str, ...] = (sys.executable,), **env) -> None:
-        cmd = [*launcher, "-m", "dimgestor.cli", "train", "--data", str(data), "--out", str(tmp_path / out),
+        cmd = [*launcher, "-m", "dimgestor_app.cli", "train", "--data", str(data), "--out", str(tmp_path / out),
                "--max-steps", str(max_steps), "--cache-dir", str(cache), "--no-progress", "--threads", "1",
                "--device", "cpu", *_flags(COMMON), *extra]
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=240,

@@ -1,4 +1,4 @@
-"""The voice world (dimgestor.voiceworld): espeak-ng voices with gestures from a rule computed on the audio alone.
+"""The voice world (dimgestor.evaluation.voiceworld): espeak-ng voices with gestures from a rule computed on the audio alone.
 
 The generator is deterministic, the rule's motion is a function of the audio only, the rule itself passes the
 measures that models are held to (and fails them against unrelated audio), and held-out voices are unseen.
@@ -10,11 +10,11 @@ import shutil
 import numpy as np
 import pytest
 
-from dimgestor import voiceworld as vw
 from dimgestor.audio import load_wav
 from dimgestor.bvh import read_bvh
-from dimgestor.dataset import GestureDataset, find_pairs, read_split
-from dimgestor.eval import valid_clips
+from dimgestor.evaluation import voiceworld as vw
+from dimgestor.evaluation.eval import valid_clips
+from dimgestor.training.dataset import GestureDataset, find_pairs, read_split
 
 pytestmark = pytest.mark.skipif(shutil.which("espeak-ng") is None,
                                 reason="espeak-ng is not installed (Debian: apt-get install espeak-ng)")

@@ -19,11 +19,11 @@ import shutil
 import pytest
 import torch
 
-from dimgestor.checkpoint import load_checkpoint
-from dimgestor.dataset import GestureDataset
-from dimgestor.eval import generate_raw, valid_clips
-from dimgestor.train import TrainConfig, train
-from dimgestor.voiceworld import make_voice_world, margins, score_motion
+from dimgestor.evaluation.eval import generate_raw, valid_clips
+from dimgestor.evaluation.voiceworld import make_voice_world, margins, score_motion
+from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.training.dataset import GestureDataset
+from dimgestor.training.train import TrainConfig, train
 
 RECIPE = os.environ.get("DIMGESTOR_TEST_RECIPE", "default")
 TRAIN_MINUTES, HELDOUT_MINUTES, STEPS = 3.0, 1.5, 300

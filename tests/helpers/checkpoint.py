@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dimgestor.checkpoint import save_checkpoint
 from dimgestor.config import get_preset
 from dimgestor.features import FeatureSpec
-from dimgestor.model import DiMGestor
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.model.network import DiMGestor
+from dimgestor.streaming.checkpoint import save_checkpoint
+from dimgestor.training.synthetic import synthetic_skeleton
 
 
 def make_tiny_checkpoint(folder: Path, seed: int = 0, jitter: float = 0.0, **config) -> Path:

@@ -56,7 +56,7 @@ def live_server(tmp: Path, source: str, checkpoint: Path | None, *, http: bool =
     if fast:
         args.append("--fast")
     args += list(extra)
-    cmd = [sys.executable, "-c", "import sys; from dimgestor.cli import main; sys.exit(main())", *args]
+    cmd = [sys.executable, "-c", "import sys; from dimgestor_app.cli import main; sys.exit(main())", *args]
     log = tmp / f"server_{ws_port}.log"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     with open(log, "w") as out:

@@ -11,7 +11,7 @@ import numpy as np
 
 from dimgestor.face.names import NAME_SETS, names_of
 from dimgestor.face.visemes import FACE_LABELS
-from dimgestor.synthetic import synthetic_skeleton
+from dimgestor.training.synthetic import synthetic_skeleton
 from streamer import protocol as P
 from streamer.face import FACE, face_channel
 from streamer.frames import Channel, Frame, channel_values

@@ -60,7 +60,7 @@ class FaceServer:
     hellos: list = field(default_factory=list)  # the client hellos received, in order
 
     def __post_init__(self):
-        from dimgestor.synthetic import synthetic_skeleton
+        from dimgestor.training.synthetic import synthetic_skeleton
         from streamer import protocol as P
         from streamer.pose import HumanoidRig, load_humanoid_map
 

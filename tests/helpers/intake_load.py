@@ -19,7 +19,7 @@ import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 
 FLOOD_FORMAT = {"rate": 192000, "format": "float32", "channels": 2}
 CHUNK_S = 0.05  # the talker's audio per message

@@ -22,7 +22,7 @@ class Serve:
     """A running `dimgestor serve` (or another `command`); reads its stderr in a thread to find the addresses it
     prints."""
 
-    def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "dimgestor.cli", "serve")):
+    def __init__(self, *args: str, env: dict | None = None, command: tuple[str, ...] = ("-m", "dimgestor_app.cli", "serve")):
         env = {**(env or os.environ), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
         self.proc = warm.popen([sys.executable, *command, *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True)

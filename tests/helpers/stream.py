@@ -5,8 +5,8 @@ import torch
 
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.config import get_preset
-from dimgestor.model import DiMGestor
-from dimgestor.stream import GestureStream
+from dimgestor.model.network import DiMGestor
+from dimgestor.streaming.stream import GestureStream
 
 
 def random_tiny_model(preset="tiny", seed=3, **overrides):

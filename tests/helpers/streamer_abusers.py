@@ -7,7 +7,7 @@ import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from dimgestor.synthetic import synthetic_speech
+from dimgestor.training.synthetic import synthetic_speech
 
 PATTERNS = ("odd_rates", "big_chunks", "deep_json", "session_storm")
 

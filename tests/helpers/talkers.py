@@ -17,7 +17,7 @@ FPS = 20.0
 
 
 def speech(seconds: float, seed: int) -> bytes:
-    from dimgestor.synthetic import synthetic_speech
+    from dimgestor.training.synthetic import synthetic_speech
 
     return (np.clip(synthetic_speech(seconds, rate=16000, seed=seed), -1, 1) * 20000).astype("<i2").tobytes()
 

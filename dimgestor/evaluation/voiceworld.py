@@ -36,7 +36,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.bvh import BvhMotion
-from dimgestor.synthetic import gesture_motion
+from dimgestor.training.synthetic import gesture_motion
 
 RATE = SAMPLE_RATE
 ESPEAK_RATE = 22050  # espeak-ng writes 22.05 kHz mono PCM16
@@ -484,8 +484,8 @@ def score_motion(raws: list[np.ndarray], audios: list[np.ndarray], skeleton, spe
                  heard_s: float | None = None) -> dict:
     """SYSTEM_METRICS of motion (raw features (T, D) per clip, at spec.fps) against the audio (16 kHz) it is scored
     with, pooled over the clips; strokes are the rule's (rule_events with heard_s: the world's rule) of that audio."""
-    from dimgestor import metrics
-    from dimgestor.eval import clip_stats, pool_drive, pool_stats, voice_row
+    from dimgestor.evaluation import metrics
+    from dimgestor.evaluation.eval import clip_stats, pool_drive, pool_stats, voice_row
 
     stats, hits, shuffled, gain, gain_shuffled, n_strokes = [], 0.0, 0.0, 0.0, 0.0, 0
     peaks: dict[str, list[np.ndarray]] = {"stressed": [], "unstressed": []}

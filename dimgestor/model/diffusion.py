@@ -11,7 +11,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from .config import ModelConfig
+from ..config import ModelConfig
 
 __all__ = ["Diffusion", "ddim_pairs", "guide", "check_guidance", "frame_noise", "frame_noise_rows", "motion_noise", "motion_noise_rows",
            "noise_kernel", "correlate", "hash32"]

@@ -25,20 +25,20 @@ import torch
 from pydantic import ValidationError
 from safetensors.torch import load_file, save_file
 
-from .bvh import Skeleton
-from .config import ModelConfig
-from .features import FeatureSpec
-from .model import DiMGestor
+from ..bvh import Skeleton
+from ..config import ModelConfig
+from ..features import FeatureSpec
+from ..model.network import DiMGestor
 from .stream import GestureStream, generate_offline
 
 __all__ = ["Bundle", "CheckpointError", "save_checkpoint", "load_checkpoint", "resolve_checkpoint",
            "latest_checkpoint", "export_checkpoint", "DEFAULT_MODEL_DIR", "LIVE_MODEL_DIR", "EMBEDDED", "FORMAT"]
 
 FORMAT = 1
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "default_model"
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parents[1] / "default_model"
 # The same recipe with 150 ms of lookahead instead of 300 (200 ms of algorithmic latency, not 350): for a live
 # microphone (MODEL_CARD.md, "The live model").
-LIVE_MODEL_DIR = Path(__file__).resolve().parent / "live_model"
+LIVE_MODEL_DIR = Path(__file__).resolve().parents[1] / "live_model"
 EMBEDDED = {"default": "DEFAULT_MODEL_DIR", "live": "LIVE_MODEL_DIR"}  # --checkpoint NAME -> the module global
 _CKPT = re.compile(r"^ckpt_(\d+)$")
 

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .audio import SAMPLE_RATE, AudioError, load_wav
-from .bvh import BvhMotion
-from .checkpoint import Bundle, load_checkpoint
-from .cli_help import smoothing_from_flag
-from .features import features_to_motion
-from .diffusion import check_guidance
+from dimgestor.audio import SAMPLE_RATE, AudioError, load_wav
+from dimgestor.bvh import BvhMotion
+from dimgestor.cli_help import smoothing_from_flag
+from dimgestor.features import features_to_motion
+from dimgestor.model.diffusion import check_guidance
+from dimgestor.streaming.checkpoint import Bundle, load_checkpoint
 
 __all__ = ["generate_motion", "generate_face", "register"]
 
@@ -32,7 +32,7 @@ def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None,
 def generate_face(audio: np.ndarray, frames: int, fps: int, lookahead_s: float, seed: int = 0) -> np.ndarray:
     """The face of `frames` body frames (frames, len(FACE_LABELS)): a `FaceStream` over the whole audio with the
     model's lookahead, as a `serve` session makes it (streaming equals offline), so the same rows as its recording."""
-    from .face import FaceOptions, FaceStream
+    from dimgestor.face import FaceOptions, FaceStream
 
     lookahead = np.floor(min(lookahead_s, 0.3) * 100 + 1e-6) / 100  # as Session: on the listener's 10 ms grid
     face = FaceStream(fps, lookahead, FaceOptions(seed=seed))
@@ -45,8 +45,8 @@ def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int 
                          root: str = "free", tether_s: float = 5.0) -> BvhMotion:
     """`generate_motion` on ONNX Runtime: the exported frame step (`dimgestor export-onnx`) streamed over the audio
     (its K and guidance are the export's). The same frames as the torch backend to < 1e-4 (tests/test_onnx.py)."""
-    from .onnx_export import check_export
-    from .onnx_stream import load_manifest, ort_stream
+    from dimgestor.export.onnx_export import check_export
+    from dimgestor.export.onnx_stream import load_manifest, ort_stream
 
     check_export(load_manifest(onnx_dir), bundle)
     stream = ort_stream(onnx_dir, seed=seed, smoothing=smoothing)
@@ -55,7 +55,7 @@ def generate_motion_onnx(bundle: Bundle, audio: np.ndarray, onnx_dir, seed: int 
 
 
 def register(subparsers) -> None:
-    from .cli_help import deprecated_alias, examples
+    from dimgestor.cli_help import deprecated_alias, examples
 
     p = subparsers.add_parser(
         "generate", help="generate a BVH for a WAV file (offline, whole file)",
@@ -134,8 +134,8 @@ def _run(args) -> int:
         check_guidance(args.guidance)
     if not args.tether_s > 0:
         raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
-    from .retarget import load_rig, resolve_map
-    from .retarget.export import check_output, write_motion
+    from dimgestor.retarget import load_rig, resolve_map
+    from dimgestor.retarget.export import check_output, write_motion
 
     out = Path(args.out)
     check_output(out, args.target)
@@ -156,7 +156,7 @@ def _run(args) -> int:
         if face_out.resolve() == out.resolve():
             raise ValueError(f"--face-csv {face_out}: the same path as --out")
     if face_out is not None or out.suffix.lower() == ".vrma":  # (a .vrma carries the face)
-        from .face.listener import unavailable
+        from dimgestor.face.listener import unavailable
 
         if (why := unavailable()) is not None:
             raise ValueError(f"{'--face-csv' if face_out is not None else out}: {why}")
@@ -183,14 +183,14 @@ def _run(args) -> int:
         face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
     expressions = None
     if out.suffix.lower() == ".vrma":
-        from .face.names import convert, names_of
+        from dimgestor.face.names import convert, names_of
 
         expressions = dict(zip(names_of("vrm1"), convert(face, "vrm1").T))
     what = write_motion(out, motion, args.target, args.target_map, expressions)
     print(f"wrote {out} ({what}) at {1 / motion.frame_time:g} fps ({len(audio) / SAMPLE_RATE:.2f} s of audio) "
           f"from {bundle.path}")
     if face_out is not None:
-        from .face.track import write_track
+        from dimgestor.face.track import write_track
 
         write_track(face_out, face, fps)
         print(f"wrote {face_out}: the face of the same {len(face)} frames")
@@ -201,7 +201,7 @@ def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given
     if args.sampler != "ddim" or args.eta != 0 or args.device != "cpu":
         raise ValueError("--backend onnxruntime runs deterministic DDIM (--eta 0) on the CPU")
     if args.onnx:
-        from .onnx_stream import load_manifest
+        from dimgestor.export.onnx_stream import load_manifest
 
         sampler = load_manifest(args.onnx)["sampler"]
         if (steps_given and args.steps != sampler["steps"]
@@ -209,7 +209,7 @@ def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given
             raise ValueError(f"--onnx {args.onnx} was exported with K={sampler['steps']} and guidance "
                              f"{sampler['guidance']:g}; pass those (or export again)")
         return generate_motion_onnx(bundle, audio, args.onnx, args.seed, smoothing, args.root, args.tether_s)
-    from .onnx_cache import cached_export
+    from dimgestor.export.onnx_cache import cached_export
 
     guidance = bundle.config.guidance if args.guidance is None else args.guidance
     folder = cached_export(bundle, args.steps, guidance, root=args.onnx_cache,

@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ModelConfig
-from .frontend import build_frontend
+from ..config import ModelConfig
+from ..frontend.base import build_frontend
 from .mamba2 import Mamba2, Mamba2State
 
 __all__ = ["DiMGestor", "AdaLNMamba2Block", "FuzzyFeatureExtractor", "FinalLayer", "GestureEncoder",

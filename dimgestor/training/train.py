@@ -25,13 +25,13 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from torch import nn
 from torch.utils.data import DistributedSampler
 
+from ..config import ModelConfig, exact_div, get_preset
+from ..features import HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec
+from ..model.diffusion import Diffusion
+from ..model.network import DiMGestor
+from ..streaming.checkpoint import latest_checkpoint, read_meta, save_checkpoint
 from .augment import AugmentConfig, augment
-from .checkpoint import latest_checkpoint, read_meta, save_checkpoint
-from .config import ModelConfig, exact_div, get_preset
 from .dataset import GestureDataset, compute_stats
-from .diffusion import Diffusion
-from .features import HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec
-from .model import DiMGestor
 
 __all__ = ["TrainConfig", "Recipe", "train", "register", "Objective", "RECIPES"]
 
@@ -96,7 +96,7 @@ class TrainConfig(BaseModel):
     hop_s: float | None = Field(None, gt=0)  # default: a quarter window (overlapping windows are cheap data)
     mirror: bool = False  # left/right mirrored copies of every window
     arm_mix: bool = False  # body-part mixing: a copy of every window with one arm on both sides (mix_arms)
-    augment: bool = False  # audio augmentation (dimgestor.augment: voice, room, noise, microphone, level)
+    augment: bool = False  # audio augmentation (dimgestor.training.augment: voice, room, noise, microphone, level)
     aug_copies: int = Field(4, gt=0)  # augmented versions of each window's audio; a batch item takes clean or one
     aug_config: dict[str, Any] | None = None  # AugmentConfig fields replacing its defaults
     valid_fraction: float = Field(0.15, ge=0, lt=1)
@@ -567,8 +567,8 @@ def _parse_set(items: list[str]) -> dict:
 
 
 def register(subparsers) -> None:
-    from .cli_help import examples
-    from .config import PRESETS
+    from ..cli_help import examples
+    from ..config import PRESETS
 
     p = subparsers.add_parser(
         "train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
@@ -577,7 +577,7 @@ def register(subparsers) -> None:
         epilog=examples("dimgestor train --data my_data --out runs/mine",
                         "dimgestor train --data my_data --out runs/mine --resume            # after a stop",
                         "dimgestor train --data my_data --out runs/small --preset tiny --max-steps 2000 --device cpu",
-                        "torchrun --nproc-per-node 2 -m dimgestor.cli train --data my_data --out runs/ddp"))
+                        "torchrun --nproc-per-node 2 -m dimgestor_app.cli train --data my_data --out runs/ddp"))
     d = TrainConfig(data="", out="")  # the defaults, one place
     g = p.add_argument_group("data")
     g.add_argument("--data", required=True, metavar="DIR", help="folder of BVH+WAV pairs (sub-folders allowed)")

@@ -1,4 +1,4 @@
-"""What a stored stream state must satisfy before it is trusted (`dimgestor.savestate.loads`).
+"""What a stored stream state must satisfy before it is trusted (`dimgestor.streaming.savestate.loads`).
 
 A state comes from a store other processes write to: untrusted input. Its header is compared, node by node,
 with the header of this stream's own fresh state: the same tree of types, the same dtypes, the same shapes

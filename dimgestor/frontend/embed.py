@@ -25,8 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ModelConfig
-from .frontend_speech import SpeechFrontEnd, SpeechState
+from ..config import ModelConfig
+from .speech import SpeechFrontEnd, SpeechState
 
 __all__ = ["EmbeddingFrontEnd", "EmbeddingState", "EMBED_DIM", "model_files"]
 

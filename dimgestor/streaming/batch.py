@@ -6,8 +6,8 @@ from typing import Sequence
 
 import torch
 
-from .conditioning import condition, condition_group, group_key
-from .sampler import DenoiseRunner, StepStates, Window, denoise
+from ..model.conditioning import condition, condition_group, group_key
+from ..model.sampler import DenoiseRunner, StepStates, Window, denoise
 from .stream import GestureStream, StreamState
 
 __all__ = ["push_many", "step_many", "begin_many"]

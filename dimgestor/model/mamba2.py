@@ -11,7 +11,7 @@ Three CPU forms of the same scan, picked by length in `Mamba2._run`, each with a
 `ssd_naive` (the per-step recurrence) and against `ssd_chunked` (the whole-sequence chunked
 state-space-duality scan, kept as the reference of the chunk algebra):
   - `ssd_steps`: the recurrence itself (`ssd_step`, also what `ssd_naive` and the runner's written-out
-    block in `dimgestor.sampler` call), for windows of up to `STEP_MAX` frames (a streaming window at
+    block in `dimgestor.model.sampler` call), for windows of up to `STEP_MAX` frames (a streaming window at
     20 fps is 1-10 frames, where the number of ops per call, not their arithmetic, is the cost);
   - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk;
   - `ssd_scan`: the lean long-sequence scan, a loop over chunks carrying the state, so its working memory
@@ -229,8 +229,7 @@ class Mamba2(nn.Module):
                  ngroups: int = 1, chunk_size: int = 64, rmsnorm: bool = True, norm_before_gate: bool = False,
                  bias: bool = False, conv_bias: bool = True, dt_min: float = 0.001, dt_max: float = 0.1,
                  dt_init_floor: float = 1e-4, dt_limit: tuple[float, float] = (0.0, float("inf")),
-                 A_init_range: tuple[float, float] = (1.0, 16.0), D_has_hdim: bool = False,
-                 layer_idx: int | None = None, device=None, dtype=None):
+                 A_init_range: tuple[float, float] = (1.0, 16.0), D_has_hdim: bool = False, device=None, dtype=None):
         super().__init__()
         kw = {"device": device, "dtype": dtype}
         self.d_model, self.d_state, self.d_conv, self.expand = d_model, d_state, d_conv, expand
@@ -241,7 +240,7 @@ class Mamba2(nn.Module):
         self.nheads = self.d_inner // headdim
         if self.nheads % ngroups:
             raise ValueError(f"nheads = {self.nheads} is not a multiple of ngroups = {ngroups}")
-        self.dt_limit, self.layer_idx, self.rmsnorm = tuple(dt_limit), layer_idx, rmsnorm
+        self.dt_limit, self.rmsnorm = tuple(dt_limit), rmsnorm
         self.conv_dim = self.d_inner + 2 * ngroups * d_state
 
         # in_proj packs [z (d_inner), xBC (d_inner + 2 * ngroups * d_state), dt (nheads)] in this order.

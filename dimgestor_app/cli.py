@@ -13,8 +13,8 @@ import json
 import os
 import sys
 
-from . import __version__
-from .cli_help import HelpFormatter, deprecated_alias, examples
+from dimgestor import __version__
+from dimgestor.cli_help import HelpFormatter, deprecated_alias, examples
 
 __all__ = ["main", "streamer_main", "model_info", "build_parser", "COMMANDS"]
 
@@ -22,18 +22,18 @@ COMMANDS = ("serve", "generate", "train", "render", "eval", "info", "export", "e
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from .audio import AudioError
-    from .bvh import BvhError
-    from .checkpoint import CheckpointError
-    from .config import ConfigError
-    from .dataset import DatasetError
+    from dimgestor.audio import AudioError
+    from dimgestor.bvh import BvhError
+    from dimgestor.config import ConfigError
+    from dimgestor.streaming.checkpoint import CheckpointError
+    from dimgestor.training.dataset import DatasetError
     return (ConfigError, CheckpointError, BvhError, AudioError, DatasetError, FileNotFoundError,
             NotADirectoryError, IsADirectoryError, PermissionError, ValueError)
 
 
 def model_info(config, steps: int = 8) -> dict:
     """Parameter counts per component and streaming state per stream for a config."""
-    from .model import DiMGestor
+    from dimgestor.model.network import DiMGestor
     model = DiMGestor(config)
     counts = model.param_counts()
     return {"config": config.model_dump(mode="json"), "parameters": {**counts, "total": sum(counts.values())},
@@ -42,8 +42,8 @@ def model_info(config, steps: int = 8) -> dict:
 
 
 def _info(args) -> int:
-    from .checkpoint import load_checkpoint
-    from .config import get_preset
+    from dimgestor.config import get_preset
+    from dimgestor.streaming.checkpoint import load_checkpoint
     if args.checkpoint:
         config = load_checkpoint(args.checkpoint).config
         source = args.checkpoint
@@ -76,13 +76,13 @@ def _info(args) -> int:
 
 
 def _export(args) -> int:
-    from .checkpoint import export_checkpoint
+    from dimgestor.streaming.checkpoint import export_checkpoint
     inference = {k: v for k, v in (("smooth_hz", args.smooth), ("smooth_beta", args.smooth_beta),
                                    ("sample_steps", args.sample_steps), ("guidance", args.guidance)) if v is not None}
     if inference.get("sample_steps", 1) < 1:
         raise ValueError("--steps must be >= 1")
     if "guidance" in inference:
-        from .diffusion import check_guidance
+        from dimgestor.model.diffusion import check_guidance
         check_guidance(inference["guidance"])
     if inference.get("smooth_hz", 1) < 0 or inference.get("smooth_beta", 0) < 0:
         raise ValueError("--smooth and --smooth-beta must be >= 0")
@@ -93,7 +93,7 @@ def _export(args) -> int:
 
 
 def _register_info(sub) -> None:
-    from .config import PRESETS
+    from dimgestor.config import PRESETS
 
     p = sub.add_parser("info", help="parameter counts and streaming state size of a preset or checkpoint",
                        description="Parameter counts per component, the algorithmic latency and the streaming state "
@@ -146,11 +146,13 @@ def build_parser(prog: str = "dimgestor") -> argparse.ArgumentParser:
                         "dimgestor train --data my_data --out runs/mine"))
     parser.add_argument("--version", action="version", version=f"dimgestor {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    from dimgestor.evaluation import eval as evaluation
+    from dimgestor.export import onnx_export
+    from dimgestor.training import train
     from streamer import cli as streamer_cli
     from streamer import web
 
-    from . import eval as evaluation
-    from . import generate, onnx_export, render, train
+    from . import generate, render
     streamer_cli.register_serve(sub)
     for module in (generate, train, render, evaluation):
         module.register(sub)

@@ -1,6 +1,6 @@
 """A stream's state as bytes: saved by one process, resumed by another, exactly.
 
-A `StreamState` (dimgestor.stream) is a small tree of named tuples and frozen dataclasses whose leaves are
+A `StreamState` (dimgestor.streaming.stream) is a small tree of named tuples and frozen dataclasses whose leaves are
 tensors, arrays and numbers. `dumps` writes it as
 
     b"DGSTATE" | version (u16) | header length (u32) | seal (32 bytes) | JSON header | raw leaf bytes
@@ -14,7 +14,7 @@ hashed), the stream's sampling settings and the caller's `meta`. `loads` checks 
 tree from a fixed list of known types (never pickle: a state may come from a store shared by many machines), and
 refuses, with the reason, a state of another version, of another model or of other settings, bytes that are cut
 short or do not parse, and any field that is not what this stream's own state would hold
-(`dimgestor.savestate_checks`, checked before anything is built: what a state re-sealed by someone without the
+(`dimgestor.streaming.savestate_checks`, checked before anything is built: what a state re-sealed by someone without the
 secret meets). A state is resumed exactly or not at all.
 Bump STATE_VERSION whenever the tree of any state type changes.
 """
@@ -25,20 +25,21 @@ import hashlib
 import hmac
 import json
 import struct
+import weakref
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..frontend.base import FrontEndState
+from ..frontend.embed import EmbeddingState
+from ..frontend.speech import SpeechState
+from ..model.mamba2 import Mamba2State
+from ..model.network import DenoiserState, ExtractorState
+from ..model.sampler import StepStates
+from ..smoothing import OneEuroState
 from . import savestate_checks as checks
-from .sampler import StepStates
-from .frontend import FrontEndState
-from .frontend_embed import EmbeddingState
-from .frontend_speech import SpeechState
-from .mamba2 import Mamba2State
-from .model import DenoiserState, ExtractorState
 from .savestate_checks import StateError
-from .smoothing import OneEuroState
 from .stream import GestureStream, StreamState
 
 __all__ = ["STATE_VERSION", "StateError", "dumps", "loads", "model_fingerprint", "pack", "reseal", "split",
@@ -57,19 +58,24 @@ _DTYPES = {str(d).removeprefix("torch."): d for d in (torch.float32, torch.float
 
 def model_fingerprint(model: torch.nn.Module) -> str:
     """sha256 of the model's config and of every parameter and buffer (names, dtypes, shapes, values): equal for
-    the same weights loaded anywhere. Cached on the model until a tensor is replaced or changed in place."""
+    the same weights loaded anywhere. Remembered per model (here, not on it) until a tensor is replaced or changed
+    in place."""
     tensors = list(model.named_parameters()) + list(model.named_buffers())
     key = tuple((t.data_ptr(), t._version) for _, t in tensors)
-    cached = getattr(model, "_state_fingerprint", None)
-    if cached is not None and cached[0] == key:
-        return cached[1]
+    known = _FINGERPRINTS.get(model)
+    if known is not None and known[0] == key:
+        return known[1]
     h = hashlib.sha256(json.dumps(model.config.model_dump(mode="json"), sort_keys=True).encode())
     for name, t in tensors:
         t = t.detach().cpu().contiguous()
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}".encode())
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-    model._state_fingerprint = (key, h.hexdigest())
-    return model._state_fingerprint[1]
+    _FINGERPRINTS[model] = (key, h.hexdigest())
+    return h.hexdigest()
+
+
+# model -> (its tensors' pointers and versions, its fingerprint), forgotten with the model
+_FINGERPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def stream_settings(stream: GestureStream) -> dict:

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State, ssd_step
-from .model import DenoiserState, DiMGestor
+from .network import DenoiserState, DiMGestor
 
 __all__ = ["StepStates", "Window", "DenoiseRunner", "runner_for", "denoise"]
 

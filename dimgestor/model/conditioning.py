@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .mamba2 import Mamba2State
-from .model import DiMGestor, ExtractorState
+from .network import DiMGestor, ExtractorState
 
 __all__ = ["Conditioned", "condition", "condition_group", "group_key"]
 

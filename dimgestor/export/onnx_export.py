@@ -52,14 +52,14 @@ from typing import TYPE_CHECKING, NamedTuple, Sequence
 import torch
 from torch import nn
 
-from .sampler import StepStates, runner_for
-from .diffusion import Diffusion, check_guidance
-from .mamba2 import Mamba2State
-from .model import DiMGestor, ExtractorState
+from ..model.diffusion import Diffusion, check_guidance
+from ..model.mamba2 import Mamba2State
+from ..model.network import DiMGestor, ExtractorState
+from ..model.sampler import StepStates, runner_for
 from .onnx_stream import MANIFEST
 
 if TYPE_CHECKING:
-    from .checkpoint import Bundle
+    from ..streaming.checkpoint import Bundle
 
 __all__ = ["FrameStep", "StateSpec", "check_export", "export_bundle", "export_onnx", "state_specs", "manifest_of",
            "weights_sha256", "OPSET", "register"]
@@ -247,7 +247,7 @@ def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = Non
                 guidance: float | None = None, frames: int = 2, batches: Sequence[int] = ()) -> Path:
     """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out.
     batches: also a graph of B streams a call for each B (out/frame_step_bB.onnx), for a server's batches."""
-    from .checkpoint import load_checkpoint
+    from ..streaming.checkpoint import load_checkpoint
 
     return export_bundle(load_checkpoint(checkpoint), out, steps, guidance, frames, batches)
 
@@ -386,7 +386,7 @@ def _json_safe(v):
 
 
 def register(subparsers) -> None:
-    from .cli_help import examples
+    from ..cli_help import examples
 
     p = subparsers.add_parser(
         "export-onnx", help="the streaming step as an ONNX graph with explicit state",

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ModelConfig
+from ..config import ModelConfig
 from .mel import mel_filterbank
 
 __all__ = ["SpeechFrontEnd", "SpeechState", "SPEECH_CHANNELS"]

@@ -4,7 +4,7 @@ Both front ends share one contract: `forward(samples, state) -> (feats, state)`,
 audio in any chunking yields the same frames as feeding it at once, and `samples_needed(n)` says
 how much audio must have arrived before `n` frames exist (the front end's share of the latency). A state is
 a NamedTuple of tensors with one stream per row (dim 0) and a `consumed` count the forward only adds to, so
-the states of many streams stack into one batched call and split back (`dimgestor.conditioning`).
+the states of many streams stack into one batched call and split back (`dimgestor.model.conditioning`).
 """
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from .config import ModelConfig, exact_div
-from .frontend_speech import SpeechFrontEnd
+from ..config import ModelConfig, exact_div
 from .mel import mel_filterbank
+from .speech import SpeechFrontEnd
 
 __all__ = ["AudioFrontEnd", "LogMelFrontEnd", "PretrainedFrontEnd", "FrontEndState", "build_frontend"]
 
@@ -162,6 +162,6 @@ def build_frontend(config: ModelConfig) -> AudioFrontEnd:
     if config.frontend == "speech":
         return SpeechFrontEnd(config)
     if config.frontend == "embedding":
-        from .frontend_embed import EmbeddingFrontEnd
+        from .embed import EmbeddingFrontEnd
         return EmbeddingFrontEnd(config)
     return PretrainedFrontEnd(config)

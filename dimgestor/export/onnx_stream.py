@@ -1,6 +1,6 @@
 """The exported frame step driven as a stream: audio chunks in, normalized frames out, in ONNX Runtime or torch.
 
-`FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (`dimgestor.onnx_export` says why the
+`FrameStepStream` is the Python side of `dimgestor export-onnx`'s graph (`dimgestor.export.onnx_export` says why the
 graph is a fixed number of motion frames): it buffers audio to whole calls (800 samples a frame), numbers the
 calls' frames (below 0 during the warm-up, whose frames it drops) and passes the seed, from which the graph
 draws the torch stream's noise; it pads the end with silence as `GestureStream.finish` does and applies the
@@ -18,16 +18,16 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .audio import check_audio
-from .config import ModelConfig
-from .smoothing import OneEuroState
-from .stream import make_smoother
+from ..audio import check_audio
+from ..config import ModelConfig
+from ..smoothing import OneEuroState
+from ..streaming.stream import make_smoother
 
 __all__ = ["FrameStepStream", "OnnxStreamState", "OnnxModel", "MANIFEST", "initial_tensor", "load_manifest", "ort_runner",
            "torch_runner", "ort_stream"]
 
 Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
-MANIFEST = "manifest.json"  # an export folder's description of its graphs (`dimgestor.onnx_export.manifest_of`)
+MANIFEST = "manifest.json"  # an export folder's description of its graphs (`dimgestor.export.onnx_export.manifest_of`)
 
 
 def load_manifest(folder: str | Path) -> dict:
@@ -169,7 +169,7 @@ def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
 
 
 def torch_runner(step) -> Runner:
-    """The frame step module (`dimgestor.onnx_export.FrameStep`) in torch, with the graph's names."""
+    """The frame step module (`dimgestor.export.onnx_export.FrameStep`) in torch, with the graph's names."""
     names_in = ["samples", "seed", "frame", *(s.name for s in step.specs)]
     names_out = ["frames", *(s.out for s in step.specs)]
 

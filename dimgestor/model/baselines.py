@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ModelConfig
-from .model import DiMGestor, Mlp, modulate
+from ..config import ModelConfig
+from .network import DiMGestor, Mlp, modulate
 
 __all__ = ["AdaLNAttentionBlock", "AdaLNTransformer", "rotary"]
 

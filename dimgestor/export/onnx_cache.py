@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 if TYPE_CHECKING:
-    from .checkpoint import Bundle
+    from ..streaming.checkpoint import Bundle
 
 __all__ = ["CACHE_FILE", "cache_root", "cached_export", "export_key", "problem", "traced_modules"]
 
@@ -42,8 +42,10 @@ CACHE_FILE = "cache.json"  # an entry's key and file checksums, written last
 FORMAT = 2  # of an entry and its cache.json (2: the graphs optimized by ONNX Runtime); in the key
 # the packages whose versions change what the exporter writes or what loads it
 PACKAGES = ("torch", "onnx", "onnxscript", "onnx-ir", "onnxruntime")
-# modules of ours that onnx_export imports for other things than tracing (loading, the CLI, the manifest's name)
-_NOT_TRACED = frozenset({"checkpoint", "cli_help", "onnx_stream", "onnx_triton"})
+# modules of ours that onnx_export imports for other things than tracing (loading, the CLI, the manifest's name),
+# named from the package's root
+_NOT_TRACED = frozenset({"streaming.checkpoint", "cli_help", "export.onnx_stream", "export.onnx_triton"})
+_ROOT = Path(__file__).resolve().parents[1]  # the dimgestor package
 
 
 def cache_root(override: str | Path | None = None) -> Path:
@@ -60,23 +62,33 @@ def cache_root(override: str | Path | None = None) -> Path:
 
 def traced_modules() -> list[str]:
     """Our modules the graph is made from: onnx_export and what it imports from this package, followed through
-    their imports (read from the source, nothing imported), less the ones not traced (`_NOT_TRACED`)."""
-    here, seen, todo = Path(__file__).parent, set(), ["onnx_export"]
+    their relative imports (read from the source, nothing imported), less the ones not traced (`_NOT_TRACED`).
+    Named from the package's root (`export.onnx_export`, `model.network`, `config`)."""
+    seen, todo = set(), ["export.onnx_export"]
     while todo:
         name = todo.pop()
-        if name in seen or name in _NOT_TRACED or not (here / f"{name}.py").is_file():
+        if name in seen or name in _NOT_TRACED or not _file(name).is_file():
             continue
         seen.add(name)
-        for node in ast.walk(ast.parse((here / f"{name}.py").read_text(encoding="utf-8"))):
-            if isinstance(node, ast.ImportFrom) and node.level == 1:
-                todo += [node.module.split(".")[0]] if node.module else [a.name for a in node.names]
+        package = name.split(".")[:-1]
+        for node in ast.walk(ast.parse(_file(name).read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = package[:len(package) - (node.level - 1)]
+                if node.module:
+                    todo.append(".".join(base + [node.module]))
+                else:  # `from . import x`: x is a module or a name of the package
+                    todo += [".".join(base + [a.name]) for a in node.names]
     return sorted(seen)
 
 
+def _file(name: str) -> Path:
+    return _ROOT.joinpath(*name.split(".")).with_suffix(".py")
+
+
 def _code_sha256() -> str:
-    here, h = Path(__file__).parent, hashlib.sha256()
+    h = hashlib.sha256()
     for name in traced_modules():
-        h.update(name.encode() + b"\0" + (here / f"{name}.py").read_bytes() + b"\0")
+        h.update(name.encode() + b"\0" + _file(name).read_bytes() + b"\0")
     return h.hexdigest()
 
 
@@ -91,9 +103,9 @@ def export_key(bundle: Bundle, steps: int, guidance: float, frames: int = 2, bat
     """Everything an export's graphs depend on, as JSON values (equal keys: the same graphs)."""
     import numpy as np
 
-    from . import __version__
+    from .. import __version__
+    from ..streaming.savestate import model_fingerprint
     from .onnx_export import OPSET
-    from .savestate import model_fingerprint
 
     norm = hashlib.sha256(b"".join(np.asarray(v, np.float64).tobytes() for v in (bundle.mean, bundle.std)))
     return {"format": FORMAT, "model": model_fingerprint(bundle.model), "normalization": norm.hexdigest(),

@@ -9,8 +9,8 @@ the frames equal those of `generate_offline` on the whole recording. With classi
 
 All of that is one value, `StreamState`; `GestureStream.step(state, samples) -> (frames, state)` is the
 stream as a function (it never writes into the state it is given), and `push` / `finish` step the state
-the stream holds. `dimgestor.batch.step_many` maps the step over the states of many streams at once; the
-step's parts (`dimgestor.conditioning`, then `dimgestor.sampler`) are functions of states, shared by both.
+the stream holds. `dimgestor.streaming.batch.step_many` maps the step over the states of many streams at once; the
+step's parts (`dimgestor.model.conditioning`, then `dimgestor.model.sampler`) are functions of states, shared by both.
 """
 from __future__ import annotations
 
@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .audio import check_audio
-from .conditioning import Conditioned, condition
-from .config import ModelConfig
-from .diffusion import Diffusion, check_guidance, guide, motion_noise
-from .model import DenoiserState, DiMGestor, ExtractorState
-from .sampler import StepStates, Window, denoise, runner_for
-from .smoothing import OneEuroFilter, OneEuroState
+from ..audio import check_audio
+from ..config import ModelConfig
+from ..model.conditioning import Conditioned, condition
+from ..model.diffusion import Diffusion, check_guidance, guide, motion_noise
+from ..model.network import DenoiserState, DiMGestor, ExtractorState
+from ..model.sampler import StepStates, Window, denoise, runner_for
+from ..smoothing import OneEuroFilter, OneEuroState
 
 __all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
 
@@ -61,7 +61,7 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
 def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:
     """The output filter: "config" (the model config's smooth_hz/smooth_beta), None or 0 (off), a cutoff
     in Hz (with the config's beta), or a (cutoff_hz, beta) pair. A config, not a model: the ONNX Runtime
-    stream (`dimgestor.onnx_stream`) has no torch model."""
+    stream (`dimgestor.export.onnx_stream`) has no torch model."""
     c = config
     if isinstance(smoothing, str):
         if smoothing != "config":
@@ -144,7 +144,7 @@ class GestureStream:
 
     def begin_step(self, state: StreamState, samples) -> tuple[torch.Tensor, StreamState]:
         """`step`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
-        complete (`dimgestor.batch.begin_many` does it for many streams, conditioned in groups)."""
+        complete (`dimgestor.streaming.batch.begin_many` does it for many streams, conditioned in groups)."""
         samples = self.check_step(state, samples)
         c = condition(self.model, state.frontend, state.extractor, samples)
         return c.cond, state.conditioned(c, len(samples))
@@ -167,7 +167,7 @@ class GestureStream:
         return out, replace(state, denoiser=denoiser, smoother=smoothed, frames_out=state.frames_out + len(out))
 
     def window(self, state: StreamState, cond: torch.Tensor) -> Window:
-        """What the sampler needs to denoise the frames of `cond` (1, n, H) after `state` (`dimgestor.sampler`)."""
+        """What the sampler needs to denoise the frames of `cond` (1, n, H) after `state` (`dimgestor.model.sampler`)."""
         return Window(cond, state.denoiser, state.frames_out, self.seed, self.guidance)
 
     def _denoise(self, state: StreamState, cond: torch.Tensor) -> tuple[np.ndarray, StreamState]:

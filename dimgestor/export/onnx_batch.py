@@ -1,7 +1,7 @@
 """Many streams' windows as one ONNX Runtime call: the serving path of `streamer serve --backend onnxruntime`.
 
 The exported frame step costs about the same per call whatever it computes (on CPU a model this small pays for
-its ~4,600 ops, not for arithmetic: `dimgestor.onnx_export`), so the calls of B streams made as one call of a
+its ~4,600 ops, not for arithmetic: `dimgestor.export.onnx_export`), so the calls of B streams made as one call of a
 graph of B streams (`dimgestor export-onnx --batch B`, a stream per row) pay that once. `BatchRunner` holds a
 session per exported batch size and makes n streams' calls with the cheapest mix of those sizes, padding a call
 with idle rows where a bigger graph costs less than more calls (`plan`, on each graph's cost measured at load).
@@ -10,7 +10,7 @@ The states are the streams' own values, as on the single-stream path: a batched 
 (bound by address, never written again) and each stream keeps views of its rows. Gathering B streams' states
 into one batch copies them (the denoiser's SSM state is ~2 MB a stream at K = 8), so when the same streams come
 back in the same order (a busy server: every stream has a window due each cycle) the last call's outputs are fed
-back as they are, with no copy at all, as `dimgestor.sampler.denoise` does for torch.
+back as they are, with no copy at all, as `dimgestor.model.sampler.denoise` does for torch.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .audio import check_audio
+from ..audio import check_audio
 from .onnx_stream import FrameStepStream, OnnxModel, OnnxStreamState, initial_tensor
 
 __all__ = ["BatchRunner", "BatchStats", "push_many"]

@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..audio import SAMPLE_RATE
+from ..bvh import forward_kinematics
+from ..features import HEADING_COLUMN, VELOCITY_COLUMNS, decode_features, heading_track
 from . import metrics
-from .audio import SAMPLE_RATE
-from .bvh import forward_kinematics
-from .features import HEADING_COLUMN, VELOCITY_COLUMNS, decode_features, heading_track
 
 SYSTEMS = ("ground_truth", "model", "model_other_audio", "other_real_motion", "mean_pose")
 METRICS = ("fgd_raw", "fgd_feature", "beat_align", "jerk", "mean_speed")
@@ -69,7 +69,7 @@ def paired_train_windows(valid, train, n: int) -> list[int]:
 def generate_systems(bundle, valid, train, steps: int, seed: int, max_windows: int | None = None,
                      log=print, smoothing="config") -> dict:
     """{system: list of raw feature windows (W, D)} and the valid audio per window."""
-    from .stream import generate_offline
+    from ..streaming.stream import generate_offline
 
     items = [valid[i] for i in range(len(valid)) if valid.windows[i][2] == valid.window]
     if not items:
@@ -251,7 +251,7 @@ def pool_drive(rows: list[dict]) -> dict:
 
 def generate_raw(bundle, audio: np.ndarray, steps: int, seed: int, smoothing=None, eta: float = 0.0) -> np.ndarray:
     """Raw (denormalized) features (T, D) the model makes for a whole clip (DDIM; eta > 0: stochastic)."""
-    from .stream import generate_offline
+    from ..streaming.stream import generate_offline
 
     gen = generate_offline(bundle.model, audio, steps=steps, seed=seed, smoothing=smoothing, eta=eta)
     return np.asarray(bundle.denormalize(gen), np.float32)
@@ -356,7 +356,7 @@ def valid_clips(valid) -> list[tuple[np.ndarray, np.ndarray]]:
 
 def wav_clips(folder: Path) -> tuple[list[tuple[np.ndarray, None]], list[str]]:
     """Every WAV under `folder` (16 kHz mono after loading) as a clip without reference motion."""
-    from .audio import load_wav
+    from ..audio import load_wav
 
     paths = sorted(Path(folder).rglob("*.wav"))
     if not paths:
@@ -383,7 +383,7 @@ def fgd_autoencoder(train, path: Path | None, steps: int, log=print) -> metrics.
 
 
 def default_ae_path(data_dir: Path, spec) -> Path:
-    from .dataset import default_cache_dir
+    from ..training.dataset import default_cache_dir
 
     key = hashlib.sha256(json.dumps([str(data_dir.resolve()), spec.to_dict()], sort_keys=True).encode()).hexdigest()
     return default_cache_dir().parent / "fgd" / key[:16]
@@ -460,9 +460,9 @@ def parse_ks(text: str | None, n_steps: int, default: int, flag: str = "--ks") -
 
 
 def run(args: argparse.Namespace) -> dict:
-    from .checkpoint import load_checkpoint
-    from .dataset import GestureDataset
-    from .cli_help import smoothing_from_flag
+    from ..cli_help import smoothing_from_flag
+    from ..streaming.checkpoint import load_checkpoint
+    from ..training.dataset import GestureDataset
 
     smoothing = smoothing_from_flag(getattr(args, "smooth", None))  # before anything slow
     if (args.data is None) == (getattr(args, "wavs", None) is None):
@@ -470,7 +470,7 @@ def run(args: argparse.Namespace) -> dict:
     bundle = load_checkpoint(args.checkpoint)
     bundle.model.eval()
     if getattr(args, "guidance", None) is not None:  # every generation below takes the config's scale
-        from .diffusion import check_guidance
+        from ..model.diffusion import check_guidance
         bundle.config = bundle.model.config = bundle.config.model_copy(update={"guidance": check_guidance(args.guidance)})
     c = bundle.config
     if args.steps is None:
@@ -589,7 +589,7 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli_help import deprecated_alias
+    from ..cli_help import deprecated_alias
 
     g = p.add_argument_group("what to score")
     g.add_argument("--checkpoint", default=None, help="checkpoint or run folder (default: the embedded model)")
@@ -628,7 +628,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `eval` subcommand to the `dimgestor` CLI."""
-    from .cli_help import examples
+    from ..cli_help import examples
 
     p = subparsers.add_parser("eval", help="jerk, speech contrast, BeatAlign, FGD, diversity and turning per K",
                               description=__doc__.split("\n\n")[0],

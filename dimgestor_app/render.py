@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bvh import BvhError, BvhMotion, Skeleton, forward_kinematics, read_bvh
+from dimgestor.bvh import BvhError, BvhMotion, Skeleton, forward_kinematics, read_bvh
 
 VIEWS = ("front", "side")
 COLORS = {"left": "#1f77b4", "right": "#d62728", "center": "#303030"}
@@ -420,7 +420,7 @@ def main_from_args(args: argparse.Namespace) -> int:
         n = render_motion(motion, args.out, fps=args.fps, start_s=args.start, seconds=args.seconds, size=size,
                           views=views, title=args.title if args.title is not None else Path(args.bvh).name,
                           panels=args.panels, face_camera=not args.no_face_camera)
-    except (BvhError, ValueError, OSError) as e:  # as dimgestor.cli does, so the command also works on its own
+    except (BvhError, ValueError, OSError) as e:  # as dimgestor_app.cli does, so the command also works on its own
         if os.environ.get("DIMGESTOR_DEBUG"):
             raise
         msg = f"{e.filename}: {e.strerror or e}" if isinstance(e, OSError) and e.filename else str(e)
@@ -433,7 +433,7 @@ def main_from_args(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add the `render` subcommand to the `dimgestor` CLI."""
-    from .cli_help import examples
+    from dimgestor.cli_help import examples
 
     p = subparsers.add_parser("render", help="stick-figure preview of a BVH file (GIF animation or PNG filmstrip)",
                               description=__doc__.split("\n\n")[0],
