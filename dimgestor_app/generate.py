@@ -134,7 +134,7 @@ def _run(args) -> int:
         check_guidance(args.guidance)
     if not args.tether_s > 0:
         raise ValueError(f"--tether-s must be > 0, got {args.tether_s}")
-    from dimgestor.retarget import load_rig, resolve_map
+    from dimgestor.retarget import load_target
     from dimgestor.retarget.export import check_output, write_motion
 
     out = Path(args.out)
@@ -142,9 +142,8 @@ def _run(args) -> int:
     if args.target_map is not None and args.target is None:
         raise ValueError("--target-map needs --target (the rig it maps)")
     target = None
-    if args.target is not None:  # read and map the rig before the model runs: a bad rig fails at once
-        target = load_rig(args.target)
-        resolve_map(target, args.target_map)
+    if args.target is not None:  # read and map the rig once, before the model runs: a bad rig fails at once
+        target = load_target(args.target, args.target_map)
     if not out.parent.exists():
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
     face_out = Path(args.face_csv) if args.face_csv is not None else None
@@ -186,7 +185,7 @@ def _run(args) -> int:
         from dimgestor.face.names import convert, names_of
 
         expressions = dict(zip(names_of("vrm1"), convert(face, "vrm1").T))
-    what = write_motion(out, motion, args.target, args.target_map, expressions)
+    what = write_motion(out, motion, target, face=expressions)
     print(f"wrote {out} ({what}) at {1 / motion.frame_time:g} fps ({len(audio) / SAMPLE_RATE:.2f} s of audio) "
           f"from {bundle.path}")
     if face_out is not None:

@@ -198,13 +198,14 @@ class TargetPose:
     rotations (rest rotations included) and its root's position, for every sink that sends them (WebSocket
     clients get the rig in the hello, VMC receivers its humanoid bones' local pose)."""
 
-    def __init__(self, skeleton, rig, bone_map=None, metres_per_unit: float | None = None):
+    def __init__(self, skeleton, rig, bone_map=None, metres_per_unit: float | None = None, bones=None):
         from dimgestor.retarget import Retarget, Rig, resolve_map
         from dimgestor.retarget.export import metres_per_unit as guess_unit
 
         self.source = Rig.from_skeleton(skeleton, "the model's skeleton")
         self.rig = rig
-        self.bones = resolve_map(self.rig, bone_map)
+        self.bones = bones if bones is not None else resolve_map(self.rig, bone_map)  # (bones: resolved already)
+        self.file = None  # the `dimgestor.retarget.Target` read from --target (from_file), for the recorder
         self.retarget = Retarget(self.source, self.rig, resolve_map(self.source, what="source"), self.bones,
                                  move="root")
         self.metres_per_unit = guess_unit(self.rig) if metres_per_unit is None else metres_per_unit
@@ -212,10 +213,13 @@ class TargetPose:
 
     @classmethod
     def from_file(cls, skeleton, target: str, target_map: str | None = None) -> "TargetPose":
-        """`serve --target RIG --target-map MAP`."""
-        from dimgestor.retarget import load_rig
+        """`serve --target RIG --target-map MAP`: the rig and its map read once, here."""
+        from dimgestor.retarget import load_target
 
-        return cls(skeleton, load_rig(target), target_map)
+        file = load_target(target, target_map)
+        pose = cls(skeleton, file.rig, bones=file.bones)
+        pose.file = file
+        return pose
 
     @classmethod
     def from_message(cls, skeleton, rig: dict) -> "TargetPose":

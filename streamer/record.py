@@ -262,10 +262,11 @@ def bvh_path(path: str | Path) -> Path:
 class RecordingSink:
     """`BvhRecorder` as a `Sink` (streamer/sink.py): the file is created by `open`, last of all the sinks, so
     that a failure to start anything else leaves an old recording alone. A .glb or .vrma path (optionally on a
-    `target` rig) is written at the end from the BVH beside it (and the face, for .vrma)."""
+    `target` rig: a `dimgestor.retarget.Target` as read at start, or a rig's path and `target_map`) is written at
+    the end from the BVH beside it (and the face, for .vrma)."""
 
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
-                 channels: Mapping[str, Channel] | None = None, face: bool = False, target: str | None = None,
+                 channels: Mapping[str, Channel] | None = None, face: bool = False, target=None,
                  target_map: str | None = None):
         self.path = Path(path)
         self.args = (skeleton, feature_spec, root, tether_s)

@@ -111,7 +111,7 @@ def build(options: ServeOptions) -> Pipeline:
     target = _target(options, sk)
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid) if target is None else target.humanoid_rig()
     ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics, target)
-    vmc, recording = _vmc(options, rig, target), _recording(options, bundle, source)
+    vmc, recording = _vmc(options, rig, target), _recording(options, bundle, source, target)
     if vmc is not None:
         metrics.sinks["vmc"] = lambda: (vmc.sent, vmc.dropped)
     if recording is not None:  # (frames on disk; after a write error the rest are not counted anywhere)
@@ -306,7 +306,7 @@ def _vmc_jitter_ms(options: ServeOptions) -> float:
     return options.window_ms if options.vmc_jitter_ms is None else options.vmc_jitter_ms
 
 
-def _recording(options: ServeOptions, bundle, source):
+def _recording(options: ServeOptions, bundle, source, target=None):
     if not options.record or source is None:
         return None
     from streamer.record import RecordingSink
@@ -316,7 +316,7 @@ def _recording(options: ServeOptions, bundle, source):
                                            and Path(options.target).suffix.lower() == ".bvh")
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
                          tether_s=options.tether_s, face=options.face != "none",
-                         target=options.target if fits else None, target_map=options.target_map if fits else None)
+                         target=target.file if fits and target is not None else None)  # (read once: _target)
 
 
 def read_token(options) -> str | None:

@@ -3,18 +3,24 @@ the Khronos glTF validator, Blender (headless) and @pixiv/three-vrm-animation in
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from dimgestor import rotations as R
+from dimgestor.audio import SAMPLE_RATE, load_wav, save_wav
 from dimgestor.bvh import BvhMotion, forward_kinematics, write_bvh
 from dimgestor.retarget import Retarget, load_rig, resolve_map
 from dimgestor.retarget.export import write_motion
 from dimgestor.retarget.names import auto_map
 from dimgestor.retarget.rig import Rig
 from dimgestor.streaming.checkpoint import load_checkpoint
+from helpers import warm
 from helpers.blender import bone_world_positions, needs_blender
-from helpers.clients import REPO
+from helpers.clients import REPO, SPEECH_WAV
 from helpers.gltf_validator import errors, needs_validator, validate
 from helpers.rigs import a_pose
 from helpers.vrm_model import BONES, make_vrm
@@ -241,6 +247,33 @@ def test_generate_refuses_a_bad_output_or_target_in_one_line_before_any_work(fil
     assert main(["generate", "--audio", str(wav), *[a.format(d=files) for a in args]]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+# `dimgestor generate` in its own process, every open of one file counted by Python's audit hook
+COUNTING_OPENS = """import os, sys
+watched, opened = sys.argv[1], []
+sys.addaudithook(lambda event, args: opened.append(1) if event == "open" and isinstance(args[0], (str, os.PathLike))
+                 and os.fspath(args[0]) == watched else None)
+from dimgestor_app.cli import main
+code = main(sys.argv[2:])
+print(f"opened {len(opened)}")
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize("rig", ["avatar1.vrm", "apose.bvh"])
+def test_generate_reads_the_target_rig_once(files, tmp_path, rig):
+    """`generate --target X --out Y.glb`: the rig, its bone map and (a GLB or VRM) the file the animation is added
+    to all come from one read of X."""
+    wav, script, out = tmp_path / "speech.wav", tmp_path / "count_opens.py", tmp_path / "out.glb"
+    save_wav(wav, load_wav(SPEECH_WAV)[: SAMPLE_RATE], SAMPLE_RATE)
+    script.write_text(COUNTING_OPENS)
+    run = warm.run([sys.executable, str(script), str(files / rig), "generate", "--audio", str(wav), "--out", str(out),
+                    "--target", str(files / rig), "--steps", "2"], cwd=REPO, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout
+    assert f"wrote {out}" in run.stdout and "bones mapped" in run.stdout, run.stdout
+    assert "opened 1" in run.stdout, run.stdout
 
 
 def test_a_recording_that_cannot_become_its_glb_keeps_its_bvh_and_says_so(motion, tmp_path, capsys):

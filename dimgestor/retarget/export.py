@@ -10,8 +10,8 @@ import numpy as np
 
 from dimgestor.bvh import BvhMotion, write_bvh
 from dimgestor.retarget import gltf as io
-from dimgestor.retarget.rig import Rig, load_rig
-from dimgestor.retarget.transfer import Retarget, resolve_map
+from dimgestor.retarget.rig import Rig
+from dimgestor.retarget.transfer import Retarget, Target, load_target, resolve_map
 from dimgestor.retarget.vrma import write_vrma
 
 __all__ = ["OUT_SUFFIXES", "check_output", "write_motion", "metres_per_unit"]
@@ -27,8 +27,9 @@ def metres_per_unit(rig: Rig) -> float:
     return 0.01 if np.ptp(p[:, 1]) > 20 else 1.0
 
 
-def check_output(out: Path, target: str | None) -> None:
+def check_output(out: Path, target: Target | str | Path | None) -> None:
     """Refuse an output/target pair that cannot be written, before any work."""
+    target = target.path if isinstance(target, Target) else target
     suffix = out.suffix.lower()
     if suffix not in OUT_SUFFIXES:
         raise ValueError(f"--out {out}: expected a .bvh, .glb or .vrma path")
@@ -38,11 +39,12 @@ def check_output(out: Path, target: str | None) -> None:
         raise ValueError(f"--target {target}: a .bvh output needs a BVH target skeleton; write .glb for a glTF/VRM rig")
 
 
-def write_motion(out: str | Path, motion: BvhMotion, target: str | Path | None = None,
+def write_motion(out: str | Path, motion: BvhMotion, target: Target | str | Path | None = None,
                  target_map: str | Path | None = None, face: dict[str, np.ndarray] | None = None) -> str:
-    """Write `motion` (on our skeleton) to `out` by its suffix; returns what was written, for the user."""
+    """Write `motion` (on our skeleton) to `out` by its suffix, on our skeleton or on `target` (a `Target` as
+    read once, or a rig's path with `target_map`); returns what was written, for the user."""
     out = Path(out)
-    check_output(out, None if target is None else str(target))
+    check_output(out, target)
     source = Rig.from_skeleton(motion.skeleton, "ours")
     q, t = motion.rotations(), motion.translations()
     suffix = out.suffix.lower()
@@ -54,9 +56,10 @@ def write_motion(out: str | Path, motion: BvhMotion, target: str | Path | None =
             write_bvh(out, motion)
             return f"BVH, {motion.num_frames} frames"
         return _write_glb(out, source, q, t, motion.fps, moved=_moving(source))
-    rig = load_rig(target)
-    rt = Retarget(source, rig, resolve_map(source, what="source"), resolve_map(rig, target_map))
-    what = f"on {Path(target).name} ({len(rt.bones)} bones mapped)"
+    target = target if isinstance(target, Target) else load_target(target, target_map)
+    rig = target.rig
+    rt = Retarget(source, rig, resolve_map(source, what="source"), target.bones)
+    what = f"on {Path(target.path).name} ({len(rt.bones)} bones mapped)"
     if suffix == ".bvh":
         write_bvh(out, rt.motion(motion))
         return f"BVH {what}, {motion.num_frames} frames"
@@ -65,10 +68,10 @@ def write_motion(out: str | Path, motion: BvhMotion, target: str | Path | None =
                                                               if np.ptp(tt[:, j], axis=0).max() > 1e-9]
     if rig.nodes is None:
         return _write_glb(out, rig, tq, tt, motion.fps, moved) + f" {what}"
-    gltf = io.load_for_animation(target)
+    gltf = io.load_for_animation(rig)
     io.add_animation(gltf, rig.nodes, motion.fps, tq, tt, rotate=moved[0], translate=moved[1])
     io.save_glb(gltf, out)
-    return f"glTF binary: {Path(target).name} with the animation added ({len(rt.bones)} bones mapped), {len(tq)} frames"
+    return f"glTF binary: {Path(target.path).name} with the animation added ({len(rt.bones)} bones mapped), {len(tq)} frames"
 
 
 def _moving(rig: Rig) -> tuple[list[int], list[int]]:

@@ -8,6 +8,7 @@ continuous so the slerp between frames takes the short way).
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -151,9 +152,14 @@ def add_animation(gltf: G.GLTF2, nodes: list[int], fps: float, rotations: np.nda
     gltf.animations.append(animation)
 
 
-def load_for_animation(path: str | Path) -> G.GLTF2:
-    """A user's GLB/glTF/VRM with every buffer inside one binary blob, ready for `add_animation`."""
-    gltf = read_gltf(Path(path))
+def load_for_animation(source: Rig | str | Path) -> G.GLTF2:
+    """A user's GLB/glTF/VRM with every buffer inside one binary blob, ready for `add_animation`: a copy of the
+    file a glTF rig was read from (`Rig.document`: not read again), or the file at a path."""
+    if isinstance(source, Rig) and source.document is not None:
+        gltf, path = copy.deepcopy(source.document), source.path
+    else:
+        path = source.path if isinstance(source, Rig) else source
+        gltf = read_gltf(Path(path))
     if len(gltf.buffers or []) > 1:
         raise RigError(f"{path}: {len(gltf.buffers)} buffers; save it as a single .glb first (Blender: Export glTF "
                        f"Binary)")

@@ -41,6 +41,8 @@ class Rig:
     base_scale: float = 1.0
     skeleton: Skeleton | None = None  # a BVH rig's skeleton (its channels say which joints may translate)
     nodes: list[int] | None = None    # a glTF rig's node index per joint
+    document: object = field(default=None, repr=False)  # a glTF rig's file as read (a pygltflib GLTF2), for
+    # writing the animation into a copy of it without reading the file again (`gltf.load_for_animation`)
 
     def __post_init__(self):
         J = len(self.names)
@@ -154,9 +156,12 @@ def read_gltf(path: Path):
     from pygltflib import GLTF2
 
     try:
-        with open(path, "rb") as f:
-            binary = f.read(4) == b"glTF"
-        return GLTF2().load_binary(str(path)) if binary else GLTF2().load_json(str(path))
+        data = path.read_bytes()  # (once: a GLB is parsed from these bytes; a .gltf's JSON is read by its loader)
+        if data[:4] != b"glTF":
+            return GLTF2().load_json(str(path))
+        gltf = GLTF2.load_from_bytes(data)
+        # a GLB whose buffer is a file beside it (rare) is read by the loader that knows where it lies
+        return GLTF2().load_binary(str(path)) if any(b.uri for b in gltf.buffers or []) else gltf
     except Exception as e:  # pygltflib raises whatever its parser meets (KeyError, JSONDecodeError, struct.error)
         raise RigError(f"{path}: not a readable glTF/GLB file ({type(e).__name__}: {e})") from None
 
@@ -235,4 +240,4 @@ def _load_gltf(path: Path) -> Rig:
     return Rig(names, [index[parent[i]] if i != root else -1 for i in order], np.array([t for t, _, _ in trs]),
                np.array([q for _, q, _ in trs]), np.array([float(np.mean(s)) for _, _, s in trs]), path=str(path),
                kind=kind, humanoid={b: names[index[n]] for b, n in humanoid_nodes.items()}, base_rotation=base_q,
-               base_position=base_p, base_scale=base_s, nodes=order)
+               base_position=base_p, base_scale=base_s, nodes=order, document=gltf)

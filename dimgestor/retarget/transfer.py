@@ -16,14 +16,17 @@ rotation; the hips move as the source's, scaled by leg length. The two rigs may 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion
 from dimgestor.retarget.names import HUMAN_BONES, apply_map, auto_map, effective_parents, load_map
-from dimgestor.retarget.rig import Rig, RigError
+from dimgestor.retarget.rig import Rig, RigError, load_rig
 
-__all__ = ["Retarget", "swing", "resolve_map"]
+__all__ = ["Retarget", "Target", "load_target", "swing", "resolve_map"]
 
 _CENTRE = ("hips", "spine", "chest", "upperChest", "neck", "head")
 _NOT_DIRECTIONS = {"jaw", "leftEye", "rightEye"}  # children that do not say where a bone points
@@ -62,6 +65,24 @@ def _roll_fit(q: np.ndarray, axis: np.ndarray, us: list[np.ndarray], vs: list[np
     if abs(sin_sum) + abs(cos_sum) < 1e-12:
         return q
     return R.quat_mul(_about(n, np.arctan2(sin_sum, cos_sum)), q)
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """A user's rig read and mapped once (`load_target`, at the command line's edge), passed down to whatever
+    retargets onto it or writes it: nothing below reads its file or its map again."""
+    rig: Rig
+    bones: dict[str, str]  # {VRM 1.0 bone: joint}, as `resolve_map` gave it
+
+    @property
+    def path(self) -> str:
+        return self.rig.path
+
+
+def load_target(path: str | Path, map_path=None) -> Target:
+    """Read the rig at `path` (BVH, glTF/GLB, VRM) and its bone map (`map_path`: a JSON file, a dict or None)."""
+    rig = load_rig(path)
+    return Target(rig, resolve_map(rig, map_path))
 
 
 def resolve_map(rig: Rig, map_path=None, what: str = "target") -> dict[str, str]:
