@@ -1,5 +1,5 @@
 // The exported frame step (`dimgestor export-onnx`) driven as a stream, in JavaScript: the mirror of Python's
-// `dimgestor.onnx_stream.FrameStepStream`, line for line, so the browser's frames equal ONNX Runtime's in Python.
+// `dimgestor.export.onnx_stream.FrameStepStream`, line for line, so the browser's frames equal ONNX Runtime's in Python.
 // It buffers 16 kHz audio to whole calls (samples_per_call), numbers each call's first frame (below 0 during the
 // warm-up, whose frames it drops), carries every state tensor from one call's outputs to the next call's inputs,
 // pads the end with silence as `finish_step` does, and applies the same output filter (One Euro). No DOM and no
@@ -50,7 +50,8 @@ export class OneEuroFilter {
   }
 }
 
-/** The model config's output filter (`dimgestor.stream.make_smoother` with smoothing "config"), or null. */
+/** The model config's output filter (`dimgestor.streaming.stream.make_smoother` with smoothing "config"), or
+ *  null. */
 export function configSmoother(config) {
   return config.smooth_hz ? new OneEuroFilter(config.fps, config.smooth_hz, config.smooth_beta || 0) : null;
 }
