@@ -270,8 +270,10 @@ class Client(Outbox):
         # the previous session is still finishing (or has just failed, its end not yet told to the machine)
         while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()] or (
                 then and self.source is None):
+            held = self.clock.now()
             await asyncio.wait([self.session_task])
             await asyncio.sleep(0)  # (its done callbacks run first: its `end` and what waited for it)
+            self.clock.held(self.clock.now() - held)  # (a client with audio waiting is ahead, not late)
         if not then:
             return
         source, piece, rate = self.source, then[-1].piece, decode[0].fmt.rate

@@ -122,6 +122,10 @@ class AudioClock:
     took that call's length to arrive, so the clock starts that long before the first call. Time in which the
     client sent nothing earns at most `max_credit_s` of catching up (time in which the server was slow earns
     it all). Shared by the successive sessions of one client (so restarting sessions earns no priority).
+    Time the server held a client's received audio while its previous session finished (`held`) earns nothing
+    either: that client is ahead. (Credited as the server's slowness, a crowd of 30 fast senders ending 0.5 s
+    sessions over and over ranked as real time, 2 s late, and their windows and finishes ran before a talker's:
+    its frames 0.35-0.68 s late against 0.06 quiet, measured.)
     """
 
     def __init__(self, max_credit_s: float = 2.0, max_lead_s: float = 2.0, now: Callable[[], float] = time.monotonic):
@@ -140,6 +144,11 @@ class AudioClock:
             self.t0 += silent - self.max_credit_s
         late = min((now - self.t0) - self.audio_s, self.max_credit_s)
         return -late if waiting_s <= call_s else 1.0 + self.max_credit_s - max(late, -self.max_lead_s)
+
+    def held(self, seconds: float) -> None:
+        """The client's audio waited `seconds` here, received, for its previous session to finish: not lateness."""
+        if self.t0 is not None and seconds > 0:
+            self.t0 += seconds
 
 
 class Session:

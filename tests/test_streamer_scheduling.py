@@ -324,3 +324,31 @@ def test_fast_senders_far_ahead_take_turns_instead_of_waiting_for_the_others_to_
     assert late.rank(1.0, 30.0) == early.rank(1.0, 30.0) > 0  # both beyond the cap: a tie
     assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0 < late.rank(1.0, 30.0)
     # (tied windows run in the order they were queued: test_streamer_batching)
+
+
+def test_a_client_whose_next_session_waited_for_its_last_is_ahead_not_late():
+    """A client that ends 0.5 s sessions and starts the next at once (its audio held while the last one finishes):
+    the time its audio was held is not lateness, so its next session's windows and finish rank as backlog, after
+    a talker. (Taken as the server's slowness, 30 such clients ranked as real time, 2 s late, and ran before a
+    talker: its frames 0.35-0.68 s late against 0.06 s, measured.) A client silent between sessions stays real time."""
+    from streamer.sessions import AudioClock
+
+    t = [0.0]
+    storm, pauser = AudioClock(now=lambda: t[0]), AudioClock(now=lambda: t[0])
+    for clock in (storm, pauser):
+        assert clock.rank(0.5) <= 0  # a first session: its audio took its length to arrive
+        clock.audio_s += 0.5
+    ranks = []
+    for _ in range(5):  # each session: 0.2 s served, then 0.6 s waiting for the last one's finish
+        t[0] += 0.8
+        storm.held(0.6)
+        ranks.append((storm.rank(0.5), storm.rank()))  # its window, and its finish
+        storm.audio_s += 0.5
+    # its first session's audio was credited its length (0.5 s): from its third session on, behind real time
+    assert all(r > 0 for pair in ranks[1:] for r in pair), ranks
+    assert pauser.rank(0.5) <= 0  # 4 s later, having sent nothing meanwhile: real time
+    assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0 < storm.rank(0.5)
+    storm.held(-1.0)  # (nothing held: no change)
+    fresh = AudioClock(now=lambda: t[0])
+    fresh.held(3.0)  # (before any call: nothing to shift)
+    assert fresh.t0 is None
