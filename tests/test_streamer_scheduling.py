@@ -344,7 +344,7 @@ def test_a_client_whose_next_session_waited_for_its_last_is_ahead_not_late():
         storm.held(0.6)
         ranks.append((storm.rank(0.5), storm.rank()))  # its window, and its finish
         storm.audio_s += 0.5
-    # its first session's audio was credited its length (0.5 s): from its third session on, behind real time
+    # its first session's audio was credited its length (0.5 s): from its second session on, ahead of real time
     assert all(r > 0 for pair in ranks[1:] for r in pair), ranks
     assert pauser.rank(0.5) <= 0  # 4 s later, having sent nothing meanwhile: real time
     assert AudioClock(now=lambda: t[0]).rank(0.2, 0.1) <= 0 < storm.rank(0.5)
