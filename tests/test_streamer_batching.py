@@ -185,6 +185,40 @@ def test_a_crowd_of_backlog_finishes_takes_one_turn_a_cycle_so_a_talkers_window_
         batcher.shutdown()
 
 
+def test_a_crowd_of_late_finishes_takes_a_cycles_worth_a_cycle_so_a_talkers_window_does_not_wait_behind_them(bundle):
+    """Six sessions late on real time end (a machine too slow for a crowd that restarts sessions over and over
+    makes them late) while a talker's window is queued as the first finish runs: a real-time cycle runs only
+    `cycle_s` of finishes (each measured: 50 ms on a fake clock, so two of 100 ms), the latest first, and the
+    talker's window goes in the next cycle, not after all six (every real-time finish used to run in one cycle)."""
+    now = [0.0]
+    batcher = StreamBatcher(cycle_s=0.1, clock=lambda: now[0])
+    gate, order = threading.Event(), []
+    try:
+        def first():  # measured at 50 ms: what sizes the next cycles' finishes
+            gate.wait(30)
+            now[0] += 0.05
+
+        batcher.submit(first)
+        talker = Session.from_bundle(bundle, steps=2, seed=0, scheduler=batcher)
+        live = Future()
+
+        def finish(i):
+            order.append(i)
+            now[0] += 0.05
+            if i == 0:  # queued from the inference thread as the first finish runs: before the next cycle is taken
+                f = batcher.submit_push(talker, synthetic_speech(0.1, seed=4), rank=-0.05)
+                f.add_done_callback(lambda f: (order.append("live"), live.set_result(len(f.result()))))
+
+        finishes = [batcher.submit_ranked(-2.0 + 0.01 * i, finish, i) for i in range(6)]
+        gate.set()
+        for f in [*finishes, live]:
+            f.result(60)
+        assert order == [0, 1, "live", 2, 3, 4, 5], order
+    finally:
+        gate.set()
+        batcher.shutdown()
+
+
 def test_batcher_isolates_a_failing_stream(bundle):
     """A window that fails (a finished stream) fails its own future only; the batch's others get frames."""
     batcher = StreamBatcher()
