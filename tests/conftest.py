@@ -8,6 +8,7 @@ import pytest
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 REPO = Path(__file__).resolve().parents[1]
+pytest_plugins = ["helpers.alone"]  # the `alone` mark
 
 # The modules that take longest (seconds on the 2-core CI machine, one worker's span), handed out first (`make test`:
 # --dist loadfile --no-loadscope-reorder gives modules to the workers in collection order): a worker that starts one

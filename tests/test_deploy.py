@@ -199,6 +199,7 @@ needs_redis = pytest.mark.skipif(shutil.which("redis-server") is None or importl
 
 @needs_nginx
 @needs_redis
+@pytest.mark.alone  # its gaps are the cluster's: beside another cluster test, 2 cores are not enough for both
 def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_see_no_gap(tmp_path):
     """Issue 22's rolling-restart test: 2 workers + nginx + Redis (local-cluster), 8 clients (the example Python
     client, as users run it) send real-time speech; SIGTERM the worker serving half of them mid-sentence: those
