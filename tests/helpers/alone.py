@@ -4,7 +4,8 @@ needs the machine's cores: beside another cluster test on CI's 2 cores, a rollin
 saw 0.68-0.79 s frame gaps against 0.25-0.35 s alone (the other test's processes, not the restart).
 
 Every test holds a lock shared by the run's test processes from its setup to its teardown (its module's fixtures
-included): an `alone` test the exclusive lock, every other test a shared one. One test process, or a system
+included): an `alone` test the exclusive lock, every other test a shared one. An alone test waits for the tests
+running beside it to end, and no other test starts meanwhile. One test process, or a system
 without flock (Windows), runs as usual.
 """
 
@@ -29,9 +30,18 @@ def pytest_runtest_protocol(item, nextitem):
     if run is None or fcntl is None:  # one process (no other test beside it), or no flock (Windows)
         yield
         return
-    with open(Path(tempfile.gettempdir()) / f"dimgestor-tests-{run}.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX if item.get_closest_marker("alone") else fcntl.LOCK_SH)
+    alone = item.get_closest_marker("alone") is not None
+    folder = Path(tempfile.gettempdir())
+    # The gate first: an alone test waiting for the lock holds it, so the other processes' next tests wait behind it
+    # (flock would go on granting them the shared lock, and the alone test could wait for test after test).
+    with open(folder / f"dimgestor-tests-{run}.gate", "a") as gate, \
+            open(folder / f"dimgestor-tests-{run}.lock", "a") as lock:
+        fcntl.flock(gate, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        if not alone:
+            fcntl.flock(gate, fcntl.LOCK_UN)
         try:
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+            fcntl.flock(gate, fcntl.LOCK_UN)
