@@ -160,3 +160,35 @@ def test_batch_rows_are_independent(fe, speech):
     b = _dbfs(speech[0][3 * RATE: 6 * RATE], -30.0)
     both, _ = fe(torch.from_numpy(np.stack([a, b])), fe.init_state(2))
     assert torch.allclose(both[0], _run(fe, a), atol=1e-6) and torch.allclose(both[1], _run(fe, b), atol=1e-6)
+
+
+
+def test_one_streams_statistics_are_the_batched_loops_bit_for_bit(fe, speech, monkeypatch):
+    """`running_stats` of one stream (on Python floats) gives exactly the numbers of the batched loop (on arrays),
+    through silence, speech, a pause and louder speech, chunk after chunk (the state carried)."""
+    from dimgestor.frontend import speech as sp
+
+    audio = np.concatenate([np.zeros(RATE // 2, np.float32), _dbfs(speech[0][: 4 * RATE], -30.0),
+                            np.zeros(RATE, np.float32), speech[0][4 * RATE: 6 * RATE]])
+
+    def run():
+        state, out = fe.init_state(1), []
+        for i in range(0, len(audio), 4000):
+            f, state = fe(torch.from_numpy(audio[None, i:i + 4000]), state)
+            out.append((f, state))
+        return out
+
+    one = run()
+    stats = sp.running_stats
+
+    def batched(energy, bands, periodicity, logf0, carried, *rest):  # two copies of the stream: the arrays' loop
+        two = lambda x: np.concatenate([x, x])  # noqa: E731
+        carried, *per_frame = stats(two(energy), two(bands), two(periodicity), two(logf0), tuple(map(two, carried)),
+                                    *rest)
+        return tuple(x[:1] for x in carried), *(x[:1] for x in per_frame)
+
+    monkeypatch.setattr(sp, "running_stats", batched)
+    for (fa, sa), (fb, sb) in zip(one, run(), strict=True):
+        assert torch.equal(fa, fb)
+        for x, y in zip(sa[2:], sb[2:], strict=True):  # (the floor is NaN until the first frame: none here)
+            assert x.dtype == y.dtype and torch.equal(x, y)
