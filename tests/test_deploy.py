@@ -261,6 +261,7 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
                     f"{time.monotonic() - max(max(a) for a in arrivals.values()):.1f} s ago; clients done "
                     f"{[r.done() for r in runs]}; local-cluster's output:\n{cluster.output[-6000:]}")
                 await asyncio.sleep(0.05)
+            killed_at.append(time.monotonic())
             os.kill(workers[1][1], signal.SIGTERM)
             try:
                 return await asyncio.wait_for(asyncio.gather(*runs), 60)
@@ -268,6 +269,7 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
                 watch.cancel()
 
         stalls = LoopStalls()  # this process's own stalls (CI shares its cores): not the cluster's doing
+        killed_at: list[float] = []
         codes = asyncio.run(everyone())
         assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving \(exit status 0\)")
@@ -282,12 +284,17 @@ def test_sessions_of_a_stopped_worker_resume_on_the_other_exactly_and_the_rest_s
         assert got.num_frames == want.num_frames == int(seconds * FPS), path
         assert np.abs(forward_kinematics(got) - forward_kinematics(want)).max() < 1e-3, path  # cm
         gaps[str(path)] = np.diff(arrivals[str(path)]).max()
-    # the moved clients' gap holds their goaway and resume; the others must not notice
+    # the moved clients' gap holds their goaway and resume; the others must not notice: their largest gap under
+    # 0.5 s (0.25-0.35 s here), or under twice what they saw in the 2 s before the restart on a machine that
+    # stretches gaps by itself (beside a busy loop 0.19-0.30 s before it; a fresh clone on a slow day 0.60 s after)
     stayed = [gap for path, gap in gaps.items() if path not in moved]
+    kill = killed_at[0]
+    before = max(float(np.diff(a[(a > kill - 2.0) & (a < kill)]).max())
+                 for path, a in ((p, np.array(arrivals[p])) for p in gaps) if path not in moved)
     print(f"resumed in {max(resumed_in):.3f} s at most; largest frame gap "
-          f"{max(gaps[p] for p in moved):.3f} s (moved), {max(stayed):.3f} s (stayed); "
-          f"this process stalled {stalls.worst:.3f} s at most")
-    assert max(stayed) < 0.5 + stalls.worst, (gaps, stalls.worst)
+          f"{max(gaps[p] for p in moved):.3f} s (moved), {max(stayed):.3f} s (stayed; {before:.3f} s in the 2 s "
+          f"before); this process stalled {stalls.worst:.3f} s at most")
+    assert max(stayed) < max(0.5, 2 * before) + stalls.worst, (gaps, before, stalls.worst)
 
 
 @needs_nginx
@@ -337,6 +344,7 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
                 watch.cancel()
 
         stalls = LoopStalls()  # this process's own stalls (CI shares its cores): not the cluster's doing
+        killed_at: list[float] = []
         killed, codes = asyncio.run(everyone())
         assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving")
