@@ -194,11 +194,15 @@ def test_a_crowd_of_late_finishes_takes_a_cycles_worth_a_cycle_so_a_talkers_wind
     batcher = StreamBatcher(cycle_s=0.1, clock=lambda: now[0])
     gate, order = threading.Event(), []
     try:
+        running = threading.Event()
+
         def first():  # measured at 50 ms: what sizes the next cycles' finishes
+            running.set()
             gate.wait(30)
             now[0] += 0.05
 
         batcher.submit(first)
+        assert running.wait(30)  # taken alone, before the finishes are queued (else the first cycle takes one of them)
         talker = Session.from_bundle(bundle, steps=2, seed=0, scheduler=batcher)
         live = Future()
 
