@@ -58,6 +58,19 @@ def interrupted(data, tmp_path_factory):
     return whole, part
 
 
+def test_training_without_validation_takes_the_same_steps_and_logs_its_last(data, interrupted, tmp_path):
+    """--valid-every 0: no held-out loss (and no held-out windows featurized), the same weights as a run that
+    validates (validation draws nothing from the training's generators), and the last step's train loss logged."""
+    whole, _ = interrupted
+    last = train(_opts(data, tmp_path / "run", tmp_path / "cache", valid_every=0))
+    assert [r["step"] for r in _log(tmp_path / "run")] == [40]
+    assert "valid_loss" not in _log(tmp_path / "run")[0] and _log(tmp_path / "run")[0]["train_loss"] > 0
+    a = torch.load(last / "train_state.pt", map_location="cpu", weights_only=False)
+    b = torch.load(whole / "train_state.pt", map_location="cpu", weights_only=False)
+    assert all(torch.equal(a["ema"][k], b["ema"][k]) for k in b["ema"])
+    assert a["history"][-1]["train_loss"] == b["history"][-1]["train_loss"]
+
+
 def _copy_run(part: Path, out: Path) -> Path:
     import shutil
 

@@ -102,7 +102,7 @@ class TrainConfig(BaseModel):
     valid_fraction: float = Field(0.15, ge=0, lt=1)
     valid_seconds: float | None = Field(None, gt=0)  # hold out the last S seconds of every clip instead
     ckpt_every: int = Field(1000, gt=0)
-    valid_every: int = Field(250, gt=0)
+    valid_every: int = Field(250, ge=0)  # 0: no held-out loss (the run's last step still logs its train loss)
     keep: int = Field(3, ge=0)  # checkpoints kept in the run folder (oldest removed; 0 = all)
     seed: int = 0
     device: str = "auto"
@@ -315,7 +315,7 @@ class Run:
     objective: nn.Module  # the loss (wrapped in DDP when world > 1)
     g: torch.Generator  # the global batch's diffusion steps, noise, augmented versions and dropout (same on every rank)
     train_bank: WindowBank
-    valid_bank: WindowBank
+    valid_bank: WindowBank | None  # None without validation (valid_every 0)
     sampler: DistributedSampler
     mean: np.ndarray
     std: np.ndarray
@@ -411,7 +411,7 @@ def setup(opts: TrainConfig) -> Run:
     train_bank = WindowBank(train_ds, model, mean, std, device, copies=opts.aug_copies if opts.augment else 0,
                             aug_config=AugmentConfig(**(opts.aug_config or {})), seed=opts.seed)
     t_bank = time.time() - t_bank
-    valid_bank = WindowBank(valid_ds, model, mean, std, device)
+    valid_bank = WindowBank(valid_ds, model, mean, std, device) if opts.valid_every else None
     sampler = DistributedSampler(range(len(train_bank)), num_replicas=1, rank=0, shuffle=True,  # the global order
                                  seed=opts.seed, drop_last=False)
     diffusion = Diffusion(config)
@@ -523,7 +523,7 @@ def train(opts: TrainConfig) -> Path:
     from tqdm import tqdm
 
     run = setup(opts)
-    if run.main and run.step == 0:
+    if run.main and run.step == 0 and opts.valid_every:
         log(run, {"step": 0, "valid_loss": evaluate(run)})
     bar = tqdm(total=opts.max_steps, initial=run.step, disable=not (run.main and opts.progress), dynamic_ncols=True,
                desc="train")
@@ -537,11 +537,13 @@ def train(opts: TrainConfig) -> Path:
         bar.update(1)
         bar.set_postfix(loss=f"{smooth:.4f}", refresh=False)
         step = run.step
-        is_valid = step % opts.valid_every == 0 or step == opts.max_steps
+        is_valid = bool(opts.valid_every) and (step % opts.valid_every == 0 or step == opts.max_steps)
         if is_valid and run.main:
             vl = evaluate(run)
             log(run, {"step": step, "train_loss": smooth, "valid_loss": vl, "elapsed_s": round(time.time() - t0, 1)})
             bar.set_postfix(loss=f"{smooth:.4f}", valid=f"{vl:.4f}")
+        elif step == opts.max_steps and run.main:
+            log(run, {"step": step, "train_loss": smooth, "elapsed_s": round(time.time() - t0, 1)})
         if step % opts.ckpt_every == 0 or step == opts.max_steps:
             last = checkpoint(run)
         if run.world > 1 and is_valid:
@@ -645,7 +647,8 @@ def register(subparsers) -> None:
     g.add_argument("--out", required=True, metavar="DIR", help="run folder for ckpt_XXXXXXX/ checkpoints and log.jsonl")
     g.add_argument("--ckpt-every", type=int, default=d.ckpt_every, metavar="N", help="save a checkpoint every N steps")
     g.add_argument("--valid-every", type=int, default=d.valid_every, metavar="N",
-                   help="compute the held-out loss every N steps (logged to log.jsonl)")
+                   help="compute the held-out loss every N steps (logged to log.jsonl); 0: never (the held-out windows "
+                        "are then not featurized either)")
     g.add_argument("--keep", type=int, default=d.keep, metavar="N", help="checkpoints to keep (0 = all)")
     g.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     g.add_argument("--device", default=d.device, help="torch device: auto (CUDA when present), cpu, cuda, cuda:1, ...")
