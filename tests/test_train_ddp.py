@@ -72,9 +72,13 @@ def test_two_processes_take_the_same_steps_as_one_with_the_same_global_batch_and
 
     cli("one", 6)  # one process, 6 steps of 4 windows
     cli("scalar", 6, ATEN_CPU_CAPABILITY="default")  # the same, its sums in another order: rounding's spread here
-    torchrun(4)  # two processes (2 windows each), interrupted at step 4 ...
-    torchrun(6, "--resume")  # ... and resumed by two processes again
-    cli("straight", 6, launcher=(TORCHRUN, "--standalone", "--nproc_per_node", "2"))  # ... or never interrupted
+    cli("straight", 6, launcher=(TORCHRUN, "--standalone", "--nproc_per_node", "2"))  # two processes (2 windows each)
+    # ... and the same run as if stopped at step 4 (what a run with --max-steps 4 leaves: the lr schedule does not
+    # depend on --max-steps), resumed by two new processes
+    shutil.copytree(tmp_path / "straight", tmp_path / "two", ignore=shutil.ignore_patterns("ckpt_0000006"))
+    (tmp_path / "two" / "log.jsonl").write_text("".join(
+        json.dumps(r) + "\n" for r in _log(tmp_path / "straight") if r["step"] <= 4))
+    torchrun(6, "--resume")
 
     # (1) exactly: the same steps, and every rank drew the same global batches as the one process did
     one, two = _state(tmp_path / "one"), _state(tmp_path / "two")
