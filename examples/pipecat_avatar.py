@@ -123,9 +123,9 @@ def hello_for(bundle, window_ms: int) -> dict:
 
 async def run(args, speech: np.ndarray, bundle) -> int:
     from streamer.pipecat import GestureProcessor
-    from streamer.ws import WsServer
+    from streamer.ws import WsConfig, WsServer
 
-    ws = WsServer(args.ws[0], args.ws[1], hello_for(bundle, args.window_ms), None, origins=["*"])
+    ws = WsServer(WsConfig(args.ws[0], args.ws[1], origins=("*",)), hello_for(bundle, args.window_ms), None)
     sinks = [ws]
     if args.vmc is not None:
         from streamer.face import FACE, face_channel

@@ -28,6 +28,7 @@ from streamer.intake import Account, ComputeBudget, submit_for
 from streamer.log_limit import ErrorLog
 from streamer.metrics import ServerMetrics
 from streamer.outbox import FrameTotals, MessageBudget, Outbox
+from streamer.saving import StoreCalls
 from streamer.sessions import AudioClock, Session
 from streamer.sources import PushSource, make_resampler
 
@@ -65,10 +66,9 @@ class Client(Outbox):
         self.frames_queued = 0  # its session's frames in its queue (or sent): a session cut short ends at this
         self.holding = False  # its handler holds a message (the socket is not read meanwhile: back pressure)
         self.closed = False  # the server closed it (an unsupported protocol)
-        self._saving: set[asyncio.Task] = set()  # its store calls under way (periodic saves, forget, release)
-        self._periodic: set[asyncio.Task] = set()  # its periodic saves under way (a session's `end` waits for them)
         peer = ws.remote_address
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
+        self.store = StoreCalls(svc.store_call, svc.metrics, svc.departures, self.who)
         self.errors = ErrorLog(f"client {self.who}")
         self.budget = MessageBudget()
         self.account = Account()  # its work on the worker thread, charged to its share of it
@@ -171,42 +171,83 @@ class Client(Outbox):
         self.source = self.session = self.session_task = self.resampler = None
         return backlog_s if running else None
 
-    # ---- the session machine's actions ----
+    # ---- the session machine's actions: carried out here (`_carry_out`), nowhere else ----
 
     def act(self, actions: list) -> list:
-        """Carry out the actions that take no waiting; returns the others, in order."""
+        """Carry out the actions that take no waiting; returns the others, in order (where nothing can wait:
+        the caller's own, Decode, Feed, WaitForSession, SendFrames, and the waiting ones, which `apply` does)."""
         rest = []
         for a in actions:
-            if isinstance(a, S.Send):
+            rest += self._carry_out(a, can_wait=False)
+        return rest
+
+    async def apply(self, actions: list) -> list:
+        """Carry out the actions, waiting where they wait; returns those only the caller can (Decode, Feed,
+        WaitForSession, SendFrames)."""
+        rest = []
+        for a in actions:
+            done = self._carry_out(a, can_wait=True)
+            rest += await done if asyncio.iscoroutine(done) else done
+        return rest
+
+    def _carry_out(self, a, can_wait: bool):
+        """One action: [] once done, [a] where it is the caller's, or (can_wait) the coroutine that does it and
+        returns the caller's actions that follow."""
+        match a:
+            case S.Send():
                 self.put(a.message, a.kind)
-            elif isinstance(a, S.Log):
+            case S.Log():
                 self.errors(a.level, a.text)
-            elif isinstance(a, S.Count):
+            case S.Count():
                 getattr(self.svc.metrics, a.name).inc()
-            elif isinstance(a, S.Refused):
+            case S.Refused():
                 self.svc.metrics.refused(a.reason)
-            elif isinstance(a, S.Charge):
+            case S.Charge():
                 self.budget.tokens -= a.tokens
-            elif isinstance(a, S.ReplaySourceAudio):
+            case S.ReplaySourceAudio():
                 for m in self.svc.audio_recent:  # the audio of the frames still to come to a client that joins now
                     self.put(m, "audio")
-            elif isinstance(a, S.SetSmile):
+            case S.SetSmile():
                 if self.session is not None:
                     self.session.set_smile(a.smile)
-            elif isinstance(a, S.StopSession):
+            case S.StopSession():
                 if self.session_task is not None:
                     self.session_task.cancel()
-            elif isinstance(a, S.SetRig):
-                rest += self.act(self.machine.handle(self._set_rig(a.rig)))
-            elif isinstance(a, S.SaveState):
+            case S.SetRig():
+                return self.act(self.machine.handle(self._set_rig(a.rig)))
+            case S.SaveState():
                 self._save(a)
-            elif isinstance(a, S.Forget):
-                self._store_later("forget", a.token)
-            elif isinstance(a, S.Release):
-                self._store_later("release", a.token)
-            else:
-                rest.append(a)
-        return rest
+            case S.Forget():
+                self.store.later("forget", a.token)
+            case S.Release():
+                self.store.later("release", a.token)
+            case S.StartSession() if can_wait:
+                return self._start(a)
+            case S.EndAudio() if can_wait:
+                return self._end_audio()
+            case S.TakeState() if can_wait:
+                return self._take_state(a.token)
+            case S.Close() if can_wait:
+                return self._close(a)
+            case _:
+                return [a]
+        return []
+
+    async def _start(self, start: S.StartSession) -> list:
+        self._start_session(start)
+        if start.restore is not None:
+            await self._restore(start.restore)
+        return []
+
+    async def _take_state(self, token: str) -> list:
+        """resume_session: the saved state under `token`, taken from the store; the machine hears how it went."""
+        return await self.apply(self.machine.handle(await self.store.take(token)))
+
+    async def _close(self, close: S.Close) -> list:
+        await self.drained(asyncio.get_running_loop().time() + close.drain_s)
+        await self.ws.close(close.code, close.reason)
+        self.closed = True
+        return []
 
     def _set_rig(self, rig: dict | None):
         """The client's rig fitted to the model's skeleton -> RigSet, or RigRefused saying why."""
@@ -225,36 +266,6 @@ class Client(Outbox):
             return S.RigRefused(str(e))
         self.pose = pose
         return S.RigSet(pose.rig.num_joints, pose.humanoid())
-
-    async def apply(self, actions: list) -> list:
-        """Carry out the actions, waiting where they wait; returns those only the caller can (Decode, Feed,
-        WaitForSession, SendFrames)."""
-        rest = []
-        for a in self.act(actions):
-            if isinstance(a, S.StartSession):
-                self._start_session(a)
-                if a.restore is not None:
-                    await self._restore(a.restore)
-            elif isinstance(a, S.EndAudio):
-                await self._end_audio()
-            elif isinstance(a, S.TakeState):
-                from streamer.handover import SessionLive
-
-                try:
-                    data = await self.svc.store_call("take", a.token)
-                    taken = S.Taken(data)
-                except SessionLive as e:
-                    taken = S.Taken(None, live_s=e.retry_after_s)
-                except Exception as e:
-                    taken = S.Taken(None, f"{type(e).__name__}: {e}")
-                rest += await self.apply(self.machine.handle(taken))
-            elif isinstance(a, S.Close):
-                await self.drained(asyncio.get_running_loop().time() + a.drain_s)
-                await self.ws.close(a.code, a.reason)
-                self.closed = True
-            else:
-                rest.append(a)
-        return rest
 
     async def on_audio(self, data: bytes) -> None:
         machine = self.machine
@@ -313,11 +324,10 @@ class Client(Outbox):
         async def run() -> S.SessionEnded:
             try:
                 frames = await session.run(source, emit)
-                if self._periodic and not session.handover:
+                if not session.handover:
                     # a save under way is answered before `end` (its `session_saved`, or its refusal counted and
-                    # said), so the `Forget` at the end follows it; within the save's deadline (store_link.py).
-                    # (wait, not gather: a client that leaves cancels this task, never the saves)
-                    await asyncio.wait(set(self._periodic))
+                    # said), so the `Forget` at the end follows it; within the save's deadline (store_link.py)
+                    await self.store.periodic_done()
                 return S.SessionEnded(frames, handed_over=session.handover)
             except asyncio.CancelledError:
                 raise
@@ -364,14 +374,14 @@ class Client(Outbox):
         loop = asyncio.get_running_loop()
         try:
             data, samples = await loop.run_in_executor(self.svc.prep, save)
-            await self._put(token, data, live=False)  # (a fresh token: no lease, resumable at once)
+            await self.store.put(token, data, live=False)  # (a fresh token: no lease, resumable at once)
         except Exception as e:  # the store is down, or refused it (too large)
             self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
             return False
         self.act(m.handle(S.HandedOver(token, samples)))
         return True
 
-    async def _end_audio(self) -> None:
+    async def _end_audio(self) -> list:
         """The session's audio ended: it sends its last frames and `end` by itself."""
         if self.source is not None:
             source, self.source = self.source, None
@@ -380,6 +390,7 @@ class Client(Outbox):
                 tail = await self._work(resampler.flush)
                 await source.put(np.asarray(tail, dtype=np.float32))
             await source.close()
+        return []
 
     async def _restore(self, data: bytes) -> None:
         """resume_session: the taken state becomes the new session's (`Session.restore`)."""
@@ -407,50 +418,10 @@ class Client(Outbox):
     def _save(self, save: S.SaveState) -> None:
         """--save-state-every, between two windows: the state, copied now (a few ms for a megabyte: the next
         window moves it on), goes to the store under the session's standing token (overwritten each time)."""
-        m, loop = self.machine, asyncio.get_running_loop()
+        m = self.machine
         data = self.session.snapshot(save.frames, rate=m.audio.rate, encoding=m.encoding)
-
-        async def store() -> None:
-            try:
-                await self._put(save.token, data, live=True)
-            except Exception as e:  # the store is down or refused it: the session goes on unsaved, said (rate-limited)
-                self.svc.departures(logging.WARNING, f"periodic save of {self.who}'s session failed "
-                                                 f"({type(e).__name__}: {e})")
-                return
-            self.act(m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames)))
-
-        task = loop.create_task(store())
-        for tasks in (self._saving, self._periodic):
-            tasks.add(task)
-            task.add_done_callback(tasks.discard)
-
-    async def _put(self, token: str, data: bytes, live: bool) -> None:
-        """A state to the store, counted (streamer/metrics.py); raises what the store raises (StateRefused: counted
-        by its reason)."""
-        from streamer.handover import StateRefused
-
-        metrics = self.svc.metrics
-        try:
-            await self.svc.store_call("put", token, data, live)
-        except StateRefused as e:
-            metrics.state_puts_refused.labels(e.reason).inc()
-            raise
-        metrics.states_put.inc()
-        metrics.state_bytes_put.inc(len(data))
-
-    def _store_later(self, name: str, token: str) -> None:
-        """forget (an ended session's periodic save: nobody will resume it) or release (the connection is gone:
-        its last save may be resumed now); a store that is down drops them by their TTLs."""
-
-        async def call() -> None:
-            try:
-                await self.svc.store_call(name, token)
-            except Exception:
-                pass
-
-        task = asyncio.get_running_loop().create_task(call())
-        self._saving.add(task)
-        task.add_done_callback(self._saving.discard)
+        self.store.save_periodic(save.token, data, lambda: self.act(
+            m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames))))
 
     def _work(self, fn, *args) -> asyncio.Future:
         """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""

@@ -60,34 +60,35 @@ def refusal(target: str, origins: list[str], version: str, allowed: set[str],
 
 class Front:
     """Answers what is not a WebSocket upgrade and checks what is; never raises (a raise would be a 500 and a
-    traceback in the log). `server` gives the allow-list, the token and the metrics as they are now."""
+    traceback in the log). `refusal(target, origins, version) -> (status or None, why)` is the server's
+    handshake check (its allow-list as it is now: the server's own origins are known once it listens)."""
 
-    def __init__(self, server):
-        self.server = server
+    def __init__(self, waiting_room, metrics, serve_metrics: bool, files: ViewerFiles | None, refusal):
+        self.waiting_room, self.metrics, self.serve_metrics, self.files = waiting_room, metrics, serve_metrics, files
+        self.refusal = refusal
         self.refusals = ErrorLog("refused handshakes", what="refusals")  # one line per 10 s, whatever the flood
         self.file_failures = ErrorLog("viewer", what="failed requests")
 
     def process_request(self, connection, request):
-        s = self.server
-        s.waiting_room.requested(connection)
+        self.waiting_room.requested(connection)
         if not is_upgrade(request.headers.get_all("Upgrade")):
             method = getattr(request, "method", "GET")  # (websockets < 17 passes GET requests only)
             try:
-                ops = health.answer(method, request.path, s.metrics.readiness, s.metrics if s.serve_metrics else None)
+                ops = health.answer(method, request.path, self.metrics.readiness,
+                                    self.metrics if self.serve_metrics else None)
                 if ops is not None:  # (no token asked: see streamer.health)
                     return ops.response()
-                files: ViewerFiles | None = s.files
-                if files is not None:
-                    return files.answer(method, request.path).response()
+                if self.files is not None:
+                    return self.files.answer(method, request.path).response()
             except Exception as e:  # a bug: one line (rate-limited), no traceback, and an answer all the same
                 self.file_failures(logging.ERROR, f"failed on a request: {type(e).__name__}: {e}")
                 return Answer(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n").response()
         try:
-            status, why = s.refusal(request.path, request.headers.get_all("Origin"),
+            status, why = self.refusal(request.path, request.headers.get_all("Origin"),
                                     getattr(request, "protocol", "HTTP/1.1"))  # (websockets >= 15 parses it)
         except Exception as e:  # a bug here must not become a 500 with a traceback per request
             status, why = HTTPStatus.BAD_REQUEST, f"malformed request ({type(e).__name__})"
-        if status is None and s.metrics.readiness.draining:
+        if status is None and self.metrics.readiness.draining:
             # A new session here would end within a second: 503, so a balancer passes the handshake on to another
             # worker (deploy/nginx.conf: proxy_next_upstream http_503) and a client retries elsewhere.
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "draining: this worker is stopping; connect "

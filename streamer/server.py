@@ -264,7 +264,7 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
         metrics: ServerMetrics, target=None):
     from streamer import protocol as P
-    from streamer.ws import WsServer
+    from streamer.ws import Attached, WsConfig, WsServer
 
     sk, fps = bundle.skeleton, bundle.feature_spec.fps
     fps = int(fps) if float(fps).is_integer() else fps
@@ -277,14 +277,15 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
                        if isinstance(source, WavSource) else {}))
     also = [(options.http[0] or options.ws[0], options.http[1])] if options.http is not None else []
-    return WsServer(options.ws[0], options.ws[1], hello, None if options.no_client_audio else make_session,
-                    token=token, broadcast_stats=session.stats if session else None,
-                    source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
-                    origins=options.allow_origin, also=also, max_sessions=options.max_sessions,
-                    ping_interval=options.ping_interval or None, ping_timeout=options.ping_timeout,
-                    metrics=metrics, serve_metrics=not options.no_metrics,
-                    store=open_store(options.state_store, options.state_ttl, options.state_max_bytes),
-                    save_every_s=options.save_state_every, pose=target, skeleton=sk)
+    config = WsConfig(options.ws[0], options.ws[1], also=tuple(also), token=token, origins=tuple(options.allow_origin),
+                      max_sessions=options.max_sessions, ping_interval=options.ping_interval or None,
+                      ping_timeout=options.ping_timeout, serve_metrics=not options.no_metrics,
+                      save_every_s=options.save_state_every)
+    attached = Attached(metrics=metrics, store=open_store(options.state_store, options.state_ttl,
+                                                          options.state_max_bytes),
+                        pose=target, skeleton=sk, broadcast_stats=session.stats if session else None,
+                        source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None)
+    return WsServer(config, hello, None if options.no_client_audio else make_session, attached)
 
 
 def _vmc(options: ServeOptions, rig, target=None):

@@ -21,7 +21,8 @@ import json
 import logging
 import time
 from collections import deque
-from typing import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
@@ -38,64 +39,98 @@ from streamer.memory import Trimmer
 from streamer.metrics import ServerMetrics
 from streamer.options import MAX_SESSIONS, PING_INTERVAL_S, PING_TIMEOUT_S
 from streamer.sessions import Session
-from streamer.store_link import StoreLink
+from streamer.saving import ServerStore
 from streamer.viewer import ViewerFiles
 from streamer.waiting import WaitingRoom
 
-__all__ = ["WsServer", "own_origins"]
+__all__ = ["Attached", "WsConfig", "WsServer", "own_origins"]
 
 AUDIO_BATCH_S = 0.1   # source audio per DGA1 message: few messages, well ahead of the frames it goes with
 AUDIO_RECENT_S = 3.0  # source audio replayed to a client that asks late: covers lookahead, window and latency
 HANDOVER_S = 5.0  # on SIGTERM with a state store: how long sessions may take to finish the audio held and be saved
-STORE_DRAIN_DEADLINE_S = 2.0  # a hand-over's save: a store that takes longer is taken as unreachable
+
+
+@dataclass(frozen=True)
+class WsConfig:
+    """How the WebSocket server listens and what it allows: the `serve` options that concern it, fixed at start.
+
+    also: more (host, port) addresses serving the same (the deprecated --http). token: required as ?token=...
+    when set. origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
+    none; browsers always send one) and the server's own (its viewer's pages); "*" accepts any. ping_interval,
+    ping_timeout: the keepalive (seconds; None: none): a client from which nothing was heard for their sum, while
+    the server was reading it or while nothing moved, is closed (1011). max_waiting, request_timeout_s:
+    connections that have not sent a whole request (`WaitingRoom`). serve_metrics: answer `/metrics` (`/healthz`
+    and `/readyz` always are: `streamer.health`). save_every_s: periodic saves of the sessions (with a store).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8765
+    also: tuple[tuple[str, int], ...] = ()
+    token: str | None = None
+    origins: tuple[str, ...] = ()
+    max_sessions: int = MAX_SESSIONS
+    max_queue: int = 64  # a client's outgoing messages
+    max_backlog_s: float = 30.0  # a session's audio queue
+    status_every: float = 1.0
+    ping_interval: float | None = PING_INTERVAL_S
+    ping_timeout: float = PING_TIMEOUT_S
+    max_waiting: int = 64
+    request_timeout_s: float = 10.0
+    serve_metrics: bool = True
+    save_every_s: float | None = None
+
+
+@dataclass(frozen=True)
+class Attached:
+    """What the server is given beside its sessions.
+
+    files: the web viewer's files on the same port (None: none). metrics: the worker's `ServerMetrics` (None:
+    a registry of its own). store: a `streamer.handover` store: sessions are handed over when the server stops,
+    and saved periodically. pose: frames -> frames on the hello's skeleton (a `streamer.pose.TargetPose`; None:
+    as made). skeleton: the model's (clients' own rigs are fitted to it; None: they are refused).
+    broadcast_stats: the `Stats` of the server's own source, if any. source_dropped_s: () -> seconds of live
+    input dropped, if a live source.
+    """
+
+    files: ViewerFiles | None = field(default_factory=ViewerFiles)
+    metrics: ServerMetrics | None = None
+    store: object | None = None
+    pose: object | None = None
+    skeleton: object | None = None
+    broadcast_stats: object | None = None
+    source_dropped_s: Callable[[], float] | None = None
+
+
+def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bool) -> S.Seats:
+    """The terms every client's session is served on (`client_session.Seats`), from the config and the hello."""
+    return S.Seats(config.max_sessions, accepts_audio=accepts_audio, offers_source_audio="source_audio" in hello,
+                   max_backlog_s=config.max_backlog_s, resumable=resumable,
+                   save_every_s=config.save_every_s if resumable else None,
+                   face=hello["face"]["names"] if "face" in hello else None,
+                   joints=len(hello.get("skeleton", {}).get("joints", ())))
 
 
 class WsServer:
     """Serves hello/frames/status to clients; a `Sink` (streamer/sink.py) of the server's source. A request
-    that is not a WebSocket upgrade gets a file of the web viewer (`files`; None: no files) on the same port.
+    that is not a WebSocket upgrade gets a file of the web viewer (`attached.files`) on the same port.
+    `make_session` makes a client's own audio session (None: clients' audio is refused, --no-client-audio)."""
 
-    origins: the `Origin` headers accepted at the handshake besides none at all (native clients send
-    none; browsers always send one) and the server's own (its viewer's pages); "*" accepts any. token:
-    required as ?token=... when set. also: more (host, port) addresses serving the same (the deprecated
-    --http). ping_interval, ping_timeout: the keepalive (seconds; None: none): a client from which nothing
-    was heard for their sum, while the server was reading it or while nothing moved, is closed (1011).
-    max_waiting, request_timeout_s: connections that have not sent a whole request (`WaitingRoom`).
-    metrics: the worker's `ServerMetrics` (None: a registry of its own); `/healthz` and `/readyz` are always
-    answered, `/metrics` unless serve_metrics is false (`streamer.health`). store, save_every_s: a
-    `streamer.handover` store: sessions are handed over when the server stops, and saved periodically.
-    """
-
-    def __init__(self, host: str, port: int, hello: dict, make_session: Callable[[], Session] | None,
-                 token: str | None = None, max_queue: int = 64, max_sessions: int = MAX_SESSIONS,
-                 status_every: float = 1.0, broadcast_stats=None, source_dropped_s=None,
-                 origins: Iterable[str] = (), max_backlog_s: float = 30.0,
-                 ping_interval: float | None = PING_INTERVAL_S, ping_timeout: float = PING_TIMEOUT_S,
-                 files: ViewerFiles | None = ViewerFiles(), also: Iterable[tuple[str, int]] = (),
-                 max_waiting: int = 64, request_timeout_s: float = 10.0, metrics: ServerMetrics | None = None,
-                 serve_metrics: bool = True, store=None, save_every_s: float | None = None, pose=None,
-                 skeleton=None):
-        self.host, self.port = host, port
-        self.addresses = [(host, port), *also]  # (the real ports once open)
-        self.files, self.token, self.store = files, token, store
-        self.origins = {o for o in map(RC.allowed_origin, origins) if o is not None}
-        self.waiting_room = WaitingRoom(max_waiting, request_timeout_s)
-        self.link = StoreLink(store) if store is not None else None  # its calls, off the real-time path
-        self._drain_until: float | None = None  # (loop time) while draining with a store: the puts' deadline
-        self._unsaved: dict[Client, str] = {}  # while draining: the sessions the store could not take, and why
-        self.seats = S.Seats(max_sessions, max_backlog_s=max_backlog_s, resumable=store is not None,
-                             save_every_s=save_every_s if store is not None else None)
-        self.hello, self.make_session = hello, make_session
-        self.pose = pose  # frames -> frames on the hello's skeleton (a `streamer.pose.TargetPose`), None: as made
-        self.skeleton = skeleton  # the model's (clients' own rigs are fitted to it; None: they are refused)
-        self.max_queue, self.max_backlog_s = max_queue, max_backlog_s
-        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
+    def __init__(self, config: WsConfig, hello: dict, make_session: Callable[[], Session] | None,
+                 attached: Attached = Attached()):
+        self.config, self.hello, self.make_session, self.attached = config, hello, make_session, attached
+        self.addresses = [(config.host, config.port), *config.also]  # (the real ports once open)
+        self.port = config.port
+        self.origins = {o for o in map(RC.allowed_origin, config.origins) if o is not None}
+        self.waiting_room = WaitingRoom(config.max_waiting, config.request_timeout_s)
+        self.store = attached.store
+        self.broadcast_stats = attached.broadcast_stats  # (settable: a source attached later, e.g. a pipecat stage)
+        self.departures = ErrorLog("sessions", what="departures")
+        self.stored = ServerStore(self.store, self.departures) if self.store is not None else None
+        self.seats = seat_terms(config, hello, make_session is not None, self.store is not None)
         self.trimmer = Trimmer()
         self._trim_timer: asyncio.TimerHandle | None = None
-        self.front = Front(self)
-        self.departures = ErrorLog("sessions", what="departures")
-        self.status_every = status_every
-        self.broadcast_stats = broadcast_stats  # Stats of the server's own source, if any
-        self.source_dropped_s = source_dropped_s  # () -> seconds of live input dropped, if a live source
+        self.metrics = attached.metrics if attached.metrics is not None else ServerMetrics()
+        self.front = Front(self.waiting_room, self.metrics, config.serve_metrics, attached.files, self.refusal)
         self.clients: set[Client] = set()
         self.broadcast_ended = False
         self.broadcast_frames = 0
@@ -106,16 +141,14 @@ class WsServer:
         self._status_task: asyncio.Task | None = None
         self._lease_task: asyncio.Task | None = None
         self.totals = FrameTotals()
-        self.metrics = metrics if metrics is not None else ServerMetrics()
-        self.serve_metrics = serve_metrics
         self.metrics.streams.append(lambda: self.live_sessions)
         self.metrics.clients = lambda: len(self.clients)
         self.metrics.sinks["ws"] = lambda: (self.totals.sent, self.totals.dropped)
         self.metrics.queues["dimgestor_client_queue_messages"] = lambda: sum(len(c.queue) for c in self.clients)
         self.metrics.queues["dimgestor_audio_backlog_seconds"] = lambda: sum(
             c.source.backlog_s for c in self.clients if c.source is not None)
-        if self.link is not None:
-            self.metrics.store = self.metrics.readiness.store = self.link
+        if self.stored is not None:
+            self.metrics.store = self.metrics.readiness.store = self.stored.link
 
     @property
     def closing(self) -> bool:
@@ -149,16 +182,16 @@ class WsServer:
             self.origins |= {o for host, port in self.addresses for o in own_origins(host, port)}
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
         if self.seats.save_every_s is not None:
-            self._lease_task = asyncio.create_task(self._lease_loop(), name="ws-leases")
+            self._lease_task = asyncio.create_task(self.stored.keep_leases(lambda: self.clients), name="ws-leases")
 
     @property
     def url(self) -> str:
-        return f"ws://{_url_host(self.host)}:{self.port}/"
+        return f"ws://{_url_host(self.config.host)}:{self.port}/"
 
     @property
     def viewer_urls(self) -> list[str]:
         """Where a browser finds the viewer (one per address), if it is served."""
-        return [f"http://{_url_host(host)}:{port}/" for host, port in self.addresses] if self.files else []
+        return [f"http://{_url_host(host)}:{port}/" for host, port in self.addresses] if self.attached.files else []
 
     @property
     def live_sessions(self) -> int:
@@ -166,9 +199,9 @@ class WsServer:
         return self.seats.taken
 
     def describe(self) -> str:
-        hint = "?token=..." if self.token else ""
+        hint = "?token=..." if self.config.token else ""
         lines = [f"WebSocket  {self.url}{hint}  (protocol v1, docs/protocol.md)"]
-        lines += [f"web viewer {url}{'  (open it as ...?token=YOUR_TOKEN)' if self.token else ''}"
+        lines += [f"web viewer {url}{'  (open it as ...?token=YOUR_TOKEN)' if self.config.token else ''}"
                   for url in self.viewer_urls]
         return "\n".join(lines)
 
@@ -178,7 +211,7 @@ class WsServer:
 
     def refusal(self, target: str, origins: list[str], version: str = "HTTP/1.1") -> tuple[object, str]:
         """The handshake's checks (`streamer.handshake.refusal`) with this server's allow-list and token."""
-        return refusal(target, origins, version, self.origins, self.token)
+        return refusal(target, origins, version, self.origins, self.config.token)
 
     async def close(self, drain: bool = True, within_s: float = 1.5) -> None:
         """End every client's stream, deliver what is queued and close, all within ~within_s (whether the source
@@ -196,8 +229,9 @@ class WsServer:
         finishing = {c: task for c, task in own.items() if c.source is None}  # past audio_end: nothing to move
         moving = {c: task for c, task in own.items() if c not in finishing}
         until = loop.time() + (HANDOVER_S if self.store else within_s * 0.4)
-        self._drain_until = until  # no store call outlives the hand-over's bound
-        handed = await self._hand_over(moving, until) if self.store and moving else set()
+        if self.stored is not None:
+            self.stored.drain_until = until  # no store call outlives the hand-over's bound
+        handed = await self.stored.hand_over(moving, until) if self.store and moving else set()
         if finishing:
             await asyncio.wait(finishing.values(), timeout=max(0.0, until - loop.time()))
         for c, task in own.items():
@@ -211,8 +245,8 @@ class WsServer:
             # (a session cut short: the frames it queued, not those it counted: a window's frames may have been
             # encoding when it was cancelled, and they never come)
             if c in own and self.store is not None and c in moving:  # told why; it goes on elsewhere, afresh
-                c.put(P.goaway_unsaved(c.frames_queued, self._unsaved.get(c, "the session did not finish the "
-                                                                         "audio held within the hand-over's bound")))
+                c.put(P.goaway_unsaved(c.frames_queued, self.stored.unsaved.get(
+                    c, "the session did not finish the audio held within the hand-over's bound")))
             elif c in own:
                 c.put(P.end(c.frames_queued))
             elif not c.own and not self.broadcast_ended:
@@ -236,57 +270,8 @@ class WsServer:
                 for c in list(self.clients):
                     c.ws.transport.abort()
         self.prep.shutdown(wait=False, cancel_futures=True)
-        if self.link is not None:
-            self.link.close()
-
-    async def _hand_over(self, own: dict[Client, asyncio.Task], deadline: float) -> set[Client]:
-        """Each session finishes the audio it holds (until `deadline`), then its state goes to the store and the
-        client gets `goaway` with the token (streamer/handover.py). Returns the clients handed over; the others
-        (not done in time, a store that failed or did not answer by `deadline`) get a `goaway` without a token
-        from `close` (`protocol.goaway_unsaved`, with why): they reconnect and start a fresh stream."""
-        from .handover import new_token
-
-        loop = asyncio.get_running_loop()
-        # all of them before any await: audio that arrives meanwhile is ignored, never refused
-        sources = [c.hand_over() for c in own if c.session is not None]  # (None: left meanwhile)
-        for source in sources:
-            if source is not None:
-                await source.close()
-        done, _ = await asyncio.wait(own.values(), timeout=max(0.0, deadline - loop.time()))
-        ready = [c for c, task in own.items()
-                 if task in done and not task.cancelled() and task.exception() is None and c.session is not None]
-        # (not finished in time, failed, or its client left: not saved) all saved at once, each within `deadline`
-        saved = await asyncio.gather(*(c.save_handed_over(new_token()) for c in ready))
-        for c, ok in zip(ready, saved):
-            if not ok:
-                why = f"is unreachable: {self.link.down_reason}" if not self.link.up else "failed or was busy"
-                self._unsaved[c] = f"could not save the session (the state store {why})"
-        return {c for c, ok in zip(ready, saved) if ok}
-
-    async def _store_call(self, name: str, *args):
-        """The state store's method `name`, on the store's own thread, within its deadline (`StoreLink`); while
-        draining, within the hand-over's bound too."""
-        deadline_s = None
-        if self._drain_until is not None:
-            deadline_s = max(0.0, min(self._drain_until - asyncio.get_running_loop().time(),
-                                      STORE_DRAIN_DEADLINE_S))
-        return await self.link.call(name, *args, deadline_s=deadline_s)
-
-    async def _lease_loop(self) -> None:
-        """Renews the leases of the sessions live here, all in one store call every TOUCH_EVERY_S: their periodic-
-        save tokens resume nothing while their connections last (streamer/handover.py)."""
-        from .handover import TOUCH_EVERY_S
-
-        while True:
-            await asyncio.sleep(TOUCH_EVERY_S)
-            tokens = [c.machine.save_token for c in list(self.clients) if c.machine.save_token is not None]
-            if not tokens:
-                continue
-            try:
-                await self._store_call("touch", tokens)
-            except Exception as e:  # the store is down: the leases run out, the sessions go on
-                self.departures(logging.WARNING, f"state store: leases of {len(tokens)} sessions not renewed "
-                                                 f"({type(e).__name__}: {e})")
+        if self.stored is not None:
+            self.stored.link.close()
 
     # ---- broadcast (the server's own source) -----------------------------------------------------
 
@@ -296,7 +281,8 @@ class WsServer:
             return
         self.broadcast_frames += len(frames)
         encoded: dict[tuple, list] = {}  # (encoding, channels) -> messages: each form encoded once
-        window = self.broadcast_stats.window if self.broadcast_stats is not None else None
+        stats = self.broadcast_stats
+        window = stats.window if stats is not None else None
         timing = None
         for c in list(self.clients):
             for a in c.act(c.machine.handle(S.Broadcast(len(frames), window))):
@@ -339,21 +325,20 @@ class WsServer:
     async def _handle(self, ws: ServerConnection) -> None:
         from .handover import new_token
 
-        self.seats.accepts_audio = self.make_session is not None  # (the terms as they are now)
-        self.seats.offers_source_audio = "source_audio" in self.hello
-        self.seats.face = self.hello["face"]["names"] if "face" in self.hello else None
-        self.seats.joints = len(self.hello["skeleton"]["joints"])
-        svc = Services(self.prep, self.metrics, self.make_session, self.store, self._store_call, self.max_backlog_s,
-                       self.audio_recent, self.departures, self._trim_later, self.pose, self.skeleton)
+        c = self.config
+        svc = Services(self.prep, self.metrics, self.make_session, self.store,
+                       self.stored.call if self.stored is not None else None, c.max_backlog_s,
+                       self.audio_recent, self.departures, self._trim_later, self.attached.pose,
+                       self.attached.skeleton)
         client = Client(ws, S.ClientSession(self.seats, new_token), S.Keepalive(
-            self.ping_interval or 0.0, self.ping_timeout, time.monotonic()), svc, self.max_queue, self.totals)
+            c.ping_interval or 0.0, c.ping_timeout, time.monotonic()), svc, c.max_queue, self.totals)
         self.clients.add(client)
         client.put(json.dumps(self.hello))
         tasks = [asyncio.create_task(client.send_loop(), name="ws-sender"),
                  asyncio.create_task(client.read_loop(), name="ws-reader"),
                  asyncio.ensure_future(ws.wait_closed())]
-        if self.ping_interval:
-            tasks.append(asyncio.create_task(client.keepalive_loop(self.ping_interval), name="ws-keepalive"))
+        if c.ping_interval:
+            tasks.append(asyncio.create_task(client.keepalive_loop(c.ping_interval), name="ws-keepalive"))
         try:  # whichever ends first (the connection closed, the sender failed, the reader is done) ends it all
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -382,15 +367,15 @@ class WsServer:
 
     async def _status_loop(self) -> None:
         while True:
-            await asyncio.sleep(self.status_every)
+            await asyncio.sleep(self.config.status_every)
             for c in list(self.clients):
                 if self.broadcast_ended and not c.own:
                     continue
                 stats = c.session.stats if c.session is not None else self.broadcast_stats
                 lat, rtf = (stats.latency_ms, stats.rtf) if stats is not None else (0.0, 0.0)
                 extra = {"session": "own" if c.own else "broadcast"}
-                if not c.own and self.source_dropped_s is not None:
-                    extra["audio_dropped_s"] = round(self.source_dropped_s(), 3)
+                if not c.own and self.attached.source_dropped_s is not None:
+                    extra["audio_dropped_s"] = round(self.attached.source_dropped_s(), 3)
                 c.note(P.status(lat, rtf, c.frames_sent, c.dropped, len(self.clients), **extra))
 
 

@@ -177,8 +177,7 @@ def test_one_broadcast_reaches_each_watcher_in_its_own_set_and_encoding(bundle, 
     asks = [None, {"face": "arkit"}, {"encoding": "binary"}, {"encoding": "binary", "face": "oculus"}]
 
     async def run():
-        ws = make_server(bundle)
-        ws.hello = {**ws.hello, "face": P.face_hello("vrm0")}  # (what `serve` says with its default --face)
+        ws = make_server(bundle, {"face": P.face_hello("vrm0")})  # (what `serve` says with its default --face)
         await ws.open()
         clients = [await connect(ws.url) for _ in asks]
         for c, ask in zip(clients, asks):

@@ -23,11 +23,11 @@ from streamer.record import BvhRecorder
 from streamer.server import ServeError, ServeOptions, read_token
 from streamer.sessions import Session
 from streamer.viewer import ViewerFiles
-from streamer.ws import WsServer, own_origins
+from streamer.ws import own_origins
 from helpers import warm
 from helpers.serve import REPO, serve
 from helpers.stalls import runnable_waiting_s, wait_counting_cpu_waits
-from helpers.ws import SlowExecutor, make_server, recv_json, running
+from helpers.ws import SlowExecutor, make_server, recv_json, running, server
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -325,7 +325,7 @@ def test_the_viewer_is_served_with_files_only_inside_its_mounts(tmp_path):
     (lib / "three.module.js").write_text("// three")
     (lib / "other.js").write_text("// not served")
     files = ViewerFiles({"/": web, "/vendor/three.module.js": lib / "three.module.js"})
-    with running(WsServer("127.0.0.1", 0, {"type": "hello"}, None, files=files, request_timeout_s=0.5,
+    with running(server({"type": "hello"}, None, files=files, request_timeout_s=0.5,
                           max_waiting=4)) as v:
         get = lambda path, method=b"GET": http(v.port, method + b" " + path + b" HTTP/1.1\r\nHost: x\r\n\r\n")  # noqa: E731
         assert get(b"/").startswith(b"HTTP/1.1 200") and b"viewer" in get(b"/")

@@ -11,7 +11,7 @@ from streamer.options import FLAGS, ServeError, ServeOptions, flag_of
 from streamer.record import RecordingSink
 from streamer.sink import Sink
 from streamer.vmc import VmcSink
-from streamer.ws import WsServer
+from streamer.ws import WsConfig, WsServer
 
 
 def parse(*flags: str) -> ServeOptions:
@@ -104,10 +104,9 @@ def test_the_state_secret_comes_from_its_file_or_the_environment_and_only_with_a
 
 
 def test_the_server_pieces_take_their_defaults_from_the_options():
-    ws = inspect.signature(WsServer).parameters
-    o = ServeOptions()
-    assert ws["max_sessions"].default == o.max_sessions
-    assert (ws["ping_interval"].default, ws["ping_timeout"].default) == (o.ping_interval, o.ping_timeout)
+    ws, o = WsConfig(), ServeOptions()
+    assert ws.max_sessions == o.max_sessions
+    assert (ws.ping_interval, ws.ping_timeout) == (o.ping_interval, o.ping_timeout)
 
 
 def test_websocket_vmc_and_recording_are_sinks(bundle, tmp_path):
@@ -115,7 +114,7 @@ def test_websocket_vmc_and_recording_are_sinks(bundle, tmp_path):
 
     sk = bundle.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
-    for sink in (WsServer("127.0.0.1", 0, {}, None), VmcSink("127.0.0.1", 9, rig),
+    for sink in (WsServer(WsConfig(), {}, None), VmcSink("127.0.0.1", 9, rig),
                  RecordingSink(tmp_path / "x.bvh", sk, bundle.feature_spec)):
         assert isinstance(sink, Sink), type(sink).__name__
         for name in ("open", "send", "close", "describe", "status"):

@@ -18,8 +18,7 @@ from hypothesis import strategies as st
 from streamer import request_checks as RC
 from streamer.redact import RedactTokens
 from streamer.viewer import ViewerFiles
-from streamer.ws import WsServer
-from helpers.ws import make_server, running
+from helpers.ws import make_server, running, server
 
 pytestmark = pytest.mark.timeout(180)
 FUZZ = settings(max_examples=300, deadline=None,  # the fixtures used under @given hold no per-example state
@@ -78,7 +77,7 @@ def files(tmp_path):
 @pytest.fixture
 def viewer(files):
     """The WebSocket server (no model: it takes no client audio) serving `files`, on its own event loop."""
-    with running(WsServer("127.0.0.1", 0, {"type": "hello"}, None, files=files, request_timeout_s=1.0,
+    with running(server({"type": "hello"}, None, files=files, request_timeout_s=1.0,
                           max_waiting=8)) as ws:
         yield ws
 

@@ -222,8 +222,7 @@ def test_status_arrives_about_once_a_second_with_the_documented_fields(bundle):
 
 def test_other_protocol_versions_and_refused_audio(bundle):
     async def run():
-        ws = make_server(bundle)
-        ws.make_session = None  # as with --no-client-audio
+        ws = make_server(bundle, make_session=None)  # as with --no-client-audio
         await ws.open()
         async with connect(ws.url) as c:
             await recv_json(c)
@@ -267,8 +266,7 @@ def test_source_audio_goes_to_the_viewers_that_ask_replayed_to_late_joiners_and_
 
     async def run():
         nonlocal ws
-        ws = make_server(bundle)
-        ws.hello = {**ws.hello, "source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
+        ws = make_server(bundle, {"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}})
         await ws.open()
         async with connect(ws.url) as early, connect(ws.url) as deaf, connect(ws.url) as talker:
             for c in (early, deaf, talker):

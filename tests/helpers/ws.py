@@ -10,14 +10,29 @@ from contextlib import contextmanager
 from streamer import protocol as P
 from streamer.sessions import Session
 from streamer.pose import HumanoidRig, load_humanoid_map
-from streamer.ws import WsServer
+from dataclasses import fields
+
+from streamer.ws import Attached, WsConfig, WsServer
 
 
-def make_server(bundle, **kw) -> WsServer:
+def server(hello: dict, make_session, **kw) -> WsServer:
+    """A `WsServer` on 127.0.0.1 and a free port; `kw`: fields of `WsConfig` and of `Attached`."""
+    config = {f.name for f in fields(WsConfig)}
+    for key in ("origins", "also"):
+        if key in kw:
+            kw[key] = tuple(kw[key])
+    return WsServer(WsConfig("127.0.0.1", 0, **{k: v for k, v in kw.items() if k in config}), hello, make_session,
+                    Attached(**{k: v for k, v in kw.items() if k not in config}))
+
+
+def make_server(bundle, hello_extra: dict | None = None, make_session="default", **kw) -> WsServer:
+    """`server` with the bundle's hello (plus `hello_extra`) and its sessions (make_session None: no client audio)."""
     sk = bundle.skeleton
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
-    hello = P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True)
-    return WsServer("127.0.0.1", 0, hello, lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100), **kw)
+    hello = {**P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True), **(hello_extra or {})}
+    if make_session == "default":
+        make_session = lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)  # noqa: E731
+    return server(hello, make_session, **kw)
 
 
 @contextmanager
