@@ -17,7 +17,7 @@ import logging
 import time
 import warnings
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -40,14 +40,13 @@ from dimgestor.face.visemes import V
 from dimgestor.rotations import expmap_to_quat, quat_conj, quat_mul, quat_to_expmap
 from streamer.face import FACE
 from streamer.frames import Frame
+from streamer.playout import UNCONFIRMED_S, Playout, Utterance
 from streamer.sessions import Session
 from streamer.sink import Sink
 from streamer.sources import PushSource, make_resampler
 
-__all__ = ["GestureProcessor", "GestureStats", "PlayoutObserver", "Released", "RestPose"]
+__all__ = ["GestureProcessor", "GestureStats", "PlayoutObserver", "Released", "RestPose", "Resting"]
 log = logging.getLogger("streamer.pipecat")
-LATER_AFTER = 2     # playout reports in a row later than the clock that move it later (one late report: a busy loop)
-UNCONFIRMED_S = 0.1  # how long past its time a frame waits for the transport's report of its audio
 
 
 @dataclass(frozen=True)
@@ -140,36 +139,44 @@ class _Spring:
         return self.x
 
 
-@dataclass
-class _Utterance:
-    number: int
-    session: Session
-    source: PushSource
-    resampler: object | None  # to 16 kHz (`StreamingResampler`); None: the TTS's rate is 16 kHz
-    rate: int
-    start: float | None = None   # monotonic time its first sample is heard
-    pts0: float = 0.0            # its first frame's pts (its frames' and its audio's clock: fixed at its first release)
-    pushed_s: float = 0.0        # audio (and transport gaps) handed to the transport so far
-    samples: int = 0             # of which audio, in samples at `rate` (counted, not summed as seconds: see gaps)
-    gaps: list = field(default_factory=list)  # (audio_s before it, seconds): silence the transport plays
-    heard_s: float = 0.0         # audio the transport reported playing (`playout_observer`)
-    last_chunk_s: float = 0.0    # the last reported chunk's length
-    confirmed: bool = False      # the transport reported playing it (until then its start is an estimate)
-    offsets: deque = field(default_factory=lambda: deque(maxlen=LATER_AFTER))  # reports later than `start`
-    open: bool = True            # more of its audio may come
-    done: bool = False           # its session ended: every frame is in `frames` or released
-    frames: deque = field(default_factory=deque)
-    first_ready: asyncio.Event = field(default_factory=asyncio.Event)
-    audio: list = field(default_factory=list)  # (local pts, 16 kHz samples) not yet heard: for on_audio
-    task: asyncio.Task | None = None
-    released: int = 0
+class Resting:
+    """The avatar between utterances and into the next: a critically damped spring eases the body to rest (and an
+    utterance's first `blend_in` frames out of it), the mouth rests and the eyes blink on the frames' clock."""
 
-    @property
-    def audio_s(self) -> float:
-        """Seconds of audio handed to the transport. A gap starts exactly here: a frame whose pts is the same
-        moment (k / fps == samples / rate) shows the gap's silence, where a sum of 20 ms chunks (0.4000000000000001
-        after twenty) would have put it a rounding error into the gap and labelled it audio."""
-        return self.samples / self.rate
+    def __init__(self, rest: RestPose, fps: float, rest_hz: float, blend_in: int, face: FaceOptions | None,
+                 blinks: Blinks):
+        self.rest, self.dt, self.blend_in, self.face, self.blinks = rest, 1 / fps, blend_in, face, blinks
+        self.spring = _Spring(len(rest.tangent(self.pose_frame())), 2 * np.pi * rest_hz)
+
+    def pose_frame(self) -> Frame:
+        """The rest pose as a frame (index 0, pts 0, no channels)."""
+        return Frame(0, 0.0, self.rest.root_pos, self.rest.rotations, self.rest.features)
+
+    def speech(self, f: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """An utterance's frame as it goes out (root, rotations, features): eased in from where the spring is over
+        its first `blend_in` frames, then the model's own; the spring follows it."""
+        x = self.rest.tangent(f)
+        if f.index < self.blend_in:
+            w = _smoothstep((f.index + 1) / (self.blend_in + 1))
+            x = (1 - w) * self.spring.step(self.dt) + w * x
+            pose = self.rest.pose(x)
+        else:
+            pose = f.root_pos, f.rotations, f.features
+        self.spring.follow(x, self.dt)
+        return pose
+
+    def frame(self, index: int, pts: float) -> Frame:
+        """The next frame between utterances: the spring's step toward rest, and the face at rest."""
+        root, rot, feats = self.rest.pose(self.spring.step(self.dt))
+        return Frame(index, pts, root, rot, feats, {} if self.face is None else {FACE: self.face_at(pts)})
+
+    def face_at(self, pts: float) -> np.ndarray:
+        """The face between utterances: the mouth at rest, the eyes blinking on the frames' clock, the smile."""
+        out = np.zeros(len(FACE_LABELS))
+        out[V["sil"]] = 1.0
+        out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(pts, False)
+        out[V["smile"]] = self.face.smile
+        return out
 
 
 class GestureProcessor(FrameProcessor):
@@ -190,12 +197,7 @@ class GestureProcessor(FrameProcessor):
                  on_audio: Callable[[float, np.ndarray], None] | None = None,
                  on_release: Callable[[Released], None] | None = None, executor=None,
                  face: FaceOptions | None = FaceOptions(), **kwargs):
-        if executor is not None:
-            if scheduler is not None:
-                raise TypeError("GestureProcessor: give scheduler= only (executor= is its deprecated name)")
-            warnings.warn("GestureProcessor(executor=...) is deprecated: use scheduler=", DeprecationWarning,
-                          stacklevel=2)
-            scheduler = executor
+        scheduler = _scheduler(scheduler, executor)
         if face is not None and (why := face_unavailable()) is not None:  # (no pocketsphinx wheel here)
             raise ImportError(f"GestureProcessor: {why}; or face=None for frames without a face")
         super().__init__(**kwargs)
@@ -211,27 +213,23 @@ class GestureProcessor(FrameProcessor):
         self.steps = steps if steps is not None else bundle.config.sample_steps
         self.seed, self.window_ms, self.scheduler = seed, window_ms, scheduler
         self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
-        self.on_audio, self.on_release = on_audio, on_release
-        self.face = face
-        self._rest_blinks = Blinks(seed=seed if face is None else face.seed + seed)  # the eyes between utterances
-        self.rest = RestPose.of_silence(bundle, self.steps, seed)
-        self.spring = _Spring(len(self.rest.tangent(self._rest_frame())), 2 * np.pi * rest_hz)
+        self.on_audio, self.on_release, self.face = on_audio, on_release, face
+        self.resting = Resting(RestPose.of_silence(bundle, self.steps, seed), self.fps, rest_hz, self.blend_in,
+                               face, Blinks(seed=seed if face is None else face.seed + seed))
+        self.rest = self.resting.rest
         self.stats = GestureStats()
         self.inference = InferenceStats()  # for `status` (WsServer.broadcast_stats), as `streamer serve` sends
         self.origin: float | None = None  # monotonic time of pts 0 (the StartFrame)
-        self._utterances: deque[_Utterance] = deque()
-        self._playing: deque[_Utterance] = deque()  # utterances whose audio the transport has not all played
-        self.playout_observer = PlayoutObserver(self)
-        self._observed = False  # the observer sees this pipeline: the transport's playout is reported
-        self._play_end = 0.0               # when the audio pushed so far ends playing
-        self._holding: _Utterance | None = None
-        self._held: list[tuple[PipecatFrame, FrameDirection, _Utterance | None]] = []  # (audio: its utterance)
+        self._changed = asyncio.Event()
+        self._utterances: deque[Utterance] = deque()
+        self.playout = Playout(self._changed.set)  # when their audio is heard
+        self.playout_observer = PlayoutObserver(self.playout)
+        self._holding: Utterance | None = None
+        self._held: list[tuple[PipecatFrame, FrameDirection, Utterance | None]] = []  # (audio: its utterance)
         self._next_rest_due = 0.0
         self._drift = 0.0  # frames' pts less their due time since the start: playout shifts moved one, not the other
-        self._last_pts: float | None = None  # the last frame sent's
-        self._last_due: float | None = None
+        self._last_pts = self._last_due = None  # the last frame sent's pts and due time (None: none yet)
         self._index = 0
-        self._changed = asyncio.Event()
         self._clock_task: asyncio.Task | None = None
         self._hold_task: asyncio.Task | None = None
 
@@ -251,7 +249,7 @@ class GestureProcessor(FrameProcessor):
             return
         if direction == FrameDirection.UPSTREAM:
             if isinstance(frame, BotStartedSpeakingFrame):
-                self._bot_started(time.monotonic())
+                self.playout.bot_started(time.monotonic(), self._utterances)
             elif isinstance(frame, BotStoppedSpeakingFrame) and self._utterances:
                 u = self._utterances[-1]  # ended by the transport (a TTS that sends no TTSStopped), if all heard:
                 if u.start is not None and time.monotonic() >= u.start + u.pushed_s - 1 / self.fps:
@@ -274,7 +272,7 @@ class GestureProcessor(FrameProcessor):
 
     # ---- the agent's audio -----------------------------------------------------------------------
 
-    async def _hear(self, frame: OutputAudioRawFrame) -> _Utterance:
+    async def _hear(self, frame: OutputAudioRawFrame) -> Utterance:
         """Feed a frame of agent audio to its utterance's session (a new utterance if none is open); schedule
         its playout unless it is held."""
         u = self._utterances[-1] if self._utterances and self._utterances[-1].open else None
@@ -283,18 +281,18 @@ class GestureProcessor(FrameProcessor):
             u = None
         if u is None:
             u = self._new_utterance(frame.sample_rate)
-            if self.max_hold_s > 0 and self._play_end <= time.monotonic() and self._holding is None:
+            if self.max_hold_s > 0 and self.playout.play_end <= time.monotonic() and self._holding is None:
                 self._holding = u  # it would be heard at once: hold it until its first frames are made
                 self._hold_task = self.create_task(self._hold(u), name="gesture-hold")
         x = _mono(frame)
         if self._holding is None:  # (held audio goes out later, back to back: no transport gap to fill)
             gap = self._schedule(u, len(x))
             if gap > 0:
-                await self._feed(u, np.zeros(int(round(gap * frame.sample_rate)), np.float32))
-        await self._feed(u, x)
+                await u.feed(np.zeros(int(round(gap * frame.sample_rate)), np.float32))
+        await u.feed(x)
         return u
 
-    def _new_utterance(self, rate: int) -> _Utterance:
+    def _new_utterance(self, rate: int) -> Utterance:
         from dimgestor.features import PoseDecoder
 
         number = self.stats.utterances
@@ -306,8 +304,8 @@ class GestureProcessor(FrameProcessor):
                           window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}",
                           face=face)  # (seeded as its body is)
         self.inference.session = session.stats
-        u = _Utterance(number, session, PushSource(max_backlog_s=3600.0),
-                       None if rate == SAMPLE_RATE else make_resampler(rate), rate)
+        u = Utterance(number, session, PushSource(max_backlog_s=3600.0),
+                      None if rate == SAMPLE_RATE else make_resampler(rate), rate)
 
         def emit(frames: list[Frame]) -> None:
             u.frames.extend(frames)
@@ -329,48 +327,15 @@ class GestureProcessor(FrameProcessor):
         self._utterances.append(u)
         return u
 
-    async def _feed(self, u: _Utterance, x: np.ndarray) -> None:
-        y = x if u.resampler is None else np.asarray(u.resampler.process(x), dtype=np.float32)
-        if len(y):
-            u.audio.append((u.source.samples_in / SAMPLE_RATE, y))
-            await u.source.put(y)  # (waits only when an hour of audio is queued)
-
-    def _schedule(self, u: _Utterance, samples: int) -> float:
-        """`samples` of u's audio (at its rate) are pushed to the transport now: when they play. Returns the
-        silence (s) the transport plays before them, part of u's timeline (a TTS slower than real time)."""
-        seconds = samples / u.rate
-        now = time.monotonic()
-        begin = max(now, self._play_end)
-        if u.start is None:
-            u.start, gap = begin, 0.0
-            u.pts0 = begin - self.origin + self._drift
-        else:
-            gap = begin - (u.start + u.pushed_s)
-            if gap < 0.5 / u.rate:  # (under half a sample: the rounding of sums of clock times, not silence)
-                gap = 0.0
-        if gap > 0:
-            u.gaps.append((u.audio_s, gap))
-        if not u.samples:
-            self._playing.append(u)
-        u.pushed_s += gap + seconds
-        u.samples += samples
-        self._play_end = begin + seconds
-        self._changed.set()
+    def _schedule(self, u: Utterance, samples: int) -> float:
+        """`samples` of u's audio go to the transport now (`Playout.schedule`); its first fixes u's pts."""
+        first = u.start is None
+        gap = self.playout.schedule(u, samples, time.monotonic())
+        if first:
+            u.pts0 = u.start - self.origin + self._drift
         return gap
 
-    def _give_audio(self, u: _Utterance, until: float) -> None:
-        """u's audio up to local time `until` to on_audio, as it is heard (never what an interruption cut)."""
-        while u.audio and u.audio[0][0] < until:
-            pts, y = u.audio.pop(0)
-            n = len(y) if until == np.inf else min(len(y), int(round((until - pts) * SAMPLE_RATE)))
-            if n < len(y):  # the rest is heard later
-                u.audio.insert(0, (pts + n / SAMPLE_RATE, y[n:]))
-            if n <= 0:
-                break
-            if self.on_audio is not None:
-                self.on_audio(u.pts0 + pts, y[:n])
-
-    async def _hold(self, u: _Utterance) -> None:
+    async def _hold(self, u: Utterance) -> None:
         t0 = time.monotonic()
         try:
             await asyncio.wait_for(u.first_ready.wait(), self.max_hold_s)
@@ -387,57 +352,8 @@ class GestureProcessor(FrameProcessor):
 
     async def _end_utterance(self) -> None:
         """The open utterance's audio has all come: its session flushes its last frames."""
-        if not self._utterances or not self._utterances[-1].open:
-            return
-        u = self._utterances[-1]
-        u.open = False
-        if u.resampler is not None:
-            tail = np.asarray(u.resampler.flush(), dtype=np.float32)
-            if len(tail):
-                u.audio.append((u.source.samples_in / SAMPLE_RATE, tail))
-                await u.source.put(tail)
-        await u.source.close()
-
-    def _heard(self, wall: float, seconds: float) -> None:
-        """The output transport reported playing `seconds` of audio from `wall` (`PlayoutObserver`): the playing
-        utterance's clock follows. A report is never early but may be late (the loop was busy when the
-        transport pushed it on), so an earlier one moves the clock at once, a later one only when the last
-        `LATER_AFTER` reports agree (the device really ran dry: a stalled loop, a slow write)."""
-        if not self._playing:
-            return
-        u = self._playing[0]
-        local = u.heard_s + sum(g for at, g in u.gaps if at <= u.heard_s + 1e-6)
-        offset = wall - local  # when u's local time 0 was heard, by this report
-        u.heard_s += seconds
-        u.last_chunk_s = seconds
-        if not u.open and u.heard_s >= u.audio_s - 1e-6:  # (its last chunk may be padded with silence)
-            self._playing.popleft()
-        shift = 0.0
-        if not u.confirmed:
-            u.confirmed, shift = True, offset - u.start
-        elif offset < u.start - 1e-3:
-            shift = offset - u.start
-        else:
-            u.offsets.append(offset)
-            if len(u.offsets) == LATER_AFTER and min(u.offsets) > u.start + 5e-3:
-                shift = min(u.offsets) - u.start
-        if shift:
-            u.offsets.clear()
-            later = [v for v in self._playing if v is not u and v.start is not None and v.start > u.start]
-            for v in [u, *later]:  # what is queued behind it plays that much later (or earlier) too
-                v.start += shift
-            self._play_end += shift
-        self._changed.set()
-
-    def _bot_started(self, now: float) -> None:
-        """The transport started playing: an utterance that began in silence began now (if later than thought)."""
-        if self._observed:
-            return
-        for u in self._utterances:
-            if u.start is not None and u.released == 0 and u.start < now:
-                u.start = now
-                self._changed.set()
-                break
+        if self._utterances and self._utterances[-1].open:
+            await self._utterances[-1].close()
 
     async def _interrupt(self, frame: PipecatFrame) -> None:
         """The user barged in (or the pipeline stops): nothing not yet heard will be; ease to rest."""
@@ -454,8 +370,7 @@ class GestureProcessor(FrameProcessor):
         # may start a new one, while the old ones' inference is cancelled)
         gone = list(self._utterances)
         self._utterances.clear()
-        self._playing.clear()
-        self._play_end = now
+        self.playout.clear(now)
         if self._last_due is not None:
             self._next_rest_due = self._last_due + 1 / self.fps
         self._changed.set()
@@ -485,20 +400,20 @@ class GestureProcessor(FrameProcessor):
             now = time.monotonic()
             u = self._utterances[0] if self._utterances else None
             # (an estimated start: the observer reports the real one; a transport it does not see, never)
-            started = u is not None and u.start is not None and (
-                u.confirmed or not self._observed or now > u.start + UNCONFIRMED_S)
+            started = self.playout.started(u, now)
             # (once begun, an utterance keeps the clock: when its audio pauses, the picture waits with it)
             if started and (u.released or self._next_rest_due >= u.start - dt / 2):
                 if u.frames:
                     due = u.start + u.frames[0].pts
                     if due > now and await self._wait(due - now):
                         continue
-                    if self._unheard(u, u.frames[0], due) and await self._wait(due + UNCONFIRMED_S - now):
+                    if (self.playout.unheard(u, u.frames[0].pts, due, time.monotonic())
+                            and await self._wait(due + UNCONFIRMED_S - now)):
                         continue
                     self._release_speech(u, u.frames.popleft(), due, time.monotonic())
                 elif u.done:
                     self._begin(u)
-                    self._give_audio(u, np.inf)
+                    u.give_audio(np.inf, self.on_audio)
                     self._utterances.popleft()
                     if self._last_due is not None:
                         self._next_rest_due = self._last_due + dt
@@ -509,14 +424,6 @@ class GestureProcessor(FrameProcessor):
             if due > now and await self._wait(due - now):
                 continue
             self._release_rest(due)
-
-    def _unheard(self, u: _Utterance, f: Frame, due: float) -> bool:
-        """The transport has not reported playing f's audio yet (it ran late: the frame waits for it, up to
-        UNCONFIRMED_S past its due time, so reports that come late or never cannot stop the avatar)."""
-        if not self._observed or time.monotonic() > due + UNCONFIRMED_S:
-            return False
-        moment = _audio_at(u, f.pts)  # (the chunk after the last reported one follows it: report latency allowed)
-        return moment is not None and moment >= u.heard_s + u.last_chunk_s
 
     async def _wait(self, timeout: float | None) -> bool:
         """Sleep until `timeout` or until something changed; True: something changed (look again), also when it
@@ -529,7 +436,7 @@ class GestureProcessor(FrameProcessor):
             pass
         return self._changed.is_set()
 
-    def _begin(self, u: _Utterance) -> None:
+    def _begin(self, u: Utterance) -> None:
         """Before u's first frame or audio goes out: its pts come after every frame sent. They were set when its
         audio was pushed, from the wall clock; a rest frame released since (the transport had not yet confirmed
         when u starts, or confirmed it later) may carry a later pts. Frames' pts only increase: u's clock moves
@@ -537,41 +444,24 @@ class GestureProcessor(FrameProcessor):
         if u.released == 0 and self._last_pts is not None:
             u.pts0 = max(u.pts0, self._last_pts + 0.5 / self.fps)
 
-    def _release_speech(self, u: _Utterance, f: Frame, due: float, now: float) -> None:
+    def _release_speech(self, u: Utterance, f: Frame, due: float, now: float) -> None:
         self._begin(u)
         k = f.index
-        x = self.rest.tangent(f)
-        if k < self.blend_in:  # ease in from where the spring is
-            w = _smoothstep((k + 1) / (self.blend_in + 1))
-            x = (1 - w) * self.spring.step(1 / self.fps) + w * x
-            root, rot, feats = self.rest.pose(x)
-        else:
-            root, rot, feats = f.root_pos, f.rotations, f.features
-        self.spring.follow(x, 1 / self.fps)
+        root, rot, feats = self.resting.speech(f)
         late = now - due
         if late > 1 / self.fps:
             self.stats.late += 1
         self.stats.max_late_s = max(self.stats.max_late_s, late)
         self.stats.speech_frames += 1
         u.released += 1
-        self._give_audio(u, f.pts + 1 / self.fps)
+        u.give_audio(f.pts + 1 / self.fps, self.on_audio)
         self._send(Frame(self._index, u.pts0 + f.pts, root, rot, feats, f.channels), due, u.number, k,
-                   _audio_at(u, f.pts), now)
+                   u.audio_at(f.pts), now)
 
     def _release_rest(self, due: float) -> None:
-        root, rot, feats = self.rest.pose(self.spring.step(1 / self.fps))
-        self.stats.rest_frames += 1
         pts = due - self.origin + self._drift
-        channels = {} if self.face is None else {FACE: self._rest_face(pts)}
-        self._send(Frame(self._index, pts, root, rot, feats, channels), due, -1, -1, None, time.monotonic())
-
-    def _rest_face(self, pts: float) -> np.ndarray:
-        """The face between utterances: the mouth at rest, the eyes blinking on the frames' clock, the smile."""
-        out = np.zeros(len(FACE_LABELS))
-        out[V["sil"]] = 1.0
-        out[V["blinkLeft"]], out[V["blinkRight"]] = self._rest_blinks.step(pts, False)
-        out[V["smile"]] = self.face.smile
-        return out
+        self.stats.rest_frames += 1
+        self._send(self.resting.frame(self._index, pts), due, -1, -1, None, time.monotonic())
 
     def _send(self, frame: Frame, due: float, utterance: int, k: int, audio_s: float | None, now: float) -> None:
         """`now`: the release's instant, the one its lateness was counted from (`Released.wall` says the same)."""
@@ -589,24 +479,21 @@ class GestureProcessor(FrameProcessor):
     def frames_sent(self) -> int:
         return self._index
 
-    def _rest_frame(self) -> Frame:
-        return Frame(0, 0.0, self.rest.root_pos, self.rest.rotations, self.rest.features)
-
 
 class PlayoutObserver(BaseObserver):
-    """Tells its `GestureProcessor` when the output transport plays each chunk of audio: a transport pushes a
-    chunk on once written to its device, so that push's timestamp is when the chunk starts to be heard. Add it
-    to the pipeline's observers (`PipelineWorker(..., observers=[gestures.playout_observer])`); without it the
-    processor follows its own model of the transport (and BotStartedSpeaking), which a stalled event loop or a
-    device that ran dry makes late."""
+    """Tells a `GestureProcessor`'s playout (`streamer.playout.Playout`) when the output transport plays each chunk
+    of audio: a transport pushes a chunk on once written to its device, so that push's timestamp is when the chunk
+    starts to be heard. Add it to the pipeline's observers (`PipelineWorker(..., observers=
+    [gestures.playout_observer])`); without it the processor follows its own model of the transport (and
+    BotStartedSpeaking), which a stalled event loop or a device that ran dry makes late."""
 
-    def __init__(self, processor: "GestureProcessor"):
+    def __init__(self, playout: Playout):
         super().__init__(observe_every_push=False)  # (the transport's chunks are its own frames: their first push)
-        self.processor = processor
+        self.playout = playout
         self._clock_offset_ns: int | None = None
 
     async def on_push_frame(self, data: FramePushed):
-        self.processor._observed = True  # (the StartFrame's push comes before any audio)
+        self.playout.observed = True  # (the StartFrame's push comes before any audio)
         if not (isinstance(data.source, BaseOutputTransport) and data.direction == FrameDirection.DOWNSTREAM
                 and isinstance(data.frame, OutputAudioRawFrame) and data.frame.audio):
             return
@@ -614,19 +501,17 @@ class PlayoutObserver(BaseObserver):
             self._clock_offset_ns = time.monotonic_ns() - data.source.get_clock().get_time()
         f = data.frame
         seconds = len(f.audio) / (2 * f.num_channels * f.sample_rate)
-        self.processor._heard((data.timestamp + self._clock_offset_ns) / 1e9, seconds)
+        self.playout.heard((data.timestamp + self._clock_offset_ns) / 1e9, seconds)
 
 
-def _audio_at(u: _Utterance, local: float) -> float | None:
-    """The moment of u's audio heard at `local` seconds into its timeline (None: a gap the transport filled)."""
-    silence = 0.0
-    for at, gap in u.gaps:
-        if local < at + silence:
-            break
-        if local < at + silence + gap:
-            return None
-        silence += gap
-    return local - silence
+def _scheduler(scheduler, executor):
+    """GestureProcessor's scheduler= (or executor=, its deprecated name)."""
+    if executor is None:
+        return scheduler
+    if scheduler is not None:
+        raise TypeError("GestureProcessor: give scheduler= only (executor= is its deprecated name)")
+    warnings.warn("GestureProcessor(executor=...) is deprecated: use scheduler=", DeprecationWarning, stacklevel=3)
+    return executor
 
 
 def _mono(frame: OutputAudioRawFrame) -> np.ndarray:

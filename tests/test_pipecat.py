@@ -323,43 +323,34 @@ def test_without_pocketsphinx_a_face_is_refused_at_construction_and_bones_only_w
     assert sp.GestureProcessor([], bundle=bundle, face=None).face is None
 
 
-def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause(bundle, monkeypatch):
+def test_a_frame_at_the_instant_a_pause_begins_shows_the_pause():
     """A slow TTS sends twenty 20 ms chunks, then nothing until 0.525 s: the transport is silent from 0.4 s. Frame 8
     (pts 0.4) shows that silence, not the audio after it (which is heard only at 0.525 s): the pause begins where
     the audio counted in samples ends, exactly (a sum of 20 ms as seconds is 0.4000000000000001). On a fake clock."""
-    from streamer import pipecat as sp
+    from streamer.playout import Playout, Utterance
 
-    clock = SimpleNamespace(monotonic=lambda: 0.0)
-    monkeypatch.setattr(sp, "time", clock)
-    g = sp.GestureProcessor([], bundle=bundle)
-    g.origin = 0.0
-    u = sp._Utterance(0, None, None, None, RATE)
+    playout, u = Playout(), Utterance(0, None, None, None, RATE)
     for _ in range(20):
-        assert g._schedule(u, RATE // 50) == 0.0
-    clock.monotonic = lambda: 0.525
-    assert g._schedule(u, RATE // 50) == pytest.approx(0.125)
-    shown = [sp._audio_at(u, k / FPS) for k in range(13)]
+        assert playout.schedule(u, RATE // 50, now=0.0) == 0.0
+    assert playout.schedule(u, RATE // 50, now=0.525) == pytest.approx(0.125)
+    shown = [u.audio_at(k / FPS) for k in range(13)]
     assert shown[:8] == [k / FPS for k in range(8)]
     assert shown[8:11] == [None, None, None]
     assert shown[11:] == pytest.approx([0.425, 0.475])
 
 
-def test_a_tts_ahead_of_real_time_leaves_no_gap_however_long_the_machine_has_been_up(bundle, monkeypatch):
+def test_a_tts_ahead_of_real_time_leaves_no_gap_however_long_the_machine_has_been_up():
     """Chunks pushed ahead of their playout play back to back: no transport gap, so every frame shows audio. The
     clock's sums round differently from the audio's (picoseconds, more the longer the machine has been up: the
     monotonic clock counts from boot); a frame at a chunk's edge must not fall into such a "gap". Fake clock."""
-    from streamer import pipecat as sp
+    from streamer.playout import Playout, Utterance
 
     for up in (0.0, 9_876.54321, 15_000.0, 1_234_567.891):
-        clock = SimpleNamespace(monotonic=lambda: up)
-        monkeypatch.setattr(sp, "time", clock)
-        g = sp.GestureProcessor([], bundle=bundle)
-        g.origin = up
-        u = sp._Utterance(0, None, None, None, RATE)
+        playout, u = Playout(), Utterance(0, None, None, None, RATE)
         for _ in range(100):  # 2 s of 20 ms chunks, all pushed at once
-            assert g._schedule(u, RATE // 50) == 0.0
+            assert playout.schedule(u, RATE // 50, now=up) == 0.0
         assert u.gaps == []
-        assert [sp._audio_at(u, k / FPS) for k in range(40)] == [k / FPS for k in range(40)]
+        assert [u.audio_at(k / FPS) for k in range(40)] == [k / FPS for k in range(40)]
 
 
 def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_clock(bundle, monkeypatch):
@@ -368,21 +359,22 @@ def test_an_utterance_that_starts_while_a_rest_frame_goes_out_continues_its_cloc
     clock must not step back: seen once in CI as a VMC time going from 0.05 to 0.0487). On a fake clock."""
     from streamer import pipecat as sp
     from streamer.frames import Frame
+    from streamer.playout import Utterance
 
     clock = SimpleNamespace(monotonic=lambda: 0.0)
     monkeypatch.setattr(sp, "time", clock)
     heard = []
     sink = KeptFrames()
     g = sp.GestureProcessor([sink], bundle=bundle, on_audio=lambda pts, y: heard.append((pts, len(y))))
-    g.origin, g._observed = 0.0, True
+    g.origin, g.playout.observed = 0.0, True
     g._release_rest(0.0)
     clock.monotonic = lambda: 0.0487
-    u = sp._Utterance(0, None, None, None, RATE)
+    u = Utterance(0, None, None, None, RATE)
     g._schedule(u, RATE // 50)
     u.audio.append((0.0, np.zeros(320, np.float32)))
     clock.monotonic = lambda: 0.05
     g._release_rest(0.05)
-    f = g._rest_frame()
+    f = g.resting.pose_frame()
     g._release_speech(u, Frame(0, 0.0, f.root_pos, f.rotations, f.features), u.start, 0.05)
     pts = [f.pts for f in sink.frames]
     assert pts[:2] == [0.0, 0.05] and pts[2] > pts[1]
