@@ -66,8 +66,83 @@ class Phase(Enum):
     FINISHING = "finishing"
 
 
+class _SavesAndResumes:
+    """`ClientSession`'s periodic saves, hand-over and resume (its fields are the session's: see there)."""
+
+    def _on_Boundary(self, e: Boundary) -> list[Action]:
+        """--save-state-every: once the session's audio is save_every_s past its last save, save it (a crash
+        then loses at most that much: the client resumes from the save)."""
+        audio_s = e.samples_in / SAMPLE_RATE
+        if (self.seats.save_every_s is None or self.save_token is None or self.handing_over
+                or e.session_id != self.session_id or audio_s - self.saved_audio_s < self.seats.save_every_s):
+            return []
+        self.saved_audio_s = audio_s
+        return [SaveState(self.session_id, self.save_token, self._samples(e.samples_in), self.frames)]
+
+    def _on_Saved(self, e: Saved) -> list[Action]:
+        if e.session_id != self.session_id or self.handing_over or self.gone:
+            return []
+        return [Send(P.session_saved(e.token, e.samples, e.frames, self.audio.rate)), Count("sessions_saved")]
+
+    def _on_HandOver(self, e: HandOver) -> list[Action]:
+        self.handing_over = True  # audio that arrives meanwhile is ignored, never refused
+        return self._end_audio(handover=True) if self.phase is Phase.STREAMING else []
+
+    def _on_HandedOver(self, e: HandedOver) -> list[Action]:
+        out: list[Action] = [Send(P.goaway(e.token, e.samples, self.frames, self.audio.rate)),
+                             Count("sessions_handed_over")]
+        if self.save_token is not None:  # the goaway's token goes on from later: the periodic save must not fork it
+            out.append(Forget(self.save_token))
+            self.save_token = None
+        return out
+
+    def _resume(self, token: str) -> list[Action]:
+        """resume_session: the state saved under `token` (by any worker) becomes this client's session."""
+        if not self.seats.resumable:
+            raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
+        if self.seats.closing:  # the token is not taken: it resumes on another worker
+            raise P.ProtocolError("busy", "this worker is stopping: resume_session on another (the token stays valid)")
+        if self.running:
+            raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
+        if not self.seats.accepts_audio:
+            raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
+        if self.seats.taken >= self.seats.max_sessions:
+            return self._busy()
+        return [TakeState(token)]
+
+    def _on_Taken(self, e: Taken) -> list[Action]:
+        if e.error is not None:
+            raise P.ProtocolError("resume_failed", f"the state store failed: {e.error}")
+        if e.live_s is not None:  # a periodic-save token is for a lost connection only: its owner still talks
+            return [Log(logging.INFO, "session_live: resume_session refused, its session is live"),
+                    Send(P.session_live(e.live_s))]
+        if e.data is None:
+            raise P.ProtocolError("resume_failed", "unknown or expired resume token (or one already used): start a "
+                                                   "new stream")
+        return self._start(restore=e.data)
+
+    def _on_NotRestored(self, e: NotRestored) -> list[Action]:
+        """The taken state was refused: the session started for it is dropped unseen (it made no frame, so no
+        `end`), its seat freed; the client goes on from its own audio, whose next message starts a fresh session."""
+        self.phase = Phase.IDLE
+        self.seats.taken -= 1
+        return [StopSession(), Log(logging.WARNING, f"a saved session state was refused ({e.message}): its client "
+                                                    "goes on with a fresh session"),
+                Send(P.error("resume_failed", e.message))]
+
+    def _on_Restored(self, e: Restored) -> list[Action]:
+        self.frames = e.frames
+        self.saved_audio_s = e.samples_in / SAMPLE_RATE  # (its periodic saves go on from here)
+        samples = e.resampler_inputs if e.resampler_inputs is not None else self._samples(e.samples_in)
+        return [Count("sessions_resumed"), Send(P.session_resumed(samples, self.frames, self.audio.rate))]
+
+    def _samples(self, samples_in: int) -> int:
+        """16 kHz samples -> the client's own (what it re-sends from)."""
+        return samples_in * self.audio.rate // SAMPLE_RATE
+
+
 @dataclass
-class ClientSession:
+class ClientSession(_SavesAndResumes):
     """One client's protocol state; `handle(event) -> actions`. `new_token` names periodic saves."""
 
     seats: Seats
@@ -115,7 +190,7 @@ class ClientSession:
 
     def handle(self, event: Event) -> list[Action]:
         try:
-            return getattr(self, "_on_" + type(event).__name__)(event)
+            return getattr(self, HANDLERS[type(event)])(event)
         except P.ProtocolError as e:
             return self._on_Failed(Failed(e))
 
@@ -312,78 +387,17 @@ class ClientSession:
             self.save_token = None
         return out
 
-    # ---- saves, hand-over, resume ----
-
-    def _on_Boundary(self, e: Boundary) -> list[Action]:
-        """--save-state-every: once the session's audio is save_every_s past its last save, save it (a crash
-        then loses at most that much: the client resumes from the save)."""
-        audio_s = e.samples_in / SAMPLE_RATE
-        if (self.seats.save_every_s is None or self.save_token is None or self.handing_over
-                or e.session_id != self.session_id or audio_s - self.saved_audio_s < self.seats.save_every_s):
-            return []
-        self.saved_audio_s = audio_s
-        return [SaveState(self.session_id, self.save_token, self._samples(e.samples_in), self.frames)]
-
-    def _on_Saved(self, e: Saved) -> list[Action]:
-        if e.session_id != self.session_id or self.handing_over or self.gone:
-            return []
-        return [Send(P.session_saved(e.token, e.samples, e.frames, self.audio.rate)), Count("sessions_saved")]
-
-    def _on_HandOver(self, e: HandOver) -> list[Action]:
-        self.handing_over = True  # audio that arrives meanwhile is ignored, never refused
-        return self._end_audio(handover=True) if self.phase is Phase.STREAMING else []
-
-    def _on_HandedOver(self, e: HandedOver) -> list[Action]:
-        out: list[Action] = [Send(P.goaway(e.token, e.samples, self.frames, self.audio.rate)),
-                             Count("sessions_handed_over")]
-        if self.save_token is not None:  # the goaway's token goes on from later: the periodic save must not fork it
-            out.append(Forget(self.save_token))
-            self.save_token = None
-        return out
-
-    def _resume(self, token: str) -> list[Action]:
-        """resume_session: the state saved under `token` (by any worker) becomes this client's session."""
-        if not self.seats.resumable:
-            raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
-        if self.seats.closing:  # the token is not taken: it resumes on another worker
-            raise P.ProtocolError("busy", "this worker is stopping: resume_session on another (the token stays valid)")
-        if self.running:
-            raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
-        if not self.seats.accepts_audio:
-            raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
-        if self.seats.taken >= self.seats.max_sessions:
-            return self._busy()
-        return [TakeState(token)]
-
-    def _on_Taken(self, e: Taken) -> list[Action]:
-        if e.error is not None:
-            raise P.ProtocolError("resume_failed", f"the state store failed: {e.error}")
-        if e.live_s is not None:  # a periodic-save token is for a lost connection only: its owner still talks
-            return [Log(logging.INFO, "session_live: resume_session refused, its session is live"),
-                    Send(P.session_live(e.live_s))]
-        if e.data is None:
-            raise P.ProtocolError("resume_failed", "unknown or expired resume token (or one already used): start a "
-                                                   "new stream")
-        return self._start(restore=e.data)
-
-    def _on_NotRestored(self, e: NotRestored) -> list[Action]:
-        """The taken state was refused: the session started for it is dropped unseen (it made no frame, so no
-        `end`), its seat freed; the client goes on from its own audio, whose next message starts a fresh session."""
-        self.phase = Phase.IDLE
-        self.seats.taken -= 1
-        return [StopSession(), Log(logging.WARNING, f"a saved session state was refused ({e.message}): its client "
-                                                    "goes on with a fresh session"),
-                Send(P.error("resume_failed", e.message))]
-
-    def _on_Restored(self, e: Restored) -> list[Action]:
-        self.frames = e.frames
-        self.saved_audio_s = e.samples_in / SAMPLE_RATE  # (its periodic saves go on from here)
-        samples = e.resampler_inputs if e.resampler_inputs is not None else self._samples(e.samples_in)
-        return [Count("sessions_resumed"), Send(P.session_resumed(samples, self.frames, self.audio.rate))]
-
-    def _samples(self, samples_in: int) -> int:
-        """16 kHz samples -> the client's own (what it re-sends from)."""
-        return samples_in * self.audio.rate // SAMPLE_RATE
+# Which handler hears which event, by its method's name (every `Event`: tests/test_client_session.py checks)
+HANDLERS: dict[type, str] = {
+    Text: "_on_Text", Audio: "_on_Audio", Decoded: "_on_Decoded",
+    RigSet: "_on_RigSet", RigRefused: "_on_RigRefused", Failed: "_on_Failed",
+    Queuing: "_on_Queuing", OverShare: "_on_OverShare",
+    WithinShare: "_on_WithinShare", Frames: "_on_Frames",
+    Broadcast: "_on_Broadcast", SessionEnded: "_on_SessionEnded", Left: "_on_Left",
+    Boundary: "_on_Boundary", Saved: "_on_Saved", HandOver: "_on_HandOver",
+    HandedOver: "_on_HandedOver", Taken: "_on_Taken",
+    NotRestored: "_on_NotRestored", Restored: "_on_Restored",
+}
 
 
 @lru_cache(maxsize=None)

@@ -20,7 +20,6 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
-from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer.frames import Frame
@@ -28,7 +27,7 @@ from streamer.intake import Account, ComputeBudget, submit_for
 from streamer.log_limit import ErrorLog
 from streamer.metrics import ServerMetrics
 from streamer.outbox import FrameTotals, MessageBudget, Outbox
-from streamer.saving import StoreCalls
+from streamer.saving import ConnectionSaves, StoreCalls
 from streamer.sessions import AudioClock, Session
 from streamer.sources import PushSource, make_resampler
 
@@ -51,7 +50,7 @@ class Services:
     skeleton: object | None = None  # the model's skeleton (a client's own rig is fitted to it; None: refused)
 
 
-class Client(Outbox):
+class Client(Outbox, ConnectionSaves):
     """One connection: its session machine, its outgoing queue and counters, and its own audio session if any."""
 
     def __init__(self, ws: ServerConnection, machine: S.ClientSession, keepalive: S.Keepalive, svc: Services,
@@ -122,33 +121,6 @@ class Client(Outbox):
                 self.holding = False
         except ConnectionClosed:
             pass
-
-    async def keepalive_loop(self, interval: float) -> None:
-        """Ping every `interval`; close (1011) a client not heard from for the keepalive's interval + timeout,
-        counted as `Keepalive` says (a long wait for inference under load is the server's doing, not the
-        client's: 11 of 31 fast senders were closed in one 60 s flood when frames made were counted, not read)."""
-        pong: asyncio.Future | None = None
-
-        def answered(f: asyncio.Future) -> None:
-            if not f.cancelled() and f.exception() is None:
-                self.keepalive.heard(time.monotonic())
-
-        while True:
-            await asyncio.sleep(interval)
-            now = time.monotonic()
-            close = self.keepalive.tick(now, self.holding, self.frames_sent, self.awaits_reading)
-            if close is not None:
-                self.errors(logging.WARNING, f"nothing heard for {self.keepalive.silent_s(now):.1f} s (keepalive): "
-                                             f"closing ({'holding its audio, ' if self.holding else ''}"
-                                             f"{self.frames_sent} frames sent, {len(self.queue)} queued)")
-                await self.ws.close(close.code, close.reason)
-                return
-            if pong is None or pong.done():
-                try:
-                    pong = await self.ws.ping()
-                except ConnectionClosed:
-                    return
-                pong.add_done_callback(answered)
 
     async def leave(self, tasks: list[asyncio.Future]) -> float | None:
         """The client is gone: cancel everything it has in flight (whatever it waits on), free its slot, its
@@ -238,10 +210,6 @@ class Client(Outbox):
         if start.restore is not None:
             await self._restore(start.restore)
         return []
-
-    async def _take_state(self, token: str) -> list:
-        """resume_session: the saved state under `token`, taken from the store; the machine hears how it went."""
-        return await self.apply(self.machine.handle(await self.store.take(token)))
 
     async def _close(self, close: S.Close) -> list:
         await self.drained(asyncio.get_running_loop().time() + close.drain_s)
@@ -346,41 +314,6 @@ class Client(Outbox):
         self.session_task = asyncio.create_task(run(), name="ws-session")
         self.session_task.add_done_callback(done)
 
-    def hand_over(self) -> PushSource | None:
-        """The server stops with a state store: the session stops after the audio it holds, unfinished (its
-        resampler is saved, not flushed); returns its audio queue, for the caller to close."""
-        for a in self.act(self.machine.handle(S.HandOver())):
-            if isinstance(a, S.EndAudio):
-                self.session.handover = True
-                source, self.source = self.source, None
-                return source
-        return None
-
-    async def save_handed_over(self, token: str) -> bool:
-        """Its session, stopped by `hand_over`, to the store under `token`, and `goaway` to the client; False
-        if the store failed (the session then ends as without one)."""
-        session, state, m = self.session, self.session.stream.state, self.machine
-        frames, rate, encoding = m.frames, m.audio.rate, m.encoding
-
-        def save():
-            # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz goes
-            # on exactly when the resampler is saved too, and every output it gave reached the stream: the
-            # client then re-sends from the resampler's own input count.
-            samples, extra, r = state.samples_in * rate // SAMPLE_RATE, {}, self.resampler
-            if r is not None and r.outputs == state.samples_in:
-                extra["resampler"], samples = r.get_state(), r.inputs
-            return session.snapshot(frames, state, rate=rate, encoding=encoding, **extra), samples
-
-        loop = asyncio.get_running_loop()
-        try:
-            data, samples = await loop.run_in_executor(self.svc.prep, save)
-            await self.store.put(token, data, live=False)  # (a fresh token: no lease, resumable at once)
-        except Exception as e:  # the store is down, or refused it (too large)
-            self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
-            return False
-        self.act(m.handle(S.HandedOver(token, samples)))
-        return True
-
     async def _end_audio(self) -> list:
         """The session's audio ended: it sends its last frames and `end` by itself."""
         if self.source is not None:
@@ -391,37 +324,6 @@ class Client(Outbox):
                 await source.put(np.asarray(tail, dtype=np.float32))
             await source.close()
         return []
-
-    async def _restore(self, data: bytes) -> None:
-        """resume_session: the taken state becomes the new session's (`Session.restore`)."""
-        from dimgestor.streaming.savestate import StateError
-
-        session, rate = self.session, self.machine.audio.rate
-        try:
-            meta = await asyncio.get_running_loop().run_in_executor(self.svc.prep, session.restore, data)
-        except StateError as e:  # refused, with the reason: the client goes on with a fresh session
-            await self.apply(self.machine.handle(S.NotRestored(str(e))))
-            return
-        except Exception as e:  # a bug (restore raises StateError only): said here, and no resume either
-            self.errors(logging.ERROR, f"restoring a saved state failed: {type(e).__name__}: {e}", exc_info=True)
-            await self.apply(self.machine.handle(S.NotRestored(f"the saved state could not be restored "
-                                                               f"({type(e).__name__})")))
-            return
-        inputs = None
-        if meta.get("resampler") is not None and int(meta.get("rate", 0)) == rate:  # its rate converter goes on too
-            self.resampler = make_resampler(rate)
-            self.resampler.set_state(meta["resampler"])
-            inputs = self.resampler.inputs
-        self.act(self.machine.handle(S.Restored(int(meta["frames"]), session.stream.state.samples_in,
-                                                           inputs)))
-
-    def _save(self, save: S.SaveState) -> None:
-        """--save-state-every, between two windows: the state, copied now (a few ms for a megabyte: the next
-        window moves it on), goes to the store under the session's standing token (overwritten each time)."""
-        m = self.machine
-        data = self.session.snapshot(save.frames, rate=m.audio.rate, encoding=m.encoding)
-        self.store.save_periodic(save.token, data, lambda: self.act(
-            m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames))))
 
     def _work(self, fn, *args) -> asyncio.Future:
         """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""
@@ -445,3 +347,31 @@ class Client(Outbox):
         if self.resampler is None:
             self.resampler = make_resampler(self.resample_from)
         return self.resampler.process(x)
+
+
+async def keepalive_loop(client: Client, interval: float) -> None:
+    """Ping every `interval`; close (1011) a client not heard from for the keepalive's interval + timeout,
+    counted as `Keepalive` says (a long wait for inference under load is the server's doing, not the
+    client's: 11 of 31 fast senders were closed in one 60 s flood when frames made were counted, not read)."""
+    pong: asyncio.Future | None = None
+
+    def answered(f: asyncio.Future) -> None:
+        if not f.cancelled() and f.exception() is None:
+            client.keepalive.heard(time.monotonic())
+
+    while True:
+        await asyncio.sleep(interval)
+        now = time.monotonic()
+        close = client.keepalive.tick(now, client.holding, client.frames_sent, client.awaits_reading)
+        if close is not None:
+            client.errors(logging.WARNING, f"nothing heard for {client.keepalive.silent_s(now):.1f} s (keepalive): "
+                                           f"closing ({'holding its audio, ' if client.holding else ''}"
+                                           f"{client.frames_sent} frames sent, {len(client.queue)} queued)")
+            await client.ws.close(close.code, close.reason)
+            return
+        if pong is None or pong.done():
+            try:
+                pong = await client.ws.ping()
+            except ConnectionClosed:
+                return
+            pong.add_done_callback(answered)

@@ -11,9 +11,11 @@ import asyncio
 import logging
 from typing import Awaitable, Callable, Iterable
 
+from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer.log_limit import ErrorLog
 from streamer.metrics import ServerMetrics
+from streamer.sources import PushSource, make_resampler
 
 
 class StoreCalls:
@@ -152,3 +154,78 @@ class ServerStore:
                 why = f"is unreachable: {self.link.down_reason}" if not self.link.up else "failed or was busy"
                 self.unsaved[c] = f"could not save the session (the state store {why})"
         return {c for c, ok in zip(ready, saved) if ok}
+
+
+class ConnectionSaves:
+    """`streamer.connection.Client`'s periodic saves, hand-over and resume: its session's state made and given to
+    the store (`StoreCalls`, its `store`), or taken from it and restored, and its machine told how it went."""
+
+    async def _take_state(self, token: str) -> list:
+        """resume_session: the saved state under `token`, taken from the store; the machine hears how it went."""
+        return await self.apply(self.machine.handle(await self.store.take(token)))
+
+    def hand_over(self) -> PushSource | None:
+        """The server stops with a state store: the session stops after the audio it holds, unfinished (its
+        resampler is saved, not flushed); returns its audio queue, for the caller to close."""
+        for a in self.act(self.machine.handle(S.HandOver())):
+            if isinstance(a, S.EndAudio):
+                self.session.handover = True
+                source, self.source = self.source, None
+                return source
+        return None
+
+    async def save_handed_over(self, token: str) -> bool:
+        """Its session, stopped by `hand_over`, to the store under `token`, and `goaway` to the client; False
+        if the store failed (the session then ends as without one)."""
+        session, state, m = self.session, self.session.stream.state, self.machine
+        frames, rate, encoding = m.frames, m.audio.rate, m.encoding
+
+        def save():
+            # (in the prep thread, after any resampling under way there) Audio at another rate than 16 kHz goes
+            # on exactly when the resampler is saved too, and every output it gave reached the stream: the
+            # client then re-sends from the resampler's own input count.
+            samples, extra, r = state.samples_in * rate // SAMPLE_RATE, {}, self.resampler
+            if r is not None and r.outputs == state.samples_in:
+                extra["resampler"], samples = r.get_state(), r.inputs
+            return session.snapshot(frames, state, rate=rate, encoding=encoding, **extra), samples
+
+        loop = asyncio.get_running_loop()
+        try:
+            data, samples = await loop.run_in_executor(self.svc.prep, save)
+            await self.store.put(token, data, live=False)  # (a fresh token: no lease, resumable at once)
+        except Exception as e:  # the store is down, or refused it (too large)
+            self.svc.departures(logging.WARNING, f"session of {self.who} not saved ({type(e).__name__}: {e}): ended")
+            return False
+        self.act(m.handle(S.HandedOver(token, samples)))
+        return True
+
+    async def _restore(self, data: bytes) -> None:
+        """resume_session: the taken state becomes the new session's (`Session.restore`)."""
+        from dimgestor.streaming.savestate import StateError
+
+        session, rate = self.session, self.machine.audio.rate
+        try:
+            meta = await asyncio.get_running_loop().run_in_executor(self.svc.prep, session.restore, data)
+        except StateError as e:  # refused, with the reason: the client goes on with a fresh session
+            await self.apply(self.machine.handle(S.NotRestored(str(e))))
+            return
+        except Exception as e:  # a bug (restore raises StateError only): said here, and no resume either
+            self.errors(logging.ERROR, f"restoring a saved state failed: {type(e).__name__}: {e}", exc_info=True)
+            await self.apply(self.machine.handle(S.NotRestored(f"the saved state could not be restored "
+                                                               f"({type(e).__name__})")))
+            return
+        inputs = None
+        if meta.get("resampler") is not None and int(meta.get("rate", 0)) == rate:  # its rate converter goes on too
+            self.resampler = make_resampler(rate)
+            self.resampler.set_state(meta["resampler"])
+            inputs = self.resampler.inputs
+        self.act(self.machine.handle(S.Restored(int(meta["frames"]), session.stream.state.samples_in,
+                                                           inputs)))
+
+    def _save(self, save: S.SaveState) -> None:
+        """--save-state-every, between two windows: the state, copied now (a few ms for a megabyte: the next
+        window moves it on), goes to the store under the session's standing token (overwritten each time)."""
+        m = self.machine
+        data = self.session.snapshot(save.frames, rate=m.audio.rate, encoding=m.encoding)
+        self.store.save_periodic(save.token, data, lambda: self.act(
+            m.handle(S.Saved(save.session_id, save.token, save.samples, save.frames))))

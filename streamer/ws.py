@@ -30,7 +30,7 @@ from websockets.asyncio.server import ServerConnection, serve
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer import request_checks as RC
-from streamer.connection import Client, FrameTotals, Services
+from streamer.connection import Client, FrameTotals, Services, keepalive_loop
 from streamer.frames import Frame
 from streamer.handshake import Front, own_origins, refusal
 from streamer.intake import FairWorker
@@ -168,7 +168,7 @@ class WsServer:
                     create_connection=self.waiting_room.connection,
                     open_timeout=2 * self.waiting_room.timeout_s,  # reading the request, then sending the answer
                     max_size=P.HARD_MAX_BYTES, max_queue=4, close_timeout=0.5,
-                    ping_interval=None,  # our own keepalive (Client.keepalive_loop): knows back pressure
+                    ping_interval=None,  # our own keepalive (connection.keepalive_loop): knows back pressure
                     compression=None))  # no deflate: CPU per frame per client, and a bomb risk
         except OSError as e:
             for server in self._servers:
@@ -217,8 +217,8 @@ class WsServer:
         """End every client's stream, deliver what is queued and close, all within ~within_s (whether the source
         ended or was stopped: `drain` makes no difference here). A session whose audio has all come (after its
         `audio_end`) finishes as usual, its last frames and `end`, if it can within 0.4 within_s (HANDOVER_S
-        with a state store); with a store the others are handed over (`goaway`, _hand_over), without one they
-        get `end` at once."""
+        with a state store); with a store the others are handed over (`goaway`, `ServerStore.hand_over`), without
+        one they get `end` at once."""
         self._flush_audio()  # the source's last audio before its `end`
         loop = asyncio.get_running_loop()
         self.closing = self.metrics.readiness.draining = True
@@ -338,7 +338,7 @@ class WsServer:
                  asyncio.create_task(client.read_loop(), name="ws-reader"),
                  asyncio.ensure_future(ws.wait_closed())]
         if c.ping_interval:
-            tasks.append(asyncio.create_task(client.keepalive_loop(c.ping_interval), name="ws-keepalive"))
+            tasks.append(asyncio.create_task(keepalive_loop(client, c.ping_interval), name="ws-keepalive"))
         try:  # whichever ends first (the connection closed, the sender failed, the reader is done) ends it all
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:

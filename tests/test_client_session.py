@@ -389,3 +389,15 @@ def test_smile_goes_to_the_clients_own_sessions_only():
     c.handle(text(type="audio_end"))
     c.handle(SessionEnded(frames=4))
     assert audio_in(c, 160)[0].smile == 0.0
+
+
+def test_every_event_has_its_handler():
+    """`handle` dispatches on the event's type through one table: every `Event` is in it, nothing else, each to a
+    method of the machine."""
+    import typing
+
+    from streamer.client_events import Event
+    from streamer.client_session import HANDLERS
+
+    assert set(HANDLERS) == set(typing.get_args(Event))
+    assert all(callable(getattr(ClientSession, name)) for name in HANDLERS.values())

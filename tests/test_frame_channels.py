@@ -247,14 +247,15 @@ def test_the_pipecat_processor_passes_a_speech_frames_channels_on(bundle, monkey
     from types import SimpleNamespace
 
     from streamer import pipecat as sp
+    from streamer.playout import Utterance
 
     sent = []
     monkeypatch.setattr(sp, "time", SimpleNamespace(monotonic=lambda: 0.0))
     g = sp.GestureProcessor([SimpleNamespace(send=sent.extend)], bundle=bundle)
-    g.origin, g._observed = 0.0, True
-    u = sp._Utterance(0, None, None, None, 16000)
+    g.origin, g.playout.observed = 0.0, True
+    u = Utterance(0, None, None, None, 16000)
     g._schedule(u, 320)
-    rest = g._rest_frame()
+    rest = g.resting.pose_frame()
     values = {WAVE.name: np.array([1.0, 2.0, 3.0])}
     g._release_speech(u, Frame(0, 0.0, rest.root_pos, rest.rotations, rest.features, values), u.start, 0.0)
     g._release_rest(0.05)
