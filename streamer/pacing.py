@@ -10,9 +10,14 @@ buffer (`buffer_s`) behind the earliest the producer delivers:
   (its offset, arrival - pts). Only when every item for `resync_s` came later than the clock (the
   producer now runs behind, e.g. a live source that lost audio) or every item waited more than a jitter
   buffer (the producer got faster) does the clock move, to the best offset of that period plus the
-  buffer: later at once (those items are lost anyway), earlier by playing `pull_rate` faster until it
-  is there (nothing dropped, no burst). So after any stall the output is back to full rate within
-  `resync_s`, and the lag it keeps is at most the jitter buffer.
+  buffer. Later: at once (those items are lost anyway), unless the producer is catching up (a backlog
+  going through after a stall, on a slow or busy machine) fast enough to be on time within
+  `catchup_s`: then the clock stays and the late items keep being dropped, since a clock moved later
+  would keep the lag for as long as pulling it back takes. Earlier: by playing `pull_rate` faster
+  until it is there (nothing dropped, no burst), or, when the clock is more than `skip_s` behind, at
+  once (the items in between are dropped: a skip, as a live video player seeks to the live edge).
+  So after any stall the output is back to full rate within `resync_s` of the producer being on
+  time, and the lag it keeps is at most the jitter buffer.
 
 The pacer does no I/O and reads no clock: callers pass `now`, so it is tested without sleeping.
 """
@@ -26,17 +31,20 @@ from dataclasses import dataclass
 class PacerStats:
     dropped_late: int = 0   # items more than tolerance_s late at the head of the queue
     resyncs: int = 0        # times the clock moved to follow the producer
+    skips: int = 0          # of those, moves earlier made at once (more than skip_s)
 
 
 class Pacer:
     """One playout clock: `arrived()` when an item is queued, `wait()` for the item at the head."""
 
     def __init__(self, buffer_s: float = 0.25, tolerance_s: float = 0.1, resync_s: float = 1.0,
-                 pull_rate: float = 0.2):
-        if buffer_s < 0 or tolerance_s < 0 or resync_s <= 0 or not 0 < pull_rate < 1:
-            raise ValueError(f"need buffer_s >= 0, tolerance_s >= 0, resync_s > 0, 0 < pull_rate < 1; got "
-                             f"{buffer_s}, {tolerance_s}, {resync_s}, {pull_rate}")
+                 pull_rate: float = 0.2, catchup_s: float = 3.0, skip_s: float = 1.5):
+        if (buffer_s < 0 or tolerance_s < 0 or resync_s <= 0 or not 0 < pull_rate < 1 or catchup_s < 0
+                or skip_s < 0):
+            raise ValueError(f"need buffer_s >= 0, tolerance_s >= 0, resync_s > 0, 0 < pull_rate < 1, catchup_s >= 0, "
+                             f"skip_s >= 0; got {buffer_s}, {tolerance_s}, {resync_s}, {pull_rate}, {catchup_s}, {skip_s}")
         self.buffer_s, self.tolerance_s, self.resync_s, self.pull_rate = buffer_s, tolerance_s, resync_s, pull_rate
+        self.catchup_s, self.skip_s = catchup_s, skip_s
         self.stats = PacerStats()
         self.reset()
 
@@ -69,13 +77,38 @@ class Pacer:
         self._run.append((now, offset))
         if now - self._run[0][0] < self.resync_s:
             return
+        if late and self._catching_up(now):
+            return
         # A whole resync_s of it: follow the producer. Late: from the recent half of the run (after the
         # backlog of a stall has gone through); early: from all of it.
         recent = [o for t, o in self._run if t >= now - self.resync_s / 2] if late else [o for _, o in self._run]
         self._move(max(recent) + self.buffer_s)
 
+    def _catching_up(self, now: float) -> bool:
+        """Whether the late run's producer will be on time within catchup_s at the pace it is catching up.
+
+        Items come in bursts (an inference window each, all arriving at one `now`); the latest of a burst
+        (its largest offset) is what the clock is set by, so the pace is the least-squares slope of
+        each burst's largest offset over the arrival times of the run.
+        """
+        bursts: dict[float, float] = {}
+        for t, o in self._run:
+            bursts[t] = max(o, bursts.get(t, o))
+        if len(bursts) < 2:
+            return False
+        t = list(bursts)
+        o = list(bursts.values())
+        tm, om = sum(t) / len(t), sum(o) / len(o)
+        var = sum((x - tm) ** 2 for x in t)
+        slope = sum((x - tm) * (y - om) for x, y in zip(t, o)) / var  # seconds of lag per second; < 0: catching up
+        if slope >= 0:
+            return False
+        late_by = om + slope * (now - tm) - (self.anchor + self.tolerance_s)
+        return late_by / -slope <= self.catchup_s
+
     def _move(self, anchor: float) -> None:
-        if anchor > self.anchor:
+        if anchor > self.anchor or self.anchor - anchor > self.skip_s:
+            self.stats.skips += anchor < self.anchor
             self.anchor, self._target = anchor, None
         else:
             self._target = anchor

@@ -45,6 +45,17 @@ def windows(t_start, t_end, latency=0.1, window=0.2, stalls=()):
         k += 1
 
 
+def catching_up(t_end, stall, speed, latency=0.1, window=0.2):
+    """A producer stalled during `stall` (a, b) that then works through its backlog at `speed` x real time
+    (a file source on a slow or busy machine), one 4-frame window at a time, until it is on time again."""
+    out, done, k = [], 0.0, 0
+    while (due := (k + 1) * window + latency) <= t_end:
+        done = due if due < stall[0] else max(due, stall[1], done + window / speed)
+        out += [(done, (k * 4 + j) / FPS) for j in range(4)]
+        k += 1
+    return out
+
+
 def rate_after(sent, t0, t1):
     return sum(1 for t, _ in sent if t0 <= t < t1) / (t1 - t0)
 
@@ -97,6 +108,44 @@ def test_a_producer_that_gets_faster_pulls_the_clock_in():
     assert max(lag) - worst <= 0.25 + 0.011
     gaps = [b[0] - a[0] for a, b in zip(sent, sent[1:])]
     assert min(gaps) >= 0.8 / FPS - 0.011  # at most 1.2x speed while catching up
+
+
+def test_a_slow_catch_up_after_a_stall_keeps_the_clock():
+    """After a 2.5 s stall the backlog goes through at only 2x real time (2.5 s late for 2.5 s): the clock
+    does not follow those late frames (it would keep their lag for as long as pulling it back takes)."""
+    p = Pacer(buffer_s=0.25, resync_s=1.0)
+    arrivals = catching_up(20, stall=(3.0, 5.5), speed=2.0)
+    on_time = next(t for t, pts in arrivals if t > 5.5 and t - pts < 0.4)
+    assert 7.5 < on_time < 8.5  # the producer is late for over 2 resync_s
+    sent = simulate(p, arrivals, 20)
+    assert p.stats.resyncs == 0 and p.stats.dropped_late > 0
+    base = sent[0][0] - sent[0][1]
+    after = [t - pts - base for t, pts in sent if t > on_time]
+    assert max(after) <= 0.011 and min(after) > -0.011  # the lag of before the stall, at once
+    assert rate_after(sent, on_time + 0.5, 20) >= 19
+
+
+def test_a_producer_too_slow_to_catch_up_is_followed():
+    """After the stall it goes only 1.2x real time (over 10 s to catch up): following it beats a long gap."""
+    p = Pacer(buffer_s=0.25, resync_s=1.0, catchup_s=3.0)
+    sent = simulate(p, catching_up(12, stall=(3.0, 5.5), speed=1.2), 12)
+    assert p.stats.resyncs >= 1
+    assert rate_after(sent, 5.5 + 1.5, 12) >= 19
+
+
+def test_a_clock_far_behind_skips_to_the_producer():
+    """The producer fell 3 s behind (the clock followed it), then is on time again: the clock moves back at
+    once, dropping the frames in between, rather than playing 1.2x fast for 15 s with 3 s of lag."""
+    p = Pacer(buffer_s=0.25, resync_s=1.0, skip_s=1.5)
+    before = windows(0, 5)
+    behind = [(t + 3.0, pts) for t, pts in windows(5, 10) if t > 5]
+    again = [(t, pts) for t, pts in windows(0, 25) if t > 13.5]
+    sent = simulate(p, before + behind + again, 25)
+    assert p.stats.skips == 1 and p.stats.dropped_late > 0
+    base = sent[0][0] - sent[0][1]
+    after = [t - pts - base for t, pts in sent if t > 13.5 + 1.5]
+    assert max(after) <= 0.011 and min(after) > -0.011
+    assert rate_after(sent, 13.5 + 1.5, 25) >= 19
 
 
 def test_reset_starts_a_new_stream():
