@@ -300,6 +300,16 @@ class Count:
 
 
 @dataclass(frozen=True)
+class TakeSeat:
+    """A session starts: it holds one of the server's seats (`Seats`) until its `FreeSeat`."""
+
+
+@dataclass(frozen=True)
+class FreeSeat:
+    """Its session ended or was let go (its client left, its resume was refused): the seat is free again."""
+
+
+@dataclass(frozen=True)
 class Refused:
     """A session refused for `reason` (counted once per attempt)."""
     reason: str
@@ -311,5 +321,6 @@ class Log:
     text: str
 
 
-Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, StartSession, Feed,
-               EndAudio, SetSmile, SetRig, StopSession, SaveState, Forget, Release, TakeState, Count, Refused, Log]
+Action = Union[Send, SendFrames, Close, ReplaySourceAudio, Charge, Decode, WaitForSession, TakeSeat, StartSession,
+               Feed, EndAudio, SetSmile, SetRig, StopSession, FreeSeat, SaveState, Forget, Release, TakeState, Count,
+               Refused, Log]

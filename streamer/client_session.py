@@ -7,7 +7,8 @@ comes with the events), so every rule of a client's session is tested by driving
 
 A client is IDLE (no session), STREAMING (its audio goes to its session) or FINISHING (its audio has ended,
 or is being handed over: the session still runs to its `end` or its save). A session holds one of the
-server's `Seats` from its start until it ends or its client leaves.
+server's `Seats` from its start until it ends or its client leaves: the machine reads whether one is free and
+says `TakeSeat` / `FreeSeat`; only the shell, carrying those out, changes the count.
 
 Which channels a client's frames carry is its own (revision 7): the face in the name set its hello asked (or the
 server's), in JSON always when the server makes one, in binary only once asked; a `channels` message with the
@@ -29,13 +30,13 @@ from streamer import protocol as P
 # (the machine's vocabulary: the shell and the tests import it from here too)
 from streamer.client_events import (  # noqa: F401
     Action, Audio, Boundary, Broadcast, Charge, Close, Count, Decode, Decoded, EndAudio, Event, Failed, Feed, Forget,
-    Frames, HandedOver, HandOver, Left, Log, NotRestored, OverShare, Queuing, Refused, Release, ReplaySourceAudio,
-    Restored, RigRefused, RigSet, Saved, SaveState, Send, SendFrames, SessionEnded, SetRig, SetSmile, StartSession,
-    StopSession, Taken, TakeState, Text, WaitForSession, WithinShare)
+    FreeSeat, Frames, HandedOver, HandOver, Left, Log, NotRestored, OverShare, Queuing, Refused, Release,
+    ReplaySourceAudio, Restored, RigRefused, RigSet, Saved, SaveState, Send, SendFrames, SessionEnded, SetRig, SetSmile,
+    StartSession, StopSession, Taken, TakeSeat, TakeState, Text, WaitForSession, WithinShare)
 from streamer.face import FACE, face_channel
 from streamer.frames import Channel
 
-__all__ = ["ClientSession", "Seats", "Keepalive", "Phase", "PIECE_S"]
+__all__ = ["ClientSession", "Terms", "Seats", "Keepalive", "Phase", "PIECE_S"]
 
 PIECE_S = 0.5  # client audio is resampled in pieces of at most this many seconds (of its own rate) ...
 PIECE_SAMPLES = 24000  # ... and samples: a piece's cost (~10 ms whatever the rate) is what another client's job
@@ -44,9 +45,9 @@ PIECE_SAMPLES = 24000  # ... and samples: a piece's cost (~10 ms whatever the ra
 
 # ---- the server's side ----------------------------------------------------------------------------------
 
-@dataclass
-class Seats:
-    """What every client's session shares: the server's terms and how many sessions run now."""
+@dataclass(frozen=True)
+class Terms:
+    """The terms every client's session is served on: fixed when the server starts."""
 
     max_sessions: int
     accepts_audio: bool = True       # False: --no-client-audio
@@ -56,8 +57,35 @@ class Seats:
     save_every_s: float | None = None  # periodic saves (with a store)
     face: str | None = None          # the face's name set unless a client asks another (None: the server makes none)
     joints: int = 0                  # a frame's joints (the offsets of a binary layout)
-    taken: int = 0                   # sessions running, including those flushing after audio_end
-    closing: bool = False            # the server is stopping
+
+
+class Seats:
+    """What every client's session shares: the server's `Terms`, how many sessions hold a seat now (including those
+    flushing after audio_end) and whether the server is stopping. The machines read it; a seat is taken and freed
+    only by carrying out their `TakeSeat` and `FreeSeat` (`carry_out`), `closing` is set by the server."""
+
+    def __init__(self, terms: Terms):
+        self.terms = terms
+        self._taken = 0
+        self.closing = False
+
+    @property
+    def taken(self) -> int:
+        return self._taken
+
+    @property
+    def full(self) -> bool:
+        return self._taken >= self.terms.max_sessions
+
+    def carry_out(self, action: TakeSeat | FreeSeat) -> None:
+        if isinstance(action, TakeSeat):
+            if self.full:  # (the machine checks `full` in the same step: a bug, never a race)
+                raise RuntimeError(f"all {self.terms.max_sessions} seats are taken")
+            self._taken += 1
+        else:
+            if self._taken == 0:
+                raise RuntimeError("a seat freed that was never taken")
+            self._taken -= 1
 
 
 class Phase(Enum):
@@ -73,8 +101,8 @@ class _SavesAndResumes:
         """--save-state-every: once the session's audio is save_every_s past its last save, save it (a crash
         then loses at most that much: the client resumes from the save)."""
         audio_s = e.samples_in / SAMPLE_RATE
-        if (self.seats.save_every_s is None or self.save_token is None or self.handing_over
-                or e.session_id != self.session_id or audio_s - self.saved_audio_s < self.seats.save_every_s):
+        if (self.terms.save_every_s is None or self.save_token is None or self.handing_over
+                or e.session_id != self.session_id or audio_s - self.saved_audio_s < self.terms.save_every_s):
             return []
         self.saved_audio_s = audio_s
         return [SaveState(self.session_id, self.save_token, self._samples(e.samples_in), self.frames)]
@@ -98,36 +126,38 @@ class _SavesAndResumes:
 
     def _resume(self, token: str) -> list[Action]:
         """resume_session: the state saved under `token` (by any worker) becomes this client's session."""
-        if not self.seats.resumable:
+        if not self.terms.resumable:
             raise P.ProtocolError("resume_failed", "this server keeps no session states (--state-store)")
         if self.seats.closing:  # the token is not taken: it resumes on another worker
             raise P.ProtocolError("busy", "this worker is stopping: resume_session on another (the token stays valid)")
         if self.running:
             raise P.ProtocolError("resume_failed", "resume_session before any audio (or after audio_end's `end`)")
-        if not self.seats.accepts_audio:
+        if not self.terms.accepts_audio:
             raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
-        if self.seats.taken >= self.seats.max_sessions:
+        if self.holds_seat:  # (its resume_session is being taken from the store)
+            raise P.ProtocolError("resume_failed", "a resume_session is under way")
+        if self.seats.full:
             return self._busy()
-        return [TakeState(token)]
+        return [*self._take_seat(), TakeState(token)]  # (held while the store answers: no one else gets it)
 
     def _on_Taken(self, e: Taken) -> list[Action]:
-        if e.error is not None:
-            raise P.ProtocolError("resume_failed", f"the state store failed: {e.error}")
+        if e.data is not None and e.error is None and e.live_s is None:
+            return self._start(restore=e.data)
+        out = self._free_seat()
         if e.live_s is not None:  # a periodic-save token is for a lost connection only: its owner still talks
-            return [Log(logging.INFO, "session_live: resume_session refused, its session is live"),
+            return [*out, Log(logging.INFO, "session_live: resume_session refused, its session is live"),
                     Send(P.session_live(e.live_s))]
-        if e.data is None:
-            raise P.ProtocolError("resume_failed", "unknown or expired resume token (or one already used): start a "
-                                                   "new stream")
-        return self._start(restore=e.data)
+        why = (f"the state store failed: {e.error}" if e.error is not None
+               else "unknown or expired resume token (or one already used): start a new stream")
+        return [*out, *self._on_Failed(Failed(P.ProtocolError("resume_failed", why)))]
 
     def _on_NotRestored(self, e: NotRestored) -> list[Action]:
         """The taken state was refused: the session started for it is dropped unseen (it made no frame, so no
         `end`), its seat freed; the client goes on from its own audio, whose next message starts a fresh session."""
         self.phase = Phase.IDLE
-        self.seats.taken -= 1
-        return [StopSession(), Log(logging.WARNING, f"a saved session state was refused ({e.message}): its client "
-                                                    "goes on with a fresh session"),
+        return [StopSession(), *self._free_seat(), Log(logging.WARNING, f"a saved session state was refused "
+                                                                        f"({e.message}): its client goes on with a "
+                                                                        "fresh session"),
                 Send(P.error("resume_failed", e.message))]
 
     def _on_Restored(self, e: Restored) -> list[Action]:
@@ -160,6 +190,7 @@ class ClientSession(_SavesAndResumes):
     refused: bool = False       # its current audio was refused a session (counted once)
     handing_over: bool = False  # its session is being saved for hand-over (its audio is ignored meanwhile)
     gone: bool = False
+    holds_seat: bool = False    # one of the server's seats is its (from its session's start, or its resume_session)
     save_token: str | None = None  # its session's periodic saves go under this token (live: its lease is held)
     saved_audio_s: float = 0.0     # the audio its last periodic save covers
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
@@ -169,6 +200,10 @@ class ClientSession(_SavesAndResumes):
     after_session: list[str] = field(default_factory=list)  # replies due once the running session sent `end`
 
     @property
+    def terms(self) -> Terms:
+        return self.seats.terms
+
+    @property
     def running(self) -> bool:
         return self.phase is not Phase.IDLE
 
@@ -176,8 +211,8 @@ class ClientSession(_SavesAndResumes):
         """The channels of its frames in `encoding`: the server's (`P.WS_CHANNELS`), then the face when the server
         makes one and the client did not say "none" (in binary only once it asked: an old client's layout stays;
         its own audio's frames only once it asked: they have a face only then, see `StartSession.face`)."""
-        names = None if self.face == "none" else self.face or self.seats.face
-        if names is None or self.seats.face is None or (self.face is None and (encoding == "binary" or self.own)):
+        names = None if self.face == "none" else self.face or self.terms.face
+        if names is None or self.terms.face is None or (self.face is None and (encoding == "binary" or self.own)):
             return dict(P.WS_CHANNELS)
         return {**P.WS_CHANNELS, FACE: _face_channel(names)}
 
@@ -185,7 +220,7 @@ class ClientSession(_SavesAndResumes):
         layout = None
         if self.layout_due:
             self.layout_due = False
-            layout = P.channels_message(P.channel_layout(self.joints or self.seats.joints, self.channels("binary")))
+            layout = P.channels_message(P.channel_layout(self.joints or self.terms.joints, self.channels("binary")))
         return SendFrames(window, self.encoding, self.channels(self.encoding), layout)
 
     def handle(self, event: Event) -> list[Action]:
@@ -217,10 +252,10 @@ class ClientSession(_SavesAndResumes):
         out: list[Action] = []
         self.encoding = msg.get("encoding", self.encoding)
         self.timing = msg.get("timing", self.timing)
-        if msg.get("source_audio") and not self.source_audio and self.seats.offers_source_audio:
+        if msg.get("source_audio") and not self.source_audio and self.terms.offers_source_audio:
             out.append(ReplaySourceAudio())  # the audio of the frames still to come
-        self.source_audio = bool(msg.get("source_audio", self.source_audio)) and self.seats.offers_source_audio
-        if "face" in msg and self.seats.face is not None:  # (a server that makes no face ignores it)
+        self.source_audio = bool(msg.get("source_audio", self.source_audio)) and self.terms.offers_source_audio
+        if "face" in msg and self.terms.face is not None:  # (a server that makes no face ignores it)
             self.face, self.layout_due = msg["face"], True
         if "rig" in msg:
             out.append(SetRig(msg["rig"]))  # (then RigSet or RigRefused)
@@ -237,8 +272,8 @@ class ClientSession(_SavesAndResumes):
 
     def _on_RigSet(self, e: RigSet) -> list[Action]:
         self.joints, self.layout_due = e.joints, True
-        layout = P.channel_layout(self.joints or self.seats.joints, self.channels("binary"))
-        return [Send(P.rig_reply(self.joints or self.seats.joints, e.humanoid, layout), "note")]
+        layout = P.channel_layout(self.joints or self.terms.joints, self.channels("binary"))
+        return [Send(P.rig_reply(self.joints or self.terms.joints, e.humanoid, layout), "note")]
 
     def _on_RigRefused(self, e: RigRefused) -> list[Action]:
         return [Log(logging.INFO, f"bad_rig: {e.message}"), Send(P.error("bad_rig", e.message), "note")]
@@ -260,7 +295,7 @@ class ClientSession(_SavesAndResumes):
 
     def _refusal(self) -> list[Action] | None:
         """Audio this server will not take now: [] to ignore it, the refusal, or None (it may)."""
-        if not self.seats.accepts_audio:
+        if not self.terms.accepts_audio:
             return self._refuse("audio_disabled", "audio_disabled", "this server does not accept client audio")
         if self.seats.closing:
             if self.handing_over:  # its state is being saved: the client re-sends from the goaway's sample
@@ -274,7 +309,7 @@ class ClientSession(_SavesAndResumes):
         if self.phase is Phase.IDLE:
             if (refusal := self._refusal()) is not None:
                 return refusal
-            if self.seats.taken >= self.seats.max_sessions:
+            if self.seats.full:
                 return self._busy()
             out = self._start()
         else:
@@ -310,12 +345,23 @@ class ClientSession(_SavesAndResumes):
     def _start(self, restore: bytes | None = None) -> list[Action]:
         self.own, self.phase, self.refused, self.frames = True, Phase.STREAMING, False, 0
         self.session_id += 1
-        self.seats.taken += 1
-        self.save_token = self.new_token() if self.seats.save_every_s is not None else None
+        self.save_token = self.new_token() if self.terms.save_every_s is not None else None
         self.saved_audio_s = 0.0
-        face = self.seats.face is not None and self.face not in (None, "none")
-        return [StartSession(self.session_id, self.audio.rate, self.save_token, restore, self.smile, face),
-                Count("sessions_started")]
+        face = self.terms.face is not None and self.face not in (None, "none")
+        return [*self._take_seat(), StartSession(self.session_id, self.audio.rate, self.save_token, restore,
+                                                 self.smile, face), Count("sessions_started")]
+
+    def _take_seat(self) -> list[Action]:
+        if self.holds_seat:  # (taken at its resume_session)
+            return []
+        self.holds_seat = True
+        return [TakeSeat()]
+
+    def _free_seat(self) -> list[Action]:
+        if not self.holds_seat:
+            return []
+        self.holds_seat = False
+        return [FreeSeat()]
 
     def _end_audio(self, handover: bool = False) -> list[Action]:
         self.phase = Phase.FINISHING
@@ -329,13 +375,13 @@ class ClientSession(_SavesAndResumes):
         return [*out, *self._on_Failed(Failed(P.ProtocolError(code, message)))]
 
     def _busy(self) -> list[Action]:
-        return self._refuse("busy", "busy", f"at most {self.seats.max_sessions} client audio sessions at once")
+        return self._refuse("busy", "busy", f"at most {self.terms.max_sessions} client audio sessions at once")
 
     # ---- the session's progress ----
 
     def _on_Frames(self, e: Frames) -> list[Action]:
         out: list[Action] = []
-        if self.slowed and e.backlog_s <= self.seats.max_backlog_s / 2:
+        if self.slowed and e.backlog_s <= self.terms.max_backlog_s / 2:
             self.slowed = False
             if not self.over_share:  # a client that paused at slow_down may send again
                 out.append(Send(P.resume(e.backlog_s)))
@@ -371,8 +417,7 @@ class ClientSession(_SavesAndResumes):
             out.append(Forget(self.save_token))  # its periodic save will not be resumed (else the TTL drops it)
             self.save_token = None
         self.phase = Phase.IDLE
-        self.seats.taken -= 1
-        return out
+        return [*out, *self._free_seat()]
 
     def _on_Left(self, e: Left) -> list[Action]:
         self.gone = True
@@ -380,8 +425,8 @@ class ClientSession(_SavesAndResumes):
         out: list[Action] = []
         if self.running:
             self.phase = Phase.IDLE
-            self.seats.taken -= 1
             out.append(StopSession())
+        out += self._free_seat()
         if self.save_token is not None:  # a lost connection: its last periodic save may be resumed now
             out.append(Release(self.save_token))
             self.save_token = None

@@ -182,6 +182,8 @@ class Client(Outbox, ConnectionSaves):
             case S.SetSmile():
                 if self.session is not None:
                     self.session.set_smile(a.smile)
+            case S.TakeSeat() | S.FreeSeat():
+                self.machine.seats.carry_out(a)
             case S.StopSession():
                 if self.session_task is not None:
                     self.session_task.cancel()

@@ -119,12 +119,6 @@ class ServeOptions(BaseModel):
 
         return smoothing_from_flag(self.smooth)
 
-    def face_options(self):
-        """--face/--smile/--seed as `Session` takes them: `FaceOptions`, or None for --face none."""
-        from dimgestor.face import FaceOptions
-
-        return None if self.face == "none" else FaceOptions(seed=self.seed, smile=self.smile)
-
     def vmc(self):
         """The --vmc-* flags as `VmcOptions`."""
         from streamer.vmc import VmcOptions

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
 
+from streamer.face import ServeFace
 from streamer.frames import Frame
 from streamer.handover import open_store
 from streamer.health import Readiness, RealtimeLoad
@@ -30,6 +31,7 @@ from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 if TYPE_CHECKING:
     from dimgestor.export.onnx_stream import OnnxModel
+    from dimgestor.face import FaceOptions
     from dimgestor.streaming.checkpoint import Bundle
     from streamer.ws import WsServer
 
@@ -58,6 +60,7 @@ class Pipeline:
     sinks: list[Sink]  # where the source's frames go, in the order they open
     ws: WsServer | None = None  # the WebSocket server (also among the sinks): clients bring their own audio too
     metrics: ServerMetrics = field(default_factory=ServerMetrics)  # served by `ws` (/metrics, /readyz)
+    face: ServeFace | None = None  # the face every session makes and every sink sends (None: bones only)
     t0: float = field(default_factory=time.monotonic)
 
     @property
@@ -80,12 +83,11 @@ async def serve(options: ServeOptions) -> int:
 def build(options: ServeOptions) -> Pipeline:
     """The pipeline, nothing opened yet but the source and the model (a bad device, file, checkpoint or map
     fails here, with a ServeError or SourceError that says which)."""
-    from dimgestor.face.listener import unavailable as face_unavailable
     from streamer.pose import HumanoidRig
 
     t0 = time.monotonic()
-    if options.face != "none" and (why := face_unavailable()) is not None:  # (no pocketsphinx wheel here)
-        print(f"dimgestor: no face, bones only: {why}", file=sys.stderr, flush=True)
+    face = _face(options)
+    if face is None and options.face != "none":  # (no pocketsphinx wheel here: said, and --face none from here on)
         options = options.model_copy(update={"face": "none"})
     token = read_token(options)
     if token is not None:
@@ -102,7 +104,7 @@ def build(options: ServeOptions) -> Pipeline:
     scheduler = _scheduler(options.no_batch, onnx)
     metrics = _metrics(scheduler)
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
-                                     state_key=state_key)
+                                     state_key=state_key, face=face)
     session = make_session("source") if source is not None else None
     if session is not None:
         session.on_window = metrics.window_done
@@ -110,15 +112,30 @@ def build(options: ServeOptions) -> Pipeline:
     sk = bundle.skeleton
     target = _target(options, sk)
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid) if target is None else target.humanoid_rig()
-    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics, target)
-    vmc, recording = _vmc(options, rig, target), _recording(options, bundle, source, target)
+    ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics, face,
+                                        target)
+    vmc, recording = _vmc(options, rig, face, target), _recording(options, bundle, source, face, target)
     if vmc is not None:
         metrics.sinks["vmc"] = lambda: (vmc.sent, vmc.dropped)
     if recording is not None:  # (frames on disk; after a write error the rest are not counted anywhere)
         metrics.sinks["record"] = lambda: (recording.recorder.frames if recording.recorder else 0, None)
     sinks = [s for s in (ws, vmc, recording) if s is not None]
     return Pipeline(options, bundle, steps, guidance, source, session, make_session, scheduler, sinks, ws, t0=t0,
-                    metrics=metrics)
+                    metrics=metrics, face=face)
+
+
+def _face(options: ServeOptions) -> ServeFace | None:
+    """--face, --smile and --seed, resolved once into the face every session, sink and client is given; None: bones
+    only (--face none, or no listener on this machine: said once, with what to do)."""
+    from dimgestor.face import FaceOptions
+    from dimgestor.face.listener import unavailable as face_unavailable
+
+    if options.face == "none":
+        return None
+    if (why := face_unavailable()) is not None:
+        print(f"dimgestor: no face, bones only: {why}", file=sys.stderr, flush=True)
+        return None
+    return ServeFace(options.face, FaceOptions(seed=options.seed, smile=options.smile))
 
 
 def _source(options: ServeOptions):
@@ -202,25 +219,25 @@ def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> Server
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None, state_key: bytes | None = None) -> Session:
-    session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx)
+             onnx: OnnxModel | None = None, state_key: bytes | None = None, face: ServeFace | None = None) -> Session:
+    session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx, face.options if face else None)
     session.state_key = state_key  # seals its saved states (--state-secret-file)
     return session
 
 
 def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str,
-                 onnx: OnnxModel | None) -> Session:
+                 onnx: OnnxModel | None, face: FaceOptions | None) -> Session:
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
 
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
-                       scheduler=scheduler, name=name, face=options.face_options())
+                       scheduler=scheduler, name=name, face=face)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
                                window_ms=options.window_ms, scheduler=scheduler, name=name,
-                               face=options.face_options())
+                               face=face)
 
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:
@@ -262,7 +279,7 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
-        metrics: ServerMetrics, target=None):
+        metrics: ServerMetrics, face: ServeFace | None, target=None):
     from streamer import protocol as P
     from streamer.ws import Attached, WsConfig, WsServer
 
@@ -273,14 +290,13 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
     hello = P.hello(info, rig.mapping(info.names), fps, lookahead,
                     accepts_audio=not options.no_client_audio, window_ms=options.window_ms,
                     source="ws" if source is None else "mic" if options.source == "mic" else "file",
-                    **({"face": P.face_hello(options.face)} if options.face != "none" else {}),
                     **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
                        if isinstance(source, WavSource) else {}))
     also = [(options.http[0] or options.ws[0], options.http[1])] if options.http is not None else []
     config = WsConfig(options.ws[0], options.ws[1], also=tuple(also), token=token, origins=tuple(options.allow_origin),
                       max_sessions=options.max_sessions, ping_interval=options.ping_interval or None,
                       ping_timeout=options.ping_timeout, serve_metrics=not options.no_metrics,
-                      save_every_s=options.save_state_every)
+                      save_every_s=options.save_state_every, face=face.names if face is not None else None)
     attached = Attached(metrics=metrics, store=open_store(options.state_store, options.state_ttl,
                                                           options.state_max_bytes),
                         pose=target, skeleton=sk, broadcast_stats=session.stats if session else None,
@@ -288,7 +304,7 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
     return WsServer(config, hello, None if options.no_client_audio else make_session, attached)
 
 
-def _vmc(options: ServeOptions, rig, target=None):
+def _vmc(options: ServeOptions, rig, face: ServeFace | None, target=None):
     if options.osc is None:
         return None
     from streamer.vmc import VmcSink, face_channels
@@ -296,7 +312,7 @@ def _vmc(options: ServeOptions, rig, target=None):
     scale = 0.01 if target is None else target.metres_per_unit
     return VmcSink(options.osc[0], options.osc[1], rig, scale=scale, pace=not options.fast,
                    jitter_s=_vmc_jitter_ms(options) / 1000, options=options.vmc(),
-                   channels=face_channels(options.face), pose=target)
+                   channels=face_channels(face.names if face is not None else "none"), pose=target)
 
 
 def _vmc_jitter_ms(options: ServeOptions) -> float:
@@ -307,7 +323,7 @@ def _vmc_jitter_ms(options: ServeOptions) -> float:
     return options.window_ms if options.vmc_jitter_ms is None else options.vmc_jitter_ms
 
 
-def _recording(options: ServeOptions, bundle, source, target=None):
+def _recording(options: ServeOptions, bundle, source, face: ServeFace | None, target=None):
     if not options.record or source is None:
         return None
     from streamer.record import RecordingSink
@@ -316,7 +332,7 @@ def _recording(options: ServeOptions, bundle, source, target=None):
     fits = options.target is not None and (suffix == ".glb" or suffix == ".bvh"
                                            and Path(options.target).suffix.lower() == ".bvh")
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
-                         tether_s=options.tether_s, face=options.face != "none",
+                         tether_s=options.tether_s, face=face is not None,
                          target=target.file if fits and target is not None else None)  # (read once: _target)
 
 

@@ -164,7 +164,6 @@ class VmcEncoder:
         self.names = [rig.bones[i] for i in self.sent_bones]
         self.hips = rig.bones.index("Hips") if "Hips" in rig.bones else 0
         # Rest local positions (Unity, metres): what "hips" sends for every bone but the hips.
-        J = len(rig.offsets)
         rest, _ = rig.local_pose(rig.offsets[rig.root_joint][None], rig.rest_pose()[None])
         self.rest = to_unity_position(rest[0], scale)
         x, y, z, yaw = options.root

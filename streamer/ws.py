@@ -61,6 +61,8 @@ class WsConfig:
     the server was reading it or while nothing moved, is closed (1011). max_waiting, request_timeout_s:
     connections that have not sent a whole request (`WaitingRoom`). serve_metrics: answer `/metrics` (`/healthz`
     and `/readyz` always are: `streamer.health`). save_every_s: periodic saves of the sessions (with a store).
+    face: the name set of the face the server's frames carry unless a client asks another (`ServeFace.names`; the
+    hello says it), None: the server makes no face.
     """
 
     host: str = "127.0.0.1"
@@ -78,6 +80,7 @@ class WsConfig:
     request_timeout_s: float = 10.0
     serve_metrics: bool = True
     save_every_s: float | None = None
+    face: str | None = None
 
 
 @dataclass(frozen=True)
@@ -101,12 +104,13 @@ class Attached:
     source_dropped_s: Callable[[], float] | None = None
 
 
-def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bool) -> S.Seats:
-    """The terms every client's session is served on (`client_session.Seats`), from the config and the hello."""
-    return S.Seats(config.max_sessions, accepts_audio=accepts_audio, offers_source_audio="source_audio" in hello,
+def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bool) -> S.Terms:
+    """The terms every client's session is served on (`client_session.Terms`), from the config and the hello
+    (what it offers and its skeleton)."""
+    return S.Terms(config.max_sessions, accepts_audio=accepts_audio, offers_source_audio="source_audio" in hello,
                    max_backlog_s=config.max_backlog_s, resumable=resumable,
                    save_every_s=config.save_every_s if resumable else None,
-                   face=hello["face"]["names"] if "face" in hello else None,
+                   face=config.face,
                    joints=len(hello.get("skeleton", {}).get("joints", ())))
 
 
@@ -117,6 +121,8 @@ class WsServer:
 
     def __init__(self, config: WsConfig, hello: dict, make_session: Callable[[], Session] | None,
                  attached: Attached = Attached()):
+        if config.face is not None:  # (the hello says what the config says)
+            hello = {**hello, "face": P.face_hello(config.face)}
         self.config, self.hello, self.make_session, self.attached = config, hello, make_session, attached
         self.addresses = [(config.host, config.port), *config.also]  # (the real ports once open)
         self.port = config.port
@@ -126,7 +132,7 @@ class WsServer:
         self.broadcast_stats = attached.broadcast_stats  # (settable: a source attached later, e.g. a pipecat stage)
         self.departures = ErrorLog("sessions", what="departures")
         self.stored = ServerStore(self.store, self.departures) if self.store is not None else None
-        self.seats = seat_terms(config, hello, make_session is not None, self.store is not None)
+        self.seats = S.Seats(seat_terms(config, hello, make_session is not None, self.store is not None))
         self.trimmer = Trimmer()
         self._trim_timer: asyncio.TimerHandle | None = None
         self.metrics = attached.metrics if attached.metrics is not None else ServerMetrics()
@@ -181,7 +187,7 @@ class WsServer:
         if "*" not in self.origins:
             self.origins |= {o for host, port in self.addresses for o in own_origins(host, port)}
         self._status_task = asyncio.create_task(self._status_loop(), name="ws-status")
-        if self.seats.save_every_s is not None:
+        if self.seats.terms.save_every_s is not None:
             self._lease_task = asyncio.create_task(self.stored.keep_leases(lambda: self.clients), name="ws-leases")
 
     @property

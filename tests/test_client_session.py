@@ -6,18 +6,33 @@ import json
 import numpy as np
 import pytest
 
-from streamer import protocol as P
 from streamer.client_session import (
     Audio, Boundary, Broadcast, Charge, ClientSession, Close, Count, Decode, Decoded, EndAudio, Feed, Forget, Frames,
     HandedOver, HandOver, Keepalive, Left, NotRestored, OverShare, Phase, Queuing, Refused, Release, Restored,
     SaveState, Saved, Seats, Send, SendFrames, SetSmile, SessionEnded, StartSession, StopSession, TakeState, Taken,
-    Text, WaitForSession, WithinShare)
+    Terms, Text, WaitForSession, WithinShare)
+from streamer.client_events import FreeSeat, TakeSeat
 from streamer.sessions import Session
+
+
+def seats_of(**terms) -> Seats:
+    return Seats(Terms(**terms))
+
+
+class Machine(ClientSession):
+    """The machine, with its seat actions carried out on its `Seats` as the shell carries them out."""
+
+    def handle(self, event):
+        out = super().handle(event)
+        for a in out:
+            if isinstance(a, (TakeSeat, FreeSeat)):
+                self.seats.carry_out(a)
+        return out
 
 
 def client(seats: Seats) -> ClientSession:
     tokens = itertools.count()
-    return ClientSession(seats, new_token=lambda: f"t{next(tokens)}")
+    return Machine(seats, new_token=lambda: f"t{next(tokens)}")
 
 
 def sent(actions) -> list[dict]:
@@ -47,7 +62,7 @@ def audio_in(c: ClientSession, n: int) -> list:
 def test_a_client_over_its_share_of_the_worker_is_told_slow_down_once_and_resume_when_both_causes_are_gone():
     """Fair shares in compute: its intake went over its share (OverShare), and its audio queue filled too; one
     slow_down for both, and `resume` only once it is within its share and its queue is down to half."""
-    c = client(Seats(max_sessions=2, max_backlog_s=4.0))
+    c = client(seats_of(max_sessions=2, max_backlog_s=4.0))
     c.handle(text(type="hello", audio={"rate": 192000, "format": "float32", "channels": 2}))
     over = c.handle(OverShare())
     assert kinds(over) == ["slow_down"] and over[0].kind == "ctl" and "192000 Hz" in sent(over)[0]["message"]
@@ -66,7 +81,7 @@ def test_a_client_over_its_share_of_the_worker_is_told_slow_down_once_and_resume
 
 
 def test_a_full_session_with_slow_down_and_resume():
-    seats = Seats(max_sessions=2, max_backlog_s=4.0, save_every_s=None)
+    seats = seats_of(max_sessions=2, max_backlog_s=4.0, save_every_s=None)
     c = client(seats)
     assert c.handle(text(type="hello", encoding="binary", audio={"rate": 48000})) == [Charge(25)]
     assert (c.encoding, c.audio.rate, c.phase) == ("binary", 48000, Phase.IDLE)
@@ -74,8 +89,8 @@ def test_a_full_session_with_slow_down_and_resume():
     assert pong == [{"type": "pong", "id": 7, "server_time_s": 12.5}]
 
     start = audio_in(c, 4801)  # odd sizes: the pieces and the resampler are the shell's, the decisions are here
-    assert start[0] == StartSession(1, 48000, None, None) and start[0].resample
-    assert start[1:] == [Count("sessions_started"), Feed(24000)]
+    assert start[:2] == [TakeSeat(), StartSession(1, 48000, None, None)] and start[1].resample
+    assert start[2:] == [Count("sessions_started"), Feed(24000)]
     assert (c.phase, c.own, seats.taken) == (Phase.STREAMING, True, 1)
     assert audio_in(c, 333) == [Feed(24000)]  # the same session goes on
 
@@ -100,7 +115,7 @@ def test_a_full_session_with_slow_down_and_resume():
 
 
 def test_a_client_asking_for_timing_gets_the_window_with_its_frames():
-    c = client(Seats(max_sessions=1))
+    c = client(seats_of(max_sessions=1))
     c.handle(text(type="hello", timing=True))
     audio_in(c, 160)
     assert c.handle(Frames(count=4, backlog_s=0.0, window="w")) == [SendFrames("w")]
@@ -108,7 +123,7 @@ def test_a_client_asking_for_timing_gets_the_window_with_its_frames():
 
 
 def test_refused_clients_get_one_refusal_per_attempt_and_an_error_per_message():
-    seats = Seats(max_sessions=1)
+    seats = seats_of(max_sessions=1)
     a, b = client(seats), client(seats)
     audio_in(a, 160)
     first = audio_in(b, 160)
@@ -120,7 +135,7 @@ def test_refused_clients_get_one_refusal_per_attempt_and_an_error_per_message():
     assert audio_in(b, 160)[0] == Refused("busy")
     assert (seats.taken, b.own, b.phase) == (1, False, Phase.IDLE)
 
-    off = client(Seats(max_sessions=4, accepts_audio=False))
+    off = client(seats_of(max_sessions=4, accepts_audio=False))
     refused = off.handle(Audio(pcm16(160)))
     assert refused[0] == Refused("audio_disabled") and kinds(refused) == ["audio_disabled"]
     seats.closing = True
@@ -129,7 +144,7 @@ def test_refused_clients_get_one_refusal_per_attempt_and_an_error_per_message():
 
 
 def test_bad_messages_get_their_error_and_an_unknown_protocol_closes():
-    c = client(Seats(max_sessions=1))
+    c = client(seats_of(max_sessions=1))
     assert kinds(c.handle(Text("{not json"))) == ["bad_message"]
     assert kinds(c.handle(Audio(b"\x00\x01\x02"))) == ["bad_audio"]  # half a sample
     out = c.handle(text(type="hello", protocol=2))
@@ -138,21 +153,21 @@ def test_bad_messages_get_their_error_and_an_unknown_protocol_closes():
 
 
 def test_a_client_that_vanishes_mid_audio_frees_its_slot():
-    seats = Seats(max_sessions=1)
+    seats = seats_of(max_sessions=1)
     gone, other = client(seats), client(seats)
     audio_in(gone, 800)
     assert kinds(audio_in(other, 160)) == ["busy"]
     gone.handle(text(type="audio_end"))
-    assert gone.handle(Left()) == [StopSession()]
+    assert gone.handle(Left()) == [StopSession(), FreeSeat()]
     assert seats.taken == 0 and gone.after_session == []
     assert gone.handle(SessionEnded(cancelled=True)) == []  # its task's end, after it left: nothing more
     assert seats.taken == 0
-    assert isinstance(audio_in(other, 160)[0], StartSession) and seats.taken == 1
+    assert isinstance(audio_in(other, 160)[1], StartSession) and seats.taken == 1
     assert client(seats).handle(Left()) == []  # (one that never sent audio)
 
 
 def test_a_failed_session_says_why_and_a_paused_client_may_go_on():
-    seats = Seats(max_sessions=1, max_backlog_s=1.0)
+    seats = seats_of(max_sessions=1, max_backlog_s=1.0)
     c = client(seats)
     audio_in(c, 160)
     c.handle(Queuing(backlog_s=1.0, full=True))
@@ -161,10 +176,10 @@ def test_a_failed_session_says_why_and_a_paused_client_may_go_on():
 
 
 def test_periodic_saves_between_windows_and_forgotten_at_the_end():
-    seats = Seats(max_sessions=1, resumable=True, save_every_s=1.0)
+    seats = seats_of(max_sessions=1, resumable=True, save_every_s=1.0)
     c = client(seats)
     c.handle(text(type="hello", audio={"rate": 8000}))
-    start = audio_in(c, 800)[0]
+    start = audio_in(c, 800)[1]
     assert start.save_token == "t0"
     c.handle(Frames(count=10, backlog_s=0.0))
     assert c.handle(Boundary(1, 8000)) == []  # 0.5 s of audio: not yet
@@ -174,7 +189,7 @@ def test_periodic_saves_between_windows_and_forgotten_at_the_end():
         {"type": "session_saved", "resume_token": "t0", "samples": 8000, "rate": 8000, "frames": 10}]
     assert c.handle(Boundary(0, 99999)) == []  # (a session that is not the current one)
     c.handle(text(type="audio_end"))
-    assert c.handle(SessionEnded(frames=12))[-1] == Forget("t0")
+    assert c.handle(SessionEnded(frames=12))[-2:] == [Forget("t0"), FreeSeat()]
     assert kinds(c.handle(Saved(1, "t0", 8000, 10))) == ["session_saved"]  # (a save that lands after the end)
     assert c.handle(Left()) == []  # (its token was consumed: nothing to release)
     assert c.handle(Saved(1, "t0", 8000, 10)) == []
@@ -195,7 +210,7 @@ def test_a_session_handed_over_goes_on_elsewhere_exactly(bundle, speech):
     whole = session_of(bundle)
     reference = [f for p in pieces for f in whole.infer(p)] + whole.infer_finish()
 
-    seats = Seats(max_sessions=1, resumable=True)
+    seats = seats_of(max_sessions=1, resumable=True)
     old = client(seats)
     audio_in(old, 160)
     first = session_of(bundle)
@@ -212,9 +227,10 @@ def test_a_session_handed_over_goes_on_elsewhere_exactly(bundle, speech):
     old.handle(SessionEnded(frames=len(frames), handed_over=True))
     assert not any(isinstance(a, Send) for a in old.handle(Left()))
 
-    elsewhere = Seats(max_sessions=1, resumable=True)
+    elsewhere = seats_of(max_sessions=1, resumable=True)
     new = client(elsewhere)
-    assert new.handle(text(type="resume_session", token="tok")) == [TakeState("tok")]
+    assert new.handle(text(type="resume_session", token="tok")) == [TakeSeat(), TakeState("tok")]
+    assert elsewhere.taken == 1  # (held while the store answers)
     start = new.handle(Taken(data))
     assert start[0] == StartSession(1, 16000, None, data) and elsewhere.taken == 1
     second = session_of(bundle)
@@ -236,29 +252,30 @@ def test_a_resume_that_fails_validation_drops_its_session_and_the_client_goes_on
     """A taken state that `Session.restore` refuses (another model, cut short, bad values): `resume_failed` with
     the reason and nothing else (no `end` of the session started for it); the client's next audio is a fresh
     session from frame 0, and the dropped session's task ending, early or late, changes nothing."""
-    seats = Seats(max_sessions=1, resumable=True, save_every_s=2.0)
+    seats = seats_of(max_sessions=1, resumable=True, save_every_s=2.0)
     c = client(seats)
-    assert c.handle(text(type="resume_session", token="tok")) == [TakeState("tok")]
+    assert c.handle(text(type="resume_session", token="tok")) == [TakeSeat(), TakeState("tok")]
     start = c.handle(Taken(b"a state of another model"))
     assert start[0] == StartSession(1, 16000, "t0", b"a state of another model") and seats.taken == 1
     failed = c.handle(NotRestored("saved stream state is of another model (weights or config differ)"))
-    assert failed[0] == StopSession() and kinds(failed) == ["resume_failed"] and failed[-1].kind == "ctl"
+    assert failed[:2] == [StopSession(), FreeSeat()] and kinds(failed) == ["resume_failed"]
+    assert failed[-1].kind == "ctl"
     assert "another model" in sent(failed)[0]["message"]
     assert (c.phase, seats.taken) == (Phase.IDLE, 0)  # its seat is free at once
     assert c.handle(SessionEnded(cancelled=True, session_id=1)) == []  # the dropped task's end: no `end`, no Forget
 
     fresh = audio_in(c, 160)  # the client goes on sending its own audio
-    assert fresh[0] == StartSession(2, 16000, "t1", None) and seats.taken == 1 and c.frames == 0
+    assert fresh[:2] == [TakeSeat(), StartSession(2, 16000, "t1", None)] and seats.taken == 1 and c.frames == 0
     assert c.handle(SessionEnded(cancelled=True, session_id=1)) == []  # (had it come this late: the same)
     assert c.phase is Phase.STREAMING and seats.taken == 1
     c.handle(Frames(count=3, backlog_s=0.0))
     assert c.handle(text(type="audio_end")) == [EndAudio(handover=False)]
     ended = c.handle(SessionEnded(frames=3, session_id=2))
-    assert sent(ended) == [{"type": "end", "frames": 3}] and ended[-1] == Forget("t1") and seats.taken == 0
+    assert sent(ended) == [{"type": "end", "frames": 3}] and ended[-2:] == [Forget("t1"), FreeSeat()] and seats.taken == 0
 
 
 def test_resume_is_refused_while_a_session_runs_or_the_token_is_unknown():
-    seats = Seats(max_sessions=1, resumable=True)
+    seats = seats_of(max_sessions=1, resumable=True)
     c = client(seats)
     assert kinds(c.handle(Taken(None))) == ["resume_failed"]
     assert "store failed" in sent(c.handle(Taken(None, error="ConnectionError: down")))[0]["message"]
@@ -273,10 +290,10 @@ def test_resume_is_refused_while_a_session_runs_or_the_token_is_unknown():
 def test_a_periodic_save_token_is_released_when_its_connection_goes_and_forgotten_when_handed_over():
     """A lost connection releases its session's lease (its last save may be resumed now); a hand-over consumes
     the periodic-save token (the goaway's state goes on from later: resuming both would fork the session)."""
-    seats = Seats(max_sessions=2, resumable=True, save_every_s=1.0)
+    seats = seats_of(max_sessions=2, resumable=True, save_every_s=1.0)
     lost = client(seats)
     audio_in(lost, 160)
-    assert lost.handle(Left()) == [StopSession(), Release("t0")] and lost.save_token is None
+    assert lost.handle(Left()) == [StopSession(), FreeSeat(), Release("t0")] and lost.save_token is None
     assert lost.handle(Left()) == []  # (once)
     handed = client(seats)
     audio_in(handed, 160)
@@ -291,7 +308,7 @@ def test_a_periodic_save_token_is_released_when_its_connection_goes_and_forgotte
 def test_a_session_that_stopped_sending_saves_nothing_more():
     """Boundaries come only with audio, but one without new audio since the last save (a silent client, a
     restored session) saves nothing: abandoned sessions do not fill the store."""
-    seats = Seats(max_sessions=1, resumable=True, save_every_s=1.0)
+    seats = seats_of(max_sessions=1, resumable=True, save_every_s=1.0)
     c = client(seats)
     audio_in(c, 160)
     assert c.handle(Boundary(1, 16000)) == [SaveState(1, "t0", 16000, 0)]
@@ -300,12 +317,15 @@ def test_a_session_that_stopped_sending_saves_nothing_more():
 
 
 def test_a_resume_of_a_live_session_is_refused_with_when_to_try_again():
-    c = client(Seats(max_sessions=1, resumable=True, save_every_s=1.0))
-    assert c.handle(text(type="resume_session", token="x")) == [TakeState("x")]
-    refused = sent(c.handle(Taken(None, live_s=2.5)))
+    c = client(seats_of(max_sessions=1, resumable=True, save_every_s=1.0))
+    assert c.handle(text(type="resume_session", token="x")) == [TakeSeat(), TakeState("x")]
+    assert kinds(audio_in(client(c.seats), 160)) == ["busy"]  # the seat is held while the store answers
+    live = c.handle(Taken(None, live_s=2.5))
+    refused = sent(live)
     assert refused[0]["code"] == "session_live" and refused[0]["retry_after_s"] == 2.5
+    assert live[0] == FreeSeat() and c.seats.taken == 0  # its seat held for the resume is free again
     assert c.phase is Phase.IDLE  # nothing started: the client tries again later
-    assert c.handle(text(type="resume_session", token="x")) == [TakeState("x")]
+    assert c.handle(text(type="resume_session", token="x")) == [TakeSeat(), TakeState("x")]
 
 
 def test_keepalive_blames_only_a_client_that_does_not_read():
@@ -334,7 +354,8 @@ def test_json_frames_carry_the_servers_face_and_binary_frames_only_once_asked():
     from dimgestor.face.names import ARKIT, names_of
 
     vrm0 = names_of("vrm0")
-    json_client, old_binary = client(Seats(4, face="vrm0", joints=3)), client(Seats(4, face="vrm0", joints=3))
+    json_client, old_binary = (client(seats_of(max_sessions=4, face="vrm0", joints=3)),
+                               client(seats_of(max_sessions=4, face="vrm0", joints=3)))
     old_binary.handle(text(type="hello", encoding="binary"))
     assert face_of(json_client.handle(Broadcast(2))[0]) == (vrm0, None)  # nothing asked: the server's set
     assert old_binary.handle(Broadcast(2)) == [SendFrames(None, "binary")]  # revision 5's frames for an old client
@@ -363,7 +384,7 @@ def test_json_frames_carry_the_servers_face_and_binary_frames_only_once_asked():
 
 
 def test_own_frames_follow_the_clients_set_and_a_faceless_server_ignores_the_ask():
-    c = client(Seats(4, face="arkit", joints=2))
+    c = client(seats_of(max_sessions=4, face="arkit", joints=2))
     c.handle(text(type="hello", face="oculus", timing=True))
     audio_in(c, 160)
     assert c.handle(Broadcast(3)) == []  # a client with audio of its own follows its own frames only
@@ -371,7 +392,7 @@ def test_own_frames_follow_the_clients_set_and_a_faceless_server_ignores_the_ask
     assert send.window == "w" and face_of(send)[0][:2] == ("viseme_sil", "viseme_PP")
     assert face_of(send)[1]["channels"][0]["size"] == 17
 
-    plain = client(Seats(4, face=None, joints=2))  # --face none: the field is ignored, no `channels` message
+    plain = client(seats_of(max_sessions=4, face=None, joints=2))  # --face none: ignored, no `channels` message
     plain.handle(text(type="hello", encoding="binary", face="arkit"))
     assert plain.handle(Broadcast(1)) == [SendFrames(None, "binary")]
     plain.handle(text(type="hello", encoding="json"))
@@ -379,16 +400,16 @@ def test_own_frames_follow_the_clients_set_and_a_faceless_server_ignores_the_ask
 
 
 def test_smile_goes_to_the_clients_own_sessions_only():
-    c = client(Seats(4, face="vrm0"))
+    c = client(seats_of(max_sessions=4, face="vrm0"))
     assert c.handle(text(type="hello", smile=0.75)) == []  # no session yet: its next one starts with it
-    assert audio_in(c, 160)[0] == StartSession(1, 16000, None, None, smile=0.75)
+    assert audio_in(c, 160)[1] == StartSession(1, 16000, None, None, smile=0.75)
     assert c.handle(text(type="hello", smile=0)) == [SetSmile(0.0)]  # the running session, from its next frames
     for bad in (1.5, -0.1, "big", True, None):
         assert kinds(c.handle(text(type="hello", smile=bad))) == ["bad_message"]
     assert c.smile == 0.0
     c.handle(text(type="audio_end"))
     c.handle(SessionEnded(frames=4))
-    assert audio_in(c, 160)[0].smile == 0.0
+    assert audio_in(c, 160)[1].smile == 0.0
 
 
 def test_every_event_has_its_handler():

@@ -144,7 +144,7 @@ def test_without_pocketsphinx_a_server_serves_bones_and_says_why(monkeypatch, ti
     assert "pip install pocketsphinx" in unavailable()
     p = build(ServeOptions(source="ws", checkpoint=str(tiny_checkpoint), ws=("127.0.0.1", 0), steps=2,
                            status_every=0))
-    assert p.options.face == "none" and p.options.face_options() is None
+    assert p.options.face == "none" and p.face is None and p.ws.seats.terms.face is None and "face" not in p.ws.hello
     assert "no face, bones only: the face's listener needs pocketsphinx" in capsys.readouterr().err
     with pytest.raises(ImportError, match="pip install pocketsphinx"):
         PhoneListener(30, 0.3, beam=1e-7)  # (a decoder key no other test pooled: a new decoder is made)

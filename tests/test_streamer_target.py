@@ -177,7 +177,7 @@ def test_a_malformed_rig_gets_an_error_that_says_what_is_wrong(rig, message):
 def test_the_session_machine_takes_a_rig_and_lays_out_its_frames():
     from streamer import client_session as S
 
-    machine = S.ClientSession(S.Seats(max_sessions=2, joints=75), new_token=lambda: "t")
+    machine = S.ClientSession(S.Seats(S.Terms(max_sessions=2, joints=75)), new_token=lambda: "t")
     rig = {"joints": ["a", "b"], "parents": [-1, 0], "offsets": [[0, 0, 0], [0, 1, 0]]}
     import json
     actions = machine.handle(S.Text(json.dumps({"type": "hello", "rig": rig})))

@@ -16,8 +16,11 @@ from streamer.ws import Attached, WsConfig, WsServer
 
 
 def server(hello: dict, make_session, **kw) -> WsServer:
-    """A `WsServer` on 127.0.0.1 and a free port; `kw`: fields of `WsConfig` and of `Attached`."""
+    """A `WsServer` on 127.0.0.1 and a free port; `kw`: fields of `WsConfig` and of `Attached` (a hello's `face`
+    is the config's `face`, as `serve` makes it)."""
     config = {f.name for f in fields(WsConfig)}
+    if "face" in hello:
+        kw.setdefault("face", hello["face"]["names"])
     for key in ("origins", "also"):
         if key in kw:
             kw[key] = tuple(kw[key])
