@@ -38,6 +38,9 @@ import numpy as np
 
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers.cluster import Cluster  # noqa: E402  (deploy/local-cluster, as the tests run it)
+
 REPO = Path(__file__).resolve().parents[1]
 FPS = 20
 CLIPS = [REPO / "dimgestor" / "assets" / name for name in ("demo_en.wav", "demo_zh.wav")]
@@ -48,48 +51,6 @@ def example_client():
     module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
     loader.exec_module(module)
     return module
-
-
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Cluster:
-    def __init__(self, workers: int, worker_args: list[str], fail_timeout: int = 10):
-        self.port = free_port()
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen([sys.executable, str(REPO / "deploy" / "local-cluster"), "--workers",
-                                      str(workers), "--port", str(self.port), "--fail-timeout", str(fail_timeout),
-                                      "--", *worker_args], cwd=REPO,
-                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self.lines: list[str] = []
-        threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True).start()
-        self.url = f"ws://127.0.0.1:{self.port}/"
-
-    @property
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for(self, pattern: str, timeout: float = 180.0) -> re.Match:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if m := re.search(pattern, self.output, re.M):
-                return m
-            if self.proc.poll() is not None:
-                break
-            time.sleep(0.1)
-        raise RuntimeError(f"{pattern!r} never printed:\n{self.output[-4000:]}")
-
-    def pids(self) -> dict[str, list[int]]:
-        """role -> pids (every worker that ran, restarted ones too)."""
-        out = self.output
-        return {"workers": [int(p) for p in re.findall(r"^worker \d+(?: restarted)?: http://\S+ \(pid (\d+)\)$", out,
-                                                        re.M)],
-                "redis": [int(p) for p in re.findall(r"^state store: \S+ \(pid (\d+)\)$", out, re.M)]}
 
 
 def cpu_seconds(pid: int) -> float | None:
@@ -290,7 +251,7 @@ def main() -> int:
 
     folder = Path(tempfile.mkdtemp(prefix="cluster-load-"))
     clips = clip_files(folder, rng, 12)
-    cluster = Cluster(args.workers, worker_args, args.fail_timeout)
+    cluster = Cluster("--fail-timeout", str(args.fail_timeout), "--", *worker_args, workers=args.workers, threads=None)
     cpu: dict[int, float] = {}
     stop = threading.Event()
 
@@ -302,7 +263,7 @@ def main() -> int:
                     cpu[pid] = v
 
     try:
-        cluster.wait_for(r"^ready: ")
+        cluster.wait_for(r"^ready: ", 180)
         baseline = {pid: cpu_seconds(pid) or 0.0 for pid in
                     [*cluster.pids()["workers"], *cluster.pids()["redis"], *nginx_pids(cluster.proc.pid)]}
         sampler = threading.Thread(target=sample, daemon=True)

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from dimgestor.training.synthetic import synthetic_speech
-from helpers.streamer_abusers import PATTERNS, abuse
 from helpers.serve import serve
+from helpers.streamer_abusers import PATTERNS, abuse
+from helpers.talkers import Talker
 
 pytestmark = pytest.mark.timeout(150)
 PHASE_S = 3.0
@@ -41,46 +41,6 @@ class Watcher:
     def max_gap(self, t0, t1):
         t = [a for a in self.arrivals if t0 <= a <= t1]
         return float(max(np.diff([t0, *t, t1])))
-
-
-class Talker:
-    """Sends speech in real time in 100 ms chunks; latency of frame i = its arrival - when its audio was complete."""
-
-    def __init__(self, seconds):
-        self.audio = (synthetic_speech(seconds, seed=5) * 20000).astype("<i2")
-        self.sent: list[tuple[float, float]] = []  # (audio seconds sent so far, time)
-        self.latency: list[tuple[float, float]] = []  # (arrival, seconds)
-        self.errors: list[dict] = []
-
-    async def run(self, url, stop):
-        async with connect(url) as c:
-            hello = json.loads(await c.recv())
-            need = lambda i: (i + 1) / hello["fps"] + hello["lookahead_s"]  # noqa: E731
-
-            async def read():
-                async for m in c:
-                    d = json.loads(m)
-                    if d["type"] == "error":
-                        self.errors.append(d)
-                    if d["type"] == "frame":
-                        now = time.monotonic()
-                        done = next((t for a, t in self.sent if a >= need(d["index"]) - 1e-6), None)
-                        if done is not None:
-                            self.latency.append((now, now - done))
-
-            reader = asyncio.create_task(read())
-            step, t0 = int(16000 * CHUNK_S), time.monotonic()
-            for k, i in enumerate(range(0, len(self.audio), step)):
-                if stop.is_set():
-                    break
-                await c.send(self.audio[i : i + step].tobytes())
-                self.sent.append(((i + step) / 16000, time.monotonic()))
-                await asyncio.sleep(max(0.0, t0 + (k + 1) * CHUNK_S - time.monotonic()))
-            reader.cancel()
-
-    def median(self, t0, t1):
-        lat = [v for t, v in self.latency if t0 <= t <= t1]
-        return float(np.median(lat)) if len(lat) > 10 else float("inf")
 
 
 def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
@@ -119,7 +79,7 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
 
     async def run():
         stop = asyncio.Event()
-        bystanders = [asyncio.create_task(watcher.run(url, stop)), asyncio.create_task(talker.run(url, stop))]
+        bystanders = [asyncio.create_task(watcher.run(url, stop)), asyncio.create_task(talker.run())]
         await asyncio.sleep(1.0)  # settle
         trials = {name: [] for name in PATTERNS}  # per pattern: (quiet span, abused span) pairs
         quiet = await phase()
@@ -133,10 +93,11 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
                 quiet = await phase()
                 trials[name].append((quiet, await phase(name)))
         stop.set()
+        talker.stop.set()
         await asyncio.gather(*bystanders, return_exceptions=True)
         return trials
 
-    watcher, talker = Watcher(), Talker(120.0)  # longer than the test; stopped at its end
+    watcher, talker = Watcher(), Talker(url, 120.0, chunk_s=CHUNK_S, binary=False, finish=False)  # stopped at the end
     trials = asyncio.run(run())
     s.proc.terminate()
     assert s.finish(10) == 0, s.output

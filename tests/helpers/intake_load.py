@@ -19,68 +19,12 @@ import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from dimgestor.training.synthetic import synthetic_speech
+from helpers.talkers import Talker
 
 FLOOD_FORMAT = {"rate": 192000, "format": "float32", "channels": 2}
 CHUNK_S = 0.05  # the talker's audio per message
 RESUME_WAIT_S = 8.0  # how long a flooder told slow_down waits for `resume` once it stopped (what the server
 #                     holds of it unread, ~10 messages, is read at its share first)
-
-
-class Talker:
-    """Speech in real time in CHUNK_S messages until told to stop (at most `seconds`), then audio_end; every frame's
-    latency is kept."""
-
-    def __init__(self, seconds: float, seed: int = 5):
-        self.audio = (synthetic_speech(seconds, seed=seed) * 20000).astype("<i2")
-        self.stop = asyncio.Event()
-        self.sent: list[tuple[float, float]] = []  # (audio seconds sent so far, time)
-        self.latency: list[tuple[float, float]] = []  # (when its audio had been sent, seconds)
-        self.errors: list[dict] = []
-        self.frames = 0
-        self.end: dict | None = None
-        self.fps = 0
-
-    async def run(self, url: str) -> None:
-        async with connect(url, max_size=None) as c:
-            hello = json.loads(await c.recv())
-            self.fps = hello["fps"]
-            need = lambda i: (i + 1) / hello["fps"] + hello["lookahead_s"]  # noqa: E731
-
-            async def read():
-                async for m in c:
-                    d = json.loads(m)
-                    if d["type"] == "error":
-                        self.errors.append(d)
-                    elif d["type"] == "end":
-                        self.end = d
-                        return
-                    elif d["type"] == "frame":
-                        now = time.monotonic()
-                        self.frames += 1
-                        done = next((t for a, t in self.sent if a >= need(d["index"]) - 1e-6), None)
-                        if done is not None:
-                            self.latency.append((done, now - done))
-
-            reader = asyncio.create_task(read())
-            step, t0 = int(16000 * CHUNK_S), time.monotonic()
-            for k, i in enumerate(range(0, len(self.audio), step)):
-                if self.stop.is_set():
-                    break
-                await c.send(self.audio[i : i + step].tobytes())
-                self.sent.append(((i + step) / 16000, time.monotonic()))
-                await asyncio.sleep(max(0.0, t0 + (k + 1) * CHUNK_S - time.monotonic()))
-            await c.send(json.dumps({"type": "audio_end"}))
-            await asyncio.wait_for(reader, 60)
-
-    @property
-    def sent_s(self) -> float:
-        return self.sent[-1][0] if self.sent else 0.0
-
-    def percentile(self, t0: float, t1: float, q: float = 95) -> float:
-        """Of the frames whose audio was sent between t0 and t1 (however late they came)."""
-        lat = [v for t, v in self.latency if t0 <= t <= t1]
-        return float(np.percentile(lat, q)) if len(lat) >= 10 else float("inf")
 
 
 class PacedHighRate:
@@ -182,9 +126,9 @@ async def talker_beside_flood(url: str, clients: int, quiet_s: float = 6.0, floo
     """One talker: quiet for `quiet_s`, then beside `clients` flooders for `flood_s`, then 2 s more (and until the
     flooders are gone); with `paced_high_rate` a `PacedHighRate` sender throughout. Returns the talker's p95 latency
     quiet and flooded, the flooders' counts, the talker and the paced sender (None without)."""
-    talker = Talker(quiet_s + flood_s + 60.0)  # (stopped 2 s after the flood)
+    talker = Talker(url, quiet_s + flood_s + 60.0, chunk_s=CHUNK_S, binary=False)  # (stopped 2 s after the flood)
     spawn = multiprocessing.get_context("spawn")
-    task = asyncio.create_task(talker.run(url))
+    task = asyncio.create_task(talker.run())
     paced, paced_stop = (PacedHighRate() if paced_high_rate else None), asyncio.Event()
     paced_task = asyncio.create_task(paced.run(url, paced_stop)) if paced else None
     t_start = time.monotonic()
