@@ -226,39 +226,55 @@ class _Tokens:
         return np.array(out)
 
 
-def _parse_joint(toks: _Tokens, name: str, parent: int, sk: dict) -> None:
-    j = len(sk["names"])
-    sk["names"].append(name)
-    sk["parents"].append(parent)
-    toks.expect("{")
-    toks.expect("OFFSET")
-    sk["offsets"].append(toks.floats(3, f"the OFFSET of {name!r}"))
-    tok, line = toks.next("CHANNELS")
-    chans: list[str] = []
-    if tok == "CHANNELS":
-        count_tok, line = toks.next("the channel count")
-        if not count_tok.isdigit():
-            raise toks.error(f"expected a channel count for {name!r}, found {count_tok!r}", line)
-        for _ in range(int(count_tok)):
-            c, line = toks.next(f"a channel of {name!r}")
-            if c not in ROTATION_CHANNELS + POSITION_CHANNELS:
-                raise toks.error(f"unknown channel {c!r} for joint {name!r}", line)
-            chans.append(c)
-        tok, line = toks.next("'}'")
-    sk["channels"].append(chans)
-    while tok != "}":
-        if tok == "JOINT":
+def _parse_hierarchy(toks: _Tokens, root_name: str, sk: dict) -> None:
+    """The joints from ROOT's name to its closing brace, into `sk`, in file order. A loop over the open joints, not
+    a recursion: a chain of any depth parses (Python's recursion limit stopped a 1,000-deep one)."""
+    open_joints: list[tuple[int, str]] = []  # (index, name) of each joint whose '}' is still to come
+
+    def begin(name: str, parent: int) -> tuple[str, int]:
+        """A joint's '{', OFFSET and CHANNELS; returns the token after them."""
+        j = len(sk["names"])
+        sk["names"].append(name)
+        sk["parents"].append(parent)
+        toks.expect("{")
+        toks.expect("OFFSET")
+        sk["offsets"].append(toks.floats(3, f"the OFFSET of {name!r}"))
+        tok, line = toks.next("CHANNELS")
+        chans: list[str] = []
+        if tok == "CHANNELS":
+            count_tok, line = toks.next("the channel count")
+            if not count_tok.isdigit():
+                raise toks.error(f"expected a channel count for {name!r}, found {count_tok!r}", line)
+            for _ in range(int(count_tok)):
+                c, line = toks.next(f"a channel of {name!r}")
+                if c not in ROTATION_CHANNELS + POSITION_CHANNELS:
+                    raise toks.error(f"unknown channel {c!r} for joint {name!r}", line)
+                chans.append(c)
+            tok, line = toks.next("'}'")
+        sk["channels"].append(chans)
+        open_joints.append((j, name))
+        return tok, line
+
+    tok, line = begin(root_name, -1)
+    while open_joints:
+        j, name = open_joints[-1]
+        if tok == "}":
+            open_joints.pop()
+            if not open_joints:
+                return
+            tok, line = toks.next(f"'}}' closing {open_joints[-1][1]!r}")
+        elif tok == "JOINT":
             child, _ = toks.next("a joint name")
-            _parse_joint(toks, child, j, sk)
+            tok, line = begin(child, j)
         elif tok == "End":
             toks.expect("Site")
             toks.expect("{")
             toks.expect("OFFSET")
             sk["end_sites"][j] = toks.floats(3, f"the End Site OFFSET of {name!r}")
             toks.expect("}")
+            tok, line = toks.next(f"'}}' closing {name!r}")
         else:
             raise toks.error(f"expected JOINT, End Site or '}}' inside {name!r}, found {tok!r}", line)
-        tok, line = toks.next(f"'}}' closing {name!r}")
 
 
 def read_bvh(path: str | Path) -> BvhMotion:
@@ -276,7 +292,7 @@ def read_bvh(path: str | Path) -> BvhMotion:
     toks.expect("ROOT")
     root_name, _ = toks.next("the root name")
     sk = {"names": [], "parents": [], "offsets": [], "channels": [], "end_sites": {}}
-    _parse_joint(toks, root_name, -1, sk)
+    _parse_hierarchy(toks, root_name, sk)
     if toks.pos < len(toks.items):
         tok, line = toks.items[toks.pos]
         raise toks.error(f"unexpected {tok!r} after the hierarchy (only one ROOT is supported)", line)
@@ -347,25 +363,31 @@ def format_hierarchy(sk: Skeleton) -> str:
     out = io.StringIO()
     out.write("HIERARCHY\n")
 
+    roots = [j for j, p in enumerate(sk.parents) if p < 0]
+    if len(roots) != 1:
+        raise ValueError(f"a BVH skeleton needs exactly one root, got {len(roots)}")
     visited: list[int] = []
-
-    def joint(j: int, depth: int) -> None:
-        visited.append(j)
+    children: list[list[int]] = [[] for _ in sk.parents]
+    for k, p in enumerate(sk.parents):
+        if p >= 0:
+            children[p].append(k)
+    # (joint, depth, opening?): a joint's head and children, then its end site and '}' (a loop: any depth)
+    todo: list[tuple[int, int, bool]] = [(roots[0], 0, True)]
+    while todo:
+        j, depth, opening = todo.pop()
         pad = "\t" * depth
+        if not opening:
+            if j in sk.end_sites:
+                out.write(f"{pad}\tEnd Site\n{pad}\t{{\n{pad}\t\tOFFSET {_fmt(sk.end_sites[j])}\n{pad}\t}}\n")
+            out.write(f"{pad}}}\n")
+            continue
+        visited.append(j)
         out.write(f"{pad}{'ROOT' if sk.parents[j] < 0 else 'JOINT'} {sk.names[j]}\n{pad}{{\n")
         out.write(f"{pad}\tOFFSET {_fmt(sk.offsets[j])}\n")
         if sk.channels[j]:
             out.write(f"{pad}\tCHANNELS {len(sk.channels[j])} {' '.join(sk.channels[j])}\n")
-        for c in sk.children(j):
-            joint(c, depth + 1)
-        if j in sk.end_sites:
-            out.write(f"{pad}\tEnd Site\n{pad}\t{{\n{pad}\t\tOFFSET {_fmt(sk.end_sites[j])}\n{pad}\t}}\n")
-        out.write(f"{pad}}}\n")
-
-    roots = [j for j, p in enumerate(sk.parents) if p < 0]
-    if len(roots) != 1:
-        raise ValueError(f"a BVH skeleton needs exactly one root, got {len(roots)}")
-    joint(roots[0], 0)
+        todo.append((j, depth, False))
+        todo.extend((c, depth + 1, True) for c in reversed(children[j]))
     if visited != list(range(sk.num_joints)):
         raise ValueError("skeleton joints must be in depth-first file order to be written as BVH")
     return out.getvalue()

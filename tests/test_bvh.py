@@ -218,6 +218,32 @@ def test_malformed_files_name_file_and_line(tmp_path, mutate, line, words):
         read_bvh(p)
 
 
+def _chain_bvh(n: int) -> str:
+    """A chain of n joints, each the child of the one before, with two frames."""
+    lines = ["HIERARCHY", "ROOT Hips", "{", "OFFSET 0 0 0",
+             "CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"]
+    for i in range(n - 1):
+        lines += [f"JOINT j{i}", "{", "OFFSET 0 1 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    lines += ["End Site", "{", "OFFSET 0 1 0", "}", *["}"] * n, "MOTION", "Frames: 2", "Frame Time: 0.05"]
+    return "\n".join(lines + [" ".join(["1"] * (3 + 3 * n))] * 2) + "\n"
+
+
+def test_a_chain_deeper_than_the_recursion_limit_reads_and_writes_and_a_cut_one_names_its_line(tmp_path):
+    """Nesting of any depth parses (no recursion: Python's limit stopped a 1,000-deep chain with a RecursionError)."""
+    p = tmp_path / "deep.bvh"
+    p.write_text(_chain_bvh(3_000))
+    m = read_bvh(p)
+    assert m.skeleton.num_joints == 3_000 and m.skeleton.parents[-1] == 2_998 and m.num_frames == 2
+    write_bvh(tmp_path / "again.bvh", m)
+    back = read_bvh(tmp_path / "again.bvh")
+    assert back.skeleton == m.skeleton and np.array_equal(back.values, m.values)
+    cut = _chain_bvh(3_000).replace("}\n" * 1_500, "", 1)  # half the closing braces gone
+    p.write_text(cut)
+    with pytest.raises(BvhError, match=r"deep\.bvh:\d+: expected JOINT, End Site or '}' inside 'j\d+', found 'MOTION'|"
+                                       r"deep\.bvh:\d+: unexpected end of file"):
+        read_bvh(p)
+
+
 def test_zeggs_round_trip(zeggs_dir, tmp_path):
     m = read_bvh(zeggs_dir / "067_Speech_2_x_1_0.bvh")
     assert m.skeleton.num_joints == 75 and m.num_frames == 2065
