@@ -64,7 +64,7 @@ torch: | $(BIN)/python
 	@touch $(VENV)/.torch-installed
 
 test: $(VENV)/.test-installed $(WEB)/node_modules/.package-lock.json $(VMC_CHECK)/node_modules/.package-lock.json
-	$(BIN)/python -m pytest -q -rs -n 3 --dist loadfile --no-loadscope-reorder --durations=30
+	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile --no-loadscope-reorder --durations=30
 
 # Ports of `make demo`, e.g. `make demo WS_PORT=9000 OSC_PORT=39540` (the viewer: http://127.0.0.1:WS_PORT/).
 WS_PORT ?= 8765

@@ -1,5 +1,5 @@
 """The `alone` mark: a test that runs with no other test beside it when pytest-xdist runs several test processes
-(`make test` runs three on two cores). Such a test measures how a cluster of several processes keeps real time, which
+(`make test` runs two on two cores). Such a test measures how a cluster of several processes keeps real time, which
 needs the machine's cores: beside another cluster test on CI's 2 cores, a rolling restart's clients that stayed
 saw 0.68-0.79 s frame gaps against 0.25-0.35 s alone (the other test's processes, not the restart).
 
