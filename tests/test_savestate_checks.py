@@ -130,6 +130,20 @@ def test_a_negative_or_inconsistent_sample_count_is_refused(model, saved):
         _refused(model, _pack(h, raw), match)
 
 
+def test_counters_past_what_a_frame_index_holds_are_refused_though_they_agree(model, saved):
+    """samples_in, the front end's frames and frames_out all moved on by 2^32 frames' worth, consistently: refused by
+    name (they once resumed and ended the session with `internal`, an index too big for the binary frame)."""
+    header, raw = _header(saved)
+    ex, fe = model.extractor, model.frontend
+    for frames in (2**32, 10**200):
+        h = copy.deepcopy(header)
+        f = h["state"]["f"]
+        f["frames_out"]["v"] += frames
+        f["frontend"]["f"]["consumed"]["v"] += frames * ex.stride
+        f["samples_in"]["v"] += frames * ex.stride * fe.hop
+        _refused(model, _pack(h, raw), r"state\.frames_out is \d+, over 2147483647")
+
+
 def test_nan_or_infinity_in_a_state_is_refused(model, saved):
     header, raw = _header(saved)
     ssm = header["state"]["f"]["denoiser"]["f"]["ssm"]

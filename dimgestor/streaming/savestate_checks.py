@@ -16,7 +16,11 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "show"]
+__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "show", "MAX_FRAMES"]
+
+# The most frames a stream may have made: a frame's index as every output carries it (OSC's int32 is the narrowest;
+# the binary frame's is a uint32), 3.4 years at 20 fps. A saved state past it is refused, not streamed into an error.
+MAX_FRAMES = 2**31 - 1
 
 # leaves whose last dimension a running stream moves on: samples and features not yet consumed
 VARYING = {"state.frontend.tail": 1, "state.frontend.speech.tail": 1, "state.extractor.buf": 2}
@@ -135,6 +139,9 @@ def check_state(stream, state, fresh) -> None:
                     ("frontend.consumed", consumed)):
         if v < 0:
             raise StateError(f"saved stream state: state.{name} is {v}")
+    if state.frames_out > MAX_FRAMES:  # (the other counters agree with it, checked below, so they are bounded too)
+        raise StateError(f"saved stream state: state.frames_out is {state.frames_out}, over {MAX_FRAMES}, the most a "
+                         "frame's index can be")
     if state.finished:
         raise StateError("saved stream state: state.finished: a finished stream cannot go on")
     # the front end holds the samples it has not consumed: frames (log-mel, speech) or blocks (pretrained)
