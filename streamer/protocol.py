@@ -31,6 +31,7 @@ FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
 REVISION = 8  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 MAX_RIG_JOINTS = 512  # a client's rig (revision 8): joints at most (its hello must also fit MAX_TEXT_BYTES)
+MAX_RIG_OFFSET_M = 1000.0  # a client rig's offsets at most this far a side (a kilometre: finite poses on any chain)
 FACE_DECIMALS = 4  # a JSON frame's face weights (0..1): 1e-4 is below what any rig shows
 AUDIO_MAGIC = b"DGA1"
 AUDIO_HEADER = struct.Struct("<4sId")  # magic, sample rate, pts of the first sample: 16 bytes, then int16[n]
@@ -380,14 +381,17 @@ def _parse_rig(rig) -> dict:
     if parents[0] != -1 or any(not 0 <= p < j for j, p in enumerate(parents) if j > 0):
         raise bad("parents: the first joint is the root (-1), every other joint's parent comes before it")
     out = {"joints": list(names), "parents": list(parents), "offsets": _vectors(offsets, J, 3, "offsets", bad)}
+    units = rig.get("units", "m")
+    if units not in ("m", "cm", "mm"):
+        raise bad(f'units must be "m", "cm" or "mm", got {units!r}')
+    largest = float(np.abs(out["offsets"]).max()) * {"m": 1.0, "cm": 0.01, "mm": 0.001}[units]
+    if largest > MAX_RIG_OFFSET_M:
+        raise bad(f"offsets: one of {largest:.3g} m; each at most {MAX_RIG_OFFSET_M:g} m a side (in units {units!r})")
     if "rest_rotations" in rig:
         q = np.asarray(_vectors(rig["rest_rotations"], J, 4, "rest_rotations", bad))
         if np.any(np.abs(np.linalg.norm(q, axis=1) - 1) > 1e-2):
             raise bad("rest_rotations must be unit quaternions [w, x, y, z]")
         out["rest_rotations"] = (q / np.linalg.norm(q, axis=1, keepdims=True)).tolist()
-    units = rig.get("units", "m")
-    if units not in ("m", "cm", "mm"):
-        raise bad(f'units must be "m", "cm" or "mm", got {units!r}')
     out["units"] = units
     if "map" in rig:
         if not isinstance(rig["map"], dict) or not all(isinstance(v, str) or v is None for v in rig["map"].values()):

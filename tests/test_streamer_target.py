@@ -163,6 +163,8 @@ def test_a_client_gets_its_own_rig(tiny_checkpoint, wav, apose):
     ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "rest_rotations": [[2, 0, 0, 0]]}, "unit quaternions"),
     ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "units": "in"}, "units must be"),
     ({"joints": ["a"], "parents": [-1], "offsets": [[0, 0, 0]], "map": {"hips": 3}}, "map must be"),
+    ({"joints": ["a", "b"], "parents": [-1, 0], "offsets": [[0, 0, 0], [0, 1e300, 0]]}, "one of 1e.300 m; each at most 1000 m"),
+    ({"joints": ["a", "b"], "parents": [-1, 0], "offsets": [[0, 0, 0], [0, 2e5, 0]], "units": "cm"}, "one of 2e.03 m"),
 ])
 def test_a_malformed_rig_gets_an_error_that_says_what_is_wrong(rig, message):
     import json
