@@ -151,6 +151,10 @@ class AudioClock:
             self.t0 += seconds
 
 
+class NonFiniteFrames(RuntimeError):
+    """A window's frames held NaN or infinite values (a bad state or input got through): none of them is sent."""
+
+
 class Session:
     """One audio stream -> frames. Build with `from_bundle`; drive with `run(source, emit)`.
 
@@ -221,6 +225,11 @@ class Session:
             made[FACE] = self._face_rows(n)
         if any(len(v) != n for v in made.values()):
             raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
+        # the last check before any sink: a NaN or infinite value ends the stream (its client is told), never sent
+        if bad := [name for name, v in (("root", pose.root_pos), ("rotations", pose.rotations), *made.items())
+                   if not np.isfinite(v).all()]:
+            raise NonFiniteFrames(f"frames {first}..{first + n - 1}: {', '.join(bad)} not finite (the stream stops "
+                                  "before them)")
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
                 for i in range(n)]

@@ -20,7 +20,7 @@ from websockets.exceptions import ConnectionClosed
 
 from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
-from streamer.sessions import Session
+from streamer.sessions import NonFiniteFrames, Session
 from helpers.serve import serve
 from helpers.stalls import runnable_waiting_s, wait_counting_cpu_waits
 from helpers.ws import SlowExecutor, make_server, recv_json
@@ -111,6 +111,20 @@ STATES = ("backlog_full", "queue_full", "mid_audio_end", "mid_hello")
 
 
 @pytest.mark.slow
+def test_a_window_with_a_non_finite_value_is_never_made_into_frames(bundle):
+    """The last check before the sinks: a NaN anywhere in a window's pose (here its features, as a bad state could
+    make them) stops the stream with a NonFiniteFrames naming the part, and its frames never reach a sink."""
+    import numpy as np
+
+    s = Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)
+    audio = synthetic_speech(1.0, seed=1).astype(np.float32)
+    assert all(np.isfinite(f.rotations).all() for f in s.infer(audio[:8000]))
+    denormalize = s.denormalize
+    s.denormalize = lambda x: denormalize(x) * np.float32(np.nan)
+    with pytest.raises(NonFiniteFrames, match=r"frames \d+\.\.\d+: .*rotations.* not finite"):
+        s.infer(audio[8000:])
+
+
 def test_a_client_leaving_in_any_blocked_state_frees_its_slot_and_memory_at_once(tiny_checkpoint):
     s = serve(tiny_checkpoint, "--source", "ws", "--max-sessions", "1", "--status-every", "0")
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
