@@ -31,6 +31,7 @@ from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 if TYPE_CHECKING:
     from dimgestor.export.onnx_stream import OnnxModel
+    from dimgestor.face import FaceOptions
     from dimgestor.streaming.checkpoint import Bundle
     from streamer.ws import WsServer
 
@@ -102,11 +103,11 @@ def build(options: ServeOptions) -> Pipeline:
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
     scheduler = _scheduler(options.no_batch, onnx)
     metrics = _metrics(scheduler)
-    # one more session: a WebSocket client's own audio (its keyword arguments: Session's own, e.g. face=None)
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
-                                     state_key=state_key, face=face.options if face is not None else None)
-    session = make_session("source", on_window=metrics.window_done) if source is not None else None
+                                     state_key=state_key, face=face)
+    session = make_session("source") if source is not None else None
     if session is not None:
+        session.on_window = metrics.window_done
         metrics.streams.append(lambda: int(not session.stats.ended))
     sk = bundle.skeleton
     target = _target(options, sk)
@@ -218,19 +219,25 @@ def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> Server
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None, **settings) -> Session:
-    """A session of this server's model, steps and options; `settings`: Session's own keyword arguments (face,
-    state_key, clock, on_window, on_boundary)."""
+             onnx: OnnxModel | None = None, state_key: bytes | None = None, face: ServeFace | None = None) -> Session:
+    session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx, face.options if face else None)
+    session.state_key = state_key  # seals its saved states (--state-secret-file)
+    return session
+
+
+def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str,
+                 onnx: OnnxModel | None, face: FaceOptions | None) -> Session:
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
 
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
-                       scheduler=scheduler, name=name, **settings)
+                       scheduler=scheduler, name=name, face=face)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
-                               window_ms=options.window_ms, scheduler=scheduler, name=name, **settings)
+                               window_ms=options.window_ms, scheduler=scheduler, name=name,
+                               face=face)
 
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:

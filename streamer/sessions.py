@@ -160,17 +160,11 @@ class Session:
 
     scheduler: a `streamer.scheduling.Scheduler`, any `concurrent.futures.Executor`, or None (a shared pool);
     `executor` is its deprecated name. The scheduler uses only `stream` and `frames_of` (`WindowSource`).
-    face: how its face is made (None: its frames carry none). clock: ranks its calls (a client's successive
-    sessions share one; None: its own). on_window: told each window's latency (s), e.g. the metrics. on_boundary:
-    called after each window (state, decoder and frames agree: a periodic save's moment). state_key: the workers'
-    shared secret that seals its saved states (serve --state-secret-file; None: plain SHA-256, integrity only).
     """
 
     def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
                  window_ms: int = 200, scheduler: Scheduler | Executor | None = None, name: str = "session", *,
-                 executor: Executor | None = None, face: "FaceOptions | None" = None, clock: AudioClock | None = None,
-                 on_window: Callable[[float], None] | None = None, on_boundary: Callable[[], None] | None = None,
-                 state_key: bytes | None = None):
+                 executor: Executor | None = None, face: "FaceOptions | None" = None):
         if executor is not None:
             if scheduler is not None:
                 raise TypeError("Session: give scheduler= only (executor= is its deprecated name)")
@@ -181,9 +175,10 @@ class Session:
         self.stream, self.decoder, self.denormalize = stream, decoder, denormalize
         self.fps, self.name = fps, name
         self.stats = Stats()
-        self.clock = clock if clock is not None else AudioClock()
-        self.on_window, self.on_boundary = on_window, on_boundary
+        self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
+        self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
         self.handover = False  # set before the source closes: stop after its audio, unfinished (handover.py)
+        self.on_boundary: Callable[[], None] | None = None  # after each window: state, decoder and frames agree
         # The face (`dimgestor.face`): made from the same audio in the same call as the body's frames, into each
         # frame's channel "face". None: frames carry no face.
         self.face_options = face
@@ -191,12 +186,14 @@ class Session:
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._finishing = False
-        self.state_key = state_key  # (`dimgestor.streaming.savestate`; never shown)
+        # The workers' shared secret that seals saved states (`dimgestor.streaming.savestate`; serve --state-secret-file):
+        # None seals with plain SHA-256 (integrity only). Never shown.
+        self.state_key: bytes | None = None
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
                     tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
-        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face, clock, on_window, ...)."""
+        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face)."""
         from dimgestor.features import PoseDecoder
 
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)

@@ -270,7 +270,7 @@ def test_a_held_back_client_is_not_closed_while_the_server_has_not_served_it(bun
 
     async def run():
         ws = make_server(bundle, ping_interval=0.2, ping_timeout=0.2, max_backlog_s=1.0)
-        ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
+        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
         await ws.open()
         frames, closed, end = 0, None, None
         async with connect(ws.url, ping_interval=None) as c:
@@ -326,7 +326,7 @@ def test_audio_end_while_the_previous_session_finishes_gets_an_empty_end_after_t
 
     async def run():
         ws = make_server(bundle)
-        ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
+        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
         await ws.open()
         ends, frames_before = [], []
         async with connect(ws.url) as c:
