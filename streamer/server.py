@@ -106,6 +106,10 @@ def build(options: ServeOptions) -> Pipeline:
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
                                      state_key=state_key, face=face)
     session = make_session("source") if source is not None else None
+    if options.state_store is not None:  # what a resumed state's values may reach, learnt now (~1 s), not on a resume
+        from dimgestor.streaming import state_bounds
+
+        state_bounds.prime((session or make_session()).stream)
     if session is not None:
         session.on_window = metrics.window_done
         metrics.streams.append(lambda: int(not session.stats.ended))

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import inspect
+import math
 import time
 import warnings
 from collections import deque
@@ -278,7 +279,7 @@ class Session:
         from dimgestor.streaming import savestate
 
         state, meta = savestate.loads(self.stream, data, key=self.state_key)
-        check_meta(meta, state)
+        check_meta(meta, state, self.decoder)
         root = meta["decoder"]
         self.stream.state = state
         # (as floats: an int past int64, which the checks take as a finite number, would make numpy's arrays objects)
@@ -361,9 +362,16 @@ async def _emit(emit: Callable[[list[Frame]], object], frames: list[Frame]) -> N
         await r
 
 
-def check_meta(meta: dict, state) -> None:
+def reach(skeleton) -> float:
+    """The farthest the root may move in one frame, in file units: the skeleton's total bone length (more than
+    its height; 20 of them a second is beyond any motion, and a number no overflow comes near)."""
+    return float(np.linalg.norm(skeleton.offsets, axis=1).sum()) or 1.0
+
+
+def check_meta(meta: dict, state, decoder=None) -> None:
     """`Session.snapshot`'s meta beside a checked stream `state`: StateError, naming the field, unless it is what a
-    session saves (frames made, the pose decoder's root, the client's rate, encoding and resampler)."""
+    session saves (frames made, the pose decoder's root, the client's rate, encoding and resampler). With the
+    session's `decoder` (a `PoseDecoder`), its root must also lie where its frames could have taken it (`reach`)."""
     from dimgestor.features import RootState
 
     def refuse(field: str, why: str):
@@ -381,6 +389,14 @@ def check_meta(meta: dict, state) -> None:
         refuse("decoder.drift", "is 3 finite numbers")
     if not is_int(root["frames"]) or not 0 <= root["frames"] <= state.frames_out:
         refuse("decoder.frames", f"is {show(root['frames'])}, not 0..{state.frames_out}")
+    if decoder is not None:
+        step, frames, start = reach(decoder.skeleton), state.frames_out + 1, decoder.anchor
+        for k, most in (("x", frames * step), ("z", frames * step), ("heading", frames * math.pi)):
+            if abs(float(root[k]) - getattr(start, k)) > most:
+                refuse(f"decoder.{k}", f"is {show(root[k])}: {frames - 1} frames move it {most:.4g} at most")
+        if not all(abs(float(v)) <= most for v, most in zip(root["drift"], (step, step, math.pi))):
+            refuse("decoder.drift", f"is {show(root['drift'])}, beyond a frame's largest step ({step:.4g}, "
+                   f"{step:.4g}, pi)")
     if meta.get("encoding", "json") not in ("json", "binary"):
         refuse("encoding", "is json or binary")
     rate = meta.get("rate", SAMPLE_RATE)

@@ -156,6 +156,54 @@ def test_nan_or_infinity_in_a_state_is_refused(model, saved):
         _refused(model, _pack(None, raw, json.dumps(header).replace('"NUMBER"', bad)), f"header holds {bad}")
 
 
+def _leaf_bytes(header, raw, path: str):
+    """(the node, a writable float view of the bytes) of the leaf at `path` ("state.denoiser.ssm")."""
+    node = header["state"]
+    for part in path.split(".")[1:]:
+        node = node["f"][part]
+    dtype = np.float64 if node["dtype"] == "float64" else np.float32
+    b = bytearray(raw)
+    return node, b, np.frombuffer(memoryview(b)[node["at"]:node["at"] + node["n"]], dtype)
+
+
+def test_every_float_of_1e30_or_a_leaf_beyond_the_models_own_states_is_refused(model, saved):
+    """Finite values a stream of this model never holds (issue 52, item 3): they once resumed and streamed every frame
+    NaN. Each leaf's bound is what the probes made (`state_bounds`) times the margin: just inside it resumes, just
+    beyond it is refused by name."""
+    from dimgestor.streaming import state_bounds
+
+    header, raw = _header(saved)
+    stream = GestureStream(model, steps=2, seed=5)
+    limits = state_bounds.bounds(stream)
+    assert set(limits) >= {"state.frontend.tail", "state.extractor.buf", "state.denoiser.enc", "state.denoiser.ssm"}
+    every = bytearray(raw)
+    for path in limits:
+        _, every, view = _leaf_bytes(header, bytes(every), path)
+        view[:] = 1e30
+    _refused(model, _pack(header, bytes(every)), r"state\.\S+ holds \d+ values beyond [\d.e+]+ \(e\.g\. 1e\+30\)")
+    for path in ("state.denoiser.ssm", "state.denoiser.enc", "state.extractor.style.conv"):
+        node, b, view = _leaf_bytes(header, raw, path)
+        view[3] = limits[path] * 0.99
+        state, _ = savestate.loads(stream, _pack(header, bytes(b)))  # inside: resumed, that value as it was written
+        assert np.isclose(float(dict(state_bounds.leaves(state))[path].reshape(-1)[3]),
+                          limits[path] * 0.99)
+        view[3] = -limits[path] * 1.01
+        _refused(model, _pack(header, bytes(b)), rf"{path.replace('.', '[.]')} holds 1 values beyond")
+
+
+def test_a_speech_front_ends_frame_counts_past_the_frames_it_consumed_are_refused():
+    model = _model(frontend="speech")
+    s = GestureStream(model, steps=2, seed=5)
+    s.push(_audio(0.5))
+    header, raw = _header(savestate.dumps(s))
+    consumed = s.state.frontend.consumed
+    for name, bad in (("count", consumed + 1), ("voiced", -1.0), ("quiet", 1e30)):
+        _, b, view = _leaf_bytes(header, raw, f"state.frontend.{name}")
+        view[0] = bad
+        with pytest.raises(savestate.StateError, match=rf"state\.frontend\.{name} holds .*only {consumed} frames"):
+            savestate.loads(GestureStream(model, steps=2, seed=5), _pack(header, bytes(b)))
+
+
 def test_a_speech_front_ends_noise_floor_may_be_nan_only_before_its_first_frame():
     model = _model(frontend="speech")
     s = GestureStream(model, steps=2, seed=5)
@@ -198,6 +246,9 @@ def session_saved(bundle):
     (lambda m: m["decoder"].update(heading=None), r"meta\.decoder x, z and heading are finite"),
     (lambda m: m["decoder"].update(frames=-1), r"meta\.decoder\.frames is -1"),
     (lambda m: m["decoder"].update(drift=[0.0, 0.0]), r"meta\.decoder\.drift is 3 finite numbers"),
+    (lambda m: m["decoder"].update(x=1e38), r"meta\.decoder\.x is 1e\+38: \d+ frames move it [\d.e+]+ at most"),
+    (lambda m: m["decoder"].update(heading=-1e9), r"meta\.decoder\.heading is -1000000000\.0: \d+ frames"),
+    (lambda m: m["decoder"].update(drift=[0.0, 1e12, 0.0]), r"meta\.decoder\.drift is .*beyond a frame's largest"),
     (lambda m: m.update(rate=10 ** 9), r"meta\.rate is 1000000000"),
     (lambda m: m.update(encoding=["json"]), r"meta\.encoding is json or binary"),
     (lambda m: m.update(resampler={"up": 1}), r"meta\.resampler does not fit"),

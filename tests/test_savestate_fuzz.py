@@ -1,7 +1,7 @@
 """A fuzz of stored session states (issue 40): a real saved state, mutated (its header's values: types, numbers
 negative, huge or NaN, shapes, offsets, removed keys, nesting 100,000 deep; its bytes: truncated, bits flipped,
-NaN written in), is either refused with a StateError or resumed exactly: the same frames as the state it came
-from for the same audio; nothing raises anything else.
+NaN written in, a float scaled by up to 1e38), is either refused with a StateError or resumed exactly: the same
+frames as the state it came from for the same audio; nothing raises anything else, and no frame is NaN or infinite.
 With the workers' shared secret (serve --state-secret-file), a mutated state that is not sealed with it (its seal
 left as it was, or made anew without the secret or with another) is refused: no mutation gives other frames.
 Without a secret anyone can seal a state anew (plain SHA-256), so the first fuzz re-seals each mutation and meets
@@ -97,7 +97,18 @@ def mutations(draw, data: bytes):
     """-> (the mutated bytes, what was done, whether it may give other frames when accepted). Their seal: that of
     `data` after a change of bytes, made anew without a secret after a change of the header."""
     header, body = _split(data)
-    how = draw(st.sampled_from(["replace", "nudge", "remove", "truncate", "flip", "nan"]))
+    how = draw(st.sampled_from(["replace", "nudge", "remove", "truncate", "flip", "nan", "scale"]))
+    if how == "scale":  # a finite value of any size in a float leaf (issue 52: 1e30 once streamed NaN frames)
+        leaf = draw(st.sampled_from([x for x in _leaves(header["state"]) if x["n"] and "f" in x["dtype"]]))
+        dtype = "<f8" if "64" in leaf["dtype"] or leaf["dtype"] == "<f8" else "<f4"
+        size = np.dtype(dtype).itemsize
+        i = body + leaf["at"] + size * draw(st.integers(0, leaf["n"] // size - 1))
+        b = bytearray(data)
+        old = float(np.frombuffer(bytes(b[i:i + size]), dtype)[0])
+        power = draw(st.integers(0, 38))
+        value = draw(st.sampled_from([old * 10.0 ** power, -old * 10.0 ** power, 10.0 ** power, -(10.0 ** power)]))
+        b[i:i + size] = np.array(value, dtype).tobytes()
+        return bytes(b), f"scale: {value:.3g} into {leaf['dtype']} at byte {i - body}", True
     if how in ("truncate", "flip", "nan"):
         b = bytearray(data)
         if how == "truncate":
@@ -149,6 +160,8 @@ def _restore(bundle, data: bytes, key: bytes | None, what: str, after) -> bool |
         return None
     frames = s.infer(AUDIO[SAVE_AT:])
     assert [f.index for f in frames] == [f.index for f in after], what
+    assert all(np.isfinite(f.features).all() and np.isfinite(f.root_pos).all() and np.isfinite(f.rotations).all()
+               for f in frames), what
     return all(np.array_equal(f.features, g.features) and np.array_equal(f.root_pos, g.root_pos)
                for f, g in zip(frames, after))
 

@@ -643,6 +643,35 @@ def _with_nan_in_the_denoiser(data: bytes, reseal: bool = False) -> bytes:
     return savestate.reseal(b) if reseal else bytes(b)
 
 
+def _counters_moved_on(frames: int, model):
+    """A header change: the stream's counters all moved on by `frames` frames' worth, agreeing with each other."""
+    def change(h):
+        f, ex, fe = h["state"]["f"], model.extractor.stride, model.frontend.hop
+        f["frames_out"]["v"] += frames
+        f["frontend"]["f"]["consumed"]["v"] += frames * ex
+        f["samples_in"]["v"] += frames * ex * fe
+        h["meta"]["frames"] += frames
+    return change
+
+
+def _every_float(data: bytes, value: float) -> bytes:
+    """A saved state whose every float leaf holds `value` (finite: what the seal and the finiteness check pass),
+    sealed anew without a secret."""
+    from dimgestor.streaming import savestate
+
+    header, raw = savestate.split(data)
+    b = bytearray(raw)
+
+    def fill(node):
+        if node.get("t") in ("tensor", "ndarray") and node["dtype"] in ("float32", "float64", "<f4", "<f8"):
+            dtype = np.float64 if node["dtype"] in ("float64", "<f8") else np.float32
+            np.frombuffer(memoryview(b)[node["at"]:node["at"] + node["n"]], dtype)[:] = value
+        for child in [*node.get("f", {}).values(), *node.get("items", [])]:
+            fill(child)
+    fill(header["state"])
+    return savestate.pack(header, bytes(b))
+
+
 def _patched(data: bytes, change) -> bytes:
     """A saved state with its header changed by `change`, sealed anew without a secret."""
     from dimgestor.streaming import savestate
@@ -699,6 +728,11 @@ def test_a_resume_that_fails_validation_gets_resume_failed_and_the_stream_goes_o
         r"meta\.decoder is not an object": _patched(good, lambda h: h["meta"].pop("decoder")),
         r"state\.frontend\.tail at byte 'x'": _patched(good, lambda h: h["state"]["f"]["frontend"]["f"]["tail"].update(
             at="x")),
+        # issue 52, item 3: finite values no stream of this model holds, a root flung away, counters past the frame
+        # index (they once resumed into NaN frames, a root at 5e37 cm, and `internal`)
+        r"state\.\S+ holds \d+ values beyond [\d.e+]+ \(e\.g\. 1e\+30\)": _every_float(good, 1e30),
+        r"meta\.decoder\.x is 1e\+38": _patched(good, lambda h: h["meta"]["decoder"].update(x=1e38)),
+        r"state\.frames_out is \d+, over 2147483647": _patched(good, _counters_moved_on(2 ** 33, bundle.model)),
     }
     store = MemoryStore()
 

@@ -15,7 +15,8 @@ tree from a fixed list of known types (never pickle: a state may come from a sto
 refuses, with the reason, a state of another version, of another model or of other settings, bytes that are cut
 short or do not parse, and any field that is not what this stream's own state would hold
 (`dimgestor.streaming.savestate_checks`, checked before anything is built: what a state re-sealed by someone without the
-secret meets). A state is resumed exactly or not at all.
+secret meets), and values beyond what this model's own states ever hold (`dimgestor.streaming.state_bounds`). A state
+is resumed exactly or not at all.
 Bump STATE_VERSION whenever the tree of any state type changes.
 """
 from __future__ import annotations
@@ -39,6 +40,7 @@ from ..model.network import DenoiserState, ExtractorState
 from ..model.sampler import StepStates
 from ..smoothing import OneEuroState
 from . import savestate_checks as checks
+from . import state_bounds
 from .savestate_checks import StateError
 from .stream import GestureStream, StreamState
 
@@ -163,6 +165,7 @@ def loads(stream: GestureStream, data: bytes, key: bytes | None = None) -> tuple
     checks.check_tree(header["state"], describe(fresh, []), len(raw), alternatives)
     state = _build(header["state"], raw, next(stream.model.parameters()).device)
     checks.check_state(stream, state, fresh)
+    state_bounds.check_bounds(stream, state)
     return state, meta
 
 
