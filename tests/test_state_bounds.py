@@ -3,7 +3,6 @@ from the model itself on probe signals (`dimgestor.streaming.state_bounds`), and
 stay well inside them, so no real session's state is ever refused for its values."""
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from dimgestor.audio import load_wav
