@@ -22,9 +22,12 @@ __all__ = ["Text", "Audio", "Decoded", "Failed", "Queuing", "OverShare", "Within
 
 @dataclass(frozen=True)
 class Text:
-    """A text message (hello, ping, audio_end, resume_session), not yet parsed; `now`: the server's clock."""
+    """A text message (hello, ping, audio_end, resume_session); `now`: the server's clock; `parsed`: what
+    `protocol.parse_text` made of it (a dict, or the ProtocolError it raised) where that was done off the event
+    loop (a long message: a rig), else None (the machine parses it)."""
     text: str
     now: float = 0.0
+    parsed: object = None
 
 
 @dataclass(frozen=True)

@@ -197,6 +197,7 @@ class ClientSession(_SavesAndResumes):
     smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
     layout_due: bool = False       # a `channels` message goes with its next frames
     joints: int = 0                # its frames' joints on its own rig (revision 8; 0: the server's skeleton's)
+    rigs_refused: int = 0          # `bad_rig`s it was sent (the MAX_REFUSED_RIGS-th closes the connection)
     after_session: list[str] = field(default_factory=list)  # replies due once the running session sent `end`
 
     @property
@@ -227,12 +228,16 @@ class ClientSession(_SavesAndResumes):
         try:
             return getattr(self, HANDLERS[type(event)])(event)
         except P.ProtocolError as e:
+            if e.code == "bad_rig":
+                return self._rig_refused(e)
             return self._on_Failed(Failed(e))
 
     # ---- messages ----
 
     def _on_Text(self, e: Text) -> list[Action]:
-        msg = P.parse_text(e.text)
+        msg = P.parse_text(e.text) if e.parsed is None else e.parsed
+        if isinstance(msg, P.ProtocolError):
+            raise msg
         kind = msg["type"]
         if kind == "ping":
             return [Send(P.dumps({**msg, "type": "pong", "server_time_s": round(e.now, 6)}), "note")]
@@ -276,7 +281,18 @@ class ClientSession(_SavesAndResumes):
         return [Send(P.rig_reply(self.joints or self.terms.joints, e.humanoid, layout), "note")]
 
     def _on_RigRefused(self, e: RigRefused) -> list[Action]:
-        return [Log(logging.INFO, f"bad_rig: {e.message}"), Send(P.error("bad_rig", e.message), "note")]
+        return self._rig_refused(P.ProtocolError("bad_rig", e.message))
+
+    def _rig_refused(self, e: P.ProtocolError) -> list[Action]:
+        """A rig refused (malformed, or not fitted): `bad_rig` with why; each costs the client's message budget
+        (its next messages are read later), and the MAX_REFUSED_RIGS-th closes the connection."""
+        self.rigs_refused += 1
+        out: list[Action] = [Log(logging.INFO, f"bad_rig: {e}"), Send(P.error("bad_rig", str(e)), "note"),
+                             Charge(P.REFUSED_RIG_TOKENS)]
+        if self.rigs_refused >= P.MAX_REFUSED_RIGS:
+            out += [Log(logging.WARNING, f"closing: {self.rigs_refused} rigs refused"),
+                    Close(1008, f"{self.rigs_refused} rigs refused", drain_s=1.0)]
+        return out
 
     def _on_Failed(self, e: Failed) -> list[Action]:
         err = e.error

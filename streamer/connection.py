@@ -103,8 +103,10 @@ class Client(Outbox, ConnectionSaves):
                 try:
                     if isinstance(message, bytes):
                         await self.on_audio(message)
-                    else:
-                        await self.apply(self.machine.handle(S.Text(message, time.monotonic())))
+                    else:  # (a long one, a rig, is parsed on the worker thread: its sender's work, in its turn)
+                        parsed = (await self._work(P.parse_text_or_error, message)
+                                  if len(message) > P.PARSE_ASIDE_BYTES else None)
+                        await self.apply(self.machine.handle(S.Text(message, time.monotonic(), parsed)))
                     if self.closed:
                         break
                 except (ConnectionClosed, asyncio.CancelledError):
@@ -187,8 +189,8 @@ class Client(Outbox, ConnectionSaves):
             case S.StopSession():
                 if self.session_task is not None:
                     self.session_task.cancel()
-            case S.SetRig():
-                return self.act(self.machine.handle(self._set_rig(a.rig)))
+            case S.SetRig() if can_wait:
+                return self._fit_rig(a.rig)
             case S.SaveState():
                 self._save(a)
             case S.Forget():
@@ -219,23 +221,19 @@ class Client(Outbox, ConnectionSaves):
         self.closed = True
         return []
 
-    def _set_rig(self, rig: dict | None):
-        """The client's rig fitted to the model's skeleton -> RigSet, or RigRefused saying why."""
+    async def _fit_rig(self, rig: dict | None) -> list:
+        """The client's rig fitted to the model's skeleton (on the worker thread, as its work: tens of ms) ->
+        RigSet, or RigRefused saying why."""
         if rig is None:
             self.pose = None
-            return S.RigSet(0)
+            return self.act(self.machine.handle(S.RigSet(0)))
         if self.svc.skeleton is None:
-            return S.RigRefused("this server does not fit frames to a client's rig")
-        from dimgestor.retarget import RigError
-        from dimgestor.retarget.names import MapError
-        from streamer.pose import TargetPose
-
-        try:
-            pose = TargetPose.from_message(self.svc.skeleton, rig)
-        except (RigError, MapError) as e:
-            return S.RigRefused(str(e))
+            return self.act(self.machine.handle(S.RigRefused("this server does not fit frames to a client's rig")))
+        pose = await self._work(_fitted, self.svc.skeleton, rig)
+        if isinstance(pose, str):
+            return self.act(self.machine.handle(S.RigRefused(pose)))
         self.pose = pose
-        return S.RigSet(pose.rig.num_joints, pose.humanoid())
+        return self.act(self.machine.handle(S.RigSet(pose.rig.num_joints, pose.humanoid())))
 
     async def on_audio(self, data: bytes) -> None:
         machine = self.machine
@@ -349,6 +347,18 @@ class Client(Outbox, ConnectionSaves):
         if self.resampler is None:
             self.resampler = make_resampler(self.resample_from)
         return self.resampler.process(x)
+
+
+def _fitted(skeleton, rig: dict):  # worker thread
+    """A `streamer.pose.TargetPose` of `rig` on `skeleton`, or why it cannot be one."""
+    from dimgestor.retarget import RigError
+    from dimgestor.retarget.names import MapError
+    from streamer.pose import TargetPose
+
+    try:
+        return TargetPose.from_message(skeleton, rig)
+    except (RigError, MapError) as e:
+        return str(e)
 
 
 async def keepalive_loop(client: Client, interval: float) -> None:

@@ -31,6 +31,9 @@ FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
 REVISION = 8  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
 MAX_RIG_JOINTS = 512  # a client's rig (revision 8): joints at most (its hello must also fit MAX_TEXT_BYTES)
+PARSE_ASIDE_BYTES = 2048  # a text message longer than this (a rig) is parsed on the worker thread, as its sender's work
+MAX_REFUSED_RIGS = 8  # rigs refused on one connection before it is closed (1008): each also costs REFUSED_RIG_TOKENS
+REFUSED_RIG_TOKENS = 50  # ...messages of the sender's budget (its next messages are read that much later)
 MAX_RIG_OFFSET_M = 1000.0  # a client rig's offsets at most this far a side (a kilometre: finite poses on any chain)
 FACE_DECIMALS = 4  # a JSON frame's face weights (0..1): 1e-4 is below what any rig shows
 AUDIO_MAGIC = b"DGA1"
@@ -285,6 +288,14 @@ def _too_deep(value, limit: int) -> bool:
         if not any(isinstance(x, (dict, list)) for x in level):
             return False
     return True
+
+
+def parse_text_or_error(text: str) -> dict | ProtocolError:
+    """`parse_text`, its ProtocolError returned rather than raised (for a parse done on another thread)."""
+    try:
+        return parse_text(text)
+    except ProtocolError as e:
+        return e
 
 
 def parse_text(text: str) -> dict:

@@ -67,15 +67,18 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
             await asyncio.sleep(0.1)
         return span
 
-    def within(quiet, span):
+    def within(name, quiet, span):
         # The watcher's largest gap: under 0.5 s (~0.22 quiet here: a 200 ms window's frames come together), or
         # under 2x the quiet phase's on a machine that stretches it by itself (beside two busy loops, quiet phases
         # of one run gave 0.25-0.48 s with no abuser, and odd_rates 0.30-0.33 s between them).
         # The talker: 2x the quiet latency, plus 25 ms for what a shared 2-core machine's scheduler adds to a
         # ~60 ms median on its own (seen: 124 ms against 2 x 58 ms under a load average of 8, with no abuser
         # effect elsewhere)
+        # Rigs (issue 52): the talker's 95th percentile too, within 1.5x the quiet one's (+25 ms, as above): a valid
+        # rig re-sent in a loop once made it 10x (its fitting, ~35 ms, on the event loop).
         return (watcher.max_gap(*span) < max(0.5, 2 * watcher.max_gap(*quiet))
-                and talker.median(*span) <= 2 * talker.median(*quiet) + 0.025)
+                and talker.median(*span) <= 2 * talker.median(*quiet) + 0.025
+                and ("rig" not in name or talker.percentile(*span) <= 1.5 * talker.percentile(*quiet) + 0.025))
 
     async def run():
         stop = asyncio.Event()
@@ -85,7 +88,7 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
         quiet = await phase()
         for name in PATTERNS:
             trials[name].append((quiet, await phase(name)))
-            if not within(*trials[name][-1]):
+            if not within(name, *trials[name][-1]):
                 # A 3 s phase on a shared machine can be stretched by other work (CI saw a talker median of
                 # 320 ms against 68 ms quiet once, with the watcher slowed too, in a run that no other run
                 # repeated): measure that pattern once more against a quiet phase just before it. An abuser
@@ -102,14 +105,15 @@ def test_abusive_clients_do_not_hurt_bystanders(tiny_checkpoint, wav):
     s.proc.terminate()
     assert s.finish(10) == 0, s.output
     report = {
-        name: [(round(watcher.max_gap(*q), 3), round(talker.median(*q), 3), round(watcher.max_gap(*a), 3),
-                round(talker.median(*a), 3)) for q, a in pairs]
+        name: [(round(watcher.max_gap(*q), 3), round(talker.median(*q), 3), round(talker.percentile(*q), 3),
+                round(watcher.max_gap(*a), 3), round(talker.median(*a), 3), round(talker.percentile(*a), 3))
+               for q, a in pairs]
         for name, pairs in trials.items()
     }
-    print("per pattern and trial: quiet max watcher gap s, quiet median talker latency s; abused: max watcher gap "
-          "s, median talker latency s:", report)
+    print("per pattern and trial: quiet max watcher gap s, quiet median and p95 talker latency s; abused: max "
+          "watcher gap s, median and p95 talker latency s:", report)
     print("server output:\n" + s.output)
     for name, pairs in trials.items():
-        assert any(within(*pair) for pair in pairs), f"{name} hurt the bystanders in every trial: {report[name]} ({report})"
+        assert any(within(name, *pair) for pair in pairs), f"{name} hurt the bystanders in every trial: {report[name]} ({report})"
     assert not talker.errors, talker.errors[:3]
     assert "Traceback" not in s.output and len(s.output.splitlines()) < 20, s.output[-3000:]  # no log floods

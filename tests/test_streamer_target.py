@@ -191,3 +191,30 @@ def test_the_session_machine_takes_a_rig_and_lays_out_its_frames():
     assert json.loads(machine.handle(S.RigRefused("why"))[1].message)["code"] == "bad_rig"
     back = machine.handle(S.RigSet(0))
     assert json.loads(back[0].message)["joints"] == 75 and "humanoid" not in json.loads(back[0].message)
+
+
+def test_refused_rigs_cost_their_sender_and_the_eighth_closes_its_connection():
+    """Issue 52: a refused rig (malformed, or its bones not recognised) costs the client's message budget (its next
+    messages are read later), and after MAX_REFUSED_RIGS the connection is closed with 1008, whether the rig was
+    refused as it was read, or when it was fitted; a long hello parsed off the event loop is the same message."""
+    import json
+
+    from streamer import client_session as S
+    from streamer import protocol as P
+
+    machine = S.ClientSession(S.Seats(S.Terms(max_sessions=2, joints=75)), new_token=lambda: "t")
+    malformed = json.dumps({"type": "hello", "rig": {"joints": ["a", "a"], "parents": [-1, 0], "offsets": [[0] * 3] * 2}})
+    for k in range(1, P.MAX_REFUSED_RIGS + 1):
+        if k % 2:
+            actions = machine.handle(S.Text(malformed))
+        elif k % 4:
+            actions = machine.handle(S.Text(malformed, 0.0, P.parse_text_or_error(malformed)))
+        else:
+            actions = machine.handle(S.RigRefused("cannot tell which of its joints are the humanoid bones"))
+        assert [json.loads(a.message)["code"] for a in actions if isinstance(a, S.Send)] == ["bad_rig"]
+        assert [a.tokens for a in actions if isinstance(a, S.Charge)] == [P.REFUSED_RIG_TOKENS]
+        closes = [a for a in actions if isinstance(a, S.Close)]
+        assert closes == ([] if k < P.MAX_REFUSED_RIGS else [S.Close(1008, f"{k} rigs refused", drain_s=1.0)])
+    parsed = P.parse_text_or_error(json.dumps({"type": "hello", "rig": {"joints": ["a"], "parents": [-1],
+                                                                        "offsets": [[0, 0, 0]]}}))
+    assert parsed["rig"]["joints"] == ["a"]  # (a good one parsed aside is the same dict)

@@ -9,7 +9,7 @@ from websockets.exceptions import ConnectionClosed
 
 from dimgestor.training.synthetic import synthetic_speech
 
-PATTERNS = ("odd_rates", "big_chunks", "deep_json", "session_storm")
+PATTERNS = ("odd_rates", "big_chunks", "deep_json", "session_storm", "bad_rigs", "valid_rig")
 
 
 async def drain(c):
@@ -73,6 +73,59 @@ async def session_storm(url, stop, started):
     await asyncio.sleep(0.5)
     started.set()
     await asyncio.gather(*tasks)
+
+
+def _bad_rigs() -> list[str]:
+    """Malformed and huge `hello.rig`s (issue 52): too many joints, cycles, NaN and 1e30 offsets, a 512-deep chain,
+    duplicate and very long names, a map naming missing bones, 512 joints no humanoid bone is recognised in."""
+    def rig(J, parents=None, offsets=None, names=None, **more):
+        return {"joints": names or [f"j{j}" for j in range(J)], "parents": parents or [-1] + [0] * (J - 1),
+                "offsets": offsets or [[0.0, 0.1, 0.0]] * J, "units": "m", **more}
+    chain = [-1] + list(range(511))
+    rigs = [rig(4000), rig(512), rig(512, parents=chain), rig(3, parents=[-1, 2, 1]),
+            rig(3, offsets=[[0, 1e30, 0]] * 3), rig(3, names=["a", "a", "b"]), rig(3, names=["x" * 5000] * 3),
+            rig(2, map={"hips": "nowhere", "spine": "missing"})]
+    text = [json.dumps({"type": "hello", "rig": r}) for r in rigs]
+    text.append(text[4].replace("1e+30", "NaN"))
+    return text
+
+
+async def bad_rigs(url, stop, started):
+    """4 clients sending malformed or huge rig hellos in a loop, connecting again whenever they are closed."""
+    rigs = _bad_rigs()
+
+    async def one(k):
+        i = k
+        while not stop.is_set():
+            try:
+                async with connect(url, max_size=None) as c:
+                    reader = asyncio.create_task(drain(c))
+                    while not stop.is_set():
+                        await c.send(rigs[i % len(rigs)])
+                        i += 1
+                        await asyncio.sleep(0)
+                    reader.cancel()
+            except (ConnectionClosed, OSError):
+                await asyncio.sleep(0.01)
+
+    tasks = [asyncio.create_task(one(k)) for k in range(4)]
+    await asyncio.sleep(0.3)
+    started.set()
+    await asyncio.gather(*tasks)
+
+
+async def valid_rig(url, stop, started):
+    """One client sending a valid rig (the server's own skeleton, recognised) in a loop, reading every reply."""
+    async with connect(url) as c:
+        hello = json.loads(await c.recv())
+        sk = hello["skeleton"]
+        text = json.dumps({"type": "hello", "rig": {"joints": sk["joints"], "parents": sk["parents"],
+                                                    "offsets": sk["offsets"], "units": sk.get("units", "m")}})
+        started.set()
+        while not stop.is_set():
+            await c.send(text)
+            while json.loads(await c.recv())["type"] not in ("rig", "error"):
+                pass
 
 
 def abuse(name: str, url: str, seconds: float, started) -> None:
