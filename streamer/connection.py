@@ -20,6 +20,7 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
 
+from dimgestor.audio import SAMPLE_RATE
 from streamer import client_session as S
 from streamer import protocol as P
 from streamer.frames import Frame
@@ -328,6 +329,15 @@ class Client(Outbox, ConnectionSaves):
     def _work(self, fn, *args) -> asyncio.Future:
         """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""
         return asyncio.wrap_future(submit_for(self.svc.prep, self.account, fn, *args))
+
+    def lag(self) -> tuple[float, float, float] | None:
+        """(time.monotonic() of its audio's start, seconds of it received, seconds of them not yet inferred), or
+        None without a session fed by its audio (`streamer.health.behind`)."""
+        source, session = self.source, self.session
+        if source is None or session is None or source.first_at is None:
+            return None
+        received = source.samples_in / SAMPLE_RATE
+        return source.first_at, received, max(0.0, received - session.stats.audio_s)
 
     def _over_share(self) -> None:
         """Its work on the worker thread went over its share: the machine says so (`slow_down`) and hears when it

@@ -5,10 +5,16 @@ balancer or an orchestrator should send it new sessions: 503 while draining (aft
 while its inference cannot keep real time, by this rule (`Readiness`); a worker whose state store does not
 answer stays ready (200) and says "degraded: ..." in the body: it serves every session, without hand-over.
 
-    not ready  <=>  real-time load > max_load (0.9),
+    not ready  <=>  real-time load > max_load (0.9)  or  a real-time session is behind,
     real-time load = seconds the inference thread(s) spent computing real-time work (a cycle of windows ranked
                      real time, or a stream's finish) within the last window_s (10 s) of wall time,
-                     / (window_s x threads); a call still running counts up to now.
+                     / (window_s x threads); a call still running counts up to now;
+    behind         = a client's audio waits more than max_backlog_s (1 s) to be inferred while it comes no faster
+                     than real time (received audio <= wall time since its first audio + max_backlog_s).
+
+The load is what the inference thread(s) spend; being behind is what a client gets, whatever held it up (work the
+load does not count, such as faces on their own thread, or a machine busy with other processes): a worker whose
+real-time clients' audio piles up is never ready, however idle its inference thread looks.
 
 A batch cycle of only backlog windows (fast senders ahead of real time, `streamer.sessions.AudioClock`) does
 not count: a backlog takes whatever real time leaves, so a worker busy with one still serves a new talker in
@@ -34,6 +40,7 @@ from streamer.viewer import Answer
 HEALTH, READY, METRICS = "/healthz", "/readyz", "/metrics"
 READY_WINDOW_S = 10.0
 READY_MAX_LOAD = 0.9
+READY_MAX_BACKLOG_S = 1.0
 
 
 class RealtimeLoad:
@@ -77,24 +84,47 @@ class RealtimeLoad:
             self._done.popleft()
 
 
+def behind(lags, now: float, max_backlog_s: float = READY_MAX_BACKLOG_S) -> list[float]:
+    """Of the clients' `lags` ((time.monotonic() of its first audio, seconds of audio received, seconds of it not yet
+    inferred), or None for a client without audio), the seconds not yet inferred of those behind: more than
+    `max_backlog_s` while their audio comes no faster than real time (a fast sender, a file sent at once, is ahead
+    of real time: its backlog is its own)."""
+    out = []
+    for lag in lags:
+        if lag is None:
+            continue
+        first_at, received_s, waiting_s = lag
+        if waiting_s > max_backlog_s and received_s <= now - first_at + max_backlog_s:
+            out.append(waiting_s)
+    return out
+
+
 class Readiness:
     """Whether the worker takes new sessions: not while `draining`, nor while its real-time load is over
-    `max_load` (the module's rule)."""
+    `max_load` or a real-time session is `behind` (the module's rule)."""
 
-    def __init__(self, load: RealtimeLoad | None = None, max_load: float = READY_MAX_LOAD):
+    def __init__(self, load: RealtimeLoad | None = None, max_load: float = READY_MAX_LOAD,
+                 max_backlog_s: float = READY_MAX_BACKLOG_S):
         self.load = load if load is not None else RealtimeLoad()
-        self.max_load = max_load
+        self.max_load, self.max_backlog_s = max_load, max_backlog_s
         self.draining = False  # set once on SIGTERM / shutdown; never cleared (the process is on its way out)
         self.store = None  # a `streamer.store_link.StoreLink` (its `health()`), if the worker has a state store
+        self.lags: Callable[[], list] = lambda: []  # the clients' lags now (`behind`; the WebSocket server's)
 
     def check(self) -> tuple[bool, str]:
         """(ready, why): the reason is one line, the body of the `/readyz` answer."""
         if self.draining:
             return False, "not ready: draining (shutting down)"
         load = self.load.value()
+        late = behind(self.lags(), self.load.now(), self.max_backlog_s)
+        why = []
         if load > self.max_load:
-            return False, (f"not ready: real-time load {load:.2f} over the last {self.load.window_s:g} s "
-                           f"(limit {self.max_load:g}): inference cannot keep real time")
+            why.append(f"real-time load {load:.2f} over the last {self.load.window_s:g} s (limit {self.max_load:g})")
+        if late:
+            why.append(f"{len(late)} real-time client{'s' if len(late) > 1 else ''} {max(late):.1f} s behind "
+                       f"(limit {self.max_backlog_s:g} s)")
+        if why:
+            return False, f"not ready: {'; '.join(why)}: inference cannot keep real time"
         degraded = self.store.health() if self.store is not None else None
         note = self.store.note() if self.store is not None else ""
         note = f"; {note}" if note else ""

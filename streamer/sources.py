@@ -112,6 +112,7 @@ class PushSource:
         self.queued = 0  # samples waiting to be read
         self.samples_in = 0  # 16 kHz samples so far (the audio clock)
         self.more_s = 0.0  # audio of the message being put that is still to come (put in pieces)
+        self.first_at: float | None = None  # time.monotonic() of its first audio
         self.closed = False
         self.changed = asyncio.Event()
 
@@ -137,6 +138,8 @@ class PushSource:
         self.more_s = more_s
         x = np.asarray(x, dtype=np.float32)
         if len(x) and not self.closed:
+            if self.first_at is None:
+                self.first_at = time.monotonic()
             self.chunks.append(AudioChunk(x, self.samples_in / SAMPLE_RATE, time.monotonic()))
             self.samples_in += len(x)
             self.queued += len(x)

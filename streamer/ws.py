@@ -153,6 +153,7 @@ class WsServer:
         self.metrics.queues["dimgestor_client_queue_messages"] = lambda: sum(len(c.queue) for c in self.clients)
         self.metrics.queues["dimgestor_audio_backlog_seconds"] = lambda: sum(
             c.source.backlog_s for c in self.clients if c.source is not None)
+        self.metrics.readiness.lags = lambda: [c.lag() for c in self.clients]
         if self.stored is not None:
             self.metrics.store = self.metrics.readiness.store = self.stored.link
 

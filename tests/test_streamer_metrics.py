@@ -4,6 +4,7 @@ Prometheus server (Debian `prometheus`) scraping a `streamer serve` worker."""
 
 import asyncio
 import json
+import re
 import shutil
 import signal
 import socket
@@ -27,7 +28,6 @@ from streamer.health import Readiness, RealtimeLoad, answer
 from streamer.metrics import ServerMetrics
 from streamer.scheduling import StreamBatcher
 from streamer.sessions import Session
-from streamer.ws import WsServer
 from helpers.serve import serve
 from helpers.ws import make_server, recv_json, running
 
@@ -132,6 +132,27 @@ def test_readyz_fails_over_the_load_limit_and_while_draining():
     assert ready.check() == (True, "ready: real-time load 0.80")
     ready.draining = True
     assert ready.check() == (False, "not ready: draining (shutting down)")
+
+
+def test_readyz_fails_while_a_real_time_clients_audio_piles_up_whatever_the_load():
+    """Issue 52, item 4: a worker once said "ready: real-time load 0.85" while its talkers' audio waited 39 s (the
+    faces' work, on their own thread, is not in the load). A client whose audio comes in real time and waits more
+    than 1 s to be inferred is behind, and the worker not ready; a fast sender (a file sent at once) is ahead of
+    real time, and its backlog its own."""
+    clock = FakeClock()
+    ready = Readiness(RealtimeLoad(window_s=10.0, now=clock))
+    clock.t = 100.0
+
+    def lag(received_s, waiting_s, since_s):  # (its first audio's time, audio received, not yet inferred)
+        return clock.t - since_s, received_s, waiting_s
+    talker, fast = lag(20.0, 0.2, 20.0), lag(60.0, 30.0, 5.0)  # in real time; a file, 55 s ahead
+    ready.lags = lambda: [talker, fast, None]
+    assert ready.check() == (True, "ready: real-time load 0.00")
+    ready.lags = lambda: [talker, fast, lag(20.0, 3.5, 20.0), lag(20.5, 1.2, 20.0)]  # (0.5 s early: within slack)
+    assert ready.check() == (False, "not ready: 2 real-time clients 3.5 s behind (limit 1 s): inference cannot "
+                                    "keep real time")
+    ready.lags = lambda: [talker, fast, lag(20.0, 1.0, 20.0)]  # at the limit: not over it
+    assert ready.check()[0]
 
 
 # ---- the three paths on a live server ------------------------------------------------------------
@@ -250,15 +271,16 @@ def test_sessions_refused_are_counted_once_per_attempt(bundle):
 
 
 def test_readyz_fails_while_slowed_inference_cannot_keep_real_time(bundle, monkeypatch):
-    """Inference slowed to 0.4 s per call while a client streams in real time (0.1 s windows): the thread is
-    busy on real-time work back to back, so /readyz turns 503; once the stream ends it turns 200 again."""
+    """Inference slowed to 0.4 s per call and 1.2 s per second of audio while a client streams in real time (0.1 s
+    windows): the thread is busy on real-time work back to back, so /readyz turns 503, and once the client's audio
+    waits more than 1 s it says so too; once the stream ends it turns 200 again."""
     import dimgestor.streaming.batch
 
     push_many = dimgestor.streaming.batch.push_many
 
-    def slow(*args, **kw):
-        time.sleep(0.4)
-        return push_many(*args, **kw)
+    def slow(streams, chunks, *args, **kw):
+        time.sleep(0.4 + 1.2 * max(len(c) for c in chunks) / 16000)
+        return push_many(streams, chunks, *args, **kw)
 
     monkeypatch.setattr(dimgestor.streaming.batch, "push_many", slow)
     batcher = StreamBatcher()
@@ -290,6 +312,7 @@ def test_readyz_fails_while_slowed_inference_cannot_keep_real_time(bundle, monke
     finally:
         batcher.shutdown()
     assert any(s.startswith("not ready: real-time load") for s in seen), seen
+    assert any(re.search(r"; 1 real-time client \d+\.\d s behind \(limit 1 s\)", s) for s in seen), seen
     assert after[0] == 200, after
 
 
