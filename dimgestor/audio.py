@@ -13,6 +13,7 @@ import struct
 import warnings
 import wave
 from pathlib import Path
+from typing import Iterator, NamedTuple
 
 import numpy as np
 
@@ -38,33 +39,53 @@ def check_audio(audio) -> np.ndarray:
 # ---- reading -------------------------------------------------------------------------------------
 
 
-def read_wav(path: str | Path) -> tuple[np.ndarray, int]:
-    """Samples (n, channels) float32 in [-1, 1] and the sample rate, at the file's own rate.
+class WavLayout(NamedTuple):
+    """Where a WAV file's samples are and how they are encoded (`wav_layout`)."""
 
-    Parses the RIFF chunks directly: PCM 8/16/24/32-bit, IEEE float 32/64-bit, and
-    WAVE_FORMAT_EXTENSIBLE wrapping either.
-    """
+    path: str
+    tag: int  # _PCM or _FLOAT (WAVE_FORMAT_EXTENSIBLE resolved)
+    channels: int
+    rate: int
+    bits: int
+    block_align: int  # bytes per sample frame
+    data_at: int  # the first sample's byte in the file
+    frames: int  # whole sample frames in the data chunk
+
+    @property
+    def seconds(self) -> float:
+        return self.frames / self.rate
+
+
+def wav_layout(path: str | Path) -> WavLayout:
+    """The RIFF chunks of a WAV file, walked without reading its samples (a file of any length): AudioError naming
+    the file for anything that is not a readable WAV. PCM 8/16/24/32-bit, IEEE float 32/64-bit, and
+    WAVE_FORMAT_EXTENSIBLE wrapping either."""
     path = str(path)
     try:
-        raw = Path(path).read_bytes()
+        with open(path, "rb") as f:
+            size_of_file = f.seek(0, 2)
+            f.seek(0)
+            head = f.read(12)
+            if len(head) < 12 or head[:4] != b"RIFF" or head[8:12] != b"WAVE":
+                raise AudioError(f"{path}: not a WAV file (no RIFF/WAVE header)")
+            fmt = data = None
+            pos = 12
+            while pos + 8 <= size_of_file:
+                f.seek(pos)
+                cid, size = struct.unpack("<4sI", f.read(8))
+                present = min(size, size_of_file - pos - 8)
+                if cid == b"data":
+                    if present < size and size not in (0, 0xFFFFFFFF):  # 0 / -1: size unknown to a streaming writer
+                        raise AudioError(f"{path}: truncated: the data chunk declares {size} bytes but {present} are "
+                                         "present")
+                    data = (pos + 8, size if size not in (0, 0xFFFFFFFF) else size_of_file - pos - 8)
+                elif cid == b"fmt ":
+                    if present < 16:
+                        raise AudioError(f"{path}: truncated or malformed 'fmt ' chunk ({present} bytes)")
+                    fmt = f.read(min(size, 64))
+                pos += 8 + size + (size & 1)  # chunks are word aligned
     except OSError as e:
         raise AudioError(f"{path}: cannot read: {e.strerror or e}") from None
-    if len(raw) < 12 or raw[:4] != b"RIFF" or raw[8:12] != b"WAVE":
-        raise AudioError(f"{path}: not a WAV file (no RIFF/WAVE header)")
-    fmt = data = None
-    pos = 12
-    while pos + 8 <= len(raw):
-        cid, size = raw[pos:pos + 4], struct.unpack("<I", raw[pos + 4:pos + 8])[0]
-        body = raw[pos + 8:pos + 8 + size]
-        if cid == b"data":
-            if len(body) < size and size not in (0, 0xFFFFFFFF):  # 0 / -1: size unknown to a streaming writer
-                raise AudioError(f"{path}: truncated: the data chunk declares {size} bytes but {len(body)} are present")
-            data = body if size not in (0, 0xFFFFFFFF) else raw[pos + 8:]
-        elif cid == b"fmt ":
-            if len(body) < 16:
-                raise AudioError(f"{path}: truncated or malformed 'fmt ' chunk ({len(body)} bytes)")
-            fmt = body
-        pos += 8 + size + (size & 1)  # chunks are word aligned
     if fmt is None or data is None:
         raise AudioError(f"{path}: not a usable WAV file: missing the {'fmt ' if fmt is None else 'data'} chunk (truncated?)")
     tag, channels, rate, _, block_align, bits = struct.unpack("<HHIIHH", fmt[:16])
@@ -74,10 +95,38 @@ def read_wav(path: str | Path) -> tuple[np.ndarray, int]:
         tag = struct.unpack("<H", fmt[24:26])[0]  # first two bytes of the SubFormat GUID
     if channels < 1 or rate < 1 or block_align < 1:
         raise AudioError(f"{path}: invalid format: {channels} channels, {rate} Hz, block align {block_align}")
-    width = block_align // channels
-    usable = len(data) - len(data) % block_align
-    frames = np.frombuffer(data[:usable], dtype=np.uint8).reshape(-1, channels, width)
-    return _decode(path, tag, bits, frames), rate
+    layout = WavLayout(path, tag, channels, rate, bits, block_align, data[0], data[1] // block_align)
+    _decode(path, tag, bits, np.zeros((0, channels, block_align // channels), np.uint8))  # (an unsupported encoding)
+    return layout
+
+
+def read_wav(path: str | Path) -> tuple[np.ndarray, int]:
+    """Samples (n, channels) float32 in [-1, 1] and the sample rate, at the file's own rate (`wav_layout`)."""
+    layout = wav_layout(path)
+    (x,) = wav_blocks(layout, max(layout.frames, 1))
+    return x, layout.rate
+
+
+def wav_blocks(layout: WavLayout, frames: int):
+    """The samples of a WAV file (`wav_layout`), (n, channels) float32 in [-1, 1], in blocks of `frames` sample
+    frames (the last one shorter; one empty block for a file without samples): a file of any length in the memory
+    of one block."""
+    width = layout.block_align // layout.channels
+    try:
+        with open(layout.path, "rb") as f:
+            f.seek(layout.data_at)
+            done = 0
+            while True:
+                n = min(frames, layout.frames - done)
+                raw = f.read(n * layout.block_align)
+                n = len(raw) // layout.block_align
+                block = np.frombuffer(raw[:n * layout.block_align], dtype=np.uint8).reshape(-1, layout.channels, width)
+                yield _decode(layout.path, layout.tag, layout.bits, block)
+                done += n
+                if done >= layout.frames or n == 0:
+                    return
+    except OSError as e:
+        raise AudioError(f"{layout.path}: cannot read: {e.strerror or e}") from None
 
 
 def _decode(path: str, tag: int, bits: int, frames: np.ndarray) -> np.ndarray:
@@ -108,6 +157,27 @@ def load_wav(path: str | Path, target_rate: int | None = SAMPLE_RATE) -> np.ndar
     if target_rate is not None and rate != target_rate:
         mono = resample(mono, rate, target_rate)
     return mono.astype(np.float32)
+
+
+def wav_stream(path: str | Path, target_rate: int = SAMPLE_RATE, block_s: float = 10.0
+               ) -> tuple[int, Iterator[np.ndarray]]:
+    """`load_wav` in pieces, for a file of any length: (how many samples there are at `target_rate`, an iterator of
+    mono float32 blocks of about `block_s` seconds whose concatenation is `load_wav(path, target_rate)`)."""
+    layout = wav_layout(path)
+    if layout.rate == target_rate:
+        total = layout.frames
+    else:
+        g = math.gcd(layout.rate, target_rate)
+        total = -(-layout.frames * (target_rate // g) // (layout.rate // g))  # resample's ceil(n * dst / src)
+
+    def blocks() -> Iterator[np.ndarray]:
+        r = None if layout.rate == target_rate else StreamingResampler(layout.rate, target_rate, block=8192)
+        for x in wav_blocks(layout, max(1, int(block_s * layout.rate))):
+            mono = x.mean(axis=1, dtype=np.float64) if x.shape[1] > 1 else x[:, 0].astype(np.float64)
+            yield (mono if r is None else r.process(mono)).astype(np.float32)
+        if r is not None:
+            yield r.flush().astype(np.float32)
+    return total, blocks()
 
 
 def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:

@@ -147,22 +147,38 @@ class BvhMotion:
     @classmethod
     def from_pose(cls, skeleton: Skeleton, frame_time: float, rotations: np.ndarray, translations: np.ndarray) -> "BvhMotion":
         """Inverse of rotations()/translations(): local quaternions (T, J, 4) and translations (T, J, 3)."""
-        T = rotations.shape[0]
-        values = np.zeros((T, skeleton.num_channels))
-        for j, start in enumerate(skeleton.channel_starts):
-            order = skeleton.rotation_order(j)
-            if order:
-                if len(order) != 3:
-                    raise ValueError(f"joint {skeleton.names[j]!r}: cannot write rotations to {len(order)} rotation channels")
-                # +360 on one angle is the same rotation, so unwrapping per channel only removes jumps.
-                euler = np.unwrap(R.quat_to_euler(rotations[:, j], order), axis=0)
-                rot_cols = iter(np.degrees(euler).T)
-            for k, c in enumerate(skeleton.channels[j]):
-                if c in ROTATION_CHANNELS:
-                    values[:, start + k] = next(rot_cols)
-                else:
-                    values[:, start + k] = translations[:, j, POSITION_CHANNELS.index(c)]
+        values, _ = pose_values(skeleton, rotations, translations)
         return cls(skeleton, float(frame_time), values)
+
+
+def pose_values(skeleton: Skeleton, rotations: np.ndarray, translations: np.ndarray,
+                before: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Channel values (T, channels) of local quaternions (T, J, 4) and translations (T, J, 3), and each rotating
+    joint's last Euler angles (radians, unwrapped); `before`: those of the frame before these (a motion written
+    in pieces unwraps across them: the same values as all of it at once)."""
+    T = rotations.shape[0]
+    values = np.zeros((T, skeleton.num_channels))
+    last: dict[int, np.ndarray] = {}
+    for j, start in enumerate(skeleton.channel_starts):
+        order = skeleton.rotation_order(j)
+        if order:
+            if len(order) != 3:
+                raise ValueError(f"joint {skeleton.names[j]!r}: cannot write rotations to {len(order)} rotation channels")
+            # +360 on one angle is the same rotation, so unwrapping per channel only removes jumps.
+            euler = R.quat_to_euler(rotations[:, j], order)
+            if before is not None and j in before:
+                euler = np.unwrap(np.concatenate([before[j][None], euler]), axis=0)[1:]
+            else:
+                euler = np.unwrap(euler, axis=0)
+            if T:
+                last[j] = euler[-1]
+            rot_cols = iter(np.degrees(euler).T)
+        for k, c in enumerate(skeleton.channels[j]):
+            if c in ROTATION_CHANNELS:
+                values[:, start + k] = next(rot_cols)
+            else:
+                values[:, start + k] = translations[:, j, POSITION_CHANNELS.index(c)]
+    return values, last
 
 
 def forward_kinematics(motion: BvhMotion | Skeleton, rotations: np.ndarray | None = None,
@@ -398,6 +414,40 @@ def format_frames(values: np.ndarray) -> str:
     out = io.StringIO()
     np.savetxt(out, values, fmt="%.6f", delimiter=" ")
     return out.getvalue()
+
+
+class BvhWriter:
+    """A BVH file written a few frames at a time (a recording of any length in the memory of one piece): the same
+    text as `write_bvh` of all of them. `frames`: how many will come (the header says it first)."""
+
+    def __init__(self, path: str | Path, skeleton: Skeleton, frame_time: float, frames: int):
+        self.path, self.skeleton, self.frames, self.written = Path(path), skeleton, int(frames), 0
+        self._last: dict[int, np.ndarray] | None = None
+        self._file = open(self.path, "w", encoding="utf-8")
+        self._file.write(format_hierarchy(skeleton) + f"MOTION\nFrames: {self.frames}\nFrame Time: {float(frame_time)!r}\n")
+
+    def write(self, rotations: np.ndarray, translations: np.ndarray) -> None:
+        """The next frames: local quaternions (n, J, 4) and translations (n, J, 3) on the skeleton."""
+        if self.written + len(rotations) > self.frames:
+            raise ValueError(f"{self.path}: {self.written + len(rotations)} frames written, the header says {self.frames}")
+        values, last = pose_values(self.skeleton, rotations, translations, self._last)
+        self._last = last or self._last
+        self._file.write(format_frames(values))
+        self.written += len(values)
+
+    def close(self) -> None:
+        self._file.close()
+        if self.written != self.frames:
+            raise ValueError(f"{self.path}: {self.written} frames written, the header says {self.frames}")
+
+    def __enter__(self) -> "BvhWriter":
+        return self
+
+    def __exit__(self, kind, *_) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self._file.close()
 
 
 def write_bvh(path: str | Path, motion: BvhMotion) -> None:

@@ -3,21 +3,23 @@ Animation, on our skeleton or retargeted onto the user's rig (and, with --face-c
 a CSV)."""
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from dimgestor.audio import SAMPLE_RATE, AudioError, load_wav
-from dimgestor.bvh import BvhMotion
+from dimgestor.audio import SAMPLE_RATE, AudioError, wav_stream
+from dimgestor.bvh import BvhMotion, BvhWriter
 from dimgestor.cli_help import smoothing_from_flag
 from dimgestor.features import features_to_motion
 from dimgestor.model.diffusion import check_guidance
 from dimgestor.streaming.checkpoint import Bundle, load_checkpoint
 
-__all__ = ["generate_motion", "generate_face", "register"]
+__all__ = ["generate_motion", "generate_face", "register", "BLOCK_S", "WHOLE_MAX_S"]
+
+BLOCK_S = 10.0  # a .bvh is made this much audio at a time: a recording of any length in bounded memory
+WHOLE_MAX_S = 3600.0  # a .glb or .vrma holds its whole animation in memory: recordings up to an hour
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
@@ -58,11 +60,13 @@ def register(subparsers) -> None:
     from dimgestor.cli_help import deprecated_alias, examples
 
     p = subparsers.add_parser(
-        "generate", help="generate a BVH for a WAV file (offline, whole file)",
-        description="Generate the motion for a speech WAV file, offline (the whole file at once; the same frames "
-                    "as `dimgestor serve --record` on that file, seed and steps), and write it as a BVH, a glTF "
-                    "binary (.glb: Blender, Unity, Unreal, three.js) or a VRM Animation (.vrma, with the face), on "
-                    "our skeleton or retargeted onto your rig (--target).",
+        "generate", help="generate a BVH for a WAV file (offline, as fast as the machine goes)",
+        description="Generate the motion for a speech WAV file, offline (the same frames as `dimgestor serve "
+                    "--record` on that file, seed and steps), and write it as a BVH, a glTF binary (.glb: Blender, "
+                    "Unity, Unreal, three.js) or a VRM Animation (.vrma, with the face), on our skeleton or "
+                    "retargeted onto your rig (--target). A .bvh (and its --face-csv) is made and written 10 s of "
+                    "audio at a time, for a recording of any length in a few hundred MB; a .glb or .vrma holds the "
+                    "whole animation, for recordings up to an hour.",
         epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
                         "dimgestor generate --audio speech.wav --out motion.bvh --face-csv face.csv",
                         "dimgestor generate --audio speech.wav --out motion.vrma",
@@ -167,16 +171,28 @@ def _run(args) -> int:
         args.steps = bundle.config.sample_steps
     if args.steps > bundle.config.n_steps:
         raise ValueError(f"--steps {args.steps} exceeds the model's {bundle.config.n_steps} diffusion steps")
-    audio = load_wav(args.audio, SAMPLE_RATE)
-    if len(audio) * bundle.feature_spec.fps // SAMPLE_RATE == 0:  # `dimgestor serve` refuses it too
-        raise AudioError(f"{args.audio}: {len(audio)} audio samples, shorter than one motion frame "
-                         f"({1000 / bundle.feature_spec.fps:g} ms): nothing to generate")
+    fps = bundle.feature_spec.fps
+    samples, blocks = wav_stream(args.audio, SAMPLE_RATE, BLOCK_S)
+    seconds = samples / SAMPLE_RATE
+    if samples * fps // SAMPLE_RATE == 0:  # `dimgestor serve` refuses it too
+        raise AudioError(f"{args.audio}: {samples} audio samples, shorter than one motion frame "
+                         f"({1000 / fps:g} ms): nothing to generate")
+    if out.suffix.lower() == ".bvh":  # made and written a block at a time
+        what, face_frames = _stream_bvh(args, bundle, blocks, samples, smoothing, steps_given, out, target, face_out)
+        print(f"wrote {out} ({what}) at {fps:g} fps ({seconds:.2f} s of audio) from {bundle.path}")
+        if face_out is not None:
+            print(f"wrote {face_out}: the face of the same {face_frames} frames")
+        return 0
+    if seconds > WHOLE_MAX_S:
+        raise ValueError(f"--out {out}: a {out.suffix.lower()} holds the whole animation in memory, and "
+                         f"{args.audio} is {_hms(seconds)} long (at most {_hms(WHOLE_MAX_S)}): write a .bvh, made a "
+                         "block at a time for any length")
+    audio = np.concatenate(list(blocks))
     if args.backend == "onnxruntime":
         motion = _onnx_motion(args, bundle, audio, smoothing, steps_given)
     else:
         motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
                                  args.tether_s, args.guidance)
-    fps = bundle.feature_spec.fps
     face = None
     if face_out is not None or out.suffix.lower() == ".vrma":
         face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
@@ -186,8 +202,7 @@ def _run(args) -> int:
 
         expressions = dict(zip(names_of("vrm1"), convert(face, "vrm1").T))
     what = write_motion(out, motion, target, face=expressions)
-    print(f"wrote {out} ({what}) at {1 / motion.frame_time:g} fps ({len(audio) / SAMPLE_RATE:.2f} s of audio) "
-          f"from {bundle.path}")
+    print(f"wrote {out} ({what}) at {1 / motion.frame_time:g} fps ({seconds:.2f} s of audio) from {bundle.path}")
     if face_out is not None:
         from dimgestor.face.track import write_track
 
@@ -196,7 +211,87 @@ def _run(args) -> int:
     return 0
 
 
-def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given: bool) -> BvhMotion:
+def _hms(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def _stream_bvh(args, bundle: Bundle, blocks, samples: int, smoothing, steps_given: bool, out: Path, target,
+                face_out: Path | None) -> tuple[str, int]:
+    """The motion (and the face) of the audio `blocks` made and written a block at a time: the same frames as the
+    whole recording at once (streaming equals offline), in the memory of one block. -> (what was written, the face
+    frames written)."""
+    from dimgestor.features import PoseDecoder
+
+    fps, sk = bundle.feature_spec.fps, bundle.skeleton
+    total = int(samples * fps // SAMPLE_RATE)
+    stream = (_onnx_stream(args, bundle, smoothing, steps_given) if args.backend == "onnxruntime" else
+              bundle.stream(steps=args.steps, seed=args.seed, sampler=args.sampler, eta=args.eta, smoothing=smoothing,
+                            guidance=args.guidance))
+    decoder = PoseDecoder(sk, bundle.feature_spec, root=args.root, tether_s=args.tether_s)
+    retarget, skeleton, what = None, sk, "BVH"
+    if target is not None:
+        from dimgestor.retarget import Rig, RigError
+        from dimgestor.retarget.transfer import Retarget, resolve_map
+
+        source = Rig.from_skeleton(sk, "ours")
+        retarget = Retarget(source, target.rig, resolve_map(source, what="source"), target.bones)
+        skeleton = target.rig.skeleton
+        if skeleton is None:
+            raise RigError(f"{target.path}: not a BVH rig; write it as glTF instead")
+        for k, j in enumerate(retarget.target_joints):
+            if len(skeleton.rotation_order(int(j))) != 3:
+                raise RigError(f"{target.path}: joint {skeleton.names[j]!r} ({retarget.labels[k]}) has no three "
+                               "rotation channels to carry its motion")
+        what = f"BVH on {Path(target.path).name} ({len(retarget.bones)} bones mapped)"
+    face = face_file = None
+    if face_out is not None:
+        from dimgestor.face import FaceOptions, FaceStream
+        from dimgestor.face.track import track_header, track_rows
+
+        lookahead = np.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # as generate_face
+        face = FaceStream(fps, lookahead, FaceOptions(seed=args.seed))
+        face_file = open(face_out, "w")
+        face_file.write(track_header())
+    done = faced = 0
+    try:
+        with BvhWriter(out, skeleton, 1.0 / fps, total) as bvh:
+            def emit(frames: np.ndarray) -> None:
+                nonlocal done
+                frames = frames[:total - done]
+                if not len(frames):
+                    return
+                pose = decoder.decode(bundle.denormalize(frames))
+                t = np.broadcast_to(sk.offsets, pose.rotations.shape[:2] + (3,)).copy()
+                t[:, 0] = pose.root_pos
+                bvh.write(*(retarget(pose.rotations, t) if retarget is not None else (pose.rotations, t)))
+                done += len(frames)
+
+            def faces(n: int) -> None:
+                nonlocal faced
+                take = min(n, face.frames_ready) if face is not None else 0
+                if take:
+                    face_file.write("".join(track_rows(face.take(take), fps, faced)))
+                    faced += take
+            for block in blocks:
+                emit(stream.push(block))
+                if face is not None:
+                    face.push(block)
+                    faces(total - faced)
+            emit(stream.finish())
+            if face is not None:
+                face.finish()
+                faces(total - faced)
+    finally:
+        if face_file is not None:
+            face_file.close()
+        if face is not None:
+            face.close()
+    return f"{what}, {done} frames", faced
+
+
+def _onnx_folder(args, bundle: Bundle, steps_given: bool):
+    """The ONNX export to run: --onnx (checked against --steps and --guidance), or the cached one."""
     if args.sampler != "ddim" or args.eta != 0 or args.device != "cpu":
         raise ValueError("--backend onnxruntime runs deterministic DDIM (--eta 0) on the CPU")
     if args.onnx:
@@ -207,10 +302,23 @@ def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given
                 or args.guidance is not None and args.guidance != sampler["guidance"]):
             raise ValueError(f"--onnx {args.onnx} was exported with K={sampler['steps']} and guidance "
                              f"{sampler['guidance']:g}; pass those (or export again)")
-        return generate_motion_onnx(bundle, audio, args.onnx, args.seed, smoothing, args.root, args.tether_s)
+        return args.onnx
     from dimgestor.export.onnx_cache import cached_export
 
     guidance = bundle.config.guidance if args.guidance is None else args.guidance
-    folder = cached_export(bundle, args.steps, guidance, root=args.onnx_cache,
-                           log=lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True))
+    return cached_export(bundle, args.steps, guidance, root=args.onnx_cache,
+                         log=lambda text: print(f"dimgestor: {text}", file=sys.stderr, flush=True))
+
+
+def _onnx_stream(args, bundle: Bundle, smoothing, steps_given: bool):
+    from dimgestor.export.onnx_export import check_export
+    from dimgestor.export.onnx_stream import load_manifest, ort_stream
+
+    folder = _onnx_folder(args, bundle, steps_given)
+    check_export(load_manifest(folder), bundle)
+    return ort_stream(folder, seed=args.seed, smoothing=smoothing)
+
+
+def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given: bool) -> BvhMotion:
+    folder = _onnx_folder(args, bundle, steps_given)
     return generate_motion_onnx(bundle, audio, folder, args.seed, smoothing, args.root, args.tether_s)

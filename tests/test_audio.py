@@ -176,3 +176,19 @@ def test_the_resamplers_filter_is_scipys_firwin(up, down):
     half = 10 * max(up, down)
     want = firwin(2 * half + 1, 1.0 / max(up, down), window=("kaiser", 5.0))
     np.testing.assert_allclose(kaiser_lowpass(2 * half + 1, 1.0 / max(up, down), 5.0), want, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("rate,channels,block_s", [(16000, 1, 0.37), (44100, 2, 1.0), (48000, 1, 0.01),
+                                                   (8000, 2, 5.0), (22050, 1, 100.0)])
+def test_a_wav_read_in_blocks_is_load_wav_sample_for_sample(tmp_path, rate, channels, block_s):
+    """wav_stream (generate's long recordings): the blocks of the file, mixed and resampled as they come, concatenate
+    to exactly load_wav's samples, and the count it gives up front is theirs."""
+    from dimgestor.audio import wav_stream
+
+    x = np.random.default_rng(rate).uniform(-0.9, 0.9, (rate * 2 + 17, channels))
+    save_wav(tmp_path / "a.wav", x, rate)
+    total, blocks = wav_stream(tmp_path / "a.wav", block_s=block_s)
+    parts = list(blocks)
+    whole = load_wav(tmp_path / "a.wav")
+    assert total == len(whole) and np.array_equal(np.concatenate(parts), whole)
+    assert all(p.dtype == np.float32 for p in parts) and len(parts) >= min(3, 2 / block_s)

@@ -252,3 +252,28 @@ def test_zeggs_round_trip(zeggs_dir, tmp_path):
     np.testing.assert_allclose(back.values, m.values, atol=1e-4)
     assert back.frame_time == m.frame_time
     np.testing.assert_allclose(forward_kinematics(back), forward_kinematics(m), atol=1e-4)
+
+
+def test_a_bvh_written_in_pieces_is_the_text_of_it_written_at_once(tmp_path):
+    """BvhWriter (generate's long recordings): Euler angles unwrapped across the pieces, so the file is write_bvh's
+    of the whole motion, byte for byte, whatever the pieces; a count other than the header's is refused."""
+    from dimgestor import rotations as R
+    from dimgestor.bvh import BvhMotion, BvhWriter, Skeleton, write_bvh
+
+    sk = Skeleton(["hips", "spine", "head"], [-1, 0, 1], np.array([[0, 90, 0], [0, 10, 0], [0, 20, 0]], float),
+                  [["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation"],
+                   ["Zrotation", "Xrotation", "Yrotation"], ["Zrotation", "Xrotation", "Yrotation"]])
+    T = 97
+    angle = np.linspace(0, 6 * np.pi, T)  # turns round and round: the unwrapping is at work across the pieces
+    axes = np.array([[0, 1, 0], [1, 0, 0], [0.6, 0.8, 0]])
+    q = np.stack([R.expmap_to_quat(axes[j] * ((j + 1) * angle[:, None] % (2 * np.pi))) for j in range(3)], axis=1)
+    t = np.broadcast_to(sk.offsets, (T, 3, 3)).copy()
+    t[:, 0] = np.random.default_rng(0).standard_normal((T, 3))
+    write_bvh(tmp_path / "whole.bvh", BvhMotion.from_pose(sk, 0.05, q, t))
+    with BvhWriter(tmp_path / "pieces.bvh", sk, 0.05, T) as w:
+        for a, b in [(0, 1), (1, 1), (1, 30), (30, 31), (31, 97)]:
+            w.write(q[a:b], t[a:b])
+    assert (tmp_path / "pieces.bvh").read_text() == (tmp_path / "whole.bvh").read_text()
+    with pytest.raises(ValueError, match="96 frames written, the header says 97"):
+        with BvhWriter(tmp_path / "short.bvh", sk, 0.05, T) as w:
+            w.write(q[1:], t[1:])

@@ -110,3 +110,48 @@ def test_console_script_exit_code(tmp_path):
     r = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", str(tmp_path),
                   "--audio", "a.wav", "--out", "o.bvh"], capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "Traceback" not in r.stderr
+
+
+def test_generate_makes_a_long_recording_in_the_memory_of_one_block(tiny_checkpoint, tmp_path, monkeypatch):
+    """Issue 52, item 5: a .bvh (and its face CSV) is made and written a block of audio at a time, so the memory
+    generate holds does not grow with the recording (a 3-hour WAV once took 16 GB and rising): its peak of traced
+    allocations (numpy's among them) over 6 blocks is within 1.5x its peak over one, and the file is the one the
+    whole recording at once makes."""
+    import tracemalloc
+
+    import dimgestor_app.generate as G
+    from dimgestor.audio import load_wav
+    from dimgestor.bvh import write_bvh
+    from dimgestor.streaming.checkpoint import load_checkpoint
+
+    monkeypatch.setattr(G, "BLOCK_S", 2.0)
+    rng = np.random.default_rng(3)
+    peaks = {}
+    for seconds in (2.0, 12.0):
+        wav = tmp_path / f"speech{seconds:g}.wav"
+        save_wav(wav, (0.1 * rng.standard_normal(int(48000 * seconds))).astype(np.float32), 48000)
+        tracemalloc.start()
+        assert main(["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(wav), "--steps", "2",
+                     "--out", str(tmp_path / f"{seconds:g}.bvh")]) == 0
+        peaks[seconds] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    assert peaks[12.0] < 1.5 * peaks[2.0], peaks
+    bundle = load_checkpoint(tiny_checkpoint)
+    whole = G.generate_motion(bundle, load_wav(tmp_path / "speech12.wav"), steps=2)
+    write_bvh(tmp_path / "whole.bvh", whole)
+    streamed, offline = read_bvh(tmp_path / "12.bvh"), read_bvh(tmp_path / "whole.bvh")
+    assert streamed.values.shape == offline.values.shape == (240, offline.skeleton.num_channels)
+    assert np.abs(streamed.values - offline.values).max() < 0.05  # degrees and cm: streaming = offline (1e-4)
+
+
+def test_generate_refuses_a_glb_of_a_recording_over_its_limit_in_one_line(tiny_checkpoint, tmp_path, monkeypatch,
+                                                                          capsys):
+    import dimgestor_app.generate as G
+
+    monkeypatch.setattr(G, "WHOLE_MAX_S", 1.0)
+    save_wav(tmp_path / "speech.wav", np.zeros(16000 * 2, np.float32), 16000)
+    assert main(["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "speech.wav"),
+                 "--out", str(tmp_path / "o.glb")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "0:00:02 long (at most 0:00:01): write a .bvh" in err, err
+    assert not (tmp_path / "o.glb").exists()
