@@ -304,12 +304,15 @@ class Count:
 
 @dataclass(frozen=True)
 class TakeSeat:
-    """A session starts: it holds one of the server's seats (`Seats`) until its `FreeSeat`."""
+    """A session starts: it holds one of the server's seats (`Seats`) until its `FreeSeat`; `face`: it makes a face."""
+    face: bool = False
 
 
 @dataclass(frozen=True)
 class FreeSeat:
-    """Its session ended or was let go (its client left, its resume was refused): the seat is free again."""
+    """Its session ended or was let go (its client left, its resume was refused): the seat is free again; `face`:
+    the session made a face."""
+    face: bool = False
 
 
 @dataclass(frozen=True)

@@ -64,8 +64,9 @@ class Seats:
     flushing after audio_end) and whether the server is stopping. The machines read it; a seat is taken and freed
     only by carrying out their `TakeSeat` and `FreeSeat` (`carry_out`), `closing` is set by the server."""
 
-    def __init__(self, terms: Terms):
+    def __init__(self, terms: Terms, admission=None):
         self.terms = terms
+        self.admission = admission  # a `streamer.capacity.Admission` (None: the seats alone)
         self._taken = 0
         self.closing = False
 
@@ -77,15 +78,26 @@ class Seats:
     def full(self) -> bool:
         return self._taken >= self.terms.max_sessions
 
+    def refusal(self, face: bool) -> tuple[str, float] | None:
+        """(why, retry_after_s) when one more session (`face`: with a face) would not keep everyone in real time
+        (`streamer.capacity`), else None."""
+        if self.admission is None or (why := self.admission.refusal(face)) is None:
+            return None
+        return why, self.admission.retry_after_s
+
     def carry_out(self, action: TakeSeat | FreeSeat) -> None:
         if isinstance(action, TakeSeat):
             if self.full:  # (the machine checks `full` in the same step: a bug, never a race)
                 raise RuntimeError(f"all {self.terms.max_sessions} seats are taken")
             self._taken += 1
+            if self.admission is not None:
+                self.admission.admitted(action.face)
         else:
             if self._taken == 0:
                 raise RuntimeError("a seat freed that was never taken")
             self._taken -= 1
+            if self.admission is not None:
+                self.admission.freed(action.face)
 
 
 class Phase(Enum):
@@ -191,6 +203,7 @@ class ClientSession(_SavesAndResumes):
     handing_over: bool = False  # its session is being saved for hand-over (its audio is ignored meanwhile)
     gone: bool = False
     holds_seat: bool = False    # one of the server's seats is its (from its session's start, or its resume_session)
+    seat_face: bool = False     # ... for a session with a face
     save_token: str | None = None  # its session's periodic saves go under this token (live: its lease is held)
     saved_audio_s: float = 0.0     # the audio its last periodic save covers
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
@@ -327,6 +340,8 @@ class ClientSession(_SavesAndResumes):
                 return refusal
             if self.seats.full:
                 return self._busy()
+            if (refused := self.seats.refusal(self._face_wanted())) is not None:
+                return self._refuse("capacity", "busy", *refused)
             out = self._start()
         else:
             out = []
@@ -363,32 +378,38 @@ class ClientSession(_SavesAndResumes):
         self.session_id += 1
         self.save_token = self.new_token() if self.terms.save_every_s is not None else None
         self.saved_audio_s = 0.0
-        face = self.terms.face is not None and self.face not in (None, "none")
+        face = self._face_wanted()
         return [*self._take_seat(), StartSession(self.session_id, self.audio.rate, self.save_token, restore,
                                                  self.smile, face), Count("sessions_started")]
+
+    def _face_wanted(self) -> bool:
+        """Whether its next session makes a face: the server makes one and the client asked for it."""
+        return self.terms.face is not None and self.face not in (None, "none")
 
     def _take_seat(self) -> list[Action]:
         if self.holds_seat:  # (taken at its resume_session)
             return []
-        self.holds_seat = True
-        return [TakeSeat()]
+        self.holds_seat, self.seat_face = True, self._face_wanted()
+        return [TakeSeat(self.seat_face)]
 
     def _free_seat(self) -> list[Action]:
         if not self.holds_seat:
             return []
         self.holds_seat = False
-        return [FreeSeat()]
+        return [FreeSeat(self.seat_face)]
 
     def _end_audio(self, handover: bool = False) -> list[Action]:
         self.phase = Phase.FINISHING
         return [EndAudio(handover)]
 
-    def _refuse(self, reason: str, code: str, message: str) -> list[Action]:
+    def _refuse(self, reason: str, code: str, message: str, retry_after_s: float | None = None) -> list[Action]:
         out: list[Action] = []
         if not self.refused:  # once per stream the client tries (its audio until `audio_end`), not per message
             self.refused = True
             out.append(Refused(reason))
-        return [*out, *self._on_Failed(Failed(P.ProtocolError(code, message)))]
+        if retry_after_s is None:
+            return [*out, *self._on_Failed(Failed(P.ProtocolError(code, message)))]
+        return [*out, Log(logging.INFO, f"{code}: {message}"), Send(P.error(code, message, retry_after_s), "note")]
 
     def _busy(self) -> list[Action]:
         return self._refuse("busy", "busy", f"at most {self.terms.max_sessions} client audio sessions at once")

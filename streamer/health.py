@@ -110,6 +110,7 @@ class Readiness:
         self.draining = False  # set once on SIGTERM / shutdown; never cleared (the process is on its way out)
         self.store = None  # a `streamer.store_link.StoreLink` (its `health()`), if the worker has a state store
         self.lags: Callable[[], list] = lambda: []  # the clients' lags now (`behind`; the WebSocket server's)
+        self.faces_left: Callable[[], int | None] | None = None  # `streamer.capacity.Admission.faces_left`
 
     def check(self) -> tuple[bool, str]:
         """(ready, why): the reason is one line, the body of the `/readyz` answer."""
@@ -128,6 +129,9 @@ class Readiness:
         degraded = self.store.health() if self.store is not None else None
         note = self.store.note() if self.store is not None else ""
         note = f"; {note}" if note else ""
+        left = self.faces_left() if self.faces_left is not None else None
+        if left is not None:
+            note = f"; room for {left} more face{'' if left == 1 else 's'}{note}"
         if degraded is not None:  # still ready: it serves every session, only without hand-over
             return True, f"degraded: {degraded}; real-time load {load:.2f}{note}"
         return True, f"ready: real-time load {load:.2f}{note}"

@@ -54,7 +54,8 @@ class ServerMetrics:
             "or spent (its token was already taken or its session ended)", ["reason"], registry=r)
         self.sessions_refused = Counter(
             "dimgestor_sessions_refused", "Client audio refused a session: busy (--max-sessions reached), "
-            "draining (shutting down) or audio_disabled (--no-client-audio)", ["reason"], registry=r)
+            "capacity (one more would not keep real time: streamer.capacity), draining (shutting down) or "
+            "audio_disabled (--no-client-audio)", ["reason"], registry=r)
         self.compute_seconds = Histogram(
             "dimgestor_window_compute_seconds", "Compute time of one inference call: one batched forward (the "
             "windows in it share it) or one solo window", buckets=SECONDS_BUCKETS, registry=r)
@@ -133,6 +134,9 @@ class _Live(Collector):
                                 f"{m.readiness.max_load:g})", value=load.value())
         ready, why = m.readiness.check()
         yield GaugeMetricFamily("dimgestor_ready", "1 when /readyz answers 200", value=float(ready))
+        if m.readiness.faces_left is not None and (left := m.readiness.faces_left()) is not None:
+            yield GaugeMetricFamily("dimgestor_faces_left", "How many more sessions with a face this worker admits now "
+                                    "(their cost learnt as it runs: streamer.capacity)", value=left)
         yield GaugeMetricFamily("dimgestor_degraded", "1 when /readyz says degraded (ready, but the state store "
                                 "does not answer: no hand-over)", value=float(why.startswith("degraded")))
         if m.store is not None:

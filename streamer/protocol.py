@@ -209,8 +209,10 @@ def timing(first: int, frames: int, window, sent_s: float) -> str:
                        "dispatched_s": round(window.dispatched_s, 6), "sent_s": round(sent_s, 6)})
 
 
-def error(code: str, message: str) -> str:
-    return json.dumps({"type": "error", "code": code, "message": message})
+def error(code: str, message: str, retry_after_s: float | None = None) -> str:
+    """An error reply; `retry_after_s`: when to try again (a `busy` at capacity)."""
+    extra = {} if retry_after_s is None else {"retry_after_s": round(float(retry_after_s), 3)}
+    return json.dumps({"type": "error", "code": code, **extra, "message": message})
 
 
 def session_live(retry_after_s: float) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import math
 import os
 import signal
 import sys
@@ -103,8 +104,10 @@ def build(options: ServeOptions) -> Pipeline:
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
     scheduler = _scheduler(options.no_batch, onnx)
     metrics = _metrics(scheduler)
+    admission = _admission(options, bundle, face, metrics, scheduler)
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
-                                     state_key=state_key, face=face)
+                                     state_key=state_key, face=face,
+                                     face_cost=admission.face_cost if admission is not None else None)
     session = make_session("source") if source is not None else None
     if options.state_store is not None:  # what a resumed state's values may reach, learnt now (~1 s), not on a resume
         from dimgestor.streaming import state_bounds
@@ -117,7 +120,7 @@ def build(options: ServeOptions) -> Pipeline:
     target = _target(options, sk)
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, humanoid) if target is None else target.humanoid_rig()
     ws = None if options.no_ws else _ws(options, bundle, rig, source, session, make_session, token, metrics, face,
-                                        target)
+                                        target, admission)
     vmc, recording = _vmc(options, rig, face, target), _recording(options, bundle, source, face, target)
     if vmc is not None:
         metrics.sinks["vmc"] = lambda: (vmc.sent, vmc.dropped)
@@ -223,10 +226,27 @@ def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> Server
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None, state_key: bytes | None = None, face: ServeFace | None = None) -> Session:
+             onnx: OnnxModel | None = None, state_key: bytes | None = None, face: ServeFace | None = None,
+             face_cost=None) -> Session:
     session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx, face.options if face else None)
     session.state_key = state_key  # seals its saved states (--state-secret-file)
+    session.face_cost = face_cost  # its faces' time teaches admission what a face costs
     return session
+
+
+def _admission(options: ServeOptions, bundle, face: ServeFace | None, metrics: ServerMetrics, scheduler):
+    """Who is admitted beyond the seats (`streamer.capacity`): none while the worker is not ready, a face only while
+    the faces fit; a face's cost measured now (~0.1 s) and learnt as the sessions make them."""
+    if options.no_ws or options.no_client_audio:
+        return None
+    from streamer.capacity import Admission, FaceCost
+
+    cost = None
+    if face is not None:
+        cost = FaceCost()
+        lookahead = math.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # as a session's face
+        cost.measure(face.options, bundle.feature_spec.fps, lookahead)
+    return Admission(metrics.readiness, cost, lanes=scheduler.workers)
 
 
 def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str,
@@ -283,7 +303,7 @@ def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> 
 
 
 def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, make_session, token: str | None,
-        metrics: ServerMetrics, face: ServeFace | None, target=None):
+        metrics: ServerMetrics, face: ServeFace | None, target=None, admission=None):
     from streamer import protocol as P
     from streamer.ws import Attached, WsConfig, WsServer
 
@@ -304,7 +324,8 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
     attached = Attached(metrics=metrics, store=open_store(options.state_store, options.state_ttl,
                                                           options.state_max_bytes),
                         pose=target, skeleton=sk, broadcast_stats=session.stats if session else None,
-                        source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None)
+                        source_dropped_s=(lambda: source.dropped_s) if isinstance(source, MicSource) else None,
+                        admission=admission)
     return WsServer(config, hello, None if options.no_client_audio else make_session, attached)
 
 

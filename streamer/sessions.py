@@ -183,6 +183,7 @@ class Session:
         # The face (`dimgestor.face`): made from the same audio in the same call as the body's frames, into each
         # frame's channel "face". None: frames carry no face.
         self.face_options = face
+        self.face_cost = None  # a `streamer.capacity.FaceCost` this session's faces are timed into
         self._face = None
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
@@ -220,7 +221,10 @@ class Session:
         pose = self.decoder.decode(feats)
         made = {name: np.asarray(make(feats)) for name, make in self.channels.items()}
         if self.face_options is not None:
+            t = time.perf_counter()
             made[FACE] = self._face_rows(n)
+            if self.face_cost is not None:  # (what admission learns a face's cost from: streamer.capacity)
+                self.face_cost.add(time.perf_counter() - t, n / self.fps)
         if any(len(v) != n for v in made.values()):
             raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
         # the last check before any sink: a NaN or infinite value ends the stream (its client is told), never sent

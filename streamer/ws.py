@@ -102,6 +102,7 @@ class Attached:
     skeleton: object | None = None
     broadcast_stats: object | None = None
     source_dropped_s: Callable[[], float] | None = None
+    admission: object | None = None  # a `streamer.capacity.Admission` (None: sessions limited by the seats alone)
 
 
 def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bool) -> S.Terms:
@@ -132,7 +133,8 @@ class WsServer:
         self.broadcast_stats = attached.broadcast_stats  # (settable: a source attached later, e.g. a pipecat stage)
         self.departures = ErrorLog("sessions", what="departures")
         self.stored = ServerStore(self.store, self.departures) if self.store is not None else None
-        self.seats = S.Seats(seat_terms(config, hello, make_session is not None, self.store is not None))
+        self.seats = S.Seats(seat_terms(config, hello, make_session is not None, self.store is not None),
+                             attached.admission)
         self.trimmer = Trimmer()
         self._trim_timer: asyncio.TimerHandle | None = None
         self.metrics = attached.metrics if attached.metrics is not None else ServerMetrics()

@@ -41,8 +41,9 @@ class Talker:
     The one talker of the tests and benchmarks (store faults, intake fairness, abusive clients)."""
 
     def __init__(self, url: str, seconds: float, seed: int = 5, chunk_s: float = 0.1, binary: bool = True,
-                 finish: bool = True):
+                 finish: bool = True, face: str | None = None):
         self.url, self.pcm, self.chunk_s, self.binary, self.finish = url, speech(seconds, seed), chunk_s, binary, finish
+        self.face = face  # the face's name set its hello asks for (None: it asks nothing)
         self.stop = asyncio.Event()
         self.t0: float | None = None  # when its first audio was sent
         self.sent: list[tuple[float, float]] = []  # (audio seconds sent so far, when)
@@ -60,8 +61,9 @@ class Talker:
             hello = json.loads(await asyncio.wait_for(c.recv(), 30))
             assert hello["type"] == "hello", hello
             self.fps, self.lookahead_s = hello["fps"], hello["lookahead_s"]
-            if self.binary:
-                await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary"}))
+            if self.binary or self.face is not None:
+                await c.send(json.dumps({"type": "hello", "protocol": 1, "encoding": "binary" if self.binary else "json",
+                                         **({"face": self.face} if self.face is not None else {})}))
             sender = asyncio.create_task(self._send(c))
             try:
                 async for m in c:
