@@ -19,7 +19,7 @@ from dimgestor.streaming.checkpoint import Bundle, load_checkpoint
 __all__ = ["generate_motion", "generate_face", "register", "BLOCK_S", "WHOLE_MAX_S"]
 
 BLOCK_S = 10.0  # a .bvh is made this much audio at a time: a recording of any length in bounded memory
-WHOLE_MAX_S = 3600.0  # a .glb or .vrma holds its whole animation in memory: recordings up to an hour
+WHOLE_MAX_S = 5400.0  # a .glb or .vrma holds its whole animation in memory (~1 GB an hour): up to an hour and a half
 
 
 def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
@@ -66,7 +66,7 @@ def register(subparsers) -> None:
                     "Unity, Unreal, three.js) or a VRM Animation (.vrma, with the face), on our skeleton or "
                     "retargeted onto your rig (--target). A .bvh (and its --face-csv) is made and written 10 s of "
                     "audio at a time, for a recording of any length in a few hundred MB; a .glb or .vrma holds the "
-                    "whole animation, for recordings up to an hour.",
+                    "whole animation (about 1 GB an hour), for recordings up to an hour and a half.",
         epilog=examples("dimgestor generate --audio speech.wav --out motion.bvh",
                         "dimgestor generate --audio speech.wav --out motion.bvh --face-csv face.csv",
                         "dimgestor generate --audio speech.wav --out motion.vrma",
@@ -187,15 +187,8 @@ def _run(args) -> int:
         raise ValueError(f"--out {out}: a {out.suffix.lower()} holds the whole animation in memory, and "
                          f"{args.audio} is {_hms(seconds)} long (at most {_hms(WHOLE_MAX_S)}): write a .bvh, made a "
                          "block at a time for any length")
-    audio = np.concatenate(list(blocks))
-    if args.backend == "onnxruntime":
-        motion = _onnx_motion(args, bundle, audio, smoothing, steps_given)
-    else:
-        motion = generate_motion(bundle, audio, args.steps, args.seed, args.sampler, args.eta, smoothing, args.root,
-                                 args.tether_s, args.guidance)
-    face = None
-    if face_out is not None or out.suffix.lower() == ".vrma":
-        face = generate_face(audio, motion.values.shape[0], fps, bundle.model.lookahead_s, args.seed)
+    motion, face = _stream_motion(args, bundle, blocks, samples, smoothing, steps_given,
+                                  face_out is not None or out.suffix.lower() == ".vrma")
     expressions = None
     if out.suffix.lower() == ".vrma":
         from dimgestor.face.names import convert, names_of
@@ -209,6 +202,48 @@ def _run(args) -> int:
         write_track(face_out, face, fps)
         print(f"wrote {face_out}: the face of the same {len(face)} frames")
     return 0
+
+
+def _make_stream(args, bundle: Bundle, smoothing, steps_given: bool):
+    """The stream the audio goes through: the model's own, or its ONNX export on ONNX Runtime."""
+    if args.backend == "onnxruntime":
+        return _onnx_stream(args, bundle, smoothing, steps_given)
+    return bundle.stream(steps=args.steps, seed=args.seed, sampler=args.sampler, eta=args.eta, smoothing=smoothing,
+                         guidance=args.guidance)
+
+
+def _face_stream(bundle: Bundle, seed: int):
+    """The face as `generate_face` (and a `serve` session) makes it."""
+    from dimgestor.face import FaceOptions, FaceStream
+
+    lookahead = np.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
+    return FaceStream(bundle.feature_spec.fps, lookahead, FaceOptions(seed=seed))
+
+
+def _stream_motion(args, bundle: Bundle, blocks, samples: int, smoothing, steps_given: bool, with_face: bool):
+    """(the motion, the face or None) of the audio `blocks`, the model streamed over them a block at a time: only
+    the motion and the face are held whole (a .glb or .vrma holds them all), not the recording nor the model's
+    work on all of it at once."""
+    total = int(samples * bundle.feature_spec.fps // SAMPLE_RATE)
+    stream = _make_stream(args, bundle, smoothing, steps_given)
+    face = _face_stream(bundle, args.seed) if with_face else None
+    frames, rows = [], []
+    try:
+        for block in blocks:
+            frames.append(stream.push(block))
+            if face is not None:
+                face.push(block)
+                rows.append(face.take(face.frames_ready))
+        frames.append(stream.finish())
+        if face is not None:
+            face.finish()
+            rows.append(face.take(face.frames_ready))
+    finally:
+        if face is not None:
+            face.close()
+    features = bundle.denormalize(np.concatenate(frames)[:total])
+    motion = features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=args.root, tether_s=args.tether_s)
+    return motion, (np.concatenate(rows)[:total] if face is not None else None)
 
 
 def _hms(seconds: float) -> str:
@@ -225,9 +260,7 @@ def _stream_bvh(args, bundle: Bundle, blocks, samples: int, smoothing, steps_giv
 
     fps, sk = bundle.feature_spec.fps, bundle.skeleton
     total = int(samples * fps // SAMPLE_RATE)
-    stream = (_onnx_stream(args, bundle, smoothing, steps_given) if args.backend == "onnxruntime" else
-              bundle.stream(steps=args.steps, seed=args.seed, sampler=args.sampler, eta=args.eta, smoothing=smoothing,
-                            guidance=args.guidance))
+    stream = _make_stream(args, bundle, smoothing, steps_given)
     decoder = PoseDecoder(sk, bundle.feature_spec, root=args.root, tether_s=args.tether_s)
     retarget, skeleton, what = None, sk, "BVH"
     if target is not None:
@@ -246,11 +279,9 @@ def _stream_bvh(args, bundle: Bundle, blocks, samples: int, smoothing, steps_giv
         what = f"BVH on {Path(target.path).name} ({len(retarget.bones)} bones mapped)"
     face = face_file = None
     if face_out is not None:
-        from dimgestor.face import FaceOptions, FaceStream
         from dimgestor.face.track import track_header, track_rows
 
-        lookahead = np.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # as generate_face
-        face = FaceStream(fps, lookahead, FaceOptions(seed=args.seed))
+        face = _face_stream(bundle, args.seed)
         face_file = open(face_out, "w")
         face_file.write(track_header())
     done = faced = 0
@@ -317,8 +348,3 @@ def _onnx_stream(args, bundle: Bundle, smoothing, steps_given: bool):
     folder = _onnx_folder(args, bundle, steps_given)
     check_export(load_manifest(folder), bundle)
     return ort_stream(folder, seed=args.seed, smoothing=smoothing)
-
-
-def _onnx_motion(args, bundle: Bundle, audio: np.ndarray, smoothing, steps_given: bool) -> BvhMotion:
-    folder = _onnx_folder(args, bundle, steps_given)
-    return generate_motion_onnx(bundle, audio, folder, args.seed, smoothing, args.root, args.tether_s)
