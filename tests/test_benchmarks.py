@@ -332,3 +332,14 @@ def test_latency_onsets_are_found_at_every_phase_of_the_resamplers_grid():
         first = [abs(y[int(round((t + shift / latency.RATE) * 16000))]) for t in onsets]
         rising += sum(latency.QUIET <= a <= latency.ONSET for a in first)
     assert rising > 0  # the case the CI run met is among these
+
+
+def test_generate_memory_benchmark_writes_its_schema(tmp_path):
+    out = tmp_path / "generate_memory.json"
+    run("generate_memory.py", "--minutes", "0.05", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code"] and r["device"].startswith("CPU") and [x["minutes"] for x in r["runs"]] == [0.05]
+    for x in r["runs"]:
+        for k in ("streamed_bvh", "glb", "whole"):
+            assert finite(x[f"{k}_peak_rss_mb"]) and x[f"{k}_peak_rss_mb"] > 50 and x[f"{k}_wall_s"] > 0, (k, x)
