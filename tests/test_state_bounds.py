@@ -8,6 +8,7 @@ import pytest
 from dimgestor.audio import load_wav
 from dimgestor.streaming import state_bounds
 from dimgestor.streaming.checkpoint import load_checkpoint
+from dimgestor.streaming.savestate_checks import floats
 from dimgestor.streaming.stream import GestureStream
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -34,7 +35,7 @@ def test_real_voices_keep_the_default_models_state_within_half_its_learnt_bounds
             s.push(audio[at:at + 3200])
             state_bounds.check_bounds(probe, s.state)  # (raises on any leaf beyond its bound)
             for path, v in state_bounds.leaves(s.state):
-                a = state_bounds._floats(v)
+                a = floats(v)
                 if path in limits and a is not None:
                     worst[path] = max(worst.get(path, 0.0), state_bounds._peak(a) / limits[path])
     assert max(worst.values()) < 0.5, {p: round(r, 3) for p, r in sorted(worst.items(), key=lambda x: -x[1])}

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "show", "MAX_FRAMES"]
+__all__ = ["StateError", "check_tree", "check_state", "is_int", "finite_number", "floats", "show", "MAX_FRAMES"]
 
 # The most frames a stream may have made: a frame's index as every output carries it (OSC's int32 is the narrowest;
 # the binary frame's is a uint32), 3.4 years at 20 fps. A saved state past it is refused, not streamed into an error.
@@ -173,12 +173,12 @@ def _finite(v: Any, ref: Any, path: str, fresh_nan: bool) -> None:
     """Every float finite, but where the fresh state holds NaN (a speech front end's noise floor) before the
     front end's first frame."""
     if isinstance(v, (torch.Tensor, np.ndarray)):
-        a = _floats(v)
+        a = floats(v)
         if a is None or np.isfinite(a).all():  # (numpy: ten times torch's isfinite on a CPU)
             return
         bad = ~np.isfinite(a)
         if fresh_nan and isinstance(ref, torch.Tensor) and tuple(ref.shape) == a.shape:
-            bad &= ~(np.isnan(a) & np.isnan(_floats(ref)))
+            bad &= ~(np.isnan(a) & np.isnan(floats(ref)))
         if bad.any():
             raise StateError(f"saved stream state: {path} holds {int(bad.sum())} values that are NaN or infinite")
     elif isinstance(v, tuple):
@@ -191,7 +191,7 @@ def _finite(v: Any, ref: Any, path: str, fresh_nan: bool) -> None:
             _finite(getattr(v, name), getattr(ref, name, None), f"{path}.{name}", fresh_nan)
 
 
-def _floats(v) -> np.ndarray | None:
+def floats(v) -> np.ndarray | None:
     """A float tensor or array as a numpy array (None: not floats)."""
     if isinstance(v, torch.Tensor):
         if not v.is_floating_point():

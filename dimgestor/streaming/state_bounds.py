@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..audio import read_wav, resample
-from .savestate_checks import StateError
+from .savestate_checks import StateError, floats
 
 __all__ = ["MARGIN", "FLOOR", "PROBE_S", "bounds", "check_bounds", "learn", "leaves", "prime", "probes"]
 
@@ -45,15 +45,6 @@ def leaves(v: Any, path: str = "state") -> Iterator[tuple[str, Any]]:
     elif hasattr(v, "__dataclass_fields__"):
         for name in v.__dataclass_fields__:
             yield from leaves(getattr(v, name), f"{path}.{name}")
-
-
-def _floats(v) -> np.ndarray | None:
-    if isinstance(v, torch.Tensor):
-        if not v.is_floating_point():
-            return None
-        v = v.detach().cpu()
-        return (v.float() if v.dtype in (torch.float16, torch.bfloat16) else v).numpy()
-    return v if np.issubdtype(v.dtype, np.floating) else None
 
 
 def _peak(a: np.ndarray) -> float:
@@ -104,7 +95,7 @@ def learn(stream, seconds: float = PROBE_S) -> dict[str, float]:
         push_many(runs, [x[at:at + chunk] for x in signals])
         for r in runs:
             for path, v in leaves(r.state):
-                a = _floats(v)
+                a = floats(v)
                 if a is not None and path.rsplit(".", 1)[-1] not in COUNTERS:
                     peaks[path] = max(peaks.get(path, 0.0), _peak(a))
     return peaks
@@ -137,7 +128,7 @@ def check_bounds(stream, state) -> None:
     beyond the frames its front end consumed."""
     limit = bounds(stream)
     for path, v in leaves(state):
-        a = _floats(v)
+        a = floats(v)
         if a is None:
             continue
         name = path.rsplit(".", 1)
