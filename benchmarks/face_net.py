@@ -52,6 +52,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--clips", nargs="+", default=None, metavar="NAME", help="real clips to score (default: all)")
     p.add_argument("--real-train", nargs="*", default=[], metavar="NAME", help="real clips to train on too")
     p.add_argument("--real-repeat", type=int, default=8, help="copies of each real training clip in the data")
+    p.add_argument("--teacher", nargs="*", type=Path, default=[], metavar="WAV",
+                   help="real speech without an alignment, labelled by pocketsphinx's phone recognizer (the shipped "
+                        "listener's) over the whole recording, trained on --real-repeat times")
     p.add_argument("--steps", type=int, default=1500)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--crop-s", type=float, default=4.0, help="training crops")
@@ -158,6 +161,41 @@ def face_of(net, audio: np.ndarray) -> np.ndarray:
     return face
 
 
+def teacher_phones(audio: np.ndarray, pause_s: float = 0.3) -> list[tuple[float, float, str]]:
+    """Phones of real speech as pocketsphinx's phone recognizer hears the whole recording (the shipped listener's
+    acoustic model and phone language model, decoded offline: every phone with all the context after it), one
+    utterance per stretch between pauses of `pause_s` (40 ms RMS 35 dB under the recording's loud frames)."""
+    import os
+
+    from pocketsphinx import Config, Decoder, get_model_path, set_loglevel
+
+    set_loglevel("FATAL")
+    model = get_model_path()
+    decoder = Decoder(Config(hmm=os.path.join(model, "en-us", "en-us"),
+                             allphone=os.path.join(model, "en-us", "en-us-phone.lm.bin"), lm=None, dict=None,
+                             beam=1e-20, pbeam=1e-20, lw=2.0, loglevel="FATAL"))
+    hop = SR // 100
+    frames = len(audio) // hop
+    db = 10 * np.log10(np.mean(audio[:frames * hop].reshape(frames, hop) ** 2, axis=1) + 1e-12)
+    loud = np.convolve(db > np.percentile(db, 95) - 35, np.ones(4), "same") > 0
+    quiet_run, cuts, start = 0, [], 0
+    for i, on in enumerate(loud):  # utterances: cut in the middle of each pause of pause_s or more
+        quiet_run = 0 if on else quiet_run + 1
+        if quiet_run == int(pause_s * 100):
+            cuts.append((start, i - quiet_run // 2))
+            start = i - quiet_run // 2
+    cuts.append((start, frames))
+    pcm = (np.clip(audio, -1, 1) * 32767).astype(np.int16)
+    out = []
+    for a, b in cuts:
+        decoder.start_utt()
+        decoder.process_raw(pcm[a * hop:b * hop].tobytes(), False, True)
+        decoder.end_utt()
+        out += [(a / 100 + seg.start_frame / 100, a / 100 + (seg.end_frame + 1) / 100, seg.word)
+                for seg in decoder.seg() or ()]
+    return out
+
+
 def real_clips(folder: Path) -> dict:
     from dimgestor.audio import load_wav
     from dimgestor.face.textgrid import read_tiers
@@ -189,6 +227,15 @@ def main(argv=None) -> int:
     clips = [(f"{lang}+{v}", *(lambda s: (s.audio, alignment(s)))(passage(lang, v, seed=100 + k, sentences=args.sentences)))
              for lang in args.languages for k, v in enumerate(args.train_variants)]
     clips += [(name, *real[name]) for name in args.real_train for _ in range(args.real_repeat)]
+    from dimgestor.audio import load_wav
+
+    taught = []
+    for wav in args.teacher:
+        audio = load_wav(wav, SR)
+        labelled = teacher_phones(audio)
+        taught.append({"file": wav.name, "seconds": round(len(audio) / SR, 2), "phones": len(labelled)})
+        print(f"teacher: {wav.name}, {len(audio) / SR:.0f} s, {len(labelled)} phones", flush=True)
+        clips += [(wav.stem, audio, labelled)] * args.real_repeat
     data = []
     for name, audio, phones in clips:
         for heard in (audio, channel(audio, rng)):
@@ -247,7 +294,7 @@ def main(argv=None) -> int:
     result = {"benchmark": "face_net", "code_version": code_version(), "device": describe_device("cpu"),
               "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": load_before,
               "params": params, "data_minutes": round(minutes, 2), "data_s": round(data_s, 1),
-              "train_s": round(train_s, 1), "final_loss": round(float(np.mean(losses[-50:])), 4),
+              "teacher": taught, "train_s": round(train_s, 1), "final_loss": round(float(np.mean(losses[-50:])), 4),
               "real": clips_out, "espeak_held_out": {"mean": held_mean, "voices": held}}
     write_json(args.out, result)
     return 0

@@ -113,19 +113,23 @@ def test_the_languages_benchmark_writes_its_schema(tmp_path):
 
 @needs_espeak
 def test_the_listener_probe_writes_its_schema(tmp_path):
-    """benchmarks/face_net.py at its smallest: one voice of one language, a few steps, one real clip scored."""
+    """benchmarks/face_net.py at its smallest: one voice of one language and one real clip labelled by the
+    teacher, a few steps, one real clip scored."""
     data = REPO.parent / "shared" / "data" / "phone_aligned_speech"
     if not data.is_dir():
         pytest.skip(f"the phone-aligned clips are not at {data} (only beside the dev checkout)")
     out = tmp_path / "face_net.json"
     r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "face_net.py"), "--languages", "ja",
                         "--train-variants", "f1", "--held-variants", "f2", "--sentences", "2", "--steps", "3",
-                        "--batch", "2", "--clips", "clip000070_lskPN47Lo8o", "--out", str(out)], cwd=REPO,
+                        "--batch", "2", "--clips", "clip000070_lskPN47Lo8o", "--real-repeat", "1",
+                        "--teacher", str(data / "clip000028_tCAkv4ggPgI.wav"), "--out", str(out)], cwd=REPO,
                        capture_output=True, text=True, timeout=300,
                        env={**os.environ, "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"})
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads(out.read_text())
     assert res["code_version"] and res["params"] > 10_000 and res["data_minutes"] > 0
+    [taught] = res["teacher"]  # pocketsphinx's phones over the whole recording: a phone every 50-200 ms of speech
+    assert taught["file"] == "clip000028_tCAkv4ggPgI.wav" and 5 * taught["seconds"] < taught["phones"] < 25 * taught["seconds"]
     [(name, clip)] = res["real"].items()
     assert name == "clip000070_lskPN47Lo8o" and clip["held_out"]
     assert set(clip["net"]) >= {"openness_r", "vowel_top1", "closures"} and set(clip["shipped"]) == set(clip["net"])

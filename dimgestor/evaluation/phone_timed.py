@@ -181,7 +181,7 @@ _engine: _Engine | None = None
 _lock = threading.Lock()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (compared by its fields: an array has no single truth value)
 class Spoken:
     """One utterance: audio at `rate` Hz and its phones [(start s, end s, IPA)], "" where it pauses."""
 
