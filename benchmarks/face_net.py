@@ -59,6 +59,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--crop-s", type=float, default=4.0, help="training crops")
     p.add_argument("--channels", type=int, default=96)
+    p.add_argument("--close-lips", action="store_true",
+                   help="the jaw's opening times 1 - P(lips closed at M, B, P) (default: the opening alone)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=RESULTS / "face_net.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
@@ -144,8 +146,9 @@ def make_net(channels: int):
     return Listener()
 
 
-def face_of(net, audio: np.ndarray) -> np.ndarray:
-    """(T, len(FACE_LABELS)) at 20 fps: the jaw from the opening, the five vowel shapes from the probabilities."""
+def face_of(net, audio: np.ndarray, close_lips: bool = False) -> np.ndarray:
+    """(T, len(FACE_LABELS)) at 20 fps: the jaw from the opening (times 1 - P(M, B, P) with `close_lips`), the
+    five vowel shapes from the probabilities."""
     import torch
 
     from dimgestor.face.visemes import FACE_LABELS, V
@@ -153,6 +156,8 @@ def face_of(net, audio: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         out = net(log_mel(audio).T[None])[0].T
     prob, opening = out[:, :len(CLASSES)].softmax(-1).numpy(), out[:, -1].clamp(0, 1).numpy()
+    if close_lips:
+        opening = opening * (1 - prob[:, CLASSES.index("MBP")])
     idx = np.minimum(np.arange(int(math.ceil(len(audio) / SR * 20))) * 5, len(opening) - 1)
     face = np.zeros((len(idx), len(FACE_LABELS)))
     face[:, V["jawOpen"]] = opening[idx]
@@ -278,7 +283,7 @@ def main(argv=None) -> int:
             continue
         shipped, _ = stream_face(audio, 20, 0.3, FaceOptions(), SR // 10)
         clips_out[name] = {"held_out": name not in args.real_train, "seconds": round(len(audio) / SR, 2),
-                           "net": rounded(mouth_scores(face_of(net, audio), phones, 20)),
+                           "net": rounded(mouth_scores(face_of(net, audio, args.close_lips), phones, 20)),
                            "shipped": rounded(mouth_scores(shipped, phones, 20))}
         r = clips_out[name]
         print(f"{name:26s} {'held out' if r['held_out'] else 'trained on'}: net " +
@@ -288,7 +293,7 @@ def main(argv=None) -> int:
     for lang in args.languages:
         for k, v in enumerate(args.held_variants):
             s = passage(lang, v, seed=k, sentences=args.sentences)
-            held.append({"voice": s.voice, **rounded(mouth_scores(face_of(net, s.audio), alignment(s), 20))})
+            held.append({"voice": s.voice, **rounded(mouth_scores(face_of(net, s.audio, args.close_lips), alignment(s), 20))})
     held_mean = {k: round(float(np.nanmean([h[k] for h in held])), 4) for k in SCORES}
     print("held-out espeak-ng voices: " + " ".join(f"{k} {v:.2f}" for k, v in held_mean.items()))
     result = {"benchmark": "face_net", "code_version": code_version(), "device": describe_device("cpu"),
