@@ -170,15 +170,9 @@ def teacher_phones(audio: np.ndarray, pause_s: float = 0.3) -> list[tuple[float,
     """Phones of real speech as pocketsphinx's phone recognizer hears the whole recording (the shipped listener's
     acoustic model and phone language model, decoded offline: every phone with all the context after it), one
     utterance per stretch between pauses of `pause_s` (40 ms RMS 35 dB under the recording's loud frames)."""
-    import os
+    from dimgestor.face.listener import phone_decoder
 
-    from pocketsphinx import Config, Decoder, get_model_path, set_loglevel
-
-    set_loglevel("FATAL")
-    model = get_model_path()
-    decoder = Decoder(Config(hmm=os.path.join(model, "en-us", "en-us"),
-                             allphone=os.path.join(model, "en-us", "en-us-phone.lm.bin"), lm=None, dict=None,
-                             beam=1e-20, pbeam=1e-20, lw=2.0, loglevel="FATAL"))
+    decoder = phone_decoder()
     hop = SR // 100
     frames = len(audio) // hop
     db = 10 * np.log10(np.mean(audio[:frames * hop].reshape(frames, hop) ** 2, axis=1) + 1e-12)

@@ -21,7 +21,7 @@ import numpy as np
 
 from dimgestor.face.visemes import canonical_phone
 
-__all__ = ["PhoneListener", "Segment", "unavailable"]
+__all__ = ["PhoneListener", "Segment", "unavailable", "phone_decoder"]
 
 BLOCK = 160  # samples (10 ms at 16 kHz): the recognizer's frame
 RATE = 16000
@@ -44,7 +44,9 @@ def unavailable() -> str | None:
             "or use Python 3.11 or 3.13")
 
 
-def _decoder(beam: float, pbeam: float, lw: float):
+def phone_decoder(beam: float = 1e-20, pbeam: float = 1e-20, lw: float = 2.0):
+    """A pocketsphinx decoder of English phones (acoustic model and phone language model of its wheel): the
+    listener's, with its default beams and language weight."""
     if (why := unavailable()) is not None:
         raise ImportError(why)
     from pocketsphinx import Config, Decoder, get_model_path, set_loglevel
@@ -75,7 +77,7 @@ class DecoderPool:
         with self.lock:
             d = self.idle.get(key, []).pop() if self.idle.get(key) else None
         if d is None:
-            d = _decoder(*key)
+            d = phone_decoder(*key)
             with self.lock:
                 self.fresh_cmn.setdefault(key, d.get_cmn())
         else:
