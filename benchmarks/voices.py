@@ -151,12 +151,12 @@ def collect_voices(quick: bool, folder: Path, real_only: bool = False) -> tuple[
         voices["zeggs_heldout"] = {"group": "heldout", "source": "067_Speech_2_x_1_0.wav, last 15 s"}
     else:
         skipped["zeggs_heldout"] = f"{ZEGGS} not found (the ZEGGS sample lives beside the dev checkout)"
-    takes = sorted(LAWRENCE.glob("*.wav")) if LAWRENCE.is_dir() else []
+    takes = sorted(LAWRENCE.glob("*.wav"))[:1 if quick else None] if LAWRENCE.is_dir() else []
     for p in takes:
         voices[f"lawrence_{p.stem.split('_', 2)[-1]}"] = {"group": "lawrence", "source": p.name, "audio": load_wav(p)}
     if not takes:
         skipped["lawrence"] = f"{LAWRENCE} not found (BEAT takes live beside the dev checkout)"
-    takes = sorted(SCOTT.glob("*.wav")) if SCOTT.is_dir() else []
+    takes = sorted(SCOTT.glob("*.wav"))[:1 if quick else None] if SCOTT.is_dir() else []
     for p in takes:
         voices[f"scott_{p.stem.split('_', 2)[-1]}"] = {"group": "scott", "source": p.name, "audio": load_wav(p)}
     if not takes:
@@ -420,7 +420,7 @@ def main() -> int:
                    help="DDIM eta of every generation (0: deterministic DDIM, 1: DDPM-like fresh noise each step)")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn) and one seed")
+    p.add_argument("--quick", action="store_true", help="three espeak voices (en-us, de, cmn), one take of each real speaker and one seed")
     p.add_argument("--real", action="store_true",
                    help="the real voices only: the training speaker's held-out stretch, lawrence and scott")
     p.add_argument("--out", default=str(RESULTS / "voices.json"))
