@@ -39,7 +39,7 @@ class Services:
 
     prep: Executor  # the worker thread (a `streamer.intake.FairWorker`): decode, resample, encode (never a store call)
     metrics: ServerMetrics
-    make_session: Callable[[], Session] | None
+    make_session: Callable[..., Session] | None  # keyword arguments: Session's own (clock, face=None, ...)
     store: object | None  # a `streamer.handover` store
     store_call: Callable[..., Awaitable]  # await store_call("put", token, data): the store's method on the store's
     #                                       own thread, within a deadline (raises `streamer.store_link.StoreError`)
@@ -267,18 +267,15 @@ class Client(Outbox, ConnectionSaves):
     def _start_session(self, start: S.StartSession) -> None:
         self.source = source = PushSource(self.svc.max_backlog_s)
         self.resampler, self.resample_from = None, start.rate if start.resample else None
-        self.session = session = self.svc.make_session()
+        machine = self.machine
+        boundary = (lambda: self.act(machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
+                    if start.save_token is not None else None)
+        no_face = {} if start.face else {"face": None}  # the client asked for none: its session makes none (nor pays)
+        self.session = session = self.svc.make_session(clock=self.clock, on_window=self.svc.metrics.window_done,
+                                                       on_boundary=boundary, **no_face)
         self.frames_queued = 0
-        session.clock = self.clock
-        if not start.face:  # the client asked for no face: its session makes none (nor pays for one)
-            session.face_options = None
         if start.smile is not None:  # the client's own expression (its hello's `smile`)
             session.set_smile(start.smile)
-        session.on_window = session.on_window or self.svc.metrics.window_done
-        machine = self.machine
-        if start.save_token is not None:
-            session.on_boundary = lambda: self.act(
-                machine.handle(S.Boundary(start.session_id, session.stream.state.samples_in)))
 
         async def emit(frames: list[Frame]) -> None:
             for a in self.act(machine.handle(S.Frames(len(frames), source.backlog_s, session.stats.window))):

@@ -32,7 +32,6 @@ from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 
 if TYPE_CHECKING:
     from dimgestor.export.onnx_stream import OnnxModel
-    from dimgestor.face import FaceOptions
     from dimgestor.streaming.checkpoint import Bundle
     from streamer.ws import WsServer
 
@@ -105,16 +104,16 @@ def build(options: ServeOptions) -> Pipeline:
     scheduler = _scheduler(options.no_batch, onnx)
     metrics = _metrics(scheduler)
     admission = _admission(options, bundle, face, metrics, scheduler)
+    # one more session: a WebSocket client's own audio (its keyword arguments: Session's own, e.g. face=None)
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
-                                     state_key=state_key, face=face,
+                                     state_key=state_key, face=face.options if face is not None else None,
                                      face_cost=admission.face_cost if admission is not None else None)
-    session = make_session("source") if source is not None else None
+    session = make_session("source", on_window=metrics.window_done) if source is not None else None
     if options.state_store is not None:  # what a resumed state's values may reach, learnt now (~1 s), not on a resume
         from dimgestor.streaming import state_bounds
 
         state_bounds.prime((session or make_session()).stream)
     if session is not None:
-        session.on_window = metrics.window_done
         metrics.streams.append(lambda: int(not session.stats.ended))
     sk = bundle.skeleton
     target = _target(options, sk)
@@ -225,15 +224,6 @@ def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> Server
     return metrics
 
 
-def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None, state_key: bytes | None = None, face: ServeFace | None = None,
-             face_cost=None) -> Session:
-    session = _new_session(bundle, options, scheduler, steps, guidance, name, onnx, face.options if face else None)
-    session.state_key = state_key  # seals its saved states (--state-secret-file)
-    session.face_cost = face_cost  # its faces' time teaches admission what a face costs
-    return session
-
-
 def _admission(options: ServeOptions, bundle, face: ServeFace | None, metrics: ServerMetrics, scheduler):
     """Who is admitted beyond the seats (`streamer.capacity`): none while the worker is not ready, a face only while
     the faces fit; a face's cost measured now (~0.1 s) and learnt as the sessions make them."""
@@ -249,19 +239,20 @@ def _admission(options: ServeOptions, bundle, face: ServeFace | None, metrics: S
     return Admission(metrics.readiness, cost, lanes=scheduler.workers)
 
 
-def _new_session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str,
-                 onnx: OnnxModel | None, face: FaceOptions | None) -> Session:
+def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
+             onnx: OnnxModel | None = None, **settings) -> Session:
+    """A session of this server's model, steps and options; `settings`: Session's own keyword arguments (face,
+    face_cost, state_key, clock, on_window, on_boundary)."""
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
 
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
-                       scheduler=scheduler, name=name, face=face)
+                       scheduler=scheduler, name=name, **settings)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
                                root=options.root, tether_s=options.tether_s, guidance=guidance,
-                               window_ms=options.window_ms, scheduler=scheduler, name=name,
-                               face=face)
+                               window_ms=options.window_ms, scheduler=scheduler, name=name, **settings)
 
 
 def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> OnnxModel:

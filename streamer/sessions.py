@@ -36,6 +36,7 @@ __all__ = ["Session", "Stats", "AudioClock", "WindowTiming", "check_meta"]
 
 if TYPE_CHECKING:
     from dimgestor.face import FaceOptions
+    from streamer.capacity import FaceCost
 
 
 @dataclass(frozen=True)
@@ -161,11 +162,18 @@ class Session:
 
     scheduler: a `streamer.scheduling.Scheduler`, any `concurrent.futures.Executor`, or None (a shared pool);
     `executor` is its deprecated name. The scheduler uses only `stream` and `frames_of` (`WindowSource`).
+    face: how its face is made (None: its frames carry none). clock: ranks its calls (a client's successive
+    sessions share one; None: its own). on_window: told each window's latency (s), e.g. the metrics. on_boundary:
+    called after each window (state, decoder and frames agree: a periodic save's moment). state_key: the workers'
+    shared secret that seals its saved states (serve --state-secret-file; None: plain SHA-256, integrity only).
+    face_cost: a `streamer.capacity.FaceCost` its faces are timed into (what admission learns a face's cost from).
     """
 
     def __init__(self, stream, decoder, denormalize: Callable[[np.ndarray], np.ndarray], fps: int,
                  window_ms: int = 200, scheduler: Scheduler | Executor | None = None, name: str = "session", *,
-                 executor: Executor | None = None, face: "FaceOptions | None" = None):
+                 executor: Executor | None = None, face: "FaceOptions | None" = None, clock: AudioClock | None = None,
+                 on_window: Callable[[float], None] | None = None, on_boundary: Callable[[], None] | None = None,
+                 state_key: bytes | None = None, face_cost: "FaceCost | None" = None):
         if executor is not None:
             if scheduler is not None:
                 raise TypeError("Session: give scheduler= only (executor= is its deprecated name)")
@@ -176,26 +184,23 @@ class Session:
         self.stream, self.decoder, self.denormalize = stream, decoder, denormalize
         self.fps, self.name = fps, name
         self.stats = Stats()
-        self.clock = AudioClock()  # ranks this session's calls (a client's successive sessions share one)
-        self.on_window: Callable[[float], None] | None = None  # each window's latency (s), e.g. to the metrics
+        self.clock = clock if clock is not None else AudioClock()
+        self.on_window, self.on_boundary = on_window, on_boundary
         self.handover = False  # set before the source closes: stop after its audio, unfinished (handover.py)
-        self.on_boundary: Callable[[], None] | None = None  # after each window: state, decoder and frames agree
         # The face (`dimgestor.face`): made from the same audio in the same call as the body's frames, into each
         # frame's channel "face". None: frames carry no face.
         self.face_options = face
-        self.face_cost = None  # a `streamer.capacity.FaceCost` this session's faces are timed into
+        self.face_cost = face_cost
         self._face = None
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._finishing = False
-        # The workers' shared secret that seals saved states (`dimgestor.streaming.savestate`; serve --state-secret-file):
-        # None seals with plain SHA-256 (integrity only). Never shown.
-        self.state_key: bytes | None = None
+        self.state_key = state_key  # (`dimgestor.streaming.savestate`; never shown)
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
                     tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
-        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face)."""
+        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face, clock, on_window, ...)."""
         from dimgestor.features import PoseDecoder
 
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
@@ -238,8 +243,13 @@ class Session:
 
     def infer(self, samples: np.ndarray) -> list[Frame]:
         """One window's frames, inferred in the calling thread (what a scheduler runs for `submit_push`)."""
-        self._face_audio.append(samples)
+        self._hear(samples)
         return self.frames_of(self.stream.push(samples))
+
+    def _hear(self, samples: np.ndarray) -> None:
+        """Keep a call's audio for its face (`_face_rows` takes it); without a face, nothing is kept."""
+        if self.face_options is not None:
+            self._face_audio.append(samples)
 
     def infer_finish(self) -> list[Frame]:
         """The frames after the audio ended, in the calling thread (a scheduler's worker)."""
@@ -349,7 +359,7 @@ class Session:
             t0 = time.perf_counter()
             later = sum(len(c) for c in calls[k + 1:]) / SAMPLE_RATE
             rank = self.clock.rank(len(call) / SAMPLE_RATE, later + waiting_s())
-            self._face_audio.append(call)  # (the worker's frames_of takes it: calls of a session never overlap)
+            self._hear(call)  # (the worker's frames_of takes it: calls of a session never overlap)
             frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, rank))
             self.clock.audio_s += len(call) / SAMPLE_RATE
             infer_s += time.perf_counter() - t0

@@ -118,9 +118,11 @@ def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bo
 class WsServer:
     """Serves hello/frames/status to clients; a `Sink` (streamer/sink.py) of the server's source. A request
     that is not a WebSocket upgrade gets a file of the web viewer (`attached.files`) on the same port.
-    `make_session` makes a client's own audio session (None: clients' audio is refused, --no-client-audio)."""
+    `make_session(**settings)` makes a client's own audio session, `settings` being `Session`'s own keyword
+    arguments (its clock, on_window, on_boundary, face=None for a client that asked for no face); None: clients'
+    audio is refused (--no-client-audio)."""
 
-    def __init__(self, config: WsConfig, hello: dict, make_session: Callable[[], Session] | None,
+    def __init__(self, config: WsConfig, hello: dict, make_session: Callable[..., Session] | None,
                  attached: Attached = Attached()):
         if config.face is not None:  # (the hello says what the config says)
             hello = {**hello, "face": P.face_hello(config.face)}

@@ -80,7 +80,7 @@ def _send_wav_to_slow_server(tmp_path, bundle, seconds, rate, executor, max_back
     talk = tmp_path / "talk.wav"
     write_wav(talk, seconds, rate=rate)
     ws = make_server(bundle, max_backlog_s=max_backlog_s, files=None)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
+    ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
     saved = tmp_path / "own"
     with running(ws):
         r = run_client("--url", ws.url, "--wav", str(talk), "--fast", "--binary", "--save", str(saved), "--quiet",
@@ -257,7 +257,7 @@ def test_python_client_mic_holds_its_audio_at_slow_down_and_sends_it_at_resume(t
     talk = speech_then_silence(tmp_path / "talk.wav", 3.0, 1.0)
     executor = SlowExecutor(1, delay_s=3.0)
     ws = make_server(bundle, max_backlog_s=0.5, files=None)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
+    ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
     with running(ws):
         with mic_client(vmic, ws.url, "--quiet") as proc:
             lines = []

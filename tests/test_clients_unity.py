@@ -277,7 +277,7 @@ def test_unity_client_holds_its_audio_between_slow_down_and_resume_live(tmp_path
     seconds = 5
     executor = SlowExecutor(1, delay_s=3.0)  # at most 1 s of audio per call: a third of real time
     ws = make_server(bundle, max_backlog_s=0.5, files=None)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
+    ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
     with running(ws):
         r = subprocess.run([MONO, str(exe), ws.url, str(SPEECH_WAV), str(seconds)], capture_output=True,
                            text=True, timeout=120)

@@ -189,7 +189,7 @@ def test_web_talk_pauses_at_slow_down_and_resumes_without_an_error(tmp_path, bun
 
     executor = SlowExecutor(1, delay_s=2.0)  # at most 1 s of audio per call: about half real time
     ws = make_server(bundle, max_backlog_s=1.0)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
+    ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
     with running(ws):
         browser = Browser(tmp_path, ws.viewer_urls[0], (
             "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",

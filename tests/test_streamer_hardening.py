@@ -114,7 +114,7 @@ def test_audio_end_does_not_bypass_the_session_limit(bundle):
 
     async def run():
         ws = make_server(bundle, max_sessions=2)
-        ws.make_session = lambda: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor)
+        ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, window_ms=100, scheduler=executor, **kw)
         await ws.open()
         codes = []
         clients = [await connect(ws.url) for _ in range(4)]

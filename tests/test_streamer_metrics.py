@@ -216,8 +216,8 @@ def test_the_counters_equal_what_a_real_session_did(bundle):
     batcher = StreamBatcher()
     made: list[Session] = []
 
-    def make_session():
-        made.append(Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher))
+    def make_session(**kw):
+        made.append(Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher, **kw))
         return made[-1]
 
     ws = make_server(bundle)
@@ -287,7 +287,7 @@ def test_readyz_fails_while_slowed_inference_cannot_keep_real_time(bundle, monke
     metrics = ServerMetrics(Readiness(RealtimeLoad(window_s=1.0)))
     batcher.observer = metrics
     ws = make_server(bundle, metrics=metrics)
-    ws.make_session = lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher)
+    ws.make_session = lambda **kw: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, scheduler=batcher, **kw)
     seen: list[str] = []
 
     async def watch(stop: asyncio.Event):

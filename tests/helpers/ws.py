@@ -34,7 +34,7 @@ def make_server(bundle, hello_extra: dict | None = None, make_session="default",
     rig = HumanoidRig.build(sk.names, sk.parents, sk.offsets, load_humanoid_map())
     hello = {**P.hello(P.SkeletonInfo.from_skeleton(sk), rig.mapping(sk.names), 20, 0.1, True), **(hello_extra or {})}
     if make_session == "default":
-        make_session = lambda: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100)  # noqa: E731
+        make_session = lambda **kw: Session.from_bundle(bundle, steps=2, seed=3, window_ms=100, **kw)  # noqa: E731
     return server(hello, make_session, **kw)
 
 
