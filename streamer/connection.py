@@ -51,6 +51,33 @@ class Services:
     skeleton: object | None = None  # the model's skeleton (a client's own rig is fitted to it; None: refused)
 
 
+class ReadPace:
+    """How fast a client's socket is read: its message budget and its share of the worker thread (`account`: its
+    work there). Over its share, `over()` is called (the machine says `slow_down`), and `within()` once the share
+    has refilled (`resume`)."""
+
+    def __init__(self, over: Callable[[], None], within: Callable[[], None]):
+        self.budget = MessageBudget()
+        self.account = Account()
+        self.compute = ComputeBudget(self.account)
+        self.watch: asyncio.Task | None = None  # waits until it is within its share again
+        self._over, self._within = over, within
+
+    def wait_s(self, message: str | bytes) -> float:
+        """Seconds to wait before reading its next message (after this one)."""
+        wait = max(self.budget.wait_s(message), self.compute.wait_s(time.monotonic()))
+        if self.compute.over:
+            self._over()
+            if self.watch is None or self.watch.done():
+                self.watch = asyncio.create_task(self._until_within(), name="ws-share")
+        return wait
+
+    async def _until_within(self) -> None:
+        while (wait := self.compute.refilled_in(time.monotonic())) > 0:
+            await asyncio.sleep(wait)
+        self._within()
+
+
 class Client(Outbox, ConnectionSaves):
     """One connection: its session machine, its outgoing queue and counters, and its own audio session if any."""
 
@@ -70,10 +97,8 @@ class Client(Outbox, ConnectionSaves):
         self.who = f"{peer[0]}:{peer[1]}" if peer else "?"
         self.store = StoreCalls(svc.store_call, svc.metrics, svc.departures, self.who)
         self.errors = ErrorLog(f"client {self.who}")
-        self.budget = MessageBudget()
-        self.account = Account()  # its work on the worker thread, charged to its share of it
-        self.compute = ComputeBudget(self.account)
-        self._within_share: asyncio.Task | None = None  # waits until it is within its share again
+        self.pace = ReadPace(lambda: self.act(self.machine.handle(S.OverShare())), lambda: self.act(
+            self.machine.handle(S.WithinShare(self.source.backlog_s if self.source is not None else 0.0))))
         self.clock = AudioClock()  # shared by its sessions: how far its audio is ahead of real time
         self.pose = None  # its own rig's `streamer.pose.TargetPose` (revision 8 `hello.rig`), None: the server's
 
@@ -115,12 +140,7 @@ class Client(Outbox, ConnectionSaves):
                 except Exception as e:  # a bug or a model failure on this client's input: report, keep serving
                     self.errors(logging.ERROR, f"failed on a message: {type(e).__name__}: {e}", exc_info=True)
                     self.note(P.error("internal", f"{type(e).__name__}: {e}"))
-                # a flood is read only as fast as its budgets: messages, and its share of the worker thread
-                now = time.monotonic()
-                wait = max(self.budget.wait_s(message), self.compute.wait_s(now))
-                if self.compute.over:
-                    self._over_share()
-                await asyncio.sleep(wait)
+                await asyncio.sleep(self.pace.wait_s(message))  # a flood is read only as fast as its budgets
                 self.holding = False
         except ConnectionClosed:
             pass
@@ -133,7 +153,7 @@ class Client(Outbox, ConnectionSaves):
         backlog_s = self.source.backlog_s if self.source is not None else 0.0
         self.act(self.machine.handle(S.Left()))  # (frees its seat; StopSession)
         pending = [*tasks, *([session] if session is not None else []),
-                   *([self._within_share] if self._within_share is not None else [])]
+                   *([self.pace.watch] if self.pace.watch is not None else [])]
         for t in pending:
             t.cancel()
         self.queue.clear()
@@ -178,7 +198,7 @@ class Client(Outbox, ConnectionSaves):
             case S.Refused():
                 self.svc.metrics.refused(a.reason)
             case S.Charge():
-                self.budget.tokens -= a.tokens
+                self.pace.budget.tokens -= a.tokens
             case S.ReplaySourceAudio():
                 for m in self.svc.audio_recent:  # the audio of the frames still to come to a client that joins now
                     self.put(m, "audio")
@@ -246,7 +266,7 @@ class Client(Outbox, ConnectionSaves):
         except P.ProtocolError as e:  # bad_audio
             self.act(machine.handle(S.Failed(e)))
             return
-        self.account.audio_s += len(x) / decode[0].fmt.rate  # (its share follows what its audio costs here)
+        self.pace.account.audio_s += len(x) / decode[0].fmt.rate  # (its share follows what its audio costs here)
         # the previous session is still finishing (or has just failed, its end not yet told to the machine)
         while (then := await self.apply(machine.handle(S.Decoded()))) == [S.WaitForSession()] or (
                 then and self.source is None):
@@ -325,7 +345,7 @@ class Client(Outbox, ConnectionSaves):
 
     def _work(self, fn, *args) -> asyncio.Future:
         """fn(*args) on the worker thread, as this client's work (its turn and its share: `streamer.intake`)."""
-        return asyncio.wrap_future(submit_for(self.svc.prep, self.account, fn, *args))
+        return asyncio.wrap_future(submit_for(self.svc.prep, self.pace.account, fn, *args))
 
     def lag(self) -> tuple[float, float, float] | None:
         """(time.monotonic() of its audio's start, seconds of it received, seconds of them not yet inferred), or
@@ -335,18 +355,6 @@ class Client(Outbox, ConnectionSaves):
             return None
         received = source.samples_in / SAMPLE_RATE
         return source.first_at, received, max(0.0, received - session.stats.audio_s)
-
-    def _over_share(self) -> None:
-        """Its work on the worker thread went over its share: the machine says so (`slow_down`) and hears when it
-        is back within it (`resume`)."""
-        self.act(self.machine.handle(S.OverShare()))
-        if self._within_share is None or self._within_share.done():
-            self._within_share = asyncio.create_task(self._until_within_share(), name="ws-share")
-
-    async def _until_within_share(self) -> None:
-        while (wait := self.compute.refilled_in(time.monotonic())) > 0:
-            await asyncio.sleep(wait)
-        self.act(self.machine.handle(S.WithinShare(self.source.backlog_s if self.source is not None else 0.0)))
 
     def _resample(self, x: np.ndarray) -> np.ndarray:  # worker thread
         if self.resample_from is None:
