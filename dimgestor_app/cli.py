@@ -1,4 +1,4 @@
-"""The `dimgestor` command: serve, generate, train, render, eval, info, export, export-onnx, devices, web.
+"""The `dimgestor` command: serve, generate, train, render, eval, convert, info, export, export-onnx, devices, web.
 
 Subcommands live in their modules and join through `register(subparsers)` (serve, devices and web from
 `streamer`). Errors a user can fix (bad files, bad options) print one `error: ...` line and exit 2;
@@ -18,7 +18,7 @@ from dimgestor.cli_help import HelpFormatter, deprecated_alias, examples
 
 __all__ = ["main", "streamer_main", "model_info", "build_parser", "COMMANDS"]
 
-COMMANDS = ("serve", "generate", "train", "render", "eval", "info", "export", "export-onnx", "devices", "web")
+COMMANDS = ("serve", "generate", "train", "render", "eval", "convert", "info", "export", "export-onnx", "devices", "web")
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -152,9 +152,9 @@ def build_parser(prog: str = "dimgestor") -> argparse.ArgumentParser:
     from streamer import cli as streamer_cli
     from streamer import web
 
-    from . import generate, render
+    from . import convert, generate, render
     streamer_cli.register_serve(sub)
-    for module in (generate, train, render, evaluation):
+    for module in (generate, train, render, evaluation, convert):
         module.register(sub)
     _register_info(sub)
     _register_export(sub)
