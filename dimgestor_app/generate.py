@@ -71,19 +71,21 @@ def register(subparsers) -> None:
                         "dimgestor generate --audio speech.wav --out motion.bvh --face-csv face.csv",
                         "dimgestor generate --audio speech.wav --out motion.vrma",
                         "dimgestor generate --audio speech.wav --out mine.glb --target my_avatar.vrm",
+                        "dimgestor generate --audio speech.wav --out take.npz",
                         "dimgestor generate --audio speech.wav --out motion.bvh --target mannequin.bvh --target-map map.json",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint live --steps 4 --seed 3",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine --device cuda",
                         deprecated="--face OUT.csv (now --face-csv; --face names a face's name set in serve)"))
     g = p.add_argument_group("input and output")
     g.add_argument("--audio", required=True, metavar="FILE.wav", help="speech WAV (any rate, mono or stereo)")
-    g.add_argument("--out", required=True, metavar="OUT.bvh|.glb|.vrma",
+    g.add_argument("--out", required=True, metavar="OUT.bvh|.glb|.vrma|.npz",
                    help="output file, by its suffix: .bvh (motion capture), .glb (glTF 2.0 binary: a skinned skeleton "
                         "with one animation, or your --target GLB/VRM with the animation added), .vrma (VRM "
-                        "Animation: plays on any VRM, the face's expressions included)")
+                        "Animation: plays on any VRM, the face's expressions included), .npz (a BEAT2 / SMPL-X take "
+                        "on the generic SMPL-X skeleton, or a SMPL-X --target BVH; body only)")
     g.add_argument("--target", default=None, metavar="RIG.bvh|.glb|.vrm",
                    help="retarget onto this rig, whatever its rest pose (A-pose, T-pose), bone lengths and names "
-                        "(Mixamo, Unreal Mannequin, SMPL-X, VRoid, VRM): a BVH skeleton (for .bvh or .glb output) "
+                        "(Mixamo, Unreal Mannequin, SMPL-X, VRoid, VRM): a BVH skeleton (for .bvh, .glb or .npz output) "
                         "or a glTF/GLB/VRM (for .glb output) (default: our training skeleton)")
     g.add_argument("--target-map", default=None, metavar="MAP.json",
                    help="which joint of --target is which humanoid bone, over the names recognised: "
@@ -148,6 +150,7 @@ def _run(args) -> int:
     target = None
     if args.target is not None:  # read and map the rig once, before the model runs: a bad rig fails at once
         target = load_target(args.target, args.target_map)
+        check_output(out, target)
     if not out.parent.exists():
         raise FileNotFoundError(f"--out {out}: folder {out.parent} does not exist")
     face_out = Path(args.face_csv) if args.face_csv is not None else None

@@ -233,7 +233,9 @@ def test_the_stick_figure_is_thin_whatever_the_rigs_unit(motion, files, name, ri
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--out", "{d}/x.fbx"], "expected a .bvh, .glb or .vrma path"),
+    (["--out", "{d}/x.fbx"], "expected a .bvh, .glb, .vrma or .npz (BEAT2 / SMPL-X) path"),
+    (["--out", "{d}/x.npz", "--target", "{d}/avatar1.vrm"], "a .npz take is on the SMPL-X skeleton"),
+    (["--out", "{d}/x.npz", "--target", "{d}/apose.bvh"], "apose.bvh: not on the SMPL-X skeleton"),
     (["--out", "{d}/x.vrma", "--target", "{d}/apose.bvh"], "a VRM Animation plays on any VRM as it is"),
     (["--out", "{d}/x.bvh", "--target", "{d}/avatar1.vrm"], "a .bvh output needs a BVH target skeleton"),
     (["--out", "{d}/x.glb", "--target-map", "{d}/map.json"], "--target-map needs --target"),

@@ -188,3 +188,35 @@ def test_takes_converted_to_bvh_train_as_any_bvh_pair(tmp_path):
                  "--no-arm-mix", "--valid-fraction", "0.25", "--valid-every", "0",
                  "--cache-dir", str(tmp_path / "cache")]) == 0
     assert smplx.is_smplx(load_checkpoint(tmp_path / "run").skeleton)
+
+
+def test_our_motion_written_as_a_take_moves_each_bone_as_ours_does(tmp_path):
+    """`generate --out X.npz`'s writer: our skeleton's motion retargeted onto the generic SMPL-X skeleton; each
+    arm and leg segment points where ours does (rest poses respected), and the file is a BEAT2 take."""
+    from dimgestor.retarget.export import write_motion
+    from dimgestor.streaming.checkpoint import load_checkpoint
+
+    sk = load_checkpoint(None).skeleton
+    frames, rng = 30, np.random.default_rng(7)
+    t = np.arange(frames)[:, None, None] / 20
+    q = R.expmap_to_quat(rng.uniform(0, 0.5, (1, sk.num_joints, 3)) * np.sin(2 * np.pi * t + rng.uniform(0, 6, (1, sk.num_joints, 3))))
+    tr = np.broadcast_to(sk.offsets, (frames, sk.num_joints, 3)).copy()
+    ours = BvhMotion.from_pose(sk, 1 / 20, q, tr)
+    assert "SMPL-X take on the generic SMPL-X skeleton" in write_motion(tmp_path / "t.npz", ours)
+    with np.load(tmp_path / "t.npz", allow_pickle=False) as f:
+        assert {k: f[k].shape for k in ("poses", "trans", "betas", "expressions")} == {
+            "poses": (frames, 165), "trans": (frames, 3), "betas": (300,), "expressions": (frames, 100)}
+        assert float(f["mocap_frame_rate"]) == 20
+    take_motion, _ = smplx.read_smplx(tmp_path / "t.npz")
+    a, b = forward_kinematics(ours), forward_kinematics(take_motion)
+
+    def direction(p, skeleton, x, y):
+        v = p[:, skeleton.index(y)] - p[:, skeleton.index(x)]
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    for (x, y), (u, w) in [(("LeftArm", "LeftForeArm"), ("left_shoulder", "left_elbow")),
+                           (("RightForeArm", "RightHand"), ("right_elbow", "right_wrist")),
+                           (("LeftUpLeg", "LeftLeg"), ("left_hip", "left_knee")),
+                           (("RightLeg", "RightFoot"), ("right_knee", "right_ankle"))]:
+        cos = (direction(a, sk, x, y) * direction(b, take_motion.skeleton, u, w)).sum(-1)
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.0, (x, y)

@@ -16,7 +16,7 @@ from dimgestor.retarget.vrma import write_vrma
 
 __all__ = ["OUT_SUFFIXES", "check_output", "write_motion", "metres_per_unit"]
 
-OUT_SUFFIXES = (".bvh", ".glb", ".vrma")
+OUT_SUFFIXES = (".bvh", ".glb", ".vrma", ".npz")
 
 
 def metres_per_unit(rig: Rig) -> float:
@@ -28,14 +28,24 @@ def metres_per_unit(rig: Rig) -> float:
 
 
 def check_output(out: Path, target: Target | str | Path | None) -> None:
-    """Refuse an output/target pair that cannot be written, before any work."""
-    target = target.path if isinstance(target, Target) else target
+    """Refuse an output/target pair that cannot be written, before any work (a `Target` read already: its
+    skeleton too)."""
     suffix = out.suffix.lower()
+    if isinstance(target, Target) and suffix == ".npz" and target.rig.skeleton is not None:
+        from dimgestor import smplx
+
+        if not smplx.is_smplx(target.rig.skeleton):
+            raise ValueError(f"--target {target.path}: not on the SMPL-X skeleton (its 55 joints by name); a .npz "
+                             "take needs one")
+    target = target.path if isinstance(target, Target) else target
     if suffix not in OUT_SUFFIXES:
-        raise ValueError(f"--out {out}: expected a .bvh, .glb or .vrma path")
+        raise ValueError(f"--out {out}: expected a .bvh, .glb, .vrma or .npz (BEAT2 / SMPL-X) path")
     if target is not None and suffix == ".vrma":
         raise ValueError(f"--out {out}: a VRM Animation plays on any VRM as it is; --target is for .bvh and .glb")
-    if target is not None and suffix == ".bvh" and Path(target).suffix.lower() != ".bvh":
+    if target is not None and suffix in (".bvh", ".npz") and Path(target).suffix.lower() != ".bvh":
+        if suffix == ".npz":
+            raise ValueError(f"--target {target}: a .npz take is on the SMPL-X skeleton: leave --target out (the "
+                             "generic one) or give a SMPL-X BVH (`dimgestor convert YOUR_TAKE.npz rig.bvh`)")
         raise ValueError(f"--target {target}: a .bvh output needs a BVH target skeleton; write .glb for a glTF/VRM rig")
 
 
@@ -51,6 +61,8 @@ def write_motion(out: str | Path, motion: BvhMotion, target: Target | str | Path
     if suffix == ".vrma":
         write_vrma(out, source, resolve_map(source, what="source"), q, t, motion.fps, metres_per_unit(source), face)
         return f"VRM Animation, {len(q)} frames" + (f", {len(face)} expressions" if face else "")
+    if suffix == ".npz":
+        return _write_smplx(out, motion, source, target, target_map)
     if target is None:
         if suffix == ".bvh":
             write_bvh(out, motion)
@@ -72,6 +84,24 @@ def write_motion(out: str | Path, motion: BvhMotion, target: Target | str | Path
     io.add_animation(gltf, rig.nodes, motion.fps, tq, tt, rotate=moved[0], translate=moved[1])
     io.save_glb(gltf, out)
     return f"glTF binary: {Path(target.path).name} with the animation added ({len(rt.bones)} bones mapped), {len(tq)} frames"
+
+
+def _write_smplx(out: Path, motion: BvhMotion, source: Rig, target: Target | str | Path | None, target_map) -> str:
+    """A BEAT2 / SMPL-X take of `motion` retargeted onto the SMPL-X skeleton: the generic one, or `target` (a BVH on
+    the SMPL-X skeleton, e.g. a take converted with the user's body model)."""
+    from dimgestor import smplx
+
+    if target is None:
+        rig = Rig.from_skeleton(smplx.skeleton(), "the generic SMPL-X skeleton")
+        target = Target(rig, resolve_map(rig))
+    target = target if isinstance(target, Target) else load_target(target, target_map)
+    if target.rig.skeleton is None or not smplx.is_smplx(target.rig.skeleton):
+        raise ValueError(f"--target {target.rig.path}: not on the SMPL-X skeleton (its 55 joints by name); a .npz "
+                         "take needs one")
+    rt = Retarget(source, target.rig, resolve_map(source, what="source"), target.bones)
+    smplx.write_smplx(out, rt.motion(motion))
+    return (f"BEAT2 / SMPL-X take on {Path(target.rig.path).name} ({len(rt.bones)} bones mapped), "
+            f"{motion.num_frames} frames")
 
 
 def _moving(rig: Rig) -> tuple[list[int], list[int]]:
