@@ -88,7 +88,7 @@ def test_train_then_generate_writes_a_bvh_as_long_as_the_audio(run, tmp_path, ca
     (["generate", "--checkpoint", "{run}/run", "--audio", "x.wav", "--out", "o.bvh", "--steps", "0"], "--steps"),
     (["generate", "--checkpoint", "{run}/run", "--audio", "x.wav", "--out", "o.bvh", "--smooth", "-1"], "--smooth"),
     (["export", "--checkpoint", "{run}/run", "--out", "{tmp}/e", "--steps", "0"], "--steps must be >= 1"),
-    (["train", "--data", "{tmp}/empty", "--out", "{tmp}/r"], "no NAME.bvh + NAME.wav pairs"),
+    (["train", "--data", "{tmp}/empty", "--out", "{tmp}/r"], "no NAME.bvh (or NAME.npz) + NAME.wav pairs"),
     (["train", "--data", "{tmp}/broken", "--out", "{tmp}/r", "--cache-dir", "{tmp}/c"], "broken.bvh:"),
     (["train", "--data", "{run}/data", "--out", "{tmp}/r", "--preset", "tiny", "--set", "headdim=5"], "headdim"),
     (["train", "--data", "{run}/data", "--out", "{run}/run", "--preset", "tiny", "--cache-dir", "{run}/cache"],

@@ -45,7 +45,7 @@ def test_synthetic_pair_is_deterministic_and_gestures_follow_loudness(tmp_path):
 def test_find_pairs_walks_sub_folders_and_names_what_is_wrong(data_dir, tmp_path):
     assert [p.name for p in find_pairs(data_dir)] == ["a", "session2/b"]
     (tmp_path / "only.bvh").write_text("x")
-    with pytest.raises(DatasetError, match=rf"{tmp_path}: no NAME.bvh \+ NAME.wav pairs found \(1 .bvh and 0 .wav"):
+    with pytest.raises(DatasetError, match=rf"{tmp_path}: no NAME.bvh \(or NAME.npz\) \+ NAME.wav pairs found \(1 motion and 0 .wav"):
         find_pairs(tmp_path)
     with pytest.raises(DatasetError, match="data folder not found"):
         find_pairs(tmp_path / "nowhere")

@@ -169,8 +169,9 @@ def test_a_motion_on_another_rig_is_not_written_as_smplx(tmp_path):
         smplx.write_smplx(tmp_path / "o.npz", motion)
 
 
-def test_takes_converted_to_bvh_train_as_any_bvh_pair(tmp_path):
-    """The route docs/training.md gives for BEAT2 today: each take converted to BVH beside its WAV, then `train`."""
+def test_train_reads_takes_beside_bvh_pairs_and_refuses_a_bad_take_by_name(tmp_path, capsys):
+    """A folder holding a BEAT2 take (NAME.npz + NAME.wav) and a BVH pair on the same skeleton (a take converted)
+    trains; a take that is not one is refused, naming it, before any training."""
     from dimgestor.audio import save_wav
     from dimgestor.streaming.checkpoint import load_checkpoint
     from dimgestor.training.synthetic import synthetic_speech
@@ -180,14 +181,23 @@ def test_takes_converted_to_bvh_train_as_any_bvh_pair(tmp_path):
     for i in range(2):
         fields = take(10 + i, frames=FPS * 8)
         fields["poses"] *= 0.3
-        save(tmp_path / f"take{i}.npz", fields)
-        assert main(["convert", str(tmp_path / f"take{i}.npz"), str(data / f"take{i}.bvh")]) == 0
+        save(data / f"take{i}.npz", fields)
         save_wav(data / f"take{i}.wav", synthetic_speech(8.0, seed=i), 16000)
-    assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--preset", "tiny", "--max-steps", "1",
-                 "--batch-size", "2", "--window-s", "4", "--no-progress", "--no-augment", "--no-mirror", "--speeds", "",
-                 "--no-arm-mix", "--valid-fraction", "0.25", "--valid-every", "0",
-                 "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert main(["convert", str(data / "take0.npz"), str(data / "take0.bvh")]) == 0
+    (data / "take0.npz").unlink()  # (one motion file a clip)
+    args = ["train", "--data", str(data), "--out", str(tmp_path / "run"), "--preset", "tiny", "--max-steps", "1",
+            "--batch-size", "2", "--window-s", "4", "--no-progress", "--no-augment", "--no-mirror", "--speeds", "",
+            "--no-arm-mix", "--valid-fraction", "0.25", "--valid-every", "0", "--cache-dir", str(tmp_path / "cache")]
+    assert main(args) == 0
     assert smplx.is_smplx(load_checkpoint(tmp_path / "run").skeleton)
+    bad = take(12, frames=FPS * 8)
+    bad["poses"][5, 0] = np.inf
+    save(data / "take2.npz", bad)
+    save_wav(data / "take2.wav", synthetic_speech(8.0, seed=2), 16000)
+    capsys.readouterr()
+    assert main([*args[:4], str(tmp_path / "run2"), *args[5:]]) == 2
+    err = capsys.readouterr()
+    assert f"error: {data / 'take2.npz'}: poses is not finite at frame 5" in err.err and "step" not in err.out
 
 
 def test_our_motion_written_as_a_take_moves_each_bone_as_ours_does(tmp_path):

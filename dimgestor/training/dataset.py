@@ -40,23 +40,39 @@ class DatasetError(ValueError):
 @dataclass(frozen=True)
 class Pair:
     name: str  # path relative to the data folder, without extension, "/"-separated
-    bvh: Path
+    bvh: Path  # its motion file: a BVH, or a BEAT2 / SMPL-X take (.npz)
     wav: Path
 
 
+MOTION_SUFFIXES = (".bvh", ".npz")  # BVH, and BEAT2 / SMPL-X takes (`dimgestor.smplx`)
+
+
+def read_motion(path: Path):
+    """A clip's motion file as a BvhMotion: a BVH, or a BEAT2 / SMPL-X take on the generic SMPL-X skeleton."""
+    if path.suffix.lower() == ".npz":
+        from dimgestor.smplx import read_smplx
+
+        return read_smplx(path)[0]
+    return read_bvh(path)
+
+
 def find_pairs(data_dir: str | Path) -> list[Pair]:
-    """All NAME.bvh with a NAME.wav beside it, in sub-folders too, sorted by name."""
+    """All NAME.bvh (or a BEAT2 take, NAME.npz) with a NAME.wav beside it, in sub-folders too, sorted by name."""
     root = Path(data_dir)
     if not root.is_dir():
         raise DatasetError(f"{root}: data folder not found")
     files = [p for p in root.rglob("*") if p.is_file() and not any(part.startswith(".") for part in p.relative_to(root).parts)]
-    bvhs = {p.with_suffix(""): p for p in files if p.suffix.lower() == ".bvh"}
+    bvhs = {}
+    for p in sorted(f for f in files if f.suffix.lower() in MOTION_SUFFIXES):
+        if p.with_suffix("") in bvhs:
+            raise DatasetError(f"{p}: {bvhs[p.with_suffix('')].name} is beside it: one motion file a clip")
+        bvhs[p.with_suffix("")] = p
     wavs = {p.with_suffix(""): p for p in files if p.suffix.lower() == ".wav"}
     pairs = [Pair(stem.relative_to(root).as_posix(), bvhs[stem], wavs[stem]) for stem in sorted(bvhs.keys() & wavs.keys())]
     if not pairs:
         raise DatasetError(
-            f"{root}: no NAME.bvh + NAME.wav pairs found ({len(bvhs)} .bvh and {len(wavs)} .wav files; "
-            "a pair is a BVH and a WAV with the same name in the same folder)"
+            f"{root}: no NAME.bvh (or NAME.npz) + NAME.wav pairs found ({len(bvhs)} motion and {len(wavs)} .wav files; "
+            "a pair is a BVH or BEAT2 take and a WAV with the same name in the same folder)"
         )
     lonely = sorted(str(p.relative_to(root)) for stem, p in {**bvhs, **wavs}.items() if stem not in bvhs or stem not in wavs)
     if lonely:
@@ -148,7 +164,7 @@ def _cache_key(pair: Pair, spec: FeatureSpec) -> str:
 
 def preprocess_pair(pair: Pair, spec: FeatureSpec) -> Clip:
     """Read, featurize and align one pair (no cache)."""
-    motion = read_bvh(pair.bvh)
+    motion = read_motion(pair.bvh)
     features = motion_to_features(motion, spec)
     audio = load_wav(pair.wav, SAMPLE_RATE)
     spf = samples_per_frame(spec)
