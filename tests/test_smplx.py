@@ -230,3 +230,12 @@ def test_our_motion_written_as_a_take_moves_each_bone_as_ours_does(tmp_path):
                            (("RightLeg", "RightFoot"), ("right_knee", "right_ankle"))]:
         cos = (direction(a, sk, x, y) * direction(b, take_motion.skeleton, u, w)).sum(-1)
         assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 1.0, (x, y)
+
+
+def test_a_clip_with_two_motion_files_is_refused_by_name(tmp_path):
+    from dimgestor.training.dataset import DatasetError, find_pairs
+
+    for name in ("a.bvh", "a.npz", "a.wav"):
+        (tmp_path / name).write_bytes(b"x")
+    with pytest.raises(DatasetError, match=r"a\.npz: a\.bvh is beside it: one motion file a clip"):
+        find_pairs(tmp_path)
