@@ -63,8 +63,10 @@ torch: | $(BIN)/python
 	sh scripts/install-torch $(BIN)/python
 	@touch $(VENV)/.torch-installed
 
+# --max-worker-restart 0: a test process that crashes ends the run with that test failed (pytest-xdist 3.8 replacing
+# a crashed worker under --dist loadfile can wait forever at the end of the run: pytest-xdist issues 784, 1378).
 test: $(VENV)/.test-installed $(WEB)/node_modules/.package-lock.json $(VMC_CHECK)/node_modules/.package-lock.json
-	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile --no-loadscope-reorder --durations=30
+	$(BIN)/python -m pytest -q -rs -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart 0 --durations=30
 
 # Ports of `make demo`, e.g. `make demo WS_PORT=9000 OSC_PORT=39540` (the viewer: http://127.0.0.1:WS_PORT/).
 WS_PORT ?= 8765

@@ -195,6 +195,7 @@ class Session:
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._finishing = False
+        self._inflight = None  # the call being inferred (a scheduler's future): the face outlives it
         self.state_key = state_key  # (`dimgestor.streaming.savestate`; never shown)
 
     @classmethod
@@ -324,18 +325,27 @@ class Session:
             if self.handover:  # the state goes on elsewhere: no silence padded, no last frames
                 return self.stream.frames_out
             self.stats.window = None  # the flush's frames wait for no audio
-            finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)
+            self._inflight = finish = self.scheduler.submit_ranked(self.clock.rank(), self.infer_finish)
             frames = await asyncio.wrap_future(finish)
             await _emit(emit, frames)
             self.stats.frames += len(frames)
             self.stats.ended = True
             return self.stream.frames_out
         finally:
-            if self._face is not None:  # its listener's decoder goes back to the pool (a handed-over one too)
-                self._face.close()
+            # The face's listener's decoder goes back to the pool (a handed-over one's too), once no call of this
+            # session is being inferred: a cancelled run leaves its call running on the inference thread, and a
+            # decoder given back under it would be used by two threads (pocketsphinx then crashes the process).
+            if self._inflight is None:
+                self._close_face()
+            else:
+                self._inflight.add_done_callback(lambda _: self._close_face())
             if not reader.done():
                 reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)
+
+    def _close_face(self) -> None:
+        if self._face is not None:
+            self._face.close()
 
     @staticmethod
     async def _read(source: AsyncIterable[AudioChunk], buffer: _AudioBuffer) -> None:
@@ -360,7 +370,8 @@ class Session:
             later = sum(len(c) for c in calls[k + 1:]) / SAMPLE_RATE
             rank = self.clock.rank(len(call) / SAMPLE_RATE, later + waiting_s())
             self._hear(call)  # (the worker's frames_of takes it: calls of a session never overlap)
-            frames = await asyncio.wrap_future(self.scheduler.submit_push(self, call, rank))
+            self._inflight = self.scheduler.submit_push(self, call, rank)
+            frames = await asyncio.wrap_future(self._inflight)
             self.clock.audio_s += len(call) / SAMPLE_RATE
             infer_s += time.perf_counter() - t0
             n += len(frames)

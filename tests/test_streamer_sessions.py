@@ -142,6 +142,56 @@ def test_a_session_without_a_face_keeps_none_of_its_audio(bundle):
         assert len(without._face_audio) == len(with_face._face_audio) == 0  # (each call's audio taken by its face)
 
 
+def test_a_cancelled_session_gives_its_face_decoder_back_only_after_its_running_call(bundle):
+    """A client that leaves cancels its session while the inference thread may still be making that session's face:
+    the listener's decoder goes back to the pool (for the next face to take) only when that call has ended. Given
+    back under it, two threads used one pocketsphinx decoder and the process crashed (a segfault in CI)."""
+    import numpy as np
+
+    from dimgestor.face import FaceOptions
+    from streamer.sources import AudioChunk
+
+    entered, release = threading.Event(), threading.Event()
+
+    class Held(Session):
+        calls = 0
+
+        def frames_of(self, normalized):
+            Held.calls += 1
+            if Held.calls == 2:  # the second call: the face (made by the first) is in use
+                entered.set()
+                release.wait(30)
+            return super().frames_of(normalized)
+
+    session = Held.from_bundle(bundle, steps=1, seed=3, window_ms=100, face=FaceOptions(seed=3))
+    audio = synthetic_speech(2.0, seed=2).astype(np.float32)
+
+    async def source():
+        for i in range(0, len(audio), 1600):
+            yield AudioChunk(audio[i:i + 1600], i / 16000, time.monotonic())
+        await asyncio.Event().wait()  # a client that stays until it is cut off
+
+    async def run():
+        task = asyncio.create_task(session.run(source(), lambda frames: None))
+        while not entered.is_set():
+            await asyncio.sleep(0.01)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        kept = session._face.listener._decoder is not None  # the call still runs: its decoder is its own
+        release.set()
+        for _ in range(1000):  # (given back by the inference thread as the call ends)
+            if session._face.listener._decoder is None:
+                break
+            await asyncio.sleep(0.01)
+        return kept, session._face.listener._decoder is None
+
+    try:
+        assert asyncio.run(run()) == (True, True)
+    finally:
+        release.set()
+
+
 def test_a_client_leaving_in_any_blocked_state_frees_its_slot_and_memory_at_once(tiny_checkpoint):
     s = serve(tiny_checkpoint, "--source", "ws", "--max-sessions", "1", "--status-every", "0")
     url = s.wait_for(r"WebSocket\s+(ws://\S+)").group(1)
