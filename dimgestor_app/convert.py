@@ -2,7 +2,8 @@
 
 A take is read with the generic SMPL-X skeleton, or with `--smplx-model` the exact one of its betas from the
 user's own body-model file; a BVH on the SMPL-X skeleton (as this command writes one) goes back to a take. The
-rotations are carried exactly (to 1e-6 degrees in the BVH text), the pelvis to 1e-8 m.
+rotations are carried exactly (to 1e-6 degrees in the BVH text), the pelvis to 1e-8 m. A BVH on another skeleton
+(e.g. `serve --record`'s, or `generate`'s) is retargeted onto the generic SMPL-X skeleton by its bones' names.
 """
 from __future__ import annotations
 
@@ -30,6 +31,13 @@ def convert(src: str | Path, dst: str | Path, smplx_model: str | Path | None = N
         motion = read_bvh(src)
     if dst.suffix.lower() == ".bvh":
         write_bvh(dst, motion)
+    elif not smplx.is_smplx(motion.skeleton):  # another rig: onto SMPL-X by its bones' names
+        from dimgestor.retarget.export import write_motion
+
+        try:
+            return f"wrote {dst}: " + write_motion(dst, motion)
+        except ValueError as e:
+            raise ValueError(f"{src}: its skeleton cannot be retargeted onto SMPL-X: {e}") from e
     else:
         smplx.write_smplx(dst, motion, betas=extra.get("betas"), expressions=extra.get("expressions"),
                           gender=str(extra.get("gender", "neutral")))
@@ -45,7 +53,8 @@ def register(subparsers) -> argparse.ArgumentParser:
                               description=__doc__.split("\n\n")[1].replace("\n", " "),
                               epilog=examples("dimgestor convert 2_scott_0_1_1.npz scott.bvh",
                                               "dimgestor convert take.npz take.bvh --smplx-model SMPLX_NEUTRAL_2020.npz",
-                                              "dimgestor convert take.bvh take.npz"))
+                                              "dimgestor convert take.bvh take.npz",
+                                              "dimgestor convert recording.bvh recording.npz"))
     p.add_argument("input", metavar="IN", help="a BEAT2 / SMPL-X take (.npz) or a BVH file (.bvh)")
     p.add_argument("output", metavar="OUT", help="the file to write, its format by its suffix (.npz or .bvh)")
     p.add_argument("--smplx-model", default=None, metavar="PATH",

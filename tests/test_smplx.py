@@ -200,18 +200,25 @@ def test_train_reads_takes_beside_bvh_pairs_and_refuses_a_bad_take_by_name(tmp_p
     assert f"error: {data / 'take2.npz'}: poses is not finite at frame 5" in err.err and "step" not in err.out
 
 
+def our_motion(frames: int = 30) -> BvhMotion:
+    """Smooth random motion on the default model's skeleton (what `generate` and `serve --record` write)."""
+    from dimgestor.streaming.checkpoint import load_checkpoint
+
+    sk = load_checkpoint(None).skeleton
+    rng = np.random.default_rng(7)
+    t = np.arange(frames)[:, None, None] / 20
+    q = R.expmap_to_quat(rng.uniform(0, 0.5, (1, sk.num_joints, 3)) * np.sin(2 * np.pi * t + rng.uniform(0, 6, (1, sk.num_joints, 3))))
+    tr = np.broadcast_to(sk.offsets, (frames, sk.num_joints, 3)).copy()
+    return BvhMotion.from_pose(sk, 1 / 20, q, tr)
+
+
 def test_our_motion_written_as_a_take_moves_each_bone_as_ours_does(tmp_path):
     """`generate --out X.npz`'s writer: our skeleton's motion retargeted onto the generic SMPL-X skeleton; each
     arm and leg segment points where ours does (rest poses respected), and the file is a BEAT2 take."""
     from dimgestor.retarget.export import write_motion
-    from dimgestor.streaming.checkpoint import load_checkpoint
 
-    sk = load_checkpoint(None).skeleton
-    frames, rng = 30, np.random.default_rng(7)
-    t = np.arange(frames)[:, None, None] / 20
-    q = R.expmap_to_quat(rng.uniform(0, 0.5, (1, sk.num_joints, 3)) * np.sin(2 * np.pi * t + rng.uniform(0, 6, (1, sk.num_joints, 3))))
-    tr = np.broadcast_to(sk.offsets, (frames, sk.num_joints, 3)).copy()
-    ours = BvhMotion.from_pose(sk, 1 / 20, q, tr)
+    ours = our_motion()
+    sk, frames = ours.skeleton, ours.num_frames
     assert "SMPL-X take on the generic SMPL-X skeleton" in write_motion(tmp_path / "t.npz", ours)
     with np.load(tmp_path / "t.npz", allow_pickle=False) as f:
         assert {k: f[k].shape for k in ("poses", "trans", "betas", "expressions")} == {
@@ -239,3 +246,24 @@ def test_a_clip_with_two_motion_files_is_refused_by_name(tmp_path):
         (tmp_path / name).write_bytes(b"x")
     with pytest.raises(DatasetError, match=r"a\.npz: a\.bvh is beside it: one motion file a clip"):
         find_pairs(tmp_path)
+
+
+def test_convert_retargets_a_bvh_on_another_rig_onto_smplx_and_refuses_one_it_cannot_map(tmp_path, capsys):
+    """`serve --record`'s BVH (our skeleton) becomes a BEAT2 take with `convert`: the same take `generate --out
+    X.npz` writes from that motion; a BVH whose bones name no body is refused, naming the file."""
+    from dimgestor.bvh import write_bvh
+    from dimgestor.retarget.export import write_motion
+
+    ours = our_motion()
+    write_bvh(tmp_path / "rec.bvh", ours)
+    assert main(["convert", str(tmp_path / "rec.bvh"), str(tmp_path / "rec.npz")]) == 0
+    assert "SMPL-X take on the generic SMPL-X skeleton" in capsys.readouterr().out
+    write_motion(tmp_path / "direct.npz", read_bvh(tmp_path / "rec.bvh"))
+    with np.load(tmp_path / "rec.npz") as a, np.load(tmp_path / "direct.npz") as b:
+        assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files)
+    sk = smplx.skeleton()
+    odd = type(sk)(["Foo", "Bar"], [-1, 0], np.array([[0, 0, 0], [0, 10, 0.0]]), [["Zrotation", "Xrotation", "Yrotation"]] * 2)
+    write_bvh(tmp_path / "odd.bvh", BvhMotion(odd, 1 / 30, np.zeros((3, 6))))
+    assert main(["convert", str(tmp_path / "odd.bvh"), str(tmp_path / "odd.npz")]) == 2
+    assert f"{tmp_path / 'odd.bvh'}: its skeleton cannot be retargeted onto SMPL-X" in capsys.readouterr().err
+    assert not (tmp_path / "odd.npz").exists()
