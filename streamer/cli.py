@@ -180,12 +180,12 @@ def _output_flags(g) -> dict[str, argparse.Action]:
                    "'oculus' (viseme_sil... as Ready Player Me names them), 'none' (no face: bones only)"),
         _flag(g, "--smile", type=float, metavar="W",
               help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
-        _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma",
+        _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma|.npz",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "
-                   "OUT.face.csv (as `dimgestor generate --face-csv` writes it; none with --face none); OUT.glb or "
-                   "OUT.vrma: that file too, made from OUT.bvh when the source ends (.bvh and .glb on --target "
-                   "where it fits: a BVH target for .bvh)"),
+                   "OUT.face.csv (as `dimgestor generate --face-csv` writes it; none with --face none); OUT.glb, "
+                   "OUT.vrma or OUT.npz (a BEAT2 / SMPL-X take): that file too, made from OUT.bvh when the source "
+                   "ends (.bvh and .glb on --target where it fits: a BVH target for .bvh, a SMPL-X BVH for .npz)"),
         _flag(g, "--target", metavar="RIG.bvh|.glb|.vrm",
               help="send the motion on this rig, retargeted whatever its rest pose (A-pose, T-pose), bone lengths "
                    "and names: WebSocket clients get its joints in the hello and its local rotations in every "

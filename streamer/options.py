@@ -92,7 +92,7 @@ class ServeOptions(BaseModel):
     face: Literal["vrm0", "vrm1", "arkit", "oculus", "none"] = "vrm0"  # the default name set; none: no face
     smile: float = Field(0.0, ge=0, le=1)
     # the rest
-    record: str | None = None  # a BVH path (.glb or .vrma: that file too, from the BVH beside it)
+    record: str | None = None  # a BVH path (.glb, .vrma or .npz: that file too, from the BVH beside it)
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json
     target: str | None = None  # a rig (.bvh, .glb, .gltf, .vrm): frames for clients and VMC are on it
     target_map: str | None = None  # its bone map over the names recognised

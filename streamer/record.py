@@ -253,17 +253,17 @@ class BvhRecorder:
 
 
 def bvh_path(path: str | Path) -> Path:
-    """Where a recording's BVH goes: OUT.bvh itself; beside OUT.glb or OUT.vrma, OUT.bvh (written as it comes,
-    so a crash keeps it; the .glb/.vrma is made from it when the recording ends)."""
+    """Where a recording's BVH goes: OUT.bvh itself; beside OUT.glb, OUT.vrma or OUT.npz (a BEAT2 / SMPL-X take),
+    OUT.bvh (written as it comes, so a crash keeps it; the other file is made from it when the recording ends)."""
     path = Path(path)
-    return path.with_suffix(".bvh") if path.suffix.lower() in (".glb", ".vrma") else path
+    return path.with_suffix(".bvh") if path.suffix.lower() in (".glb", ".vrma", ".npz") else path
 
 
 class RecordingSink:
     """`BvhRecorder` as a `Sink` (streamer/sink.py): the file is created by `open`, last of all the sinks, so
-    that a failure to start anything else leaves an old recording alone. A .glb or .vrma path (optionally on a
-    `target` rig: a `dimgestor.retarget.Target` as read at start, or a rig's path and `target_map`) is written at
-    the end from the BVH beside it (and the face, for .vrma)."""
+    that a failure to start anything else leaves an old recording alone. A .glb, .vrma or .npz path (optionally on
+    a `target` rig: a `dimgestor.retarget.Target` as read at start, or a rig's path and `target_map`) is written at
+    the end from the BVH beside it (and the face, for .vrma; a .npz is retargeted onto SMPL-X)."""
 
     def __init__(self, path: str | Path, skeleton, feature_spec, root: str = "free", tether_s: float = 5.0,
                  channels: Mapping[str, Channel] | None = None, face: bool = False, target=None,

@@ -345,8 +345,12 @@ def _recording(options: ServeOptions, bundle, source, face: ServeFace | None, ta
     from streamer.record import RecordingSink
 
     suffix = Path(options.record).suffix.lower()
-    fits = options.target is not None and (suffix == ".glb" or suffix == ".bvh"
+    fits = options.target is not None and (suffix == ".glb" or suffix in (".bvh", ".npz")
                                            and Path(options.target).suffix.lower() == ".bvh")
+    if fits and suffix == ".npz" and target is not None:  # a take is on SMPL-X: the target's only if it is SMPL-X
+        from dimgestor import smplx
+
+        fits = target.file.rig.skeleton is not None and smplx.is_smplx(target.file.rig.skeleton)
     return RecordingSink(options.record, bundle.skeleton, bundle.feature_spec, root=options.root,
                          tether_s=options.tether_s, face=face is not None,
                          target=target.file if fits and target is not None else None)  # (read once: _target)

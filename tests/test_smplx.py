@@ -267,3 +267,17 @@ def test_convert_retargets_a_bvh_on_another_rig_onto_smplx_and_refuses_one_it_ca
     assert main(["convert", str(tmp_path / "odd.bvh"), str(tmp_path / "odd.npz")]) == 2
     assert f"{tmp_path / 'odd.bvh'}: its skeleton cannot be retargeted onto SMPL-X" in capsys.readouterr().err
     assert not (tmp_path / "odd.npz").exists()
+
+
+def test_serve_records_a_take_beside_its_bvh(tiny_checkpoint, wav, tmp_path):
+    """`serve --record OUT.npz`: OUT.bvh as the motion comes, and at the end the take `convert` makes of it."""
+    from helpers.serve import WAV_SECONDS, serve
+
+    s = serve(tiny_checkpoint, "--source", str(wav), "--fast", "--no-ws", "--steps", "1", "--record",
+              str(tmp_path / "talk.npz"))
+    assert s.finish() == 0, s.output
+    assert f"wrote {tmp_path / 'talk.npz'} (BEAT2 / SMPL-X take on the generic SMPL-X skeleton" in s.output
+    assert main(["convert", str(tmp_path / "talk.bvh"), str(tmp_path / "again.npz")]) == 0
+    with np.load(tmp_path / "talk.npz") as a, np.load(tmp_path / "again.npz") as b:
+        assert len(a["poses"]) == int(WAV_SECONDS * 20) and float(a["mocap_frame_rate"]) == 20
+        assert all(np.array_equal(a[k], b[k]) for k in a.files)
