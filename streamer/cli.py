@@ -208,6 +208,10 @@ def _network_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--max-sessions", type=int, metavar="N",
               help="most WebSocket clients sending their own audio at once (one more gets a 'busy' "
                    "error). How many keep real time depends on the CPU and K: see docs/performance.md"),
+        _flag(g, "--faces-beyond-capacity", choices=("busy", "no-face"),
+              help="a client asking for a face when one more face would not keep real time on this worker: 'busy' "
+                   "(refused, told to try again after retry_after_s) or 'no-face' (its session is admitted without a "
+                   "face, and it is told so: a 'face_withheld' notice)"),
         _flag(g, "--token",
               help="require clients to connect to ws://HOST:PORT/?token=TOKEN (others get HTTP 401); other "
                    "users of this machine can read a command line: prefer --token-file or $STREAMER_TOKEN"),

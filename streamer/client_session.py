@@ -85,6 +85,11 @@ class Seats:
             return None
         return why, self.admission.retry_after_s
 
+    def withholds_face(self, why: tuple[str, float]) -> bool:
+        """Whether a session with a face refused for `why` is admitted without its face instead (the server's
+        choice: `serve --faces-beyond-capacity no-face`), i.e. it would be admitted without one."""
+        return bool(getattr(self.admission, "without_face", False)) and self.refusal(False) is None
+
     def carry_out(self, action: TakeSeat | FreeSeat) -> None:
         if isinstance(action, TakeSeat):
             if self.full:  # (the machine checks `full` in the same step: a bug, never a race)
@@ -207,6 +212,7 @@ class ClientSession(_SavesAndResumes):
     save_token: str | None = None  # its session's periodic saves go under this token (live: its lease is held)
     saved_audio_s: float = 0.0     # the audio its last periodic save covers
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
+    face_withheld: bool = False    # its current session was admitted without the face it asked (at capacity)
     smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
     layout_due: bool = False       # a `channels` message goes with its next frames
     joints: int = 0                # its frames' joints on its own rig (revision 8; 0: the server's skeleton's)
@@ -225,7 +231,7 @@ class ClientSession(_SavesAndResumes):
         """The channels of its frames in `encoding`: the server's (`P.WS_CHANNELS`), then the face when the server
         makes one and the client did not say "none" (in binary only once it asked: an old client's layout stays;
         its own audio's frames only once it asked: they have a face only then, see `StartSession.face`)."""
-        names = None if self.face == "none" else self.face or self.terms.face
+        names = None if self.face == "none" or self.face_withheld else self.face or self.terms.face
         if names is None or self.terms.face is None or (self.face is None and (encoding == "binary" or self.own)):
             return dict(P.WS_CHANNELS)
         return {**P.WS_CHANNELS, FACE: _face_channel(names)}
@@ -340,9 +346,14 @@ class ClientSession(_SavesAndResumes):
                 return refusal
             if self.seats.full:
                 return self._busy()
+            out = []
+            if self.face_withheld:  # (the last session's): this one asks again
+                self.face_withheld, self.layout_due = False, True
             if (refused := self.seats.refusal(self._face_wanted())) is not None:
-                return self._refuse("capacity", "busy", *refused)
-            out = self._start()
+                if not (self._face_wanted() and self.seats.withholds_face(refused)):
+                    return self._refuse("capacity", "busy", *refused)
+                out = self._withhold_face(*refused)
+            out += self._start()
         else:
             out = []
         return [*out, Feed(max(1, min(int(PIECE_S * self.audio.rate), PIECE_SAMPLES)))]
@@ -383,8 +394,18 @@ class ClientSession(_SavesAndResumes):
                                                  self.smile, face), Count("sessions_started")]
 
     def _face_wanted(self) -> bool:
-        """Whether its next session makes a face: the server makes one and the client asked for it."""
-        return self.terms.face is not None and self.face not in (None, "none")
+        """Whether its next session makes a face: the server makes one and the client asked for it (and it was not
+        withheld at capacity)."""
+        return self.terms.face is not None and self.face not in (None, "none") and not self.face_withheld
+
+    def _withhold_face(self, why: str, retry_after_s: float) -> list[Action]:
+        """Admitted at capacity without the face it asked: told so (`face_withheld`), its frames carry none (a
+        `channels` message without it), and its next session asks again."""
+        self.face_withheld, self.layout_due = True, True
+        message = (f"admitted without a face: {why.split(': try again')[0]}; this session's frames carry none (the "
+                   "next session, after audio_end, asks again: wait retry_after_s)")
+        return [Log(logging.INFO, f"face_withheld: {message}"), Count("faces_withheld"),
+                Send(P.error("face_withheld", message, retry_after_s), "note")]
 
     def _take_seat(self) -> list[Action]:
         if self.holds_seat:  # (taken at its resume_session)

@@ -37,6 +37,8 @@ class ServerMetrics:
         self.readiness = readiness if readiness is not None else Readiness()
         self.registry = r = CollectorRegistry()
         self.sessions_started = Counter("dimgestor_sessions_started", "Client audio sessions started", registry=r)
+        self.faces_withheld = Counter("dimgestor_faces_withheld", "Client audio sessions admitted without the face "
+                                      "they asked, at capacity (--faces-beyond-capacity no-face)", registry=r)
         self.sessions_handed_over = Counter("dimgestor_sessions_handed_over",
                                             "Client sessions saved to the state store when the worker stopped",
                                             registry=r)

@@ -67,6 +67,7 @@ class ServeOptions(BaseModel):
     no_ws: bool = False
     http: tuple[str | None, int] | None = None  # deprecated: a second address serving the same (None host: --ws's)
     max_sessions: int = Field(MAX_SESSIONS, ge=1, le=4096)
+    faces_beyond_capacity: Literal["busy", "no-face"] = "busy"  # a face that would not keep real time: refused or left out
     token: str | None = None
     token_file: str | None = None
     allow_origin: tuple[str, ...] = ()

@@ -236,7 +236,8 @@ def _admission(options: ServeOptions, bundle, face: ServeFace | None, metrics: S
         cost = FaceCost()
         lookahead = math.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # as a session's face
         cost.measure(face.options, bundle.feature_spec.fps, lookahead)
-    return Admission(metrics.readiness, cost, lanes=scheduler.workers)
+    return Admission(metrics.readiness, cost, lanes=scheduler.workers,
+                     without_face=options.faces_beyond_capacity == "no-face")
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",

@@ -294,6 +294,8 @@ class Printer:
         elif kind == "status" and not self.args.quiet:
             print(f"status: latency {msg.get('latency_ms')} ms, rtf {msg.get('rtf')}, sent {msg.get('frames_sent')}, "
                   f"dropped {msg.get('dropped')}, clients {msg.get('clients')}")
+        elif kind == "error" and msg.get("code") == "face_withheld":  # a notice: admitted, without a face
+            print(f"face_withheld: this session's frames carry no face ({msg.get('message')})")
         elif kind == "error" and msg.get("code") == "slow_down":  # a notice: nothing was lost
             print(f"slow_down: pausing our audio until resume ({msg.get('message')})")
         elif kind == "resume":

@@ -736,6 +736,11 @@ function onParsed(msg, at) {
         reconnectTimer = setTimeout(() => resumeOrRestart(), msg.code === 'busy' ? 200 : 0);
         break;
       }
+      if (msg.code === 'face_withheld') {  // a notice: this session talks without a face (the worker is at capacity)
+        api.notices.push(msg);
+        say('the server has no room for another face now: the avatar talks without one until the next session');
+        break;
+      }
       if (msg.code === 'slow_down') {  // a notice, nothing was lost: hold the microphone until `resume`
         api.notices.push(msg);
         if (mode === 'talk' && api.audioFlow) {  // (the socket worker holds the microphone already)
