@@ -115,9 +115,12 @@ class Admission:
         if not ready:
             return f"this worker is at capacity ({why.removeprefix('not ready: ')}): try again after retry_after_s"
         if face and (left := self.faces_left()) is not None and left < 1:
+            settling = self._settling()
+            recent = (f", {settling} face{'s' if settling > 1 else ''} admitted in the last {FACE_SETTLE_S:g} s not "
+                      "yet all in it" if settling else "")
             return (f"this worker is at capacity for faces ({self.face_cost.value:.2f} s of compute a second each, "
-                    f"real-time load {self.readiness.load.value():.2f}, limit {self.max_load:g}): try again after "
-                    "retry_after_s, or ask for no face (hello.face \"none\")")
+                    f"real-time load {self.readiness.load.value():.2f}{recent}, limit {self.max_load:g}): try again "
+                    "after retry_after_s, or ask for no face (hello.face \"none\")")
         return None
 
     def admitted(self, face: bool) -> None:

@@ -45,7 +45,7 @@ def test_faces_are_admitted_while_they_fit_beside_the_measured_load():
     assert admitted == 3 and admission.faces_left() == 0  # 0.5 - 3 x 0.15 leaves room for none
     why = admission.refusal(face=True)
     assert why.startswith("this worker is at capacity for faces (0.10 s of compute a second each, real-time load "
-                          "0.30, limit 0.8)") and 'hello.face "none"' in why
+                          "0.30, 3 faces admitted in the last 10 s not yet all in it, limit 0.8)") and 'hello.face "none"' in why
     assert admission.refusal(face=False) is None  # a session without a face costs the batch little more
     clock.t += FACE_SETTLE_S  # ... by then the three are in the load: 0.3 + 3 x 0.1
     _busy_for(ready.load, clock, 0.6)
