@@ -10,7 +10,6 @@ the checkpoint load the same). Writes results/onnx_start.json and a plot beside 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import os
 import re

@@ -344,7 +344,6 @@ def test_a_dead_worker_is_passed_over_its_clients_stream_again_within_2_s_and_th
                 watch.cancel()
 
         stalls = LoopStalls()  # this process's own stalls (CI shares its cores): not the cluster's doing
-        killed_at: list[float] = []
         killed, codes = asyncio.run(everyone())
         assert codes == [0] * clients
         cluster.wait_for(r"worker 1 exited while serving")

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dimgestor.audio import SAMPLE_RATE, load_wav
+from dimgestor.audio import load_wav
 from dimgestor.face import FaceOptions, FaceStream
 from dimgestor.face.evaluate import mouth_lag, mouth_scores
 from dimgestor.face.textgrid import read_tiers

@@ -178,7 +178,7 @@ def test_state_must_be_carried(exported, bundle, audio):
     carried state, not just the graph."""
     stream = ort_stream(exported, seed=SEED)
     carried = streamed(stream, audio[:SAMPLE_RATE * 2], [800 * FRAMES])
-    fresh, state = [], stream.initial_state()
+    fresh = []
     for i, chunk in enumerate(pieces(audio[:SAMPLE_RATE * 2], [800 * FRAMES])):
         frames, _ = stream.step(replace(stream.initial_state(), calls=i, frames_out=len(fresh)), chunk)
         fresh.extend(frames)

@@ -9,8 +9,6 @@ do not queue behind their big ones.
 
 import asyncio
 import json
-import subprocess
-import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor

@@ -69,7 +69,7 @@ def test_a_paused_store_never_freezes_a_live_avatar_readiness_says_degraded_and_
             store.send_signal(signal.SIGCONT)
             resumed, back = time.monotonic(), None
             while back is None and time.monotonic() < resumed + 5:
-                if (answer := await asyncio.to_thread(readyz, server.http_url))[1].startswith("ready"):
+                if (await asyncio.to_thread(readyz, server.http_url))[1].startswith("ready"):
                     back = time.monotonic() - resumed
                 await asyncio.sleep(0.1)
             return stopped, resumed, said, back

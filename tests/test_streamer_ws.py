@@ -10,7 +10,6 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from dimgestor.streaming.stream import generate_offline
 from dimgestor.training.synthetic import synthetic_speech
 from streamer import protocol as P
 from streamer.frames import Frame

@@ -39,7 +39,6 @@ dynamo one (`torch.export`, then onnxscript), which handles what the model's cod
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
 import hashlib
 import json
