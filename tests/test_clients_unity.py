@@ -411,6 +411,25 @@ def test_unity_client_sets_the_face_on_blendshapes_through_the_name_map(tmp_path
     assert any(0 < w < 100 for o in out for w in o["weights"][0].values())
 
 
+def test_unity_client_rests_the_face_when_the_server_withholds_it(tmp_path):
+    """`face_withheld` (a server at capacity for faces) is a notice: faceWithheld and faceNotice say it, lastError
+    stays empty; and the first frame shown without a face sets every blendshape the face drove to 0, where before
+    the last face stayed (a mouth left open)."""
+    from streamer import protocol as P
+
+    expected = face_messages(tmp_path / "msgs", "binary", "arkit")  # (the last frame carries no face)
+    notice = "admitted without a face: this worker is at capacity for faces"
+    (tmp_path / "msgs" / "000007z.json").write_text(P.error("face_withheld", notice, 5))  # (after the last face)
+    meshes = [["jawOpen", "eyeBlinkLeft", "unused"]]
+    times = [expected[-2]["pts"], expected[-1]["pts"], expected[-1]["pts"] + 0.05]
+    _, out = run_face_check(tmp_path, tmp_path / "msgs", {"meshes": meshes, "map": [], "times": times})
+    assert all(o["withheld"] and o["face_notice"] == notice and o["last_error"] == "" for o in out), out
+    before, *after = out
+    assert before["weights"][0] == pytest.approx({n: 100 * expected[-2]["face"][n] for n in ("jawOpen", "eyeBlinkLeft")})
+    assert before["weights"][0]["jawOpen"] > 0
+    assert all(o["face"] == {} and o["weights"][0] == {"jawOpen": 0, "eyeBlinkLeft": 0} for o in after), after
+
+
 def test_unity_client_sets_a_vrm_through_univrm(tmp_path):
     """With DIMGESTOR_UNIVRM, ApplyFace gives a VRM's VRMBlendShapeProxy (a stand-in with UniVRM's key rules) the
     vrm0 face of JSON frames: presets by preset (A I U E O Blink Blink_L Blink_R), a name the map sends elsewhere as

@@ -296,3 +296,29 @@ def test_unreal_component_sets_the_face_as_morph_targets_and_curves(face_check, 
             assert o["curves"][target(n, True)] == pytest.approx(w, abs=1e-6), (o["t"], n)
         assert o["curves"]["NoSuchCurve"] == 0 and o["curve_count"] == len(names)
     assert len({o["curves"][target("jawOpen", True)] for o in out}) == len(times), "the face did not move"
+
+
+def test_unreal_component_rests_the_face_when_the_server_withholds_it(face_check, tmp_path):
+    """`face_withheld` (a server at capacity for faces) is a notice: bFaceWithheld and FaceNotice say it; and the
+    first frame shown without a face sets every morph target and curve the face drove to 0, where before the last face
+    stayed (a mouth left open)."""
+    from streamer import protocol as P
+
+    expected = face_messages(tmp_path / "msgs", "binary", "arkit")  # (the last frame carries no face)
+    notice = "admitted without a face: this worker is at capacity for faces"
+    (tmp_path / "msgs" / "000007z.json").write_text(P.error("face_withheld", notice, 5))  # (after the last face)
+    names = list(expected[0]["face"])
+    curves = [n[0].upper() + n[1:] for n in names]
+    times = [expected[-2]["pts"], expected[-1]["pts"], expected[-1]["pts"] + 0.05]
+    spec = {"face_names": "arkit", "map": [], "metahuman": True, "face_mesh": True, "times": times,
+            "curves_to_read": curves}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    r = subprocess.run([str(face_check), str(tmp_path / "msgs"), str(tmp_path / "spec.json")], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    before, *after = [json.loads(line) for line in r.stdout.splitlines()][1:]
+    for o in (before, *after):
+        assert o["withheld"] and o["face_notice"] == notice, o  # (LastError: the stand-in body mesh matches no bone)
+    assert before["morphs"] == pytest.approx(expected[-2]["face"], abs=1e-6) and before["morphs"]["jawOpen"] > 0
+    for o in after:
+        assert o["morphs"] == dict.fromkeys(names, 0) and o["curves"] == dict.fromkeys(curves, 0), o

@@ -59,6 +59,9 @@ namespace Dimgestor
         public int handovers;                     // goaways while we had our own session (the worker stopped)
         public int resumed;                       // sessions resumed on another worker after a goaway
         public string faceUnmatched = "";         // face names that drive no blendshape (check faceNameMap)
+        public bool faceWithheld;                 // this session was admitted without its face (face_withheld: the
+                                                  // server is at capacity for faces): the face rests until one comes
+        public string faceNotice = "";            // why (the server's words); a notice, not an error
 
         class Binding { public Transform bone; public string name; public int joint; public Quaternion rest, align; }
 
@@ -68,6 +71,8 @@ namespace Dimgestor
         readonly System.Diagnostics.Stopwatch clock = System.Diagnostics.Stopwatch.StartNew();
         Frame shown;
         readonly FaceApplier faceApplier = new FaceApplier();
+        readonly Dictionary<string, double> restingFace = new Dictionary<string, double>();  // the names shown, at 0
+        bool faceAtRest = true;                   // set to restingFace since the last frame with a face
         Hello hello;
         Quat[] sourceRestGlobal;
         readonly List<Binding> bindings = new List<Binding>();
@@ -187,7 +192,13 @@ namespace Dimgestor
         void Handle(Message m)
         {
             var f = m as Frame;
-            if (f != null) { lock (gate) playout.Push(f, clock.Elapsed.TotalSeconds); framesReceived++; return; }
+            if (f != null)
+            {
+                lock (gate) playout.Push(f, clock.Elapsed.TotalSeconds);
+                framesReceived++;
+                if (f.Face.Count > 0) faceWithheld = false;  // the face is back (a later session)
+                return;
+            }
             var h = m as Hello;
             if (h != null)
             {
@@ -231,6 +242,7 @@ namespace Dimgestor
                 return;
             }
             if (e != null && e.IsSlowDown) { flow.SlowDown(); audioPaused = true; return; }  // a notice, not an error
+            if (e != null && e.Code == "face_withheld") { faceWithheld = true; faceNotice = e.Text; return; }  // a notice too
             if (e != null) { lastError = e.Code + ": " + e.Text; return; }
             if (m is Resume) { audioPaused = false; SendHeld(); }  // (not awaited: the receive loop goes on)
         }
@@ -283,14 +295,26 @@ namespace Dimgestor
         // The inspector changed a field (e.g. the meshes or the name map): work the face's blendshapes out again.
         void OnValidate() { faceApplier.Reset(); }
 
-        /// <summary>The face of the frame shown (interpolated with its pose) on the meshes and the VRM.</summary>
+        /// <summary>The face of the frame shown (interpolated with its pose) on the meshes and the VRM. A frame without
+        /// a face (withheld at capacity, or none asked) sets every name shown before to 0, once.</summary>
         void ApplyFace(Frame f)
         {
-            if (f.Face.Count == 0) return;
+            var face = f.Face;
+            if (face.Count == 0)
+            {
+                if (faceAtRest) return;
+                faceAtRest = true;
+                face = restingFace;
+            }
+            else
+            {
+                faceAtRest = false;
+                foreach (var kv in face) restingFace[kv.Key] = 0.0;  // (no allocation once every name was seen)
+            }
             faceApplier.Scale = blendShapeScale;
-            faceApplier.Apply(f.Face, faceMeshes, faceNameMap);
+            faceApplier.Apply(face, faceMeshes, faceNameMap);
 #if DIMGESTOR_UNIVRM
-            FaceApplier.ApplyVrm(f.Face, vrmBlendShapeProxy, faceNameMap);
+            FaceApplier.ApplyVrm(face, vrmBlendShapeProxy, faceNameMap);
             if (vrmBlendShapeProxy != null) { faceUnmatched = ""; return; }  // the proxy takes every name it has a clip for
 #endif
             faceUnmatched = faceApplier.Unmatched;

@@ -233,6 +233,7 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 	case dimgestor::MessageType::Frame:
 		Playout.Push(Message.frame, FPlatformTime::Seconds());
 		++FramesReceived;
+		if (!Message.frame.face.empty()) bFaceWithheld = false;  // the face is back (a later session)
 		break;
 	case dimgestor::MessageType::Hello:
 		Hello = Message.hello;
@@ -294,6 +295,12 @@ void UDimgestorComponent::Handle(const dimgestor::Message& Message)
 			for (const auto& Chunk : Flow.Resume()) { SendChunks({Chunk}); KeepSent(Chunk); }
 			if (Flow.TakeEndPending()) SendAudioEnd();
 		}
+		if (Message.error_code == "face_withheld")  // a notice: this session's frames carry no face (at capacity)
+		{
+			bFaceWithheld = true;
+			FaceNotice = UTF8_TO_TCHAR(Message.error_message.c_str());
+			break;
+		}
 		if (Message.error_code == "slow_down")  // a notice, nothing lost: hold our audio until resume
 		{
 			Flow.SlowDown();
@@ -338,6 +345,18 @@ float UDimgestorComponent::GetFaceCurve(FName Curve) const
 // capitalisation).
 void UDimgestorComponent::ApplyFace(const dimgestor::Frame& Frame)
 {
+	if (Frame.face.empty())  // a frame without a face (withheld, or none asked): the face rests, once
+	{
+		if (bFaceAtRest) return;
+		for (const auto& Pair : FaceTargets)
+		{
+			FaceCurves.Add(Pair.second.Curve, 0.f);
+			if (FaceMesh) FaceMesh->SetMorphTarget(Pair.second.Morph, 0.f);
+		}
+		bFaceAtRest = true;
+		return;
+	}
+	bFaceAtRest = false;
 	for (const auto& Pair : Frame.face)
 	{
 		auto It = FaceTargets.find(Pair.first);

@@ -121,6 +121,14 @@ public:
 	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Status")
 	FString AudioNotice;
 
+	/** The server admitted this session without the face it asked (`face_withheld`: the worker is at capacity for
+	 *  faces, `serve --faces-beyond-capacity no-face`): the body goes on and the face rests at 0. Cleared when a frame
+	 *  with a face comes (the server asks again at the next session). Not an error: FaceNotice says why. */
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Face")
+	bool bFaceWithheld = false;
+	UPROPERTY(VisibleAnywhere, BlueprintReadOnly, Category = "Dimgestor|Face")
+	FString FaceNotice;
+
 	/** Send your own audio (mono or interleaved float samples) for an own session; declares the format first.
 	 *  Held (at most MaxHeldAudioS) while the server has us paused, and sent in order at its resume. */
 	UFUNCTION(BlueprintCallable, Category = "Dimgestor")
@@ -191,5 +199,6 @@ private:
 	float RootScale = 1.f;
 	int64 LastIndex = -1;
 	struct FFaceTarget { FName Morph, Curve; };
-	std::map<std::string, FFaceTarget> FaceTargets;  // face name -> its names here (worked out once per hello)
+	std::map<std::string, FFaceTarget> FaceTargets;
+	bool bFaceAtRest = true;  // every face target set to 0 since the last frame with a face  // face name -> its names here (worked out once per hello)
 };

@@ -1,7 +1,8 @@
 // Test driver: the face (protocol revision 7) through UDimgestorComponent on the engine stand-ins. The recorded server
 // messages in FOLDER (NNNNNN.json / .bin) are fired through its WebSocket events (binary frames in two fragments),
 // each frame at its pts on the stand-in clock; then at each of SPEC's times the component ticks one playout delay
-// later and shows the frame due (interpolated), setting FaceMesh's morph targets and FaceCurves. SPEC is JSON:
+// later and shows the frame due (interpolated), setting FaceMesh's morph targets and FaceCurves (and prints what the
+// component says: bFaceWithheld, FaceNotice, LastError). SPEC is JSON:
 // {"face_names": "arkit", "map": [[face, target], ...], "metahuman": bool, "face_mesh": bool, "times": [pts, ...],
 // "curves_to_read": [...]}. Prints the hello
 // the component sent, then one JSON line per time; tests/test_clients_unreal.py checks them.
@@ -91,9 +92,11 @@ int main(int argc, char** argv) {
       const FName curve(*Wide(name.s));
       curves.emplace_back(curve, component.GetFaceCurve(curve));
     }
-    std::printf("{\"t\":%.17g,\"morphs\":%s,\"curves\":%s,\"curve_count\":%d,\"frames\":%lld}\n", t.n,
-                Weights(morphs).c_str(), Weights(curves).c_str(), int(component.FaceCurves.Num()),
-                (long long)component.FramesReceived);
+    std::printf("{\"t\":%.17g,\"morphs\":%s,\"curves\":%s,\"curve_count\":%d,\"frames\":%lld,\"withheld\":%s,"
+                "\"face_notice\":%s,\"last_error\":%s}\n", t.n, Weights(morphs).c_str(), Weights(curves).c_str(),
+                int(component.FaceCurves.Num()), (long long)component.FramesReceived,
+                component.bFaceWithheld ? "true" : "false", Quoted(Narrow(component.FaceNotice)).c_str(),
+                Quoted(Narrow(component.LastError)).c_str());
   }
   return 0;
 }
