@@ -3,11 +3,13 @@ real English takes are (`benchmarks/face.py`), language by language.
 
 For each language of `dimgestor.evaluation.phone_timed` and each espeak-ng voice variant (`--variants`), one
 passage (`phone_timed.passage`: the language's sentences, rate and pitch drawn per sentence, pauses between) is
-streamed through the shipped face (`FaceStream`, 20 fps, lookahead 0.3 s, in `--chunk-ms` pieces) and scored with
+streamed through the shipped face (`FaceStream`, 20 fps, lookahead 0.3 s, in `--chunk-ms` pieces; its own
+listener, and beside it the pocketsphinx listener where installed) and scored with
 `dimgestor.face.evaluate.mouth_scores` against espeak-ng's own phone times, each IPA phone mapped onto the mouth of
 an ARPAbet phone by its articulation (`dimgestor.face.ipa`). Beside it, the loudness-only jaw of
-`benchmarks/face.py` (the best of its grid per passage). The face's listener (pocketsphinx's English acoustic
-model) never heard these voices or these languages.
+`benchmarks/face.py` (the best of its grid per passage). The face's listener was trained on espeak-ng speech of
+these languages with other voice variants (`benchmarks/face_net.py`: these variants are held out; the sentences
+are the same); pocketsphinx's English acoustic model never heard these voices or languages.
 
     .venv/bin/python benchmarks/face_languages.py                 # writes results/face_languages.json and .png
     .venv/bin/python benchmarks/face_languages.py --languages de ja --variants f2
@@ -15,6 +17,7 @@ model) never heard these voices or these languages.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -52,10 +55,14 @@ def score_passage(spoken, chunk: int) -> dict:
     assert spoken.rate == RATE
     phones = alignment(spoken)
     face, _ = stream_face(spoken.audio, 20, 0.3, FaceOptions(), chunk)
+    other = {}
+    if importlib.util.find_spec("pocketsphinx") is not None:
+        ps, _ = stream_face(spoken.audio, 20, 0.3, FaceOptions(listener="pocketsphinx"), chunk)
+        other["pocketsphinx"] = mouth_scores(ps, phones, 20)
     grid = {f"{rng:g}dB^{pw:g}": mouth_scores(loudness_jaw(spoken.audio, 20, 0.3, rng, pw), phones, 20)
             for rng in (20, 30, 40) for pw in (0.5, 1.0)}
     best = max(grid, key=lambda k: grid[k]["openness_r"])
-    return {"face": mouth_scores(face, phones, 20),
+    return {"face": mouth_scores(face, phones, 20), **other,
             "loudness_jaw": {**{k: grid[best][k] for k in ("frames", "openness_r", "closures", "rest")},
                              "setting": best}}
 
@@ -68,7 +75,9 @@ def summarise(rows: list[dict]) -> dict:
         out[lang] = {"voices": len(mine), "seconds": round(sum(r["seconds"] for r in mine), 1),
                      **{s: round(float(np.mean([r["face"][s] for r in mine])), 3) for s in SCORES},
                      "always_A": round(float(np.mean([r["face"]["always_A"] for r in mine])), 3),
-                     "loudness_openness_r": round(float(np.mean([r["loudness_jaw"]["openness_r"] for r in mine])), 3)}
+                     "loudness_openness_r": round(float(np.mean([r["loudness_jaw"]["openness_r"] for r in mine])), 3),
+                     **({"pocketsphinx": {s: round(float(np.mean([r["pocketsphinx"][s] for r in mine])), 3)
+                                          for s in SCORES}} if all("pocketsphinx" in r for r in mine) else {})}
     return out
 
 

@@ -1,29 +1,28 @@
-"""A probe for issue 49 ("a face listener of our own"): how far a small network trained here on phone-timed
-speech gets on real voices, beside today's listener (pocketsphinx), before building it into the engine.
+"""Trains the face's own listener (`dimgestor/face/net.py`, issue 49) and scores it on real voices beside the
+pocketsphinx listener; `--save` writes the weights the package ships (`dimgestor/face/listener.safetensors`).
 
 Data: espeak-ng passages (`dimgestor.evaluation.phone_timed`) of every language with the `--train-variants`
-voices, each also once through a cheap random channel (level -20..+6 dB; a room: an exponentially decaying noise
-impulse response of 50-400 ms; a spectral tilt; white or low-frequency noise at 5-35 dB SNR); with `--real-train
-NAME ...`, real phone-aligned takes too (repeated `--real-repeat` times). Labels every 10 ms from the phone times:
-one of nine mouth classes (silence, the vowel shapes A I U E O, lips closed M/B/P, lower lip F/V, other
-consonants) and the phone's jaw opening (`dimgestor.face.visemes.OPENNESS`).
+voices, each also once through a random channel (level -20..+6 dB; a room: an exponentially decaying noise
+impulse response of 50-400 ms; a spectral tilt; white or low-frequency noise at 5-35 dB SNR; with `--formants`,
+the formants moved by a random ratio, the project's voice augmentation); with `--real-train NAME ...`, real
+phone-aligned takes too, and with `--teacher WAV ...` real speech without an alignment labelled by pocketsphinx's
+phone recognizer over the whole recording (each repeated `--real-repeat` times, also through the channel).
+Labels every 10 ms from the phone times: the phone's viseme (one of 15) and the jaw's opening
+(`dimgestor.face.visemes`).
 
-Network: 40 log-mel bands every 10 ms, each clip's mean band level removed (offline: a probe, not yet a stream),
-a 5-wide convolution and five residual 3-wide dilated convolutions (1, 2, 4, 8, 1: 19 frames of context each
-side), 96 channels; out: the class logits and the opening. Trained with cross-entropy + 4 x squared error.
-The face: the jaw from the opening, the vowel shapes from the class probabilities, at 20 fps.
+The network and its features are the engine's (`dimgestor.face.net`: causal log-mels against a running mean,
+0.13 s of lookahead); trained with cross-entropy + 4 x squared error on `--crop-s` crops.
 
 Scored with `dimgestor.face.evaluate.mouth_scores` on every real phone-aligned clip in `--data` (those not
-trained on are held out) and on the held-out espeak voices (`--held-variants`), beside the shipped face
-(`FaceStream`, lookahead 0.3 s) on the same real clips.
+trained on are held out; the face the engine makes, `FaceStream` with this listener, streamed in 100 ms pieces)
+and on the held-out espeak voices (`--held-variants`), beside the pocketsphinx face on the same real clips.
 
     .venv/bin/python benchmarks/face_net.py                                  # espeak-ng only
-    .venv/bin/python benchmarks/face_net.py --real-train 2_scott_0_2_2 --out results/face_net_real.json
+    .venv/bin/python benchmarks/face_net.py --real-train 2_scott_0_2_2 --teacher WAV... --save dimgestor/face/listener.safetensors
 """
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -33,8 +32,7 @@ import numpy as np
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
 
 REPO = Path(__file__).resolve().parents[1]
-SR, HOP, WIN, NFFT, N_MELS = 16000, 160, 400, 512, 40
-CLASSES = ("SIL", "A", "I", "U", "E", "O", "MBP", "FV", "CONS")
+SR = 16000
 SCORES = ("openness_r", "vowel_top1", "vowel_mean_recall", "closures", "rest")
 
 
@@ -59,48 +57,21 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--crop-s", type=float, default=4.0, help="training crops")
     p.add_argument("--channels", type=int, default=96)
-    p.add_argument("--close-lips", action="store_true",
-                   help="the jaw's opening times 1 - P(lips closed at M, B, P) (default: the opening alone)")
+    p.add_argument("--formants", action="store_true", help="the channel copies' formants moved too (0.85-1.2)")
+    p.add_argument("--band", type=float, default=0.0,
+                   help="the share of channel copies also band-limited (high-pass 80-400 Hz, low-pass 3-7 kHz: "
+                        "telephones, headsets, laptop microphones)")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--balance", type=float, default=0.0,
+                   help="weigh each viseme class by its frequency to this power, negated (0.5: rare shapes count "
+                        "more; 0: every frame alike)")
+    p.add_argument("--save", type=Path, default=None, help="write the weights here (safetensors)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=RESULTS / "face_net.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     return args
-
-
-def mouth_class(phone: str) -> int:
-    from dimgestor.face.visemes import VOWEL_CLASS, canonical_phone
-
-    p = canonical_phone(phone)
-    if p == "SIL":
-        return 0
-    if p in VOWEL_CLASS:
-        return 1 + "AIUEO".index(VOWEL_CLASS[p])
-    return 6 if p in ("M", "B", "P") else 7 if p in ("F", "V") else 8
-
-
-def log_mel(audio: np.ndarray):
-    """(T, N_MELS) log mel power every 10 ms, frame t centred on t * 10 ms."""
-    import torch
-    import torch.nn.functional as F
-
-    from dimgestor.frontend.mel import mel_filterbank
-
-    x = F.pad(torch.from_numpy(np.asarray(audio, np.float32)), (WIN // 2, WIN // 2))
-    spec = torch.fft.rfft(x.unfold(0, WIN, HOP) * torch.hann_window(WIN), NFFT).abs() ** 2
-    return torch.log(spec @ mel_filterbank(N_MELS, NFFT, SR, 50.0, 7600.0) + 1e-8)
-
-
-def targets(phones, frames: int):
-    import torch
-
-    from dimgestor.face.textgrid import phones_at
-    from dimgestor.face.visemes import OPENNESS, canonical_phone
-
-    ref = phones_at(phones, np.arange(frames) * HOP / SR)
-    return (torch.tensor([mouth_class(p) for p in ref]),
-            torch.tensor([OPENNESS[canonical_phone(p)] for p in ref], dtype=torch.float32))
 
 
 def channel(audio: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -123,47 +94,6 @@ def channel(audio: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         level = np.mean(a ** 2) / 10 ** (rng.uniform(5, 35) / 10)
         a = a + noise * np.sqrt(level / max(np.mean(noise ** 2), 1e-20))
     return a.astype(np.float32)
-
-
-def make_net(channels: int):
-    import torch.nn as nn
-    import torch.nn.functional as F
-
-    class Listener(nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.inp = nn.Conv1d(N_MELS, channels, 5, padding=2)
-            self.blocks = nn.ModuleList([nn.Conv1d(channels, channels, 3, padding=d, dilation=d) for d in (1, 2, 4, 8, 1)])
-            self.norms = nn.ModuleList([nn.GroupNorm(1, channels) for _ in self.blocks])
-            self.out = nn.Conv1d(channels, len(CLASSES) + 1, 1)
-
-        def forward(self, x):  # (B, N_MELS, T)
-            h = F.gelu(self.inp(x - x.mean(-1, keepdim=True)))
-            for conv, norm in zip(self.blocks, self.norms):
-                h = h + F.gelu(conv(norm(h)))
-            return self.out(h)
-
-    return Listener()
-
-
-def face_of(net, audio: np.ndarray, close_lips: bool = False) -> np.ndarray:
-    """(T, len(FACE_LABELS)) at 20 fps: the jaw from the opening (times 1 - P(M, B, P) with `close_lips`), the
-    five vowel shapes from the probabilities."""
-    import torch
-
-    from dimgestor.face.visemes import FACE_LABELS, V
-
-    with torch.no_grad():
-        out = net(log_mel(audio).T[None])[0].T
-    prob, opening = out[:, :len(CLASSES)].softmax(-1).numpy(), out[:, -1].clamp(0, 1).numpy()
-    if close_lips:
-        opening = opening * (1 - prob[:, CLASSES.index("MBP")])
-    idx = np.minimum(np.arange(int(math.ceil(len(audio) / SR * 20))) * 5, len(opening) - 1)
-    face = np.zeros((len(idx), len(FACE_LABELS)))
-    face[:, V["jawOpen"]] = opening[idx]
-    for k, shape in enumerate(("aa", "I", "U", "E", "O")):
-        face[:, V[shape]] = prob[idx, 1 + k]
-    return face
 
 
 def teacher_phones(audio: np.ndarray, pause_s: float = 0.3) -> list[tuple[float, float, str]]:
@@ -205,14 +135,57 @@ def real_clips(folder: Path) -> dict:
             for w in sorted(folder.glob("*.wav")) if w.with_suffix(".TextGrid").is_file()}
 
 
+def features(audio: np.ndarray, phones=None):
+    """(log-mel bands, viseme classes, openings) every 10 ms of a whole recording (frame t at t * 10 ms)."""
+    import torch
+
+    from dimgestor.face.net import CLASSES, HOP, log_mel
+    from dimgestor.face.textgrid import phones_at
+    from dimgestor.face.visemes import OPENNESS, canonical_phone, viseme_of
+
+    mel = log_mel(audio)
+    if phones is None:
+        return mel, None, None
+    ref = phones_at(phones, np.arange(len(mel)) * HOP / SR)
+    return (mel, torch.tensor([CLASSES.index(viseme_of(p)) for p in ref]),
+            torch.tensor([OPENNESS[canonical_phone(p)] for p in ref], dtype=torch.float32))
+
+
+def heard_through(audio: np.ndarray, rng: np.random.Generator, formants: bool, band: float = 0.0) -> np.ndarray:
+    """A copy through a random channel (and, with `formants`, another vocal tract's length; with `band`, that
+    share band-limited)."""
+    from dimgestor.training.augment import band_limit, formant_shift
+
+    if formants and rng.random() < 0.7:
+        audio = formant_shift(np.asarray(audio, np.float64), float(rng.uniform(0.85, 1.2)), SR).astype(np.float32)
+    if rng.random() < band:
+        audio = band_limit(np.asarray(audio, np.float64), float(rng.uniform(80, 400)), float(rng.uniform(3000, 7000)),
+                           SR).astype(np.float32)
+    return channel(audio, rng)
+
+
+def engine_face(audio: np.ndarray, weights: Path | None, **options) -> np.ndarray:
+    """The face the engine streams (100 ms pieces, lookahead 0.3 s) with the network listener (`weights`) or
+    pocketsphinx (None)."""
+    from dimgestor.face import FaceOptions
+    from face import stream_face
+
+    opts = FaceOptions(listener="net", weights=str(weights), **options) if weights else FaceOptions(
+        listener="pocketsphinx", **options)
+    return stream_face(audio, 20, 0.3, opts, SR // 10)[0]
+
+
 def main(argv=None) -> int:
+    import tempfile
+
     import torch
     import torch.nn.functional as F
 
+    from dimgestor.audio import load_wav
     from dimgestor.evaluation.phone_timed import alignment, passage
-    from dimgestor.face import FaceOptions
     from dimgestor.face.evaluate import mouth_scores
-    from face import rounded, stream_face
+    from dimgestor.face.net import CLASSES, LAYERS, normalise, save_weights, torch_listener
+    from face import rounded
 
     args = parse_args(argv)
     torch.manual_seed(args.seed)
@@ -223,32 +196,41 @@ def main(argv=None) -> int:
     if unknown:
         raise SystemExit(f"--real-train, --clips: no clip named {', '.join(sorted(unknown))} in {args.data}")
     load_before, t0 = load_average(), time.perf_counter()
-    clips = [(f"{lang}+{v}", *(lambda s: (s.audio, alignment(s)))(passage(lang, v, seed=100 + k, sentences=args.sentences)))
-             for lang in args.languages for k, v in enumerate(args.train_variants)]
-    clips += [(name, *real[name]) for name in args.real_train for _ in range(args.real_repeat)]
-    from dimgestor.audio import load_wav
-
+    synthetic = [(f"{lang}+{v}", *(lambda s: (s.audio, alignment(s)))(passage(lang, v, seed=100 + k,
+                                                                              sentences=args.sentences)))
+                 for lang in args.languages for k, v in enumerate(args.train_variants)]
+    reals = [(name, *real[name]) for name in args.real_train]
     taught = []
     for wav in args.teacher:
         audio = load_wav(wav, SR)
         labelled = teacher_phones(audio)
         taught.append({"file": wav.name, "seconds": round(len(audio) / SR, 2), "phones": len(labelled)})
         print(f"teacher: {wav.name}, {len(audio) / SR:.0f} s, {len(labelled)} phones", flush=True)
-        clips += [(wav.stem, audio, labelled)] * args.real_repeat
-    data = []
-    for name, audio, phones in clips:
-        for heard in (audio, channel(audio, rng)):
-            feats = log_mel(heard)
-            data.append((feats, *targets(phones, len(feats))))
+        reals.append((wav.stem, audio, labelled))
+    raw = []   # (mel, classes, openings, weight): each synthetic clip clean and through a channel; each real one
+    for name, audio, phones in synthetic:   # clean once and through --real-repeat - 1 channels
+        for heard in (audio, heard_through(audio, rng, args.formants, args.band)):
+            raw.append((*features(heard, phones), 1))
+    for name, audio, phones in reals:
+        clean = features(audio, phones)
+        raw.append((*clean, 1))
+        for _ in range(args.real_repeat - 1):
+            raw.append((*features(heard_through(audio, rng, args.formants, args.band), phones)[:1], *clean[1:], 1))
+    prior = np.mean(np.concatenate([m for m, *_ in raw]), axis=0)
+    data = [(torch.from_numpy(normalise(m, None, prior)[0]), c, o) for m, c, o, _ in raw]
     data_s = time.perf_counter() - t0
-    minutes = sum(len(d[0]) for d in data) * HOP / SR / 60
-    print(f"data: {len(clips)} clips, {minutes:.1f} min with the channel copies ({data_s:.0f} s)", flush=True)
+    minutes = sum(len(d[0]) for d in data) / 100 / 60
+    print(f"data: {len(data)} clips with the channel copies, {minutes:.1f} min ({data_s:.0f} s)", flush=True)
 
-    net = make_net(args.channels)
+    counts = torch.bincount(torch.cat([c for _, c, _ in data]), minlength=len(CLASSES)).double()
+    class_weight = ((counts.clamp(min=1) / counts.sum()) ** -args.balance).float()
+    class_weight /= (class_weight * counts.float()).sum() / counts.sum()  # the mean frame weight stays 1
+    net = torch_listener(args.channels)
+    net.prior[:] = torch.from_numpy(prior)
     params = sum(p.numel() for p in net.parameters())
-    opt = torch.optim.AdamW(net.parameters(), 2e-3, weight_decay=1e-4)
-    schedule = torch.optim.lr_scheduler.OneCycleLR(opt, 2e-3, total_steps=args.steps)
-    crop = int(args.crop_s * SR / HOP)
+    opt = torch.optim.AdamW(net.parameters(), args.lr, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(opt, args.lr, total_steps=args.steps)
+    crop = int(args.crop_s * 100)
     t1, losses = time.perf_counter(), []
     for step in range(args.steps):
         xs, cs, os_ = [], [], []
@@ -257,10 +239,10 @@ def main(argv=None) -> int:
             s = int(rng.integers(0, max(1, len(feats) - crop)))
             xs.append(feats[s:s + crop]), cs.append(cls[s:s + crop]), os_.append(opening[s:s + crop])
         T = min(len(x) for x in xs)
-        x = torch.stack([v[:T] for v in xs]).transpose(1, 2)
-        out = net(x)
-        loss = (F.cross_entropy(out[:, :len(CLASSES)], torch.stack([v[:T] for v in cs]))
-                + 4 * F.mse_loss(out[:, -1], torch.stack([v[:T] for v in os_])))
+        out = net(torch.stack([v[:T] for v in xs]))
+        loss = (F.cross_entropy(out[..., :len(CLASSES)].reshape(-1, len(CLASSES)), torch.stack([v[:T] for v in cs]).reshape(-1),
+                                weight=class_weight)
+                + 4 * F.mse_loss(out[..., -1], torch.stack([v[:T] for v in os_])))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -270,30 +252,40 @@ def main(argv=None) -> int:
             print(f"step {step}: loss {np.mean(losses[-50:]):.3f}", flush=True)
     train_s = time.perf_counter() - t1
     net.eval()
+    training = {"argv": args.argv, "code_version": code_version(), "utc": utc_now(), "steps": args.steps,
+                "data_minutes": round(minutes, 2), "languages": args.languages,
+                "train_variants": args.train_variants, "real_train": args.real_train,
+                "teacher": [t["file"] for t in taught], "layers": [list(x) for x in LAYERS], "params": params,
+                "class_frames": {c: int(n) for c, n in zip(CLASSES, counts.tolist())}, "balance": args.balance,
+                "formants": args.formants, "band": args.band}
+    weights = args.save or Path(tempfile.mkdtemp()) / "listener.safetensors"
+    save_weights(net, weights, training)
 
     clips_out = {}
     for name, (audio, phones) in real.items():
         if args.clips and name not in args.clips:
             continue
-        shipped, _ = stream_face(audio, 20, 0.3, FaceOptions(), SR // 10)
         clips_out[name] = {"held_out": name not in args.real_train, "seconds": round(len(audio) / SR, 2),
-                           "net": rounded(mouth_scores(face_of(net, audio, args.close_lips), phones, 20)),
-                           "shipped": rounded(mouth_scores(shipped, phones, 20))}
+                           "net": rounded(mouth_scores(engine_face(audio, weights), phones, 20)),
+                           "net_unlevelled": rounded(mouth_scores(engine_face(audio, weights, loud_range_db=1e4),
+                                                                  phones, 20)),
+                           "pocketsphinx": rounded(mouth_scores(engine_face(audio, None), phones, 20))}
         r = clips_out[name]
-        print(f"{name:26s} {'held out' if r['held_out'] else 'trained on'}: net " +
-              " ".join(f"{k} {r['net'][k]:.2f}" for k in SCORES) + " | shipped " +
-              " ".join(f"{k} {r['shipped'][k]:.2f}" for k in SCORES), flush=True)
+        print(f"{name:26s} {'held out' if r['held_out'] else 'trained on'}: " + " | ".join(
+            f"{kind} " + " ".join(f"{r[kind][k]:.2f}" for k in SCORES)
+            for kind in ("net", "net_unlevelled", "pocketsphinx")), flush=True)
     held = []
     for lang in args.languages:
         for k, v in enumerate(args.held_variants):
             s = passage(lang, v, seed=k, sentences=args.sentences)
-            held.append({"voice": s.voice, **rounded(mouth_scores(face_of(net, s.audio, args.close_lips), alignment(s), 20))})
+            held.append({"voice": s.voice, **rounded(mouth_scores(engine_face(s.audio, weights), alignment(s), 20))})
     held_mean = {k: round(float(np.nanmean([h[k] for h in held])), 4) for k in SCORES}
     print("held-out espeak-ng voices: " + " ".join(f"{k} {v:.2f}" for k, v in held_mean.items()))
     result = {"benchmark": "face_net", "code_version": code_version(), "device": describe_device("cpu"),
               "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": load_before,
               "params": params, "data_minutes": round(minutes, 2), "data_s": round(data_s, 1),
               "teacher": taught, "train_s": round(train_s, 1), "final_loss": round(float(np.mean(losses[-50:])), 4),
+              "saved": str(args.save) if args.save else None,
               "real": clips_out, "espeak_held_out": {"mean": held_mean, "voices": held}}
     write_json(args.out, result)
     return 0

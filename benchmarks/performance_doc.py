@@ -33,7 +33,8 @@ SOURCES = {
     "gpu": "onnx_cuda.json",  # many streams on one GPU
     "face": "face.json",  # a Session window with and without the face
 }
-CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk", "face")
+CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")  # one machine; the face's
+# cost is a ratio of two arms of one run, whose machine its section names
 
 
 class ResultsError(ValueError):
@@ -224,13 +225,18 @@ def face(r: dict[str, dict]) -> list[str]:
     c = r["face"]["compute"]
     rows = [["body", ms(c["body"]["ms_p50"]), ms(c["body"]["cpu_ms_mean"])],
             ["body and face", ms(c["body_face"]["ms_p50"]), ms(c["body_face"]["cpu_ms_mean"])]]
+    if "body_face_pocketsphinx" in c:
+        rows.append(["body and face, `--face-listener pocketsphinx`", ms(c["body_face_pocketsphinx"]["ms_p50"]),
+                     ms(c["body_face_pocketsphinx"]["cpu_ms_mean"])])
+    other = (f"; pocketsphinx's listener +{100 * c['added_cpu_pocketsphinx']:.0f} %"
+             if "added_cpu_pocketsphinx" in c else "")
     return ["## The face's cost", "",
-            "The face's phone listener runs on each stream that has a face (the server's own source, and the clients "
+            "The face's listener runs on each stream that has a face (the server's own source, and the clients "
             f"that ask for one), beside the model: one `Session` window of the embedded default model, K = {c['steps']}, "
-            f"{c['window_ms']} ms windows, one thread. Streams without a face (`--face none`, or clients that do not "
-            "ask) cost what the streams-per-process counts above say; each stream with one costs the difference "
-            f"more (+{100 * c['added_cpu']:.0f} % CPU on this model), and the listener is not batched across "
-            "streams.", "",
+            f"{c['window_ms']} ms windows, one thread, measured on {machine(r['face']['device'])}. Streams without a "
+            "face (`--face none`, or clients that do not ask) cost what the streams-per-process counts above say; "
+            f"each stream with one costs the difference more (+{100 * c['added_cpu']:.0f} % CPU on this model"
+            f"{other}), and the listener is not batched across streams.", "",
             *table(["", "ms a window (median)", "CPU ms a window (mean)"], rows), "", source("face"), ""]
 
 

@@ -31,13 +31,14 @@ def generate_motion(bundle: Bundle, audio: np.ndarray, steps: int | None = None,
     return features_to_motion(features, bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
 
 
-def generate_face(audio: np.ndarray, frames: int, fps: int, lookahead_s: float, seed: int = 0) -> np.ndarray:
+def generate_face(audio: np.ndarray, frames: int, fps: int, lookahead_s: float, seed: int = 0,
+                  listener: str = "net") -> np.ndarray:
     """The face of `frames` body frames (frames, len(FACE_LABELS)): a `FaceStream` over the whole audio with the
     model's lookahead, as a `serve` session makes it (streaming equals offline), so the same rows as its recording."""
     from dimgestor.face import FaceOptions, FaceStream
 
     lookahead = np.floor(min(lookahead_s, 0.3) * 100 + 1e-6) / 100  # as Session: on the listener's 10 ms grid
-    face = FaceStream(fps, lookahead, FaceOptions(seed=seed))
+    face = FaceStream(fps, lookahead, FaceOptions(seed=seed, listener=listener))
     face.push(audio)
     face.finish()
     return face.take(frames)
@@ -94,6 +95,9 @@ def register(subparsers) -> None:
                    help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
                         "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
                         "frame (the format `dimgestor serve --record` writes beside its BVH)")
+    g.add_argument("--face-listener", default="net", choices=("net", "pocketsphinx"),
+                   help="what hears the mouth in the speech: the face's own network (shipped in the package) or "
+                        "pocketsphinx's English phone recognizer, where it is installed (docs/face.md) (default: net)")
     # one release: `--face` meant this file here and a name set everywhere else (serve, client.py, pipecat)
     deprecated_alias(p, "--face", face_csv, note=" (--face is a name set in serve; the old spelling goes in the "
                                                  "next release)")
@@ -161,8 +165,8 @@ def _run(args) -> int:
             raise IsADirectoryError(f"--face-csv {face_out}: is a folder, expected a .csv path")
         if face_out.resolve() == out.resolve():
             raise ValueError(f"--face-csv {face_out}: the same path as --out")
-    if face_out is not None or out.suffix.lower() == ".vrma":  # (a .vrma carries the face)
-        from dimgestor.face.listener import unavailable
+    if (face_out is not None or out.suffix.lower() == ".vrma") and args.face_listener == "pocketsphinx":
+        from dimgestor.face.listener import unavailable  # (a .vrma carries the face)
 
         if (why := unavailable()) is not None:
             raise ValueError(f"{'--face-csv' if face_out is not None else out}: {why}")
@@ -215,12 +219,12 @@ def _make_stream(args, bundle: Bundle, smoothing, steps_given: bool):
                          guidance=args.guidance)
 
 
-def _face_stream(bundle: Bundle, seed: int):
+def _face_stream(bundle: Bundle, seed: int, listener: str = "net"):
     """The face as `generate_face` (and a `serve` session) makes it."""
     from dimgestor.face import FaceOptions, FaceStream
 
     lookahead = np.floor(min(bundle.model.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
-    return FaceStream(bundle.feature_spec.fps, lookahead, FaceOptions(seed=seed))
+    return FaceStream(bundle.feature_spec.fps, lookahead, FaceOptions(seed=seed, listener=listener))
 
 
 def _stream_motion(args, bundle: Bundle, blocks, samples: int, smoothing, steps_given: bool, with_face: bool):
@@ -229,7 +233,7 @@ def _stream_motion(args, bundle: Bundle, blocks, samples: int, smoothing, steps_
     work on all of it at once."""
     total = int(samples * bundle.feature_spec.fps // SAMPLE_RATE)
     stream = _make_stream(args, bundle, smoothing, steps_given)
-    face = _face_stream(bundle, args.seed) if with_face else None
+    face = _face_stream(bundle, args.seed, args.face_listener) if with_face else None
     frames, rows = [], []
     try:
         for block in blocks:
@@ -284,7 +288,7 @@ def _stream_bvh(args, bundle: Bundle, blocks, samples: int, smoothing, steps_giv
     if face_out is not None:
         from dimgestor.face.track import track_header, track_rows
 
-        face = _face_stream(bundle, args.seed)
+        face = _face_stream(bundle, args.seed, args.face_listener)
         face_file = open(face_out, "w")
         face_file.write(track_header())
     done = faced = 0

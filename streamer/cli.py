@@ -180,6 +180,9 @@ def _output_flags(g) -> dict[str, argparse.Action]:
                    "'oculus' (viseme_sil... as Ready Player Me names them), 'none' (no face: bones only)"),
         _flag(g, "--smile", type=float, metavar="W",
               help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
+        _flag(g, "--face-listener", choices=("net", "pocketsphinx"),
+              help="what hears the mouth in the speech: 'net' (the face's own network, shipped in the package; "
+                   "default) or 'pocketsphinx' (its English phone recognizer, where it is installed; docs/face.md)"),
         _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma|.npz",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "

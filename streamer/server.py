@@ -138,10 +138,11 @@ def _face(options: ServeOptions) -> ServeFace | None:
 
     if options.face == "none":
         return None
-    if (why := face_unavailable()) is not None:
-        print(f"dimgestor: no face, bones only: {why}", file=sys.stderr, flush=True)
+    if options.face_listener == "pocketsphinx" and (why := face_unavailable()) is not None:
+        print(f"dimgestor: no face, bones only: --face-listener pocketsphinx: {why}", file=sys.stderr, flush=True)
         return None
-    return ServeFace(options.face, FaceOptions(seed=options.seed, smile=options.smile))
+    return ServeFace(options.face, FaceOptions(seed=options.seed, smile=options.smile,
+                                               listener=options.face_listener))
 
 
 def _source(options: ServeOptions):

@@ -82,9 +82,9 @@ def test_a_decoder_back_from_an_ended_stream_hears_as_a_new_one():
 
     DECODERS.idle.clear()
     noisy = SPEECH[::-1] * 0.3 + np.random.default_rng(0).normal(0, 0.02, len(SPEECH)).astype(np.float32)
-    first = stream_face(SPEECH, [3200])  # a new decoder, given back at the end
-    other = stream_face(noisy, [3200])   # the pooled one, after other sounds (its cepstral mean and noise move)
-    again = stream_face(SPEECH, [3200])  # pooled again
+    first = stream_face(SPEECH, [3200], listener="pocketsphinx")  # a new decoder, given back at the end
+    other = stream_face(noisy, [3200], listener="pocketsphinx")   # the pooled one, after other sounds (its
+    again = stream_face(SPEECH, [3200], listener="pocketsphinx")  # cepstral mean and noise move); pooled again
     assert sum(len(v) for v in DECODERS.idle.values()) == 1 and len(other)
     np.testing.assert_array_equal(again, first)
 
@@ -130,9 +130,12 @@ def test_brows_rise_on_a_vowel_at_the_voices_peak_more_with_a_pitch_rise_and_set
     assert all(x > y for x, y in zip(settle, settle[1:])) and settle[-1] < 0.01
 
 
-def test_without_pocketsphinx_a_server_serves_bones_and_says_why(monkeypatch, tiny_checkpoint, capsys):
+def test_without_pocketsphinx_a_server_still_has_its_face_and_asked_for_it_says_why(monkeypatch, tiny_checkpoint,
+                                                                                  capsys):
     """Where pocketsphinx has no wheel (Python 3.14; Linux aarch64 on 3.10 and 3.12) the engine installs without it:
-    `serve` then makes no face and says so once, with what to do; a face asked for directly fails saying the same."""
+    the face's own listener needs none, so `serve` makes the face as anywhere; `--face-listener pocketsphinx` there
+    serves bones only and says so once, with what to do; a pocketsphinx listener asked for directly fails saying
+    the same."""
     import sys
 
     from dimgestor.face.listener import PhoneListener, unavailable
@@ -142,9 +145,13 @@ def test_without_pocketsphinx_a_server_serves_bones_and_says_why(monkeypatch, ti
     assert unavailable() is None
     monkeypatch.setitem(sys.modules, "pocketsphinx", None)  # as if not installed
     assert "pip install pocketsphinx" in unavailable()
-    p = build(ServeOptions(source="ws", checkpoint=str(tiny_checkpoint), ws=("127.0.0.1", 0), steps=2,
-                           status_every=0))
+    options = dict(source="ws", checkpoint=str(tiny_checkpoint), ws=("127.0.0.1", 0), steps=2, status_every=0)
+    p = build(ServeOptions(**options))
+    assert p.options.face == "vrm0" and p.face is not None and "face" in p.ws.hello
+    assert capsys.readouterr().err == ""
+    p = build(ServeOptions(**options, face_listener="pocketsphinx"))
     assert p.options.face == "none" and p.face is None and p.ws.seats.terms.face is None and "face" not in p.ws.hello
-    assert "no face, bones only: the face's listener needs pocketsphinx" in capsys.readouterr().err
+    assert "no face, bones only: --face-listener pocketsphinx: the face's listener needs pocketsphinx" in \
+        capsys.readouterr().err
     with pytest.raises(ImportError, match="pip install pocketsphinx"):
         PhoneListener(30, 0.3, beam=1e-7)  # (a decoder key no other test pooled: a new decoder is made)

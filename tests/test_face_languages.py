@@ -132,5 +132,5 @@ def test_the_listener_probe_writes_its_schema(tmp_path):
     assert taught["file"] == "clip000028_tCAkv4ggPgI.wav" and 5 * taught["seconds"] < taught["phones"] < 25 * taught["seconds"]
     [(name, clip)] = res["real"].items()
     assert name == "clip000070_lskPN47Lo8o" and clip["held_out"]
-    assert set(clip["net"]) >= {"openness_r", "vowel_top1", "closures"} and set(clip["shipped"]) == set(clip["net"])
+    assert set(clip["net"]) >= {"openness_r", "vowel_top1", "closures"} and set(clip["pocketsphinx"]) == set(clip["net"])
     assert [v["voice"] for v in res["espeak_held_out"]["voices"]] == ["ja+f2"]

@@ -130,16 +130,20 @@ def test_generate_face_into_a_missing_folder_is_one_error_line(tiny_checkpoint, 
     assert "the same path as --out" in capsys.readouterr().err
 
 
-def test_generate_without_pocketsphinx_refuses_a_face_in_one_line_before_any_work(tiny_checkpoint, tmp_path, capsys,
+def test_generate_without_pocketsphinx_refuses_its_listener_in_one_line_before_any_work(tiny_checkpoint, tmp_path, capsys,
                                                                                    monkeypatch):
-    """Where pocketsphinx has no wheel (pyproject.toml) the face cannot be made: --face and a .vrma say why at once."""
+    """Where pocketsphinx has no wheel (pyproject.toml) its listener cannot run: --face-listener pocketsphinx with
+    --face-csv or a .vrma says why at once (the face's own listener needs no pocketsphinx: tested beside)."""
     import sys
 
     save_wav(tmp_path / "a.wav", synthetic_speech(0.5, seed=1), SAMPLE_RATE)
     monkeypatch.setitem(sys.modules, "pocketsphinx", None)  # as if not installed
-    args = ["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "a.wav")]
+    args = ["generate", "--checkpoint", str(tiny_checkpoint), "--audio", str(tmp_path / "a.wav"),
+            "--face-listener", "pocketsphinx"]
     assert main([*args, "--out", str(tmp_path / "a.bvh"), "--face-csv", str(tmp_path / "a.csv")]) == 2
     assert "error: --face-csv: the face's listener needs pocketsphinx" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "a.vrma")]) == 2
     assert "a.vrma: the face's listener needs pocketsphinx" in capsys.readouterr().err
     assert [p.name for p in tmp_path.iterdir()] == ["a.wav"]  # nothing written
+    assert main([*args[:-2], "--out", str(tmp_path / "a.bvh"), "--face-csv", str(tmp_path / "a.csv")]) == 0
+    assert (tmp_path / "a.csv").is_file()  # the face's own listener: no pocketsphinx needed

@@ -86,11 +86,10 @@ def test_no_session_is_admitted_while_the_worker_is_not_ready():
 
 
 def test_a_face_cost_is_measured_at_start_and_learnt_from_the_faces_made():
-    pytest.importorskip("pocketsphinx")
     from dimgestor.face import FaceOptions
 
     cost = FaceCost()
-    assert 0.01 < cost.measure(FaceOptions(), 20, 0.3, seconds=1.0) < 4.0  # seconds of compute a second of speech
+    assert 0.001 < cost.measure(FaceOptions(), 20, 0.3, seconds=1.0) < 4.0  # seconds of compute a second of speech
     first = cost.value
     for _ in range(40):
         cost.add(0.05, 0.1)  # what the sessions' faces took on a busier machine: 0.5 s a second (followed quickly)

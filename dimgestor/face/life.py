@@ -8,15 +8,20 @@ any pieces blinks exactly as the whole recording does.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
 __all__ = ["Blinks", "Brows", "pitch_semitones"]
 
 
+@lru_cache(maxsize=1024)
 def _draw(seed: int, k: int, n: int = 3) -> np.ndarray:
-    """n uniform numbers for the k-th blink of stream `seed`: the same whatever happened before it."""
-    return np.random.Generator(np.random.Philox(key=[seed & 0xFFFFFFFFFFFFFFFF, k])).random(n)
+    """n uniform numbers for the k-th blink of stream `seed`: the same whatever happened before it (read-only:
+    the same array is given to every caller of the same draw, each frame asks again)."""
+    out = np.random.Generator(np.random.Philox(key=[seed & 0xFFFFFFFFFFFFFFFF, k])).random(n)
+    out.flags.writeable = False
+    return out
 
 
 def _shape(u: np.ndarray) -> np.ndarray:

@@ -20,14 +20,19 @@ import numpy as np
 
 from dimgestor.face.life import Blinks, Brows, pitch_semitones
 from dimgestor.face.listener import BLOCK, PhoneListener, Segment
-from dimgestor.face.visemes import FACE_LABELS, V, VOWEL_CLASS, phone_targets
+from dimgestor.face.net import Heard, NetListener
+from dimgestor.face.visemes import FACE_LABELS, V, VISEMES, VOWEL_CLASS, phone_targets
 
-__all__ = ["FaceStream", "FaceOptions", "MAX_LOOKAHEAD_S"]
+__all__ = ["FaceStream", "FaceOptions", "MAX_LOOKAHEAD_S", "LISTENERS"]
 
 RATE = 16000
 MAX_LOOKAHEAD_S = 0.3   # more adds latency to a model that looks further ahead, and nothing measurable
 _CLOSED = ("M", "B", "P")
 _MOUTH = slice(0, V["jawOpen"] + 1)
+LISTENERS = ("net", "pocketsphinx")
+# the vowel shapes' weight when the network hears them, as `visemes.py` weighs them by the vowels' height
+_SHAPE_WEIGHT = np.array([{"aa": 1.0, "E": 0.75, "I": 0.5, "O": 0.75, "U": 0.5}.get(v, 1.0) for v in VISEMES])
+_VOWEL_VISEMES = {V[v] for v in ("aa", "E", "I", "O", "U")}
 
 
 @dataclass(frozen=True)
@@ -38,8 +43,11 @@ class FaceOptions:
     loud_range_db: float = 35.0  # the mouth scales from this far below the recent peak (closed) to the peak
     loud_power: float = 0.5
     peak_s: float = 2.0          # the recent peak: the loudest 40 ms of the last peak_s
+    silence_dbfs: float = -70.0  # 40 ms under this level (dB of full scale) is silence: the mouth rests
     seed: int = 0                # the blinks' draws
     smile: float = 0.0           # the expression held under the speech (0..1), settable while streaming
+    listener: str = "net"        # "net": the face's own network (net.py); "pocketsphinx": its phone recognizer
+    weights: str | None = None   # the network's weights (None: those in the package)
 
 
 class FaceStream:
@@ -50,8 +58,16 @@ class FaceStream:
         self.fps, self.options = fps, options
         self.lookahead_s = min(float(lookahead_s), MAX_LOOKAHEAD_S)
         self.smile = options.smile
-        self.listener = PhoneListener(fps, self.lookahead_s, context_s=min(0.12, self.lookahead_s),
-                                      start_sample=start_sample, start_frame=start_frame)
+        if options.listener not in LISTENERS:
+            raise ValueError(f"face listener {options.listener!r}: one of {', '.join(LISTENERS)}")
+        if options.listener == "net":  # (a lookahead under the network's: the mouth follows late by the difference)
+            self.listener = NetListener(fps, start_sample=start_sample, start_frame=start_frame,
+                                        weights=options.weights, late=NetListener.late_frames(self.lookahead_s),
+                                        frames_per_step=NetListener.frames_per_step(fps, self.lookahead_s))
+        else:
+            self.listener = PhoneListener(fps, self.lookahead_s, context_s=min(0.12, self.lookahead_s),
+                                          start_sample=start_sample, start_frame=start_frame)
+        self._next = start_frame                          # the next frame to make
         self.blinks = Blinks(seed=options.seed)
         self.brows = Brows(fps=fps)
         self._keep = int((options.peak_s + 2 * self.lookahead_s + 0.1) * RATE)
@@ -80,7 +96,7 @@ class FaceStream:
 
     def _due(self) -> int:
         """The sample (stream clock) after the block in which the next frame's lookahead completes."""
-        need = (self.listener.next_frame / self.fps + self.lookahead_s) * RATE
+        need = (self._next / self.fps + self.lookahead_s) * RATE
         return int(np.ceil(need / BLOCK - 1e-6)) * BLOCK
 
     def _hold(self, piece: np.ndarray) -> None:
@@ -97,7 +113,7 @@ class FaceStream:
         frames = int(np.ceil((self._audio_end + pad) / RATE * self.fps - 1e-9))
         self._hold(np.zeros(pad, np.float32))  # (heard as silence by loudness and pitch; the listener has ended)
         self.listener.finish(frames)
-        self._make()
+        self._make(ended=True)
 
     def close(self) -> None:
         """Done: the listener's decoder is given back for another stream."""
@@ -110,10 +126,13 @@ class FaceStream:
         return np.array([self._rows.popleft() for _ in range(n)]).reshape(n, len(FACE_LABELS))
 
     # -- making a frame ---------------------------------------------------------------------------------------
-    def _make(self) -> None:
-        while self.listener.ready:
-            index, segments = self.listener.ready.pop(0)
-            self._rows.append(self._frame(index, segments))
+    def _make(self, ended: bool = False) -> None:
+        """Frames whose lookahead is in (the network hears sooner than that; the loudness and pitch read up to
+        it); after the end, every frame the listener gave."""
+        while self.listener.ready and (ended or self._due() <= self._audio_end):
+            index, heard = self.listener.ready.pop(0)
+            self._rows.append(self._frame(index, heard))
+            self._next = index + 1
 
     def _window(self, centre: float, half_s: float) -> np.ndarray:
         c = int(round(centre * RATE))
@@ -130,8 +149,48 @@ class FaceStream:
             self._loud[frame] = 10 * np.log10(np.mean(x.astype(np.float64) ** 2) + 1e-10) if len(x) else -100.0
         return self._loud[frame]
 
-    def _frame(self, index: int, segments: list[Segment]) -> np.ndarray:
+    def _frame(self, index: int, heard: list[Segment] | Heard) -> np.ndarray:
         o, t = self.options, index / self.fps
+        if isinstance(heard, Heard):
+            out, now, closed = self._mouth_heard(heard)
+        else:
+            out, now, closed = self._mouth_of_phones(t, heard)
+        # Loudness against the recent peak: the shape in full at the peak, none loud_range_db under it.
+        ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
+        peak = max(self._db(j) for j in range(max(0, index - int(o.peak_s * self.fps)), index + ahead + 1))
+        level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
+        out[_MOUTH] *= level if self._db(index) >= o.silence_dbfs else 0.0
+        out[V["PP"]] = max(out[V["PP"]], 1.0 if closed else 0.0)
+        out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
+        for old in [k for k in self._loud if k < index - int(o.peak_s * self.fps)]:
+            del self._loud[old]
+        # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
+        speaking = now != "SIL"
+        phrase_end = not speaking and self._speech_run >= 1.0
+        self._speech_run = self._speech_run + 1 / self.fps if speaking else 0.0
+        out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(t, phrase_end)
+        semitones = pitch_semitones(self._window(t, 0.02)) if speaking else None
+        out[V["browUp"]] = self.brows.step(semitones, self._db(index) - peak, now in VOWEL_CLASS or now == "ER")
+        out[V["smile"]] = self.smile * (1 - 0.5 * out[V["jawOpen"]])
+        return out
+
+    def _mouth_heard(self, heard: Heard) -> tuple[np.ndarray, str, bool]:
+        """The network's mouth: each viseme by its probability (vowel shapes by their height), the jaw by the
+        opening it hears, shut by the chance of M, B, P; (the mouth, "SIL" / a vowel / "C", lips closed)."""
+        out = np.zeros(len(FACE_LABELS))
+        p = heard.visemes
+        out[:len(VISEMES)] = p * _SHAPE_WEIGHT
+        out[V["jawOpen"]] = heard.opening * (1.0 - p[V["PP"]])
+        best = int(np.argmax(p))
+        now = "SIL" if best == V["sil"] else "AA" if best in _VOWEL_VISEMES else "C"
+        closed = best == V["PP"]
+        if closed:
+            out[_MOUTH] *= 0.2
+            out[V["PP"]] = 1.0
+        return out, now, closed
+
+    def _mouth_of_phones(self, t: float, segments: list[Segment]) -> tuple[np.ndarray, str, bool]:
+        o = self.options
         out = np.zeros(len(FACE_LABELS))
         # The mouth: phones blended over a triangle around t, lips shut inside a closure.
         weights = 0.0
@@ -146,21 +205,4 @@ class FaceStream:
         if now in _CLOSED:
             out[_MOUTH] *= 0.2
             out[V["PP"]] = 1.0
-        # Loudness against the recent peak: the shape in full at the peak, none loud_range_db under it.
-        ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
-        peak = max(self._db(j) for j in range(max(0, index - int(o.peak_s * self.fps)), index + ahead + 1))
-        level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
-        out[_MOUTH] *= level
-        out[V["PP"]] = max(out[V["PP"]], 1.0 if now in _CLOSED else 0.0)
-        out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
-        for old in [k for k in self._loud if k < index - int(o.peak_s * self.fps)]:
-            del self._loud[old]
-        # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
-        speaking = now != "SIL"
-        phrase_end = not speaking and self._speech_run >= 1.0
-        self._speech_run = self._speech_run + 1 / self.fps if speaking else 0.0
-        out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(t, phrase_end)
-        semitones = pitch_semitones(self._window(t, 0.02)) if speaking else None
-        out[V["browUp"]] = self.brows.step(semitones, self._db(index) - peak, now in VOWEL_CLASS or now == "ER")
-        out[V["smile"]] = self.smile * (1 - 0.5 * out[V["jawOpen"]])
-        return out
+        return out, now, now in _CLOSED

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["VISEMES", "FACE_LABELS", "PHONES", "OPENNESS", "VOWEL_CLASS", "phone_targets", "canonical_phone"]
+__all__ = ["VISEMES", "FACE_LABELS", "PHONES", "OPENNESS", "VOWEL_CLASS", "phone_targets", "canonical_phone",
+           "viseme_of"]
 
 VISEMES = ("sil", "PP", "FF", "TH", "DD", "kk", "CH", "SS", "nn", "RR", "aa", "E", "I", "O", "U")
 FACE_LABELS = VISEMES + ("jawOpen", "blinkLeft", "blinkRight", "browUp", "smile")
@@ -59,3 +60,8 @@ def phone_targets(phone: str) -> np.ndarray:
     out[V[viseme]] = openness if viseme in ("aa", "E", "I", "O", "U") else 1.0
     out[V["jawOpen"]] = openness
     return out
+
+
+def viseme_of(phone: str) -> str:
+    """The viseme (one of `VISEMES`) a phone's mouth makes."""
+    return _PHONES[canonical_phone(phone)][0]
