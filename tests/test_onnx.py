@@ -67,6 +67,8 @@ def test_manifest_is_the_graph(exported):
     assert m["opset"] >= 17 and m["call"] == {**m["call"], "samples_per_call": 800 * FRAMES, "frames_per_call": FRAMES,
                                               "warmup_calls": 6 // FRAMES}
     json.loads((exported / "manifest.json").read_text())  # strict JSON: NaN is written "nan"
+    face = json.loads((exported / "face_manifest.json").read_text())  # the face's listener beside it
+    assert (exported / face["graph"]).is_file() and face["frames_per_call"] == FRAMES and face["fps"] == 20
 
 
 def test_onnx_runtime_fuses_each_blocks_gelu_and_rmsnorm_and_reads_each_state_once(exported, bundle, tmp_path):

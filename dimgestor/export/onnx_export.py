@@ -415,6 +415,9 @@ def register(subparsers) -> None:
     g.add_argument("--triton", type=int, default=None, metavar="INSTANCES",
                    help="also write a Triton model repository (OUT/triton/dimgestor: config.pbtxt with the states "
                         "as the sequence batcher's implicit state, 1/model.onnx) with this many CPU instances")
+    g.add_argument("--no-face", action="store_true",
+                   help="leave out the face's listener (face_step.onnx and face_manifest.json: what the face's "
+                        "network hears, called like frame_step.onnx; docs/face.md)")
     p.set_defaults(func=_run)
 
 
@@ -425,6 +428,16 @@ def _run(args) -> int:
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
           f"{len(m['state'])} state tensors) and {out / MANIFEST}")
+    if not args.no_face:
+        from .onnx_face import FACE_GRAPH, FACE_MANIFEST, export_face
+
+        fps = m["call"]["fps"]
+        if round(100 / fps) * fps == 100:
+            export_face(out, int(fps), args.frames)
+            print(f"wrote {out / FACE_GRAPH} (the face's listener, {args.frames} frames a call) and "
+                  f"{out / FACE_MANIFEST}")
+        else:
+            print(f"no face graph: the face's graph needs a frame rate that divides 100 ({fps:g} fps)")
     if args.triton is not None:
         from .onnx_triton import write_triton_repository
 
