@@ -40,13 +40,18 @@ def web_json(checkpoint: str | None, root: str = "tether", tether_s: float = 5.0
 
 def prepare_model(folder: str | Path, checkpoint: str | None = None, steps: int | None = 4, frames: int = 2,
                   root: str = "tether", tether_s: float = 5.0, export: bool | None = None) -> Path:
-    """folder/ with frame_step.onnx, manifest.json and web.json; exports unless a graph is there (export None)."""
+    """folder/ with frame_step.onnx, manifest.json, the face's face_step.onnx and face_manifest.json, and web.json;
+    exports unless a graph is there (export None)."""
     from dimgestor.export.onnx_export import GRAPH, export_onnx
+    from dimgestor.export.onnx_face import FACE_GRAPH, export_face
 
     folder = Path(folder)
     if export or (export is None and not (folder / GRAPH).exists()):
         export_onnx(checkpoint, folder, steps, None, frames)
     manifest = json.loads((folder / "manifest.json").read_text())
+    fps = manifest["call"]["fps"]
+    if not (folder / FACE_GRAPH).exists() and round(100 / fps) * fps == 100:  # the face's listener beside it
+        export_face(folder, int(fps), manifest["call"]["frames_per_call"])
     # (written whole, then renamed into place: a page reading the folder meanwhile sees the old file or the new one)
     part = folder / "web.json.part"
     part.write_text(json.dumps(web_json(manifest["checkpoint"]["path"], root, tether_s)))

@@ -170,6 +170,8 @@ def test_pose_decoder_in_javascript_equals_python(tmp_path, checkpoint, root, he
 @needs_ort_web
 def test_local_frames_for_a_wav_equal_python_onnx_runtime(tmp_path, web_model, web_server):
     from dimgestor.audio import load_wav
+    from dimgestor.face import net
+    from dimgestor.face.visemes import V
     from helpers.clients import joint_speed
 
     browser = open_local(tmp_path, web_server)
@@ -189,6 +191,18 @@ def test_local_frames_for_a_wav_equal_python_onnx_runtime(tmp_path, web_model, w
     np.testing.assert_allclose(got["rotations"], pose.rotations, rtol=0, atol=ROTATION_TOL)
     np.testing.assert_allclose(got["root"], pose.root_pos, rtol=0, atol=ROOT_TOL_CM)
     assert 0 < got["rtf"] and got["samples"] == len(audio)
+    # The face: the listener's graph (face_step.onnx) beside the body's, each frame's mouth as the server's
+    # listener hears it (`mouth` of face-step-stream.js from dimgestor.face.net's stream), open on the speech's
+    # vowels and shut in the silence before it.
+    assert info["face"] is True and all(f is not None for f in got["face"])
+    jaw = np.array([f["jawOpen"] for f in got["face"]])
+    heard = net.NetListener.offline(audio, 20)
+    want_jaw = np.array([h.opening * (1 - h.visemes[V["PP"]]) * (0.2 if np.argmax(h.visemes) == V["PP"] else 1)
+                         for h in heard])[:len(jaw)]
+    np.testing.assert_allclose(jaw, want_jaw, rtol=0, atol=1e-4)
+    assert jaw[:int(SILENCE_S * 20) - 4].max() < 0.1 and jaw[int(SILENCE_S * 20):].max() > 0.5
+    vowels = np.array([[f[k] for k in ("aa", "ih", "ou", "ee", "oh")] for f in got["face"]])
+    assert len(set(np.argmax(vowels[vowels.max(1) > 0.3], 1))) >= 3  # several vowel shapes, not one
     # The gestures follow the speech: joints turn faster while it speaks than in the silence before it.
     speed = joint_speed([{"rotations": r} for r in got["rotations"]], 20)
     silent, speaking = speed[5:int(SILENCE_S * 20) - 8].mean(), speed[int(SILENCE_S * 20) + 5:].mean()

@@ -47,7 +47,7 @@ class LocalEngine {
     this.framesMade = 0;
     this.lastCallMs = null;
     this.mic = null;
-    this.record = null;        // {normalized, root, rotations} while runWav collects the frames it makes
+    this.record = null;        // {normalized, root, rotations, face} while runWav collects the frames it makes
     this.source = null;        // 'mic' | 'wav' | null
     this.stream = 0;           // the stream now: answers for an older one (replaced by a drop) are dropped
     this.wavRun = 0;           // the WAV run now: an older run's pacing stops when a new one starts
@@ -141,22 +141,23 @@ class LocalEngine {
       this.rtf = run / audio;
     }
     if (stream !== this.stream) return 0;  // a stream replaced meanwhile: its last frames are not shown
-    for (const row of r.frames) this.emit(row);
+    r.frames.forEach((row, k) => this.emit(row, r.faces ? r.faces[k] : null));
     if (r.runMs > 0) this.lastCallMs = r.runMs;  // (a push shorter than a call may complete none)
     this.hooks.onMessage(JSON.stringify({ type: 'status', rtf: this.rtf, latency_ms: this.lastCallMs, local: true }));
     return r.frames.length;
   }
 
-  emit(row) {
+  emit(row, face = null) {
     const index = this.framesMade++;
     const pose = this.decoder.decode(row);
     if (this.record) {
       this.record.normalized.push(Array.from(row));
       this.record.root.push(pose.root);
       this.record.rotations.push(pose.rotations);
+      this.record.face.push(face);
     }
     this.hooks.onMessage(JSON.stringify({ type: 'frame', index, pts: index / this.fps, root: pose.root,
-                                          rotations: pose.rotations }));
+                                          rotations: pose.rotations, ...(face ? { face } : {}) }));
   }
 
   // ---------------------------------------------------------------- a WAV file
@@ -172,7 +173,7 @@ class LocalEngine {
     if (this.source === 'mic') throw new Error('busy: the microphone is running (stop it first)');
     const run = ++this.wavRun;
     this.source = 'wav';
-    const record = this.record = { normalized: [], root: [], rotations: [] };
+    const record = this.record = { normalized: [], root: [], rotations: [], face: [] };
     const t0 = performance.now(), runMs0 = this.runMs;
     sound = sound && realtime;
     let pushed = 0;
