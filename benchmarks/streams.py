@@ -127,13 +127,14 @@ def make_scheduler(batched: bool, threads: int, batch_runner=None):
 
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
                   aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0,
-                  onnx=None, batch_runner=None) -> dict:
+                  onnx=None, batch_runner=None, face=None) -> dict:
     """n paced sessions on one scheduler for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window. onnx: a `dimgestor.export.onnx_stream.OnnxModel`: the
     sessions run on it, as `dimgestor serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
-    export's batched graphs; unbatched: each window alone, as with --no-batch)."""
+    export's batched graphs; unbatched: each window alone, as with --no-batch). face: a
+    `dimgestor.face.FaceOptions`: every session makes a face too, as a client that asks for one."""
     from streamer.sessions import Session
 
     if onnx is not None and batched and batch_runner is None:
@@ -147,13 +148,14 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     async def one(j: int, t0: float) -> None:
         if onnx is None:
             session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, scheduler=scheduler,
-                                          name=f"bench{j}")
+                                          name=f"bench{j}", face=face)
         else:
             from dimgestor.features import PoseDecoder
 
             session = Session(onnx.stream(seed=j, lookahead_s=bundle.model.lookahead_s),
                               PoseDecoder(bundle.skeleton, bundle.feature_spec), bundle.denormalize,
-                              bundle.feature_spec.fps, window_ms=window_ms, scheduler=scheduler, name=f"bench{j}")
+                              bundle.feature_spec.fps, window_ms=window_ms, scheduler=scheduler, name=f"bench{j}",
+                              face=face)
 
         def emit(fs) -> None:
             frames[j] += len(fs)
@@ -186,7 +188,7 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     end_worst = max(ends) * 1000
     stats = getattr(scheduler, "stats", None)
     return {
-        "streams": n, "batched": batched, "backend": "torch" if onnx is None else "onnxruntime", "phases": "aligned" if aligned else "staggered", **how,
+        "streams": n, "batched": batched, "face": face is not None, "backend": "torch" if onnx is None else "onnxruntime", "phases": "aligned" if aligned else "staggered", **how,
         "lag_ms_p50": percentile_ms(late, 50) if late else float("inf"), "lag_ms_p95": p95,
         "end_lag_ms_max": end_worst, "windows": sum(len(x) for x in lags), "frames": sum(frames),
         "mean_batch": stats.total / stats.count if stats is not None and stats.count else 1.0,
@@ -197,14 +199,14 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
 
 
 def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: bool, threads: int, cap: int,
-                aligned: bool = False, log=print, onnx=None, batch_runner=None) -> dict:
+                aligned: bool = False, log=print, onnx=None, batch_runner=None, face=None) -> dict:
     """Double n until a trial falls behind (or n passes `cap`), then bisect between the last pass and the fail
     until they are within 10 % (the answer is the largest count that passed)."""
     trials, good, bad, n = [], 0, None, 1
 
     def trial(k: int) -> bool:
         r = serving_trial(bundle, k, steps, window_ms, seconds, batched, threads, aligned, onnx=onnx,
-                          batch_runner=batch_runner)
+                          batch_runner=batch_runner, face=face)
         trials.append(r)
         log(f"  {'' if onnx is None else 'onnxruntime '}{'batched' if batched else 'unbatched':9s}{' aligned' if aligned else ''} K={steps} {k:3d} streams: lag p50/p95 "
             f"{r['lag_ms_p50']:.0f}/{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, "
@@ -219,7 +221,7 @@ def max_streams(bundle, steps: int, window_ms: int, seconds: float, batched: boo
     while bad is not None and bad - good > max(1, good // 10):  # to 10 %: trial-to-trial noise is larger
         mid = (good + bad) // 2
         good, bad = (mid, bad) if trial(mid) else (good, mid)
-    return {"max_realtime_streams": good, "capped": bad is None, "batched": batched,
+    return {"max_realtime_streams": good, "capped": bad is None, "batched": batched, "face": face is not None,
             "backend": "torch" if onnx is None else "onnxruntime",
             "phases": "aligned" if aligned else "staggered", "steps": steps,
             "window_ms": window_ms, "trial_s": seconds, "trials": sorted(trials, key=lambda r: r["streams"])}

@@ -1,0 +1,80 @@
+"""How many real-time streams one process keeps with a face on every stream, against none (issue 49: at least
+0.85 as many): `streams.max_streams` on the embedded default model (K = 4, 100 ms windows, batched, staggered
+clients, `--threads` inference threads), once without a face and once with `FaceOptions()` (the face's own
+listener) on every session, and with `--pocketsphinx` also with pocketsphinx's listener.
+
+    .venv/bin/python benchmarks/face_streams.py            # writes results/face_streams.json and .png
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--steps", type=int, default=4)
+    p.add_argument("--window-ms", type=int, default=100)
+    p.add_argument("--seconds", type=float, default=12.0, help="audio per trial")
+    p.add_argument("--threads", type=int, default=2, help="inference threads (the process's cores)")
+    p.add_argument("--cap", type=int, default=96)
+    p.add_argument("--pocketsphinx", action="store_true", help="also with pocketsphinx's listener")
+    p.add_argument("--out", type=Path, default=RESULTS / "face_streams.json")
+    p.add_argument("--note", default="measured on a shared machine: other processes were running")
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    return args
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arms = list(result["arms"])
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.bar(arms, [result["arms"][a]["max_realtime_streams"] for a in arms], color=[f"C{i}" for i in range(len(arms))])
+    ax.set_ylabel("real-time streams a process")
+    ax.set_title(f"K={result['steps']}, {result['window_ms']} ms windows, {result['threads']} threads: "
+                 f"face / none {result['ratio']:.2f}", fontsize=9)
+    fig.suptitle(f"face_streams ({result['code_version']}, {result['device'][:50]})", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    from dimgestor.face import FaceOptions
+    from dimgestor.streaming.checkpoint import load_checkpoint
+    from streams import max_streams
+
+    bundle = load_checkpoint(None)
+    before = load_average()
+    faces = {"no face": None, "face": FaceOptions()}
+    if args.pocketsphinx:
+        faces["face, pocketsphinx"] = FaceOptions(listener="pocketsphinx")
+    arms = {}
+    for name, face in faces.items():
+        print(f"{name}:", flush=True)
+        arms[name] = max_streams(bundle, args.steps, args.window_ms, args.seconds, True, args.threads, args.cap,
+                                 face=face, log=lambda s: print(s, flush=True))
+    base = arms["no face"]["max_realtime_streams"]
+    result = {"benchmark": "face_streams", "code_version": code_version(), "device": describe_device("cpu"),
+              "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": before,
+              "load_average_after": load_average(), "steps": args.steps, "window_ms": args.window_ms,
+              "threads": args.threads, "arms": arms,
+              "ratio": arms["face"]["max_realtime_streams"] / base if base else float("nan"),
+              **({"ratio_pocketsphinx": arms["face, pocketsphinx"]["max_realtime_streams"] / base}
+                 if args.pocketsphinx and base else {})}
+    print(f"streams: none {base}, face {arms['face']['max_realtime_streams']} (ratio {result['ratio']:.2f})")
+    write_json(args.out, result)
+    plot(result, args.out.with_suffix(".png"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
