@@ -359,4 +359,6 @@ def test_python_client_writes_the_face_csv_of_its_own_session_in_json_and_binary
         table = np.array([row.split(",") for row in rows[1:]], dtype=float)
         assert np.allclose(table[:, 0], np.arange(frames) / 20, atol=5e-5)
         tables.append(table[:, 1:])
-    assert np.abs(tables[0] - tables[1]).max() <= 1e-4 and tables[0][:, :5].max() > 0.3  # the mouth speaks
+    # (each CSV has 4 decimals, of JSON's rounded values and of binary float32 ones: a weight at a rounding boundary
+    # can differ by one unit of the last digit)
+    assert np.abs(tables[0] - tables[1]).max() <= 1e-4 + 1e-9 and tables[0][:, :5].max() > 0.3  # the mouth speaks

@@ -163,7 +163,8 @@ def test_a_cancelled_session_gives_its_face_decoder_back_only_after_its_running_
                 release.wait(30)
             return super().frames_of(normalized)
 
-    session = Held.from_bundle(bundle, steps=1, seed=3, window_ms=100, face=FaceOptions(seed=3))
+    session = Held.from_bundle(bundle, steps=1, seed=3, window_ms=100,
+                               face=FaceOptions(seed=3, listener="pocketsphinx"))  # (the pooled decoder's)
     audio = synthetic_speech(2.0, seed=2).astype(np.float32)
 
     async def source():
