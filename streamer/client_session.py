@@ -88,7 +88,7 @@ class Seats:
     def withholds_face(self, why: tuple[str, float]) -> bool:
         """Whether a session with a face refused for `why` is admitted without its face instead (the server's
         choice: `serve --faces-beyond-capacity no-face`), i.e. it would be admitted without one."""
-        return bool(getattr(self.admission, "without_face", False)) and self.refusal(False) is None
+        return self.admission is not None and self.admission.without_face and self.refusal(False) is None
 
     def carry_out(self, action: TakeSeat | FreeSeat) -> None:
         if isinstance(action, TakeSeat):

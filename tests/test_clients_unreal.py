@@ -322,3 +322,24 @@ def test_unreal_component_rests_the_face_when_the_server_withholds_it(face_check
     assert before["morphs"] == pytest.approx(expected[-2]["face"], abs=1e-6) and before["morphs"]["jawOpen"] > 0
     for o in after:
         assert o["morphs"] == dict.fromkeys(names, 0) and o["curves"] == dict.fromkeys(curves, 0), o
+
+
+def test_unreal_component_rests_the_face_across_a_rebind(face_check, tmp_path):
+    """A hello between the last frame shown with a face and the first without (a resumed session: the component
+    binds again, and its face name map may have changed) still rests every morph target and curve the face drove:
+    they are set to 0 as the binding forgets them, where before they stayed at the last face (a mouth left open)."""
+    expected = face_messages(tmp_path / "msgs", "binary", "arkit")  # (the last frame carries no face)
+    hello = (tmp_path / "msgs" / "000000.json").read_text()
+    (tmp_path / "msgs" / "000007t.tick").write_text("")       # the last face is shown...
+    (tmp_path / "msgs" / "000007u.json").write_text(hello)   # ... then the server says hello again
+    names = list(expected[0]["face"])
+    curves = [n[0].upper() + n[1:] for n in names]
+    spec = {"face_names": "arkit", "map": [], "metahuman": True, "face_mesh": True,
+            "times": [expected[-1]["pts"], expected[-1]["pts"] + 0.05], "curves_to_read": curves}
+    (tmp_path / "spec.json").write_text(json.dumps(spec))
+    r = subprocess.run([str(face_check), str(tmp_path / "msgs"), str(tmp_path / "spec.json")], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    for o in [json.loads(line) for line in r.stdout.splitlines()][1:]:
+        assert o["frames"] == len(expected) and not o["withheld"], o
+        assert o["morphs"] == dict.fromkeys(names, 0) and o["curves"] == dict.fromkeys(curves, 0), o

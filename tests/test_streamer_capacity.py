@@ -103,7 +103,7 @@ def test_the_machine_answers_busy_with_retry_after_s_and_takes_no_seat_at_capaci
     from streamer.client_events import Audio, Decoded, Refused, Send
 
     class Full:
-        retry_after_s = 5.0
+        retry_after_s, without_face = 5.0, False
 
         def __init__(self):
             self.admitted_faces = []

@@ -347,13 +347,7 @@ void UDimgestorComponent::ApplyFace(const dimgestor::Frame& Frame)
 {
 	if (Frame.face.empty())  // a frame without a face (withheld, or none asked): the face rests, once
 	{
-		if (bFaceAtRest) return;
-		for (const auto& Pair : FaceTargets)
-		{
-			FaceCurves.Add(Pair.second.Curve, 0.f);
-			if (FaceMesh) FaceMesh->SetMorphTarget(Pair.second.Morph, 0.f);
-		}
-		bFaceAtRest = true;
+		RestFace();
 		return;
 	}
 	bFaceAtRest = false;
@@ -376,11 +370,24 @@ void UDimgestorComponent::ApplyFace(const dimgestor::Frame& Frame)
 	}
 }
 
+// Every morph target and curve the face drove since it last rested, to 0 (once).
+void UDimgestorComponent::RestFace()
+{
+	if (bFaceAtRest) return;
+	for (const auto& Pair : FaceTargets)
+	{
+		FaceCurves.Add(Pair.second.Curve, 0.f);
+		if (FaceMesh) FaceMesh->SetMorphTarget(Pair.second.Morph, 0.f);
+	}
+	bFaceAtRest = true;
+}
+
 void UDimgestorComponent::Bind()
 {
 	bNeedBind = false;
 	Bindings.Reset();
-	FaceTargets.clear();  // (FaceNameMap may have changed meanwhile)
+	RestFace();           // the targets the face drove rest before they are forgotten: a frame without a face
+	FaceTargets.clear();  // after this would not know them (FaceNameMap may have changed meanwhile)
 	SourceRestGlobal = dimgestor::GlobalRotations(Hello.skeleton, Hello.skeleton.rest_rotations);
 	auto AddBinding = [this](FName Bone, int32 Joint) {
 		const FTransform* Rest = RestPose.Find(Bone);

@@ -163,6 +163,7 @@ private:
 	int32 DirectionChild(int32 Joint, const std::vector<int32>& BindingOf) const;
 	void Apply(const dimgestor::Frame& Frame);
 	void ApplyFace(const dimgestor::Frame& Frame);
+	void RestFace();
 	void SendHello(bool bWithAudio);
 	void SendText(const FString& Text);
 	void SendChunks(const std::vector<dimgestor::AudioFlow::Chunk>& Chunks);

@@ -4,7 +4,8 @@
 // later and shows the frame due (interpolated), setting FaceMesh's morph targets and FaceCurves (and prints what the
 // component says: bFaceWithheld, FaceNotice, LastError). SPEC is JSON:
 // {"face_names": "arkit", "map": [[face, target], ...], "metahuman": bool, "face_mesh": bool, "times": [pts, ...],
-// "curves_to_read": [...]}. Prints the hello
+// "curves_to_read": [...]}. A file NNNNNN*.tick in FOLDER ticks the component there, between the messages, one playout
+// delay after the newest frame's pts (the frame due is shown then). Prints the hello
 // the component sent, then one JSON line per time; tests/test_clients_unreal.py checks them.
 #include <algorithm>
 #include <cstdio>
@@ -66,24 +67,30 @@ int main(int argc, char** argv) {
   socket->OnConnected().StubBroadcast();
   std::printf("{\"hello\":%s}\n", Quoted(Narrow(socket->StubSentText.at(0))).c_str());
 
+  const double delay = 0.25 + 0.06;  // the component's playout delay for a hello without window_ms
   std::vector<fs::path> files;
   for (const auto& e : fs::directory_iterator(argv[1])) files.push_back(e.path());
   std::sort(files.begin(), files.end());
+  double newest = 0;
   for (const fs::path& p : files) {
     const std::string bytes = Read(p);
+    if (p.extension() == ".tick") {
+      FPlatformTime::StubNow() = newest + delay;
+      component.TickComponent(1.f / 60.f, LEVELTICK_All, nullptr);
+      continue;
+    }
     if (p.extension() == ".bin") {
       Frame f;  // (its pts: the time it arrives, on time)
-      if (DecodeBinaryFrame(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), f, error)) FPlatformTime::StubNow() = f.pts;
+      if (DecodeBinaryFrame(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size(), f, error)) FPlatformTime::StubNow() = newest = f.pts;
       const size_t half = bytes.size() / 2;
       socket->OnBinaryMessage().StubBroadcast(bytes.data(), half, false);
       socket->OnBinaryMessage().StubBroadcast(bytes.data() + half, bytes.size() - half, true);
     } else {
       Message m;
-      if (ParseMessage(bytes, m, error) && m.type == MessageType::Frame) FPlatformTime::StubNow() = m.frame.pts;
+      if (ParseMessage(bytes, m, error) && m.type == MessageType::Frame) FPlatformTime::StubNow() = newest = m.frame.pts;
       socket->OnMessage().StubBroadcast(Wide(bytes));
     }
   }
-  const double delay = 0.25 + 0.06;  // the component's playout delay for a hello without window_ms
   for (const JsonValue& t : spec.Get("times")->items) {
     FPlatformTime::StubNow() = t.n + delay;
     component.TickComponent(1.f / 60.f, LEVELTICK_All, nullptr);
