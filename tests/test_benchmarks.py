@@ -112,6 +112,20 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
         assert finite(x["ratio_p50"]) and finite(x["ratio_p50_unguided"]) and x["ratio_p50"] > 0
 
 
+def test_face_streams_benchmark_writes_its_schema(tmp_path):
+    """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's)."""
+    out = tmp_path / "face_streams.json"
+    run("face_streams.py", "--seconds", "2", "--cap", "1", "--pocketsphinx", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code_version"] and r["device"].startswith("CPU") and r["steps"] == 4 and r["window_ms"] == 100
+    assert list(r["arms"]) == ["no face", "face", "face, pocketsphinx"]
+    for name, arm in r["arms"].items():
+        assert arm["face"] == (name != "no face") and [t["streams"] for t in arm["trials"]] == [1]
+        assert arm["trials"][0]["face"] == arm["face"] and finite(arm["trials"][0]["lag_ms_p95"])
+    assert finite(r["ratio"]) and finite(r["ratio_pocketsphinx"])
+
+
 def test_pipecat_sync_benchmark_writes_its_schema(tmp_path):
     pytest.importorskip("pipecat", reason="pipecat-ai is not installed (pip install 'dimgestor[pipecat]')")
     out = tmp_path / "pipecat_sync.json"

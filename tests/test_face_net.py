@@ -37,7 +37,7 @@ def heard_in_pieces(audio, sizes, weights, fps=20):
     return listener.ready
 
 
-@pytest.mark.parametrize("weights", ["random"])
+@pytest.mark.parametrize("weights", ["random", "shipped"])
 def test_a_stream_in_any_pieces_hears_what_the_whole_recording_hears(random_weights, weights):
     path = random_weights[1] if weights == "random" else None
     whole = net.NetListener.offline(SPEECH, 20, weights=path)

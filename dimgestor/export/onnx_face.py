@@ -30,13 +30,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..face.net import CLASSES, HOP, LAYERS, N_MELS, NORM_S, RATE, RIGHT, SMOOTH, WIN, load_weights, weights_meta
+from ..face.net import (CLASSES, HOP, LAYERS, N_MELS, NFFT, NORM_S, RATE, RIGHT, SMOOTH, WIN, load_weights,
+                        weights_meta)
 
 __all__ = ["FaceStep", "export_face", "FACE_GRAPH", "FACE_MANIFEST"]
 
 FACE_GRAPH = "face_step.onnx"
 FACE_MANIFEST = "face_manifest.json"
-NFFT = 512
 OPSET = 18  # the body's graph's (onnx_export.OPSET; tests/test_onnx_face.py checks they agree)
 
 

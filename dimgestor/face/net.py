@@ -27,7 +27,7 @@ from dimgestor.face.visemes import VISEMES
 
 __all__ = ["NetListener", "ListenerNet", "Heard", "LOOKAHEAD_S", "WEIGHTS", "CLASSES", "OUTPUTS", "log_mel",
            "normalise", "load_weights", "save_weights", "weights_meta", "torch_listener", "LAYERS", "RIGHT", "LEFT",
-           "N_MELS", "HOP", "RATE", "WIN", "SMOOTH", "NORM_S", "mel_filters"]
+           "N_MELS", "HOP", "RATE", "WIN", "NFFT", "SMOOTH", "NORM_S", "mel_filters"]
 
 RATE, HOP, WIN, NFFT, N_MELS = 16000, 160, 400, 512, 40
 NORM_S = 3.0                        # the running mean's time constant
@@ -84,15 +84,15 @@ def normalise(mel: np.ndarray, state: np.ndarray | None, prior: np.ndarray) -> t
 
 
 class ListenerNet:
-    """The network in numpy: `step(layer inputs)` runs new frames through every layer, each keeping what its
-    taps still need, so each frame of each layer is computed once."""
+    """The network's weights as `NetListener` reads them: each convolution as one matrix over its taps, the head's
+    matrix, the normalisation's prior."""
 
     def __init__(self, weights: dict[str, np.ndarray]):
         self.w = weights
         self.prior = weights["prior"].astype(np.float64)
         # each convolution as one matrix over its taps, tap-major: (k * C_in, C_out)
-        self.mats = [np.ascontiguousarray(weights[f"conv{j}.weight"].transpose(2, 1, 0).reshape(-1, weights[f"conv{j}.weight"].shape[0]))
-                     for j in range(len(LAYERS))]
+        convs = [weights[f"conv{j}.weight"] for j in range(len(LAYERS))]
+        self.mats = [np.ascontiguousarray(w.transpose(2, 1, 0).reshape(-1, w.shape[0])) for w in convs]
         self.head = np.ascontiguousarray(weights["head.weight"][:, :, 0].T)
 
     def layer(self, j: int) -> tuple[np.ndarray, np.ndarray]:
