@@ -42,6 +42,9 @@ class WindowSource(Protocol):
 
     def frames_of(self, normalized: np.ndarray) -> list: ...
 
+    # optional: `frames_many(sources, outputs) -> [frames or exception]`, a classmethod of the sources' type that
+    # makes one batch's frames together (`streamer.sessions.Session.frames_many`: their faces as one batch)
+
 
 def _infer(source: WindowSource, samples: np.ndarray) -> list:
     """One window of `source`, alone, in the calling thread (a scheduler's worker)."""
@@ -396,17 +399,34 @@ class StreamBatcher(_Threads):
                                 return_exceptions=True)
         except BaseException as e:  # noqa: BLE001 - handed to every waiting session
             results = [e] * len(pushes)
-        for j, r in zip(pushes, results):
+        for j, r in zip(pushes, _frames(pushes, results)):
             if isinstance(r, BaseException):
                 j.future.set_exception(r)
-                continue
-            try:
-                j.future.set_result(j.source.frames_of(r))
-            except BaseException as e:  # noqa: BLE001
-                j.future.set_exception(e)
+            else:
+                j.future.set_result(r)
         took = self.clock() - started
         if all(j.rank > 0 for j in pushes):  # (a real-time window's cycle is not what sizes backlog cycles)
             self.cost.add(took, sum(len(j.samples) for j in pushes) / SAMPLE_RATE)
+
+
+def _frames(pushes: list[_PushJob], results: list) -> list:
+    """Each pushed window's frames (or its exception): through the sources' `frames_many` together where they
+    have one (sessions make their faces as one batch), else each one's `frames_of`."""
+    done = [(j.source, r) for j, r in zip(pushes, results) if not isinstance(r, BaseException)]
+    kinds = {type(source) for source, _ in done}
+    many = getattr(next(iter(kinds)), "frames_many", None) if len(kinds) == 1 else None
+    if many is not None:
+        made = iter(many([source for source, _ in done], [r for _, r in done]))
+    else:
+        made = iter([_frames_of(source, r) for source, r in done])
+    return [r if isinstance(r, BaseException) else next(made) for r in results]
+
+
+def _frames_of(source: WindowSource, normalized) -> list | BaseException:
+    try:
+        return source.frames_of(normalized)
+    except BaseException as e:  # noqa: BLE001
+        return e
 
 
 class BatcherPool(Scheduler):

@@ -194,6 +194,7 @@ class Session:
         self._face = None
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
+        self._face_paid = 0.0  # this session's share of a batch's face (`frames_many`), seconds
         self._finishing = False
         self._inflight = None  # the call being inferred (a scheduler's future): the face outlives it
         self.state_key = state_key  # (`dimgestor.streaming.savestate`; never shown)
@@ -229,8 +230,9 @@ class Session:
         if self.face_options is not None:
             t = time.perf_counter()
             made[FACE] = self._face_rows(n)
+            spent, self._face_paid = time.perf_counter() - t + self._face_paid, 0.0
             if self.face_cost is not None:  # (what admission learns a face's cost from: streamer.capacity)
-                self.face_cost.add(time.perf_counter() - t, n / self.fps)
+                self.face_cost.add(spent, n / self.fps)
         if any(len(v) != n for v in made.values()):
             raise ValueError(f"a channel maker gave {[len(v) for v in made.values()]} rows for {n} frames")
         # the last check before any sink: a NaN or infinite value ends the stream (its client is told), never sent
@@ -241,6 +243,36 @@ class Session:
         return [Frame(first + i, (first + i) / self.fps, np.asarray(pose.root_pos[i]),
                       np.asarray(pose.rotations[i]), feats[i], {name: v[i] for name, v in made.items()})
                 for i in range(n)]
+
+    @classmethod
+    def frames_many(cls, sessions: list["Session"], outputs: list[np.ndarray]) -> list[list[Frame] | BaseException]:
+        """`frames_of` of several sessions' outputs from one batch (a scheduler's): their faces made together
+        (`FaceStream.push_many`: one product per layer of the listener for all of them), then each session's
+        frames; a session's failure is its own entry (a failure of the faces' shared step, each face session's)."""
+        faces = [s for s in sessions if s.face_options is not None and s._face_audio]
+        failed: BaseException | None = None
+        if faces:
+            from dimgestor.face import FaceStream
+
+            t = time.perf_counter()
+            try:
+                FaceStream.push_many([s._face_stream() for s in faces],
+                                     [np.concatenate(s._face_audio) for s in faces])
+            except BaseException as e:  # noqa: BLE001 - each face session's own failure
+                failed = e
+            for s in faces:
+                s._face_audio.clear()
+                s._face_paid += (time.perf_counter() - t) / len(faces)
+        out: list[list[Frame] | BaseException] = []
+        for s, r in zip(sessions, outputs):
+            if failed is not None and s in faces:
+                out.append(failed)
+                continue
+            try:
+                out.append(s.frames_of(r))
+            except BaseException as e:  # noqa: BLE001
+                out.append(e)
+        return out
 
     def infer(self, samples: np.ndarray) -> list[Frame]:
         """One window's frames, inferred in the calling thread (what a scheduler runs for `submit_push`)."""
@@ -265,17 +297,22 @@ class Session:
 
     def _face_rows(self, n: int) -> np.ndarray:
         """The face of the stream's newest n frames, from the audio given since the last call (the call's own)."""
+        self._face_stream()
+        while self._face_audio:
+            self._face.push(self._face_audio.popleft())
+        if self._finishing and self._face.frames_ready < n:
+            self._face.finish()
+        return self._face.take(n)
+
+    def _face_stream(self):
+        """The session's `FaceStream`, made on first use (at a restored session's position)."""
         if self._face is None:
             from dimgestor.face import FaceStream
 
             lookahead = np.floor(min(self.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
             sample, frame = self._face_start
             self._face = FaceStream(self.fps, lookahead, self.face_options, start_sample=sample, start_frame=frame)
-        while self._face_audio:
-            self._face.push(self._face_audio.popleft())
-        if self._finishing and self._face.frames_ready < n:
-            self._face.finish()
-        return self._face.take(n)
+        return self._face
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
         """The session as bytes (`dimgestor.streaming.savestate`): the stream's state (default: its own now), the pose

@@ -115,6 +115,88 @@ def test_a_sessions_frames_carry_the_same_face_whatever_the_chunks_and_none_with
     assert all("face" not in f.channels for f in faces([4000], face=None))
 
 
+def test_faces_pushed_as_one_batch_equal_each_face_alone():
+    """`FaceStream.push_many` (a server batch's faces, their listeners stepped together): each face equals the face
+    pushed alone, for streams at other points of their speech, other seeds and smiles, and the pocketsphinx
+    listener beside the network where it is installed."""
+    from dimgestor.face.listener import unavailable
+
+    specs = [dict(offset=0), dict(offset=1234, seed=3), dict(offset=400, smile=0.5)]
+    if unavailable() is None:  # (pocketsphinx installed)
+        specs.append(dict(offset=0, listener="pocketsphinx"))
+    faces = [FaceStream(20, 0.3, FaceOptions(**{k: v for k, v in s.items() if k != "offset"})) for s in specs]
+    rows = [[] for _ in specs]
+    for at in range(0, len(SPEECH), 1600):
+        chunks = [SPEECH[max(0, at - s["offset"]):max(0, at + 1600 - s["offset"])] for s in specs]
+        FaceStream.push_many(faces, chunks)
+        for r, f in zip(rows, faces):
+            r.append(f.take(f.frames_ready))
+    for r, f, s in zip(rows, faces, specs):
+        f.finish()
+        r.append(f.take(f.frames_ready))
+        got = np.concatenate(r)
+        alone = stream_face(SPEECH[:len(SPEECH) - s["offset"]], [1600],
+                            **{k: v for k, v in s.items() if k != "offset"})
+        assert got.shape == alone.shape and got[:, V["jawOpen"]].max() > 0.5, s
+        np.testing.assert_allclose(got, alone, atol=1e-6, rtol=0, err_msg=str(s))
+
+
+def test_sessions_batched_by_the_server_make_the_faces_they_make_alone_and_fail_alone(bundle):
+    """Through `StreamBatcher` (what `serve` runs): windows of three face sessions taken as one batch (their
+    faces made together: `Session.frames_many`) carry the face each makes alone; a session whose frames fail
+    fails alone, the others' faces go on."""
+    import threading
+
+    from streamer.scheduling import StreamBatcher
+    from streamer.sessions import Session
+
+    audio = SPEECH[: 3 * SAMPLE_RATE]
+    seeds = (0, 1, 2)
+
+    def alone(seed):
+        s = Session.from_bundle(bundle, seed=seed, face=FaceOptions(seed=seed))
+        frames = [f for at in range(0, len(audio), 1600) for f in s.infer(audio[at:at + 1600])]
+        return np.array([f.channels["face"] for f in frames + s.infer_finish()])
+
+    def batched(broken=None):
+        batcher = StreamBatcher()
+        sessions = [Session.from_bundle(bundle, seed=k, face=FaceOptions(seed=k), scheduler=batcher) for k in seeds]
+        if broken is not None:  # its frames fail after the batch's faces were made
+            sessions[broken].channels = {"bad": lambda feats: np.zeros((len(feats) + 1, 1))}
+        frames, errors = [[] for _ in seeds], [None] * len(seeds)
+        try:
+            for at in range(0, len(audio), 1600):
+                gate = threading.Event()
+                batcher.submit_ranked(0.0, gate.wait)  # holds the batcher: the three windows queue behind it
+                futures = {}
+                for k, s in enumerate(sessions):
+                    if errors[k] is None:
+                        s._hear(audio[at:at + 1600])
+                        futures[k] = batcher.submit_push(s, audio[at:at + 1600])
+                gate.set()
+                for k, f in futures.items():
+                    if (e := f.exception(timeout=60)) is not None:
+                        errors[k] = e
+                    else:
+                        frames[k] += f.result()
+            assert batcher.stats.peak == sum(e is None for e in errors) or broken is not None
+            for k, s in enumerate(sessions):
+                if errors[k] is None:
+                    frames[k] += s.infer_finish()
+        finally:
+            batcher.shutdown()
+        return [np.array([f.channels["face"] for f in fs]) if e is None else e for fs, e in zip(frames, errors)]
+
+    want = [alone(k) for k in seeds]
+    for got, w in zip(batched(), want):
+        assert got.shape == w.shape
+        np.testing.assert_allclose(got, w, atol=1e-6, rtol=0)
+    got = batched(broken=1)
+    assert isinstance(got[1], ValueError) and "channel maker" in str(got[1])
+    for k in (0, 2):
+        np.testing.assert_allclose(got[k], want[k], atol=1e-6, rtol=0)
+
+
 def test_brows_rise_on_a_vowel_at_the_voices_peak_more_with_a_pitch_rise_and_settle():
     from dimgestor.face.life import Brows
 

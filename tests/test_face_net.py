@@ -147,3 +147,38 @@ def test_a_shorter_lookahead_than_the_networks_shows_the_mouth_late_by_the_diffe
     face = FaceStream(20, 0.08)
     face.push(SPEECH[:SAMPLE_RATE])
     assert face.frames_ready == int(round((1.0 - 0.08) * 20)) + 1
+
+
+def test_streams_stepped_together_hear_what_each_hears_alone(random_weights):
+    """`NetListener.run_many` (a server's batch of windows: the streams' steps through each layer as one matrix
+    product) gives each stream what it hears alone: streams at other points of their audio, one resumed
+    mid-recording, one stepping several frames at a time, pushed in other pieces. Equal here; within float
+    rounding where a matrix product's row depends on the rows beside it."""
+    path = random_weights[1]
+    specs = [dict(offset=0), dict(offset=777), dict(offset=0, group=4), dict(offset=0, start=SAMPLE_RATE)]
+
+    def make(spec):
+        start = spec.get("start", 0)
+        return net.NetListener(20, weights=path, frames_per_step=spec.get("group", 1), start_sample=start,
+                               start_frame=start * 20 // SAMPLE_RATE)
+
+    together = [make(s) for s in specs]
+    ends = [len(SPEECH)] * len(specs)
+    for at in range(0, len(SPEECH), 1600):
+        live = []
+        for x, spec, end in zip(together, specs, ends):
+            lo = max(at - spec["offset"], spec.get("start", 0))
+            hi = min(at + 1600 - spec["offset"], end)
+            if hi > lo:
+                x.push(SPEECH[lo:hi], run=False)
+                live.append(x)
+        net.NetListener.run_many(live)
+    assert max(len(x.ready) for x in together) > 0
+    for x, spec in zip(together, specs):
+        got_upto = len(x.ready)
+        alone = make(spec)
+        alone.push(SPEECH[spec.get("start", 0):])
+        assert got_upto > 40 and [i for i, _ in x.ready] == [i for i, _ in alone.ready[:got_upto]]
+        for (_, a), (_, b) in zip(x.ready, alone.ready):
+            np.testing.assert_allclose(a.visemes, b.visemes, atol=1e-6, rtol=0, err_msg=str(spec))
+            assert abs(a.opening - b.opening) <= 1e-6

@@ -24,11 +24,16 @@ def _draw(seed: int, k: int, n: int = 3) -> np.ndarray:
     return out
 
 
-def _shape(u: np.ndarray) -> np.ndarray:
+def _closure(u: float) -> float:
     """Eyelid closure u seconds after a blink began: closes in 80 ms, stays 40 ms, opens over 180 ms."""
     close, hold, open_ = 0.08, 0.04, 0.18
-    return np.where(u < 0, 0.0, np.where(u < close, u / close, np.where(u < close + hold, 1.0,
-                    np.clip(1 - (u - close - hold) / open_, 0, 1))))
+    if u < 0:
+        return 0.0
+    if u < close:
+        return u / close
+    if u < close + hold:
+        return 1.0
+    return min(max(1 - (u - close - hold) / open_, 0.0), 1.0)
 
 
 @dataclass
@@ -57,7 +62,7 @@ class Blinks:
                 self._begin(t + 0.05 * u[0])
         if t >= self.next_at:
             self._begin(self.next_at)
-        closure = float(_shape(np.array(t - self.last)))
+        closure = _closure(t - self.last)
         right = closure * (0.93 + 0.07 * _draw(self.seed, self.count - 1, 1)[0])  # the eyes are never identical
         return closure, right
 
@@ -77,16 +82,21 @@ class Blinks:
 def pitch_semitones(x: np.ndarray, rate: int = 16000, fmin: float = 70.0, fmax: float = 400.0) -> float | None:
     """The fundamental of a short stretch of speech in semitones above 100 Hz (normalized autocorrelation);
     None where it is not clearly voiced."""
-    x = np.asarray(x, np.float64) - np.mean(x)
-    if np.sqrt(np.mean(x**2)) < 1e-3:
+    # (numpy's reductions called directly: the numbers of np.mean, without its wrappers' cost on every frame)
+    x = np.asarray(x)
+    if len(x) == 0:
+        return None
+    x = np.asarray(x, np.float64) - x.dtype.type(np.add.reduce(x) / len(x))
+    x2 = x * x
+    if np.sqrt(np.add.reduce(x2) / len(x)) < 1e-3:
         return None
     lo, hi = int(rate / fmax), int(rate / fmin)
     if len(x) < 2 * hi:
         return None
     n = len(x) - hi
     a = x[:n]
-    windows = np.lib.stride_tricks.sliding_window_view(x, n)[lo:hi]  # (lags, n): x[k:k + n]
-    sq = np.concatenate([[0.0], np.cumsum(x**2)])
+    windows = np.lib.stride_tricks.as_strided(x[lo:], (hi - lo, n), (x.strides[0],) * 2)  # (lags, n): x[k:k + n]
+    sq = np.concatenate([[0.0], np.cumsum(x2)])
     energy = sq[lo + n:hi + n] - sq[lo:hi]
     r = windows @ a / np.sqrt(np.dot(a, a) * energy + 1e-12)
     k = int(np.argmax(r))
@@ -94,6 +104,11 @@ def pitch_semitones(x: np.ndarray, rate: int = 16000, fmin: float = 70.0, fmax: 
     if best < 0.6:
         return None
     return float(12 * np.log2(rate / lag / 100.0))
+
+
+@lru_cache(maxsize=16)
+def _decay(fps: int, release_s: float) -> float:
+    return float(np.exp(-1.0 / (fps * release_s)))
 
 
 @dataclass
@@ -119,10 +134,11 @@ class Brows:
             del self.recent[: max(0, len(self.recent) - int(5 * self.fps))]
         if vowel:
             lo, hi = self.loud_db
-            accent = float(np.clip((below_peak_db - lo) / (hi - lo), 0, 1))
+            accent = min(max(float((below_peak_db - lo) / (hi - lo)), 0.0), 1.0)
             if semitones is not None and len(self.recent) >= self.fps:  # a second of voice to know what is high
-                accent *= 0.6 + 0.4 * float(np.clip((semitones - np.median(self.recent) - self.rise) / self.span, 0, 1))
+                rise = float((semitones - np.median(self.recent) - self.rise) / self.span)
+                accent *= 0.6 + 0.4 * min(max(rise, 0.0), 1.0)
             else:
                 accent *= 0.6
-        self.level = max(accent, self.level * float(np.exp(-1.0 / (self.fps * self.release_s))))
+        self.level = max(accent, self.level * _decay(self.fps, self.release_s))
         return self.gain * self.level

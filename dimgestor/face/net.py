@@ -94,6 +94,7 @@ class ListenerNet:
         convs = [weights[f"conv{j}.weight"] for j in range(len(LAYERS))]
         self.mats = [np.ascontiguousarray(w.transpose(2, 1, 0).reshape(-1, w.shape[0])) for w in convs]
         self.head = np.ascontiguousarray(weights["head.weight"][:, :, 0].T)
+        self.channels = int(convs[0].shape[0])
 
     def layer(self, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Convolution j: its (k * C_in, C_out) matrix and bias."""
@@ -162,15 +163,20 @@ class NetListener:
         self.first_mel = -(-(start_sample + WIN // 2) // HOP) if start_sample else 0
         self.next_mel = self.first_mel
         self.norm_state = None
-        n = len(LAYERS)
-        self.ins = [np.zeros((0, N_MELS if j == 0 else 0), np.float32) for j in range(n)]  # conv inputs (normed)
-        self.raws = [np.zeros((0, 0), np.float32) for _ in range(n)]                       # residual inputs
-        self.ins_at = [self.first_mel] * n        # the frame index of ins[j][0] and raws[j][0]
-        self.made = [self.first_mel] * n          # each layer's next output frame
+        # each layer's inputs (normalised) and residual inputs, from frame ins_at[j] on: zeros before the start,
+        # as far back as its first output's taps reach
+        back = [(k - 1) * d - r for k, d, r in LAYERS]
+        width = [N_MELS] + [self.net.channels] * (len(LAYERS) - 1)
+        self.ins = [np.zeros((b, c), np.float32) for b, c in zip(back, width)]
+        self.raws = [np.zeros((b, c), np.float32) for b, c in zip(back, width)]
+        self.ins_at = [self.first_mel - b for b in back]   # the frame index of ins[j][0] and raws[j][0]
+        self.made = [self.first_mel] * len(LAYERS)        # each layer's next output frame
         self.out = np.zeros((0, OUTPUTS), np.float32)  # the head's outputs, from out_at on
         self.out_at = self.first_mel
         self.next_frame = start_frame
         self.ready: list[tuple[int, Heard]] = []
+        self.pending: list[np.ndarray] = []      # steps' normalised bands not yet through the network, in order
+        self.to_emit: list[int] = []             # face frames to make once they are
 
     @staticmethod
     def late_frames(lookahead_s: float) -> int:
@@ -192,7 +198,8 @@ class NetListener:
         return [h for _, h in listener.ready]
 
     # -- audio in ---------------------------------------------------------------------------------------------
-    def push(self, samples: np.ndarray) -> None:
+    def push(self, samples: np.ndarray, run: bool = True) -> None:
+        """Hear `samples`; run=False leaves the network's steps pending, for `run_many` to run with other streams'."""
         samples = np.asarray(samples, np.float64).reshape(-1)
         self.audio = np.concatenate([self.audio, samples])
         self.audio_end += len(samples)
@@ -200,11 +207,29 @@ class NetListener:
         while self._due(last := (self.next_frame // self.group + 1) * self.group - 1) <= self.audio_end:
             last_mel = self._centre(last) + SMOOTH + RIGHT
             if last_mel >= self.next_mel:
-                self._mel_step(last_mel + 1)
-            while self.next_frame <= last:
-                self._emit(self.next_frame)
-                self.next_frame += 1
-        self._trim()
+                self.pending.append(self._mel_step(last_mel + 1))
+            self.to_emit.extend(range(self.next_frame, last + 1))
+            self.next_frame = last + 1
+        cut = (self.next_mel * HOP - WIN // 2) - self.audio_at  # (the audio of the next 10 ms frame on)
+        if cut > 16000:
+            self.audio, self.audio_at = self.audio[cut:], self.audio_at + cut
+        if run:
+            NetListener.run_many([self])
+
+    @staticmethod
+    def run_many(listeners: list["NetListener"]) -> None:
+        """The pending steps of several streams' listeners through the network together (one matrix product per
+        layer for all of them, each stream's steps in its own order), then their frames made. Each stream's
+        numbers are those it gets alone wherever the matrix product gives a row the same result in any batch."""
+        rounds = max((len(x.pending) for x in listeners), default=0)
+        for k in range(rounds):  # (a stream's k-th step with the others' k-th: the steps a stream takes alone)
+            _layers_many([x for x in listeners if len(x.pending) > k],
+                         [x.pending[k] for x in listeners if len(x.pending) > k])
+        for x in listeners:
+            x.pending = []
+            x._emit(x.to_emit)
+            x.to_emit = []
+            x._trim()
 
     def finish(self, frames: int) -> None:
         """The audio ended: every face frame before `frames` made (silence heard after the end)."""
@@ -225,53 +250,57 @@ class NetListener:
         return int(math.floor(frame * (RATE / HOP) / self.fps + 0.5)) - self.late
 
     # -- the network ------------------------------------------------------------------------------------------
-    def _mel_step(self, upto: int) -> None:
+    def _mel_step(self, upto: int) -> np.ndarray:
+        """The normalised bands of 10 ms frames next_mel..upto - 1 (the network's next step's input)."""
         mel = log_mel(self.audio, self.next_mel, upto - self.next_mel, offset=self.audio_at)
         x, self.norm_state = normalise(mel, self.norm_state, self.net.prior)
         self.next_mel = upto
-        self._layers(x)
+        return x
 
-    def _layers(self, x: np.ndarray) -> None:
-        """New frames of the first layer's input through every layer and the head."""
-        w, h = self.net.w, x
-        for j, (k, d, r) in enumerate(LAYERS):
-            W, b = self.net.layer(j)                           # (k * C_in, C_out), (C_out,)
-            conv_in = h if j == 0 else _layernorm(h, w[f"norm{j}.weight"], w[f"norm{j}.bias"]).astype(np.float32)
-            self.ins[j] = np.concatenate([self.ins[j], conv_in]) if len(self.ins[j]) else conv_in
-            if j:
-                self.raws[j] = np.concatenate([self.raws[j], h]) if len(self.raws[j]) else h
-            upto = self.ins_at[j] + len(self.ins[j]) - r       # outputs whose taps are all in: [made, upto)
-            if upto <= self.made[j]:
-                return
-            t = np.arange(self.made[j], upto)[:, None] + r - (k - 1 - np.arange(k))[None, :] * d  # (n, k) taps
-            src = np.concatenate([np.zeros((1, self.ins[j].shape[1]), np.float32), self.ins[j]])
-            rows = np.where(t >= self.first_mel, t - self.ins_at[j] + 1, 0)                    # zeros before the start
-            cols = src[rows].reshape(len(t), -1)                                                   # (n, k * C_in)
-            y = cols @ W + b
-            g = _gelu(y).astype(np.float32)
-            h = g if j == 0 else (self.raws[j][self.made[j] - self.ins_at[j]:upto - self.ins_at[j]] + g)
-            self.made[j] = upto
-        o = (h @ self.net.head + w["head.bias"]).astype(np.float32)
-        self.out = np.concatenate([self.out, o]) if len(self.out) else o
+    def _taps(self, j: int, h: np.ndarray, conv_in: np.ndarray) -> np.ndarray | None:
+        """Layer j takes in new input rows (conv_in; h: the residual's) -> the (n, k * C_in) taps of the outputs
+        whose taps are all in now (None: none are)."""
+        k, d, r = LAYERS[j]
+        self.ins[j] = np.concatenate([self.ins[j], conv_in])
+        if j:
+            self.raws[j] = np.concatenate([self.raws[j], h])
+        upto = self.ins_at[j] + len(self.ins[j]) - r       # outputs whose taps are all in: [made, upto)
+        n = upto - self.made[j]
+        if n <= 0:
+            return None
+        a = self.made[j] + r - (k - 1) * d - self.ins_at[j]  # the first output's first tap; tap i is i * d later
+        return np.concatenate([self.ins[j][a + i * d:a + i * d + n] for i in range(k)], axis=1)
 
-    def _emit(self, frame: int) -> None:
-        c = self._centre(frame)
-        idx = np.arange(c - SMOOTH, c + SMOOTH + 1)
-        idx = idx[idx >= self.first_mel]
-        if len(idx) == 0:  # (a resumed stream's frames before its first heard audio)
-            self.ready.append((frame, Heard(np.eye(len(CLASSES))[0], 0.0)))
+    def _layer_out(self, j: int, g: np.ndarray) -> np.ndarray:
+        """Layer j's new outputs from their activations g (the residual added after the first layer)."""
+        n = len(g)
+        h = g if j == 0 else (self.raws[j][self.made[j] - self.ins_at[j]:self.made[j] + n - self.ins_at[j]] + g)
+        self.made[j] += n
+        return h
+
+    def _emit(self, frames: list[int]) -> None:
+        """Face frames -> `ready`: each the triangle-weighted mean of the 10 ms frames +-SMOOTH around its time
+        (those heard: a resumed stream's first frames have fewer), probabilities and opening."""
+        if not frames:
             return
-        k = 1.0 + SMOOTH - np.abs(idx - c)
-        k /= k.sum()
-        rows = self.out[idx - self.out_at].astype(np.float64)
-        p = np.exp(rows[:, :-1] - rows[:, :-1].max(1, keepdims=True))
-        p /= p.sum(1, keepdims=True)
-        opening = float(np.clip(np.clip(rows[:, -1], 0, 1) @ k, 0, 1))
-        self.ready.append((frame, Heard(k @ p, opening)))
+        c = np.array([self._centre(f) for f in frames])[:, None]
+        idx = c + np.arange(-SMOOTH, SMOOTH + 1)[None, :]                   # (F, 2 * SMOOTH + 1)
+        k = np.where(idx >= self.first_mel, 1.0 + SMOOTH - np.abs(idx - c), 0.0)
+        total = k.sum(1, keepdims=True)
+        k = k / np.where(total > 0, total, 1.0)
+        out = self.out if len(self.out) else np.zeros((1, OUTPUTS), np.float32)  # (none heard yet: weights 0)
+        rows = out[np.clip(idx - self.out_at, 0, len(out) - 1)].astype(np.float64)  # (F, 5, OUTPUTS)
+        p = np.exp(rows[..., :-1] - rows[..., :-1].max(-1, keepdims=True))
+        p /= p.sum(-1, keepdims=True)
+        visemes = (k[..., None] * p).sum(1)
+        opening = np.clip((np.clip(rows[..., -1], 0, 1) * k).sum(1), 0, 1)
+        for f, t, v, o in zip(frames, total[:, 0], visemes, opening):
+            # (a resumed stream's frames before its first heard audio: silence)
+            self.ready.append((f, Heard(v, float(o)) if t > 0 else Heard(np.eye(len(CLASSES))[0], 0.0)))
 
     def _trim(self) -> None:
         """Keep what the next steps read: each layer's taps back from its next output, the head's outputs back
-        from the next frame's smoothing, the audio of the next 10 ms frame."""
+        from the next frame's smoothing."""
         for j, (k, d, r) in enumerate(LAYERS):
             keep_from = self.made[j] + r - (k - 1) * d
             cut = keep_from - self.ins_at[j]
@@ -283,9 +312,37 @@ class NetListener:
         cut = self._centre(self.next_frame) - SMOOTH - self.out_at
         if cut > 64:
             self.out, self.out_at = self.out[cut:], self.out_at + cut
-        cut = (self.next_mel * HOP - WIN // 2) - self.audio_at
-        if cut > 16000:
-            self.audio, self.audio_at = self.audio[cut:], self.audio_at + cut
+
+
+def _split(x: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
+    return np.split(x, np.cumsum(sizes)[:-1]) if len(sizes) > 1 else [x]
+
+
+def _layers_many(listeners: list[NetListener], xs: list[np.ndarray]) -> None:
+    """One step of each listener (its new rows of normalised bands, xs) through every layer and the head, the
+    streams' rows stacked into one product per layer; a stream whose layer has no new output this step goes no
+    further (its next step carries on)."""
+    net = listeners[0].net
+    w, hs, live = net.w, list(xs), list(listeners)
+    for j in range(len(LAYERS)):
+        W, b = net.layer(j)                                   # (k * C_in, C_out), (C_out,)
+        if j:
+            normed = _layernorm(np.concatenate(hs) if len(hs) > 1 else hs[0], w[f"norm{j}.weight"],
+                                w[f"norm{j}.bias"]).astype(np.float32)
+            ins = _split(normed, [len(h) for h in hs])
+        else:
+            ins = hs
+        taps = [x._taps(j, h, c) for x, h, c in zip(live, hs, ins)]
+        live = [x for x, t in zip(live, taps) if t is not None]
+        taps = [t for t in taps if t is not None]
+        if not live:
+            return
+        y = (np.concatenate(taps) if len(taps) > 1 else taps[0]) @ W + b
+        g = _gelu(y).astype(np.float32)
+        hs = [x._layer_out(j, gi) for x, gi in zip(live, _split(g, [len(t) for t in taps]))]
+    o = ((np.concatenate(hs) if len(hs) > 1 else hs[0]) @ net.head + w["head.bias"]).astype(np.float32)
+    for x, oi in zip(live, _split(o, [len(h) for h in hs])):
+        x.out = np.concatenate([x.out, oi]) if len(x.out) else oi
 
 
 def torch_listener(channels: int = 96):

@@ -75,6 +75,8 @@ class FaceStream:
         self._held = 0                                    # samples in _buf
         self._audio_end = start_sample                    # absolute index after the newest sample
         self._loud = {}                                # frame -> dB of its 40 ms
+        self._peaks: collections.deque = collections.deque()  # (frame, dB), dB falling: the recent peak first
+        self._peak_next: int | None = None             # the next frame the recent peak takes in
         self._speech_run = 0.0                         # seconds of speech before the frame being made
         self._rows: collections.deque = collections.deque()
 
@@ -85,12 +87,30 @@ class FaceStream:
     def push(self, samples: np.ndarray) -> None:
         """Each frame made as soon as the listener's 10 ms block that completes its lookahead is in (pieces cut at
         those blocks on the stream's clock): what a frame reads is the same whatever pieces the audio came in."""
-        samples = np.asarray(samples, np.float32).reshape(-1)
+        FaceStream.push_many([self], [samples])
+
+    @staticmethod
+    def push_many(faces: list["FaceStream"], audio: list[np.ndarray]) -> None:
+        """`push` each stream's audio, the streams' networks stepped together (`NetListener.run_many`: what a
+        server's batch of windows does); each face the same as pushed alone, to the matrix products' rounding."""
+        audio = [np.asarray(x, np.float32).reshape(-1) for x in audio]
+        nets = [f.listener for f in faces if isinstance(f.listener, NetListener)]
+        for f, x in zip(faces, audio):
+            if isinstance(f.listener, NetListener):
+                f.listener.push(x, run=False)
+        NetListener.run_many(nets)
+        for f, x in zip(faces, audio):
+            f._settle(x)
+
+    def _settle(self, samples: np.ndarray) -> None:
+        """The frames whose audio `samples` completes (the network has heard them; the phone listener hears
+        them here)."""
         at = 0
         while at < len(samples):
             piece = samples[at:at + max(1, self._due() - self._audio_end)]
             self._hold(piece)
-            self.listener.push(piece)
+            if not isinstance(self.listener, NetListener):
+                self.listener.push(piece)
             self._make()
             at += len(piece)
 
@@ -146,8 +166,22 @@ class FaceStream:
     def _db(self, frame: int) -> float:
         if frame not in self._loud:
             x = self._window(frame / self.fps, 0.02)
-            self._loud[frame] = 10 * np.log10(np.mean(x.astype(np.float64) ** 2) + 1e-10) if len(x) else -100.0
+            x = x.astype(np.float64)
+            self._loud[frame] = 10 * np.log10(np.add.reduce(x * x) / len(x) + 1e-10) if len(x) else -100.0
         return self._loud[frame]
+
+    def _peak(self, lo: int, hi: int) -> float:
+        """The loudest of frames lo..hi (each bound never falling from one frame to the next): a running maximum,
+        each frame's loudness taken in once."""
+        for j in range(lo if self._peak_next is None else max(self._peak_next, lo), hi + 1):
+            d = self._db(j)
+            while self._peaks and self._peaks[-1][1] <= d:
+                self._peaks.pop()
+            self._peaks.append((j, d))
+        self._peak_next = hi + 1 if self._peak_next is None else max(self._peak_next, hi + 1)
+        while self._peaks[0][0] < lo:
+            self._peaks.popleft()
+        return self._peaks[0][1]
 
     def _frame(self, index: int, heard: list[Segment] | Heard) -> np.ndarray:
         o, t = self.options, index / self.fps
@@ -157,20 +191,21 @@ class FaceStream:
             out, now, closed = self._mouth_of_phones(t, heard)
         # Loudness against the recent peak: the shape in full at the peak, none loud_range_db under it.
         ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
-        peak = max(self._db(j) for j in range(max(0, index - int(o.peak_s * self.fps)), index + ahead + 1))
-        level = float(np.clip((self._db(index) - (peak - o.loud_range_db)) / o.loud_range_db, 0, 1)) ** o.loud_power
-        out[_MOUTH] *= level if self._db(index) >= o.silence_dbfs else 0.0
+        peak = self._peak(max(0, index - int(o.peak_s * self.fps)), index + ahead)
+        db = self._db(index)
+        level = min(max(float((db - (peak - o.loud_range_db)) / o.loud_range_db), 0.0), 1.0) ** o.loud_power
+        out[_MOUTH] *= level if db >= o.silence_dbfs else 0.0
         out[V["PP"]] = max(out[V["PP"]], 1.0 if closed else 0.0)
         out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
-        for old in [k for k in self._loud if k < index - int(o.peak_s * self.fps)]:
-            del self._loud[old]
+        while (first := next(iter(self._loud))) < index - int(o.peak_s * self.fps):  # (in the order they came)
+            del self._loud[first]
         # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
         speaking = now != "SIL"
         phrase_end = not speaking and self._speech_run >= 1.0
         self._speech_run = self._speech_run + 1 / self.fps if speaking else 0.0
         out[V["blinkLeft"]], out[V["blinkRight"]] = self.blinks.step(t, phrase_end)
         semitones = pitch_semitones(self._window(t, 0.02)) if speaking else None
-        out[V["browUp"]] = self.brows.step(semitones, self._db(index) - peak, now in VOWEL_CLASS or now == "ER")
+        out[V["browUp"]] = self.brows.step(semitones, db - peak, now in VOWEL_CLASS or now == "ER")
         out[V["smile"]] = self.smile * (1 - 0.5 * out[V["jawOpen"]])
         return out
 
