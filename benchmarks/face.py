@@ -14,12 +14,19 @@ mouth    every phone-aligned clip (`../shared/data/phone_aligned_speech`: BEAT2'
            no_loudness     the face without the loudness scale (loud_range_db 1e6: the scale is 1 everywhere)
            face_50fps      the face made at 50 fps, scored at 50 fps; beside it the 20 fps face linearly
                            interpolated to 50 fps (what a client shows between frames), scored the same way
+           headaudio       HeadAudio 0.1.0 (npm @met4citizen/headaudio: MFCCs, Gaussian prototypes; pinned in
+                           tests/node), its own code and default settings, offline in Node
+                           (`tests/node/headaudio.mjs`): its 15 Oculus visemes at each frame's time, the jaw
+                           their weights times each viseme's openness (the mean of its phones' in `visemes.py`);
+                           `headaudio_delay100` the same read 100 ms later (its README's delay of the speech)
 blinks   the first `--blink-s` seconds of each take, seeds 0-4: blinks a minute, and the share of consecutive
          intervals between blinks alike within 50 ms (issue: 10-25 a minute, at most a third alike)
 compute  a `streamer.sessions.Session` window (`infer`: the model at K, pose decoding, and the face when it has one)
          without a face, with the face (`face=FaceOptions()`) and with the pocketsphinx face, the embedded default
          model, `--window-ms` windows of a take, in turn, one torch thread: ms per window (wall, and this thread's
          CPU time: what it cost whatever else ran on the machine), and what each face adds
+generate `dimgestor generate` on the first take (60 s; synthetic speech without the data) with `--face-csv` and
+         without, `--generate-runs` times each in turn, the processes' user + sys CPU: the face CSV's cost
 
     .venv/bin/python benchmarks/face.py                    # writes results/face.json and face.png
     .venv/bin/python benchmarks/face.py --windows 100 --steps 4
@@ -40,7 +47,7 @@ TAKES = ("2_scott_0_2_2", "2_scott_0_4_4")  # (the blinks are counted on these)
 RATE = 16000
 TARGETS = {"openness_r": (">=", 0.65), "vowel_top1": (">=", 0.60), "vowel_mean_recall": (">=", 0.55),
            "closures": (">=", 0.5), "rest": ("<=", 0.15), "blinks_per_min": ("in", (10, 25)),
-           "alike_share": ("<=", 1 / 3), "compute_added": ("<=", 0.15)}
+           "alike_share": ("<=", 1 / 3), "compute_added": ("<=", 0.15), "generate_ratio": ("<=", 1.15)}
 SCORES = ("openness_r", "vowel_top1", "vowel_mean_recall", "closures", "rest")
 
 
@@ -56,11 +63,46 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--window-ms", type=int, default=100, help="audio per timed Session window")
     p.add_argument("--windows", type=int, default=200, help="timed windows per arm")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--generate-runs", type=int, default=3, help="`dimgestor generate` runs per arm (0: none)")
     p.add_argument("--out", type=Path, default=RESULTS / "face.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     return args
+
+
+def headaudio_faces(audio: np.ndarray, frames: int, fps: int = 20) -> dict[str, np.ndarray] | str:
+    """HeadAudio's face of `audio` (frames at fps): as it comes, and 100 ms later; or why it was not run."""
+    import json
+    import shutil
+    import subprocess
+    import tempfile
+
+    from dimgestor.face import FACE_LABELS
+    from dimgestor.face.visemes import OPENNESS, PHONES, V, VISEMES, viseme_of
+
+    if shutil.which("node") is None:
+        return "node is not installed"
+    if not (REPO / "tests" / "node" / "node_modules" / "@met4citizen" / "headaudio").is_dir():
+        return "tests/node's packages are not installed (`make test` installs them)"
+    with tempfile.TemporaryDirectory() as tmp:
+        np.asarray(audio, np.float32).tofile(f"{tmp}/speech.f32")
+        subprocess.run(["node", str(REPO / "tests" / "node" / "headaudio.mjs"), f"{tmp}/speech.f32", str(RATE),
+                        f"{tmp}/out.json"], check=True, capture_output=True, timeout=600)
+        out = json.loads(Path(f"{tmp}/out.json").read_text())
+    steps = np.asarray(out["steps"], np.float64)  # step k at (k + 1) * step_s
+    ours = [V[name.removeprefix("viseme_")] for name in out["visemes"]]
+    opening = {v: float(np.mean([OPENNESS[p] for p in PHONES if viseme_of(p) == v])) for v in VISEMES}
+    jaw = np.array([opening[name.removeprefix("viseme_")] for name in out["visemes"]])
+    faces = {}
+    for name, delay in (("headaudio", 0.0), ("headaudio_delay100", 0.1)):
+        k = np.floor((np.arange(frames) / fps + delay) / out["step_s"] + 1e-9).astype(int) - 1  # the latest step
+        rows = np.where((k >= 0)[:, None], steps[np.clip(k, 0, len(steps) - 1)], 0.0)
+        face = np.zeros((frames, len(FACE_LABELS)))
+        face[:, ours] = rows
+        face[:, V["jawOpen"]] = np.clip(rows @ jaw, 0, 1)
+        faces[name] = face
+    return faces
 
 
 def stream_face(audio: np.ndarray, fps: int, lookahead_s: float, options, chunk: int):
@@ -144,6 +186,11 @@ def mouth(takes: dict, args) -> dict:
         r["face_50fps"] = {**mouth_scores(face50, phones, 50),
                            "face_s_per_audio_s": (time.perf_counter() - t0) / (len(audio) / RATE)}
         r["face_20fps_at_50"] = mouth_scores(resample_face(face, 20, 50), phones, 50)
+        peers = headaudio_faces(audio, len(face))
+        if isinstance(peers, str):
+            print(f"HeadAudio not run: {peers}", flush=True)
+        else:
+            r.update({k: mouth_scores(v, phones, 20) for k, v in peers.items()})
         out[name] = {"held_out": name not in trained_on, "seconds": round(len(audio) / RATE, 2), **rounded(r)}
         print(f"{name}: " + ", ".join(f"{s} r {v['openness_r']:.3f}" for s, v in r.items()), flush=True)
     return out
@@ -209,6 +256,33 @@ def compute(audio: np.ndarray, args) -> dict:
                if "body_face_pocketsphinx" in rows else {})}
 
 
+def generate_cost(audio: np.ndarray, args) -> dict:
+    """User + sys CPU of `dimgestor generate` with `--face-csv` and without, runs in turn: the median ratio."""
+    import resource
+    import subprocess
+    import tempfile
+
+    from dimgestor.audio import save_wav
+
+    cpu: dict[str, list[float]] = {"body": [], "body_face": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        wav = Path(tmp) / "speech.wav"
+        save_wav(wav, audio, RATE)
+        for k in range(args.generate_runs):
+            for arm in (list(cpu) if k % 2 == 0 else list(cpu)[::-1]):
+                cmd = [str(Path(sys.executable).with_name("dimgestor")), "generate", "--audio", str(wav),
+                       "--out", f"{tmp}/out.bvh"]
+                if arm == "body_face":
+                    cmd += ["--face-csv", f"{tmp}/out.face.csv"]
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                subprocess.run(cmd, check=True, capture_output=True, cwd=REPO)
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu[arm].append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    body, face = float(np.median(cpu["body"])), float(np.median(cpu["body_face"]))
+    return {"audio_s": len(audio) / RATE, "runs": args.generate_runs, "cpu_s": cpu, "cpu_s_median_body": body,
+            "cpu_s_median_body_face": face, "ratio": face / body}
+
+
 def verdict(result: dict) -> dict:
     """Each target: the worst value over the takes (and seeds) against it."""
     out = {}
@@ -228,6 +302,9 @@ def verdict(result: dict) -> dict:
     c = result["compute"]
     out["compute_added"] = {"cpu": c["added_cpu"], "target": TARGETS["compute_added"],
                             "met": _met(c["added_cpu"], TARGETS["compute_added"])}
+    if g := result.get("generate"):
+        out["generate_ratio"] = {"ratio": g["ratio"], "target": TARGETS["generate_ratio"],
+                                 "met": _met(g["ratio"], TARGETS["generate_ratio"])}
     return out
 
 
@@ -309,6 +386,10 @@ def main(argv=None) -> int:
     print(f"Session window K={args.steps}: {c['body']['ms_p50']:.2f} ms, with the face {c['body_face']['ms_p50']:.2f} ms "
           f"(+{100 * c['added_p50']:.1f} % p50, +{100 * c['added_mean']:.1f} % mean, +{100 * c['added_cpu']:.1f} % CPU "
           f"time)", flush=True)
+    if args.generate_runs:
+        result["generate"] = g = generate_cost(speech[: 60 * RATE], args)
+        print(f"dimgestor generate on {g['audio_s']:.0f} s: {g['cpu_s_median_body']:.2f} s CPU, with the face CSV "
+              f"{g['cpu_s_median_body_face']:.2f} s ({g['ratio']:.2f}x)", flush=True)
     result["targets_met"] = verdict(result)
     result["load_avg_after"] = load_average()
     write_json(args.out, result)
