@@ -63,7 +63,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--window-ms", type=int, default=100, help="audio per timed Session window")
     p.add_argument("--windows", type=int, default=200, help="timed windows per arm")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    p.add_argument("--generate-runs", type=int, default=3, help="`dimgestor generate` runs per arm (0: none)")
+    p.add_argument("--generate-runs", type=int, default=5, help="`dimgestor generate` runs per arm (0: none)")
     p.add_argument("--out", type=Path, default=RESULTS / "face.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)

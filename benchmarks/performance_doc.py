@@ -31,7 +31,8 @@ SOURCES = {
     "vmc_jitter": "latency_vmc_jitter50.json",  # the same with --vmc-jitter-ms 50
     "talk": "latency_talk_worker.json",  # the viewer's Talk button (the newest run of each avatar)
     "gpu": "onnx_cuda.json",  # many streams on one GPU
-    "face": "face.json",  # a Session window with and without the face
+    "face": "face.json",  # a Session window with and without the face; generate with and without its CSV
+    "face_streams": "face_streams.json",  # streams per process with a face on each, against none
 }
 CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")  # one machine; the face's
 # cost is a ratio of two arms of one run, whose machine its section names
@@ -236,8 +237,26 @@ def face(r: dict[str, dict]) -> list[str]:
             f"{c['window_ms']} ms windows, one thread, measured on {machine(r['face']['device'])}. Streams without a "
             "face (`--face none`, or clients that do not ask) cost what the streams-per-process counts above say; "
             f"each stream with one costs the difference more (+{100 * c['added_cpu']:.0f} % CPU on this model"
-            f"{other}), and the listener is not batched across streams.", "",
-            *table(["", "ms a window (median)", "CPU ms a window (mean)"], rows), "", source("face"), ""]
+            f"{other}).{generate(r)}", "",
+            *table(["", "ms a window (median)", "CPU ms a window (mean)"], rows), "", source("face"), "",
+            *face_batched(r)]
+
+
+def generate(r: dict[str, dict]) -> str:
+    g = r["face"].get("generate")
+    return (f" `dimgestor generate --face-csv` takes {g['ratio']:.2f}x the CPU of `generate` ({g['audio_s']:.0f} s "
+            "of speech).") if g else ""
+
+
+def face_batched(r: dict[str, dict]) -> list[str]:
+    """The faces of a batch's streams run together: streams per process with a face on each, and `generate`."""
+    f, lines = r["face_streams"], []
+    arms = f["arms"]
+    lines.append(f"A batch's faces are made together (the listener's layers as one product for all its streams): "
+                 f"one process kept {arms['face']['max_realtime_streams']} real-time streams with a face on each "
+                 f"against {arms['no face']['max_realtime_streams']} without ({f['ratio']:.2f} as many; K = "
+                 f"{f['steps']}, {f['window_ms']} ms windows, measured on {machine(f['device'])}).")
+    return [*lines, "", source("face_streams"), ""]
 
 
 def render(results: Path = RESULTS) -> str:

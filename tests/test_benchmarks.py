@@ -361,3 +361,31 @@ def test_generate_memory_benchmark_writes_its_schema(tmp_path):
     for x in r["runs"]:
         for k in ("streamed_bvh", "glb", "whole"):
             assert finite(x[f"{k}_peak_rss_mb"]) and x[f"{k}_peak_rss_mb"] > 50 and x[f"{k}_wall_s"] > 0, (k, x)
+
+
+def test_headaudio_runs_its_own_code_offline_and_gives_a_face_the_scores_read():
+    """HeadAudio (npm, pinned in tests/node) through tests/node/headaudio.mjs, as benchmarks/face.py runs it beside
+    the face: its 15 visemes every 10 ms, within its own maxima, resting in the leading silence and moving on the
+    speech; face.py's frames of it (as it comes, and 100 ms late) carry a jaw from those visemes."""
+    from helpers.gltf_validator import NODE, NODE_DIR
+
+    if NODE is None or not (NODE_DIR / "node_modules" / "@met4citizen" / "headaudio").is_dir():
+        pytest.skip(f"node or npm @met4citizen/headaudio not installed: run `make test` or `npm ci` in {NODE_DIR}")
+    sys.path.insert(0, str(BENCH))
+    try:
+        import face
+    finally:
+        sys.path.remove(str(BENCH))
+    from dimgestor.audio import SAMPLE_RATE, load_wav
+    from dimgestor.face.visemes import V
+    from helpers.clients import SPEECH_WAV
+
+    audio = np.concatenate([np.zeros(SAMPLE_RATE, np.float32), load_wav(SPEECH_WAV)[: 3 * SAMPLE_RATE]])
+    faces = face.headaudio_faces(audio, 80)
+    assert not isinstance(faces, str), faces
+    assert set(faces) == {"headaudio", "headaudio_delay100"}
+    for name, f in faces.items():
+        assert f.shape == (80, len(V)) and f.min() >= 0 and f[:, :15].max() <= 0.75, name
+        assert f[:18, V["jawOpen"]].max() == 0.0, name  # nothing heard in the leading second
+        assert f[25:, V["jawOpen"]].max() > 0.2 and len(set(np.argmax(f[25:, :15], axis=1))) >= 3, name
+    np.testing.assert_array_equal(faces["headaudio"][2:], faces["headaudio_delay100"][:-2])  # 100 ms: 2 frames
