@@ -207,13 +207,13 @@ def gpu(r: dict[str, dict]) -> list[str]:
              ms(x["onnxruntime"]["ms_p50"]) + ("" if x["onnxruntime"]["realtime"] else " (not real time)")]
             for x in sorted(g["rows"], key=lambda x: x["batch"])]
     best = g["largest_realtime_batch"]
-    # `dimgestor serve` has no device option and its ONNX sessions are CPU-only: this is what a GPU could do, not
-    # what serving does today (issue 47)
-    return ["## Many streams on one GPU (a benchmark, not yet served)", "",
-            "`dimgestor serve` runs on the CPU today: it has no device option, and its ONNX Runtime sessions use the "
-            "CPU provider. A GPU speeds up training (`dimgestor train --device cuda`) and `dimgestor generate "
-            "--device cuda`. What one GPU could serve was measured by `benchmarks/onnx_cuda.py`, which runs the "
-            "same graphs in its own loop: "
+    # what a GPU does in the benchmark's own loop; `serve --device cuda` through real clients is not measured yet
+    # (issue 50: where a GPU machine is lent)
+    return ["## Many streams on one GPU (a benchmark's own loop)", "",
+            "`dimgestor serve --device cuda` runs the model on an NVIDIA GPU (torch's CUDA build; with `--backend "
+            "onnxruntime`, the onnxruntime-gpu package's CUDA provider), the windows of all streams batched as on "
+            "the CPU; how many avatars it keeps through `serve` itself is not measured yet. What one GPU can do "
+            "was measured by `benchmarks/onnx_cuda.py`, which runs the same graphs in its own loop: "
             f"on an {g['device'].split(',')[0]}, the embedded default model, K = {g['steps']}, "
             f"{g['window_ms']:g} ms windows, B streams in lockstep, the median ms of a round from the host's audio to "
             f"the host's frames (real time: under {g['window_ms']:g} ms). That loop keeps **{best['onnxruntime']:,} "

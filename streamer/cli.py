@@ -74,16 +74,12 @@ def register_serve(sub) -> argparse.ArgumentParser:
                        description="Audio in (microphone, WAV file, or WebSocket clients' own audio), gesture "
                                    "frames out to WebSocket clients (protocol: docs/protocol.md), a VMC receiver "
                                    "and/or a BVH file. Ctrl-C stops cleanly and finishes the recording.",
-                       epilog=examples(*SERVE_EXAMPLES, deprecated="--osc (now --vmc), --device (now "
-                                       "--input-device: the audio input; --device is the torch device of train "
-                                       "and generate)"))
+                       epilog=examples(*SERVE_EXAMPLES, deprecated="--osc (now --vmc)"))
     actions = {}
     for title, flags in (("input", _input_flags), ("model and sampling", _model_flags), ("outputs", _output_flags),
                          ("network and security", _network_flags), ("operations", _operations_flags)):
         actions |= flags(s.add_argument_group(title))
     deprecated_alias(s, "--osc", actions["osc"])
-    deprecated_alias(s, "--device", actions["device"],
-                     note=" on serve (the audio input; --device is the torch device of train and generate)")
     s.set_defaults(func=run_serve)
     return s
 
@@ -135,6 +131,10 @@ def _model_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--no-batch", action="store_true",
               help="infer each stream's windows alone (without it, the windows of all streams due at once run "
                    "as one batched forward per sampler step)"),
+        _flag(g, "--device", "compute_device", metavar="cpu|cuda|cuda:N",
+              help="where the model runs: the CPU, or an NVIDIA GPU (torch's CUDA build; with --backend "
+                   "onnxruntime, the onnxruntime-gpu package), the windows of all streams batched as on the CPU; "
+                   "the face's listener stays on the CPU. The microphone is --input-device"),
         _flag(g, "--backend", choices=("torch", "onnxruntime"),
               help="torch, or onnxruntime: the model's ONNX export (dimgestor export-onnx) on ONNX Runtime's CPU "
                    "provider, the due windows of all streams as calls of its batched graphs (--no-batch: each "

@@ -9,6 +9,8 @@ the source, the model and the sinks is `streamer.server.build`'s job.
 
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 from typing import Literal
 
@@ -26,8 +28,10 @@ class ServeError(RuntimeError):
 
 HostPort = tuple[str, int]
 # The fields whose flag is not named after them (renamed flags: the fields kept their names for the code that reads
-# them; `--osc` and serve's `--device` are still accepted, as deprecated spellings)
-FLAGS = {"osc": "--vmc", "device": "--input-device"}
+# them; `--osc` is still accepted, as a deprecated spelling; `--device` was the input device's until it became the
+# compute device's)
+FLAGS = {"osc": "--vmc", "device": "--input-device", "compute_device": "--device"}
+COMPUTE_DEVICE = re.compile(r"cpu|cuda(:\d+)?")
 
 
 def flag_of(field: str) -> str:
@@ -59,6 +63,7 @@ class ServeOptions(BaseModel):
     smooth: float | None = None  # One Euro cutoff in Hz, 0 = off; None: the checkpoint's setting
     window_ms: int = Field(200, ge=10, le=5000)
     no_batch: bool = False
+    compute_device: str = "cpu"  # --device: where the model runs: cpu, cuda, cuda:N
     backend: Literal["torch", "onnxruntime"] = "torch"  # onnxruntime: the ONNX export (its batched graphs)
     onnx: str | None = None  # with backend onnxruntime: an export folder of the checkpoint (else exported at start)
     onnx_cache: str | None = None  # with backend onnxruntime and no --onnx: where exports are kept (None: per-user)
@@ -137,6 +142,14 @@ class ServeOptions(BaseModel):
         if bad:
             raise ValueError(f"--allow-origin {bad[0]!r} is not an origin (scheme://host[:port], e.g. "
                              f"http://myapp.example:3000, or '*')")
+        return value
+
+    @field_validator("compute_device")
+    @classmethod
+    def _compute_device(cls, value):
+        if not COMPUTE_DEVICE.fullmatch(value):  # (what --device meant on serve before: the microphone)
+            raise ValueError(f"--device {value!r}: the device the model runs on (cpu, cuda or cuda:N); a microphone "
+                             f"is --input-device (--input-device {value})")
         return value
 
     @field_validator("guidance")

@@ -97,11 +97,12 @@ def build(options: ServeOptions) -> Pipeline:
     state_key = read_state_secret(options)
     source = _source(options)  # fail early: before the model loads
     humanoid = _humanoid_map(options.humanoid_map)
-    bundle = _load(options.checkpoint)
+    device = _compute_device(options)
+    bundle = _load(options.checkpoint, device if options.backend == "torch" else "cpu")  # (ONNX Runtime's own)
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
-    scheduler = _scheduler(options.no_batch, onnx)
+    scheduler = _scheduler(options.no_batch, onnx, device)
     metrics = _metrics(scheduler)
     admission = _admission(options, bundle, face, metrics, scheduler)
     # one more session: a WebSocket client's own audio (its keyword arguments: Session's own, e.g. face=None)
@@ -176,20 +177,46 @@ def _humanoid_map(path: str | None):
         raise ServeError(str(e)) from None
 
 
-def _load(checkpoint: str | None):
+def _compute_device(options: ServeOptions) -> str:
+    """--device, checked before anything loads: "cpu", or a CUDA GPU this machine has (and, with --backend
+    onnxruntime, an ONNX Runtime with the CUDA provider); else one line saying why not."""
+    device = options.compute_device
+    if device == "cpu":
+        return device
+    import torch
+
+    if not torch.cuda.is_available():
+        build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, but no GPU visible"
+        raise ServeError(f"--device {device}: no NVIDIA GPU here (torch {torch.__version__}: {build}); serve on the "
+                         "CPU (leave out --device), or install torch's CUDA build on a machine with one "
+                         "(docs/install.md)")
+    count, index = torch.cuda.device_count(), int(device.partition(":")[2] or 0)
+    if index >= count:
+        raise ServeError(f"--device {device}: this machine has {count} GPU{'s' * (count != 1)} (cuda:0.."
+                         f"cuda:{count - 1})")
+    if options.backend == "onnxruntime":
+        import onnxruntime as ort
+
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise ServeError(f"--device {device} --backend onnxruntime: this ONNX Runtime has no CUDA provider "
+                             "(the onnxruntime package is CPU-only: install onnxruntime-gpu in its place)")
+    return device
+
+
+def _load(checkpoint: str | None, device: str = "cpu"):
     from dimgestor.streaming.checkpoint import CheckpointError, load_checkpoint
 
     try:
-        return load_checkpoint(checkpoint)
+        return load_checkpoint(checkpoint, device=device)
     except (CheckpointError, OSError, ValueError) as e:
         raise ServeError(f"cannot load {checkpoint or 'the embedded default model'}: {e}") from None
 
 
-def _scheduler(no_batch: bool, onnx: OnnxModel | None = None):
+def _scheduler(no_batch: bool, onnx: OnnxModel | None = None, device: str = "cpu"):
     if no_batch:
         return RankedScheduler(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
-        return onnx_batchers(onnx, inference_threads())
+        return onnx_batchers(onnx, inference_threads() if device == "cpu" else 1)  # (a GPU: one lane)
     import torch
 
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread
@@ -261,7 +288,7 @@ def _onnx_model(options: ServeOptions, bundle, steps: int, guidance: float) -> O
     """--backend onnxruntime: the export loaded once for every session (`_onnx_export`)."""
     from dimgestor.export.onnx_stream import OnnxModel
 
-    return OnnxModel.load(_onnx_export(options, bundle, steps, guidance))
+    return OnnxModel.load(_onnx_export(options, bundle, steps, guidance), device=options.compute_device)
 
 
 def _onnx_export(options: ServeOptions, bundle, steps: int, guidance: float) -> str:
@@ -514,7 +541,8 @@ def _banner(p: Pipeline) -> str:
              + (f"guidance {p.guidance:g}, " if p.guidance != 1.0 else "") + f"{smooth}, "
              f"{int(fps) if float(fps).is_integer() else fps} fps, window {o.window_ms} ms, "
              f"lookahead {session.lookahead_s * 1000:.0f} ms"
-             + (", backend onnxruntime" if o.backend == "onnxruntime" else "") + f"; source: {what}"]
+             + (", backend onnxruntime" if o.backend == "onnxruntime" else "")
+             + (f", on {o.compute_device}" if o.compute_device != "cpu" else "") + f"; source: {what}"]
     lines += [line for sink in p.sinks for line in sink.describe().splitlines()]
     if o.state_store is not None:
         lines.append("saved sessions sealed with the workers' shared secret" if session.state_key else

@@ -31,7 +31,7 @@ def test_every_flag_is_a_field_of_the_same_name_and_every_field_a_flag():
     assert set(flags) == set(ServeOptions.model_fields)
     assert all(flag == flag_of(name) for name, flag in flags.items())
     renamed = {name: flag for name, flag in flags.items() if flag != "--" + name.replace("_", "-")}
-    assert renamed == FLAGS == {"osc": "--vmc", "device": "--input-device"}
+    assert renamed == FLAGS == {"osc": "--vmc", "device": "--input-device", "compute_device": "--device"}
 
 
 def test_no_flags_give_the_options_defaults():
@@ -49,13 +49,23 @@ def test_flags_map_onto_their_fields():
 
 
 def test_the_old_spellings_set_the_same_fields_and_say_once_what_replaced_them(capsys):
-    assert parse("--osc", "127.0.0.1:39539", "--device", "USB") == parse("--vmc", "127.0.0.1:39539",
-                                                                          "--input-device", "USB")
+    assert parse("--osc", "127.0.0.1:39539") == parse("--vmc", "127.0.0.1:39539")
     err = capsys.readouterr().err.splitlines()
-    assert [line.split(" is now ")[0] for line in err] == ["dimgestor serve: --osc", "dimgestor serve: --device"]
-    assert err[0].endswith("--osc is now --vmc") and "--input-device" in err[1] and "torch device" in err[1]
+    assert err == ["dimgestor serve: --osc is now --vmc"]
     assert parse("--osc", "h:1", "--osc", "h:2").osc == ("h", 2)  # the last one wins, as for any option
     assert len(capsys.readouterr().err.splitlines()) == 1  # said once
+
+
+def test_device_is_where_the_model_runs_and_a_microphone_given_to_it_points_to_input_device():
+    """serve's --device was the microphone's (a deprecated spelling of --input-device): it is now the device the
+    model runs on, and an index or a name that is no such device is refused with a one-line pointer."""
+    assert parse().compute_device == "cpu"
+    assert [parse("--device", d).compute_device for d in ("cpu", "cuda", "cuda:1")] == ["cpu", "cuda", "cuda:1"]
+    for given in ("2", "USB Mic", "cuda:x", "gpu"):
+        with pytest.raises(ServeError) as e:
+            parse("--device", given)
+        assert str(e.value) == (f"--device {given!r}: the device the model runs on (cpu, cuda or cuda:N); a "
+                                f"microphone is --input-device (--input-device {given})")
 
 
 def test_options_are_frozen_and_refuse_unknown_names():

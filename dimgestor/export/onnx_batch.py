@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from ..audio import check_audio
-from .onnx_stream import FrameStepStream, OnnxModel, OnnxStreamState, initial_tensor
+from .onnx_stream import FrameStepStream, OnnxModel, OnnxStreamState, initial_tensor, providers
 
 __all__ = ["BatchRunner", "BatchStats", "push_many"]
 
@@ -46,7 +46,8 @@ class BatchRunner:
 
     cost: seconds per call by graph size, measured at load (`plan` mixes sizes by it); give it to skip that."""
 
-    def __init__(self, folder: str | Path, manifest: dict, threads: int = 1, cost: dict[int, float] | None = None):
+    def __init__(self, folder: str | Path, manifest: dict, threads: int = 1, cost: dict[int, float] | None = None,
+                 device: str = "cpu"):
         import onnxruntime as ort
 
         self.manifest, self.threads = manifest, threads
@@ -55,7 +56,7 @@ class BatchRunner:
         opts.inter_op_num_threads = 1
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         graphs = {1: manifest["graph"], **{e["batch"]: e["graph"] for e in manifest.get("batched", [])}}
-        self.sessions = {b: ort.InferenceSession(str(Path(folder) / g), opts, providers=["CPUExecutionProvider"])
+        self.sessions = {b: ort.InferenceSession(str(Path(folder) / g), opts, providers=providers(device))
                          for b, g in sorted(graphs.items())}
         self.sizes = sorted(self.sessions)
         self.states = manifest["state"]
@@ -68,7 +69,7 @@ class BatchRunner:
     @classmethod
     def of(cls, model: OnnxModel, threads: int = 1) -> "BatchRunner":
         """Sessions on a loaded export's graphs: the calls of many of its streams as few calls (`push_many`)."""
-        return cls(model.folder, model.manifest, threads)
+        return cls(model.folder, model.manifest, threads, device=model.device)
 
     # ---- shapes ----------------------------------------------------------------------------------
 

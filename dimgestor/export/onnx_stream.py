@@ -24,7 +24,7 @@ from ..smoothing import OneEuroState
 from ..streaming.stream import make_smoother
 
 __all__ = ["FrameStepStream", "OnnxStreamState", "OnnxModel", "MANIFEST", "initial_tensor", "load_manifest", "ort_runner",
-           "torch_runner", "ort_stream"]
+           "providers", "torch_runner", "ort_stream"]
 
 Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
 MANIFEST = "manifest.json"  # an export folder's description of its graphs (`dimgestor.export.onnx_export.manifest_of`)
@@ -133,8 +133,17 @@ class FrameStepStream:
         return frames
 
 
-def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
-    """ONNX Runtime's CPU session on the exported graph, `threads` intra-op threads (1: the real-time setting).
+def providers(device: str = "cpu") -> list:
+    """ONNX Runtime's execution providers for `device`: "cpu", or "cuda[:N]": the CUDA provider on GPU N (the
+    onnxruntime-gpu package), the CPU's for any node it does not run."""
+    if device == "cpu":
+        return ["CPUExecutionProvider"]
+    return [("CUDAExecutionProvider", {"device_id": int(device.partition(":")[2] or 0)}), "CPUExecutionProvider"]
+
+
+def ort_runner(folder: str | Path, threads: int = 1, device: str = "cpu") -> Runner:
+    """ONNX Runtime's session on the exported graph, `threads` intra-op threads (1: the real-time setting), on
+    `device` (`providers`).
 
     The states stay ONNX Runtime's own values (`OrtValue`) from one call to the next, bound as the next call's
     inputs where the last one wrote them: converting them to numpy and back copied every state twice a call
@@ -148,7 +157,7 @@ def ort_runner(folder: str | Path, threads: int = 1) -> Runner:
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    session = ort.InferenceSession(str(folder / manifest["graph"]), opts, providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(str(folder / manifest["graph"]), opts, providers=providers(device))
     names = [o.name for o in session.get_outputs()]
     states = {s["output"] for s in manifest["state"]}
 
@@ -190,10 +199,11 @@ class OnnxModel:
     folder: Path
     manifest: dict
     run: Runner
+    device: str = "cpu"  # where its sessions run: "cpu" or "cuda[:N]" (`providers`)
 
     @classmethod
-    def load(cls, folder: str | Path, threads: int = 1) -> "OnnxModel":
-        return cls(Path(folder), load_manifest(folder), ort_runner(folder, threads))
+    def load(cls, folder: str | Path, threads: int = 1, device: str = "cpu") -> "OnnxModel":
+        return cls(Path(folder), load_manifest(folder), ort_runner(folder, threads, device), device)
 
     def stream(self, seed: int = 0, smoothing="config", lookahead_s: float | None = None) -> FrameStepStream:
         return FrameStepStream(self.manifest, self.run, seed, smoothing, lookahead_s)
