@@ -389,3 +389,25 @@ def test_headaudio_runs_its_own_code_offline_and_gives_a_face_the_scores_read():
         assert f[:18, V["jawOpen"]].max() == 0.0, name  # nothing heard in the leading second
         assert f[25:, V["jawOpen"]].max() > 0.2 and len(set(np.argmax(f[25:, :15], axis=1))) >= 3, name
     np.testing.assert_array_equal(faces["headaudio"][2:], faces["headaudio_delay100"][:-2])  # 100 ms: 2 frames
+
+
+def test_window_profile_benchmark_writes_its_schema(tmp_path):
+    """benchmarks/window_profile.py at its smallest (torch): every part of the window timed where it runs, each
+    called as often as a window calls it, their sum the window; guidance's cost the two arms' difference."""
+    out = tmp_path / "window_profile.json"
+    run("window_profile.py", "--windows", "3", "--warmup", "8", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code_version"] and r["device"].startswith("CPU") and r["steps"] == 4 and r["windows"] == 3
+    guided, unguided = r["torch"]["guided"], r["torch"]["unguided"]
+    assert guided["guidance"] > 1 and unguided["guidance"] == 1
+    for arm in (guided, unguided):
+        parts = arm["parts"]
+        assert list(parts)[:-1] == ["front end", "style", "extractor rest", "modulations", "encoder", "blocks", "final",
+                                    "noise", "sampler rest", "stream rest", "decoder", "face", "framing"]
+        assert all(parts[p]["cpu_ms"] > 0 for p in parts if p != "other"), parts
+        assert parts["encoder"]["calls_per_window"] == parts["final"]["calls_per_window"] == r["steps"]
+        assert parts["face"]["calls_per_window"] == parts["decoder"]["calls_per_window"] == 1
+        assert math.isclose(sum(p["cpu_ms"] for p in parts.values()), arm["window_cpu_ms_mean"], rel_tol=1e-6)
+        assert arm["frames_per_window"] == 2 and arm["encoding_ms_per_window"]["json"] > 0
+    assert r["torch"]["guidance_cpu_ms"] == guided["window_cpu_ms_mean"] - unguided["window_cpu_ms_mean"]

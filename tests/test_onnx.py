@@ -2,6 +2,7 @@
 shapes are the torch stream's, and ORT frames equal torch frames streamed in odd chunks with the state carried."""
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -559,3 +560,23 @@ def test_serve_on_onnxruntime_batches_clients_and_each_gets_what_it_gets_alone(e
     for a, b in zip(shared, alone):
         assert a.shape == b.shape == (len(clips[0]) * 20 // SAMPLE_RATE, a.shape[1])
         assert np.abs(a - b).max() <= 2e-5  # rounded to 5 decimals (root) and 6 (rotations) in the JSON
+
+
+def test_the_window_profile_splits_an_export_by_the_models_parts(exported, audio, tmp_path):
+    """benchmarks/window_profile.py's ONNX Runtime arm on an export: the window as serve runs it, and the profiler's
+    node times by the part the exporter recorded for each node."""
+    import argparse
+    import sys
+
+    bench = str(Path(__file__).resolve().parents[1] / "benchmarks")
+    sys.path.insert(0, bench)
+    try:
+        import window_profile
+    finally:
+        sys.path.remove(bench)
+    args = argparse.Namespace(window_ms=100, windows=4, warmup=2, out=tmp_path / "wp.json")
+    r = window_profile.onnx_arm(exported, audio, args)
+    assert r["steps"] == STEPS and r["window_ms_mean"] > 0 and r["profiled_window_ms_mean"] > r["window_ms_mean"]
+    assert {"front end", "style", "sampler (K steps)", "states"} <= set(r["parts_ms"]), r["parts_ms"]
+    assert all(v > 0 for v in r["parts_ms"].values()) and r["nodes_run_per_window"]["sampler (K steps)"] > 100
+    assert not list(tmp_path.glob("wp_ort*"))  # the profiler's trace is read and removed
