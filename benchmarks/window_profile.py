@@ -24,8 +24,8 @@ torch    `Session.infer` of `--window-ms` windows of speech, one thread, with th
 onnxruntime  with `--onnx DIR` (an export of the same model, `dimgestor export-onnx --out DIR`): the window as
          `serve --backend onnxruntime` runs it (one thread), then again with ONNX Runtime's profiler on, each node's
          time summed by the part of the model it belongs to (the module scope the exporter records with it; the
-         sampler's K steps are one part). The profiler adds a few microseconds to each of the graph's ~2,800
-         nodes, so its parts are shares of a slower window: read them beside each part's nodes run.
+         sampler's K steps are one part). The profiler adds a few microseconds to each of the ~2,400
+         nodes a window runs, so its parts are shares of a slower window: read them beside each part's nodes run.
 
     .venv/bin/python benchmarks/window_profile.py                    # writes results/window_profile.json, .png
     .venv/bin/python benchmarks/window_profile.py --onnx /tmp/k4     # with ONNX Runtime's parts
