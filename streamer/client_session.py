@@ -155,7 +155,16 @@ class _SavesAndResumes:
             raise P.ProtocolError("resume_failed", "a resume_session is under way")
         if self.seats.full:
             return self._busy()
-        return [*self._take_seat(), TakeState(token)]  # (held while the store answers: no one else gets it)
+        out: list[Action] = []
+        if self.face_withheld:  # (the last session's): this one asks again
+            self.face_withheld, self.layout_due = False, True
+        # held to capacity as a new session is: refused with when to try again (the token stays unused), or
+        # resumed without its face where the server says so (`--faces-beyond-capacity no-face`)
+        if (refused := self.seats.refusal(self._face_wanted())) is not None:
+            if not (self._face_wanted() and self.seats.withholds_face(refused)):
+                return self._refuse("capacity", "busy", *refused)
+            out = self._withhold_face(*refused)
+        return [*out, *self._take_seat(), TakeState(token)]  # (held while the store answers: no one else gets it)
 
     def _on_Taken(self, e: Taken) -> list[Action]:
         if e.data is not None and e.error is None and e.live_s is None:

@@ -277,3 +277,44 @@ def test_with_no_face_beyond_capacity_the_crowd_is_admitted_the_faces_that_fit_w
     for who in [talker, *crowd]:
         assert who.percentile(*span) <= bound, (who.percentile(*span), talker.percentile(*quiet), fit)
     assert not again.errors and layout(again) == ["face"] and again.end["frames"] == 40
+
+
+@pytest.mark.parametrize("without_face", [False, True])
+def test_a_resumed_session_is_held_to_capacity_as_a_new_one(without_face):
+    """resume_session at capacity: `busy` with retry_after_s, no seat taken and the token not asked for (it stays
+    valid for the retry or another worker); with `--faces-beyond-capacity no-face`, resumed without its face, and
+    told. A worker with room takes the seat and asks the store for the state, as before."""
+    from streamer.client_events import Refused, Send
+
+    class Full:
+        retry_after_s = 5.0
+
+        def __init__(self):
+            self.without_face, self.room, self.admitted_faces = without_face, False, []
+
+        def refusal(self, face):
+            return None if self.room or not face else ("this worker is at capacity for faces (...): try again after "
+                                                       "retry_after_s")
+
+        def admitted(self, face):
+            self.admitted_faces.append(face)
+
+        def freed(self, face):
+            self.admitted_faces.remove(face)
+
+    full = Full()
+    seats = S.Seats(S.Terms(max_sessions=4, face="arkit", resumable=True), full)
+    c = S.ClientSession(seats, new_token=lambda: "t")
+    c.handle(S.Text(json.dumps({"type": "hello", "face": "arkit"})))
+    out = c.handle(S.Text(json.dumps({"type": "resume_session", "token": "tok"})))
+    sent = [json.loads(a.message) for a in out if isinstance(a, Send)]
+    if not without_face:
+        assert out[0] == Refused("capacity") and not any(isinstance(a, (S.TakeSeat, S.TakeState)) for a in out)
+        assert sent == [{"type": "error", "code": "busy", "retry_after_s": 5.0,
+                         "message": "this worker is at capacity for faces (...): try again after retry_after_s"}]
+        full.room = True  # ... room again: the retry resumes with its face
+        assert c.handle(S.Text(json.dumps({"type": "resume_session", "token": "tok"}))) == [
+            S.TakeSeat(face=True), S.TakeState("tok")]
+    else:
+        assert [m["code"] for m in sent] == ["face_withheld"] and sent[0]["retry_after_s"] == 5.0
+        assert out[-2:] == [S.TakeSeat(face=False), S.TakeState("tok")]
