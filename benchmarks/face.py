@@ -323,7 +323,7 @@ def plot(result: dict, path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4), gridspec_kw={"width_ratios": [3, 1.2, 1]})
     ax = axes[0]
-    systems = ("face", "pocketsphinx", "loudness_jaw", "no_loudness")
+    systems = ("face", "pocketsphinx", "loudness_jaw", "no_loudness", "headaudio_delay100")
     takes = list(result.get("mouth", {}))
     width = 0.8 / (len(systems) * max(1, len(takes)))
     x = np.arange(len(SCORES))
