@@ -201,22 +201,8 @@ def onnx_arm(folder: Path, audio: np.ndarray, args) -> dict:
     def run(feeds):
         return dict(zip(names, session.run(None, {k: np.ascontiguousarray(v) for k, v in feeds.items()})))
 
-    stream = FrameStepStream(manifest, run, seed=0)
-    window = RATE * args.window_ms // 1000
-    whole = []
-    for k in range(args.warmup + args.windows):
-        t0 = time.perf_counter()
-        stream.push(audio[k * window:(k + 1) * window])
-        if k >= args.warmup:
-            whole.append(time.perf_counter() - t0)
-    profiled = whole
-    plain = FrameStepStream(manifest, ort_runner(folder, 1), seed=0)  # as `serve --backend onnxruntime` runs it
-    whole = []
-    for k in range(args.warmup + args.windows):
-        t0 = time.perf_counter()
-        plain.push(audio[k * window:(k + 1) * window])
-        if k >= args.warmup:
-            whole.append(time.perf_counter() - t0)
+    profiled = _pushes(FrameStepStream(manifest, run, seed=0), audio, args)
+    whole = _pushes(FrameStepStream(manifest, ort_runner(folder, 1), seed=0), audio, args)  # as serve runs it
     scopes = node_scopes(folder / manifest["graph"])
     trace = Path(session.end_profiling())
     events = json.loads(trace.read_text())
@@ -238,6 +224,17 @@ def onnx_arm(folder: Path, audio: np.ndarray, args) -> dict:
             "profiled_window_ms_mean": 1000 * float(np.mean(profiled)),
             "session_run_ms_per_window": sum(e["dur"] for e in timed) / 1e3 / n, "parts_ms": parts,
             "nodes_run_per_window": {k: nodes[k] / n for k in parts}}
+
+
+def _pushes(stream, audio: np.ndarray, args) -> list[float]:
+    """Seconds of each window's push after the warm-up."""
+    window, out = RATE * args.window_ms // 1000, []
+    for k in range(args.warmup + args.windows):
+        t0 = time.perf_counter()
+        stream.push(audio[k * window:(k + 1) * window])
+        if k >= args.warmup:
+            out.append(time.perf_counter() - t0)
+    return out
 
 
 ONNX_SCOPES = (("model.frontend", "front end"), ("model.extractor.style", "style"), ("model.extractor", "extractor rest"),

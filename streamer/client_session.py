@@ -153,17 +153,9 @@ class _SavesAndResumes:
             raise P.ProtocolError("audio_disabled", "this server does not accept client audio")
         if self.holds_seat:  # (its resume_session is being taken from the store)
             raise P.ProtocolError("resume_failed", "a resume_session is under way")
-        if self.seats.full:
-            return self._busy()
-        out: list[Action] = []
-        if self.face_withheld:  # (the last session's): this one asks again
-            self.face_withheld, self.layout_due = False, True
-        # held to capacity as a new session is: refused with when to try again (the token stays unused), or
-        # resumed without its face where the server says so (`--faces-beyond-capacity no-face`)
-        if (refused := self.seats.refusal(self._face_wanted())) is not None:
-            if not (self._face_wanted() and self.seats.withholds_face(refused)):
-                return self._refuse("capacity", "busy", *refused)
-            out = self._withhold_face(*refused)
+        out, admitted = self._admit()  # (refused: the token stays unused, for a retry here or elsewhere)
+        if not admitted:
+            return out
         return [*out, *self._take_seat(), TakeState(token)]  # (held while the store answers: no one else gets it)
 
     def _on_Taken(self, e: Taken) -> list[Action]:
@@ -353,15 +345,9 @@ class ClientSession(_SavesAndResumes):
         if self.phase is Phase.IDLE:
             if (refusal := self._refusal()) is not None:
                 return refusal
-            if self.seats.full:
-                return self._busy()
-            out = []
-            if self.face_withheld:  # (the last session's): this one asks again
-                self.face_withheld, self.layout_due = False, True
-            if (refused := self.seats.refusal(self._face_wanted())) is not None:
-                if not (self._face_wanted() and self.seats.withholds_face(refused)):
-                    return self._refuse("capacity", "busy", *refused)
-                out = self._withhold_face(*refused)
+            out, admitted = self._admit()
+            if not admitted:
+                return out
             out += self._start()
         else:
             out = []
@@ -406,6 +392,20 @@ class ClientSession(_SavesAndResumes):
         """Whether its next session makes a face: the server makes one and the client asked for it (and it was not
         withheld at capacity)."""
         return self.terms.face is not None and self.face not in (None, "none") and not self.face_withheld
+
+    def _admit(self) -> tuple[list[Action], bool]:
+        """One more session of this client, new or resumed, against the seats and the capacity: (actions, admitted).
+        Refused: `busy` (every seat taken; or at capacity, with retry_after_s); admitted without its face where the
+        server says so (`--faces-beyond-capacity no-face`), and told."""
+        if self.seats.full:
+            return self._busy(), False
+        if self.face_withheld:  # (the last session's): this one asks again
+            self.face_withheld, self.layout_due = False, True
+        if (refused := self.seats.refusal(self._face_wanted())) is not None:
+            if not (self._face_wanted() and self.seats.withholds_face(refused)):
+                return self._refuse("capacity", "busy", *refused), False
+            return self._withhold_face(*refused), True
+        return [], True
 
     def _withhold_face(self, why: str, retry_after_s: float) -> list[Action]:
         """Admitted at capacity without the face it asked: told so (`face_withheld`), its frames carry none (a
