@@ -402,7 +402,7 @@ def _parse_rig(rig) -> dict:
         raise bad(f"offsets: one of {largest:.3g} m; each at most {MAX_RIG_OFFSET_M:g} m a side (in units {units!r})")
     if "rest_rotations" in rig:
         q = np.asarray(_vectors(rig["rest_rotations"], J, 4, "rest_rotations", bad))
-        if np.any(np.abs(np.linalg.norm(q, axis=1) - 1) > 1e-2):
+        if np.abs(q).max() > 2 or np.any(np.abs(np.linalg.norm(q, axis=1) - 1) > 1e-2):  # (no overflow: |q| <= 2)
             raise bad("rest_rotations must be unit quaternions [w, x, y, z]")
         out["rest_rotations"] = (q / np.linalg.norm(q, axis=1, keepdims=True)).tolist()
     out["units"] = units

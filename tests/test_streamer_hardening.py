@@ -52,6 +52,51 @@ def test_float32_audio_far_outside_minus_one_one_is_refused_and_slightly_outside
     assert x.tolist() == [1.0, -1.0, 0.5]
 
 
+def test_any_audio_a_client_sends_is_refused_or_gives_finite_frames_and_faces(bundle):
+    """Issue 52, item 3: audio of any bytes and shape (random float32 bit patterns, full-scale squares and clicks at
+    Nyquist, DC, denormals, silence, at 8 to 192 kHz, mono or stereo) is `bad_audio` as it is decoded, or its
+    frames (pose, root and face) are all finite, through the resampler the server puts before the model."""
+    from hypothesis import given, settings, strategies as st
+
+    from dimgestor.face import FaceOptions
+    from streamer.sources import make_resampler
+
+    signals = {
+        "bits": lambda rng, n: rng.integers(0, 2 ** 32, n, dtype=np.uint32).view("<f4"),
+        "square": lambda rng, n: np.where(np.arange(n) % 2, 1.0, -1.0),
+        "clicks": lambda rng, n: (rng.random(n) < 0.01) * rng.choice([-1.0, 1.0], n),
+        "dc": lambda rng, n: np.full(n, rng.choice([-1.0, 1.0])),
+        "denormal": lambda rng, n: rng.choice([1e-45, -1e-45, 1e-40, 0.0], n),
+        "silence": lambda rng, n: np.zeros(n),
+        "loud noise": lambda rng, n: rng.uniform(-1.0, 1.0, n),
+    }
+
+    @settings(max_examples=60, deadline=None, derandomize=True)
+    @given(st.lists(st.sampled_from(sorted(signals)), min_size=1, max_size=4), st.sampled_from([8000, 16000, 44100,
+           48000, 192000]), st.sampled_from([1, 2]), st.sampled_from(["float32", "pcm16"]), st.integers(0, 2 ** 16))
+    def check(kinds, rate, channels, fmt, seed):
+        rng = np.random.default_rng(seed)
+        session = Session.from_bundle(bundle, steps=2, seed=seed, window_ms=100, face=FaceOptions())
+        resample = make_resampler(rate) if rate != 16000 else None
+        frames = []
+        for kind in kinds:  # 0.3 s each
+            x = np.asarray(signals[kind](rng, int(0.3 * rate) * channels), np.float32)
+            data = x.tobytes() if fmt == "float32" else (np.clip(np.nan_to_num(x), -1, 1) * 32767).astype("<i2").tobytes()
+            try:
+                y = P.decode_audio(data, P.AudioFormat(rate, fmt, channels))
+            except P.ProtocolError as e:
+                assert e.code == "bad_audio" and kind == "bits", (kind, e)
+                continue
+            frames += session.infer(resample.process(y) if resample is not None else y)
+        frames += session.infer_finish()
+        for f in frames:
+            assert np.isfinite(f.rotations).all() and np.isfinite(f.root_pos).all(), (kinds, rate)
+            assert all(np.isfinite(v).all() for v in f.channels.values()), (kinds, rate, f.channels)
+        assert "face" in frames[-1].channels if frames else True
+
+    check()
+
+
 def test_replies_carry_finite_numbers_only(bundle):
     async def run():
         ws = make_server(bundle)

@@ -5,6 +5,7 @@ A-posed copy of the model's skeleton, renamed and resized), equal to retargeting
 from __future__ import annotations
 
 import asyncio
+import json
 import numpy as np
 import pytest
 
@@ -218,3 +219,76 @@ def test_refused_rigs_cost_their_sender_and_the_eighth_closes_its_connection():
     parsed = P.parse_text_or_error(json.dumps({"type": "hello", "rig": {"joints": ["a"], "parents": [-1],
                                                                         "offsets": [[0, 0, 0]]}}))
     assert parsed["rig"]["joints"] == ["a"]  # (a good one parsed aside is the same dict)
+
+
+@pytest.fixture(scope="module")
+def mannequin(tiny_checkpoint):
+    """(the tiny model's skeleton, the hello.rig of its A-posed Mannequin copy in metres, frames on the skeleton:
+    random joint rotations, the root up to 10 m away)."""
+    from dimgestor import rotations as R
+    from dimgestor.retarget import Rig
+    from streamer.frames import Frame
+
+    skeleton = load_checkpoint(tiny_checkpoint).skeleton
+    rig = Rig.from_skeleton(a_pose(skeleton))
+    message = {"joints": rig.names, "parents": rig.parents, "offsets": rig.translations.tolist(),
+               "rest_rotations": rig.rotations.tolist(), "units": "m"}
+    rng = np.random.default_rng(0)
+    q = R.quat_normalize(rng.normal(size=(6, skeleton.num_joints, 4)))
+    frames = [Frame(k, k / 20, rng.uniform(-1000, 1000, 3), q[k], np.zeros(3)) for k in range(len(q))]
+    return skeleton, message, frames
+
+
+def test_any_rig_a_client_sends_is_refused_with_a_reason_or_gives_finite_frames(mannequin):
+    """Issue 52, item 3: a client's rig fuzzed (offsets scaled by anything from 0 to 1e300 or made NaN or
+    infinite, rest rotations of any length or none, other units, joints cut off): `bad_rig` as it is read (or
+    `bad_message`, for a number JSON does not have), or refused with a reason when it is fitted, or its frames and
+    its hello's offsets are finite."""
+    from hypothesis import given, settings, strategies as st
+
+    from dimgestor.retarget import RigError
+    from dimgestor.retarget.names import MapError
+    from streamer import protocol as P
+    from streamer.pose import TargetPose
+
+    skeleton, base, frames = mannequin
+    J = len(base["joints"])
+    scale = st.sampled_from([0.0, 1e-300, 1e-30, 1e-6, 0.5, 1.0, 3.0, 1e3, 1e6, 1e12, 1e300])
+    odd = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+    @settings(max_examples=300, deadline=None, derandomize=True)
+    @given(st.data())
+    def check(data):
+        rig = json.loads(json.dumps(base))
+        n = data.draw(st.integers(1, J))  # joints cut off (a parent always comes before its children)
+        rig = {k: v[:n] if isinstance(v, list) else v for k, v in rig.items()}
+        for j in data.draw(st.lists(st.integers(0, n - 1), max_size=4)):
+            if data.draw(st.booleans()):
+                rig["offsets"][j] = [x * data.draw(scale) for x in rig["offsets"][j]]
+            else:
+                rig["offsets"][j][data.draw(st.integers(0, 2))] = data.draw(odd)
+        how = data.draw(st.sampled_from(["keep", "none", "scaled", "odd"]))
+        if how == "none":
+            del rig["rest_rotations"]
+        elif how != "keep":
+            j = data.draw(st.integers(0, n - 1))
+            rig["rest_rotations"][j] = ([x * data.draw(scale) for x in rig["rest_rotations"][j]] if how == "scaled"
+                                        else [data.draw(odd) for _ in range(4)])
+        rig["units"] = data.draw(st.sampled_from(["m", "cm", "mm"]))
+        try:
+            parsed = P.parse_text(json.dumps({"type": "hello", "rig": rig}))
+        except P.ProtocolError as e:
+            # (NaN and Infinity are not JSON numbers: the message itself is malformed)
+            assert e.code == "bad_rig" or e.code == "bad_message" and "JSON number" in str(e), e
+            assert str(e) and "\n" not in str(e)
+            return
+        try:
+            pose = TargetPose.from_message(skeleton, parsed["rig"])
+        except (RigError, MapError) as e:
+            assert str(e)
+            return
+        assert np.isfinite(pose.skeleton_info().offsets).all()
+        for f in pose(frames):
+            assert np.isfinite(f.rotations).all() and np.isfinite(f.root_pos).all(), rig
+
+    check()
