@@ -148,13 +148,13 @@ def build_parser(prog: str = "dimgestor") -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     from dimgestor.evaluation import eval as evaluation
     from dimgestor.export import onnx_export
-    from dimgestor.training import train
+    from dimgestor.training import distill, train
     from streamer import cli as streamer_cli
     from streamer import web
 
     from . import convert, generate, render
     streamer_cli.register_serve(sub)
-    for module in (generate, train, render, evaluation, convert):
+    for module in (generate, train, distill, render, evaluation, convert):
         module.register(sub)
     _register_info(sub)
     _register_export(sub)

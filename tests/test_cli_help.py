@@ -17,7 +17,7 @@ from dimgestor_app.cli import build_parser, streamer_main
 from dimgestor_app.cli import main as dimgestor_main
 
 REPO = Path(__file__).resolve().parents[1]
-COMMANDS = ["serve", "generate", "train", "render", "eval", "convert", "info", "export", "export-onnx", "devices", "web"]
+COMMANDS = ["serve", "generate", "train", "distill", "render", "eval", "convert", "info", "export", "export-onnx", "devices", "web"]
 SERVE_GROUPS = ["input", "model and sampling", "outputs", "network and security", "operations"]
 DEFAULT = re.compile(r"\(?\bdefault\b[:)]", re.IGNORECASE)  # a stated default: "(default: X)", "default: X", "(default)"
 

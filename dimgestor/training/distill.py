@@ -1,0 +1,263 @@
+"""`dimgestor distill`: a trained model -> a student that samples in 1 or 2 network passes (issue "cost").
+
+The teacher is the checkpoint as it streams: its K-step DDIM chain with classifier-free guidance (two network rows
+a step). The student starts as a copy of it and learns to give, in `--steps` passes of one row (guidance folded in,
+so its config's guidance is 1), what the teacher's whole chain gives from the same starting noise and the same
+speech (knowledge distillation, Luhman & Luhman 2021; the teacher's chain is deterministic: DDIM with eta 0).
+
+Both run on whole training windows as the stream runs them: the network is causal and its Mamba-2 states are
+carried frame to frame, so a window's output is what a stream makes frame by frame, and the student streams
+exactly as any model does (streamed = offline, any chunking, batched = alone). Its carried states are its own
+passes'. Only the audio of the training data is used (the teacher labels it), with augmented copies of it (other
+voices, rooms and microphones, as `train --augment` makes them): the held-out stretch of the teacher's training
+stays held out. The loss: the mean squared difference to the teacher's motion, and of its frame-to-frame velocity
+and acceleration (a one-pass student otherwise smooths away the teacher's fastest motion or adds jitter).
+"""
+from __future__ import annotations
+
+import copy
+import json
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ..model.diffusion import Diffusion, ddim_pairs, guide
+from ..model.network import DiMGestor
+from ..streaming.checkpoint import load_checkpoint, save_checkpoint
+from .augment import AugmentConfig
+from .dataset import GestureDataset
+from .train import WindowBank
+
+__all__ = ["DistillConfig", "distill", "register", "teacher_motion", "student_motion"]
+
+
+class DistillConfig(BaseModel):
+    """What `dimgestor distill` is given: validated once, saved in the student's checkpoint (info["distill"])."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    checkpoint: str | None = None  # the teacher (None: the embedded default model)
+    out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
+    steps: int = Field(1, ge=1, le=2)  # the student's sampler steps (network passes a window)
+    data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
+    max_steps: int = Field(1000, gt=0)
+    batch_size: int = Field(8, gt=0)
+    lr: float = Field(1e-4, gt=0)
+    warmup: int = Field(50, ge=0)
+    grad_clip: float = Field(1.0, ge=0)
+    ema: float = Field(0.995, ge=0, lt=1)
+    vel_weight: float = Field(1.0, ge=0)  # weight of the velocity difference (frame to frame)
+    acc_weight: float = Field(1.0, ge=0)  # of the acceleration difference
+    aug_copies: int = Field(4, ge=0)  # augmented versions of each window's audio (0: the clean audio alone)
+    window_s: float | None = Field(None, gt=0)  # None: the teacher's
+    valid_every: int = Field(200, ge=0)
+    ckpt_every: int = Field(500, gt=0)
+    seed: int = 0
+    device: str = "cpu"
+    cache_dir: str | None = None  # the dataset's feature cache (None: $DIMGESTOR_CACHE or ~/.cache/dimgestor)
+
+
+def teacher_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
+                   guidance: float) -> torch.Tensor:
+    """The teacher's chain on whole windows: cond (B, T, H), x_T (B, T, D) -> x0 (B, T, D), DDIM with eta 0 and
+    classifier-free guidance `guidance` (the unconditional row's condition zeroed, as its streams run it)."""
+    B = x.shape[0]
+    c = torch.cat([cond, torch.zeros_like(cond)]) if guidance != 1.0 else cond
+    for t, t_prev in pairs:
+        out, _ = model(torch.cat([x, x]) if guidance != 1.0 else x, t, c)
+        if guidance != 1.0:
+            out = guide(out[:B], out[B:], guidance)
+        eps, x0 = diffusion.split(out, x, t)
+        x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
+    return x
+
+
+def student_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """The student's chain (one row a pass, no guidance): as `teacher_motion` with guidance 1."""
+    return teacher_motion(model, diffusion, pairs, cond, x, 1.0)
+
+
+def _loss(pred: torch.Tensor, target: torch.Tensor, cfg: DistillConfig) -> torch.Tensor:
+    loss = F.mse_loss(pred, target)
+    for order, weight in ((1, cfg.vel_weight), (2, cfg.acc_weight)):
+        if weight > 0 and pred.shape[1] > order:
+            loss = loss + weight * F.mse_loss(pred.diff(n=order, dim=1), target.diff(n=order, dim=1))
+    return loss
+
+
+def _log(out: Path, record: dict) -> None:
+    with open(out / "log.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def distill(cfg: DistillConfig, progress: bool = True) -> Path:
+    """Distil `cfg.checkpoint` into a `cfg.steps`-pass student; returns its last checkpoint folder."""
+    from tqdm import tqdm
+
+    out = Path(cfg.out)
+    if out.exists() and any(out.glob("ckpt_*")):
+        raise ValueError(f"{out} already holds checkpoints: choose a new --out")
+    torch.manual_seed(cfg.seed)
+    device = torch.device(cfg.device)
+    bundle = load_checkpoint(cfg.checkpoint, device)
+    teacher = bundle.model.eval().requires_grad_(False)
+    tc = teacher.config
+    opts = bundle.info.get("options", {})
+    data = cfg.data or bundle.info.get("data")
+    if not data or not Path(data).is_dir():
+        raise ValueError(f"--data: the BVH+WAV folder whose audio the teacher labels (the checkpoint names "
+                         f"{bundle.info.get('data')!r}, which is not a folder here)")
+    guidance = tc.guidance
+    diffusion = Diffusion(tc)
+    t_pairs = diffusion.sampling_pairs("ddim", tc.sample_steps)
+    s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
+    student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0})
+    student = DiMGestor(student_config).to(device)
+    student.load_state_dict(teacher.state_dict())
+    ema = copy.deepcopy(student).requires_grad_(False).eval()
+    split = dict(window_s=cfg.window_s or opts.get("window_s", 5.0), valid_fraction=opts.get("valid_fraction", 0.15),
+                 valid_seconds=opts.get("valid_seconds"))
+    split.update(hop_s=split["window_s"] / 4, cache_dir=cfg.cache_dir)
+    train_ds = GestureDataset(data, bundle.feature_spec, split="train", speeds=tuple(opts.get("speeds") or ()), **split)
+    valid_ds = GestureDataset(data, bundle.feature_spec, split="valid", **split)
+    t0 = time.time()
+    bank = WindowBank(train_ds, teacher, bundle.mean, bundle.std, device, copies=cfg.aug_copies,
+                      aug_config=AugmentConfig(), seed=cfg.seed)
+    valid = WindowBank(valid_ds, teacher, bundle.mean, bundle.std, device) if cfg.valid_every else None
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({len(t_pairs) * (2 if guidance != 1 else 1)} "
+          f"network rows a window); student: {cfg.steps} step(s), 1 row; {len(bank)} training windows x "
+          f"{cfg.aug_copies + 1} versions of their audio ({time.time() - t0:.0f} s), {len(valid or [])} held out")
+    g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
+    opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
+    c = tc
+    fixed = None  # the held-out windows' noise, the same at every validation
+
+    def validation() -> float:
+        nonlocal fixed
+        gv = torch.Generator().manual_seed(cfg.seed + 7919)
+        total = 0.0
+        with torch.no_grad():
+            for i in range(len(valid)):
+                _, feats = valid.batch([i], c.lookahead_feats, c.feats_per_frame)
+                feats = feats.to(device)
+                cond_t = teacher.condition(feats)[0]
+                T = valid.motion[i].shape[0]
+                x = diffusion.noise_like(torch.zeros(1, T, c.motion_dim), gv).to(device)
+                target = teacher_motion(teacher, diffusion, t_pairs, cond_t[:, :T], x, guidance)
+                pred = student_motion(ema, diffusion, s_pairs, ema.condition(feats)[0][:, :T], x)
+                total += _loss(pred, target, cfg).item()
+        return total / max(len(valid), 1)
+
+    last = out
+    if valid is not None:
+        _log(out, {"step": 0, "valid_loss": validation()})
+    bar = tqdm(total=cfg.max_steps, disable=not progress, dynamic_ncols=True, desc="distill")
+    smooth, t_start = None, time.time()
+    order = torch.randperm(len(bank), generator=g).tolist()
+    for step in range(1, cfg.max_steps + 1):
+        if len(order) < cfg.batch_size:
+            order += torch.randperm(len(bank), generator=g).tolist()
+        idx, order = order[:cfg.batch_size], order[cfg.batch_size:]
+        x0, feats = bank.batch(idx, c.lookahead_feats, c.feats_per_frame, bank.draw_versions(len(idx), g))
+        feats = feats.to(device)
+        x = diffusion.noise_like(x0, g).to(device)
+        T = x0.shape[1]
+        with torch.no_grad():
+            target = teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x, guidance)
+        student.train()
+        pred = student_motion(student, diffusion, s_pairs, student.condition(feats)[0][:, :T], x)
+        loss = _loss(pred, target, cfg)
+        for group in opt.param_groups:
+            group["lr"] = cfg.lr * min(1.0, step / max(cfg.warmup, 1))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(student.parameters(), cfg.grad_clip)
+        opt.step()
+        decay = min(cfg.ema, (1 + step) / (10 + step))
+        with torch.no_grad():
+            for pe, pm in zip(ema.parameters(), student.parameters()):
+                pe.lerp_(pm, 1 - decay)
+        smooth = loss.item() if smooth is None else 0.98 * smooth + 0.02 * loss.item()
+        bar.update(1)
+        bar.set_postfix(loss=f"{smooth:.4f}", refresh=False)
+        record = {"step": step, "train_loss": smooth, "elapsed_s": round(time.time() - t_start, 1)}
+        if valid is not None and (step % cfg.valid_every == 0 or step == cfg.max_steps):
+            record["valid_loss"] = validation()
+            bar.set_postfix(loss=f"{smooth:.4f}", valid=f"{record['valid_loss']:.4f}")
+        if "valid_loss" in record or step == cfg.max_steps:
+            _log(out, record)
+        if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
+            info = {**bundle.info, "step": step, "distilled_from": str(bundle.path), "history": [record],
+                    "distill": cfg.model_dump(), "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance}}
+            last = save_checkpoint(out / f"ckpt_{step:07d}", ema, bundle.feature_spec, bundle.skeleton, bundle.mean,
+                                   bundle.std, info=info)
+    bar.close()
+    return last
+
+
+# ---------------- CLI ----------------
+def register(subparsers) -> None:
+    from ..cli_help import examples
+
+    p = subparsers.add_parser(
+        "distill", help="distil a trained model into a student that samples in 1 or 2 network passes",
+        description="Distil a checkpoint (its K-step sampler with guidance, two network rows a step) into a "
+                    "student that gives the same motion in --steps passes of one row: several times cheaper a "
+                    "window, streamed exactly as any model. Only the audio of the data is used (the teacher labels "
+                    "it).",
+        epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_1step",
+                        "dimgestor distill --out runs/default_1step --data ../shared/data/zeggs_sample  # the default",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_1step"))
+    d = DistillConfig(out="")
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="the teacher: a checkpoint folder, a run folder (its latest), 'default' or 'live' "
+                        "(default: the embedded default model)")
+    p.add_argument("--out", required=True, metavar="DIR", help="run folder for the student's checkpoints and log.jsonl")
+    p.add_argument("--steps", type=int, choices=[1, 2], default=d.steps, help="the student's network passes a window")
+    p.add_argument("--data", default=None, metavar="DIR",
+                   help="BVH+WAV folder whose audio the teacher labels (default: the one the teacher was trained on)")
+    p.add_argument("--max-steps", type=int, default=d.max_steps, metavar="N", help="optimizer steps")
+    p.add_argument("--batch-size", type=int, default=d.batch_size, metavar="N", help="training windows a step")
+    p.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (AdamW)")
+    p.add_argument("--vel-weight", type=float, default=d.vel_weight, metavar="W",
+                   help="weight of the difference in frame-to-frame velocity to the teacher's motion")
+    p.add_argument("--acc-weight", type=float, default=d.acc_weight, metavar="W",
+                   help="weight of the difference in acceleration (the student's own jitter)")
+    p.add_argument("--aug-copies", type=int, default=d.aug_copies, metavar="N",
+                   help="augmented versions of each window's audio (other voices, rooms, microphones); 0: none")
+    p.add_argument("--valid-every", type=int, default=d.valid_every, metavar="N",
+                   help="the distillation loss on the held-out windows every N steps (log.jsonl); 0: never")
+    p.add_argument("--ckpt-every", type=int, default=d.ckpt_every, metavar="N", help="save the student every N steps")
+    p.add_argument("--seed", type=int, default=d.seed, help="seed of the batches, the noise and the augmentation")
+    p.add_argument("--device", default=d.device, help="torch device: cpu, cuda, cuda:1, ...")
+    p.add_argument("--threads", type=int, default=None, metavar="N", help="CPU threads for torch")
+    p.add_argument("--cache-dir", default=None, metavar="DIR",
+                   help="dataset feature cache (default: $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (log.jsonl is written all the same)")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        cfg = DistillConfig(checkpoint=args.checkpoint, out=args.out, steps=args.steps, data=args.data,
+                            max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
+                            vel_weight=args.vel_weight, acc_weight=args.acc_weight,
+                            aug_copies=args.aug_copies, valid_every=args.valid_every, ckpt_every=args.ckpt_every,
+                            seed=args.seed, device=args.device, cache_dir=args.cache_dir)
+    except ValidationError as e:
+        raise SystemExit(f"dimgestor distill: {e.errors()[0]['loc'][0]}: {e.errors()[0]['msg']}")
+    try:
+        last = distill(cfg, progress=not args.no_progress)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"dimgestor distill: {e}")
+        return 2
+    print(f"student saved: {last}")
+    return 0
+
