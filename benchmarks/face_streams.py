@@ -1,7 +1,8 @@
 """How many real-time streams one process keeps with a face on every stream, against none (issue 49: at least
 0.85 as many): `streams.max_streams` on the embedded default model (K = 4, 100 ms windows, batched, staggered
 clients, `--threads` inference threads), once without a face and once with `FaceOptions()` (the face's own
-listener) on every session, and with `--pocketsphinx` also with pocketsphinx's listener.
+listener) on every session, and with `--pocketsphinx` also with pocketsphinx's listener; `--also CHECKPOINT` adds
+that model (a distilled student, say) at its own K with a face on every session.
 
     .venv/bin/python benchmarks/face_streams.py            # writes results/face_streams.json and .png
 """
@@ -22,6 +23,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=2, help="inference threads (the process's cores)")
     p.add_argument("--cap", type=int, default=96)
     p.add_argument("--pocketsphinx", action="store_true", help="also with pocketsphinx's listener")
+    p.add_argument("--also", default=None, metavar="CHECKPOINT",
+                   help="one more arm: this checkpoint (e.g. a distilled student) at its own K, with a face")
     p.add_argument("--out", type=Path, default=RESULTS / "face_streams.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
@@ -62,6 +65,12 @@ def main(argv=None) -> int:
         print(f"{name}:", flush=True)
         arms[name] = max_streams(bundle, args.steps, args.window_ms, args.seconds, True, args.threads, args.cap,
                                  face=face, log=lambda s: print(s, flush=True))
+    if args.also:
+        other = load_checkpoint(args.also)
+        name = f"face, {Path(args.also).name} (K={other.config.sample_steps}, guidance {other.config.guidance:g})"
+        print(f"{name}:", flush=True)
+        arms[name] = max_streams(other, other.config.sample_steps, args.window_ms, args.seconds, True, args.threads,
+                                 args.cap, face=FaceOptions(), log=lambda s: print(s, flush=True))
     base = arms["no face"]["max_realtime_streams"]
     result = {"benchmark": "face_streams", "code_version": code_version(), "device": describe_device("cpu"),
               "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": before,
@@ -69,7 +78,9 @@ def main(argv=None) -> int:
               "threads": args.threads, "arms": arms,
               "ratio": arms["face"]["max_realtime_streams"] / base if base else float("nan"),
               **({"ratio_pocketsphinx": arms["face, pocketsphinx"]["max_realtime_streams"] / base}
-                 if args.pocketsphinx and base else {})}
+                 if args.pocketsphinx and base else {}),
+              **({"also": args.also, "also_over_face": arms[name]["max_realtime_streams"]
+                  / arms["face"]["max_realtime_streams"]} if args.also else {})}
     print(f"streams: none {base}, face {arms['face']['max_realtime_streams']} (ratio {result['ratio']:.2f})")
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))

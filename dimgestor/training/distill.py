@@ -41,7 +41,7 @@ class DistillConfig(BaseModel):
 
     checkpoint: str | None = None  # the teacher (None: the embedded default model)
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
-    steps: int = Field(1, ge=1, le=2)  # the student's sampler steps (network passes a window)
+    steps: int = Field(2, ge=1, le=2)  # the student's sampler steps (network passes a window)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
     max_steps: int = Field(1000, gt=0)
     batch_size: int = Field(8, gt=0)
@@ -49,8 +49,9 @@ class DistillConfig(BaseModel):
     warmup: int = Field(50, ge=0)
     grad_clip: float = Field(1.0, ge=0)
     ema: float = Field(0.995, ge=0, lt=1)
-    vel_weight: float = Field(1.0, ge=0)  # weight of the velocity difference (frame to frame)
-    acc_weight: float = Field(1.0, ge=0)  # of the acceleration difference
+    vel_weight: float = Field(4.0, ge=0)  # weight of the velocity difference (frame to frame)
+    acc_weight: float = Field(4.0, ge=0)  # of the acceleration difference (1 and 1 left a 1-pass student's wrists
+    # 1.77x the real capture's jerk, 4 and 4 1.49x: benchmarks/README.md, "A one-pass student")
     aug_copies: int = Field(4, ge=0)  # augmented versions of each window's audio (0: the clean audio alone)
     window_s: float | None = Field(None, gt=0)  # None: the teacher's
     valid_every: int = Field(200, ge=0)
@@ -210,9 +211,9 @@ def register(subparsers) -> None:
                     "student that gives the same motion in --steps passes of one row: several times cheaper a "
                     "window, streamed exactly as any model. Only the audio of the data is used (the teacher labels "
                     "it).",
-        epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_1step",
-                        "dimgestor distill --out runs/default_1step --data ../shared/data/zeggs_sample  # the default",
-                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_1step"))
+        epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_2pass",
+                        "dimgestor distill --out runs/default_1pass --steps 1 --data ../shared/data/zeggs_sample",
+                        "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_2pass"))
     d = DistillConfig(out="")
     p.add_argument("--checkpoint", default=None, metavar="DIR",
                    help="the teacher: a checkpoint folder, a run folder (its latest), 'default' or 'live' "
