@@ -113,13 +113,18 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
 
 
 def test_face_streams_benchmark_writes_its_schema(tmp_path):
-    """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's)."""
+    """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's,
+    and another checkpoint's with a face)."""
     out = tmp_path / "face_streams.json"
-    run("face_streams.py", "--seconds", "2", "--cap", "1", "--pocketsphinx", "--out", str(out))
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    other = make_tiny_checkpoint(tmp_path, seed=2)
+    run("face_streams.py", "--seconds", "2", "--cap", "1", "--pocketsphinx", "--also", str(other), "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["code_version"] and r["device"].startswith("CPU") and r["steps"] == 4 and r["window_ms"] == 100
-    assert list(r["arms"]) == ["no face", "face", "face, pocketsphinx"]
+    also = [a for a in r["arms"] if a.startswith("face, ") and "pocketsphinx" not in a]
+    assert list(r["arms"]) == ["no face", "face", "face, pocketsphinx", *also] and len(also) == 1
     for name, arm in r["arms"].items():
         assert arm["face"] == (name != "no face") and [t["streams"] for t in arm["trials"]] == [1]
         assert arm["trials"][0]["face"] == arm["face"] and "lag_ms_p95" in arm["trials"][0]
@@ -128,6 +133,8 @@ def test_face_streams_benchmark_writes_its_schema(tmp_path):
     if counts["no face"]:
         assert r["ratio"] == counts["face"] / counts["no face"]
         assert r["ratio_pocketsphinx"] == counts["face, pocketsphinx"] / counts["no face"]
+    if counts["face"]:
+        assert r["also_over_face"] == counts[also[0]] / counts["face"]
 
 
 def test_pipecat_sync_benchmark_writes_its_schema(tmp_path):
@@ -411,3 +418,36 @@ def test_window_profile_benchmark_writes_its_schema(tmp_path):
         assert math.isclose(sum(p["cpu_ms"] for p in parts.values()), arm["window_cpu_ms_mean"], rel_tol=1e-6)
         assert arm["frames_per_window"] == 2 and arm["encoding_ms_per_window"]["json"] > 0
     assert r["torch"]["guidance_cpu_ms"] == guided["window_cpu_ms_mean"] - unguided["window_cpu_ms_mean"]
+
+
+def test_face_crowd_benchmark_writes_its_schema(tmp_path):
+    """benchmarks/face_crowd.py at its smallest (a tiny model, two crowd clients, two modes) and redrawn from its
+    JSON alone."""
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    ckpt = make_tiny_checkpoint(tmp_path, seed=1)
+    out = tmp_path / "face_crowd.json"
+    run("face_crowd.py", "--faces", "2", "--crowd-s", "3", "--quiet-s", "2", "--modes", "busy,none",
+        "--worker-args", f"--checkpoint {ckpt} --steps 2", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert list(r["modes"]) == ["busy", "none"] and r["code"] and r["machine"].startswith("CPU")
+    for mode, m in r["modes"].items():
+        assert len(m["clients"]) == 2 and sum(m["counts"].values()) == 2, m
+        assert all(c["outcome"] in ("face", "without_face", "busy", "body") for c in m["clients"]), m
+        assert m["readyz_before"] and finite(m["talker_quiet_p95_s"]) and finite(m["worker_cpu_s"]), m
+        assert finite(m["crowd_p95_over_faceless"]), m
+    assert r["modes"]["none"]["counts"]["body"] == 2 and r["modes"]["none"]["crowd_p95_over_faceless"] == 1.0
+    out.with_suffix(".png").unlink()
+    run("face_crowd.py", "--plot-only", str(out))
+    assert out.with_suffix(".png").stat().st_size > 10_000
+
+
+def test_distill_benchmark_redraws_its_plot_from_its_results(tmp_path):
+    """benchmarks/distill.py's plot from the recorded results alone (its measurements need ../shared and the default
+    model's training clip)."""
+    out = tmp_path / "distill.json"
+    shutil.copy(BENCH / "results" / "distill.json", out)
+    run("distill.py", "--plot-only", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert all(finite(m["jerk_ratio"]) and finite(m["variety"]) for m in r["models"])
