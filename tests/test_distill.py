@@ -78,3 +78,17 @@ def test_the_student_streams_exactly_and_its_batch_equals_each_stream_alone(stud
     for i, s in enumerate(streams):
         got[i].append(s.finish())
         assert np.abs(np.concatenate(got[i]) - alone[i]).max() < 1e-5, i
+
+
+def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path):
+    """--init: the student starts from an earlier run's checkpoint (its held-out loss where that run ended), and one
+    of another number of passes is refused."""
+    steps, run, last = student
+    before = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()][-1]["valid_loss"]
+    common = dict(checkpoint=str(teacher), data=str(data), max_steps=2, batch_size=4, lr=2e-3, warmup=1,
+                  aug_copies=1, valid_every=2, ckpt_every=2, cache_dir=str(tmp_path / "cache"))
+    distill(DistillConfig(out=str(tmp_path / "on"), init=str(last), steps=steps, **common), progress=False)
+    log = [json.loads(line) for line in (tmp_path / "on" / "log.jsonl").read_text().splitlines()]
+    assert log[0]["step"] == 0 and log[0]["valid_loss"] == pytest.approx(before, rel=1e-5)
+    with pytest.raises(ValueError, match="not of --steps"):
+        distill(DistillConfig(out=str(tmp_path / "other"), init=str(last), steps=3 - steps, **common), progress=False)

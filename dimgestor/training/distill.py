@@ -40,6 +40,7 @@ class DistillConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     checkpoint: str | None = None  # the teacher (None: the embedded default model)
+    init: str | None = None  # a student to go on from (an earlier run's checkpoint); None: the teacher's weights
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
     steps: int = Field(2, ge=1, le=2)  # the student's sampler steps (network passes a window)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
@@ -117,7 +118,11 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
     student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0})
     student = DiMGestor(student_config).to(device)
-    student.load_state_dict(teacher.state_dict())
+    start = teacher if cfg.init is None else load_checkpoint(cfg.init, device).model
+    if cfg.init is not None and (start.config.sample_steps, start.config.guidance) != (cfg.steps, 1.0):
+        raise ValueError(f"--init {cfg.init}: a student of {start.config.sample_steps} step(s) with guidance "
+                         f"{start.config.guidance:g}, not of --steps {cfg.steps}")
+    student.load_state_dict(start.state_dict())
     ema = copy.deepcopy(student).requires_grad_(False).eval()
     split = dict(window_s=cfg.window_s or opts.get("window_s", 5.0), valid_fraction=opts.get("valid_fraction", 0.15),
                  valid_seconds=opts.get("valid_seconds"))
@@ -135,10 +140,8 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     c = tc
-    fixed = None  # the held-out windows' noise, the same at every validation
 
     def validation() -> float:
-        nonlocal fixed
         gv = torch.Generator().manual_seed(cfg.seed + 7919)
         total = 0.0
         with torch.no_grad():
@@ -220,6 +223,8 @@ def register(subparsers) -> None:
                         "(default: the embedded default model)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder for the student's checkpoints and log.jsonl")
     p.add_argument("--steps", type=int, choices=[1, 2], default=d.steps, help="the student's network passes a window")
+    p.add_argument("--init", default=None, metavar="DIR",
+                   help="go on from this student (an earlier run's checkpoint) instead of the teacher's weights")
     p.add_argument("--data", default=None, metavar="DIR",
                    help="BVH+WAV folder whose audio the teacher labels (default: the one the teacher was trained on)")
     p.add_argument("--max-steps", type=int, default=d.max_steps, metavar="N", help="optimizer steps")
@@ -247,7 +252,7 @@ def _run(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        cfg = DistillConfig(checkpoint=args.checkpoint, out=args.out, steps=args.steps, data=args.data,
+        cfg = DistillConfig(checkpoint=args.checkpoint, init=args.init, out=args.out, steps=args.steps, data=args.data,
                             max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
                             vel_weight=args.vel_weight, acc_weight=args.acc_weight,
                             aug_copies=args.aug_copies, valid_every=args.valid_every, ckpt_every=args.ckpt_every,
