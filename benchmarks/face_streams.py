@@ -80,7 +80,8 @@ def main(argv=None) -> int:
               **({"ratio_pocketsphinx": arms["face, pocketsphinx"]["max_realtime_streams"] / base}
                  if args.pocketsphinx and base else {}),
               **({"also": args.also, "also_over_face": arms[name]["max_realtime_streams"]
-                  / arms["face"]["max_realtime_streams"]} if args.also else {})}
+                  / arms["face"]["max_realtime_streams"] if arms["face"]["max_realtime_streams"] else float("nan")}
+                 if args.also else {})}
     print(f"streams: none {base}, face {arms['face']['max_realtime_streams']} (ratio {result['ratio']:.2f})")
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))
