@@ -65,6 +65,9 @@ class ModelConfig(BaseModel):
 
     # --- motion ---
     motion_dim: int = 12  # feature columns per frame; set from the data's FeatureSpec when training
+    # speakers the model can be asked for (`train --speaker-condition`): a learnt vector per speaker added to the
+    # condition; () = no speaker condition (the default, and every model before it)
+    speakers: tuple[str, ...] = ()
 
     # --- diffusion ---
     n_steps: int = 1000  # N diffusion steps, as in the paper
@@ -145,6 +148,8 @@ class ModelConfig(BaseModel):
             raise ValueError(f"sample_steps {self.sample_steps} exceeds the {self.n_steps} diffusion steps")
         if not 0 < self.beta_start < self.beta_end < 1:
             raise ValueError(f"need 0 < beta_start < beta_end < 1, got {self.beta_start}, {self.beta_end}")
+        if len(set(self.speakers)) != len(self.speakers) or any(not s for s in self.speakers):
+            raise ValueError(f"speakers must be distinct non-empty names, got {list(self.speakers)}")
         if self.frontend == "pretrained" and not self.pretrained_path:
             raise ValueError("frontend 'pretrained' needs pretrained_path: a local wav2vec2/HuBERT folder")
         for name in ("pretrained_block_ms", "pretrained_left_ms", "pretrained_right_ms"):

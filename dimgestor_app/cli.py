@@ -58,7 +58,8 @@ def _info(args) -> int:
     c = config
     print(f"{source}: hidden {c.hidden}, {c.n_blocks} blocks, d_state {c.d_state}, headdim {c.headdim}, "
           f"front end {c.frontend} ({c.n_mels} mels), kernel {c.down_kernel}, motion_dim {c.motion_dim}, "
-          f"prediction {c.prediction}, "
+          + (f"speakers {', '.join(c.speakers)}, " if c.speakers else "")
+          + f"prediction {c.prediction}, "
           + (f"cosine schedule over {c.n_steps} steps" if c.schedule == "cosine" else
              f"{c.schedule} betas {c.beta_start:g}..{c.beta_end:g} over {c.n_steps}")
           + (f", noise correlated over {c.noise_taps} frames" if c.noise_taps > 1 else "")

@@ -110,6 +110,9 @@ def register(subparsers) -> None:
     g.add_argument("--sampler", choices=("ddim", "ddpm"), default="ddim",
                    help="'ddim': K steps (deterministic with --eta 0); 'ddpm': the model's whole chain, stochastic")
     g.add_argument("--seed", type=int, default=0, help="noise seed; same seed + audio + steps = same motion")
+    g.add_argument("--speaker", default=None, metavar="NAME",
+                   help="play this speaker's style, for a model trained with --speaker-condition (`dimgestor info "
+                        "--checkpoint DIR` lists its speakers; default: no speaker in particular)")
     g.add_argument("--eta", type=float, default=0.0, help="DDIM stochasticity (0 = deterministic)")
     g.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale: 1 = unguided, > 1 follows the audio more (needs a model "
@@ -172,7 +175,11 @@ def _run(args) -> int:
             raise ValueError(f"{'--face-csv' if face_out is not None else out}: {why}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"--device {args.device}: CUDA is not available on this machine")
+    if args.speaker is not None and args.backend == "onnxruntime":
+        raise ValueError("--speaker: the ONNX export plays no speaker in particular; use the torch backend")
     bundle = load_checkpoint(args.checkpoint, device=args.device)
+    if args.speaker is not None:
+        bundle.model.use_speaker(args.speaker)
     steps_given = args.steps is not None
     if args.steps is None:
         args.steps = bundle.config.sample_steps

@@ -58,6 +58,7 @@ class ServeOptions(BaseModel):
     steps: int | None = Field(None, ge=1)  # None: the checkpoint's sample_steps
     seed: int = 0
     guidance: float | None = None  # None: the checkpoint's
+    speaker: str | None = None  # a speaker of a model trained with a speaker condition; None: no speaker in particular
     root: Literal["tether", "free", "lock"] = "tether"
     tether_s: float = Field(5.0, gt=0)
     smooth: float | None = None  # One Euro cutoff in Hz, 0 = off; None: the checkpoint's setting

@@ -99,6 +99,13 @@ def build(options: ServeOptions) -> Pipeline:
     humanoid = _humanoid_map(options.humanoid_map)
     device = _compute_device(options)
     bundle = _load(options.checkpoint, device if options.backend == "torch" else "cpu")  # (ONNX Runtime's own)
+    if options.speaker is not None:
+        if options.backend != "torch":
+            raise ServeError("--speaker: the ONNX export plays no speaker in particular; use --backend torch")
+        try:
+            bundle.model.use_speaker(options.speaker)
+        except ValueError as e:
+            raise ServeError(f"--speaker: {e}") from None
     steps = options.steps if options.steps is not None else bundle.config.sample_steps
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None

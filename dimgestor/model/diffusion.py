@@ -100,7 +100,7 @@ class Diffusion:
     def training_loss(self, model, x0: torch.Tensor, feats: torch.Tensor, t: torch.Tensor,
                       noise: torch.Tensor, vel_weight: float = 0.0, acc_weight: float = 0.0,
                       root_weight: float = 0.0, root_columns: tuple[int, ...] = (0, 1, 2),
-                      drop: torch.Tensor | None = None) -> torch.Tensor:
+                      drop: torch.Tensor | None = None, speaker: torch.Tensor | None = None) -> torch.Tensor:
         """MSE between the network output on x_t and the target; feats: (B, n, F) audio features.
 
         vel_weight / acc_weight > 0 add MSEs between the first / second frame differences of the predicted
@@ -111,8 +111,9 @@ class Diffusion:
         a walk or a spin once integrated, and the per-frame losses barely see it. 0 is the paper's objective.
         drop: (B,) bool, the windows whose condition is replaced by the null condition (zeros) for
         classifier-free guidance (Ho & Salimans 2022): the same network then learns the unconditional model.
+        speaker: (B,) speaker indices (-1: none) for a model with a speaker condition.
         """
-        cond, _ = model.condition(feats)
+        cond, _ = model.condition(feats) if speaker is None else model.condition(feats, speaker=speaker)
         cond = cond[:, : x0.shape[1]]
         if drop is not None:
             cond = torch.where(drop.to(cond.device)[:, None, None], torch.zeros_like(cond), cond)

@@ -196,6 +196,10 @@ class DiMGestor(nn.Module):
         self.encoder = GestureEncoder(config.motion_dim, config.hidden)
         self.blocks = nn.ModuleList([AdaLNMamba2Block(config) for _ in range(config.n_blocks)])
         self.final = FinalLayer(config.hidden, config.motion_dim)
+        # the speaker condition (config.speakers): a vector per speaker added to every frame's condition; the
+        # speaker a model plays by default is none (index -1: nothing added), `use_speaker` picks one
+        self.speaker_embed = nn.Embedding(len(config.speakers), config.hidden) if config.speakers else None
+        self.register_buffer("speaker_index", torch.tensor(-1, dtype=torch.long), persistent=False)
         self.initialize_weights()
 
     def initialize_weights(self):
@@ -221,11 +225,33 @@ class DiMGestor(nn.Module):
         nn.init.zeros_(self.final.adaLN_modulation[-1].bias)
         nn.init.zeros_(self.final.decoder.weight)
         nn.init.zeros_(self.final.decoder.bias)
+        if self.speaker_embed is not None:
+            nn.init.normal_(self.speaker_embed.weight, std=0.02)
 
     # ---- condition side ----
-    def condition(self, feats: torch.Tensor, state: ExtractorState | None = None):
-        """Audio features (B, n, F) -> (c (B, T, hidden), ExtractorState)."""
-        return self.extractor(feats, state)
+    def condition(self, feats: torch.Tensor, state: ExtractorState | None = None,
+                  speaker: torch.Tensor | None = None):
+        """Audio features (B, n, F) -> (c (B, T, hidden), ExtractorState).
+
+        With a speaker condition, each row's speaker vector is added: `speaker` (B,) indices into
+        config.speakers, -1 for none; without it, the model's own (`use_speaker`, none by default)."""
+        cond, state = self.extractor(feats, state)
+        if self.speaker_embed is None:
+            return cond, state
+        if speaker is None:
+            speaker = self.speaker_index.expand(cond.shape[0])
+        vec = self.speaker_embed(speaker.clamp_min(0)) * (speaker >= 0).to(cond.dtype)[:, None]
+        return cond + vec[:, None, :], state
+
+    def use_speaker(self, name: str | None) -> None:
+        """Play `name` (one of config.speakers), or no speaker (None: the speaker-agnostic model)."""
+        if name is None:
+            self.speaker_index.fill_(-1)
+            return
+        if name not in self.config.speakers:
+            known = ", ".join(self.config.speakers) or "none: it was trained without --speaker-condition"
+            raise ValueError(f"speaker {name!r}: this model knows {known}")
+        self.speaker_index.fill_(self.config.speakers.index(name))
 
     def samples_needed(self, n_frames: int) -> int:
         """Audio samples after which the condition for `n_frames` motion frames exists."""

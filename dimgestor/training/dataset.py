@@ -1,5 +1,9 @@
 """Folders of NAME.bvh + NAME.wav pairs -> cached features and audio -> overlapping training windows.
 
+Clips on another skeleton than the training one (the first clip's, or the one a run names) are retargeted onto it
+by their bones' names (`dimgestor.retarget`, rest poses respected), so ZEGGS' BVH, BEAT's BVH and BEAT2 / SMPL-X
+takes train one model. Each clip has a speaker (`speaker_of`), for balanced sampling and the speaker condition.
+
 Each pair is preprocessed once (BVH -> features at spec.fps, WAV -> 16 kHz mono, trimmed to the
 shorter) into a cache entry keyed by the files' paths, sizes and mtimes and by the feature spec, so
 a second run memory-maps the arrays instead of parsing again. Motion frame i is aligned with audio
@@ -16,11 +20,12 @@ import csv
 import hashlib
 import json
 import os
+import re
 import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -54,6 +59,34 @@ def read_motion(path: Path):
 
         return read_smplx(path)[0]
     return read_bvh(path)
+
+
+_BEAT_NAME = re.compile(r"^\d+_([A-Za-z]+)_\d+_\d+_\d+$")  # BEAT / BEAT2: ID_SPEAKER_TAKE_START_END
+
+
+def speaker_of(name: str, folder: str = "") -> str:
+    """A clip's speaker: BEAT's naming (`2_scott_0_1_1`) gives its speaker's name; otherwise the first sub-folder
+    of its name (`alice/take3` -> `alice`); otherwise `folder`, the name of the data folder it is in."""
+    base = name.rsplit("/", 1)[-1]
+    m = _BEAT_NAME.match(base)
+    if m:
+        return m.group(1).lower()
+    return name.split("/", 1)[0] if "/" in name else folder
+
+
+def retarget_onto(motion, skeleton: Skeleton, path: Path, onto_path: str):
+    """`motion` (read from `path`) carried onto `skeleton` (the training skeleton, from `onto_path`) by its bones'
+    names, each bone's rotation from its rest pose; a DatasetError naming both files when the rigs cannot be
+    matched."""
+    from dimgestor.retarget.rig import Rig, RigError
+    from dimgestor.retarget.transfer import Retarget, resolve_map
+
+    try:
+        source, target = Rig.from_skeleton(motion.skeleton, str(path)), Rig.from_skeleton(skeleton, onto_path)
+        return Retarget(source, target, resolve_map(source, what="source"), resolve_map(target)).motion(motion)
+    except (RigError, ValueError) as e:
+        raise DatasetError(f"{path}: its skeleton (joints, hierarchy or channels) differs from {onto_path}'s and "
+                           f"cannot be retargeted onto it: {e}") from None
 
 
 def find_pairs(data_dir: str | Path) -> list[Pair]:
@@ -132,6 +165,7 @@ class Clip:
     features: np.ndarray  # (T, D) float32, raw (not normalized)
     audio: np.ndarray  # (T * samples_per_frame,) float32, 16 kHz
     skeleton: Skeleton
+    retargeted: bool = False  # its motion file is on another skeleton, carried onto this one
 
 
 def speed_perturb(clip: Clip, rate: float, fps: float, spf: int, heading: str = "velocity") -> Clip:
@@ -156,41 +190,50 @@ def speed_perturb(clip: Clip, rate: float, fps: float, spf: int, heading: str = 
     return Clip(f"{clip.name}@{rate:g}x", out.astype(np.float32), audio.astype(np.float32), clip.skeleton)
 
 
-def _cache_key(pair: Pair, spec: FeatureSpec) -> str:
+def _cache_key(pair: Pair, spec: FeatureSpec, onto: Skeleton | None = None) -> str:
     stats = {str(p.resolve()): [p.stat().st_size, p.stat().st_mtime_ns] for p in (pair.bvh, pair.wav)}
-    blob = json.dumps({"v": CACHE_VERSION, "files": stats, "spec": spec.to_dict(), "rate": SAMPLE_RATE}, sort_keys=True)
+    key = {"v": CACHE_VERSION, "files": stats, "spec": spec.to_dict(), "rate": SAMPLE_RATE}
+    if onto is not None:
+        key["onto"] = onto.to_dict()
+    blob = json.dumps(key, sort_keys=True, default=lambda a: np.asarray(a).tolist())
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def preprocess_pair(pair: Pair, spec: FeatureSpec) -> Clip:
-    """Read, featurize and align one pair (no cache)."""
+def preprocess_pair(pair: Pair, spec: FeatureSpec, onto: Skeleton | None = None, onto_path: str = "") -> Clip:
+    """Read, featurize and align one pair (no cache); its motion retargeted onto `onto` (from `onto_path`) when
+    its skeleton is another."""
     motion = read_motion(pair.bvh)
+    retargeted = onto is not None and not motion.skeleton.same_topology(onto)
+    if retargeted:
+        motion = retarget_onto(motion, onto, pair.bvh, onto_path or "the training skeleton")
     features = motion_to_features(motion, spec)
     audio = load_wav(pair.wav, SAMPLE_RATE)
     spf = samples_per_frame(spec)
     _, audio = align(len(features) / spec.fps, audio, SAMPLE_RATE, name=pair.name)
     T = min(len(features), len(audio) // spf)
-    return Clip(pair.name, features[:T], audio[: T * spf], motion.skeleton)
+    return Clip(pair.name, features[:T], audio[: T * spf], motion.skeleton, retargeted)
 
 
-def load_clip(pair: Pair, spec: FeatureSpec, cache_dir: Path | None) -> Clip:
+def load_clip(pair: Pair, spec: FeatureSpec, cache_dir: Path | None, onto: Skeleton | None = None,
+              onto_path: str = "") -> Clip:
     """preprocess_pair through the cache: arrays are memory-mapped when the entry exists."""
     if cache_dir is None:
-        return preprocess_pair(pair, spec)
-    entry = cache_dir / f"{pair.name.replace('/', '__')}-{_cache_key(pair, spec)}"
+        return preprocess_pair(pair, spec, onto, onto_path)
+    entry = cache_dir / f"{pair.name.replace('/', '__')}-{_cache_key(pair, spec, onto)}"
     if (entry / "meta.json").is_file():
         try:
             meta = json.loads((entry / "meta.json").read_text())
             return Clip(pair.name, np.load(entry / "features.npy", mmap_mode="r"), np.load(entry / "audio.npy", mmap_mode="r"),
-                        Skeleton.from_dict(meta["skeleton"]))
+                        Skeleton.from_dict(meta["skeleton"]), bool(meta.get("retargeted", False)))
         except (OSError, ValueError, KeyError):
             shutil.rmtree(entry, ignore_errors=True)  # a damaged entry is rebuilt below
-    clip = preprocess_pair(pair, spec)
+    clip = preprocess_pair(pair, spec, onto, onto_path)
     tmp = entry.with_name(entry.name + f".tmp{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=True)
     np.save(tmp / "features.npy", clip.features)
     np.save(tmp / "audio.npy", clip.audio)
-    (tmp / "meta.json").write_text(json.dumps({"skeleton": clip.skeleton.to_dict(), "bvh": str(pair.bvh), "wav": str(pair.wav)}))
+    (tmp / "meta.json").write_text(json.dumps({"skeleton": clip.skeleton.to_dict(), "bvh": str(pair.bvh), "wav": str(pair.wav),
+                                               "retargeted": clip.retargeted}))
     try:
         os.replace(tmp, entry)
     except OSError:  # another process wrote the same entry first: theirs is as good
@@ -206,41 +249,66 @@ def samples_per_frame(spec: FeatureSpec) -> int:
 
 
 class GestureDataset:
-    """Windows of `window_s` seconds (hop `hop_s`, default half a window) over one split of a folder.
+    """Windows of `window_s` seconds (hop `hop_s`, default half a window) over one split of one or more folders.
 
     Items: {"motion": (W, D) float32 raw features, "audio": (W * 800,) float32, "name", "start_frame",
-    "mirrored", "arms"} (+ "audio_features" when audio_feature_fn is given). A stretch shorter than one
+    "mirrored", "arms", "speaker"} (+ "audio_features" when audio_feature_fn is given). A stretch shorter than one
     window yields one shorter item; `collate_windows` crops a batch to its shortest item.
     cache_dir defaults to $DIMGESTOR_CACHE or ~/.cache/dimgestor/datasets; use_cache=False skips it.
+    Several folders: their clips are named FOLDER/NAME (the folder's own name), each folder's split file
+    applies to its clips. `skeleton`: the training skeleton (a Skeleton, or a BVH / BEAT2 take whose skeleton it
+    is); default the first clip's. Clips on another skeleton are retargeted onto it (`retargeted` names them).
     """
 
-    def __init__(self, data_dir: str | Path, spec: FeatureSpec | None = None, window_s: float = 20.0,
-                 hop_s: float | None = None, split: str = "train", cache_dir: str | Path | None = None,
-                 use_cache: bool = True, mirror: bool = False, audio_feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    def __init__(self, data_dir: str | Path | Sequence[str | Path], spec: FeatureSpec | None = None,
+                 window_s: float = 20.0, hop_s: float | None = None, split: str = "train",
+                 cache_dir: str | Path | None = None, use_cache: bool = True, mirror: bool = False,
+                 audio_feature_fn: Callable[[np.ndarray], np.ndarray] | None = None,
                  valid_fraction: float = 0.15, valid_seconds: float | None = None, split_file: str | Path | None = None,
-                 speeds: tuple[float, ...] = (), arm_mix: bool = False):
+                 speeds: tuple[float, ...] = (), arm_mix: bool = False, skeleton: Skeleton | str | Path | None = None):
         if split not in ("train", "valid"):
             raise ValueError(f"split must be 'train' or 'valid', got {split!r}")
-        self.data_dir = Path(data_dir)
-        self.pairs = find_pairs(self.data_dir)
+        folders = [Path(d) for d in ([data_dir] if isinstance(data_dir, (str, os.PathLike)) else data_dir)]
+        if not folders:
+            raise DatasetError("no data folder given")
+        self.data_dirs = folders
+        self.data_dir = folders[0]
+        labels = _folder_labels(folders)
+        self.pairs: list[Pair] = []
+        self.speaker_of: dict[str, str] = {}  # clip name -> speaker
+        by_clip: dict[str, str] = {}
+        for folder, label in zip(folders, labels):
+            pairs = find_pairs(folder)
+            names = [p.name for p in pairs]
+            own = split_file if split_file is not None else next(
+                (folder / f for f in SPLIT_FILES if (folder / f).is_file()), None)
+            which = read_split(own, names) if own else {}
+            for p in pairs:
+                name = f"{label}/{p.name}" if len(folders) > 1 else p.name
+                self.pairs.append(Pair(name, p.bvh, p.wav))
+                self.speaker_of[name] = speaker_of(p.name, label)
+                if own:
+                    by_clip[name] = which[p.name]
         spec = spec or FeatureSpec()
         cache = (Path(cache_dir) if cache_dir is not None else default_cache_dir()) if use_cache else None
-        self.clips = [load_clip(p, spec, cache) for p in self.pairs]
-        self.skeleton = self._common_skeleton()
+        onto, onto_path = self._training_skeleton(skeleton)
+        first = load_clip(self.pairs[0], spec, cache, onto, onto_path)
+        onto = onto or first.skeleton
+        onto_path = onto_path or str(self.pairs[0].bvh)
+        self.clips = [first] + [load_clip(p, spec, cache, onto, onto_path) for p in self.pairs[1:]]
+        self.retargeted = [p.name for p, c in zip(self.pairs, self.clips) if c.retargeted]
+        self.skeleton = self._common_skeleton(onto, onto_path)
         self.spec = spec.resolve(self.skeleton)
         self.fps = self.spec.fps
         self.spf = samples_per_frame(self.spec)
         self.split, self.mirror, self.audio_feature_fn = split, mirror, audio_feature_fn
-        if split_file is None:
-            split_file = next((self.data_dir / f for f in SPLIT_FILES if (self.data_dir / f).is_file()), None)
-        names = [p.name for p in self.pairs]
-        by_clip = read_split(split_file, names) if split_file else None
+        self.clip_speakers = [self.speaker_of[p.name] for p in self.pairs]  # per clip (speed copies appended below)
         # segments: (clip index, first frame, end frame) of this split
         self.segments: list[tuple[int, int, int]] = []
-        for c, clip in enumerate(self.clips):
+        for c, (pair, clip) in enumerate(zip(self.pairs, self.clips)):
             T = len(clip.features)
-            if by_clip is not None:
-                if by_clip[clip.name] == split:
+            if pair.name in by_clip:
+                if by_clip[pair.name] == split:
                     self.segments.append((c, 0, T))
                 continue
             n_valid = int(round(valid_seconds * self.fps)) if valid_seconds is not None else int(round(valid_fraction * T))
@@ -258,6 +326,7 @@ class GestureDataset:
                     part = Clip(self.clips[c].name, self.clips[c].features[a:b],
                                 self.clips[c].audio[a * self.spf:b * self.spf], self.clips[c].skeleton)
                     self.clips.append(speed_perturb(part, rate, self.fps, self.spf, self.spec.heading))
+                    self.clip_speakers.append(self.clip_speakers[c])
                     self.segments.append((len(self.clips) - 1, 0, len(self.clips[-1].features)))
         self.window = max(1, int(round(window_s * self.fps)))
         self.hop = max(1, int(round((hop_s if hop_s is not None else window_s / 2) * self.fps)))
@@ -275,16 +344,32 @@ class GestureDataset:
             raise DatasetError(f"{self.data_dir}: the {split!r} split is empty "
                                f"({len(self.clips)} clips; check the split file or valid_fraction)")
 
-    def _common_skeleton(self) -> Skeleton:
-        first = self.clips[0].skeleton
-        for pair, clip in zip(self.pairs[1:], self.clips[1:]):
-            if not clip.skeleton.same_topology(first):
-                raise DatasetError(f"{pair.bvh}: its skeleton (joints, hierarchy or channels) differs from "
-                                   f"{self.pairs[0].bvh}; all BVH files of a dataset must share one skeleton")
-            if not np.allclose(clip.skeleton.offsets, first.offsets, atol=1e-3):
-                warnings.warn(f"{pair.bvh}: bone offsets differ from {self.pairs[0].bvh}; features are "
-                              "rotations, so training works, but generated motion uses the first file's bones", stacklevel=3)
-        return first
+    @property
+    def speakers(self) -> list[str]:
+        """Every speaker of the data (both splits), sorted."""
+        return sorted(set(self.speaker_of.values()))
+
+    def window_speakers(self) -> list[str]:
+        """The speaker of each window, in window order."""
+        return [self.clip_speakers[c] for c, _, _, _ in self.windows]
+
+    def _training_skeleton(self, skeleton) -> tuple[Skeleton | None, str]:
+        if skeleton is None or isinstance(skeleton, Skeleton):
+            return skeleton, ("the given skeleton" if skeleton is not None else "")
+        path = Path(skeleton)
+        if path.suffix.lower() not in MOTION_SUFFIXES:
+            raise DatasetError(f"{path}: the training skeleton is read from a BVH or a BEAT2 / SMPL-X take (.npz)")
+        if not path.is_file():
+            raise DatasetError(f"{path}: training skeleton file not found")
+        return read_motion(path).skeleton, str(path)
+
+    def _common_skeleton(self, onto: Skeleton, onto_path: str) -> Skeleton:
+        for pair, clip in zip(self.pairs, self.clips):
+            if not np.allclose(clip.skeleton.offsets, onto.offsets, atol=1e-3):
+                warnings.warn(f"{pair.bvh}: bone offsets differ from {onto_path}; features are "
+                              "rotations, so training works, but generated motion uses the training skeleton's bones",
+                              stacklevel=3)
+        return onto
 
     def _starts(self, a: int, b: int) -> list[tuple[int, int]]:
         if b - a <= self.window:
@@ -311,7 +396,8 @@ class GestureDataset:
             motion = mix_arms(motion, self.spec, self.skeleton, variant).astype(np.float32)
         audio = np.array(clip.audio[start * self.spf:(start + n) * self.spf], dtype=np.float32)
         item = {"motion": motion, "audio": audio, "name": clip.name, "start_frame": start,
-                "mirrored": variant is True, "arms": variant if isinstance(variant, str) else None}
+                "mirrored": variant is True, "arms": variant if isinstance(variant, str) else None,
+                "speaker": self.clip_speakers[c]}
         if self.audio_feature_fn is not None:
             item["audio_features"] = self.audio_feature_fn(audio)
         return item
@@ -329,11 +415,24 @@ class GestureDataset:
 
     def summary(self) -> str:
         seconds = self.seconds()
+        speakers = sorted(set(self.window_speakers()))
         return (f"{self.split}: {len(self.clips)} clips, {seconds:.1f} s, {len(self)} windows of "
                 f"{self.window / self.fps:g} s, {self.motion_dim} features at {self.fps:g} fps"
                 + (", mirrored" if self.mirror else "")
                 + (", arm-mixed" if self.arm_mix else "")
-                + (", with speed-perturbed copies" if len(self.clips) > len(self.pairs) else ""))
+                + (", with speed-perturbed copies" if len(self.clips) > len(self.pairs) else "")
+                + (f", {len(self.retargeted)} clip{'s' * (len(self.retargeted) != 1)} retargeted onto the training skeleton" if self.retargeted else "")
+                + (f", {len(speakers)} speakers" if len(speakers) > 1 else ""))
+
+
+def _folder_labels(folders: list[Path]) -> list[str]:
+    """Each data folder's name, made unique (`a`, `a-2`) when two folders share one."""
+    labels, seen = [], {}
+    for f in folders:
+        base = f.resolve().name or "data"
+        seen[base] = seen.get(base, 0) + 1
+        labels.append(base if seen[base] == 1 else f"{base}-{seen[base]}")
+    return labels
 
 
 def compute_stats(dataset: GestureDataset, min_std: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:

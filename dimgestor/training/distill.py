@@ -109,7 +109,8 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     tc = teacher.config
     opts = bundle.info.get("options", {})
     data = cfg.data or bundle.info.get("data")
-    if not data or not Path(data).is_dir():
+    folders = [data] if isinstance(data, str) else list(data or ())
+    if not folders or not all(Path(f).is_dir() for f in folders):
         raise ValueError(f"--data: the BVH+WAV folder whose audio the teacher labels (the checkpoint names "
                          f"{bundle.info.get('data')!r}, which is not a folder here)")
     guidance = tc.guidance
@@ -126,9 +127,9 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     ema = copy.deepcopy(student).requires_grad_(False).eval()
     split = dict(window_s=cfg.window_s or opts.get("window_s", 5.0), valid_fraction=opts.get("valid_fraction", 0.15),
                  valid_seconds=opts.get("valid_seconds"))
-    split.update(hop_s=split["window_s"] / 4, cache_dir=cfg.cache_dir)
-    train_ds = GestureDataset(data, bundle.feature_spec, split="train", speeds=tuple(opts.get("speeds") or ()), **split)
-    valid_ds = GestureDataset(data, bundle.feature_spec, split="valid", **split)
+    split.update(hop_s=split["window_s"] / 4, cache_dir=cfg.cache_dir, skeleton=bundle.skeleton)
+    train_ds = GestureDataset(folders, bundle.feature_spec, split="train", speeds=tuple(opts.get("speeds") or ()), **split)
+    valid_ds = GestureDataset(folders, bundle.feature_spec, split="valid", **split)
     t0 = time.time()
     bank = WindowBank(train_ds, teacher, bundle.mean, bundle.std, device, copies=cfg.aug_copies,
                       aug_config=AugmentConfig(), seed=cfg.seed)

@@ -72,7 +72,10 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    data: str  # folder of NAME.bvh + NAME.wav pairs
+    data: str | tuple[str, ...]  # folder(s) of NAME.bvh (or BEAT2 NAME.npz) + NAME.wav pairs
+    skeleton: str | None = None  # the training skeleton's file (BVH or take); None: the first clip's
+    balance_speakers: bool = True  # speakers take equal turns in the batches whatever their hours
+    speaker_condition: bool = False  # a learnt vector per speaker in the condition (generate --speaker)
     out: str  # run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
     preset: str = "realtime"
     overrides: dict[str, Any] | None = None  # ModelConfig fields replacing the preset's (and the recipe's)
@@ -110,9 +113,12 @@ class TrainConfig(BaseModel):
     cache_dir: str | None = None
     progress: bool = True
 
-    @field_validator("data", "out", "cache_dir", mode="before")
+    @field_validator("data", "out", "cache_dir", "skeleton", mode="before")
     @classmethod
     def _path_as_text(cls, v):
+        if isinstance(v, (list, tuple)):
+            v = tuple(os.fspath(x) for x in v)
+            return v[0] if len(v) == 1 else v
         return os.fspath(v) if isinstance(v, os.PathLike) else v
 
     @field_validator("recipe")
@@ -161,11 +167,12 @@ class Objective(nn.Module):
         super().__init__()
         self.model, self.diffusion, self.weights = model, diffusion, weights
 
-    def forward(self, x0, feats, t, noise, drop=None):
-        return self.diffusion.training_loss(self.model, x0, feats, t, noise, drop=drop, **self.weights)
+    def forward(self, x0, feats, t, noise, drop=None, speaker=None):
+        return self.diffusion.training_loss(self.model, x0, feats, t, noise, drop=drop, speaker=speaker, **self.weights)
 
 
 LOSS_WEIGHTS = ("vel_weight", "acc_weight", "root_weight")
+SPEAKER_DROP = 0.1  # windows trained with no speaker, for a model with a speaker condition
 
 
 def resolve_recipe(opts: TrainConfig) -> tuple[dict, dict[str, float]]:
@@ -199,6 +206,8 @@ class WindowBank:
                  aug_config: AugmentConfig | None = None, seed: int = 0):
         self.motion, self.feats, self.versions = [], [], []  # versions[i]: features of window i's augmented audio
         self.copies = copies
+        names = model.config.speakers  # each window's speaker index, for a model with a speaker condition
+        self.speaker = torch.tensor([names.index(s) for s in ds.window_speakers()]) if names else None
         mean, std = torch.from_numpy(mean), torch.from_numpy(std)
         # babble is made of the training speech itself, pitch-shifted and time-shifted
         babble = [ds.clips[c].audio[a * ds.spf: b * ds.spf] for c, a, b in ds.segments] if copies else None
@@ -249,6 +258,10 @@ class WindowBank:
         """Per batch item 0 (clean) or k (augmented copy k), uniformly; None (nothing drawn) without copies."""
         return torch.randint(0, self.copies + 1, (n,), generator=g).tolist() if self.copies else None
 
+    def speakers(self, idx: list[int]) -> torch.Tensor | None:
+        """The windows' speaker indices (None: the model has no speaker condition)."""
+        return None if self.speaker is None else self.speaker[idx]
+
     def batch(self, idx: list[int], frames_extra: int, fpf: int, versions: list[int] | None = None):
         T = min(len(self.motion[i]) for i in idx)  # crop to the shortest window
         x0 = torch.stack([self.motion[i][:T] for i in idx])
@@ -266,7 +279,7 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def _batch_indices(sampler: DistributedSampler, step: int, B: int) -> list[int]:
+def _batch_indices(sampler, step: int, B: int) -> list[int]:
     """The global batch for `step`: epochs of the shuffled order, wrapped when short."""
     n = len(sampler)
     per_epoch = max(1, n // B)
@@ -291,7 +304,9 @@ def validation_loss(model: DiMGestor, diffusion: Diffusion, bank: WindowBank, se
     for i in range(len(bank)):
         x0, feats = bank.batch([i] * n_t, c.lookahead_feats, c.feats_per_frame)
         noise = diffusion.noise_like(x0, g)
-        loss = diffusion.training_loss(model, x0.to(device), feats.to(device), ts.to(device), noise.to(device))
+        speaker = bank.speakers([i] * n_t)
+        loss = diffusion.training_loss(model, x0.to(device), feats.to(device), ts.to(device), noise.to(device),
+                                       speaker=None if speaker is None else speaker.to(device))
         total, count = total + loss.item(), count + 1
     return total / count
 
@@ -316,7 +331,7 @@ class Run:
     g: torch.Generator  # the global batch's diffusion steps, noise, augmented versions and dropout (same on every rank)
     train_bank: WindowBank
     valid_bank: WindowBank | None  # None without validation (valid_every 0)
-    sampler: DistributedSampler
+    sampler: DistributedSampler | BalancedOrder
     mean: np.ndarray
     std: np.ndarray
     cond_drop: float
@@ -368,15 +383,50 @@ def _config_and_data(opts: TrainConfig, resume_from: Path | None):
         heading = opts.heading or opts.chosen_recipe.heading
     spec = FeatureSpec(fps=config.fps, heading=heading)
     ds_kw = dict(window_s=opts.window_s, hop_s=opts.hop_s if opts.hop_s is not None else opts.window_s / 4,
-                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction, valid_seconds=opts.valid_seconds)
+                 cache_dir=opts.cache_dir, valid_fraction=opts.valid_fraction, valid_seconds=opts.valid_seconds,
+                 skeleton=opts.skeleton)
     train_ds = GestureDataset(opts.data, spec, split="train", mirror=opts.mirror, speeds=opts.speeds,
                               arm_mix=opts.arm_mix, **ds_kw)
     valid_ds = GestureDataset(opts.data, spec, split="valid", **ds_kw)
     if resume_from is None:
-        config = get_preset(opts.preset, **{**overrides, "motion_dim": train_ds.motion_dim})
+        speakers = tuple(train_ds.speakers) if opts.speaker_condition else ()
+        config = get_preset(opts.preset, **{**overrides, "motion_dim": train_ds.motion_dim, "speakers": speakers})
     elif config.motion_dim != train_ds.motion_dim:
         raise ValueError(f"{resume_from}: trained on {config.motion_dim} features, the data has {train_ds.motion_dim}")
+    elif set(train_ds.speakers) - set(config.speakers) and config.speakers:
+        raise ValueError(f"{resume_from}: trained on speakers {list(config.speakers)}; the data also has "
+                         f"{sorted(set(train_ds.speakers) - set(config.speakers))}")
     return config, train_ds, valid_ds
+
+
+class BalancedOrder:
+    """The training windows' order with every speaker taking equal turns, whatever their hours: an epoch (as many
+    draws as windows) goes round the speakers, each round in a new shuffled order, and each speaker's windows come
+    in a shuffled order of their own (a speaker with fewer windows repeats them, one with more is sampled).
+    Seeded by seed + epoch, as DistributedSampler's order is, so a resumed run draws what it would have drawn."""
+
+    def __init__(self, speakers: list[str], seed: int = 0):
+        self.groups = [[i for i, s in enumerate(speakers) if s == name] for name in sorted(set(speakers))]
+        self.n, self.seed, self.epoch = len(speakers), seed, 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(self.seed + self.epoch)
+        queues = [[] for _ in self.groups]
+        order: list[int] = []
+        while len(order) < self.n:
+            for k in torch.randperm(len(self.groups), generator=g).tolist():
+                if not queues[k]:
+                    queues[k] = [self.groups[k][i] for i in torch.randperm(len(self.groups[k]), generator=g).tolist()]
+                order.append(queues[k].pop())
+                if len(order) == self.n:
+                    break
+        return iter(order)
 
 
 def setup(opts: TrainConfig) -> Run:
@@ -412,8 +462,12 @@ def setup(opts: TrainConfig) -> Run:
                             aug_config=AugmentConfig(**(opts.aug_config or {})), seed=opts.seed)
     t_bank = time.time() - t_bank
     valid_bank = WindowBank(valid_ds, model, mean, std, device) if opts.valid_every else None
-    sampler = DistributedSampler(range(len(train_bank)), num_replicas=1, rank=0, shuffle=True,  # the global order
-                                 seed=opts.seed, drop_last=False)
+    speakers = train_ds.window_speakers()
+    if opts.balance_speakers and len(set(speakers)) > 1:
+        sampler = BalancedOrder(speakers, opts.seed)
+    else:
+        sampler = DistributedSampler(range(len(train_bank)), num_replicas=1, rank=0, shuffle=True,  # the global order
+                                     seed=opts.seed, drop_last=False)
     diffusion = Diffusion(config)
     run = Run(opts, Path(opts.out), world, rank, device, resume_from, config, train_ds, model, ema, diffusion,
               optimizer, _objective(model, diffusion, resolve_recipe(opts)[1], train_ds.spec, world, device), g,
@@ -444,6 +498,8 @@ def _describe(run: Run, t_bank: float) -> str:
             f"{w['vel_weight']:g}/{w['acc_weight']:g}/{w['root_weight']:g}"
             + (f", {opts.aug_copies} augmented copies of the training audio ({t_bank:.0f} s)" if opts.augment else "")
             + (f", condition dropped in {run.cond_drop:.0%} of windows" if run.cond_drop > 0 else "")
+            + (", speakers in equal turns" if isinstance(run.sampler, BalancedOrder) else "")
+            + (f", speaker condition ({len(config.speakers)} speakers)" if config.speakers else "")
             + (f", resuming at step {run.step} from {run.resume_from}" if run.resume_from else ""))
 
 
@@ -458,14 +514,19 @@ def train_step(run: Run, B: int) -> float:
     noise = run.diffusion.noise_like(x0, g)
     # drawn after t and noise, and only when used: runs without dropout draw exactly what they drew before
     drop = torch.rand(len(idx), generator=g) < run.cond_drop if run.cond_drop > 0 else None
+    speaker = run.train_bank.speakers(idx)
+    if speaker is not None:  # some windows train the speaker-agnostic model (no speaker), what plays by default
+        speaker = torch.where(torch.rand(len(idx), generator=g) < SPEAKER_DROP, -1, speaker)
     if run.world > 1:  # this rank's equal share; DDP averages the gradients, so the step is the global batch's
         part = slice(run.rank * B // run.world, (run.rank + 1) * B // run.world)
         x0, feats, t, noise = x0[part], feats[part], t[part], noise[part]
         drop = None if drop is None else drop[part]
+        speaker = None if speaker is None else speaker[part]
     for group in run.optimizer.param_groups:
         group["lr"] = _lr(run.opts, run.step)
     d = run.device
-    loss = run.objective(x0.to(d), feats.to(d), t.to(d), noise.to(d), None if drop is None else drop.to(d))
+    loss = run.objective(x0.to(d), feats.to(d), t.to(d), noise.to(d), None if drop is None else drop.to(d),
+                         None if speaker is None else speaker.to(d))
     run.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     if run.opts.grad_clip > 0:
@@ -503,7 +564,7 @@ def checkpoint(run: Run) -> Path:
     if not run.main:
         return run.out
     opts, history = run.opts, run.history
-    info = {"step": run.step, "preset": opts.preset, "data": str(opts.data), "history": history[-1:],
+    info = {"step": run.step, "preset": opts.preset, "data": opts.data if isinstance(opts.data, str) else list(opts.data), "history": history[-1:],
             "options": opts.model_dump(exclude=RUNTIME_OPTIONS),
             "train_wall_s": history[-1].get("elapsed_s") if history else None}
     state = {"step": run.step, "model": run.model.state_dict(), "ema": run.ema.state_dict(),
@@ -573,16 +634,28 @@ def register(subparsers) -> None:
     from ..config import PRESETS
 
     p = subparsers.add_parser(
-        "train", help="train a model on a folder of NAME.bvh + NAME.wav pairs",
+        "train", help="train a model on folders of NAME.bvh (or BEAT2 NAME.npz) + NAME.wav pairs",
         description="Train a model on a folder of NAME.bvh + NAME.wav pairs (motion capture with its speech). "
                     "Checkpoints and log.jsonl go to the run folder; several GPUs: launch it with torchrun.",
         epilog=examples("dimgestor train --data my_data --out runs/mine",
                         "dimgestor train --data my_data --out runs/mine --resume            # after a stop",
                         "dimgestor train --data my_data --out runs/small --preset tiny --max-steps 2000 --device cpu",
+                        "dimgestor train --data zeggs --data beat2 --skeleton zeggs/001.bvh --speaker-condition --out runs/mix",
                         "torchrun --nproc-per-node 2 -m dimgestor_app.cli train --data my_data --out runs/ddp"))
     d = TrainConfig(data="", out="")  # the defaults, one place
     g = p.add_argument_group("data")
-    g.add_argument("--data", required=True, metavar="DIR", help="folder of BVH+WAV pairs (sub-folders allowed)")
+    g.add_argument("--data", required=True, metavar="DIR", action="append",
+                   help="folder of NAME.bvh (or BEAT2 NAME.npz) + NAME.wav pairs (sub-folders allowed); give it again "
+                        "for more folders (their clips are named FOLDER/NAME)")
+    g.add_argument("--skeleton", default=None, metavar="FILE",
+                   help="a BVH or BEAT2 take whose skeleton the model is trained on (default: the first clip's); clips "
+                        "on other skeletons are retargeted onto it by their bones' names")
+    g.add_argument("--balance-speakers", action=argparse.BooleanOptionalAction, default=None,
+                   help="speakers take equal turns in the batches whatever their hours (default: on; a clip's speaker "
+                        "is BEAT's ID_NAME_... name, else its sub-folder, else its data folder)")
+    g.add_argument("--speaker-condition", action=argparse.BooleanOptionalAction, default=None,
+                   help="learn a vector per speaker, so `generate --speaker NAME` plays one speaker's style "
+                        "(default: off; without --speaker the model plays no speaker in particular)")
     g.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="dataset feature cache (default: $DIMGESTOR_CACHE or ~/.cache/dimgestor)")
     g.add_argument("--window-s", type=float, default=d.window_s, metavar="S", help="training window length in seconds")
@@ -671,7 +744,7 @@ def small_data_defaults(args, speeds: tuple[float, ...] | None) -> dict:
     if args.mirror is None or speeds is None or args.augment is None:  # only then is the data read
         minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
                                  valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
-                                 window_s=args.window_s).seconds() / 60  # the heading layout does not change it
+                                 window_s=args.window_s, skeleton=args.skeleton).seconds() / 60  # the heading layout does not change it
         few = minutes < SMALL_DATA_MIN
     return {"mirror": few if args.mirror is None else args.mirror,
             "speeds": (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds,
