@@ -387,7 +387,7 @@ def motion_stats(motion: BvhMotion) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("bvh", help="input BVH file")
+    p.add_argument("bvh", metavar="MOTION", help="input BVH file, or a BEAT2 / SMPL-X take (.npz)")
     p.add_argument("--out", required=True, metavar="OUT.gif|OUT.png",
                    help="OUT.gif (animation) or OUT.png (filmstrip of evenly spaced poses)")
     g = p.add_argument_group("what to render")
@@ -410,7 +410,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main_from_args(args: argparse.Namespace) -> int:
     try:
-        motion = read_bvh(args.bvh)
+        if Path(args.bvh).suffix.lower() == ".npz":  # a BEAT2 / SMPL-X take, on the generic SMPL-X skeleton
+            from dimgestor.smplx import read_smplx
+
+            motion = read_smplx(args.bvh)[0]
+        else:
+            motion = read_bvh(args.bvh)
         views = tuple(v.strip() for v in args.views.split(",") if v.strip())
         size = None
         if args.width is not None or args.height is not None:

@@ -159,3 +159,9 @@ def test_training_balances_speakers_by_default_and_not_when_told(two_rigs, tmp_p
                      "--cache-dir", str(tmp_path / "cache")]) == 0
         assert ("speakers in equal turns" in capsys.readouterr().out) == says
     assert load_checkpoint(tmp_path / "--balance-speakers").config.speakers == ()
+
+
+def test_render_draws_a_take(two_rigs, tmp_path, capsys):
+    out = tmp_path / "take.png"
+    assert main(["render", str(two_rigs / "beat2" / "2_scott_0_1_1.npz"), "--out", str(out), "--panels", "3"]) == 0
+    assert "wrote" in capsys.readouterr().out and out.stat().st_size > 5_000
