@@ -165,3 +165,24 @@ def test_render_draws_a_take(two_rigs, tmp_path, capsys):
     out = tmp_path / "take.png"
     assert main(["render", str(two_rigs / "beat2" / "2_scott_0_1_1.npz"), "--out", str(out), "--panels", "3"]) == 0
     assert "wrote" in capsys.readouterr().out and out.stat().st_size > 5_000
+
+
+def test_beat2_as_it_ships_smplxflame_beside_wave16k_with_its_split_file(tmp_path):
+    """BEAT2's own layout: smplxflame_30/NAME.npz and wave16k/NAME.wav, and train_test_split.csv (id,type) naming
+    takes of the whole language, some of them not downloaded."""
+    lang = tmp_path / "beat_english_v2.0.0"
+    (lang / "smplxflame_30").mkdir(parents=True)
+    (lang / "wave16k").mkdir()
+    names = ["2_scott_0_1_1", "2_scott_0_2_2", "4_lawrence_0_3_3"]
+    for i, name in enumerate(names):
+        save(lang / "smplxflame_30" / f"{name}.npz", calm_take(30 + i, 3.0))
+        save_wav(lang / "wave16k" / f"{name}.wav", synthetic_speech(3.0, seed=i), 16000)
+    (lang / "train_test_split.csv").write_text("id,type\n2_scott_0_1_1,train\n2_scott_0_2_2,test\n"
+                                                "4_lawrence_0_3_3,additional\n30_katya_0_1_1,val\n")
+    train = GestureDataset(lang, window_s=2.0, use_cache=False)
+    valid = GestureDataset(lang, window_s=2.0, use_cache=False, split="valid")
+    assert [p.name for p in train.pairs] == [f"smplxflame_30/{n}" for n in names]
+    assert all(p.wav == lang / "wave16k" / f"{p.bvh.stem}.wav" for p in train.pairs)
+    assert sorted({train.clips[c].name for c, _, _ in train.segments}) == [f"smplxflame_30/{n}" for n in names[::2]]
+    assert {valid.clips[c].name for c, _, _ in valid.segments} == {"smplxflame_30/2_scott_0_2_2"}
+    assert train.speakers == ["lawrence", "scott"] and smplx.is_smplx(train.skeleton)

@@ -35,7 +35,7 @@ from dimgestor.features import (HEADING_COLUMN, VELOCITY_COLUMNS, FeatureSpec, a
                                 mix_arms, motion_to_features)
 
 CACHE_VERSION = 1
-SPLIT_FILES = ("split.json", "split.csv", "split.txt")
+SPLIT_FILES = ("split.json", "split.csv", "split.txt", "train_test_split.csv")  # (the last: BEAT2's own)
 
 
 class DatasetError(ValueError):
@@ -90,7 +90,8 @@ def retarget_onto(motion, skeleton: Skeleton, path: Path, onto_path: str):
 
 
 def find_pairs(data_dir: str | Path) -> list[Pair]:
-    """All NAME.bvh (or a BEAT2 take, NAME.npz) with a NAME.wav beside it, in sub-folders too, sorted by name."""
+    """All NAME.bvh (or a BEAT2 take, NAME.npz) with a NAME.wav beside it, in sub-folders too, sorted by name; a
+    take in BEAT2's `smplxflame_30/` pairs with its `wave16k/NAME.wav`, as the dataset ships them."""
     root = Path(data_dir)
     if not root.is_dir():
         raise DatasetError(f"{root}: data folder not found")
@@ -101,6 +102,11 @@ def find_pairs(data_dir: str | Path) -> list[Pair]:
             raise DatasetError(f"{p}: {bvhs[p.with_suffix('')].name} is beside it: one motion file a clip")
         bvhs[p.with_suffix("")] = p
     wavs = {p.with_suffix(""): p for p in files if p.suffix.lower() == ".wav"}
+    for stem, motion in bvhs.items():  # BEAT2's own layout: smplxflame_30/NAME.npz with wave16k/NAME.wav beside
+        if stem not in wavs and motion.parent.name.startswith("smplxflame"):
+            beside = motion.parent.parent / "wave16k" / motion.stem
+            if beside in wavs:
+                wavs[stem] = wavs.pop(beside)
     pairs = [Pair(stem.relative_to(root).as_posix(), bvhs[stem], wavs[stem]) for stem in sorted(bvhs.keys() & wavs.keys())]
     if not pairs:
         raise DatasetError(
@@ -119,6 +125,8 @@ def read_split(path: str | Path, names: list[str]) -> dict[str, str]:
 
     JSON: {"train": [...], "valid": [...]}. CSV / TXT: one clip per line, `NAME,valid` or
     `NAME valid` (a `name,split` header and # comments are skipped). Names may omit sub-folders.
+    BEAT2's `train_test_split.csv` (`id,type`: train, val, test or additional) reads the same way, test and val
+    held out, additional trained on, takes it names that are not in the folder skipped.
     """
     path = Path(path)
     try:
@@ -136,17 +144,19 @@ def read_split(path: str | Path, names: list[str]) -> dict[str, str]:
         for lineno, line in enumerate(text.splitlines(), 1):
             row = next(csv.reader([line.split("#")[0]]), []) if "," in line else line.split("#")[0].split()
             row = [c.strip() for c in row if c.strip()]
-            if not row or [c.lower() for c in row] == ["name", "split"]:
+            if not row or [c.lower() for c in row] in (["name", "split"], ["id", "type"]):
                 continue
             if len(row) != 2:
                 raise DatasetError(f"{path}:{lineno}: expected 'NAME,train' or 'NAME valid', got {line!r}")
             entries.append((row[0], row[1].lower(), lineno))
     split: dict[str, str] = {}
     for name, which, lineno in entries:
-        which = {"validation": "valid", "val": "valid", "test": "valid"}.get(which, which)
+        which = {"validation": "valid", "val": "valid", "test": "valid", "additional": "train"}.get(which, which)
         if which not in ("train", "valid"):
             raise DatasetError(f"{path}:{lineno}: split must be train or valid, got {which!r}")
         match = [n for n in names if n == name or n.rsplit("/", 1)[-1] == name]
+        if not match and path.name == "train_test_split.csv":
+            continue  # BEAT2's list names every take of its language: one may train on some of them
         if not match:
             raise DatasetError(f"{path}:{lineno}: {name!r} is not one of the pairs in the data folder")
         for n in match:
