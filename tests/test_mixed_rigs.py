@@ -224,3 +224,20 @@ def test_our_bvh_through_a_take_and_back_keeps_every_limb_joints_rotation_and_th
     world = [world_head(ours), world_head(back)]
     assert angle(*world).max() < 1e-6
     assert np.abs(ours.translations()[:, 0] - back.translations()[:, 0]).max() / smplx.CM < 1e-5
+
+
+def test_clips_with_other_bone_lengths_warn_once_for_all(tmp_path):
+    from dataclasses import replace
+
+    from dimgestor.bvh import BvhMotion, write_bvh
+
+    data = tmp_path / "d"
+    for i in range(3):
+        bvh, _ = make_synthetic_pair(data, f"c{i}", seconds=3.0, seed=i)
+        if i:
+            m = read_bvh(bvh)
+            write_bvh(bvh, BvhMotion(replace(m.skeleton, offsets=m.skeleton.offsets * 1.1), m.frame_time, m.values))
+    with pytest.warns(UserWarning) as caught:
+        GestureDataset(data, window_s=2.0, use_cache=False)
+    says = [str(w.message) for w in caught if "bone offsets differ" in str(w.message)]
+    assert len(says) == 1 and "c1.bvh and 1 more clips: bone offsets differ from" in says[0] and "c0.bvh" in says[0]

@@ -374,11 +374,13 @@ class GestureDataset:
         return read_motion(path).skeleton, str(path)
 
     def _common_skeleton(self, onto: Skeleton, onto_path: str) -> Skeleton:
-        for pair, clip in zip(self.pairs, self.clips):
-            if not np.allclose(clip.skeleton.offsets, onto.offsets, atol=1e-3):
-                warnings.warn(f"{pair.bvh}: bone offsets differ from {onto_path}; features are "
-                              "rotations, so training works, but generated motion uses the training skeleton's bones",
-                              stacklevel=3)
+        """The training skeleton; one warning for all the clips whose bones are of other lengths."""
+        other = [str(p.bvh) for p, c in zip(self.pairs, self.clips) if not c.retargeted
+                 and not np.allclose(c.skeleton.offsets, onto.offsets, atol=1e-3)]
+        if other:
+            warnings.warn(f"{other[0]}" + (f" and {len(other) - 1} more clips" if len(other) > 1 else "")
+                          + f": bone offsets differ from {onto_path}; features are rotations, so training works, "
+                          "but generated motion uses the training skeleton's bones", stacklevel=3)
         return onto
 
     def _starts(self, a: int, b: int) -> list[tuple[int, int]]:
