@@ -225,8 +225,8 @@ class DiMGestor(nn.Module):
         nn.init.zeros_(self.final.adaLN_modulation[-1].bias)
         nn.init.zeros_(self.final.decoder.weight)
         nn.init.zeros_(self.final.decoder.bias)
-        if self.speaker_embed is not None:
-            nn.init.normal_(self.speaker_embed.weight, std=0.02)
+        if self.speaker_embed is not None:  # (unit scale: the audio condition's own is far larger than DiT's 0.02)
+            nn.init.normal_(self.speaker_embed.weight, std=1.0)
 
     # ---- condition side ----
     def condition(self, feats: torch.Tensor, state: ExtractorState | None = None,
