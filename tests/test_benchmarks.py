@@ -451,3 +451,16 @@ def test_distill_benchmark_redraws_its_plot_from_its_results(tmp_path):
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert all(finite(m["jerk_ratio"]) and finite(m["variety"]) for m in r["models"])
+
+
+def test_two_rigs_benchmark_redraws_its_plot_from_its_results(tmp_path):
+    """benchmarks/two_rigs.py's plot from the recorded results alone (its measurements need ../shared and train a
+    model)."""
+    for second in ("mirrored", "synthetic"):
+        out = tmp_path / f"two_rigs_{second}.json"
+        shutil.copy(BENCH / "results" / out.name, out)
+        run("two_rigs.py", "--plot-only", str(out))
+        r = json.loads(out.read_text())
+        assert out.with_suffix(".png").stat().st_size > 10_000
+        assert set(r["data"]) == {"zeggs", second} and set(r["played"]) == {"none", "zeggs", second}
+        assert all(finite(p["distance_to"][s]) for p in r["played"].values() for s in r["data"])
