@@ -285,7 +285,7 @@ class GestureDataset:
         self.data_dir = folders[0]
         labels = _folder_labels(folders)
         self.pairs: list[Pair] = []
-        self.speaker_of: dict[str, str] = {}  # clip name -> speaker
+        self.speaker_by_clip: dict[str, str] = {}  # clip name -> speaker
         by_clip: dict[str, str] = {}
         for folder, label in zip(folders, labels):
             pairs = find_pairs(folder)
@@ -296,7 +296,7 @@ class GestureDataset:
             for p in pairs:
                 name = f"{label}/{p.name}" if len(folders) > 1 else p.name
                 self.pairs.append(Pair(name, p.bvh, p.wav))
-                self.speaker_of[name] = speaker_of(p.name, label)
+                self.speaker_by_clip[name] = speaker_of(p.name, label)
                 if own:
                     by_clip[name] = which[p.name]
         spec = spec or FeatureSpec()
@@ -312,7 +312,7 @@ class GestureDataset:
         self.fps = self.spec.fps
         self.spf = samples_per_frame(self.spec)
         self.split, self.mirror, self.audio_feature_fn = split, mirror, audio_feature_fn
-        self.clip_speakers = [self.speaker_of[p.name] for p in self.pairs]  # per clip (speed copies appended below)
+        self.clip_speakers = [self.speaker_by_clip[p.name] for p in self.pairs]  # per clip (speed copies appended below)
         # segments: (clip index, first frame, end frame) of this split
         self.segments: list[tuple[int, int, int]] = []
         for c, (pair, clip) in enumerate(zip(self.pairs, self.clips)):
@@ -357,7 +357,7 @@ class GestureDataset:
     @property
     def speakers(self) -> list[str]:
         """Every speaker of the data (both splits), sorted."""
-        return sorted(set(self.speaker_of.values()))
+        return sorted(set(self.speaker_by_clip.values()))
 
     def window_speakers(self) -> list[str]:
         """The speaker of each window, in window order."""
