@@ -144,6 +144,12 @@ def test_two_rigs_train_one_model_with_a_speaker_condition_that_generate_plays(t
     assert main(["generate", "--checkpoint", str(run), "--audio", str(wav), "--out", str(tmp_path / "x.bvh"),
                  "--speaker", "nobody"]) == 2
     assert "speaker 'nobody': this model knows scott, zeggs" in capsys.readouterr().err
+    serve = ["serve", "--checkpoint", str(run), "--source", str(wav), "--fast", "--no-ws", "--status-every", "0"]
+    assert main([*serve, "--speaker", "scott"]) == 0
+    assert main([*serve, "--speaker", "nobody"]) == 2
+    assert "--speaker: speaker 'nobody': this model knows scott, zeggs" in capsys.readouterr().err
+    assert main([*serve, "--speaker", "scott", "--backend", "onnxruntime"]) == 2
+    assert "--speaker: the ONNX export plays no speaker in particular" in capsys.readouterr().err
 
 
 def test_a_model_without_the_speaker_condition_refuses_a_speaker(tiny_checkpoint, wav, tmp_path, capsys):
