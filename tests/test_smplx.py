@@ -37,6 +37,12 @@ def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2 * np.arccos(np.clip(np.abs(np.sum(qa * qb, axis=-1)), 0, 1))
 
 
+def direction(p: np.ndarray, skeleton, x: str, y: str) -> np.ndarray:
+    """Unit vectors from joint x to joint y of world positions p (frames, joints, 3)."""
+    v = p[:, skeleton.index(y)] - p[:, skeleton.index(x)]
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
 def smplx_joints(poses: np.ndarray, trans: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """SMPL-X's own joint kinematics (rotation matrices from axis-angle, each joint rotated about its parent from
     its rest position, the pelvis at rest + trans), written independently of the module under test."""
@@ -226,11 +232,6 @@ def test_our_motion_written_as_a_take_moves_each_bone_as_ours_does(tmp_path):
         assert float(f["mocap_frame_rate"]) == 20
     take_motion, _ = smplx.read_smplx(tmp_path / "t.npz")
     a, b = forward_kinematics(ours), forward_kinematics(take_motion)
-
-    def direction(p, skeleton, x, y):
-        v = p[:, skeleton.index(y)] - p[:, skeleton.index(x)]
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
     for (x, y), (u, w) in [(("LeftArm", "LeftForeArm"), ("left_shoulder", "left_elbow")),
                            (("RightForeArm", "RightHand"), ("right_elbow", "right_wrist")),
                            (("LeftUpLeg", "LeftLeg"), ("left_hip", "left_knee")),
