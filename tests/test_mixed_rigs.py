@@ -6,7 +6,7 @@ from collections import Counter
 import numpy as np
 import pytest
 import torch
-from test_smplx import FPS, save, take
+from test_smplx import FPS, direction, save, take
 
 from dimgestor import smplx
 from dimgestor.audio import save_wav
@@ -69,11 +69,6 @@ def test_a_retargeted_take_moves_each_arm_segment_as_the_take_does(two_rigs):
     onto = read_bvh(two_rigs / "zeggs" / "001_Neutral_0.bvh").skeleton
     moved = retarget_onto(src, onto, two_rigs / "beat2" / "2_scott_0_1_1.npz", "zeggs")
     a, b = forward_kinematics(src), forward_kinematics(moved)
-
-    def direction(p, sk, x, y):
-        v = p[:, sk.index(y)] - p[:, sk.index(x)]
-        return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
     for (u, w), (x, y) in [(("left_shoulder", "left_elbow"), ("LeftArm", "LeftForeArm")),
                            (("right_elbow", "right_wrist"), ("RightForeArm", "RightHand")),
                            (("left_elbow", "left_wrist"), ("LeftForeArm", "LeftHand")),
@@ -247,3 +242,12 @@ def test_clips_with_other_bone_lengths_warn_once_for_all(tmp_path):
         GestureDataset(data, window_s=2.0, use_cache=False)
     says = [str(w.message) for w in caught if "bone offsets differ" in str(w.message)]
     assert len(says) == 1 and "c1.bvh and 1 more clips: bone offsets differ from" in says[0] and "c0.bvh" in says[0]
+
+
+def test_a_training_skeleton_that_is_not_a_motion_file_is_refused_by_name(two_rigs, tmp_path, capsys):
+    data = ["--data", str(two_rigs / "zeggs"), "--data", str(two_rigs / "beat2")]
+    for given, says in ((tmp_path / "rig.glb", "rig.glb: the training skeleton is read from a BVH or a BEAT2"),
+                        (tmp_path / "nope.bvh", "nope.bvh: training skeleton file not found")):
+        assert main(["train", *data, "--out", str(tmp_path / "run"), "--skeleton", str(given), *TRAIN]) == 2
+        assert says in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
