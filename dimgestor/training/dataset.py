@@ -428,12 +428,13 @@ class GestureDataset:
     def summary(self) -> str:
         seconds = self.seconds()
         speakers = sorted(set(self.window_speakers()))
+        moved = len(self.retargeted)
         return (f"{self.split}: {len(self.clips)} clips, {seconds:.1f} s, {len(self)} windows of "
                 f"{self.window / self.fps:g} s, {self.motion_dim} features at {self.fps:g} fps"
                 + (", mirrored" if self.mirror else "")
                 + (", arm-mixed" if self.arm_mix else "")
                 + (", with speed-perturbed copies" if len(self.clips) > len(self.pairs) else "")
-                + (f", {len(self.retargeted)} clip{'s' * (len(self.retargeted) != 1)} retargeted onto the training skeleton" if self.retargeted else "")
+                + (f", {moved} clip{'s' * (moved != 1)} retargeted onto the training skeleton" if moved else "")
                 + (f", {len(speakers)} speakers" if len(speakers) > 1 else ""))
 
 

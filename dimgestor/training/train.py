@@ -564,7 +564,8 @@ def checkpoint(run: Run) -> Path:
     if not run.main:
         return run.out
     opts, history = run.opts, run.history
-    info = {"step": run.step, "preset": opts.preset, "data": opts.data if isinstance(opts.data, str) else list(opts.data), "history": history[-1:],
+    data = opts.data if isinstance(opts.data, str) else list(opts.data)
+    info = {"step": run.step, "preset": opts.preset, "data": data, "history": history[-1:],
             "options": opts.model_dump(exclude=RUNTIME_OPTIONS),
             "train_wall_s": history[-1].get("elapsed_s") if history else None}
     state = {"step": run.step, "model": run.model.state_dict(), "ema": run.ema.state_dict(),
@@ -744,7 +745,8 @@ def small_data_defaults(args, speeds: tuple[float, ...] | None) -> dict:
     if args.mirror is None or speeds is None or args.augment is None:  # only then is the data read
         minutes = GestureDataset(args.data, FeatureSpec(), split="train", cache_dir=args.cache_dir,
                                  valid_fraction=args.valid_fraction, valid_seconds=args.valid_seconds,
-                                 window_s=args.window_s, skeleton=args.skeleton).seconds() / 60  # the heading layout does not change it
+                                 window_s=args.window_s, skeleton=args.skeleton
+                                 ).seconds() / 60  # the heading layout does not change it
         few = minutes < SMALL_DATA_MIN
     return {"mirror": few if args.mirror is None else args.mirror,
             "speeds": (SMALL_DATA_SPEEDS if few else ()) if speeds is None else speeds,
