@@ -5,12 +5,14 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from dimgestor.streaming.batch import push_many
 from dimgestor.streaming.checkpoint import load_checkpoint
 from dimgestor.streaming.stream import GestureStream, generate_offline
-from dimgestor.training.distill import DistillConfig, distill
-from dimgestor.training.synthetic import make_synthetic_pair
+from dimgestor.audio import save_wav
+from dimgestor.training.distill import DistillConfig, SpeechBank, distill
+from dimgestor.training.synthetic import make_synthetic_pair, synthetic_speech
 from dimgestor.training.train import TrainConfig, train
 from helpers.stream import noise_audio, stream_in_pieces
 
@@ -92,3 +94,75 @@ def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path)
     assert log[0]["step"] == 0 and log[0]["valid_loss"] == pytest.approx(before, rel=1e-5)
     with pytest.raises(ValueError, match="not of --steps"):
         distill(DistillConfig(out=str(tmp_path / "other"), init=str(last), steps=3 - steps, **common), progress=False)
+
+
+@pytest.fixture(scope="module")
+def speech(tmp_path_factory):
+    """Speech without motion: two synthetic voices of 7 and 3.3 s in a folder (one in a sub-folder), as 22.05 kHz
+    files (resampled as they are read)."""
+    root = tmp_path_factory.mktemp("speech")
+    (root / "more").mkdir()
+    save_wav(root / "a.wav", synthetic_speech(7.0, 22050, 21), 22050)
+    save_wav(root / "more" / "b.wav", synthetic_speech(3.3, 22050, 22), 22050)
+    return root
+
+
+def test_speech_without_motion_is_cut_into_windows_each_heard_as_a_stream_hears_its_file(teacher, speech):
+    model = load_checkpoint(teacher).model
+    c = model.config
+    frames = 40  # 2 s windows every 1 s: 7 s gives 6 windows, 3.3 s gives 2
+    bank = SpeechBank([speech], model, frames, "cpu", copies=2, seed=3)
+    assert [f.name for f in bank.files] == ["a.wav", "b.wav"] and len(bank) == 8
+    n = frames * c.feats_per_frame + c.lookahead_feats
+    assert all(f.shape[:2] == (3, n) for f in bank.feats)
+    clean, versions = bank.feats[2][0], bank.feats[2][1:]
+    assert all((v - clean).abs().max() > 1e-3 for v in versions) and (versions[0] - versions[1]).abs().max() > 1e-3
+    # window 2 starts 2 s into a.wav: the front end streamed over the file in pieces gives the same features there
+    from dimgestor.audio import load_wav
+    audio = load_wav(speech / "a.wav", c.sample_rate)
+    fe, state, got = model.frontend, model.frontend.init_state(1, "cpu"), []
+    for a in range(0, len(audio), 3001):
+        f, state = fe(torch.from_numpy(audio[a:a + 3001])[None], state)
+        got.append(f[0])
+    whole = torch.cat(got)
+    a = 2 * c.fps * c.feats_per_frame
+    assert (whole[a:a + frames * c.feats_per_frame] - clean[: frames * c.feats_per_frame]).abs().max() < 1e-4
+    assert bank.batch([0, 7, 3], torch.Generator().manual_seed(0)).shape == (3, n, clean.shape[1])
+
+
+def test_a_student_learns_from_speech_without_motion_too(teacher, data, speech, tmp_path):
+    last = distill(DistillConfig(checkpoint=str(teacher), out=str(tmp_path / "run"), steps=2, data=str(data),
+                                 audio=(str(speech),), audio_share=0.5, max_steps=60, batch_size=4, lr=2e-3, warmup=5,
+                                 aug_copies=1, valid_every=60, ckpt_every=60, cache_dir=str(tmp_path / "cache")),
+                   progress=False)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["valid_loss"] < 0.7 * log[0]["valid_loss"], log
+    info = load_checkpoint(last).info["distill"]
+    assert info["audio"] == [str(speech)] and info["audio_share"] == 0.5
+
+
+def test_a_student_with_the_spread_loss_learns_and_records_its_weight(teacher, data, tmp_path):
+    """--spread-weight: half of each batch repeats the other half's windows with other noise, and the difference
+    between the two motions is learnt as well."""
+    last = distill(DistillConfig(checkpoint=str(teacher), out=str(tmp_path / "run"), steps=2, data=str(data),
+                                 spread_weight=2.0, max_steps=60, batch_size=4, lr=2e-3, warmup=5, aug_copies=1,
+                                 valid_every=60, ckpt_every=60, cache_dir=str(tmp_path / "cache")), progress=False)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["valid_loss"] < 0.7 * log[0]["valid_loss"], log
+    assert load_checkpoint(last).info["distill"]["spread_weight"] == 2.0
+
+
+def test_speech_that_cannot_be_read_is_refused_by_name(teacher, data, tmp_path):
+    common = dict(checkpoint=str(teacher), data=str(data), max_steps=1, batch_size=2, valid_every=0,
+                  cache_dir=str(tmp_path / "cache"))
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "bad.wav").write_bytes(b"RIFF not a wave")
+    save_wav(tmp_path / "short.wav", synthetic_speech(0.5, 16000, 1), 16000)
+    cases = [(tmp_path / "missing", FileNotFoundError, "missing: no such file"),
+             (tmp_path / "empty", ValueError, "empty: no .wav files"),
+             (tmp_path / "bad.wav", ValueError, "bad.wav: not a readable WAV"),
+             (tmp_path / "short.wav", ValueError, "no file is as long as one window")]
+    for k, (path, error, words) in enumerate(cases):
+        with pytest.raises(error, match=words):
+            distill(DistillConfig(out=str(tmp_path / f"o{k}"), audio=(str(path),), **common), progress=False)
+        assert not (tmp_path / f"o{k}").exists()

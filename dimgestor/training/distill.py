@@ -10,8 +10,12 @@ carried frame to frame, so a window's output is what a stream makes frame by fra
 exactly as any model does (streamed = offline, any chunking, batched = alone). Its carried states are its own
 passes'. Only the audio of the training data is used (the teacher labels it), with augmented copies of it (other
 voices, rooms and microphones, as `train --augment` makes them): the held-out stretch of the teacher's training
-stays held out. The loss: the mean squared difference to the teacher's motion, and of its frame-to-frame velocity
-and acceleration (a one-pass student otherwise smooths away the teacher's fastest motion or adds jitter).
+stays held out. `--audio` adds speech that has no motion at all (any WAV files: other speakers, other languages):
+the teacher labels it as it labels the training audio, so the student learns the teacher's answer to many voices
+rather than to the training speaker's few minutes. The loss: the mean squared difference to the teacher's motion,
+and of its frame-to-frame velocity and acceleration (a one-pass student otherwise smooths away the teacher's
+fastest motion or adds jitter); with `--spread-weight`, also of the difference between two noises' motions for the
+same speech (what sets one seed's motion apart from another's).
 """
 from __future__ import annotations
 
@@ -20,18 +24,20 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from ..audio import load_wav
 from ..model.diffusion import Diffusion, ddim_pairs, guide
 from ..model.network import DiMGestor
 from ..streaming.checkpoint import load_checkpoint, save_checkpoint
-from .augment import AugmentConfig
+from .augment import AugmentConfig, augment
 from .dataset import GestureDataset
 from .train import WindowBank
 
-__all__ = ["DistillConfig", "distill", "register", "teacher_motion", "student_motion"]
+__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "student_motion"]
 
 
 class DistillConfig(BaseModel):
@@ -44,6 +50,8 @@ class DistillConfig(BaseModel):
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
     steps: int = Field(2, ge=1, le=2)  # the student's sampler steps (network passes a window)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
+    audio: tuple[str, ...] = ()  # WAV files or folders of speech without motion, labelled by the teacher too
+    audio_share: float = Field(0.5, ge=0, le=1)  # of each batch's windows, the share drawn from `audio`
     max_steps: int = Field(1000, gt=0)
     batch_size: int = Field(8, gt=0)
     lr: float = Field(1e-4, gt=0)
@@ -53,6 +61,7 @@ class DistillConfig(BaseModel):
     vel_weight: float = Field(4.0, ge=0)  # weight of the velocity difference (frame to frame)
     acc_weight: float = Field(4.0, ge=0)  # of the acceleration difference (1 and 1 left a 1-pass student's wrists
     # 1.77x the real capture's jerk, 4 and 4 1.49x: benchmarks/README.md, "A one-pass student")
+    spread_weight: float = Field(0.0, ge=0)  # of the difference between two noises' motions for one window's speech
     aug_copies: int = Field(4, ge=0)  # augmented versions of each window's audio (0: the clean audio alone)
     window_s: float | None = Field(None, gt=0)  # None: the teacher's
     valid_every: int = Field(200, ge=0)
@@ -82,12 +91,95 @@ def student_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Te
     return teacher_motion(model, diffusion, pairs, cond, x, 1.0)
 
 
+class SpeechBank:
+    """Front-end features of windows of speech that has no motion (`--audio`), for the teacher to label.
+
+    Each file is heard whole, as a stream hears it: the front end's state is carried from its first sample, and
+    silence is padded after its end for the last frames' lookahead. It is cut into windows of `frames` motion
+    frames every `frames // 2`. With `copies` > 0, as many augmented versions of each file (other voices, rooms,
+    microphones; seeded by (seed, file, copy)) are cut the same way, and `batch` picks a window's version.
+    """
+
+    def __init__(self, paths, model: DiMGestor, frames: int, device, copies: int = 0,
+                 aug_config: AugmentConfig | None = None, seed: int = 0):
+        c = model.config
+        self.copies, self.frames = copies, frames
+        self.files = speech_files(paths)
+        self.seconds = 0.0
+        self.feats: list[torch.Tensor] = []  # window i: (copies + 1, features, width)
+        spf = c.sample_rate // c.fps
+        n = frames * c.feats_per_frame + c.lookahead_feats
+        with torch.no_grad():
+            for k, path in enumerate(self.files):
+                try:
+                    audio = load_wav(path, c.sample_rate)
+                except (ValueError, OSError, EOFError) as e:
+                    raise ValueError(f"--audio {path}: not a readable WAV file ({e})") from e
+                total = len(audio) // spf
+                if total < frames:
+                    continue  # shorter than one window
+                self.seconds += len(audio) / c.sample_rate
+                versions = [audio] + [augment(audio, c.sample_rate, (seed, 1_000_003 + k, j), aug_config)
+                                      for j in range(copies)]
+                heard = [self._features(model, v, total, device) for v in versions]
+                for start in range(0, total - frames + 1, max(frames // 2, 1)):
+                    a = start * c.feats_per_frame
+                    self.feats.append(torch.stack([f[a: a + n] for f in heard]))
+
+    @staticmethod
+    def _features(model: DiMGestor, audio: np.ndarray, frames: int, device) -> torch.Tensor:
+        padded = np.zeros(max(model.samples_needed(frames), len(audio)), np.float32)
+        padded[: len(audio)] = audio
+        fe = model.frontend
+        return fe(torch.from_numpy(padded)[None].to(device), fe.init_state(1, device))[0][0].cpu()
+
+    def __len__(self) -> int:
+        return len(self.feats)
+
+    def batch(self, idx: list[int], g: torch.Generator) -> torch.Tensor:
+        """(B, features, width): each window's clean audio or one of its augmented versions, drawn uniformly."""
+        pick = torch.randint(0, self.copies + 1, (len(idx),), generator=g).tolist()
+        return torch.stack([self.feats[i][v] for i, v in zip(idx, pick)])
+
+
+def speech_files(paths) -> list[Path]:
+    """The WAV files of `paths` (files, or folders searched recursively), sorted within each folder; a path that
+    does not exist, or a folder without WAV files, is refused by name."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(f for f in p.rglob("*") if f.suffix.lower() == ".wav" and f.is_file())
+            if not found:
+                raise ValueError(f"--audio {p}: no .wav files in this folder")
+            files += found
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise FileNotFoundError(f"--audio {p}: no such file or folder")
+    return files
+
+
 def _loss(pred: torch.Tensor, target: torch.Tensor, cfg: DistillConfig) -> torch.Tensor:
     loss = F.mse_loss(pred, target)
     for order, weight in ((1, cfg.vel_weight), (2, cfg.acc_weight)):
         if weight > 0 and pred.shape[1] > order:
             loss = loss + weight * F.mse_loss(pred.diff(n=order, dim=1), target.diff(n=order, dim=1))
     return loss
+
+
+def _heard(bank: WindowBank, speech: SpeechBank | None, idx: list[int], g: torch.Generator, c
+           ) -> tuple[torch.Tensor, int]:
+    """The features of a batch drawn from the training windows (indices below len(bank)) and the --audio windows
+    (the rest), cropped to the shortest; and its frames."""
+    mine = [i for i in idx if i < len(bank)]
+    theirs = [i - len(bank) for i in idx if i >= len(bank)]
+    parts = []
+    if mine:
+        parts.append(bank.batch(mine, c.lookahead_feats, c.feats_per_frame, bank.draw_versions(len(mine), g))[1])
+    if theirs:
+        parts.append(speech.batch(theirs, g))
+    T = (min(p.shape[1] for p in parts) - c.lookahead_feats) // c.feats_per_frame
+    return torch.cat([p[:, : T * c.feats_per_frame + c.lookahead_feats] for p in parts]), T
 
 
 def _log(out: Path, record: dict) -> None:
@@ -102,6 +194,7 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     out = Path(cfg.out)
     if out.exists() and any(out.glob("ckpt_*")):
         raise ValueError(f"{out} already holds checkpoints: choose a new --out")
+    speech_files(cfg.audio)  # refused by name before anything loads
     torch.manual_seed(cfg.seed)
     device = torch.device(cfg.device)
     bundle = load_checkpoint(cfg.checkpoint, device)
@@ -134,10 +227,16 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     bank = WindowBank(train_ds, teacher, bundle.mean, bundle.std, device, copies=cfg.aug_copies,
                       aug_config=AugmentConfig(), seed=cfg.seed)
     valid = WindowBank(valid_ds, teacher, bundle.mean, bundle.std, device) if cfg.valid_every else None
+    frames = max(len(m) for m in bank.motion)
+    speech = SpeechBank(cfg.audio, teacher, frames, device, copies=cfg.aug_copies, seed=cfg.seed) if cfg.audio else None
+    if speech is not None and not len(speech):
+        raise ValueError(f"--audio: no file is as long as one window ({frames / tc.fps:g} s)")
     out.mkdir(parents=True, exist_ok=True)
-    print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({len(t_pairs) * (2 if guidance != 1 else 1)} "
-          f"network rows a window); student: {cfg.steps} step(s), 1 row; {len(bank)} training windows x "
-          f"{cfg.aug_copies + 1} versions of their audio ({time.time() - t0:.0f} s), {len(valid or [])} held out")
+    extra = f", {len(speech)} windows of --audio speech ({speech.seconds / 60:.1f} min)" if speech else ""
+    rows = len(t_pairs) * (2 if guidance != 1 else 1)
+    print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({rows} network rows a window); "
+          f"student: {cfg.steps} step(s), 1 row; {len(bank)} training windows x {cfg.aug_copies + 1} versions of "
+          f"their audio{extra} ({time.time() - t0:.0f} s), {len(valid or [])} held out")
     g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     c = tc
@@ -162,20 +261,29 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
         _log(out, {"step": 0, "valid_loss": validation()})
     bar = tqdm(total=cfg.max_steps, disable=not progress, dynamic_ncols=True, desc="distill")
     smooth, t_start = None, time.time()
-    order = torch.randperm(len(bank), generator=g).tolist()
+    n_speech = round(cfg.batch_size * cfg.audio_share) if speech is not None else 0
+    n_own = cfg.batch_size - n_speech
+    order, speech_order = [], []
     for step in range(1, cfg.max_steps + 1):
-        if len(order) < cfg.batch_size:
+        if len(order) < n_own:
             order += torch.randperm(len(bank), generator=g).tolist()
-        idx, order = order[:cfg.batch_size], order[cfg.batch_size:]
-        x0, feats = bank.batch(idx, c.lookahead_feats, c.feats_per_frame, bank.draw_versions(len(idx), g))
+        while len(speech_order) < n_speech:
+            speech_order += (torch.randperm(len(speech), generator=g) + len(bank)).tolist()
+        idx, order = order[:n_own], order[n_own:]
+        idx, speech_order = idx + speech_order[:n_speech], speech_order[n_speech:]
+        feats, T = _heard(bank, speech, idx, g, c)
+        if cfg.spread_weight > 0:  # each window twice, with two noises: the first half's windows again
+            half = len(idx) // 2
+            feats = torch.cat([feats[:half], feats[:half]])
         feats = feats.to(device)
-        x = diffusion.noise_like(x0, g).to(device)
-        T = x0.shape[1]
+        x = diffusion.noise_like(torch.zeros(len(feats), T, c.motion_dim), g).to(device)
         with torch.no_grad():
             target = teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x, guidance)
         student.train()
         pred = student_motion(student, diffusion, s_pairs, student.condition(feats)[0][:, :T], x)
         loss = _loss(pred, target, cfg)
+        if cfg.spread_weight > 0:
+            loss = loss + cfg.spread_weight * F.mse_loss(pred[:half] - pred[half:], target[:half] - target[half:])
         for group in opt.param_groups:
             group["lr"] = cfg.lr * min(1.0, step / max(cfg.warmup, 1))
         opt.zero_grad(set_to_none=True)
@@ -228,6 +336,11 @@ def register(subparsers) -> None:
                    help="go on from this student (an earlier run's checkpoint) instead of the teacher's weights")
     p.add_argument("--data", default=None, metavar="DIR",
                    help="BVH+WAV folder whose audio the teacher labels (default: the one the teacher was trained on)")
+    p.add_argument("--audio", action="append", default=[], metavar="PATH",
+                   help="speech without motion for the teacher to label as well: a WAV file or a folder of them "
+                        "(searched recursively); may be given several times")
+    p.add_argument("--audio-share", type=float, default=d.audio_share, metavar="F",
+                   help="the share of each batch drawn from --audio, the rest from the data's own windows")
     p.add_argument("--max-steps", type=int, default=d.max_steps, metavar="N", help="optimizer steps")
     p.add_argument("--batch-size", type=int, default=d.batch_size, metavar="N", help="training windows a step")
     p.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (AdamW)")
@@ -235,6 +348,9 @@ def register(subparsers) -> None:
                    help="weight of the difference in frame-to-frame velocity to the teacher's motion")
     p.add_argument("--acc-weight", type=float, default=d.acc_weight, metavar="W",
                    help="weight of the difference in acceleration (the student's own jitter)")
+    p.add_argument("--spread-weight", type=float, default=d.spread_weight, metavar="W",
+                   help="weight of the difference between the motions of two noises for the same speech (half of "
+                        "each batch repeats the other half's windows with other noise); 0: off")
     p.add_argument("--aug-copies", type=int, default=d.aug_copies, metavar="N",
                    help="augmented versions of each window's audio (other voices, rooms, microphones); 0: none")
     p.add_argument("--valid-every", type=int, default=d.valid_every, metavar="N",
@@ -254,8 +370,9 @@ def _run(args) -> int:
         torch.set_num_threads(args.threads)
     try:
         cfg = DistillConfig(checkpoint=args.checkpoint, init=args.init, out=args.out, steps=args.steps, data=args.data,
+                            audio=tuple(args.audio), audio_share=args.audio_share,
                             max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
-                            vel_weight=args.vel_weight, acc_weight=args.acc_weight,
+                            vel_weight=args.vel_weight, acc_weight=args.acc_weight, spread_weight=args.spread_weight,
                             aug_copies=args.aug_copies, valid_every=args.valid_every, ckpt_every=args.ckpt_every,
                             seed=args.seed, device=args.device, cache_dir=args.cache_dir)
     except ValidationError as e:
