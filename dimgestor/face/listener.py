@@ -134,14 +134,15 @@ class PhoneListener:
     def push(self, samples: np.ndarray) -> None:
         pcm = (np.clip(np.asarray(samples, np.float32), -1, 1) * 32767).astype(np.int16)
         pcm = np.concatenate([self._pending, pcm])
-        whole, at = len(pcm) // BLOCK * BLOCK, 0
-        while at < whole:  # the blocks up to the one that completes the next frame, in one call
-            n = min(whole - at, max(1, self._due_block() - self.blocks_in) * BLOCK)
+        at = 0
+        # The blocks up to the one that completes the next frame, in one call, once all of them are in: the
+        # recognizer's running cepstral mean moves at each call's end, so the calls must not follow the pieces.
+        while len(pcm) - at >= (n := max(1, self._due_block() - self.blocks_in) * BLOCK):
             self._decoder.process_raw(pcm[at:at + n].tobytes(), False, False)
             self.blocks_in += n // BLOCK
             at += n
             self._frames_due()
-        self._pending = pcm[whole:]
+        self._pending = pcm[at:]
 
     def _due_block(self) -> int:
         """The block count at which the next frame's lookahead is complete."""
