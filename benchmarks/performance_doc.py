@@ -80,6 +80,11 @@ def cpu_machine(r: dict[str, dict]) -> str:
     return names[0]
 
 
+def measured_on(device: str, r: dict[str, dict]) -> str:
+    """The machine a result came from, or "the machine above" where it is the page's CPU machine (named once)."""
+    return "the machine above" if machine(device) == cpu_machine(r) else machine(device)
+
+
 def source(key: str) -> str:
     return f"*From `benchmarks/results/{SOURCES[key]}`.*"
 
@@ -229,13 +234,18 @@ def face(r: dict[str, dict]) -> list[str]:
     if "body_face_pocketsphinx" in c:
         rows.append(["body and face, `--face-listener pocketsphinx`", ms(c["body_face_pocketsphinx"]["ms_p50"]),
                      ms(c["body_face_pocketsphinx"]["cpu_ms_mean"])])
+    if "body_face_both" in c:
+        rows.append(["body and face, `--face-listener net+pocketsphinx`", ms(c["body_face_both"]["ms_p50"]),
+                     ms(c["body_face_both"]["cpu_ms_mean"])])
     other = (f"; pocketsphinx's listener +{100 * c['added_cpu_pocketsphinx']:.0f} %"
              if "added_cpu_pocketsphinx" in c else "")
+    other += (f", both together +{100 * c['added_cpu_both']:.0f} %" if "added_cpu_both" in c else "")
     return ["## The face's cost", "",
             "The face's listener runs on each stream that has a face (the server's own source, and the clients "
             f"that ask for one), beside the model: one `Session` window of the embedded default model, K = {c['steps']}, "
-            f"{c['window_ms']} ms windows, one thread, measured on {machine(r['face']['device'])}. Streams without a "
-            "face (`--face none`, or clients that do not ask) cost what the streams-per-process counts above say; "
+            f"{c['window_ms']} ms windows, one thread, measured on {measured_on(r['face']['device'], r)}. Streams "
+            "without a face (`--face none`, or clients that do not ask) cost what the streams-per-process counts "
+            "above say; "
             f"each stream with one costs the difference more (+{100 * c['added_cpu']:.0f} % CPU on this model"
             f"{other}).{generate(r)}", "",
             *table(["", "ms a window (median)", "CPU ms a window (mean)"], rows), "", source("face"), "",
@@ -255,7 +265,7 @@ def face_batched(r: dict[str, dict]) -> list[str]:
     lines.append(f"A batch's faces are made together (the listener's layers as one product for all its streams): "
                  f"one process kept {arms['face']['max_realtime_streams']} real-time streams with a face on each "
                  f"against {arms['no face']['max_realtime_streams']} without ({f['ratio']:.2f} as many; K = "
-                 f"{f['steps']}, {f['window_ms']} ms windows, measured on {machine(f['device'])}).")
+                 f"{f['steps']}, {f['window_ms']} ms windows, measured on {measured_on(f['device'], r)}).")
     return [*lines, "", source("face_streams"), ""]
 
 

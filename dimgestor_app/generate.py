@@ -12,6 +12,7 @@ import torch
 from dimgestor.audio import SAMPLE_RATE, AudioError, wav_stream
 from dimgestor.bvh import BvhMotion, BvhWriter
 from dimgestor.cli_help import smoothing_from_flag
+from dimgestor.face.stream import LISTENERS
 from dimgestor.features import features_to_motion
 from dimgestor.model.diffusion import check_guidance
 from dimgestor.streaming.checkpoint import Bundle, load_checkpoint
@@ -95,9 +96,10 @@ def register(subparsers) -> None:
                    help="also write the face made from the same speech (mouth, blinks, brows) as a CSV: a header "
                         "`time,A,I,U,E,O,...` (seconds, then the VRM 0 names, then ARKit's 52), one row per BVH "
                         "frame (the format `dimgestor serve --record` writes beside its BVH)")
-    g.add_argument("--face-listener", default="net", choices=("net", "pocketsphinx"),
-                   help="what hears the mouth in the speech: the face's own network (shipped in the package) or "
-                        "pocketsphinx's English phone recognizer, where it is installed (docs/face.md) (default: net)")
+    g.add_argument("--face-listener", default="net", choices=LISTENERS,
+                   help="what hears the mouth in the speech: the face's own network (shipped in the package), "
+                        "pocketsphinx's English phone recognizer, where it is installed, or both, their mouths "
+                        "averaged (docs/face.md) (default: net)")
     # one release: `--face` meant this file here and a name set everywhere else (serve, client.py, pipecat)
     deprecated_alias(p, "--face", face_csv, note=" (--face is a name set in serve; the old spelling goes in the "
                                                  "next release)")
@@ -168,7 +170,7 @@ def _run(args) -> int:
             raise IsADirectoryError(f"--face-csv {face_out}: is a folder, expected a .csv path")
         if face_out.resolve() == out.resolve():
             raise ValueError(f"--face-csv {face_out}: the same path as --out")
-    if (face_out is not None or out.suffix.lower() == ".vrma") and args.face_listener == "pocketsphinx":
+    if (face_out is not None or out.suffix.lower() == ".vrma") and "pocketsphinx" in args.face_listener:
         from dimgestor.face.listener import unavailable  # (a .vrma carries the face)
 
         if (why := unavailable()) is not None:

@@ -8,6 +8,7 @@ import asyncio
 import logging
 import sys
 
+from dimgestor.face.stream import LISTENERS
 from streamer.options import ServeError, ServeOptions, flag_of
 
 EXIT_USAGE = 2
@@ -183,9 +184,11 @@ def _output_flags(g) -> dict[str, argparse.Action]:
                    "'oculus' (viseme_sil... as Ready Player Me names them), 'none' (no face: bones only)"),
         _flag(g, "--smile", type=float, metavar="W",
               help="a smile held under the speech, 0..1 (WebSocket clients may set their own)"),
-        _flag(g, "--face-listener", choices=("net", "pocketsphinx"),
+        _flag(g, "--face-listener", choices=LISTENERS,
               help="what hears the mouth in the speech: 'net' (the face's own network, shipped in the package; "
-                   "default) or 'pocketsphinx' (its English phone recognizer, where it is installed; docs/face.md)"),
+                   "default), 'pocketsphinx' (its English phone recognizer, where it is installed) or "
+                   "'net+pocketsphinx' (both, their mouths averaged: closer to real voices, at both costs; "
+                   "docs/face.md)"),
         _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma|.npz",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "

@@ -98,7 +98,8 @@ class ServeOptions(BaseModel):
     # the face
     face: Literal["vrm0", "vrm1", "arkit", "oculus", "none"] = "vrm0"  # the default name set; none: no face
     smile: float = Field(0.0, ge=0, le=1)
-    face_listener: Literal["net", "pocketsphinx"] = "net"  # what hears the mouth: the face's network or pocketsphinx
+    # what hears the mouth: the face's network, pocketsphinx, or both (their mouths averaged)
+    face_listener: Literal["net", "pocketsphinx", "net+pocketsphinx"] = "net"
     # the rest
     record: str | None = None  # a BVH path (.glb, .vrma or .npz: that file too, from the BVH beside it)
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json

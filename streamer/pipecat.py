@@ -198,7 +198,7 @@ class GestureProcessor(FrameProcessor):
                  on_release: Callable[[Released], None] | None = None, executor=None,
                  face: FaceOptions | None = FaceOptions(), **kwargs):
         scheduler = _scheduler(scheduler, executor)
-        if face is not None and face.listener == "pocketsphinx" and (why := face_unavailable()) is not None:
+        if face is not None and "pocketsphinx" in face.listener and (why := face_unavailable()) is not None:
             raise ImportError(f"GestureProcessor: {why}; or face=None for frames without a face")
         super().__init__(**kwargs)
         if bundle is None:

@@ -146,8 +146,9 @@ def _face(options: ServeOptions) -> ServeFace | None:
 
     if options.face == "none":
         return None
-    if options.face_listener == "pocketsphinx" and (why := face_unavailable()) is not None:
-        print(f"dimgestor: no face, bones only: --face-listener pocketsphinx: {why}", file=sys.stderr, flush=True)
+    if "pocketsphinx" in options.face_listener and (why := face_unavailable()) is not None:
+        print(f"dimgestor: no face, bones only: --face-listener {options.face_listener}: {why}", file=sys.stderr,
+              flush=True)
         return None
     return ServeFace(options.face, FaceOptions(seed=options.seed, smile=options.smile,
                                                listener=options.face_listener))

@@ -6,6 +6,8 @@ import pytest
 
 from dimgestor.audio import SAMPLE_RATE, load_wav
 from dimgestor.face import FACE_LABELS, FaceOptions, FaceStream
+from dimgestor.face.listener import unavailable
+from dimgestor.face.stream import LISTENERS
 from dimgestor.face.visemes import V
 from helpers.clients import SPEECH_WAV
 
@@ -24,11 +26,14 @@ def stream_face(audio, sizes, lookahead_s=0.3, **options):
     return np.concatenate(rows)
 
 
-def test_streamed_face_equals_the_whole_recording_for_awkward_chunk_sizes():
-    whole = stream_face(SPEECH, [len(SPEECH)])
+@pytest.mark.parametrize("listener", LISTENERS)
+def test_streamed_face_equals_the_whole_recording_for_awkward_chunk_sizes(listener):
+    if "pocketsphinx" in listener and (why := unavailable()) is not None:
+        pytest.skip(why)
+    whole = stream_face(SPEECH, [len(SPEECH)], listener=listener)
     assert whole.shape[1] == len(FACE_LABELS) and len(whole) >= 6 * 20
-    for sizes in ([1, 159, 161, 3333], [7], [160 * 5 + 1, 17]):
-        pieces = stream_face(SPEECH, sizes)
+    for sizes in ([1, 159, 161, 3333], [7], [160 * 5 + 1, 17], [777], [1600]):
+        pieces = stream_face(SPEECH, sizes, listener=listener)
         np.testing.assert_array_equal(pieces, whole, err_msg=f"chunk sizes {sizes}")
 
 
@@ -237,3 +242,17 @@ def test_without_pocketsphinx_a_server_still_has_its_face_and_asked_for_it_says_
         capsys.readouterr().err
     with pytest.raises(ImportError, match="pip install pocketsphinx"):
         PhoneListener(30, 0.3, beam=1e-7)  # (a decoder key no other test pooled: a new decoder is made)
+
+
+def test_both_listeners_together_give_the_mean_of_their_mouths_and_the_networks_blinks_and_brows():
+    """--face-listener net+pocketsphinx: each frame's mouth (visemes and jaw) is the mean of the two listeners'
+    mouths, each made as it is alone; the eyes and brows follow the network's listener, as with it alone."""
+    if (why := unavailable()) is not None:
+        pytest.skip(why)
+    mouth = slice(0, V["jawOpen"] + 1)  # the visemes and the jaw
+    net, ps, both = (stream_face(SPEECH, [1600], listener=lis) for lis in ("net", "pocketsphinx", "net+pocketsphinx"))
+    assert len(net) == len(ps) == len(both)
+    np.testing.assert_allclose(both[:, mouth], (net[:, mouth] + ps[:, mouth]) / 2, atol=1e-12)
+    assert np.abs(net[:, mouth] - ps[:, mouth]).max() > 0.3  # (they do differ)
+    rest = [V[n] for n in ("blinkLeft", "blinkRight", "browUp")]
+    np.testing.assert_array_equal(both[:, rest], net[:, rest])

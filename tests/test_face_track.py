@@ -144,6 +144,9 @@ def test_generate_without_pocketsphinx_refuses_its_listener_in_one_line_before_a
     assert "error: --face-csv: the face's listener needs pocketsphinx" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "a.vrma")]) == 2
     assert "a.vrma: the face's listener needs pocketsphinx" in capsys.readouterr().err
+    both = [*args[:-1], "net+pocketsphinx"]  # (both listeners: pocketsphinx's is needed all the same)
+    assert main([*both, "--out", str(tmp_path / "a.bvh"), "--face-csv", str(tmp_path / "a.csv")]) == 2
+    assert "error: --face-csv: the face's listener needs pocketsphinx" in capsys.readouterr().err
     assert [p.name for p in tmp_path.iterdir()] == ["a.wav"]  # nothing written
     assert main([*args[:-2], "--out", str(tmp_path / "a.bvh"), "--face-csv", str(tmp_path / "a.csv")]) == 0
     assert (tmp_path / "a.csv").is_file()  # the face's own listener: no pocketsphinx needed

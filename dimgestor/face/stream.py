@@ -29,7 +29,7 @@ RATE = 16000
 MAX_LOOKAHEAD_S = 0.3   # more adds latency to a model that looks further ahead, and nothing measurable
 _CLOSED = ("M", "B", "P")
 _MOUTH = slice(0, V["jawOpen"] + 1)
-LISTENERS = ("net", "pocketsphinx")
+LISTENERS = ("net", "pocketsphinx", "net+pocketsphinx")  # the last: both hear, their mouths averaged
 # the vowel shapes' weight when the network hears them, as `visemes.py` weighs them by the vowels' height
 _SHAPE_WEIGHT = np.array([{"aa": 1.0, "E": 0.75, "I": 0.5, "O": 0.75, "U": 0.5}.get(v, 1.0) for v in VISEMES])
 _VOWEL_VISEMES = {V[v] for v in ("aa", "E", "I", "O", "U")}
@@ -46,7 +46,8 @@ class FaceOptions:
     silence_dbfs: float = -70.0  # 40 ms under this level (dB of full scale) is silence: the mouth rests
     seed: int = 0                # the blinks' draws
     smile: float = 0.0           # the expression held under the speech (0..1), settable while streaming
-    listener: str = "net"        # "net": the face's own network (net.py); "pocketsphinx": its phone recognizer
+    listener: str = "net"        # "net": the face's own network (net.py); "pocketsphinx": its phone recognizer;
+    # "net+pocketsphinx": both, each frame's mouth the mean of theirs (closer to real voices, at both costs)
     weights: str | None = None   # the network's weights (None: those in the package)
 
 
@@ -60,13 +61,16 @@ class FaceStream:
         self.smile = options.smile
         if options.listener not in LISTENERS:
             raise ValueError(f"face listener {options.listener!r}: one of {', '.join(LISTENERS)}")
-        if options.listener == "net":  # (a lookahead under the network's: the mouth follows late by the difference)
+        if options.listener != "pocketsphinx":  # (a lookahead under the network's: the mouth follows late by it)
             self.listener = NetListener(fps, start_sample=start_sample, start_frame=start_frame,
                                         weights=options.weights, late=NetListener.late_frames(self.lookahead_s),
                                         frames_per_step=NetListener.frames_per_step(fps, self.lookahead_s))
-        else:
-            self.listener = PhoneListener(fps, self.lookahead_s, context_s=min(0.12, self.lookahead_s),
-                                          start_sample=start_sample, start_frame=start_frame)
+        phones = None if options.listener == "net" else PhoneListener(
+            fps, self.lookahead_s, context_s=min(0.12, self.lookahead_s), start_sample=start_sample,
+            start_frame=start_frame)
+        if options.listener == "pocketsphinx":
+            self.listener, phones = phones, None
+        self.phones = phones                              # the second listener of "net+pocketsphinx"
         self._next = start_frame                          # the next frame to make
         self.blinks = Blinks(seed=options.seed)
         self.brows = Brows(fps=fps)
@@ -111,6 +115,8 @@ class FaceStream:
             self._hold(piece)
             if not isinstance(self.listener, NetListener):
                 self.listener.push(piece)
+            if self.phones is not None:
+                self.phones.push(piece)
             self._make()
             at += len(piece)
 
@@ -133,11 +139,15 @@ class FaceStream:
         frames = int(np.ceil((self._audio_end + pad) / RATE * self.fps - 1e-9))
         self._hold(np.zeros(pad, np.float32))  # (heard as silence by loudness and pitch; the listener has ended)
         self.listener.finish(frames)
+        if self.phones is not None:
+            self.phones.finish(frames)
         self._make(ended=True)
 
     def close(self) -> None:
         """Done: the listener's decoder is given back for another stream."""
         self.listener.close()
+        if self.phones is not None:
+            self.phones.close()
 
     def take(self, n: int) -> np.ndarray:
         if n > len(self._rows):
@@ -149,8 +159,11 @@ class FaceStream:
     def _make(self, ended: bool = False) -> None:
         """Frames whose lookahead is in (the network hears sooner than that; the loudness and pitch read up to
         it); after the end, every frame the listener gave."""
-        while self.listener.ready and (ended or self._due() <= self._audio_end):
+        while self.listener.ready and (self.phones is None or self.phones.ready) and \
+                (ended or self._due() <= self._audio_end):
             index, heard = self.listener.ready.pop(0)
+            if self.phones is not None:  # (both listeners give every frame in order, from the same first one)
+                heard = (heard, self.phones.ready.pop(0)[1])
             self._rows.append(self._frame(index, heard))
             self._next = index + 1
 
@@ -183,20 +196,22 @@ class FaceStream:
             self._peaks.popleft()
         return self._peaks[0][1]
 
-    def _frame(self, index: int, heard: list[Segment] | Heard) -> np.ndarray:
+    def _frame(self, index: int, heard: list[Segment] | Heard | tuple[Heard, list[Segment]]) -> np.ndarray:
         o, t = self.options, index / self.fps
-        if isinstance(heard, Heard):
-            out, now, closed = self._mouth_heard(heard)
-        else:
-            out, now, closed = self._mouth_of_phones(t, heard)
+        mouths = [self._mouth_heard(h) if isinstance(h, Heard) else self._mouth_of_phones(t, h)
+                  for h in (heard if isinstance(heard, tuple) else (heard,))]
         # Loudness against the recent peak: the shape in full at the peak, none loud_range_db under it.
         ahead = max(0, min(5, int((self.lookahead_s - 0.02) * self.fps)))
         peak = self._peak(max(0, index - int(o.peak_s * self.fps)), index + ahead)
         db = self._db(index)
         level = min(max(float((db - (peak - o.loud_range_db)) / o.loud_range_db), 0.0), 1.0) ** o.loud_power
-        out[_MOUTH] *= level if db >= o.silence_dbfs else 0.0
-        out[V["PP"]] = max(out[V["PP"]], 1.0 if closed else 0.0)
-        out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
+        for out, _, closed in mouths:
+            out[_MOUTH] *= level if db >= o.silence_dbfs else 0.0
+            out[V["PP"]] = max(out[V["PP"]], 1.0 if closed else 0.0)
+            out[V["sil"]] = max(0.0, 1.0 - out[V["PP"]:V["U"] + 1].sum())  # the rest shape: what the others leave
+        out, now = mouths[0][0], mouths[0][1]  # (two listeners: the mean of their mouths; the network's "now")
+        if len(mouths) > 1:
+            out = (out + mouths[1][0]) / 2
         while (first := next(iter(self._loud))) < index - int(o.peak_s * self.fps):  # (in the order they came)
             del self._loud[first]
         # Blinks (more at a phrase's end), brows on pitch accents, the smile under the speech.
