@@ -184,12 +184,13 @@ def latency(r: dict[str, dict]) -> list[str]:
     spoken = " or ".join(sorted({f"{x['seconds']:g} s" for x in runs}))
     jitter = " and ".join(sorted({f"`--vmc-jitter-ms {x['vmc_jitter_ms']:g}`" for x in r["vmc_jitter"]["runs"]
                                   if x["path"] == "vmc"}))
-    newest = {}
+    newest = {}  # (avatar, window ms) -> its newest run
     for x in r["talk"]["runs"]:
-        if x["path"] == "talk" and x.get("avatar") and x["date"] >= newest.get(x["avatar"], {"date": ""})["date"]:
-            newest[x["avatar"]] = x
-    talk = [[a, x["checkpoint"] or "default", str(x["window_ms"]),
-             f"{x['total']['median_ms']:.0f} ({x['total']['p90_ms']:.0f})"] for a, x in sorted(newest.items())]
+        key = (x.get("avatar"), x["window_ms"])
+        if x["path"] == "talk" and key[0] and x["date"] >= newest.get(key, {"date": ""})["date"]:
+            newest[key] = x
+    talk = [[a, x["checkpoint"] or "default", str(w), f"{x['total']['median_ms']:.0f} ({x['total']['p90_ms']:.0f})"]
+            for (a, w), x in sorted(newest.items())]
     return ["## Latency: speech to motion", "",
             "**Microphone to VMC** (`dimgestor serve --source mic --vmc ...`): from a sound reaching the server to its "
             f"VMC bundle sent, median (p90) in ms over {onsets[0]}-{onsets[-1]} speech onsets of a {spoken} run. "
