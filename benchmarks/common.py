@@ -84,6 +84,16 @@ def test_audio(seconds: float, sr: int = SAMPLE_RATE, seed: int = 0, start_s: fl
     return (0.3 * envelope * voiced + 0.01 * rng.standard_normal(t.size)).astype(np.float32)
 
 
+def real_voice(path: Path) -> tuple[str, str]:
+    """(group, row name) of a file of real speech: BEAT's `4_lawrence_0_19_19.wav` is ("lawrence",
+    "lawrence_0_19_19"); any other name is a real-world speaker of its own, `clip000028_tCAkv4ggPgI.wav`
+    ("realworld", "realworld_clip000028")."""
+    parts = Path(path).stem.split("_")
+    if len(parts) >= 5 and parts[0].isdigit():
+        return parts[1], "_".join(parts[1:])
+    return "realworld", f"realworld_{parts[0]}"
+
+
 def code_version() -> str:
     """The commit the measured code is at, marked '+dirty' when dimgestor/ has uncommitted changes."""
     import subprocess

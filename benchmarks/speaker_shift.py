@@ -3,7 +3,7 @@
 A model trained on one speaker reads whatever its front end hands it; features that move when the speaker changes
 (and not what was said) are what it cannot carry over to a stranger. For each listener, on the speech frames
 (the frames the speech front end counts as speech) of the training speaker (the ZEGGS clip's training stretch)
-and of each real unseen speaker (BEAT lawrence, two takes; BEAT2 scott, two takes):
+and of each real unseen speaker (BEAT lawrence, two takes; BEAT2 scott, two takes; two real-world speakers):
 
   shift     mean over channels of |mean_A - mean_B| / pooled sd: how far the feature distribution moves
             between the training speaker and the stranger (0 = the same place)
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, code_version, describe_device, utc_now, write_json  # noqa: E402
+from common import RESULTS, code_version, describe_device, real_voice, utc_now, write_json  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -43,7 +43,7 @@ from dimgestor.frontend.base import build_frontend  # noqa: E402
 SHARED = REPO.parent / "shared" / "data"
 ZEGGS_WAV = SHARED / "zeggs_sample" / "067_Speech_2_x_1_0.wav"
 HELD_OUT_S = 15.0  # the default model's held-out tail: not part of the training speaker's features here
-STRANGERS = {"lawrence": SHARED / "unseen_speech", "scott": SHARED / "phone_aligned_speech"}
+STRANGERS = (SHARED / "unseen_speech", SHARED / "phone_aligned_speech")  # (each file a speaker: `real_voice`)
 SCHEMA = 1
 
 
@@ -129,8 +129,7 @@ def main() -> int:
         return 0
     zeggs = load_wav(ZEGGS_WAV)
     zeggs = zeggs[: len(zeggs) - int(HELD_OUT_S * SAMPLE_RATE)]
-    others = {f"{who}_{w.stem.split('_', 2)[-1]}": load_wav(w)
-              for who, folder in STRANGERS.items() for w in sorted(folder.glob("*.wav"))}
+    others = {real_voice(w)[1]: load_wav(w) for folder in STRANGERS for w in sorted(folder.glob("*.wav"))}
     ls = listeners()
     speech_fe = ls["speech"][0]
     masks = {"zeggs": speech_frames(zeggs, speech_fe), **{n: speech_frames(a, speech_fe) for n, a in others.items()}}

@@ -11,6 +11,7 @@ and wrist jerk; each a mean over seeds (`dimgestor.evaluation.eval.voice_report`
                   capture's own numbers on that stretch and on the whole clip (references)
   lawrence_*      BEAT speaker "lawrence", two takes (../shared/data/unseen_speech): unseen, real speech
   scott_*         BEAT2 speaker "scott", two takes (../shared/data/phone_aligned_speech): unseen, real speech
+  realworld_*     the real-world speakers beside them (clip000028, clip000070): unseen, real speech
   demo_en/zh      the bundled espeak clips (dimgestor/assets)
   espeak_*        espeak-ng voices in six languages at several pitches and rates, made at run time from
                   the fixed texts below (sentences joined by fixed pauses, peak-normalized to -1 dBFS)
@@ -19,8 +20,8 @@ Each row also has its variety: the median distance of its 1 s upper-body windows
 the training stretch (`nearest`, cm), over the real actor's own figure (her held-out 15 s against the same
 stretch): 1 = as far from the training motion as the actor herself strays, below 1 = replaying what it saw.
 
-summary: per kind of unseen voice, real (lawrence + scott: the targets are on these) and synthetic (espeak_*), and
-over all of them: mean coupling, how many clear their chance level, mean onset margin over shuffled, mean silence
+summary: per kind of unseen voice, real (lawrence + scott + realworld: the targets are on these) and synthetic
+(espeak_*), and over all of them: mean coupling, how many clear their chance level, mean onset margin over shuffled, mean silence
 ratio, jerk and variety. Rows that need ../shared are skipped with a note when it is absent.
 
     python benchmarks/voices.py                                  # the embedded default model, ~10 min
@@ -48,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json  # noqa: E402
+from common import RESULTS, code_version, describe_device, load_average, real_voice, utc_now, write_json  # noqa: E402
 from dimgestor.audio import SAMPLE_RATE  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -115,7 +116,7 @@ ESPEAK_VOICES = (
     ("espeak_es_p55_s170", "es", 55, 170, "es"),
     ("espeak_cmn_p35_s165", "cmn", 35, 165, "cmn"),
 )
-KINDS = {"real": ("lawrence", "scott"), "synthetic": ("espeak",)}  # the unseen voices, by kind
+KINDS = {"real": ("lawrence", "scott", "realworld"), "synthetic": ("espeak",)}  # the unseen voices, by kind
 UNSEEN_GROUPS = KINDS["real"] + KINDS["synthetic"]
 
 
@@ -153,12 +154,14 @@ def collect_voices(quick: bool, folder: Path, real_only: bool = False) -> tuple[
         skipped["zeggs_heldout"] = f"{ZEGGS} not found (the ZEGGS sample lives beside the dev checkout)"
     takes = sorted(LAWRENCE.glob("*.wav"))[:1 if quick else None] if LAWRENCE.is_dir() else []
     for p in takes:
-        voices[f"lawrence_{p.stem.split('_', 2)[-1]}"] = {"group": "lawrence", "source": p.name, "audio": load_wav(p)}
+        group, name = real_voice(p)
+        voices[name] = {"group": group, "source": p.name, "audio": load_wav(p)}
     if not takes:
         skipped["lawrence"] = f"{LAWRENCE} not found (BEAT takes live beside the dev checkout)"
     takes = sorted(SCOTT.glob("*.wav"))[:1 if quick else None] if SCOTT.is_dir() else []
-    for p in takes:
-        voices[f"scott_{p.stem.split('_', 2)[-1]}"] = {"group": "scott", "source": p.name, "audio": load_wav(p)}
+    for p in takes:  # (scott's takes, and the real-world speakers beside them)
+        group, name = real_voice(p)
+        voices[name] = {"group": group, "source": p.name, "audio": load_wav(p)}
     if not takes:
         skipped["scott"] = f"{SCOTT} not found (BEAT2 takes live beside the dev checkout)"
     if real_only:
@@ -335,8 +338,8 @@ def compare_table(models: list[tuple[str, dict]]) -> str:
         return [f"{t['coupling']:+.2f} ({t['above_chance']}/{t['voices']} above)", f"{t['onset_margin']:+.2f}",
                 f"{t['silence_ratio']:.2f}", f"{t['hand_jerk']:.3g}", cell("{:.2f}", t.get("variety"))][col]
 
-    for kind, what in (("real", "real unseen mean (lawrence + scott)"), ("synthetic", "synthetic unseen mean (espeak)"),
-                       ("unseen", "all unseen mean")):
+    for kind, what in (("real", f"real unseen mean ({' + '.join(KINDS['real'])})"),
+                       ("synthetic", "synthetic unseen mean (espeak)"), ("unseen", "all unseen mean")):
         if any(unseen_summary(m, kind) for _, m in models):
             lines.append(f"| **{what}** | "
                          + " | ".join(total(m, c, kind) for c in range(len(cols)) for _, m in models) + " |")

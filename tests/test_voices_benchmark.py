@@ -52,7 +52,7 @@ def test_compare_table_puts_old_beside_new(tmp_path):
     assert "coupling (shifted) old:m" in lines["voice"] and "variety new:m" in lines["voice"]
     assert "+0.21 (+0.00) |" in lines["lawrence_a"] and "+0.52 (+0.00) |" in lines["lawrence_a"]
     assert "+0.05 (+0.00) ~" in lines["espeak_x"]  # not above its shifted baseline + 2 sd: marked
-    real = lines["**real unseen mean (lawrence + scott)**"]
+    real = lines["**real unseen mean (lawrence + scott + realworld)**"]
     assert "+0.26 (2/2 above)" in real and "+0.50 (2/2 above)" in real and "| 0.70 | 0.90 |" in real
     assert "+0.05 (0/1 above)" in lines["**synthetic unseen mean (espeak)**"]
     for total in (real, lines["**all unseen mean**"]):
@@ -110,7 +110,7 @@ def test_quick_run_writes_the_per_voice_json(tmp_path):
         assert 14 < r["voices"]["zeggs_heldout"]["seconds"] < 16
     else:
         assert "zeggs_heldout" in r["skipped"]
-    real = sum(n.startswith(("lawrence", "scott")) for n in m["rows"])
+    real = sum(n.startswith(("lawrence", "scott", "realworld")) for n in m["rows"])
     assert m["summary"]["synthetic"]["voices"] == 3 and m["summary"]["unseen"]["voices"] == 3 + real
     assert (m["summary"].get("real") or {}).get("voices", 0) == real
     if voices.ZEGGS.is_dir():  # variety: against the training stretch, over the actor's own held-out figure
