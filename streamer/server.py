@@ -99,9 +99,7 @@ def build(options: ServeOptions) -> Pipeline:
     humanoid = _humanoid_map(options.humanoid_map)
     device = _compute_device(options)
     bundle = _load(options.checkpoint, device if options.backend == "torch" else "cpu")  # (ONNX Runtime's own)
-    if options.speaker is not None:
-        if options.backend != "torch":
-            raise ServeError("--speaker: the ONNX export plays no speaker in particular; use --backend torch")
+    if options.speaker is not None:  # (ONNX Runtime: the export plays it, its vector baked in: _onnx_export)
         try:
             bundle.model.use_speaker(options.speaker)
         except ValueError as e:

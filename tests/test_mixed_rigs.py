@@ -1,6 +1,8 @@
 """One model from several rigs' data (issue 51): clips on other skeletons retargeted onto the training one, speakers
-in equal turns, and an optional speaker condition that `generate --speaker` plays."""
+in equal turns, and an optional speaker condition that `generate --speaker`, `serve --speaker` and an ONNX export of
+one speaker (`export-onnx --speaker`) play."""
 
+import json
 from collections import Counter
 
 import numpy as np
@@ -112,8 +114,9 @@ def test_speakers_take_equal_turns_whatever_their_hours():
 def test_two_rigs_train_one_model_with_a_speaker_condition_that_generate_plays(two_rigs, tmp_path, wav, capsys):
     run = tmp_path / "run"
     data = ["--data", str(two_rigs / "zeggs"), "--data", str(two_rigs / "beat2")]
+    onnx_ready = ["--set", "lookahead_ms=100", "--set", "down_kernel=15"]  # (a lookahead of whole calls)
     assert main(["train", *data, "--out", str(run), "--speaker-condition", "--max-steps", "3", *TRAIN[:2], *TRAIN[4:],
-                 "--cache-dir", str(tmp_path / "cache")]) == 0
+                 "--cache-dir", str(tmp_path / "cache"), *onnx_ready]) == 0
     out = capsys.readouterr().out
     assert "2 clips retargeted onto the training skeleton, 2 speakers" in out
     assert "speakers in equal turns" in out and "speaker condition (2 speakers)" in out
@@ -143,8 +146,41 @@ def test_two_rigs_train_one_model_with_a_speaker_condition_that_generate_plays(t
     assert main([*serve, "--speaker", "scott"]) == 0
     assert main([*serve, "--speaker", "nobody"]) == 2
     assert "--speaker: speaker 'nobody': this model knows scott, zeggs" in capsys.readouterr().err
-    assert main([*serve, "--speaker", "scott", "--backend", "onnxruntime"]) == 2
-    assert "--speaker: the ONNX export plays no speaker in particular" in capsys.readouterr().err
+    # ONNX Runtime: an export of that speaker, its vector a constant of the graph; one of another is refused
+    pytest.importorskip("onnxruntime")
+    from dimgestor.export.onnx_stream import ort_stream
+    from helpers.stream import noise_audio
+
+    def frames(stream):
+        return np.concatenate([stream.push(audio), stream.finish()])
+
+    from dimgestor.streaming.checkpoint import save_checkpoint
+
+    # (3 steps leave the zero-initialized modulations near zero: every weight shaken, so the speaker shows)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in bundle.model.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    run = save_checkpoint(tmp_path / "shaken", bundle.model, bundle.feature_spec, bundle.skeleton, bundle.mean,
+                          bundle.std, info=bundle.info)
+    bundle = load_checkpoint(run)
+    serve[2] = str(run)
+    audio = noise_audio(2.0, seed=3)
+    got = {}
+    for name in (None, "scott"):
+        out = tmp_path / f"onnx_{name}"
+        assert main(["export-onnx", "--checkpoint", str(run), "--out", str(out), "--no-face",
+                     *(["--speaker", name] if name else [])]) == 0
+        assert json.loads((out / "manifest.json").read_text())["checkpoint"]["speaker"] == name
+        bundle.model.use_speaker(name)
+        got[name] = frames(ort_stream(out, seed=5))
+        assert np.abs(got[name] - frames(bundle.stream(seed=5))).max() < 1e-4, name
+    assert np.abs(got["scott"] - got[None]).max() > 1e-2
+    assert main(["export-onnx", "--checkpoint", str(run), "--out", str(tmp_path / "x"), "--speaker", "nobody"]) == 2
+    assert "speaker 'nobody': this model knows scott, zeggs" in capsys.readouterr().err
+    assert main([*serve, "--speaker", "scott", "--backend", "onnxruntime", "--onnx", str(tmp_path / "onnx_None")]) == 2
+    assert "the ONNX export plays no speaker in particular, not speaker 'scott'" in capsys.readouterr().err
+    assert main([*serve, "--speaker", "scott", "--backend", "onnxruntime", "--onnx", str(tmp_path / "onnx_scott")]) == 0
 
 
 def test_a_model_without_the_speaker_condition_refuses_a_speaker(tiny_checkpoint, wav, tmp_path, capsys):

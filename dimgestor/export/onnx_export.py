@@ -243,12 +243,16 @@ def batch_graph(batch: int) -> str:
 
 
 def export_onnx(checkpoint: str | None, out: str | Path, steps: int | None = None,
-                guidance: float | None = None, frames: int = 2, batches: Sequence[int] = ()) -> Path:
+                guidance: float | None = None, frames: int = 2, batches: Sequence[int] = (),
+                speaker: str | None = None) -> Path:
     """A checkpoint (None: the embedded default) -> out/frame_step.onnx and out/manifest.json; returns out.
-    batches: also a graph of B streams a call for each B (out/frame_step_bB.onnx), for a server's batches."""
+    batches: also a graph of B streams a call for each B (out/frame_step_bB.onnx), for a server's batches.
+    speaker: the speaker the graph plays, of a model trained with --speaker-condition (its vector is baked in)."""
     from ..streaming.checkpoint import load_checkpoint
 
-    return export_bundle(load_checkpoint(checkpoint), out, steps, guidance, frames, batches)
+    bundle = load_checkpoint(checkpoint)
+    bundle.model.use_speaker(speaker)
+    return export_bundle(bundle, out, steps, guidance, frames, batches)
 
 
 def export_bundle(bundle: Bundle, out: str | Path, steps: int | None = None, guidance: float | None = None,
@@ -269,7 +273,8 @@ def export_bundle(bundle: Bundle, out: str | Path, steps: int | None = None, gui
     for b in sorted(set(batches) - {1}):
         _export_graph(FrameStep(model, steps, guidance, frames, batch=b).eval(), out / batch_graph(b))
     checkpoint = {"path": str(bundle.path), "weights_sha256": weights_sha256(bundle.path),
-                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist()}
+                  "config": c.model_dump(mode="json"), "mean": bundle.mean.tolist(), "std": bundle.std.tolist(),
+                  "speaker": model.speaker}  # (the speaker the graph plays: its vector is a constant in it)
     (out / MANIFEST).write_text(json.dumps(_json_safe(manifest_of(step, checkpoint, batches)), indent=1))
     return out
 
@@ -374,6 +379,14 @@ def check_export(manifest: dict, bundle: Bundle) -> None:
     if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
         raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
                          f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
+    if (played := manifest["checkpoint"].get("speaker")) != bundle.model.speaker:
+        raise ValueError(f"the ONNX export plays {_who(played)}, not {_who(bundle.model.speaker)}: export it "
+                         f"with --speaker {bundle.model.speaker}" if bundle.model.speaker else
+                         f"the ONNX export plays {_who(played)}, not {_who(None)}: export it without --speaker")
+
+
+def _who(speaker: str | None) -> str:
+    return f"speaker {speaker!r}" if speaker else "no speaker in particular"
 
 
 def _json_safe(v):
@@ -404,6 +417,9 @@ def register(subparsers) -> None:
                    help="DDIM steps K in the graph (default: the checkpoint's)")
     g.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="classifier-free guidance scale baked into the graph (default: the checkpoint's)")
+    g.add_argument("--speaker", default=None, metavar="NAME",
+                   help="the speaker the graph plays, for a model trained with --speaker-condition (`dimgestor info` "
+                        "lists them) (default: no speaker in particular)")
     g.add_argument("--frames", type=int, default=2, metavar="N",
                    help="motion frames per call, 50 ms each (2: 100 ms windows); a divisor of the lookahead's frames "
                         "(1, 2, 3 or 6 for the default model)")
@@ -424,7 +440,7 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     if args.triton is not None and args.triton < 1:  # before minutes of exporting
         raise SystemExit(f"--triton needs at least 1 instance, got {args.triton}")
-    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames, args.batch)
+    out = export_onnx(args.checkpoint, args.out, args.steps, args.guidance, args.frames, args.batch, args.speaker)
     m = json.loads((out / MANIFEST).read_text())
     print(f"wrote {out / GRAPH} (opset {OPSET}, K={m['sampler']['steps']}, guidance {m['sampler']['guidance']:g}, "
           f"{len(m['state'])} state tensors) and {out / MANIFEST}")

@@ -243,6 +243,12 @@ class DiMGestor(nn.Module):
         vec = self.speaker_embed(speaker.clamp_min(0)) * (speaker >= 0).to(cond.dtype)[:, None]
         return cond + vec[:, None, :], state
 
+    @property
+    def speaker(self) -> str | None:
+        """The speaker the model plays (`use_speaker`), None for none in particular."""
+        k = int(self.speaker_index)
+        return None if k < 0 else self.config.speakers[k]
+
     def use_speaker(self, name: str | None) -> None:
         """Play `name` (one of config.speakers), or no speaker (None: the speaker-agnostic model)."""
         if name is None:
