@@ -379,10 +379,10 @@ def check_export(manifest: dict, bundle: Bundle) -> None:
     if manifest["checkpoint"]["weights_sha256"] != weights_sha256(bundle.path):
         raise ValueError(f"the ONNX export was made from {manifest['checkpoint']['path']}, not from "
                          f"{bundle.path}: export this checkpoint (dimgestor export-onnx --checkpoint ...)")
-    if (played := manifest["checkpoint"].get("speaker")) != bundle.model.speaker:
-        raise ValueError(f"the ONNX export plays {_who(played)}, not {_who(bundle.model.speaker)}: export it "
-                         f"with --speaker {bundle.model.speaker}" if bundle.model.speaker else
-                         f"the ONNX export plays {_who(played)}, not {_who(None)}: export it without --speaker")
+    wanted = bundle.model.speaker
+    if (played := manifest["checkpoint"].get("speaker")) != wanted:
+        how = f"with --speaker {wanted}" if wanted else "without --speaker"
+        raise ValueError(f"the ONNX export plays {_who(played)}, not {_who(wanted)}: export it {how}")
 
 
 def _who(speaker: str | None) -> str:

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..audio import load_wav
+from ..config import exact_div
 from ..model.diffusion import Diffusion, ddim_pairs, guide
 from ..model.network import DiMGestor
 from ..streaming.checkpoint import load_checkpoint, save_checkpoint
@@ -107,7 +108,7 @@ class SpeechBank:
         self.files = speech_files(paths)
         self.seconds = 0.0
         self.feats: list[torch.Tensor] = []  # window i: (copies + 1, features, width)
-        spf = c.sample_rate // c.fps
+        spf = exact_div(c.sample_rate, c.fps, "samples per motion frame")
         n = frames * c.feats_per_frame + c.lookahead_feats
         with torch.no_grad():
             for k, path in enumerate(self.files):
