@@ -120,9 +120,9 @@ def _model_flags(g) -> dict[str, argparse.Action]:
               help="classifier-free guidance scale: 1 = unguided, > 1 follows the audio more (needs a model "
                    "trained with --cond-drop; each stream then takes two batch rows) (default: the checkpoint's)"),
         _flag(g, "--speaker", metavar="NAME",
-              help="every session plays this speaker's style, for a model trained with --speaker-condition "
-                   "(`dimgestor info --checkpoint DIR` lists them; ONNX Runtime: an export of that speaker) "
-                   "(default: no speaker in particular)"),
+              help="sessions play this speaker's style unless a client's hello asks another, for a model trained "
+                   "with --speaker-condition (`dimgestor info --checkpoint DIR` lists them; ONNX Runtime: an export "
+                   "of that speaker, for every client) (default: no speaker in particular)"),
         _flag(g, "--root", choices=("tether", "free", "lock"),
               help="root ground motion: 'tether' follows the model's steps and turns but removes any steady "
                    "walk or spin and drifts back to the start position and heading (time constant "

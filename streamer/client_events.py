@@ -224,13 +224,15 @@ class StartSession:
     """Start session `session_id` with a fresh audio queue; resample from `rate` unless it is 16 kHz; its periodic
     saves go under `save_token` (None: none); `restore`: a saved state to go on from (then `Restored`); `smile`:
     the expression its face holds (None: the server's); `face`: whether it makes a face (the client asked for one:
-    a face costs its listener ~5 % of a core per stream, which a client that shows none should not pay)."""
+    a face costs its listener ~5 % of a core per stream, which a client that shows none should not pay);
+    `speaker`: the speaker it plays (None: no speaker in particular; a model without speakers ignores it)."""
     session_id: int
     rate: int
     save_token: str | None = None
     restore: bytes | None = None
     smile: float | None = None
     face: bool = False
+    speaker: str | None = None
 
     @property
     def resample(self) -> bool:

@@ -57,6 +57,22 @@ class Terms:
     save_every_s: float | None = None  # periodic saves (with a store)
     face: str | None = None          # the face's name set unless a client asks another (None: the server makes none)
     joints: int = 0                  # a frame's joints (the offsets of a binary layout)
+    speakers: tuple[str, ...] = ()   # the speakers of a model with a speaker condition (a client may ask one)
+    speaker: str | None = None       # the one a session plays unless its client asks (--speaker; None: none)
+    speaker_fixed: bool = False      # the server plays `speaker` only (ONNX Runtime: its vector is in the graph)
+
+    def speaker_refusal(self, asked: str | None) -> str | None:
+        """Why a client's hello may not ask `asked` (a name, or None for no speaker in particular), or None."""
+        if asked == self.speaker:
+            return None
+        if self.speaker_fixed:
+            plays = f"speaker {self.speaker!r}" if self.speaker is not None else "no speaker in particular"
+            return (f"speaker {asked!r}: this server plays {plays} only (its ONNX Runtime backend holds one speaker "
+                    "in its graph; a server on the torch backend lets each client choose)")
+        if asked is None or asked in self.speakers:
+            return None
+        known = ", ".join(self.speakers) or "none (its model was trained without --speaker-condition)"
+        return f"speaker {asked!r}: this server's model knows {known}"
 
 
 class Seats:
@@ -215,6 +231,8 @@ class ClientSession(_SavesAndResumes):
     face: str | None = None        # the face's name set its hello asked, or "none" (None: never asked)
     face_withheld: bool = False    # its current session was admitted without the face it asked (at capacity)
     smile: float | None = None     # the expression its own sessions' face holds (None: the server's)
+    speaker: str | None = None     # the speaker its own sessions play, when `speaker_asked` (else the server's)
+    speaker_asked: bool = False
     layout_due: bool = False       # a `channels` message goes with its next frames
     joints: int = 0                # its frames' joints on its own rig (revision 8; 0: the server's skeleton's)
     rigs_refused: int = 0          # `bad_rig`s it was sent (the MAX_REFUSED_RIGS-th closes the connection)
@@ -274,6 +292,8 @@ class ClientSession(_SavesAndResumes):
         return []
 
     def _hello(self, msg: dict) -> list[Action]:
+        if "speaker" in msg and (why := self.terms.speaker_refusal(msg["speaker"])) is not None:
+            raise P.ProtocolError("bad_message", why)  # (before anything of this hello applies)
         out: list[Action] = []
         self.encoding = msg.get("encoding", self.encoding)
         self.timing = msg.get("timing", self.timing)
@@ -288,6 +308,8 @@ class ClientSession(_SavesAndResumes):
             self.smile = msg["smile"]
             if self.running:
                 out.append(SetSmile(self.smile))
+        if "speaker" in msg:  # (from its next session on: a running one keeps the speaker it began with)
+            self.speaker, self.speaker_asked = msg["speaker"], True
         if "audio" in msg and msg["audio"] != self.audio:
             out.append(Charge(25))  # a new resampler is designed: costs as much as 25 messages
             if self.phase is Phase.STREAMING:
@@ -385,8 +407,9 @@ class ClientSession(_SavesAndResumes):
         self.save_token = self.new_token() if self.terms.save_every_s is not None else None
         self.saved_audio_s = 0.0
         face = self._face_wanted()
+        speaker = self.speaker if self.speaker_asked else self.terms.speaker
         return [*self._take_seat(), StartSession(self.session_id, self.audio.rate, self.save_token, restore,
-                                                 self.smile, face), Count("sessions_started")]
+                                                 self.smile, face, speaker), Count("sessions_started")]
 
     def _face_wanted(self) -> bool:
         """Whether its next session makes a face: the server makes one and the client asked for it (and it was not

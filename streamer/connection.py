@@ -292,7 +292,7 @@ class Client(Outbox, ConnectionSaves):
                     if start.save_token is not None else None)
         no_face = {} if start.face else {"face": None}  # the client asked for none: its session makes none (nor pays)
         self.session = session = self.svc.make_session(clock=self.clock, on_window=self.svc.metrics.window_done,
-                                                       on_boundary=boundary, **no_face)
+                                                       on_boundary=boundary, speaker=start.speaker, **no_face)
         self.frames_queued = 0
         if start.smile is not None:  # the client's own expression (its hello's `smile`)
             session.set_smile(start.smile)

@@ -29,7 +29,8 @@ MAX_BINARY_BYTES = 1024 * 1024
 HARD_MAX_BYTES = 4 * 1024 * 1024  # above this the WebSocket layer closes the connection (1009)
 FRAME_MAGIC = b"DGF1"
 FRAME_HEADER = struct.Struct("<4sId3f")  # magic, index, pts, root xyz: 28 bytes, then float32[J * 4], channels
-REVISION = 8  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+REVISION = 9  # protocol 1 revisions add optional fields and messages only (docs/protocol.md, "Revisions")
+MAX_SPEAKER_CHARS = 128  # a speaker's name in a client hello (revision 9), at most
 MAX_RIG_JOINTS = 512  # a client's rig (revision 8): joints at most (its hello must also fit MAX_TEXT_BYTES)
 PARSE_ASIDE_BYTES = 2048  # a text message longer than this (a rig) is parsed on the worker thread, as its sender's work
 MAX_REFUSED_RIGS = 8  # rigs refused on one connection before it is closed (1008): each also costs REFUSED_RIG_TOKENS
@@ -99,6 +100,14 @@ def hello(skeleton: SkeletonInfo, humanoid: dict[str, str], fps: int, lookahead_
         "channels": channels,
         **optional,
     }
+
+
+def speakers_hello(names, default: str | None, fixed: bool) -> dict:
+    """`hello.speakers` (revision 9) of a server whose model has a speaker condition: the speakers a client may
+    ask (`names`), the one its sessions play unless it asks (`default`, None: no speaker in particular); `fixed`:
+    the server plays `default` only (its ONNX Runtime graph holds that speaker's vector)."""
+    return {"names": [default] if fixed and default is not None else list(names), "default": default,
+            "choice": not fixed}
 
 
 def face_hello(name_set: str) -> dict:
@@ -359,6 +368,12 @@ def _parse_hello(msg: dict) -> dict:
         out["smile"] = float(smile)
     if "rig" in msg:
         out["rig"] = None if msg["rig"] is None else _parse_rig(msg["rig"])
+    if "speaker" in msg:
+        speaker = msg["speaker"]
+        if speaker is not None and not (isinstance(speaker, str) and 0 < len(speaker) <= MAX_SPEAKER_CHARS):
+            raise ProtocolError("bad_message", f"speaker must be a speaker's name (a string of 1 to "
+                                               f"{MAX_SPEAKER_CHARS} characters) or null, got {speaker!r:.80}")
+        out["speaker"] = speaker
     if "audio" in msg:
         a = msg["audio"]
         if not isinstance(a, dict):

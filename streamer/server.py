@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, AsyncIterator, Callable
 
+from dimgestor.streaming.stream import MODEL_SPEAKER
 from streamer.face import ServeFace
 from streamer.frames import Frame
 from streamer.handover import open_store
@@ -275,18 +276,22 @@ def _admission(options: ServeOptions, bundle, face: ServeFace | None, metrics: S
 
 
 def _session(bundle, options: ServeOptions, scheduler, steps: int, guidance: float, name: str = "client",
-             onnx: OnnxModel | None = None, **settings) -> Session:
-    """A session of this server's model, steps and options; `settings`: Session's own keyword arguments (face,
+             onnx: OnnxModel | None = None, speaker=MODEL_SPEAKER, **settings) -> Session:
+    """A session of this server's model, steps and options; `speaker`: the speaker it plays (a name, None for none
+    in particular; MODEL_SPEAKER: the server's --speaker); `settings`: Session's own keyword arguments (face,
     face_cost, state_key, clock, on_window, on_boundary)."""
     if onnx is not None:  # --backend onnxruntime: the exported frame step on ONNX Runtime (one session for all)
         from dimgestor.features import PoseDecoder
+
+        if speaker is not MODEL_SPEAKER and speaker != bundle.model.speaker:  # (a client's hello was refused it)
+            raise ValueError(f"speaker {speaker!r}: the ONNX Runtime backend plays {bundle.model.speaker!r} only")
 
         stream = onnx.stream(seed=options.seed, smoothing=options.smoothing, lookahead_s=bundle.model.lookahead_s)
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=options.root, tether_s=options.tether_s)
         return Session(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, window_ms=options.window_ms,
                        scheduler=scheduler, name=name, **settings)
     return Session.from_bundle(bundle, steps=steps, seed=options.seed, smoothing=options.smoothing,
-                               root=options.root, tether_s=options.tether_s, guidance=guidance,
+                               root=options.root, tether_s=options.tether_s, guidance=guidance, speaker=speaker,
                                window_ms=options.window_ms, scheduler=scheduler, name=name, **settings)
 
 
@@ -341,7 +346,10 @@ def _ws(options: ServeOptions, bundle, rig, source, session: Session | None, mak
                     accepts_audio=not options.no_client_audio, window_ms=options.window_ms,
                     source="ws" if source is None else "mic" if options.source == "mic" else "file",
                     **({"source_audio": {"rate": P.AUDIO_RATE, "format": "pcm16", "channels": 1}}
-                       if isinstance(source, WavSource) else {}))
+                       if isinstance(source, WavSource) else {}),
+                    **({"speakers": P.speakers_hello(bundle.config.speakers, bundle.model.speaker,
+                                                     fixed=options.backend == "onnxruntime")}
+                       if bundle.config.speakers else {}))
     also = [(options.http[0] or options.ws[0], options.http[1])] if options.http is not None else []
     config = WsConfig(options.ws[0], options.ws[1], also=tuple(also), token=token, origins=tuple(options.allow_origin),
                       max_sessions=options.max_sessions, ping_interval=options.ping_interval or None,

@@ -26,6 +26,7 @@ import numpy as np
 
 from dimgestor.audio import SAMPLE_RATE
 from dimgestor.streaming.savestate_checks import StateError, finite_number, is_int, show
+from dimgestor.streaming.stream import MODEL_SPEAKER
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.protocol import MAX_RATE, MIN_RATE
@@ -201,13 +202,14 @@ class Session:
 
     @classmethod
     def from_bundle(cls, bundle, steps: int | None = None, seed: int = 0, smoothing="config", root: str = "free",
-                    tether_s: float = 5.0, guidance: float | None = None, **kw) -> "Session":
-        """kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face, clock, on_window, ...)."""
+                    tether_s: float = 5.0, guidance: float | None = None, speaker=MODEL_SPEAKER, **kw) -> "Session":
+        """speaker: a name, None (no speaker in particular) or MODEL_SPEAKER (the model's own: `GestureStream`);
+        kw: Session's own (window_ms, scheduler, name, face=FaceOptions() for a face, clock, on_window, ...)."""
         from dimgestor.features import PoseDecoder
 
         decoder = PoseDecoder(bundle.skeleton, bundle.feature_spec, root=root, tether_s=tether_s)
-        return cls(bundle.stream(steps=steps, seed=seed, smoothing=smoothing, guidance=guidance), decoder,
-                   bundle.denormalize, bundle.feature_spec.fps, **kw)
+        stream = bundle.stream(steps=steps, seed=seed, smoothing=smoothing, guidance=guidance, speaker=speaker)
+        return cls(stream, decoder, bundle.denormalize, bundle.feature_spec.fps, **kw)
 
     @property
     def lookahead_s(self) -> float:

@@ -108,11 +108,14 @@ class Attached:
 def seat_terms(config: WsConfig, hello: dict, accepts_audio: bool, resumable: bool) -> S.Terms:
     """The terms every client's session is served on (`client_session.Terms`), from the config and the hello
     (what it offers and its skeleton)."""
+    speakers = hello.get("speakers") or {}  # (revision 9: a model with a speaker condition)
     return S.Terms(config.max_sessions, accepts_audio=accepts_audio, offers_source_audio="source_audio" in hello,
                    max_backlog_s=config.max_backlog_s, resumable=resumable,
                    save_every_s=config.save_every_s if resumable else None,
                    face=config.face,
-                   joints=len(hello.get("skeleton", {}).get("joints", ())))
+                   joints=len(hello.get("skeleton", {}).get("joints", ())),
+                   speakers=tuple(speakers.get("names", ())), speaker=speakers.get("default"),
+                   speaker_fixed=not speakers.get("choice", True))
 
 
 class WsServer:

@@ -285,7 +285,9 @@ class Printer:
                   f"audio {msg.get('audio')}"
                   + "".join(f", channel {c['name']} ({c['size']} values)" for c in msg.get("channels") or [])
                   + (f", face in {msg['face']['names']} names (sets {', '.join(msg['face']['sets'])})"
-                     if msg.get("face") else ""))
+                     if msg.get("face") else "")
+                  + (f", speakers {', '.join(msg['speakers']['names']) or 'none'} (default "
+                     f"{msg['speakers']['default'] or 'none in particular'})" if msg.get("speakers") else ""))
         elif kind == "channels":  # (revision 7) the binary frames' layout from the next frame on
             self.hello = {**(self.hello or {}), "channels": msg["channels"]}
             if not self.args.quiet:

@@ -21,27 +21,41 @@ class Conditioned(NamedTuple):
     extractor: ExtractorState
 
 
-def condition(model: DiMGestor, frontend, extractor: ExtractorState, samples: np.ndarray) -> Conditioned:
-    """One stream's mono float32 samples after its front end's and extractor's states -> their condition."""
+def condition(model: DiMGestor, frontend, extractor: ExtractorState, samples: np.ndarray,
+              speaker: int | None = None) -> Conditioned:
+    """One stream's mono float32 samples after its front end's and extractor's states -> their condition.
+    speaker: its index in the model's config.speakers, -1 for none (None: the model's own, `use_speaker`)."""
     dev = next(model.parameters()).device
     with torch.inference_mode():
         x = torch.from_numpy(np.ascontiguousarray(samples)).to(dev)[None]
         feats, fe = model.frontend(x, frontend)
-        cond, ex = model.condition(feats, extractor)
+        cond, ex = model.condition(feats, extractor, _speakers(model, [speaker], dev))
     return Conditioned(cond, fe, ex)
 
 
 def condition_group(model: DiMGestor, frontends: Sequence, extractors: Sequence[ExtractorState],
-                    samples: Sequence[np.ndarray]) -> list[Conditioned]:
-    """`condition` of a group of streams (states alike in `group_key`, samples of one length) in one call each."""
+                    samples: Sequence[np.ndarray], speakers: Sequence[int | None] | None = None) -> list[Conditioned]:
+    """`condition` of a group of streams (states alike in `group_key`, samples of one length) in one call each;
+    speakers: each stream's (as `condition`'s; None: the model's own for all)."""
+    speakers = [None] * len(samples) if speakers is None else list(speakers)
     if len(samples) == 1:
-        return [condition(model, frontends[0], extractors[0], samples[0])]
+        return [condition(model, frontends[0], extractors[0], samples[0], speakers[0])]
     with torch.inference_mode():
-        x = torch.from_numpy(np.stack(samples)).to(extractors[0].buf.device)  # (B, N)
+        dev = extractors[0].buf.device
+        x = torch.from_numpy(np.stack(samples)).to(dev)  # (B, N)
         feats, fe = model.frontend(x, _stack(frontends))
-        cond, ex = model.condition(feats, _stack(extractors))
+        cond, ex = model.condition(feats, _stack(extractors), _speakers(model, speakers, dev))
     return [Conditioned(cond[r:r + 1], _row(fe, r, f), _row(ex, r, e))
             for r, (f, e) in enumerate(zip(frontends, extractors))]
+
+
+def _speakers(model: DiMGestor, speakers: Sequence[int | None], device) -> torch.Tensor | None:
+    """Each row's speaker index (B,) for `DiMGestor.condition`, None (the model's own) for a model without a speaker
+    condition or when no row names one."""
+    if getattr(model, "speaker_embed", None) is None or all(s is None for s in speakers):
+        return None
+    own = int(model.speaker_index)
+    return torch.tensor([own if s is None else s for s in speakers], dtype=torch.long, device=device)
 
 
 def group_key(frontend, extractor: ExtractorState) -> tuple:

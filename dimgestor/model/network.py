@@ -251,13 +251,17 @@ class DiMGestor(nn.Module):
 
     def use_speaker(self, name: str | None) -> None:
         """Play `name` (one of config.speakers), or no speaker (None: the speaker-agnostic model)."""
+        self.speaker_index.fill_(self.speaker_number(name))
+
+    def speaker_number(self, name: str | None) -> int:
+        """`name`'s index in config.speakers (None: -1, no speaker in particular); ValueError naming the speakers
+        this model knows for any other name."""
         if name is None:
-            self.speaker_index.fill_(-1)
-            return
+            return -1
         if name not in self.config.speakers:
             known = ", ".join(self.config.speakers) or "none: it was trained without --speaker-condition"
             raise ValueError(f"speaker {name!r}: this model knows {known}")
-        self.speaker_index.fill_(self.config.speakers.index(name))
+        return self.config.speakers.index(name)
 
     def samples_needed(self, n_frames: int) -> int:
         """Audio samples after which the condition for `n_frames` motion frames exists."""

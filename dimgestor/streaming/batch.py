@@ -68,7 +68,8 @@ def begin_many(streams: Sequence[GestureStream], states: Sequence[StreamState], 
     for idx in groups.values():
         try:
             done = condition_group(streams[idx[0]].model, [states[i].frontend for i in idx],
-                                   [states[i].extractor for i in idx], [samples[i] for i in idx])
+                                   [states[i].extractor for i in idx], [samples[i] for i in idx],
+                                   [streams[i].speaker_index for i in idx])
         except Exception as e:
             if len(idx) > 1:
                 done = None  # stream by stream below: the one at fault fails alone
@@ -80,7 +81,8 @@ def begin_many(streams: Sequence[GestureStream], states: Sequence[StreamState], 
         for k, i in enumerate(idx):
             try:
                 c = done[k] if done is not None else condition(streams[i].model, states[i].frontend,
-                                                               states[i].extractor, samples[i])
+                                                               states[i].extractor, samples[i],
+                                                               streams[i].speaker_index)
             except Exception as e:
                 if not return_exceptions:
                     raise

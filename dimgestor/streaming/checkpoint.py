@@ -29,7 +29,7 @@ from ..bvh import Skeleton
 from ..config import ModelConfig
 from ..features import FeatureSpec
 from ..model.network import DiMGestor
-from .stream import GestureStream, generate_offline
+from .stream import MODEL_SPEAKER, GestureStream, generate_offline
 
 __all__ = ["Bundle", "CheckpointError", "save_checkpoint", "load_checkpoint", "resolve_checkpoint",
            "latest_checkpoint", "export_checkpoint", "DEFAULT_MODEL_DIR", "LIVE_MODEL_DIR", "EMBEDDED", "FORMAT"]
@@ -72,10 +72,11 @@ class Bundle:
         return (f * self.std + self.mean).astype(np.float32)
 
     def stream(self, steps: int | None = None, seed: int = 0, sampler: str = "ddim", eta: float = 0.0,
-               smoothing="config", guidance: float | None = None) -> GestureStream:
-        """A live stream; steps and guidance None and smoothing "config" take the checkpoint's defaults."""
+               smoothing="config", guidance: float | None = None, speaker=MODEL_SPEAKER) -> GestureStream:
+        """A live stream; steps and guidance None and smoothing "config" take the checkpoint's defaults, speaker
+        MODEL_SPEAKER the model's own (a name, or None for no speaker in particular: `GestureStream`)."""
         return GestureStream(self.model, steps=steps, seed=seed, sampler=sampler, eta=eta, smoothing=smoothing,
-                             guidance=guidance)
+                             guidance=guidance, speaker=speaker)
 
     def generate(self, audio: np.ndarray, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
                  eta: float = 0.0, smoothing="config", guidance: float | None = None) -> np.ndarray:

@@ -83,9 +83,12 @@ _FINGERPRINTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def stream_settings(stream: GestureStream) -> dict:
     """What makes two streams' frames differ for the same state and audio, besides the weights."""
     s = stream.smoother
-    return {"seed": stream.seed, "sampler": stream.sampler, "eta": stream.eta, "guidance": stream.guidance,
-            "pairs": [list(p) for p in stream.pairs],
-            "smoother": None if s is None else [s.fps, s.min_cutoff_hz, s.beta, s.d_cutoff_hz]}
+    out = {"seed": stream.seed, "sampler": stream.sampler, "eta": stream.eta, "guidance": stream.guidance,
+           "pairs": [list(p) for p in stream.pairs],
+           "smoother": None if s is None else [s.fps, s.min_cutoff_hz, s.beta, s.d_cutoff_hz]}
+    if stream.model.config.speakers:  # (a model without speakers: the settings, and its saved states, as before)
+        out["speaker"] = stream.speaker
+    return out
 
 
 def describe(v: Any, blobs: list[bytes]) -> Any:

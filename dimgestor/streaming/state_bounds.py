@@ -84,8 +84,8 @@ def learn(stream, seconds: float = PROBE_S) -> dict[str, float]:
     from .stream import GestureStream
     s = stream
     signals = probes(s.model.config.sample_rate, seconds)
-    runs = [GestureStream(s.model, seed=s.seed, sampler=s.sampler, eta=s.eta, smoothing=None, guidance=s.guidance)
-            for _ in signals]
+    runs = [GestureStream(s.model, seed=s.seed, sampler=s.sampler, eta=s.eta, smoothing=None, guidance=s.guidance,
+                          speaker=s.speaker) for _ in signals]
     for r in runs:  # (the same schedule and output filter, however they were given)
         r.pairs, r.runner, r.smoother = s.pairs, s.runner, s.smoother
         r.state = r.initial_state()
@@ -110,7 +110,8 @@ def bounds(stream) -> dict[str, float]:
     settings (`learn`), then remembered with the model."""
     f = stream.smoother
     key = repr((stream.seed, stream.sampler, stream.eta, stream.guidance, [tuple(p) for p in stream.pairs],
-                None if f is None else (f.fps, f.min_cutoff_hz, f.beta, f.d_cutoff_hz)))  # (savestate's settings)
+                None if f is None else (f.fps, f.min_cutoff_hz, f.beta, f.d_cutoff_hz),
+                stream.speaker))  # (savestate's settings)
     with _LOCK:
         known = _LEARNT.setdefault(stream.model, {})
         if key not in known:

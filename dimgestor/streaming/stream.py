@@ -28,7 +28,7 @@ from ..model.network import DenoiserState, DiMGestor, ExtractorState
 from ..model.sampler import StepStates, Window, denoise, runner_for
 from ..smoothing import OneEuroFilter, OneEuroState
 
-__all__ = ["GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
+__all__ = ["MODEL_SPEAKER", "GestureStream", "StreamState", "generate_offline", "make_smoother", "sample_frames"]
 
 
 def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, frame_start: int,
@@ -76,6 +76,9 @@ def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | No
     return OneEuroFilter(c.fps, hz, beta) if hz else None
 
 
+MODEL_SPEAKER = object()  # GestureStream's default speaker: the model's own (`DiMGestor.use_speaker`)
+
+
 def _device(model: torch.nn.Module) -> torch.device:
     return next(model.parameters()).device
 
@@ -106,11 +109,16 @@ class GestureStream:
     """
 
     def __init__(self, model: DiMGestor, steps: int | None = None, seed: int = 0, sampler: str = "ddim",
-                 eta: float = 0.0, smoothing="config", guidance: float | None = None):
+                 eta: float = 0.0, smoothing="config", guidance: float | None = None,
+                 speaker: str | None | object = MODEL_SPEAKER):
         if not getattr(model, "streams", True):
             raise ValueError(f"{type(model).__name__} cannot stream: it carries no state between windows "
                              "(use generate_offline on the whole recording)")
         self.model, self.seed, self.sampler, self.eta = model, int(seed), sampler, float(eta)
+        # the speaker it plays, of a model trained with a speaker condition: a name, None for none in particular,
+        # MODEL_SPEAKER for the model's own (`DiMGestor.use_speaker`) as it is now; fixed for the stream's life
+        self.speaker = model.speaker if speaker is MODEL_SPEAKER else speaker
+        self.speaker_index = model.speaker_number(self.speaker)  # (ValueError for a name the model does not know)
         # classifier-free guidance scale (None: the config's); != 1 adds an unconditional row to the state
         self.guidance = check_guidance(model.config.guidance if guidance is None else guidance)
         self.diffusion = Diffusion(model.config)
@@ -146,7 +154,7 @@ class GestureStream:
         """`step`'s first half: checks, the audio clock, and the condition (1, n, H) of the n frames the samples
         complete (`dimgestor.streaming.batch.begin_many` does it for many streams, conditioned in groups)."""
         samples = self.check_step(state, samples)
-        c = condition(self.model, state.frontend, state.extractor, samples)
+        c = condition(self.model, state.frontend, state.extractor, samples, self.speaker_index)
         return c.cond, state.conditioned(c, len(samples))
 
     def check_step(self, state: StreamState, samples) -> np.ndarray:
@@ -190,7 +198,7 @@ class GestureStream:
         c = self.model.config
         T = state.samples_in * c.fps // c.sample_rate
         pad = max(self.model.samples_needed(T) - state.samples_in, 0)
-        padded = condition(self.model, state.frontend, state.extractor, np.zeros(pad, np.float32))
+        padded = condition(self.model, state.frontend, state.extractor, np.zeros(pad, np.float32), self.speaker_index)
         frames, end = self._denoise(replace(state.conditioned(padded, 0), finished=True), padded.cond)
         out = frames[: max(T - state.frames_out, 0)]
         return out, replace(end, frames_out=state.frames_out + len(out))
