@@ -38,6 +38,7 @@ from dimgestor.face.life import Blinks
 from dimgestor.face.listener import unavailable as face_unavailable
 from dimgestor.face.visemes import V
 from dimgestor.rotations import expmap_to_quat, quat_conj, quat_mul, quat_to_expmap
+from dimgestor.streaming.stream import MODEL_SPEAKER
 from streamer.face import FACE
 from streamer.frames import Frame
 from streamer.playout import UNCONFIRMED_S, Playout, Utterance
@@ -111,11 +112,11 @@ class RestPose:
         return self.root_pos + x[:3], rot, self.features + x[3 + 3 * j:]
 
     @classmethod
-    def of_silence(cls, bundle, steps: int, seed: int, seconds: float = 2.0) -> "RestPose":
-        """The model's pose after `seconds` of silence (the root where a fresh stream starts)."""
+    def of_silence(cls, bundle, steps: int, seed: int, seconds: float = 2.0, speaker=MODEL_SPEAKER) -> "RestPose":
+        """The model's pose after `seconds` of silence (the root where a fresh stream starts), as `speaker`."""
         from dimgestor.features import PoseDecoder
 
-        stream = bundle.stream(steps=steps, seed=seed)
+        stream = bundle.stream(steps=steps, seed=seed, speaker=speaker)
         normalized = np.concatenate([stream.push(np.zeros(int(seconds * SAMPLE_RATE), np.float32)), stream.finish()])
         feats = np.asarray(bundle.denormalize(normalized), dtype=np.float64)
         pose = PoseDecoder(bundle.skeleton, bundle.feature_spec).decode(feats)
@@ -187,7 +188,8 @@ class GestureProcessor(FrameProcessor):
     16 kHz on the frames' clock, given as it is heard, beside its frames (e.g. `WsServer.broadcast_audio`, so the
     web viewer plays it in sync; audio an interruption cut is never given).
     on_release(Released): every frame sent, for measurements. face: how the face is made (each utterance's seeded
-    like its body), None for frames without one. scheduler: where inference runs (a
+    like its body), None for frames without one. speaker: the speaker whose style the avatar plays, of a model
+    trained with --speaker-condition (None: none in particular; default: the model's own). scheduler: where inference runs (a
     `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its deprecated name.
     """
 
@@ -196,7 +198,7 @@ class GestureProcessor(FrameProcessor):
                  blend_in_s: float = 0.5, rest_hz: float = 1.3,
                  on_audio: Callable[[float, np.ndarray], None] | None = None,
                  on_release: Callable[[Released], None] | None = None, executor=None,
-                 face: FaceOptions | None = FaceOptions(), **kwargs):
+                 face: FaceOptions | None = FaceOptions(), speaker=MODEL_SPEAKER, **kwargs):
         scheduler = _scheduler(scheduler, executor)
         if face is not None and "pocketsphinx" in face.listener and (why := face_unavailable()) is not None:
             raise ImportError(f"GestureProcessor: {why}; or face=None for frames without a face")
@@ -209,13 +211,16 @@ class GestureProcessor(FrameProcessor):
             raise ValueError(f"need max_hold_s >= 0, blend_in_s >= 0, rest_hz > 0; got {max_hold_s}, {blend_in_s}, "
                              f"{rest_hz}")
         self.bundle, self.sinks = bundle, list(sinks)
+        self.speaker = bundle.model.speaker if speaker is MODEL_SPEAKER else speaker
+        bundle.model.speaker_number(self.speaker)  # (ValueError naming the model's speakers, before anything runs)
         self.fps = float(bundle.feature_spec.fps)
         self.steps = steps if steps is not None else bundle.config.sample_steps
         self.seed, self.window_ms, self.scheduler = seed, window_ms, scheduler
         self.max_hold_s, self.blend_in = max_hold_s, int(round(blend_in_s * self.fps))
         self.on_audio, self.on_release, self.face = on_audio, on_release, face
-        self.resting = Resting(RestPose.of_silence(bundle, self.steps, seed), self.fps, rest_hz, self.blend_in,
-                               face, Blinks(seed=seed if face is None else face.seed + seed))
+        rest = RestPose.of_silence(bundle, self.steps, seed, speaker=self.speaker)
+        self.resting = Resting(rest, self.fps, rest_hz, self.blend_in, face,
+                               Blinks(seed=seed if face is None else face.seed + seed))
         self.rest = self.resting.rest
         self.stats = GestureStats()
         self.inference = InferenceStats()  # for `status` (WsServer.broadcast_stats), as `streamer serve` sends
@@ -299,7 +304,7 @@ class GestureProcessor(FrameProcessor):
         self.stats.utterances += 1
         b = self.bundle
         face = None if self.face is None else dataclasses.replace(self.face, seed=self.face.seed + self.seed + number)
-        session = Session(b.stream(steps=self.steps, seed=self.seed + number),
+        session = Session(b.stream(steps=self.steps, seed=self.seed + number, speaker=self.speaker),
                           PoseDecoder(b.skeleton, b.feature_spec), b.denormalize, self.fps,
                           window_ms=self.window_ms, scheduler=self.scheduler, name=f"utterance-{number}",
                           face=face)  # (seeded as its body is)

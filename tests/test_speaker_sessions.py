@@ -210,3 +210,15 @@ def test_serve_offers_the_models_speakers_with_its_own_as_the_default_and_onnx_r
     assert p.ws.seats.terms.speaker_fixed
     with pytest.raises(ValueError, match="plays 'bob' only"):
         p.make_session(speaker="alice")
+
+
+def test_a_voice_agents_gesture_processor_plays_the_speaker_it_is_given(speakers_bundle):
+    pytest.importorskip("pipecat", reason="pipecat-ai is not installed (pip install 'dimgestor[pipecat]')")
+    from streamer.pipecat import GestureProcessor
+
+    made = {name: GestureProcessor([], bundle=speakers_bundle, steps=2, face=None, speaker=name) for name in NAMES}
+    assert made["bob"].speaker == "bob" and GestureProcessor([], bundle=speakers_bundle, face=None).speaker is None
+    # its rest pose between utterances is that speaker's too
+    assert np.abs(made["alice"].rest.features - made["bob"].rest.features).max() > 1e-2
+    with pytest.raises(ValueError, match="speaker 'carol': this model knows alice, bob"):
+        GestureProcessor([], bundle=speakers_bundle, face=None, speaker="carol")
