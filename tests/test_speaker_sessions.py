@@ -222,3 +222,34 @@ def test_a_voice_agents_gesture_processor_plays_the_speaker_it_is_given(speakers
     assert np.abs(made["alice"].rest.features - made["bob"].rest.features).max() > 1e-2
     with pytest.raises(ValueError, match="speaker 'carol': this model knows alice, bob"):
         GestureProcessor([], bundle=speakers_bundle, face=None, speaker="carol")
+
+
+def test_the_python_client_asks_for_a_speaker_and_gets_generate_s_motion_of_that_speaker(speakers_bundle, tmp_path):
+    """clients/python/client.py --speaker bob against `dimgestor serve`: its BVH is `generate --speaker bob`'s (every
+    joint within 0.01 cm), not the one of no speaker in particular; a name the model does not know is answered with the names it knows."""
+    import sys
+
+    from dimgestor.bvh import forward_kinematics, read_bvh
+    from helpers import warm
+    from helpers.clients import REPO, SPEECH_WAV, live_server, run_client
+
+    checkpoint = str(speakers_bundle.path)
+    with live_server(tmp_path, "ws", speakers_bundle.path, extra=("--face", "none")) as server:
+        r = run_client("--url", server.ws_url, "--wav", str(SPEECH_WAV), "--fast", "--speaker", "bob", "--bvh",
+                       str(tmp_path / "bob.bvh"), "--quiet")
+        bad = run_client("--url", server.ws_url, "--speaker", "carol", "--seconds", "2", "--quiet")
+    assert "speakers alice, bob (default none in particular)" in r.stdout
+    assert "speaker 'carol': this server's model knows alice, bob" in bad.stdout
+    fk = {}
+    for speaker in ("bob", None):
+        offline = tmp_path / f"offline_{speaker}.bvh"
+        g = warm.run([sys.executable, "-m", "dimgestor_app.cli", "generate", "--checkpoint", checkpoint, "--audio",
+                      str(SPEECH_WAV), "--out", str(offline), "--steps", "2", "--seed", "0", "--root", "tether",
+                      *(["--speaker", speaker] if speaker else [])], cwd=REPO, capture_output=True, text=True,
+                     timeout=120)
+        assert g.returncode == 0, g.stderr
+        fk[speaker] = forward_kinematics(read_bvh(offline))
+    got = forward_kinematics(read_bvh(tmp_path / "bob.bvh"))
+    # (this shaken model's angles reach thousands of degrees: float rounding shows at 1e-3 cm)
+    assert got.shape == fk["bob"].shape and np.abs(got - fk["bob"]).max() < 1e-2
+    assert np.abs(got - fk[None]).max() > 1.0

@@ -307,22 +307,29 @@ class Printer:
         return msg
 
 
-def client_hello(binary: bool, audio: dict | None = None, face: str | None = None) -> str:
-    """Our hello; every hello states the encoding, since a later hello replaces the earlier one. `face`: the name
-    set our frames' face is in (revision 7; binary frames carry it only once asked), or "none"."""
+def client_hello(binary: bool, audio: dict | None = None, asks: dict | None = None) -> str:
+    """Our hello; every hello states the encoding, since a later hello replaces the earlier one. `asks`: what else
+    we ask (`hello_asks`)."""
     hello = {"type": "hello", "protocol": 1, "encoding": "binary" if binary else "json"}
     if audio:
         hello["audio"] = audio
-    if face:
-        hello["face"] = face
-    return json.dumps(hello)
+    return json.dumps({**hello, **(asks or {})})
+
+
+def hello_asks(args) -> dict:
+    """The hello fields of our options: `face`, the name set our frames' face is in (revision 7; binary frames carry
+    it only once asked) or "none"; `speaker`, the speaker our sessions play (revision 9), or null for none."""
+    asks = {"face": args.face} if args.face else {}
+    if args.speaker is not None:
+        asks["speaker"] = None if args.speaker == "" else args.speaker
+    return asks
 
 
 async def send_wav(ws, audio: np.ndarray, rate: int, pace: bool, binary: bool, flow: AudioFlow, start: int = 0,
-                   hello: bool = True, face: str | None = None) -> None:
+                   hello: bool = True, asks: dict | None = None) -> None:
     """Send audio[start:] (paced like a talker unless not pace), then audio_end."""
     if hello:
-        await ws.send(client_hello(binary, wav_format(audio, rate), face))
+        await ws.send(client_hello(binary, wav_format(audio, rate), asks))
     step = max(1, int(rate * (CHUNK_S if pace else FAST_CHUNK_S)))
     for i in range(start, len(audio), step):
         await flow.ready()  # paused by slow_down, or too far ahead of the frames we got back
@@ -340,10 +347,10 @@ def wav_format(audio: np.ndarray, rate: int) -> dict:
     return {"rate": rate, "format": "float32", "channels": audio.shape[1]}
 
 
-async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate: int, face: str | None = None) -> int:
+async def resume_session(ws, goaway: dict, binary: bool, audio: np.ndarray, rate: int, asks: dict | None = None) -> int:
     """After a `goaway`: on a new connection, hello and resume_session with its token; returns the audio sample
     to send from (the server's `session_resumed`). Raises ResumeFailed when the server cannot resume it."""
-    await ws.send(client_hello(binary, wav_format(audio, rate), face))
+    await ws.send(client_hello(binary, wav_format(audio, rate), asks))
     await ws.send(json.dumps({"type": "resume_session", "token": goaway["resume_token"]}))
     async for message in ws:
         msg = json.loads(message) if isinstance(message, str) else {}
@@ -415,7 +422,7 @@ class MicHold:
         return self.dropped_samples / self.rate
 
 
-async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow, face: str | None = None) -> MicHold:
+async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow, asks: dict | None = None) -> MicHold:
     import sounddevice as sd
 
     loop = asyncio.get_running_loop()
@@ -432,7 +439,7 @@ async def send_mic(ws, rate: int, device, binary: bool, flow: AudioFlow, face: s
             flow.changed.set()
         loop.call_soon_threadsafe(put)
 
-    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}, face))
+    await ws.send(client_hello(binary, {"rate": rate, "format": "float32", "channels": 1}, asks))
     print(f"microphone: {rate} Hz; Ctrl-C to stop", file=sys.stderr)
     with sd.InputStream(samplerate=rate, channels=1, dtype="float32", blocksize=int(rate * CHUNK_S),
                         device=device, callback=on_audio):
@@ -546,7 +553,7 @@ async def run(args) -> int:
                 resumes += 1
                 ws = await reconnect(urls, args.token, resumes, max(0.5, deadline - loop.time()))
                 try:
-                    start = base + await resume_session(ws, goaway, args.binary, *wav, face=args.face)
+                    start = base + await resume_session(ws, goaway, args.binary, *wav, asks=hello_asks(args))
                     print(f"resumed from sample {start} (frame {flow.frames})", file=sys.stderr)
                     flow.on_resumed(start / wav[1], base / wav[1] + goaway.get("frames", 0) / printer.fps)
                     break
@@ -580,17 +587,18 @@ async def _connection(ws, args, printer, flow, wav, mic, start: int = 0, hello: 
     or the `goaway` message when the server hands our session over (only with --wav, which can re-send)."""
     sender = None
     if args.wav:
-        sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow, start, hello, args.face))
+        sender = asyncio.create_task(send_wav(ws, *wav, not args.fast, args.binary, flow, start, hello,
+                                                hello_asks(args)))
     elif args.mic:
-        sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow, args.face))
+        sender = asyncio.create_task(send_mic(ws, mic[1], mic[0], args.binary, flow, hello_asks(args)))
         loop = asyncio.get_running_loop()
 
         def stop_talking():  # first Ctrl-C: (held audio and) audio_end, wait for the last frames; second: quit
             loop.remove_signal_handler(signal.SIGINT)
             sender.cancel()
         loop.add_signal_handler(signal.SIGINT, stop_talking)
-    elif args.binary or args.face:
-        await ws.send(client_hello(args.binary, face=args.face))
+    elif args.binary or hello_asks(args):
+        await ws.send(client_hello(args.binary, asks=hello_asks(args)))
     goaway = None
 
     async def receive():
@@ -658,6 +666,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--face", choices=("vrm0", "vrm1", "arkit", "oculus", "none"),
                    help="ask for the face in these blendshape names (revision 7; binary frames carry it only when "
                    "asked), or none for no face (default: the server's set, JSON frames only)")
+    p.add_argument("--speaker", metavar="NAME", help="our sessions play this speaker's style, of a server whose "
+                   "model has several (revision 9: its hello lists them); \"\" for none in particular (default: "
+                   "the server's)")
     p.add_argument("--face-csv", metavar="OUT", help="write the face of the frames received as a CSV file: time, then "
                    "one column per name (asks for --face, vrm0 when not given)")
     p.add_argument("--quiet", action="store_true", help="print only hello, errors and the end")
