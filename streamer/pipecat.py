@@ -189,8 +189,9 @@ class GestureProcessor(FrameProcessor):
     web viewer plays it in sync; audio an interruption cut is never given).
     on_release(Released): every frame sent, for measurements. face: how the face is made (each utterance's seeded
     like its body), None for frames without one. speaker: the speaker whose style the avatar plays, of a model
-    trained with --speaker-condition (None: none in particular; default: the model's own). scheduler: where inference runs (a
-    `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its deprecated name.
+    trained with --speaker-condition (None: none in particular; default: the model's own). scheduler: where
+    inference runs (a `streamer.scheduling` scheduler or Executor; None: a shared pool); `executor` is its
+    deprecated name.
     """
 
     def __init__(self, sinks: list[Sink], *, bundle=None, checkpoint: str | None = None, steps: int | None = None,

@@ -226,7 +226,8 @@ def test_a_voice_agents_gesture_processor_plays_the_speaker_it_is_given(speakers
 
 def test_the_python_client_asks_for_a_speaker_and_gets_generate_s_motion_of_that_speaker(speakers_bundle, tmp_path):
     """clients/python/client.py --speaker bob against `dimgestor serve`: its BVH is `generate --speaker bob`'s (every
-    joint within 0.01 cm), not the one of no speaker in particular; a name the model does not know is answered with the names it knows."""
+    joint within 0.01 cm), not the one of no speaker in particular; a name the model does not know is answered with
+    the names it knows."""
     import sys
 
     from dimgestor.bvh import forward_kinematics, read_bvh
