@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
 
 from dimgestor.streaming.batch import push_many
 from dimgestor.streaming.checkpoint import load_checkpoint
@@ -166,3 +167,20 @@ def test_speech_that_cannot_be_read_is_refused_by_name(teacher, data, tmp_path):
         with pytest.raises(error, match=words):
             distill(DistillConfig(out=str(tmp_path / f"o{k}"), audio=(str(path),), **common), progress=False)
         assert not (tmp_path / f"o{k}").exists()
+
+
+def test_the_teachers_guidance_may_be_set_and_is_recorded(teacher, data, tmp_path):
+    """--guidance S: the teacher's chain runs at scale S instead of its config's (1.5 here): the targets, so the
+    held-out distillation loss before the first step, differ."""
+    first = {}
+    for scale in (None, 2.5):
+        run = tmp_path / f"run_{scale}"
+        last = distill(DistillConfig(checkpoint=str(teacher), out=str(run), steps=2, data=str(data), guidance=scale,
+                                     max_steps=1, batch_size=2, valid_every=1, ckpt_every=1, aug_copies=0,
+                                     cache_dir=str(tmp_path / "cache")), progress=False)
+        first[scale] = json.loads((run / "log.jsonl").read_text().splitlines()[0])["valid_loss"]
+        b = load_checkpoint(last)
+        assert b.info["teacher"] == {"sample_steps": 4, "guidance": scale or 1.5} and b.config.guidance == 1.0
+    assert abs(first[2.5] - first[None]) > 1e-3 * first[None], first
+    with pytest.raises(ValidationError, match="greater than 0"):
+        DistillConfig(out="x", guidance=0)

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..audio import load_wav
 from ..config import exact_div
-from ..model.diffusion import Diffusion, ddim_pairs, guide
+from ..model.diffusion import Diffusion, check_guidance, ddim_pairs, guide
 from ..model.network import DiMGestor
 from ..streaming.checkpoint import load_checkpoint, save_checkpoint
 from .augment import AugmentConfig, augment
@@ -50,6 +50,7 @@ class DistillConfig(BaseModel):
     init: str | None = None  # a student to go on from (an earlier run's checkpoint); None: the teacher's weights
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
     steps: int = Field(2, ge=1, le=2)  # the student's sampler steps (network passes a window)
+    guidance: float | None = Field(None, gt=0)  # the teacher's classifier-free guidance scale (None: its config's)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
     audio: tuple[str, ...] = ()  # WAV files or folders of speech without motion, labelled by the teacher too
     audio_share: float = Field(0.5, ge=0, le=1)  # of each batch's windows, the share drawn from `audio`
@@ -207,7 +208,7 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     if not folders or not all(Path(f).is_dir() for f in folders):
         raise ValueError(f"--data: the BVH+WAV folder whose audio the teacher labels (the checkpoint names "
                          f"{bundle.info.get('data')!r}, which is not a folder here)")
-    guidance = tc.guidance
+    guidance = check_guidance(tc.guidance if cfg.guidance is None else cfg.guidance)
     diffusion = Diffusion(tc)
     t_pairs = diffusion.sampling_pairs("ddim", tc.sample_steps)
     s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
@@ -333,6 +334,8 @@ def register(subparsers) -> None:
                         "(default: the embedded default model)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder for the student's checkpoints and log.jsonl")
     p.add_argument("--steps", type=int, choices=[1, 2], default=d.steps, help="the student's network passes a window")
+    p.add_argument("--guidance", type=float, default=None, metavar="S",
+                   help="the teacher's classifier-free guidance scale (default: its config's)")
     p.add_argument("--init", default=None, metavar="DIR",
                    help="go on from this student (an earlier run's checkpoint) instead of the teacher's weights")
     p.add_argument("--data", default=None, metavar="DIR",
@@ -370,7 +373,8 @@ def _run(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        cfg = DistillConfig(checkpoint=args.checkpoint, init=args.init, out=args.out, steps=args.steps, data=args.data,
+        cfg = DistillConfig(checkpoint=args.checkpoint, init=args.init, out=args.out, steps=args.steps,
+                            guidance=args.guidance, data=args.data,
                             audio=tuple(args.audio), audio_share=args.audio_share,
                             max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
                             vel_weight=args.vel_weight, acc_weight=args.acc_weight, spread_weight=args.spread_weight,
