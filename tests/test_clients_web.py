@@ -130,6 +130,38 @@ def test_web_talk_sends_the_fake_microphone_and_gestures_come_back(tmp_path, che
             browser.close()
 
 
+def test_web_talk_asks_for_the_speaker_its_page_names(tmp_path):
+    """?speaker=NAME (revision 9): the page's hello asks for that speaker; one the server's model does not know is
+    refused with the names it knows, said on the page; a known one talks and gestures without an error."""
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    checkpoint = make_tiny_checkpoint(tmp_path, jitter=0.2, speakers=("alice", "bob"))
+    with live_server(tmp_path, "ws", checkpoint, http=True, extra=("--face", "none")) as server:
+        for speaker in ("carol", "bob"):
+            (tmp_path / speaker).mkdir()
+            browser = Browser(tmp_path / speaker, server.http_url + f"?speaker={speaker}", (
+                "--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream",
+                f"--use-file-for-fake-audio-capture={SPEECH_WAV}"))
+            try:
+                browser.wait_for("window.dimgestor && window.dimgestor.hello && "
+                                 "!document.getElementById('talk').disabled", 60, "hello and an enabled Talk button")
+                assert browser.eval("window.dimgestor.hello.speakers") == {"names": ["alice", "bob"], "default": None,
+                                                                           "choice": True}
+                if speaker == "carol":
+                    browser.wait_for("window.dimgestor.errors.length > 0", 30, "the refusal of an unknown speaker")
+                    [err] = browser.eval("window.dimgestor.errors")
+                    assert err["code"] == "bad_message" and "this server's model knows alice, bob" in err["message"]
+                    assert "knows alice, bob" in browser.eval("document.getElementById('message').textContent")
+                    continue
+                browser.eval("document.getElementById('talk').click()", user_gesture=True)
+                browser.wait_for("window.dimgestor.framesReceived >= 10", 90, "gestures from our own audio")
+                assert moving_joints(browser) > 1e-3, "the avatar did not gesture while we talked"
+                assert_figure_drawn(browser.screenshot(tmp_path / "web_talk_speaker.png"))
+                assert browser.eval("window.dimgestor.errors.length") == 0, browser.eval("window.dimgestor.errors")
+            finally:
+                browser.close()
+
+
 def test_web_mic_flow_control_holds_bounded_and_sends_in_order(tmp_path):
     """clients/web/audio-flow.js under node: chunks go out at once until `slow_down`, are held (in order) until
     `resume`, and beyond the bound (here 1 s) the oldest are dropped and counted, never the newest."""

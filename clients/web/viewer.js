@@ -23,6 +23,9 @@ import { SourceAudio } from './source-audio.js';
 const params = new URLSearchParams(location.search);
 const ENCODING = params.get('encoding') === 'binary' ? 'binary' : 'json';
 const AUDIO_FORMAT = params.get('audio') === 'float32' ? 'float32' : 'pcm16';
+// A speaker of a model trained on several (revision 9, `hello.speakers`): ?speaker=NAME; an empty ?speaker= asks for
+// none in particular; absent, the server's default.
+const SPEAKER = params.has('speaker') ? (params.get('speaker') || null) : undefined;
 const UNIT_TO_M = { m: 1, cm: 0.01, mm: 0.001 };
 const LIVE_SLACK_S = 0.1;    // talking: spare buffer above that kept for 10 s is given back (av-clock.js setSlack)
 const LIVE_MARGIN_S = 0.05;  // talking: the playout buffer above the lateness seen (benchmarks/latency.py)
@@ -613,6 +616,7 @@ function connect(audio = null, resume = null) {
   // The face (revision 7) in FACE_SET's names, in JSON and binary frames alike; older servers ignore the field.
   const hello = { type: 'hello', protocol: 1, encoding: ENCODING, source_audio: !audio, timing: true, face: FACE_SET };
   if (audio) hello.audio = audio;
+  if (SPEAKER !== undefined) hello.speaker = SPEAKER;
   socketWorker().postMessage({ type: 'connect', id: connId, url: api.url, hello, resume: resume ? resume.token : null });
   setState('connecting');
 }

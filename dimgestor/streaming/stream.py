@@ -104,7 +104,7 @@ class StreamState:
 class GestureStream:
     """Audio chunks in, final motion frames (normalized features) out; no I/O, no threads.
 
-    The stream's settings (model, schedule, seed, guidance, output filter) and its `state`. `step(state,
+    The stream's settings (model, schedule, seed, guidance, output filter, speaker) and its `state`. `step(state,
     samples) -> (frames, state)` is the stream as a function; `push` and `finish` step the state it holds.
     """
 
