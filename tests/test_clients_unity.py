@@ -394,7 +394,8 @@ def test_unity_client_sets_the_face_on_blendshapes_through_the_name_map(tmp_path
               {"jawOpen": "jawOpen"}]  # (the second mesh's mouthFunnel is not driven: the map sends it to Mouth_O)
     times = [0.0, 0.0125, 0.07, 0.1, 0.2375, 0.26]
     hellos, out = run_face_check(tmp_path, tmp_path / "msgs", {"meshes": meshes, "map": name_map, "times": times})
-    assert [h.get("face") for h in hellos] == ["arkit", "vrm0", 'a"b\\', None]
+    assert [h.get("face") for h in hellos] == ["arkit", "vrm0", 'a"b\\', None, None]
+    assert [h.get("speaker") for h in hellos] == [None, None, None, None, 'sc"ott']  # (revision 9)
     assert hellos[1]["audio"] == {"rate": 48000, "format": "float32", "channels": 2} and hellos[0]["encoding"] == "binary"
     assert [o["t"] for o in out] == times
     unmatched = sorted(set(expected[0]["face"]) - {n for d in drives for n in d.values()})

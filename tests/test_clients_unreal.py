@@ -135,8 +135,8 @@ def test_unreal_component_holds_its_audio_between_slow_down_and_resume(tmp_path,
     out = run_component_check(tmp_path, "component_flow_check", component_objects)
     assert out["ok"] and out["paused"] and not out["paused_after"] and out["last_error"] == "", out
     assert out["sent_while_paused"] == 2, out  # the audio hello and chunk 1, before the slow_down
-    assert out["log"] == ['text:{"type":"hello","encoding":"binary","face":"arkit"}', "binary:1:1600", "binary:5:1600",
-                          "binary:6:1600", 'text:{"type":"audio_end"}'], out["log"]
+    assert out["log"] == ['text:{"type":"hello","encoding":"binary","face":"arkit","speaker":"scott"}',
+                          "binary:1:1600", "binary:5:1600", "binary:6:1600", 'text:{"type":"audio_end"}'], out["log"]
     assert out["dropped_s"] == pytest.approx(1.2) and "slow down" in out["notice"], out
 
 

@@ -36,6 +36,8 @@ namespace Dimgestor
         [Header("Face")]
         [Tooltip("Face name set to ask for: vrm0 (VRM 0.x presets A I U E O Blink...), vrm1, arkit (52 ARKit names), oculus (visemes); none: no face")]
         public string face = "vrm0";
+        [Tooltip("A speaker of a model trained on several (the server's hello lists them): our sessions play that speaker's style; empty: the server's default")]
+        public string speaker = "";
         [Tooltip("Meshes whose blendshapes the face drives (face name -> blendshape of the same name, or through Face Name Map)")]
         public SkinnedMeshRenderer[] faceMeshes = new SkinnedMeshRenderer[0];
         [Tooltip("Face name -> your blendshape's name, where they differ (e.g. A -> Fcl_MTH_A)")]
@@ -139,7 +141,7 @@ namespace Dimgestor
                         {
                             connectionState = "resuming";
                             audioFormatKey = audioRate * 16 + audioChannels;
-                            await SendText(Protocol.ClientHello(binaryFrames, audioRate, "float32", audioChannels, face), ct).ConfigureAwait(false);
+                            await SendText(Protocol.ClientHello(binaryFrames, audioRate, "float32", audioChannels, face, speaker), ct).ConfigureAwait(false);
                             await SendText(Protocol.ResumeSession(resumeToken), ct).ConfigureAwait(false);
                         }
                         else
@@ -149,7 +151,7 @@ namespace Dimgestor
                             audioPaused = false;
                             lock (sent) { sent.Clear(); sentSamples = 0; }
                             connectionState = "open";
-                            await SendText(Protocol.ClientHello(binaryFrames, face: face), ct).ConfigureAwait(false);
+                            await SendText(Protocol.ClientHello(binaryFrames, face: face, speaker: speaker), ct).ConfigureAwait(false);
                         }
                         await ReceiveLoop(ws, ct).ConfigureAwait(false);
                     }
@@ -411,7 +413,7 @@ namespace Dimgestor
                 if (!moving && sampleRate * 16 + channels != audioFormatKey)  // declare the format before the first chunk
                 {
                     flow.DropHeld();  // (held audio of another format cannot follow the new hello)
-                    await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels, face)),
+                    await Send(ws, Encoding.UTF8.GetBytes(Protocol.ClientHello(binaryFrames, sampleRate, "float32", channels, face, speaker)),
                                WebSocketMessageType.Text, ct).ConfigureAwait(false);
                     audioFormatKey = sampleRate * 16 + channels;
                     audioRate = sampleRate;

@@ -375,14 +375,17 @@ namespace Dimgestor
         static double ReadF32(byte[] d, int p) { return BitConverter.ToSingle(LE(d, p, 4), 0); }
         static double ReadF64(byte[] d, int p) { return BitConverter.ToDouble(LE(d, p, 8), 0); }
 
-        /// <summary>The client hello: frame encoding, when audio will be sent its format, and (revision 7) the face's
-        /// name set to receive ("vrm0", "vrm1", "arkit", "oculus"; "none": no face; null or "": the server's default).</summary>
+        /// <summary>The client hello: frame encoding, when audio will be sent its format, (revision 7) the face's
+        /// name set to receive ("vrm0", "vrm1", "arkit", "oculus"; "none": no face; null or "": the server's default)
+        /// and (revision 9) the speaker whose style our sessions play (one of the hello's speakers; null or "": the
+        /// server's default).</summary>
         public static string ClientHello(bool binaryFrames, int audioRate = 0, string audioFormat = "float32", int channels = 1,
-                                         string face = null)
+                                         string face = null, string speaker = null)
         {
             var sb = new StringBuilder("{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"");
             sb.Append(binaryFrames ? "binary" : "json").Append('"');
             if (!string.IsNullOrEmpty(face)) sb.Append(",\"face\":").Append(Json.Quote(face));
+            if (!string.IsNullOrEmpty(speaker)) sb.Append(",\"speaker\":").Append(Json.Quote(speaker));
             if (audioRate > 0)
                 sb.Append(",\"audio\":{\"rate\":").Append(audioRate.ToString(CultureInfo.InvariantCulture))
                   .Append(",\"format\":\"").Append(audioFormat).Append("\",\"channels\":")

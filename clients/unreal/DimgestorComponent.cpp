@@ -509,7 +509,7 @@ void UDimgestorComponent::Apply(const dimgestor::Frame& Frame)
 }
 
 // Our hello: the frames' encoding, the face's name set (revision 7: the server then lays the face out in binary
-// frames and says so with a `channels` message) and, once we send audio, its format.
+// frames and says so with a `channels` message), the speaker (revision 9) and, once we send audio, its format.
 void UDimgestorComponent::SendHello(bool bWithAudio)
 {
 	TSharedRef<FJsonObject> ClientHello = MakeShared<FJsonObject>();
@@ -517,6 +517,7 @@ void UDimgestorComponent::SendHello(bool bWithAudio)
 	ClientHello->SetNumberField(TEXT("protocol"), dimgestor::kProtocolVersion);
 	ClientHello->SetStringField(TEXT("encoding"), bBinaryFrames ? TEXT("binary") : TEXT("json"));
 	if (!FaceNames.IsEmpty()) ClientHello->SetStringField(TEXT("face"), FaceNames);
+	if (!Speaker.IsEmpty()) ClientHello->SetStringField(TEXT("speaker"), Speaker);  // (revision 9)
 	if (bWithAudio)
 	{
 		TSharedRef<FJsonObject> Audio = MakeShared<FJsonObject>();

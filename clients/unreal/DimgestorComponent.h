@@ -62,6 +62,11 @@ public:
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
 	FString FaceNames = TEXT("arkit");
 
+	/** A speaker of a model trained on several (the server's hello lists them in `speakers`): our sessions play
+	 *  that speaker's style; empty: the server's default. */
+	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor")
+	FString Speaker;
+
 	/** Skeletal mesh whose morph targets the face sets (SetMorphTarget by name); empty: curves only. */
 	UPROPERTY(EditAnywhere, BlueprintReadWrite, Category = "Dimgestor|Face")
 	TObjectPtr<USkeletalMeshComponent> FaceMesh = nullptr;

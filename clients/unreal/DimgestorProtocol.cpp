@@ -321,19 +321,23 @@ bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string
   return true;
 }
 
+static std::string QuotedJson(const std::string& text) {
+  std::string s = "\"";
+  for (char c : text) {
+    if (c == '"' || c == '\\') s += '\\';
+    if (static_cast<unsigned char>(c) < 0x20) { char b[8]; std::snprintf(b, sizeof b, "\\u%04x", c); s += b; continue; }
+    s += c;
+  }
+  return s + '"';
+}
+
 std::string ClientHello(bool binary_frames, int audio_rate, const std::string& audio_format, int channels,
-                        const std::string& face) {
+                        const std::string& face, const std::string& speaker) {
   std::string s = "{\"type\":\"hello\",\"protocol\":1,\"encoding\":\"";
   s += binary_frames ? "binary\"" : "json\"";
-  if (!face.empty()) {  // escaped: the server answers an unknown set with the list of known ones
-    s += ",\"face\":\"";
-    for (char c : face) {
-      if (c == '"' || c == '\\') s += '\\';
-      if (static_cast<unsigned char>(c) < 0x20) { char b[8]; std::snprintf(b, sizeof b, "\\u%04x", c); s += b; continue; }
-      s += c;
-    }
-    s += '"';
-  }
+  // (escaped: the server answers an unknown set or speaker with the list of known ones)
+  if (!face.empty()) s += ",\"face\":" + QuotedJson(face);
+  if (!speaker.empty()) s += ",\"speaker\":" + QuotedJson(speaker);
   if (audio_rate > 0)
     s += ",\"audio\":{\"rate\":" + std::to_string(audio_rate) + ",\"format\":\"" + audio_format +
          "\",\"channels\":" + std::to_string(channels) + "}";

@@ -121,10 +121,11 @@ bool ParseMessage(const std::string& text, Message& out, std::string& error);
 // Channels message, decode with a hello whose `channels` are that message's.
 bool DecodeBinaryFrame(const uint8_t* data, size_t size, Frame& out, std::string& error, const Hello* hello = nullptr);
 
-// The client's hello; with audio_rate > 0 it also declares the audio format that will be sent, and with a `face`
-// (revision 7: "vrm0", "vrm1", "arkit", "oculus"; "none": no face) the face's name set to receive.
+// The client's hello; with audio_rate > 0 it also declares the audio format that will be sent, with a `face`
+// (revision 7: "vrm0", "vrm1", "arkit", "oculus"; "none": no face) the face's name set to receive, and with a
+// `speaker` (revision 9: one of the server's hello.speakers names) the speaker whose style our sessions play.
 std::string ClientHello(bool binary_frames, int audio_rate = 0, const std::string& audio_format = "float32",
-                        int channels = 1, const std::string& face = "");
+                        int channels = 1, const std::string& face = "", const std::string& speaker = "");
 
 // resume_session with a goaway's token (URL-safe base64; anything else is refused: empty result).
 std::string ResumeSession(const std::string& token);

@@ -52,7 +52,8 @@ static class FaceCheck
 
         // What the client asks for: the face set in its hello, with and without audio (a name is escaped, not trusted).
         Console.WriteLine("{\"hellos\":[" + Protocol.ClientHello(true, face: "arkit") + "," + Protocol.ClientHello(false, 48000, "float32", 2, "vrm0")
-                          + "," + Protocol.ClientHello(true, face: "a\"b\\") + "," + Protocol.ClientHello(true) + "]}");
+                          + "," + Protocol.ClientHello(true, face: "a\"b\\") + "," + Protocol.ClientHello(true)
+                          + "," + Protocol.ClientHello(false, speaker: "sc\"ott") + "]}");
 
         var playout = new FramePlayout(0.3);
         foreach (var f in frames) playout.Push(f, f.Pts);  // each on time: shown DelayS after its pts

@@ -17,6 +17,7 @@ int main() {
   UDimgestorComponent component;
   component.TargetMesh = &mesh;
   component.MaxHeldAudioS = 1.f;
+  component.Speaker = TEXT("scott");  // (revision 9: in its hello)
   component.BeginPlay();
   TSharedPtr<IWebSocket> socket = FWebSocketsModule::Get().StubLast;
   socket->StubConnected = true;
