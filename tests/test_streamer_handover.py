@@ -280,6 +280,33 @@ def test_a_session_resumes_on_another_worker_after_sigterm_and_goes_on_exactly(t
     assert np.abs(root - np.array([f["root"] for f in reference])).max() < 1e-2
 
 
+def test_a_session_of_a_chosen_speaker_resumes_on_another_worker_as_that_speaker(tmp_path, redis_url):
+    """Revision 9 across a hand-over: a client asking for speaker bob is moved by SIGTERM to another worker, which
+    resumes it as bob (the client's hello there asks for bob again): its frames are a whole session's of bob, not
+    those of no speaker in particular."""
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    checkpoint = make_tiny_checkpoint(tmp_path, jitter=0.2, speakers=("alice", "bob"))
+    wav = tmp_path / "speech.wav"
+    _wav(wav, 6.0)
+    store = ("--state-store", redis_url, "--window-ms", "100", "--face", "none")
+    with live_server(tmp_path, "ws", checkpoint, extra=store) as a, live_server(tmp_path, "ws", checkpoint,
+                                                                              extra=store) as b:
+        moved = tmp_path / "moved"
+        err = _interrupted_client(a, b, wav, moved, signal.SIGTERM, 30, "--speaker", "bob")
+        assert a.proc.wait(20) == 0, a.log_tail()
+        assert "resumed from sample" in err, err
+        for name, speaker in (("bob", ("--speaker", "bob")), ("none", ())):
+            run_client("--url", b.ws_url, "--wav", str(wav), "--save", str(tmp_path / name), "--quiet", "--fast",
+                       *speaker)
+    msgs, frames = _frames(moved)
+    assert len([m for m in msgs if m["type"] == "goaway"]) == 1 and not [m for m in msgs if m["type"] == "error"]
+    assert [f["index"] for f in frames] == list(range(len(frames))) and len(frames) == 6 * 20
+    rot = np.array([f["rotations"] for f in frames])
+    assert np.abs(rot - np.array([f["rotations"] for f in _frames(tmp_path / "bob")[1]])).max() < 1e-3
+    assert np.abs(rot - np.array([f["rotations"] for f in _frames(tmp_path / "none")[1]])).max() > 1e-2
+
+
 def test_an_unknown_token_gets_resume_failed_and_the_connection_goes_on(tmp_path, checkpoint):
     import asyncio
     import json
