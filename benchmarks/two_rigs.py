@@ -18,6 +18,9 @@ nearer its own data than the other's. The motion is also written as each rig's f
 --out X.bvh`, `--speaker mirrored --out X.npz`), rendered beside each rig's own data, and the filmstrips saved as
 results/two_rigs_SECOND_frames.png to look at. Writes results/two_rigs_SECOND.json and a plot beside it.
 
+`--speaker-guidance W ...` also plays each speaker with guidance on the speaker (`speaker_guided`: offline, three
+network rows a step), its output pushed W times as far from the output with no speaker.
+
     .venv/bin/python benchmarks/two_rigs.py --plot-only benchmarks/results/two_rigs_mirrored.json
 """
 
@@ -99,7 +102,42 @@ def wrists(features: np.ndarray, bundle) -> tuple[float, float]:
     return float(speed.mean()), float(speed[1] / speed[0])
 
 
-def measure(bundle, data: Path, speakers: tuple[str, str], audio: np.ndarray, seeds: int) -> dict:
+def speaker_guided(bundle, audio: np.ndarray, seed: int, speaker: str, weight: float) -> np.ndarray:
+    """`bundle.generate` with guidance on the speaker too (classifier-free guidance, Ho & Salimans 2022, with the
+    speaker as the condition): each step's output for the speaker is pushed `weight` times as far from the output
+    for the same speech with no speaker, then the audio's own guidance applies as the model's config says. Offline
+    only (three network rows a step); `weight` 1 is `bundle.generate` itself."""
+    import torch
+
+    from dimgestor.model.diffusion import Diffusion, guide, motion_noise
+    from dimgestor.streaming.stream import make_smoother
+
+    model, c = bundle.model, bundle.model.config
+    T = len(audio) * c.fps // c.sample_rate
+    pad = max(model.samples_needed(T) - len(audio), 0)
+    diffusion = Diffusion(c)
+    with torch.inference_mode():
+        wave = torch.from_numpy(np.concatenate([audio, np.zeros(pad, np.float32)]))[None]
+        feats, _ = model.frontend(wave, model.frontend.init_state(1, wave.device))
+        cond, _ = model.condition(feats.expand(2, -1, -1), speaker=torch.tensor([model.speaker_number(speaker), -1]))
+        cond = cond[:, :T]  # (2, T, H): the speaker's, no speaker's
+        if c.guidance != 1.0:
+            cond = torch.cat([cond, torch.zeros_like(cond[:1])])  # and the null condition's
+        x = motion_noise(seed, 0, T, 0, c.motion_dim, c.noise_taps)[None]
+        for t, t_prev in diffusion.sampling_pairs("ddim", c.sample_steps):
+            out, _ = model(x.expand(len(cond), -1, -1), t, cond)
+            pushed = guide(out[:1], out[1:2], weight)
+            if c.guidance != 1.0:
+                pushed = guide(pushed, out[2:], c.guidance)
+            eps, x0 = diffusion.split(pushed, x, t)
+            x = diffusion.sample_step("ddim", x, eps, x0, t, t_prev)
+    frames = x[0].float().numpy()
+    smoother = make_smoother(c, "config")
+    return bundle.denormalize(smoother(frames) if smoother is not None else frames)
+
+
+def measure(bundle, data: Path, speakers: tuple[str, str], audio: np.ndarray, seeds: int,
+            weights: tuple[float, ...] = ()) -> dict:
     from dimgestor.evaluation.metrics import frechet_distance, gaussian_stats
     from dimgestor.training.dataset import GestureDataset
 
@@ -123,16 +161,19 @@ def measure(bundle, data: Path, speakers: tuple[str, str], audio: np.ndarray, se
     out = {"data": {s: {"seconds": round(len(real[s]) / bundle.feature_spec.fps, 1),
                         **dict(zip(("wrist_speed", "right_over_left"), np.round(wrists(real[s], bundle), 3)))}
                     for s in speakers}, "played": {}}
-    for played in (None, *speakers):
+    runs = [(None, 1.0), *((s, 1.0) for s in speakers), *((s, w) for w in weights for s in speakers)]
+    for played, weight in runs:
         bundle.model.use_speaker(played)
-        gens = [bundle.generate(audio, seed=seed) for seed in range(seeds)]
+        gens = [bundle.generate(audio, seed=seed) if weight == 1 else speaker_guided(bundle, audio, seed, played, weight)
+                for seed in range(seeds)]
         both = np.concatenate(gens)
         mu, sigma = gaussian_stats(project(both))
         speed, handed = np.mean([wrists(g, bundle) for g in gens], axis=0)
-        out["played"][played or "none"] = {
+        label = (played or "none") + ("" if weight == 1 else f" x{weight:g}")
+        out["played"][label] = {
             "distance_to": {s: round(float(frechet_distance(mu, sigma, *stats[s])), 2) for s in speakers},
             "wrist_speed": round(float(speed), 3), "right_over_left": round(float(handed), 3)}
-        print(played, out["played"][played or "none"], flush=True)
+        print(label, out["played"][label], flush=True)
     bundle.model.use_speaker(None)
     return out
 
@@ -179,7 +220,7 @@ def plot(result: dict, path: Path) -> None:
         values = [result["played"][p]["distance_to"][s] for p in played]
         bars = axes[0].bar(np.arange(len(played)) + (k - 0.5) * width, values, width, label=f"to {s}'s data")
         axes[0].bar_label(bars, labels=[f"{v:.0f}" for v in values], fontsize=7)
-    axes[0].set_xticks(range(len(played)), [f"plays {p}" for p in played])
+    axes[0].set_xticks(range(len(played)), [f"plays {p}" for p in played], rotation=30, ha="right", fontsize=8)
     axes[0].set_title(f"Frechet distance of pose features ({PCS} PCs; lower = nearer)", fontsize=9)
     axes[0].legend(fontsize=8)
     labels = [f"plays {p}" for p in played] + [f"{s}'s data" for s in speakers]
@@ -207,6 +248,9 @@ def main() -> int:
     ap.add_argument("--speech-s", type=float, default=30.0, help="unseen speech each speaker plays (default 30)")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--speaker-guidance", type=float, nargs="*", default=[], metavar="W",
+                    help="also play each speaker with guidance on the speaker at these weights (> 1; offline, three "
+                         "network rows a step): its output pushed W times as far from no speaker's")
     ap.add_argument("--keep", type=Path, default=None, metavar="DIR", help="work here and keep it (default: a temp folder)")
     ap.add_argument("--out", type=Path, default=None, help="default: results/two_rigs_SECOND.json")
     ap.add_argument("--plot-only", type=Path, metavar="RESULTS.json", help="redraw RESULTS.png; measures nothing")
@@ -248,9 +292,10 @@ def main() -> int:
               "setup": {"steps": args.steps, "synth_minutes": args.synth_minutes, "speech_s": args.speech_s,
                         "seeds": args.seeds, "preset": "realtime", "batch": 8, "window_s": 5, "pcs": PCS,
                         "second": args.second, "speech": SPEECH.name, "train_s": round(train_s, 1),
+                        "speaker_guidance": list(args.speaker_guidance),
                         "training_skeleton": "ZEGGS (first clip)",
                         "speakers": list(bundle.config.speakers)},
-              **measure(bundle, data, speakers, audio, args.seeds)}
+              **measure(bundle, data, speakers, audio, args.seeds, tuple(args.speaker_guidance))}
     result["strips"] = render_strips(run, data, speakers, wav, folder, out.with_name(out.stem + "_frames.png"))
     write_json(out, result)
     plot(result, out.with_suffix(".png"))
