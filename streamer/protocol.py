@@ -106,8 +106,8 @@ def speakers_hello(names, default: str | None, fixed: bool) -> dict:
     """`hello.speakers` (revision 9) of a server whose model has a speaker condition: the speakers a client may
     ask (`names`), the one its sessions play unless it asks (`default`, None: no speaker in particular); `fixed`:
     the server plays `default` only (its ONNX Runtime graph holds that speaker's vector)."""
-    return {"names": [default] if fixed and default is not None else list(names), "default": default,
-            "choice": not fixed}
+    offered = ([] if default is None else [default]) if fixed else list(names)
+    return {"names": offered, "default": default, "choice": not fixed}
 
 
 def face_hello(name_set: str) -> dict:

@@ -130,6 +130,8 @@ def test_a_server_on_onnx_runtime_plays_its_one_speaker_and_says_so():
         assert "this server plays speaker 'alice' only (its ONNX Runtime backend" in err["message"]
     assert P.speakers_hello(NAMES, "alice", fixed=True) == {"names": ["alice"], "default": "alice", "choice": False}
     assert P.speakers_hello(NAMES, None, fixed=False) == {"names": ["alice", "bob"], "default": None, "choice": True}
+    # (an export of no speaker in particular offers no name)
+    assert P.speakers_hello(NAMES, None, fixed=True) == {"names": [], "default": None, "choice": False}
 
 
 # ---- through a real WebSocket server ----
