@@ -464,3 +464,26 @@ def test_two_rigs_benchmark_redraws_its_plot_from_its_results(tmp_path):
         assert out.with_suffix(".png").stat().st_size > 10_000
         assert set(r["data"]) == {"zeggs", second} and set(r["played"]) == {"none", "zeggs", second}
         assert all(finite(p["distance_to"][s]) for p in r["played"].values() for s in r["data"])
+
+
+def test_two_rigs_speaker_guidance_at_weight_one_is_generate_and_above_it_moves_away_from_no_speaker(tmp_path):
+    """two_rigs.py's `speaker_guided` (--speaker-guidance): W = 1 gives `generate`'s features for that speaker; W = 2
+    pushes them further from the features of no speaker in particular than W = 1 is."""
+    from dimgestor.streaming.checkpoint import load_checkpoint
+    from dimgestor.training.synthetic import synthetic_speech
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import two_rigs
+    finally:
+        sys.path.remove(str(BENCH))
+    bundle = load_checkpoint(make_tiny_checkpoint(tmp_path, jitter=0.2, speakers=("alice", "bob"), guidance=1.5))
+    audio = synthetic_speech(1.5, seed=3)
+    bundle.model.use_speaker("bob")
+    want = bundle.generate(audio, seed=2)
+    bundle.model.use_speaker(None)
+    plain = bundle.generate(audio, seed=2)
+    assert np.abs(two_rigs.speaker_guided(bundle, audio, 2, "bob", 1.0) - want).max() < 1e-4 * np.abs(want).max()
+    pushed = two_rigs.speaker_guided(bundle, audio, 2, "bob", 2.0)
+    assert np.abs(pushed - plain).mean() > 1.2 * np.abs(want - plain).mean()
