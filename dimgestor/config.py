@@ -89,6 +89,11 @@ class ModelConfig(BaseModel):
     # trained with condition dropout (`dimgestor train --cond-drop`) and costs a second batch row per stream
     guidance: float = Field(1.0, ge=0, allow_inf_nan=False)
 
+    # a distilled student (`dimgestor distill`): its sampled motion is rescaled per feature, x * out_gain +
+    # out_shift (buffers in its weights, measured by distill), to move as much as its teacher: a student learnt by
+    # the mean squared difference moves less than the teacher whose chain it replaces (benchmarks/README.md)
+    calibrated: bool = False
+
     # --- output smoothing (not in the paper; see dimgestor/smoothing.py) ---
     smooth_hz: float | None = None  # One Euro filter min cutoff on the output features; None = off
     smooth_beta: float = 0.0  # its speed coefficient (cutoff rises by beta per normalized unit/s)

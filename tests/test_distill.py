@@ -12,7 +12,7 @@ from dimgestor.streaming.batch import push_many
 from dimgestor.streaming.checkpoint import load_checkpoint
 from dimgestor.streaming.stream import GestureStream, generate_offline
 from dimgestor.audio import save_wav
-from dimgestor.training.distill import DistillConfig, SpeechBank, distill
+from dimgestor.training.distill import GAIN_RANGE, DistillConfig, SpeechBank, calibration, distill
 from dimgestor.training.synthetic import make_synthetic_pair, synthetic_speech
 from dimgestor.training.train import TrainConfig, train
 from helpers.stream import noise_audio, stream_in_pieces
@@ -58,6 +58,7 @@ def test_the_held_out_distillation_loss_falls_and_the_student_samples_in_its_pas
     assert stream.state.denoiser.batch == 1  # one row: no unconditional branch
     assert {k: v for k, v in b.config.model_dump().items() if k not in ("sample_steps", "guidance")} == \
         {k: v for k, v in t.config.model_dump().items() if k not in ("sample_steps", "guidance")}
+    assert "calibration" not in b.info and not hasattr(b.model, "out_gain")  # (--calibrate: not by default)
 
 
 def test_the_student_streams_exactly_and_its_batch_equals_each_stream_alone(student):
@@ -81,6 +82,47 @@ def test_the_student_streams_exactly_and_its_batch_equals_each_stream_alone(stud
     for i, s in enumerate(streams):
         got[i].append(s.finish())
         assert np.abs(np.concatenate(got[i]) - alone[i]).max() < 1e-5, i
+
+
+def test_the_calibration_gives_a_student_that_moves_less_its_teachers_spread_and_mean():
+    """Per feature: the ratio of the frame-to-frame changes' spreads (inside each window, not across two), the
+    teacher's mean after it; 1 where the teacher's feature stands still; within GAIN_RANGE."""
+    g = torch.Generator().manual_seed(0)
+    teacher = [torch.randn(3, 50, 4, generator=g).cumsum(1), torch.randn(2, 30, 4, generator=g).cumsum(1)]
+    for x in teacher:
+        x[..., 2] = 0.7  # a feature that does not move
+    student = [torch.stack([0.8 * x[..., 0] + 0.3, 0.5 * x[..., 1], x[..., 2] + 0.1, 0.01 * x[..., 3]], -1)
+               for x in teacher]
+    student[1] = student[1] + 5.0  # (a jump between windows is no change: only changes inside windows count)
+    gain, shift = calibration(teacher, student)
+    assert gain[:3].tolist() == pytest.approx([1.25, 2.0, 1.0], rel=1e-5) and gain[3] == GAIN_RANGE[1]
+    mean = lambda xs: torch.cat([x.flatten(0, 1) for x in xs]).mean(0)  # noqa: E731
+    fixed = [x * gain + shift for x in student]
+    assert mean(fixed)[:3].tolist() == pytest.approx(mean(teacher)[:3].tolist(), abs=1e-4)
+    assert all(torch.allclose(f[..., 0], t[..., 0] + (f[..., 0] - t[..., 0]).mean(), atol=1e-4)
+               for f, t in zip(fixed, teacher))
+
+
+def test_a_calibrated_students_motion_is_scaled_wherever_it_is_sampled(teacher, data, tmp_path):
+    """--calibrate: the checkpoint holds its calibration (measured at the save, recorded in its info); offline and
+    streamed motion are the student's own motion scaled and shifted by it."""
+    last = distill(DistillConfig(checkpoint=str(teacher), out=str(tmp_path / "run"), steps=2, data=str(data),
+                                 calibrate=True, calibration_windows=12, max_steps=20, batch_size=4, lr=2e-3, warmup=5,
+                                 aug_copies=1, valid_every=0, ckpt_every=20, cache_dir=str(tmp_path / "cache")),
+                   progress=False)
+    b = load_checkpoint(last)
+    assert b.config.calibrated and b.info["distill"]["calibrate"]
+    gain, shift = b.model.out_gain, b.model.out_shift
+    info = b.info["calibration"]
+    assert info["windows"] == 12 and info["gain_min"] == pytest.approx(gain.min().item())
+    assert (gain - 1).abs().max() > 1e-3 and GAIN_RANGE[0] <= gain.min() <= gain.max() <= GAIN_RANGE[1]
+    audio = noise_audio(1.5, seed=3)
+    got = generate_offline(b.model, audio, seed=2, smoothing=None)
+    streamed = stream_in_pieces(b.model, audio, [1234] * 19 + [len(audio) - 1234 * 19], seed=2, smoothing=None)
+    b.model.out_gain, b.model.out_shift = torch.ones_like(gain), torch.zeros_like(shift)
+    plain = generate_offline(b.model, audio, seed=2, smoothing=None)
+    assert np.abs(got - (plain * gain.numpy() + shift.numpy())).max() < 1e-5
+    assert np.abs(streamed - got).max() < 1e-4
 
 
 def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path):

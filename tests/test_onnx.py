@@ -580,3 +580,28 @@ def test_the_window_profile_splits_an_export_by_the_models_parts(exported, audio
     assert {"front end", "style", "sampler (K steps)", "states"} <= set(r["parts_ms"]), r["parts_ms"]
     assert all(v > 0 for v in r["parts_ms"].values()) and r["nodes_run_per_window"]["sampler (K steps)"] > 100
     assert not list(tmp_path.glob("wp_ort*"))  # the profiler's trace is read and removed
+
+
+def test_a_calibrated_students_export_scales_its_motion_as_torch_does(bundle, audio, tmp_path):
+    """A distilled student's calibration (`DiMGestor.calibrate`, buffers in its weights) is in its graph: ONNX
+    Runtime's frames equal the torch stream's, which are not the frames without it."""
+    import torch
+
+    from dimgestor.model.network import DiMGestor
+    from dimgestor.streaming.checkpoint import save_checkpoint
+
+    b = bundle  # (the default model, made a student by its calibration only)
+    model = DiMGestor(b.config.model_copy(update={"calibrated": True}))
+    model.load_state_dict(b.model.state_dict(), strict=False)
+    g = torch.Generator().manual_seed(0)
+    model.out_gain.copy_(0.5 + torch.rand(b.config.motion_dim, generator=g))
+    model.out_shift.copy_(0.2 * torch.randn(b.config.motion_dim, generator=g))
+    folder = save_checkpoint(tmp_path / "student", model, b.feature_spec, b.skeleton, b.mean, b.std)
+    assert main(["export-onnx", "--checkpoint", str(folder), "--out", str(tmp_path / "onnx"), "--steps", "1",
+                 "--frames", str(FRAMES)]) == 0
+    student = load_checkpoint(folder)
+    torch_frames = streamed(student.stream(steps=1, seed=SEED), audio, [1601, 333])
+    ort_frames = streamed(ort_stream(tmp_path / "onnx", seed=SEED), audio, [777, 2001])
+    plain = streamed(b.stream(steps=1, seed=SEED), audio, [4000])
+    assert np.abs(ort_frames - torch_frames).max() < 1e-4
+    assert np.abs(torch_frames - (plain * model.out_gain.numpy() + model.out_shift.numpy())).max() < 1e-4

@@ -200,6 +200,9 @@ class DiMGestor(nn.Module):
         # speaker a model plays by default is none (index -1: nothing added), `use_speaker` picks one
         self.speaker_embed = nn.Embedding(len(config.speakers), config.hidden) if config.speakers else None
         self.register_buffer("speaker_index", torch.tensor(-1, dtype=torch.long), persistent=False)
+        if config.calibrated:  # (a distilled student's: `calibrate`)
+            self.register_buffer("out_gain", torch.ones(config.motion_dim))
+            self.register_buffer("out_shift", torch.zeros(config.motion_dim))
         self.initialize_weights()
 
     def initialize_weights(self):
@@ -315,6 +318,12 @@ class DiMGestor(nn.Module):
         return self.final(h, c), DenoiserState(enc_tail, tuple(block_states))
 
     # ---- bookkeeping for `dimgestor info` ----
+    def calibrate(self, x: torch.Tensor) -> torch.Tensor:
+        """The sampled motion (..., motion_dim) as the model gives it: a distilled student's rescaled per feature
+        (config.calibrated: x * out_gain + out_shift, measured against its teacher by `dimgestor distill`);
+        any other model's as it is."""
+        return torch.addcmul(self.out_shift.to(x.dtype), x, self.out_gain.to(x.dtype)) if self.config.calibrated else x
+
     def param_counts(self) -> dict[str, int]:
         n = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
         ex = self.extractor

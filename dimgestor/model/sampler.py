@@ -205,7 +205,7 @@ class DenoiseRunner:
             noisy = d.needs_noise(self.sampler, t, t_prev, self.eta)
             noise = motion_noise_rows(seeds, frame_starts, n, k + 1, D, L, cond.device).to(x.dtype) if noisy else None
             x = d.sample_step(self.sampler, x, eps, x0, t, t_prev, self.eta, noise)
-        return x
+        return m.calibrate(x)
 
 
 def _rows(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:

@@ -55,7 +55,7 @@ def sample_frames(model: DiMGestor, diffusion: Diffusion, cond: torch.Tensor, fr
         noisy = diffusion.needs_noise(sampler, t, t_prev, eta)
         noise = motion_noise(seed, frame_start, n, i + 1, D, L, dev)[None] if noisy else None
         x = diffusion.sample_step(sampler, x, eps, x0, t, t_prev, eta, noise)
-    return x[0], new_states
+    return model.calibrate(x[0]), new_states
 
 
 def make_smoother(config: ModelConfig, smoothing="config") -> OneEuroFilter | None:

@@ -16,6 +16,14 @@ rather than to the training speaker's few minutes. The loss: the mean squared di
 and of its frame-to-frame velocity and acceleration (a one-pass student otherwise smooths away the teacher's
 fastest motion or adds jitter); with `--spread-weight`, also of the difference between two noises' motions for the
 same speech (what sets one seed's motion apart from another's).
+
+A student learnt by the mean squared difference moves less than its teacher: where the starting noise leaves the
+teacher's answer uncertain, the mean of its answers is smaller than any of them. With `--calibrate`, each checkpoint
+is calibrated: on a fixed set of the windows it learns from, each motion feature's frame-to-frame change is measured
+in the teacher's motion and in the student's, and the student's sampled motion is scaled per feature by their ratio
+(its mean moved to the teacher's), in its weights (`DiMGestor.calibrate`), so it moves as much as its teacher
+wherever it streams (torch, ONNX Runtime, the browser). It is off by default: for the shipped default model it gave
+the student the teacher's liveliness back only in part, at a worse FGD (benchmarks/README.md, *A one-pass student*).
 """
 from __future__ import annotations
 
@@ -38,7 +46,9 @@ from .augment import AugmentConfig, augment
 from .dataset import GestureDataset
 from .train import WindowBank
 
-__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "student_motion"]
+__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "student_motion", "calibration"]
+
+GAIN_RANGE = (0.5, 2.0)  # a feature's calibration gain is kept inside this (one the student barely moves stays sane)
 
 
 class DistillConfig(BaseModel):
@@ -64,6 +74,8 @@ class DistillConfig(BaseModel):
     acc_weight: float = Field(4.0, ge=0)  # of the acceleration difference (1 and 1 left a 1-pass student's wrists
     # 1.77x the real capture's jerk, 4 and 4 1.49x: benchmarks/README.md, "A one-pass student")
     spread_weight: float = Field(0.0, ge=0)  # of the difference between two noises' motions for one window's speech
+    calibrate: bool = False  # scale the student's motion per feature to move as much as the teacher's (module doc)
+    calibration_windows: int = Field(128, gt=0)  # the windows it is measured on (drawn as batches are)
     aug_copies: int = Field(4, ge=0)  # augmented versions of each window's audio (0: the clean audio alone)
     window_s: float | None = Field(None, gt=0)  # None: the teacher's
     valid_every: int = Field(200, ge=0)
@@ -184,6 +196,23 @@ def _heard(bank: WindowBank, speech: SpeechBank | None, idx: list[int], g: torch
     return torch.cat([p[:, : T * c.feats_per_frame + c.lookahead_feats] for p in parts]), T
 
 
+def calibration(teacher: list[torch.Tensor], student: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(gain, shift), each (D,): what makes the student's motion move as the teacher's on the same windows and noise
+    (teacher[i], student[i]: (B, T, D) batches of windows): per feature, the ratio of the spreads of their
+    frame-to-frame changes (1 where the teacher's feature does not move; within GAIN_RANGE), and the shift that then
+    gives the student's motion the teacher's mean."""
+    def spread(xs):  # (changes inside each window only)
+        return torch.cat([x.diff(dim=1).flatten(0, 1) for x in xs]).double().std(0)
+
+    def mean(xs):
+        return torch.cat([x.flatten(0, 1) for x in xs]).double().mean(0)
+
+    spread_t, spread_s = spread(teacher), spread(student)
+    gain = torch.where(spread_t > 1e-6, spread_t / spread_s.clamp_min(1e-9), torch.ones_like(spread_t))
+    gain = gain.clamp(*GAIN_RANGE)
+    return gain.float(), (mean(teacher) - gain * mean(student)).float()
+
+
 def _log(out: Path, record: dict) -> None:
     with open(out / "log.jsonl", "a") as f:
         f.write(json.dumps(record) + "\n")
@@ -212,13 +241,16 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     diffusion = Diffusion(tc)
     t_pairs = diffusion.sampling_pairs("ddim", tc.sample_steps)
     s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
-    student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0})
+    student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0, "calibrated": cfg.calibrate})
     student = DiMGestor(student_config).to(device)
     start = teacher if cfg.init is None else load_checkpoint(cfg.init, device).model
     if cfg.init is not None and (start.config.sample_steps, start.config.guidance) != (cfg.steps, 1.0):
         raise ValueError(f"--init {cfg.init}: a student of {start.config.sample_steps} step(s) with guidance "
                          f"{start.config.guidance:g}, not of --steps {cfg.steps}")
-    student.load_state_dict(start.state_dict())
+    weights = {k: v for k, v in start.state_dict().items() if k not in ("out_gain", "out_shift")}
+    missing, unexpected = student.load_state_dict(weights, strict=False)  # (calibrated again below)
+    if unexpected or set(missing) - {"out_gain", "out_shift"}:
+        raise ValueError(f"the student's weights do not fit its start ({missing[:5]}, {unexpected[:5]})")
     ema = copy.deepcopy(student).requires_grad_(False).eval()
     split = dict(window_s=cfg.window_s or opts.get("window_s", 5.0), valid_fraction=opts.get("valid_fraction", 0.15),
                  valid_seconds=opts.get("valid_seconds"))
@@ -257,6 +289,33 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
                 pred = student_motion(ema, diffusion, s_pairs, ema.condition(feats)[0][:, :T], x)
                 total += _loss(pred, target, cfg).item()
         return total / max(len(valid), 1)
+
+    gc = torch.Generator().manual_seed(cfg.seed * 1000 + 3)
+    calib: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (features, x_T, the teacher's motion)
+    n_calib = min(cfg.calibration_windows, len(bank) * (cfg.aug_copies + 1) + (len(speech) if speech else 0))
+    if cfg.calibrate:
+        pool = torch.randperm(len(bank), generator=gc).tolist() * (cfg.aug_copies + 1)
+        pool = pool[:n_calib - round(n_calib * cfg.audio_share)] if speech is not None else pool[:n_calib]
+        if speech is not None:
+            pool += (torch.randperm(len(speech), generator=gc) + len(bank)).tolist()[:n_calib - len(pool)]
+        with torch.no_grad():
+            for a in range(0, len(pool), cfg.batch_size):
+                feats, T = _heard(bank, speech, pool[a:a + cfg.batch_size], gc, c)
+                feats = feats.to(device)
+                x = diffusion.noise_like(torch.zeros(len(feats), T, c.motion_dim), gc).to(device)
+                calib.append((feats, x, teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T],
+                                                       x, guidance)))
+
+    def calibrated() -> dict:
+        """The EMA student's calibration against the teacher on the fixed windows, set in its weights."""
+        with torch.no_grad():
+            mine = [student_motion(ema, diffusion, s_pairs, ema.condition(f)[0][:, :x.shape[1]], x)
+                    for f, x, _ in calib]
+            gain, shift = calibration([t for _, _, t in calib], mine)
+        ema.out_gain.copy_(gain)
+        ema.out_shift.copy_(shift)
+        return {"windows": sum(len(f) for f, _, _ in calib), "gain_min": gain.min().item(),
+                "gain_median": gain.median().item(), "gain_max": gain.max().item()}
 
     last = out
     if valid is not None:
@@ -309,6 +368,8 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
             info = {**bundle.info, "step": step, "distilled_from": str(bundle.path), "history": [record],
                     "distill": cfg.model_dump(), "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance}}
+            if cfg.calibrate:
+                info["calibration"] = calibrated()
             last = save_checkpoint(out / f"ckpt_{step:07d}", ema, bundle.feature_spec, bundle.skeleton, bundle.mean,
                                    bundle.std, info=info)
     bar.close()
@@ -355,6 +416,11 @@ def register(subparsers) -> None:
     p.add_argument("--spread-weight", type=float, default=d.spread_weight, metavar="W",
                    help="weight of the difference between the motions of two noises for the same speech (half of "
                         "each batch repeats the other half's windows with other noise); 0: off")
+    p.add_argument("--calibrate", action="store_true",
+                   help="scale each checkpoint's motion per feature to move as much as the teacher's, measured on "
+                        "--calibration-windows windows (livelier, further from the real capture's distribution)")
+    p.add_argument("--calibration-windows", type=int, default=d.calibration_windows, metavar="N",
+                   help="windows of the training audio (and --audio) the calibration is measured on")
     p.add_argument("--aug-copies", type=int, default=d.aug_copies, metavar="N",
                    help="augmented versions of each window's audio (other voices, rooms, microphones); 0: none")
     p.add_argument("--valid-every", type=int, default=d.valid_every, metavar="N",
@@ -378,6 +444,7 @@ def _run(args) -> int:
                             audio=tuple(args.audio), audio_share=args.audio_share,
                             max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
                             vel_weight=args.vel_weight, acc_weight=args.acc_weight, spread_weight=args.spread_weight,
+                            calibrate=args.calibrate, calibration_windows=args.calibration_windows,
                             aug_copies=args.aug_copies, valid_every=args.valid_every, ckpt_every=args.ckpt_every,
                             seed=args.seed, device=args.device, cache_dir=args.cache_dir)
     except ValidationError as e:
