@@ -317,13 +317,13 @@ class DiMGestor(nn.Module):
             block_states.append(s)
         return self.final(h, c), DenoiserState(enc_tail, tuple(block_states))
 
-    # ---- bookkeeping for `dimgestor info` ----
     def calibrate(self, x: torch.Tensor) -> torch.Tensor:
         """The sampled motion (..., motion_dim) as the model gives it: a distilled student's rescaled per feature
         (config.calibrated: x * out_gain + out_shift, measured against its teacher by `dimgestor distill`);
         any other model's as it is."""
         return torch.addcmul(self.out_shift.to(x.dtype), x, self.out_gain.to(x.dtype)) if self.config.calibrated else x
 
+    # ---- bookkeeping for `dimgestor info` ----
     def param_counts(self) -> dict[str, int]:
         n = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
         ex = self.extractor
