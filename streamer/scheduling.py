@@ -56,9 +56,9 @@ class WindowPolicy:
     """How a session's audio becomes inference calls.
 
     A window is due once `window` samples are buffered (or the source ended). If inference fell behind, the
-    window takes everything that queued meanwhile, so latency recovers instead of growing, cut into calls of
-    at most `call` samples: a session has at most one call queued, so short calls keep every other
-    session's turn short. At most `buffer` samples wait (the source is held back beyond).
+    window takes the whole windows that queued meanwhile, so latency recovers instead of growing, cut into calls
+    of at most `call` samples (whole windows too): a session has at most one call queued, so short calls keep
+    every other session's turn short. At most `buffer` samples wait (the source is held back beyond).
     """
 
     window: int
@@ -70,7 +70,8 @@ class WindowPolicy:
         if not 10 <= window_ms <= 5000:
             raise ValueError(f"window_ms must be in 10..5000, got {window_ms}")
         window = SAMPLE_RATE * window_ms // 1000
-        return cls(window, max(window, int(max_call_s * SAMPLE_RATE)), max(window, int(max_buffer_s * SAMPLE_RATE)))
+        call = max(window, int(max_call_s * SAMPLE_RATE) // window * window)
+        return cls(window, call, max(window, int(max_buffer_s * SAMPLE_RATE)))
 
     def calls(self, samples: np.ndarray) -> list[np.ndarray]:
         """A due window's samples -> the pieces inferred one call each."""

@@ -97,14 +97,30 @@ class _AudioBuffer:
         self.closed, self.error = True, error
         self.changed.set()
 
-    async def take(self, min_samples: int) -> list[AudioChunk]:
-        """Everything buffered once at least min_samples are there (or the source ended)."""
-        while self.samples < min_samples and not self.closed:
+    async def take(self, window: int) -> list[AudioChunk]:
+        """Once a window is buffered, the whole windows buffered (a chunk cut at the last one's end; the rest
+        waits for the next window); once the source ended, everything. Whole windows, so that the calls of
+        sessions that fell behind are a window's multiple like everyone's and share the others' batches: a
+        batch conditions each length of call apart and runs the sampler again for each piece left over, so
+        calls of any length made a late batch costlier still (benchmarks/README.md, "Whole windows")."""
+        while self.samples < window and not self.closed:
             self.changed.clear()
             await self.changed.wait()
         if self.error is not None:
             raise self.error
-        chunks, self.chunks, self.samples = list(self.chunks), deque(), 0
+        if self.closed:
+            chunks, self.chunks, self.samples = list(self.chunks), deque(), 0
+        else:
+            chunks, left = [], self.samples // window * window
+            self.samples -= left
+            while left:
+                chunk = self.chunks.popleft()
+                if len(chunk.samples) > left:  # the rest of this chunk opens the next window
+                    rest = AudioChunk(chunk.samples[left:], chunk.t_start + left / SAMPLE_RATE, chunk.arrival)
+                    self.chunks.appendleft(rest)
+                    chunk = AudioChunk(chunk.samples[:left], chunk.t_start, chunk.arrival)
+                chunks.append(chunk)
+                left -= len(chunk.samples)
         self.changed.set()
         return chunks
 

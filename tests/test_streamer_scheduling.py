@@ -80,9 +80,9 @@ def test_a_batcher_pool_keeps_each_session_on_one_batcher_and_shares_them_out(bu
 
 def test_the_window_rule():
     p = WindowPolicy.of(130, max_call_s=0.5, max_buffer_s=2.0)
-    assert (p.window, p.call, p.buffer) == (2080, 8000, 32000)
-    x = np.arange(17000)
-    assert [len(c) for c in p.calls(x)] == [8000, 8000, 1000] and np.array_equal(np.concatenate(p.calls(x)), x)
+    assert (p.window, p.call, p.buffer) == (2080, 6240, 32000)  # a call: the whole windows in 0.5 s
+    x = np.arange(17000)  # (the last window of a source that ended)
+    assert [len(c) for c in p.calls(x)] == [6240, 6240, 4520] and np.array_equal(np.concatenate(p.calls(x)), x)
     big = WindowPolicy.of(5000)  # a window longer than a call or the buffer: one call, room for one window
     assert big.call == big.buffer == big.window == 80000
     for bad in (9, 5001):
