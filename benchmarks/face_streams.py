@@ -1,8 +1,8 @@
 """How many real-time streams one process keeps with a face on every stream, against none (issue 49: at least
 0.85 as many): `streams.max_streams` on the embedded default model (K = 4, 100 ms windows, batched, staggered
-clients, `--threads` inference threads), once without a face and once with `FaceOptions()` (the face's own
-listener) on every session, and with `--pocketsphinx` also with pocketsphinx's listener; `--also CHECKPOINT` adds
-that model (a distilled student, say) at its own K with a face on every session.
+clients, the batcher on as many torch threads as `dimgestor serve` gives it), once without a face and once with
+`FaceOptions()` (the face's own listener) on every session, and with `--pocketsphinx` also with pocketsphinx's
+listener; `--also CHECKPOINT` adds that model (a distilled student, say) at its own K with a face on every session.
 
     .venv/bin/python benchmarks/face_streams.py            # writes results/face_streams.json and .png
 """
@@ -20,7 +20,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=4)
     p.add_argument("--window-ms", type=int, default=100)
     p.add_argument("--seconds", type=float, default=12.0, help="audio per trial")
-    p.add_argument("--threads", type=int, default=2, help="inference threads (the process's cores)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads of the batcher (default: what `dimgestor serve` gives it here, every core "
+                        "but the event loop's)")
     p.add_argument("--cap", type=int, default=96)
     p.add_argument("--pocketsphinx", action="store_true", help="also with pocketsphinx's listener")
     p.add_argument("--also", default=None, metavar="CHECKPOINT",
@@ -28,6 +30,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=RESULTS / "face_streams.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
+    if args.threads is None:
+        from streamer.server import inference_threads
+
+        args.threads = inference_threads()
     args.argv = list(sys.argv[1:] if argv is None else argv)
     return args
 

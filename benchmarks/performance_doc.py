@@ -266,7 +266,9 @@ def face_batched(r: dict[str, dict]) -> list[str]:
     lines.append(f"A batch's faces are made together (the listener's layers as one product for all its streams): "
                  f"one process kept {arms['face']['max_realtime_streams']} real-time streams with a face on each "
                  f"against {arms['no face']['max_realtime_streams']} without ({f['ratio']:.2f} as many; K = "
-                 f"{f['steps']}, {f['window_ms']} ms windows, measured on {measured_on(f['device'], r)}).")
+                 f"{f['steps']}, {f['window_ms']} ms windows, the batcher on {f['threads']} torch "
+                 f"thread{'s' if f['threads'] > 1 else ''} as `serve` gives it here, measured on "
+                 f"{measured_on(f['device'], r)}).")
     return [*lines, "", source("face_streams"), ""]
 
 
