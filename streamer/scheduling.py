@@ -56,22 +56,28 @@ class WindowPolicy:
     """How a session's audio becomes inference calls.
 
     A window is due once `window` samples are buffered (or the source ended). If inference fell behind, the
-    window takes the whole windows that queued meanwhile, so latency recovers instead of growing, cut into calls
-    of at most `call` samples (whole windows too): a session has at most one call queued, so short calls keep
-    every other session's turn short. At most `buffer` samples wait (the source is held back beyond).
+    window takes what queued meanwhile, so latency recovers instead of growing, cut into calls of at most `call`
+    samples: a session has at most one call queued, so short calls keep every other session's turn short. At
+    most `buffer` samples wait (the source is held back beyond). whole: a window takes only the whole windows
+    that queued (the rest waits for the next), and calls are whole windows: a batching scheduler's rule, so
+    that the calls of sessions that fell behind share the others' batches (a batch conditions each length of
+    call apart and runs the sampler again for each piece left over: benchmarks/README.md, "Whole windows").
+    Elsewhere a window takes everything, so a source that comes in bursts (a TTS) has its last frames at once.
     """
 
     window: int
     call: int
     buffer: int
+    whole: bool = False
 
     @classmethod
-    def of(cls, window_ms: int, max_call_s: float = 1.0, max_buffer_s: float = 2.0) -> "WindowPolicy":
+    def of(cls, window_ms: int, max_call_s: float = 1.0, max_buffer_s: float = 2.0,
+           whole: bool = False) -> "WindowPolicy":
         if not 10 <= window_ms <= 5000:
             raise ValueError(f"window_ms must be in 10..5000, got {window_ms}")
         window = SAMPLE_RATE * window_ms // 1000
-        call = max(window, int(max_call_s * SAMPLE_RATE) // window * window)
-        return cls(window, call, max(window, int(max_buffer_s * SAMPLE_RATE)))
+        call = max(window, int(max_call_s * SAMPLE_RATE) // (window if whole else 1) * (window if whole else 1))
+        return cls(window, call, max(window, int(max_buffer_s * SAMPLE_RATE)), whole)
 
     def calls(self, samples: np.ndarray) -> list[np.ndarray]:
         """A due window's samples -> the pieces inferred one call each."""
@@ -325,6 +331,9 @@ class StreamBatcher(_Threads):
         self._jobs: deque[_Job] = deque()
         super().__init__([thread_name])
 
+    def windows(self, window_ms: int, max_call_s: float = 1.0, max_buffer_s: float = 2.0) -> WindowPolicy:
+        return WindowPolicy.of(window_ms, max_call_s, max_buffer_s, whole=True)  # (batched with the others')
+
     def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
         return self._enqueue(_PushJob(source, samples, rank, Future()))
 
@@ -451,6 +460,9 @@ class BatcherPool(Scheduler):
                     load[self.batchers.index(b)] += 1
                 home = self._home[source] = self.batchers[load.index(min(load))]
             return home
+
+    def windows(self, window_ms: int, max_call_s: float = 1.0, max_buffer_s: float = 2.0) -> WindowPolicy:
+        return self.batchers[0].windows(window_ms, max_call_s, max_buffer_s)
 
     def submit_push(self, source: WindowSource, samples: np.ndarray, rank: float = 0.0) -> Future:
         return self._batcher(source).submit_push(source, samples, rank)

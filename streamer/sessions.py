@@ -97,18 +97,16 @@ class _AudioBuffer:
         self.closed, self.error = True, error
         self.changed.set()
 
-    async def take(self, window: int) -> list[AudioChunk]:
-        """Once a window is buffered, the whole windows buffered (a chunk cut at the last one's end; the rest
-        waits for the next window); once the source ended, everything. Whole windows, so that the calls of
-        sessions that fell behind are a window's multiple like everyone's and share the others' batches: a
-        batch conditions each length of call apart and runs the sampler again for each piece left over, so
-        calls of any length made a late batch costlier still (benchmarks/README.md, "Whole windows")."""
+    async def take(self, window: int, whole: bool = False) -> list[AudioChunk]:
+        """Everything buffered once a window is (or the source ended); whole: only the whole windows buffered
+        until the source ends, a chunk cut at the last one's end (its rest opens the next window), as a
+        batching scheduler's `WindowPolicy` asks."""
         while self.samples < window and not self.closed:
             self.changed.clear()
             await self.changed.wait()
         if self.error is not None:
             raise self.error
-        if self.closed:
+        if self.closed or not whole:
             chunks, self.chunks, self.samples = list(self.chunks), deque(), 0
         else:
             chunks, left = [], self.samples // window * window
@@ -373,7 +371,7 @@ class Session:
             return buffer.samples / SAMPLE_RATE + float(getattr(source, "waiting_s", 0.0))
 
         try:
-            while chunks := await buffer.take(self.windows.window):
+            while chunks := await buffer.take(self.windows.window, self.windows.whole):
                 await self._window(chunks, emit, waiting_s)
                 if self.on_boundary is not None:
                     self.on_boundary()

@@ -11,6 +11,7 @@ from dimgestor.features import features_to_motion
 from dimgestor.streaming.stream import generate_offline
 from dimgestor.training.synthetic import synthetic_speech
 from streamer.record import BvhRecorder
+from streamer.scheduling import StreamBatcher
 from streamer.sessions import Session
 from streamer.sources import WavSource
 from helpers.ws import SlowExecutor
@@ -52,24 +53,31 @@ def test_windowed_session_equals_offline_generation(bundle, tmp_path, window_ms)
     assert st.rtf > 0 and st.latency_ms > 0
 
 
-def test_a_session_that_falls_behind_takes_whole_windows_and_still_equals_offline(bundle, tmp_path):
-    """Audio that queued while inference ran is taken as whole windows, a chunk cut where the last one ends (its
-    rest opens the next window): the calls of a session that fell behind are a window's multiple, as everyone's,
-    and share the others' batches. Only the call after the source ended is shorter; the frames are offline's."""
+@pytest.mark.parametrize("batched", [True, False])
+def test_a_session_that_falls_behind_on_a_batcher_takes_whole_windows_and_still_equals_offline(bundle, tmp_path,
+                                                                                            batched):
+    """On a batching scheduler, audio that queued while inference ran is taken as whole windows, a chunk cut where
+    the last one ends (its rest opens the next window): the calls of a session that fell behind are a window's
+    multiple, as everyone's, and share the others' batches. Only the call after the source ended is shorter.
+    Elsewhere a window takes everything queued (a source in bursts gets its last frames at once). The frames are
+    offline's either way."""
     audio = synthetic_speech(2.37, seed=5)
     wav = tmp_path / "a.wav"
     save_wav(wav, audio, 16000)
     src = WavSource(wav, realtime=False, chunk_ms=7)  # 112-sample chunks: no 130 ms window ends on a chunk's end
-    session = Session.from_bundle(bundle, steps=2, seed=3, window_ms=130, scheduler=SlowExecutor(1, delay_s=0.03))
+    scheduler = StreamBatcher() if batched else SlowExecutor(1, delay_s=0.03)
+    session = Session.from_bundle(bundle, steps=2, seed=3, window_ms=130, scheduler=scheduler)
     calls, push = [], session.scheduler.submit_push
     session.scheduler.submit_push = lambda source, samples, rank: (calls.append(len(samples)), push(source, samples,
                                                                                                       rank))[1]
     frames = []
-    asyncio.run(session.run(src, frames.extend))
+    try:
+        asyncio.run(session.run(src, frames.extend))
+    finally:
+        scheduler.shutdown()
     window = session.windows.window
-    assert window == 2080 and sum(calls) == len(src.audio)
-    assert all(n % window == 0 for n in calls[:-1]) and calls[-1] <= session.windows.call
-    assert max(calls) > window  # it did fall behind (the source is read as fast as it goes)
+    assert window == 2080 and sum(calls) == len(src.audio) and max(calls) > window  # it fell behind (a fast source)
+    assert all(n % window == 0 for n in calls[:-1]) == batched and calls[-1] <= session.windows.call
     offline = bundle.denormalize(generate_offline(bundle.model, src.audio, steps=2, seed=3))
     assert np.allclose(np.stack([f.features for f in frames]), offline, atol=1e-4)
 

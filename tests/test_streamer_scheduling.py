@@ -80,15 +80,24 @@ def test_a_batcher_pool_keeps_each_session_on_one_batcher_and_shares_them_out(bu
 
 def test_the_window_rule():
     p = WindowPolicy.of(130, max_call_s=0.5, max_buffer_s=2.0)
-    assert (p.window, p.call, p.buffer) == (2080, 6240, 32000)  # a call: the whole windows in 0.5 s
-    x = np.arange(17000)  # (the last window of a source that ended)
-    assert [len(c) for c in p.calls(x)] == [6240, 6240, 4520] and np.array_equal(np.concatenate(p.calls(x)), x)
+    assert (p.window, p.call, p.buffer, p.whole) == (2080, 8000, 32000, False)
+    x = np.arange(17000)
+    assert [len(c) for c in p.calls(x)] == [8000, 8000, 1000] and np.array_equal(np.concatenate(p.calls(x)), x)
+    w = WindowPolicy.of(130, max_call_s=0.5, max_buffer_s=2.0, whole=True)  # a batching scheduler's
+    assert (w.window, w.call, w.buffer, w.whole) == (2080, 6240, 32000, True)  # a call: the whole windows in 0.5 s
+    assert [len(c) for c in w.calls(x)] == [6240, 6240, 4520]  # (the last window of a source that ended)
+    pool = BatcherPool([StreamBatcher()])
+    try:
+        assert pool.windows(130) == pool.batchers[0].windows(130) == WindowPolicy.of(130, whole=True)
+    finally:
+        pool.shutdown()
+    assert PoolScheduler().windows(130) == RankedScheduler(1).windows(130) == WindowPolicy.of(130)
     big = WindowPolicy.of(5000)  # a window longer than a call or the buffer: one call, room for one window
     assert big.call == big.buffer == big.window == 80000
     for bad in (9, 5001):
         with pytest.raises(ValueError, match="window_ms"):
             WindowPolicy.of(bad)
-    assert StreamBatcher.windows is RankedScheduler.windows is PoolScheduler.windows  # one rule for every kind
+    assert RankedScheduler.windows is PoolScheduler.windows  # one rule; a batcher's differs only in `whole` (above)
 
 
 def test_ranked_scheduler_runs_real_time_before_backlog():
