@@ -76,7 +76,9 @@ class WindowPolicy:
         if not 10 <= window_ms <= 5000:
             raise ValueError(f"window_ms must be in 10..5000, got {window_ms}")
         window = SAMPLE_RATE * window_ms // 1000
-        call = max(window, int(max_call_s * SAMPLE_RATE) // (window if whole else 1) * (window if whole else 1))
+        call = max(window, int(max_call_s * SAMPLE_RATE))
+        if whole:
+            call = call // window * window
         return cls(window, call, max(window, int(max_buffer_s * SAMPLE_RATE)), whole)
 
     def calls(self, samples: np.ndarray) -> list[np.ndarray]:
