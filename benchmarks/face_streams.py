@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 from pathlib import Path
 
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
@@ -46,9 +47,12 @@ def plot(result: dict, path: Path) -> None:
 
     arms = list(result["arms"])
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.bar(arms, [result["arms"][a]["max_realtime_streams"] for a in arms], color=[f"C{i}" for i in range(len(arms))])
+    ax.bar(range(len(arms)), [result["arms"][a]["max_realtime_streams"] for a in arms],
+           color=[f"C{i}" for i in range(len(arms))])
+    ax.set_xticks(range(len(arms)), [textwrap.fill(a, 22) for a in arms], fontsize=8)
     ax.set_ylabel("real-time streams a process")
-    ax.set_title(f"K={result['steps']}, {result['window_ms']} ms windows, {result['threads']} threads: "
+    ax.set_title(f"K={result['steps']}, {result['window_ms']} ms windows, {result['threads']} torch "
+                 f"thread{'s' if result['threads'] > 1 else ''}: "
                  f"face / none {result['ratio']:.2f}", fontsize=9)
     fig.suptitle(f"face_streams ({result['code_version']}, {result['device'][:50]})", fontsize=8)
     fig.tight_layout()
