@@ -86,12 +86,13 @@ def test_the_window_rule():
     w = WindowPolicy.of(130, max_call_s=0.5, max_buffer_s=2.0, whole=True)  # a batching scheduler's
     assert (w.window, w.call, w.buffer, w.whole) == (2080, 6240, 32000, True)  # a call: the whole windows in 0.5 s
     assert [len(c) for c in w.calls(x)] == [6240, 6240, 4520]  # (the last window of a source that ended)
-    pool = BatcherPool([StreamBatcher()])
+    pool, ranked = BatcherPool([StreamBatcher()]), RankedScheduler(1)
     try:
         assert pool.windows(130) == pool.batchers[0].windows(130) == WindowPolicy.of(130, whole=True)
+        assert PoolScheduler().windows(130) == ranked.windows(130) == WindowPolicy.of(130)
     finally:
         pool.shutdown()
-    assert PoolScheduler().windows(130) == RankedScheduler(1).windows(130) == WindowPolicy.of(130)
+        ranked.shutdown()
     big = WindowPolicy.of(5000)  # a window longer than a call or the buffer: one call, room for one window
     assert big.call == big.buffer == big.window == 80000
     for bad in (9, 5001):
