@@ -25,6 +25,7 @@ import importlib.util
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -293,6 +294,7 @@ def main() -> int:
             cluster.proc.wait(60)
         except subprocess.TimeoutExpired:
             cluster.proc.kill()
+        shutil.rmtree(folder, ignore_errors=True)  # the clients' clips
     summary = summarize(sessions)
     workers_cpu = sum(used.get(pid, 0.0) for pid in known["workers"])
     cost = {"wall_s": round(wall, 1),

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -184,17 +185,18 @@ def where_nodes_ran(folder: Path, manifest: dict, device: str) -> dict:
 
     providers = [("CUDAExecutionProvider", {"cudnn_conv_algo_search": "HEURISTIC"}), "CPUExecutionProvider"] if (
         device.startswith("cuda")) else ["CPUExecutionProvider"]
-    opts = ort.SessionOptions()
-    opts.enable_profiling = True
-    opts.profile_file_prefix = "/tmp/onnx_cuda_profile"
-    session = ort.InferenceSession(str(folder / manifest["graph"]), opts, providers=providers)
     c = manifest["call"]
     feeds = {"samples": np.zeros((1, c["samples_per_call"]), np.float32), "seed": np.zeros(1, np.int64),
              "frame": np.zeros(1, np.int64)}
     feeds |= {s["input"]: np.full(s["shape"], float(s["init"]), NUMPY[s["dtype"]]) for s in manifest["state"]}
-    for _ in range(3):
-        session.run(None, feeds)
-    events = json.loads(Path(session.end_profiling()).read_text())
+    with tempfile.TemporaryDirectory(prefix="onnx-cuda-profile-") as tmp:  # (read here, then gone: ~5 MB a run)
+        opts = ort.SessionOptions()
+        opts.enable_profiling = True
+        opts.profile_file_prefix = str(Path(tmp) / "profile")
+        session = ort.InferenceSession(str(folder / manifest["graph"]), opts, providers=providers)
+        for _ in range(3):
+            session.run(None, feeds)
+        events = json.loads(Path(session.end_profiling()).read_text())
     runs = [e for e in events if e.get("name") == "model_run"]
     last_start = runs[-1]["ts"] if runs else 0
     by, ops = {}, {}

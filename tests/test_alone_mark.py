@@ -13,8 +13,9 @@ TESTS = Path(__file__).resolve().parent
 def spans(root: Path, alone: str) -> dict[str, list[float]]:
     """Three modules a, b, c of three 0.5 s tests each, run by `pytest -n 2 --dist loadfile` with the plugin;
     the modules in `alone` marked alone -> each test's (start, end)."""
-    out = root / "spans"
+    out, tmp = root / "spans", root / "tmp"
     out.mkdir(parents=True)
+    tmp.mkdir()
     for name in "abc":
         mark = "@pytest.mark.alone" if name in alone else ""
         (root / f"test_{name}.py").write_text(textwrap.dedent(f"""
@@ -31,9 +32,10 @@ def spans(root: Path, alone: str) -> dict[str, list[float]]:
         """))
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "helpers.alone", "-n", "2", "--dist", "loadfile",
                           "-p", "no:cacheprovider", "--rootdir", str(root), str(root)],
-                         cwd=root, env={"PYTHONPATH": str(TESTS), "PATH": "/usr/bin:/bin"},
+                         cwd=root, env={"PYTHONPATH": str(TESTS), "PATH": "/usr/bin:/bin", "TMPDIR": str(tmp)},
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
+    assert not list(tmp.glob("dimgestor-tests-*")), list(tmp.iterdir())  # the run's lock files are gone with it
     return {p.name: json.loads(p.read_text()) for p in out.iterdir()}
 
 

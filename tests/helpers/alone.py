@@ -10,6 +10,7 @@ without flock (Windows), runs as usual.
 """
 
 import tempfile
+import uuid
 from pathlib import Path
 
 import pytest
@@ -22,6 +23,22 @@ except ImportError:  # Windows
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "alone: runs with no other test beside it (tests/helpers/alone.py)")
+    # The main process names the run (xdist's --testrunuid, which it hands to every test process) so that it can
+    # remove the run's two lock files at the end: a run used to leave them in the temporary folder.
+    if not hasattr(config, "workerinput") and getattr(config.option, "testrunuid", "absent") is None:
+        config.option.testrunuid = uuid.uuid4().hex
+
+
+def _files(run: str) -> list[Path]:
+    folder = Path(tempfile.gettempdir())
+    return [folder / f"dimgestor-tests-{run}.gate", folder / f"dimgestor-tests-{run}.lock"]
+
+
+def pytest_unconfigure(config):
+    run = getattr(config.option, "testrunuid", None)
+    if run is not None and not hasattr(config, "workerinput"):  # the main process, after every test process ended
+        for f in _files(run):
+            f.unlink(missing_ok=True)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -31,11 +48,10 @@ def pytest_runtest_protocol(item, nextitem):
         yield
         return
     alone = item.get_closest_marker("alone") is not None
-    folder = Path(tempfile.gettempdir())
+    gate_file, lock_file = _files(run)
     # The gate first: an alone test waiting for the lock holds it, so the other processes' next tests wait behind it
     # (flock would go on granting them the shared lock, and the alone test could wait for test after test).
-    with open(folder / f"dimgestor-tests-{run}.gate", "a") as gate, \
-            open(folder / f"dimgestor-tests-{run}.lock", "a") as lock:
+    with open(gate_file, "a") as gate, open(lock_file, "a") as lock:
         fcntl.flock(gate, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
         fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
         if not alone:

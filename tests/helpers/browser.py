@@ -36,7 +36,10 @@ class Browser:
                  "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--autoplay-policy=no-user-gesture-required",
                  *extra_flags]
         with open(self.log, "w") as log:
-            self.proc = subprocess.Popen([CHROMIUM, *flags, url], stdout=log, stderr=subprocess.STDOUT)
+            # (TMPDIR: its singleton socket's folder goes beside the profile, not into the machine's /tmp, where a
+            # killed Chromium leaves it)
+            self.proc = subprocess.Popen([CHROMIUM, *flags, url], stdout=log, stderr=subprocess.STDOUT,
+                                         env={**os.environ, "TMPDIR": str(tmp)})
         port_file = profile / "DevToolsActivePort"  # Chromium writes the port it picked here
         deadline = time.monotonic() + 30
         while not (port_file.exists() and len(port_file.read_text().split()) >= 2):

@@ -17,9 +17,11 @@ terminate, kill, and `with`.
 
 from __future__ import annotations
 
+import atexit
 import io
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -53,6 +55,7 @@ class _Zygote:
 
     def __init__(self):
         self.dir = tempfile.mkdtemp(prefix="dimgestor-warm-")
+        atexit.register(shutil.rmtree, self.dir, ignore_errors=True)  # (its socket; the run used to leave it)
         self.path = os.path.join(self.dir, "sock")
         self.env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
         self.proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), self.path], stdin=subprocess.PIPE,
