@@ -223,7 +223,7 @@ def _scheduler(no_batch: bool, onnx: OnnxModel | None = None, device: str = "cpu
     if no_batch:
         return RankedScheduler(max_workers=min(4, os.cpu_count() or 1), thread_name_prefix="infer")
     if onnx is not None:  # the due windows of every session as calls of the export's batched graphs
-        return onnx_batchers(onnx, inference_threads() if device == "cpu" else 1)  # (a GPU: one lane)
+        return onnx_batchers(onnx, onnx_lanes() if device == "cpu" else 1)  # (a GPU: one lane)
     import torch
 
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread
@@ -239,6 +239,16 @@ def onnx_batchers(onnx: OnnxModel, lanes: int) -> BatcherPool:
 
     return BatcherPool([StreamBatcher(push_many=functools.partial(push_many, BatchRunner.of(onnx, 1)),
                                       thread_name=f"infer-batch-{i}") for i in range(max(1, lanes))])
+
+
+def onnx_lanes() -> int:
+    """`--backend onnxruntime`'s batchers on the CPU: OMP_NUM_THREADS when set (as `inference_threads`), else one a
+    core. A lane's call runs in ONNX Runtime without Python's lock, so the event loop still gets its share of the
+    cores; on 2 cores one lane kept far fewer streams than two (benchmarks/README.md, "ONNX Runtime's lanes")."""
+    given = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if given.isdigit() and int(given) > 0:
+        return int(given)
+    return max(1, os.cpu_count() or 1)
 
 
 def inference_threads() -> int:

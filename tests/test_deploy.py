@@ -408,12 +408,17 @@ def test_the_compose_entrypoint_fills_the_template_as_local_cluster_does(tmp_pat
 
 def test_a_worker_takes_its_inference_threads_from_omp_num_threads(monkeypatch):
     """N workers on one machine: each runs the threads it is given, not every core but one (N x the cores)."""
-    from streamer.server import inference_threads
+    from streamer.server import inference_threads, onnx_lanes
 
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
-    assert inference_threads() == 3
+    assert inference_threads() == onnx_lanes() == 3
     monkeypatch.delenv("OMP_NUM_THREADS")
-    assert inference_threads() == max(1, (os.cpu_count() or 1) - 1)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    # torch's batcher leaves a core to the event loop; ONNX Runtime's lanes (its calls free of Python's lock) take
+    # every core
+    assert (inference_threads(), onnx_lanes()) == (1, 2)
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert (inference_threads(), onnx_lanes()) == (1, 1)
 
 
 def _local_cluster_module():
