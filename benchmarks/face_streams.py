@@ -2,7 +2,9 @@
 0.85 as many): `streams.max_streams` on the embedded default model (K = 4, 100 ms windows, batched, staggered
 clients, the batcher on as many torch threads as `dimgestor serve` gives it), once without a face and once with
 `FaceOptions()` (the face's own listener) on every session, and with `--pocketsphinx` also with pocketsphinx's
-listener; `--also CHECKPOINT` adds that model (a distilled student, say) at its own K with a face on every session.
+listener; `--also CHECKPOINT` adds that model (a distilled student, say) at its own K with a face on every session;
+`--onnxruntime` adds the same two (no face, face) on ONNX Runtime, as `dimgestor serve --backend onnxruntime` runs them
+(a `BatcherPool` of one-thread `BatchRunner`s), for each lane count of `--lanes`.
 
     .venv/bin/python benchmarks/face_streams.py            # writes results/face_streams.json and .png
 """
@@ -28,6 +30,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--pocketsphinx", action="store_true", help="also with pocketsphinx's listener")
     p.add_argument("--also", default=None, metavar="CHECKPOINT",
                    help="one more arm: this checkpoint (e.g. a distilled student) at its own K, with a face")
+    p.add_argument("--onnxruntime", action="store_true",
+                   help="also on ONNX Runtime: the export of --onnx, else the model's in serve's cache (exported there "
+                        "on first use, as `dimgestor serve --backend onnxruntime` does)")
+    p.add_argument("--onnx", type=Path, default=None, metavar="DIR", help="the export for --onnxruntime")
+    p.add_argument("--lanes", type=int, nargs="+", default=None, metavar="N",
+                   help="ONNX Runtime's batchers (lanes) to try (default: 1 and what serve gives it here)")
     p.add_argument("--out", type=Path, default=RESULTS / "face_streams.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     args = p.parse_args(argv)
@@ -35,6 +43,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         from streamer.server import inference_threads
 
         args.threads = inference_threads()
+    if args.lanes is None:
+        from streamer.server import onnx_lanes
+
+        args.lanes = sorted({1, onnx_lanes()})
     args.argv = list(sys.argv[1:] if argv is None else argv)
     return args
 
@@ -75,6 +87,24 @@ def main(argv=None) -> int:
         print(f"{name}:", flush=True)
         arms[name] = max_streams(bundle, args.steps, args.window_ms, args.seconds, True, args.threads, args.cap,
                                  face=face, log=lambda s: print(s, flush=True))
+    if args.onnxruntime:
+        from dimgestor.export.onnx_batch import BatchRunner
+        from dimgestor.export.onnx_stream import OnnxModel
+
+        if args.onnx is None:
+            from dimgestor.export.onnx_cache import cached_export
+            from streamer.server import SERVE_BATCHES
+
+            args.onnx = cached_export(bundle, args.steps, bundle.config.guidance, batches=SERVE_BATCHES)
+        onnx = OnnxModel.load(args.onnx)
+        for lanes in args.lanes:
+            for name, face in (("no face", None), ("face", faces["face"])):
+                label = f"ONNX Runtime, {name}, {lanes} lane{'s' if lanes > 1 else ''}"
+                print(f"{label}:", flush=True)
+                arms[label] = max_streams(bundle, args.steps, args.window_ms, args.seconds, True, 1, args.cap,
+                                          onnx=onnx, batch_runner=[BatchRunner.of(onnx, 1) for _ in range(lanes)],
+                                          face=face, log=lambda s: print(s, flush=True))
+                arms[label]["lanes"] = lanes
     if args.also:
         other = load_checkpoint(args.also)
         name = f"face, {Path(args.also).name} (K={other.config.sample_steps}, guidance {other.config.guidance:g})"
@@ -86,6 +116,7 @@ def main(argv=None) -> int:
               "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": before,
               "load_average_after": load_average(), "steps": args.steps, "window_ms": args.window_ms,
               "threads": args.threads, "arms": arms,
+              **({"onnx": str(args.onnx), "lanes": args.lanes} if args.onnxruntime else {}),
               "ratio": arms["face"]["max_realtime_streams"] / base if base else float("nan"),
               **({"ratio_pocketsphinx": arms["face, pocketsphinx"]["max_realtime_streams"] / base}
                  if args.pocketsphinx and base else {}),

@@ -112,22 +112,30 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
         assert finite(x["ratio_p50"]) and finite(x["ratio_p50_unguided"]) and x["ratio_p50"] > 0
 
 
-def test_face_streams_benchmark_writes_its_schema(tmp_path):
+def test_face_streams_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
     """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's,
-    and another checkpoint's with a face)."""
+    another checkpoint's with a face, and no face and the face on ONNX Runtime's two lanes: the run's shared export,
+    K = 2)."""
     out = tmp_path / "face_streams.json"
     from helpers.checkpoint import make_tiny_checkpoint
+    from helpers.web_export import web_export
 
     other = make_tiny_checkpoint(tmp_path, seed=2)
-    run("face_streams.py", "--seconds", "2", "--cap", "1", "--pocketsphinx", "--also", str(other), "--out", str(out))
+    export = web_export(tmp_path_factory, 2, 2)
+    run("face_streams.py", "--steps", "2", "--seconds", "2", "--cap", "1", "--pocketsphinx", "--also", str(other),
+        "--onnxruntime", "--onnx", str(export), "--lanes", "2", "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
-    assert r["code_version"] and r["device"].startswith("CPU") and r["steps"] == 4 and r["window_ms"] == 100
+    assert r["code_version"] and r["device"].startswith("CPU") and r["steps"] == 2 and r["window_ms"] == 100
     also = [a for a in r["arms"] if a.startswith("face, ") and "pocketsphinx" not in a]
-    assert list(r["arms"]) == ["no face", "face", "face, pocketsphinx", *also] and len(also) == 1
+    ort = ["ONNX Runtime, no face, 2 lanes", "ONNX Runtime, face, 2 lanes"]
+    assert list(r["arms"]) == ["no face", "face", "face, pocketsphinx", *ort, *also] and len(also) == 1
+    assert r["lanes"] == [2] and r["onnx"] == str(export)
     for name, arm in r["arms"].items():
-        assert arm["face"] == (name != "no face") and [t["streams"] for t in arm["trials"]] == [1]
+        assert arm["face"] == ("no face" not in name) and [t["streams"] for t in arm["trials"]] == [1]
         assert arm["trials"][0]["face"] == arm["face"] and "lag_ms_p95" in arm["trials"][0]
+        assert arm["backend"] == ("onnxruntime" if name in ort else "torch")
+        assert name not in ort or (arm["lanes"] == 2 and arm["trials"][0]["inference_threads"] == 2)
     # (whether one stream keeps real time depends on the machine's load: the ratios only have to follow the counts)
     counts = {name: arm["max_realtime_streams"] for name, arm in r["arms"].items()}
     if counts["no face"]:
