@@ -58,10 +58,10 @@ def plot(result: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     arms = list(result["arms"])
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * len(arms)), 3.8))
     ax.bar(range(len(arms)), [result["arms"][a]["max_realtime_streams"] for a in arms],
            color=[f"C{i}" for i in range(len(arms))])
-    ax.set_xticks(range(len(arms)), [textwrap.fill(a, 22) for a in arms], fontsize=8)
+    ax.set_xticks(range(len(arms)), [textwrap.fill(a, 14) for a in arms], fontsize=8)
     ax.set_ylabel("real-time streams a process")
     ax.set_title(f"K={result['steps']}, {result['window_ms']} ms windows, {result['threads']} torch "
                  f"thread{'s' if result['threads'] > 1 else ''}: "
