@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import subprocess
+import tempfile
 import time
 import urllib.request
 from contextlib import ExitStack
@@ -36,14 +37,17 @@ class Browser:
                  "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--autoplay-policy=no-user-gesture-required",
                  *extra_flags]
         with open(self.log, "w") as log:
-            # (TMPDIR: its singleton socket's folder goes beside the profile, not into the machine's /tmp, where a
-            # killed Chromium leaves it)
+            # (TMPDIR: its singleton socket's folder goes into a folder of ours, removed at close, not into the
+            # machine's, where a stopped Chromium leaves it; a short path: the socket's may not pass 107 bytes)
+            self.tmpdir = tempfile.mkdtemp(prefix="dimgestor-chromium-")
             self.proc = subprocess.Popen([CHROMIUM, *flags, url], stdout=log, stderr=subprocess.STDOUT,
-                                         env={**os.environ, "TMPDIR": str(tmp)})
+                                         env={**os.environ, "TMPDIR": self.tmpdir})
         port_file = profile / "DevToolsActivePort"  # Chromium writes the port it picked here
         deadline = time.monotonic() + 30
         while not (port_file.exists() and len(port_file.read_text().split()) >= 2):
             if time.monotonic() > deadline or self.proc.poll() is not None:
+                self.proc.kill()
+                shutil.rmtree(self.tmpdir, ignore_errors=True)
                 raise RuntimeError(f"chromium did not start:\n{self.log.read_text()[-3000:]}")
             time.sleep(0.1)
         port = port_file.read_text().split()[0]
@@ -123,6 +127,7 @@ class Browser:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+            shutil.rmtree(self.tmpdir, ignore_errors=True)
 
 
 def read_png(png: Path) -> np.ndarray:
