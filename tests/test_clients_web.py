@@ -15,6 +15,7 @@ import subprocess
 import time
 import urllib.request
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -548,3 +549,16 @@ def test_web_viewer_on_a_software_renderer_draws_at_half_density_and_at_most_20_
         assert drawing["frameMs"] > 40, drawing
     else:
         assert drawing["pixelRatio"] == drawing["dpr"] and drawing["maxFps"] is None, drawing
+
+
+def test_chromium_keeps_its_temporary_files_in_a_folder_removed_at_close(tmp_path):
+    """The tests' Chromium writes its singleton socket's folder into a short folder of ours, not the machine's
+    temporary folder (where a stopped Chromium left one per start), and that folder goes at close."""
+    browser = Browser(tmp_path, "about:blank")
+    try:
+        browser.wait_page()
+        ours = Path(browser.tmpdir)
+        assert [p.name.startswith("org.chromium.Chromium.") for p in ours.iterdir()] == [True], list(ours.iterdir())
+    finally:
+        browser.close()
+    assert not ours.exists()

@@ -101,3 +101,24 @@ def test_what_a_child_cannot_share_with_the_warm_interpreter_starts_cold():
     p = warm.popen([PY, "-c", "import os; print(os.environ['OMP_NUM_THREADS'])"], env=threads,
                    stdout=subprocess.PIPE, text=True)
     assert p.communicate(timeout=60)[0] == "2\n"
+
+
+def test_a_test_process_leaves_no_warm_folder_behind(tmp_path):
+    """A process that used a warm interpreter removes its socket's folder when it exits (a run used to leave one
+    per test process in the temporary folder)."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    code = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(warm.__file__.rsplit('/helpers/', 1)[0])!r})
+        from helpers import warm
+        assert isinstance(warm.popen([sys.executable, "-c", "pass"]), warm.WarmProcess)
+        assert warm.run([sys.executable, "-c", "pass"], timeout=60).returncode == 0
+        import os
+        print(sorted(os.listdir({str(tmp)!r})))
+    """)
+    out = subprocess.run([PY, "-c", code], env={**os.environ, "TMPDIR": str(tmp)}, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.startswith("['dimgestor-warm-"), out.stdout  # (it was there while the process ran)
+    assert list(tmp.iterdir()) == []
