@@ -245,20 +245,20 @@ def onnx_lanes() -> int:
     """`--backend onnxruntime`'s batchers on the CPU: OMP_NUM_THREADS when set (as `inference_threads`), else one a
     core. A lane's call runs in ONNX Runtime without Python's lock, so the event loop still gets its share of the
     cores; on 2 cores one lane kept far fewer streams than two (benchmarks/README.md, "ONNX Runtime's lanes")."""
-    given = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if given.isdigit() and int(given) > 0:
-        return int(given)
-    return max(1, os.cpu_count() or 1)
+    return _given_threads() or max(1, os.cpu_count() or 1)
 
 
 def inference_threads() -> int:
     """Torch threads of the batched inference: OMP_NUM_THREADS when set (several workers on one machine each
     take their share, docs/deploy.md; torch.set_num_threads would otherwise override it), else every core but
     one, which stays with the event loop (poses, sockets, VMC)."""
+    return _given_threads() or max(1, (os.cpu_count() or 1) - 1)
+
+
+def _given_threads() -> int | None:
+    """OMP_NUM_THREADS when it is a positive whole number, else None."""
     given = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if given.isdigit() and int(given) > 0:
-        return int(given)
-    return max(1, (os.cpu_count() or 1) - 1)
+    return int(given) if given.isdigit() and int(given) > 0 else None
 
 
 def _metrics(scheduler: StreamBatcher | BatcherPool | RankedScheduler) -> ServerMetrics:
