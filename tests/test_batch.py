@@ -170,7 +170,8 @@ def test_batched_steps_only_read_their_states_and_reuse_the_batch_buffer(model, 
     streams = [GestureStream(model, steps=3, seed=seed, smoothing=None) for seed in range(3)]
     copies = []
     cat = StepStates.cat
-    monkeypatch.setattr(StepStates, "cat", staticmethod(lambda states: (copies.append(len(states)), cat(states))[1]))
+    monkeypatch.setattr(StepStates, "cat",
+                        staticmethod(lambda states, out=None: (copies.append(len(states)), cat(states, out))[1]))
     states, outs = [s.state for s in streams], [[] for _ in streams]
     for a in range(0, 8000, 1600):  # the same streams together each round: copied into one buffer once
         frames, states = step_many(streams, states, [x[a:a + 1600] for x in audios])
@@ -184,3 +185,51 @@ def test_batched_steps_only_read_their_states_and_reuse_the_batch_buffer(model, 
         solo = GestureStream(model, steps=3, seed=s.seed, smoothing=None)
         want = np.concatenate([solo.push(audio[a:a + 1600]) for a in range(0, 9600, 1600)])
         assert np.abs(np.concatenate(o + [f]) - want).max() < TOL
+
+
+def test_state_buffers_are_used_again_only_once_nothing_holds_them(model):
+    """`StateBuffers.take`: a buffer whose rows someone still holds (a view of a view, a numpy array) is never
+    handed out again; once they are gone it is, for a batch of its size or a few rows fewer; at most `keep` free
+    ones are kept."""
+    from dimgestor.model.sampler import StateBuffers
+
+    pool = StateBuffers(keep=2)
+    like = StepStates.zeros(model, 3, 1)
+    a = pool.take(like, 10)
+    assert a.batch == 10 and a.ssm.shape[3:] == like.ssm.shape[3:] and a.conv.shape[3:] == like.conv.shape[3:]
+    view = a.enc[:, 2:3].narrow(1, 0, 1)
+    arr = pool.take(like, 10).ssm.numpy()
+    del a
+    b = pool.take(like, 10)  # the first two are held: a third
+    assert pool.made == 3
+    del b, view
+    c, d = pool.take(like, 9), pool.take(like, 9)  # the first and the third, not the one the array holds
+    assert pool.made == 3
+    assert arr.__array_interface__["data"][0] not in (c.ssm.data_ptr(), d.ssm.data_ptr(), )
+    assert c.ssm.data_ptr() != d.ssm.data_ptr()
+    e = pool.take(like, 9)
+    assert pool.made == 4
+    del c, d, e, arr
+    for rows in (40, 50, 60, 70):  # too big for the free ones: new ones, and at most 2 free ones are kept
+        pool.take(like, rows)
+    assert pool.made == 8 and len(pool) <= 3
+
+
+def test_streams_in_changing_batches_reuse_the_runners_buffers(model):
+    """Thirty windows of streams joining and leaving batches (their states copied together, new ones written):
+    after the first rounds no new buffer is made, and every stream's frames are its solo frames."""
+    audios = [_audio(1.5, seed) for seed in range(5)]
+    streams = [GestureStream(model, steps=2, seed=seed, smoothing=None) for seed in range(5)]
+    runner = streams[0].runner
+    outs, made = [[] for _ in streams], []
+    for w in range(30):
+        a = w * 1600 % 24000
+        pushing = [i for i in range(5) if (w + i) % 3]  # a different set each window
+        for i, f in zip(pushing, push_many([streams[i] for i in pushing], [audios[i][a:a + 1600] for i in pushing])):
+            outs[i].append((a, f))
+        made.append(runner.buffers.made)
+    assert made[-1] == made[8], made
+    for i, s in enumerate(streams):
+        solo = GestureStream(model, steps=2, seed=i, smoothing=None)
+        want = np.concatenate([solo.push(audios[i][a:a + 1600]) for a, _ in outs[i]])
+        assert np.abs(np.concatenate([f for _, f in outs[i]]) - want).max() < TOL

@@ -3,6 +3,7 @@ all its adaLN modulations come from one matmul and B streams' windows share each
 reference)."""
 from __future__ import annotations
 
+import threading
 import weakref
 from typing import NamedTuple, Sequence
 
@@ -13,7 +14,7 @@ from .diffusion import Diffusion, guide, motion_noise_rows
 from .mamba2 import STEP_MAX, Mamba2State, ssd_step
 from .network import DenoiserState, DiMGestor
 
-__all__ = ["StepStates", "Window", "DenoiseRunner", "runner_for", "denoise"]
+__all__ = ["StepStates", "StateBuffers", "Window", "DenoiseRunner", "runner_for", "denoise"]
 
 
 class StepStates(NamedTuple):
@@ -35,11 +36,12 @@ class StepStates(NamedTuple):
                           torch.stack([b.ssm for b in s.blocks])[None].repeat(steps, 1, 1, 1, 1, 1))
 
     @staticmethod
-    def cat(states: Sequence["StepStates"]) -> "StepStates":
-        if len(states) == 1:
+    def cat(states: Sequence["StepStates"], out: "StepStates | None" = None) -> "StepStates":
+        """The states' rows in turn, in one new buffer (or written into `out`, shaped for them)."""
+        if len(states) == 1 and out is None:
             return states[0]
-        return StepStates(torch.cat([s.enc for s in states], 1), torch.cat([s.conv for s in states], 2),
-                          torch.cat([s.ssm for s in states], 2))
+        return StepStates(*(torch.cat([s[f] for s in states], dim, out=None if out is None else out[f])
+                            for f, dim in enumerate(_BATCH_DIMS)))
 
     def step(self, k: int) -> DenoiserState:
         """Step k as the model's own DenoiserState (what `DiMGestor.forward` takes)."""
@@ -53,6 +55,58 @@ class StepStates(NamedTuple):
 
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in self)
+
+
+_BATCH_DIMS = (1, 2, 2)  # the batch (stream row) dimension of StepStates' enc, conv and ssm
+_USE_COUNT = getattr(torch._C, "_storage_Use_Count", None)  # (how torch's CUDA graph trees tell a storage is free)
+
+
+class StateBuffers:
+    """The buffers a runner's batches write their states into (`denoise`), used again once nothing holds them.
+
+    A batch of many streams' states is tens of MB. A fresh one each window is memory the allocator hands back to
+    the system when freed, so every window paid the first touch of each of its pages again: at 48 streams a
+    quarter of the batch's time (benchmarks/README.md, "The batch's buffers"). A buffer is free when no tensor but
+    its own refers to its storage (the storage's use count; where torch lacks it, nothing is kept). A taken
+    buffer is its first `rows` rows, so batches of other sizes share it; at most `keep` free ones are kept."""
+
+    def __init__(self, keep: int = 4):
+        self.keep = keep
+        self._lock = threading.Lock()
+        self._bufs: list[tuple[tuple, int, StepStates, tuple[int, ...]]] = []  # (shape key, rows, buffer, free counts)
+        self.made = 0  # buffers allocated (tests)
+
+    def __len__(self) -> int:
+        """Buffers kept, in use or free."""
+        return len(self._bufs)
+
+    @staticmethod
+    def _free(entry) -> bool:
+        return all(_USE_COUNT(t.untyped_storage()._cdata) == n for t, n in zip(entry[2], entry[3]))
+
+    def take(self, like: StepStates, rows: int) -> StepStates:
+        """A state of `rows` rows shaped as `like`'s (contents undefined) that nothing else refers to."""
+        shapes = [(t.shape[:d], t.shape[d + 1:]) for t, d in zip(like, _BATCH_DIMS)]
+        if _USE_COUNT is None:
+            return StepStates(*(torch.empty(a + (rows,) + b, dtype=t.dtype, device=t.device)
+                                for (a, b), t in zip(shapes, like)))
+        key = (tuple(shapes), like.enc.dtype, like.enc.device)
+        with self._lock:  # (a runner is shared by every stream of its model, on any thread)
+            fits = [e for e in self._bufs if e[0] == key and rows <= e[1] <= 2 * rows + 8 and self._free(e)]
+            if fits:
+                entry = min(fits, key=lambda e: e[1])
+            else:
+                cap = rows if rows <= 8 else -(-rows // 8) * 8  # a few rows to spare, for the next batch's size
+                buf = StepStates(*(torch.empty(a + (cap,) + b, dtype=t.dtype, device=t.device)
+                                   for (a, b), t in zip(shapes, like)))
+                entry = (key, cap, buf, tuple(_USE_COUNT(t.untyped_storage()._cdata) for t in buf))
+                self.made += 1
+                spare = [e for e in self._bufs if self._free(e)]
+                drop = {id(e) for e in spare[:max(0, len(spare) - self.keep)]}  # the longest unused first
+                self._bufs = [e for e in self._bufs if id(e) not in drop]
+            self._bufs = [e for e in self._bufs if e is not entry] + [entry]  # (the most recently used last)
+            buf = entry[2]
+            return StepStates(buf.enc[:, :rows], buf.conv[:, :, :rows], buf.ssm[:, :, :rows])
 
 
 class Window(NamedTuple):
@@ -125,6 +179,7 @@ class DenoiseRunner:
         self.model, self.pairs, self.sampler, self.eta = model, list(pairs), sampler, float(eta)
         self.diffusion = Diffusion(model.config)
         self._version: tuple | None = None
+        self.buffers = StateBuffers()  # where `denoise` writes its batches' states
 
     def _params(self) -> list[torch.nn.Parameter]:
         m = self.model
@@ -314,23 +369,22 @@ def denoise(runner: DenoiseRunner, windows: Sequence[Window]) -> tuple[list[torc
     """Windows of one frame count, one sampler run -> each one's x0 (n, D) and new state (the given ones are only
     read; the new ones are rows of one buffer, read in place when the same streams come back together: `_join`)."""
     with torch.inference_mode():
-        buf = _join([w.state for w in windows])
-        new = StepStates(*(torch.empty(t.shape, dtype=t.dtype, device=t.device) for t in buf))
+        buf = _join([w.state for w in windows], runner.buffers)
+        new = runner.buffers.take(buf, buf.batch)
         x = runner.sample(torch.cat([w.cond for w in windows]), [w.frame_start for w in windows],
                           [w.seed for w in windows], buf, [w.guidance for w in windows], out=new)
     return list(x), _split(new, [w.state.batch for w in windows])
 
 
-_BATCH_DIMS = (1, 2, 2)  # the batch (stream row) dimension of StepStates' enc, conv and ssm
-
-
-def _join(states: Sequence[StepStates]) -> StepStates:
+def _join(states: Sequence[StepStates], buffers: StateBuffers) -> StepStates:
     """Streams' states as one buffer of their rows in turn: without a copy where they already lie so (the rows
-    of the buffer `denoise` made for them last time), else copied together."""
+    of the buffer `denoise` wrote them into last time), else copied together into one of `buffers`."""
     if len(states) == 1:
         return states[0]
     joined = [_adjacent([s[f] for s in states], dim) for f, dim in enumerate(_BATCH_DIMS)]
-    return StepStates(*joined) if all(t is not None for t in joined) else StepStates.cat(states)
+    if all(t is not None for t in joined):
+        return StepStates(*joined)
+    return StepStates.cat(states, out=buffers.take(states[0], sum(s.batch for s in states)))
 
 
 def _adjacent(parts: Sequence[torch.Tensor], dim: int) -> torch.Tensor | None:
