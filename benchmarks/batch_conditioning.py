@@ -8,7 +8,8 @@ a neighbour's load falls on both alike.
 
   profile  B streams pushed together (`push_many`, 100 ms windows, one torch thread, smoothing off), rounds
            after a warm-up; per round: the front end's calls, the extractor's calls, the denoiser batch
-           (`denoise`'s calls), the output step (`end_step`) and the rest (`push_many`'s own work, timers)
+           (`denoise`'s calls), the output step (`end_step`) and the rest (`push_many`'s own work, timers),
+           and the process's minor page faults (memory touched for the first time; Unix only)
   streams  the most real-time streams one process keeps through the serving path (`benchmarks/streams.py`:
            paced sessions on one `StreamBatcher`, staggered phases), at each K
   trials   serving trials at fixed stream counts (`--trial-streams`), `--repeats` per tree, taking turns: the
@@ -90,6 +91,15 @@ def _timer(totals: dict, part: str, fn):
     return timed
 
 
+def minor_faults() -> int | None:
+    """The process's minor page faults so far (None where `resource` is missing: Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def profile(job: dict) -> dict:
     """B streams pushed together round by round (or random groups of 1..G of them) -> each part's mean time
     per round (or per window pushed, with groups), ms."""
@@ -112,17 +122,18 @@ def profile(job: dict) -> dict:
     fe.forward, ex.forward = _timer(totals, "frontend", fe.forward), _timer(totals, "extractor", ex.forward)
     batch.denoise = _timer(totals, "denoise", batch.denoise)  # each batched sampler run `push_many` makes
     GestureStream.end_step = _timer(totals, "end_step", GestureStream.end_step)
-    walls, pos, pushed = [], [0] * B, 0
+    walls, pos, pushed, faults = [], [0] * B, 0, 0
     rng = np.random.default_rng(0)
     warm, rounds = (warm, rounds) if not G else (warm * B, rounds * B // 2)  # every stream past warm-up
     for k in range(warm + rounds):
         if k == warm:  # the lookahead has filled, every stream past warm-up
             totals.update(dict.fromkeys(PARTS, 0.0))
         due = range(B) if not G else sorted(rng.choice(B, size=int(rng.integers(1, G + 1)), replace=False))
-        t0 = time.perf_counter()
+        f0, t0 = minor_faults(), time.perf_counter()
         batch.push_many([streams[i] for i in due], [audios[i][pos[i]:pos[i] + window] for i in due])
         if k >= warm:
             walls.append(time.perf_counter() - t0)
+            faults += (minor_faults() or 0) - (f0 or 0)
             pushed += len(due)
         for i in due:
             pos[i] += window
@@ -131,6 +142,7 @@ def profile(job: dict) -> dict:
     ms["total"] = 1000 * sum(walls) / per
     ms["rest"] = ms["total"] - sum(ms[p] for p in PARTS if p != "rest")
     return {"ms_per_window" if G else "ms_per_round": ms, "dimgestor": dimgestor.__file__,
+            "page_faults_per_window" if G else "page_faults_per_round": None if f0 is None else faults / per,
             "frontend": model.config.frontend, "guidance": streams[0].guidance}
 
 
@@ -253,7 +265,8 @@ def main(argv=None) -> None:
                         ms = r.get("ms_per_round") or r["ms_per_window"]
                         print(f"profile {model} K={steps} B={args.batch} {r['code']:6s}: {ms['total']:.1f} ms a {'window' if args.groups else 'round'} "
                               f"(front end {ms['frontend']:.1f}, extractor {ms['extractor']:.1f}, denoise "
-                              f"{ms['denoise']:.1f}, end_step {ms['end_step']:.1f}, rest {ms['rest']:.1f}); load "
+                              f"{ms['denoise']:.1f}, end_step {ms['end_step']:.1f}, rest {ms['rest']:.1f}; page faults "
+                              f"{r.get('page_faults_per_round', r.get('page_faults_per_window'))}); load "
                               f"{r['load_avg'][0]:.1f}", flush=True)
                         result["profile"].append(r)
     if "streams" in args.sections:
