@@ -54,6 +54,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--streams-max", type=int, default=128, help="stop the streams search at this many")
     p.add_argument("--trial-streams", type=int, nargs="+", default=[16, 24], help="stream counts of the trials section")
     p.add_argument("--out", type=Path, default=RESULTS / "batch_conditioning.json")
+    p.add_argument("--face", action="store_true",
+                   help="streams and trials: the face (`FaceOptions()`) on every session, as `serve` makes it")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: one measurement, as JSON
     args = p.parse_args(argv)
@@ -146,11 +148,21 @@ def profile(job: dict) -> dict:
             "frontend": model.config.frontend, "guidance": streams[0].guidance}
 
 
+def _face(job: dict):
+    """The sessions' face: `FaceOptions()` with --face, else none."""
+    if not job.get("face"):
+        return None
+    from dimgestor.face import FaceOptions
+
+    return FaceOptions()
+
+
 def streams_search(job: dict) -> dict:
     import dimgestor
     from streams import max_streams, random_bundle
 
     r = max_streams(random_bundle(job["model"]), job["steps"], job["window_ms"], job["seconds"], True, 1, job["cap"],
+                    face=_face(job),
                     log=lambda line: print(line, file=sys.stderr, flush=True))
     return {**r, "dimgestor": dimgestor.__file__}
 
@@ -159,7 +171,8 @@ def serving(job: dict) -> dict:
     import dimgestor
     from streams import random_bundle, serving_trial
 
-    r = serving_trial(random_bundle(job["model"]), job["streams"], job["steps"], job["window_ms"], job["seconds"], True, 1)
+    r = serving_trial(random_bundle(job["model"]), job["streams"], job["steps"], job["window_ms"], job["seconds"], True, 1,
+                      face=_face(job))
     return {**r, "dimgestor": dimgestor.__file__}
 
 
@@ -221,7 +234,8 @@ def _plot_trials(ax, result: dict) -> None:
                                  and r["code"] == code])) for k in keys]
         ax.bar(np.arange(len(keys)) + 0.38 * c, vals, 0.38, label=f"{code} ({result['codes'][code]})")
     ax.axhline(result["window_ms"] + 150, color="grey", lw=0.8, label="pass: window + 150 ms")
-    ax.set_xticks(np.arange(len(keys)) + 0.19, [f"{m} K={k}\n{n} streams" for m, k, n in keys], fontsize=7)
+    face = ", a face each" if any(r.get("face") for r in runs) else ""
+    ax.set_xticks(np.arange(len(keys)) + 0.19, [f"{m} K={k}\n{n} streams{face}" for m, k, n in keys], fontsize=7)
     ax.set_yscale("log")
     ax.set_ylabel("lag p95, second half of the trial (ms, median of trials)")
     ax.set_title("serving trials at fixed stream counts", fontsize=9)
@@ -274,7 +288,7 @@ def main(argv=None) -> None:
         for model in args.models:
             for steps in args.steps:
                 for r in both({"section": "streams", "model": model, "steps": steps, "window_ms": args.window_ms,
-                               "seconds": args.streams_s, "cap": args.streams_max}):
+                               "seconds": args.streams_s, "cap": args.streams_max, "face": args.face}):
                     print(f"streams {model} K={steps} {r['code']:6s}: {r['max_realtime_streams']} real-time streams "
                           f"(load {r['load_avg'][0]:.1f})", flush=True)
                     result["streams"].append(r)
@@ -285,8 +299,8 @@ def main(argv=None) -> None:
                 for n in args.trial_streams:
                     for _ in range(args.repeats):
                         for r in both({"section": "trials", "model": model, "steps": steps, "streams": n,
-                                       "window_ms": args.window_ms, "seconds": args.streams_s}):
-                            print(f"trial {model} K={steps} {n} streams {r['code']:6s}: lag p50/p95 {r['lag_ms_p50']:.0f}/"
+                                       "window_ms": args.window_ms, "seconds": args.streams_s, "face": args.face}):
+                            print(f"trial {model} K={steps} {n} streams{' with a face' if args.face else ''} {r['code']:6s}: lag p50/p95 {r['lag_ms_p50']:.0f}/"
                                   f"{r['lag_ms_p95']:.0f} ms, worst end {r['end_lag_ms_max']:.0f} ms, batch "
                                   f"{r['mean_batch']:.1f} -> {'ok' if r['ok'] else 'falls behind'} (load "
                                   f"{r['load_avg'][0]:.1f})", flush=True)
