@@ -187,7 +187,9 @@ def plot(result: dict, path: Path) -> None:
     for ax, name in zip(axes[0], panels):
         {"profile": _plot_profile, "streams": _plot_streams, "trials": _plot_trials}[name](ax, result)
         ax.grid(alpha=0.3, axis="y")
-    fig.suptitle(f"batched conditioning vs before; load {result['load_avg_before']} -> {result.get('load_avg_after')}", fontsize=9)
+    codes = result["codes"]
+    fig.suptitle(f"{codes['after']} against {codes['before']}; load {result['load_avg_before']} -> "
+                 f"{result.get('load_avg_after')}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
