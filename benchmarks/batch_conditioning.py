@@ -183,7 +183,9 @@ def plot(result: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     panels = [name for name in ("profile", "streams", "trials") if result.get(name)]
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False)
+    trial_counts = len({(r["model"], r["steps"], r["streams"]) for r in result.get("trials") or []})
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels) + 0.9 * max(0, trial_counts - 4), 4.2),
+                             squeeze=False)
     for ax, name in zip(axes[0], panels):
         {"profile": _plot_profile, "streams": _plot_streams, "trials": _plot_trials}[name](ax, result)
         ax.grid(alpha=0.3, axis="y")
@@ -236,11 +238,11 @@ def _plot_trials(ax, result: dict) -> None:
                                  and r["code"] == code])) for k in keys]
         ax.bar(np.arange(len(keys)) + 0.38 * c, vals, 0.38, label=f"{code} ({result['codes'][code]})")
     ax.axhline(result["window_ms"] + 150, color="grey", lw=0.8, label="pass: window + 150 ms")
-    face = ", a face each" if any(r.get("face") for r in runs) else ""
-    ax.set_xticks(np.arange(len(keys)) + 0.19, [f"{m} K={k}\n{n} streams{face}" for m, k, n in keys], fontsize=7)
+    ax.set_xticks(np.arange(len(keys)) + 0.19, [f"{m} K={k}\n{n} streams" for m, k, n in keys], fontsize=7)
     ax.set_yscale("log")
     ax.set_ylabel("lag p95, second half of the trial (ms, median of trials)")
-    ax.set_title("serving trials at fixed stream counts", fontsize=9)
+    face = ", a face on each" if any(r.get("face") for r in runs) else ""
+    ax.set_title(f"serving trials at fixed stream counts{face}", fontsize=9)
     ax.legend(fontsize=7)
 
 
