@@ -202,6 +202,29 @@ def test_sessions_batched_by_the_server_make_the_faces_they_make_alone_and_fail_
         np.testing.assert_allclose(got[k], want[k], atol=1e-6, rtol=0)
 
 
+def test_pitch_is_the_voices_period_and_none_where_unvoiced():
+    """`pitch_semitones` on 40 ms of a harmonic voice at 90-310 Hz: a period of it (the fundamental's, or, as plain
+    autocorrelation may pick, a multiple within the 70 Hz floor) to the lag's rounding, in semitones above 100 Hz;
+    the fundamental itself where no multiple fits (below 140 Hz); noise, silence and a stretch too short for the
+    lowest pitch: None."""
+    from dimgestor.face.life import pitch_semitones
+
+    t = np.arange(640) / SAMPLE_RATE
+    for f0 in (90.0, 123.0, 180.0, 247.0, 310.0):
+        voice = sum(np.sin(2 * np.pi * f0 * h * t + h) / h for h in range(1, 6)).astype(np.float32) * 0.3
+        got = pitch_semitones(voice)
+        assert got is not None, f0
+        periods = [m for m in (1, 2, 3) if f0 / m >= 70.0]
+        m = min(periods, key=lambda m: abs(got - 12 * np.log2(f0 / m / 100)))
+        lag = m * SAMPLE_RATE / f0
+        assert abs(got - 12 * np.log2(f0 / m / 100)) <= 12 * np.log2((lag + 1) / lag), (f0, got)
+        assert m == 1 or f0 >= 140
+    rng = np.random.default_rng(0)
+    assert pitch_semitones(rng.standard_normal(640).astype(np.float32) * 0.3) is None
+    assert pitch_semitones(np.zeros(640, np.float32)) is None
+    assert pitch_semitones(np.sin(2 * np.pi * 150 * t[:400]).astype(np.float32)) is None
+
+
 def test_brows_rise_on_a_vowel_at_the_voices_peak_more_with_a_pitch_rise_and_settle():
     from dimgestor.face.life import Brows
 
