@@ -251,6 +251,13 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
     if root == "tether" and not tether_s > 0:
         raise ValueError(f"tether_s must be > 0, got {tether_s}")
     spec = spec.resolve(skeleton)
+    return _decode(features, spec, spec.joint_indices(skeleton), skeleton.num_joints, state, root, tether_s, anchor)
+
+
+def _decode(features: np.ndarray, spec: FeatureSpec, kept: list[int], num_joints: int, state: RootState, root: str,
+            tether_s: float, anchor: RootState) -> tuple[Pose, RootState]:
+    """`decode_features` with the spec resolved and its joints' indices given (a `PoseDecoder` keeps them: resolving
+    the spec was half of decoding a window)."""
     f = np.asarray(features, dtype=np.float64)
     if f.ndim != 2 or f.shape[1] != spec.dim:
         raise ValueError(f"features must be (n, {spec.dim}) for this spec, got {f.shape}")
@@ -277,9 +284,8 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
         x = a.x + leaky_cumsum(c * u[:, 0] + s * u[:, 1], state.x - a.x, lam)  # rotate by +h_prev about Y
         z = a.z + leaky_cumsum(-s * u[:, 0] + c * u[:, 1], state.z - a.z, lam)
     tilt = np.stack([f[:, 4], np.zeros(n), f[:, 5]], -1)
-    rot = R.quat_identity((n, skeleton.num_joints))
+    rot = R.quat_identity((n, num_joints))
     rot[:, 0] = R.quat_mul(R.yaw_quat(heading), R.expmap_to_quat(tilt))
-    kept = spec.joint_indices(skeleton)
     rot[:, kept] = R.expmap_to_quat(f[:, len(ROOT_COLUMNS):].reshape(n, len(kept), 3))
     pose = Pose(root_pos=np.stack([x, f[:, 3], z], -1), rotations=rot)
     if n == 0:
@@ -295,14 +301,17 @@ class PoseDecoder:
                  root: str = "free", tether_s: float = 5.0):
         if root not in ROOT_MODES:
             raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
+        if root == "tether" and not tether_s > 0:
+            raise ValueError(f"tether_s must be > 0, got {tether_s}")
         self.skeleton = skeleton
         self.spec = spec.resolve(skeleton)
+        self._kept = self.spec.joint_indices(skeleton)
         self.anchor = self.state = RootState(float(start_pos[0]), float(start_pos[2]), float(start_heading))
         self.root, self.tether_s = root, float(tether_s)
 
     def decode(self, features: np.ndarray) -> Pose:
-        pose, self.state = decode_features(features, self.skeleton, self.spec, self.state, self.root, self.tether_s,
-                                           self.anchor)
+        pose, self.state = _decode(features, self.spec, self._kept, self.skeleton.num_joints, self.state, self.root,
+                                   self.tether_s, self.anchor)
         return pose
 
 
