@@ -286,7 +286,7 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     out = tmp_path / "bc.json"
     run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "1", "--batch", "2",
         "--rounds", "2", "--repeats", "1", "--streams-s", "1", "--streams-max", "2", "--trial-streams", "2",
-        "--sections", "profile", "streams", "trials", "--out", str(out))
+        "--sections", "profile", "streams", "trials", "--face", "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["device"].startswith("CPU") and set(r["codes"]) == {"before", "after"} and len(r["load_avg_before"]) == 3
@@ -295,7 +295,9 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
         ms = x["ms_per_round"]
         assert all(finite(ms[p]) for p in ("frontend", "extractor", "denoise", "end_step", "rest", "total"))
         assert ms["total"] > 0 and ms["frontend"] > 0 and ms["denoise"] > 0 and len(x["load_avg"]) == 3
+        assert x["page_faults_per_round"] is None if sys.platform == "win32" else x["page_faults_per_round"] >= 0
     assert sorted(x["code"] for x in r["streams"]) == ["after", "before"]
+    assert all(x["face"] for x in r["streams"] + r["trials"])  # --face: a face on every session
     assert all(x["max_realtime_streams"] >= 0 and x["trials"] for x in r["streams"])
     assert sorted(x["code"] for x in r["trials"]) == ["after", "before"]
     assert all(x["streams"] == 2 and x["windows"] > 0 and finite(x["lag_ms_p95"]) for x in r["trials"])
@@ -305,6 +307,7 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     r = json.loads(out.read_text())
     assert r["groups"] == 2 and "streams" not in r and len(r["profile"]) == 2
     assert all(finite(x["ms_per_window"]["total"]) and x["ms_per_window"]["frontend"] > 0 for x in r["profile"])
+    assert all("page_faults_per_window" in x for x in r["profile"])
 
 
 @pytest.mark.skipif(shutil.which("redis-server") is None, reason="redis-server is not installed")

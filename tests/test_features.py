@@ -9,7 +9,8 @@ import pytest
 from dimgestor import rotations as R
 from dimgestor.bvh import BvhMotion, forward_kinematics, read_bvh, write_bvh
 from dimgestor.features import (
-    ROOT_COLUMNS, FeatureSpec, PoseDecoder, arm_columns, features_to_motion, mirror_features, mirror_motion,
+    ROOT_COLUMNS, FeatureSpec, PoseDecoder, RootState, arm_columns, decode_features, features_to_motion,
+    mirror_features, mirror_motion,
     mirror_name, mix_arms, motion_to_features, resample_pose,
 )
 from dimgestor.training.synthetic import synthetic_motion, synthetic_skeleton
@@ -318,3 +319,22 @@ def test_the_tethers_leaky_sum_adds_as_scipy_lfilter_does_bit_for_bit(lam):
     u, prev = rng.normal(size=500), float(rng.normal())
     assert np.array_equal(leaky_cumsum(u, prev, lam), lfilter([1.0], [1.0, -lam], u, zi=[lam * prev])[0])
     assert np.array_equal(leaky_cumsum(u[:0], prev, lam), np.zeros(0))
+
+
+def test_a_pose_decoder_refuses_a_bad_tether_when_made_and_decodes_as_decode_features():
+    """`PoseDecoder` checks its root settings when made (not at its first window), and its windows, with the spec
+    resolved once, are `decode_features`' own: the same poses and root state."""
+    sk = synthetic_motion(1.0, 20.0, seed=1).skeleton
+    spec = FeatureSpec()  # unresolved: both resolve it
+    with pytest.raises(ValueError, match="tether_s"):
+        PoseDecoder(sk, spec, root="tether", tether_s=0.0)
+    with pytest.raises(ValueError, match="root must be"):
+        PoseDecoder(sk, spec, root="float")
+    f = np.random.default_rng(3).standard_normal((30, spec.resolve(sk).dim)) * 0.2
+    dec = PoseDecoder(sk, spec, start_pos=(1.0, 0.0, 2.0), start_heading=0.3, root="tether", tether_s=2.0)
+    got = [dec.decode(f[a:a + 3]) for a in range(0, 30, 3)]
+    start = RootState(1.0, 2.0, 0.3)
+    want, state = decode_features(f, sk, spec, start, "tether", 2.0, start)
+    np.testing.assert_allclose(np.concatenate([p.rotations for p in got]), want.rotations, atol=1e-12)
+    np.testing.assert_allclose(np.concatenate([p.root_pos for p in got]), want.root_pos, atol=1e-12)
+    assert dec.state.heading == pytest.approx(state.heading) and dec.state.x == pytest.approx(state.x)
