@@ -246,12 +246,16 @@ def decode_features(features: np.ndarray, skeleton: Skeleton, spec: FeatureSpec,
     the model's drift. "lock" keeps position and heading at `anchor`. Height and tilt always come from
     the features.
     """
+    _check_root(root, tether_s)
+    spec = spec.resolve(skeleton)
+    return _decode(features, spec, spec.joint_indices(skeleton), skeleton.num_joints, state, root, tether_s, anchor)
+
+
+def _check_root(root: str, tether_s: float) -> None:
     if root not in ROOT_MODES:
         raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
     if root == "tether" and not tether_s > 0:
         raise ValueError(f"tether_s must be > 0, got {tether_s}")
-    spec = spec.resolve(skeleton)
-    return _decode(features, spec, spec.joint_indices(skeleton), skeleton.num_joints, state, root, tether_s, anchor)
 
 
 def _decode(features: np.ndarray, spec: FeatureSpec, kept: list[int], num_joints: int, state: RootState, root: str,
@@ -299,10 +303,7 @@ class PoseDecoder:
 
     def __init__(self, skeleton: Skeleton, spec: FeatureSpec, start_pos=(0.0, 0.0, 0.0), start_heading: float = 0.0,
                  root: str = "free", tether_s: float = 5.0):
-        if root not in ROOT_MODES:
-            raise ValueError(f"root must be one of {ROOT_MODES}, got {root!r}")
-        if root == "tether" and not tether_s > 0:
-            raise ValueError(f"tether_s must be > 0, got {tether_s}")
+        _check_root(root, tether_s)
         self.skeleton = skeleton
         self.spec = spec.resolve(skeleton)
         self._kept = self.spec.joint_indices(skeleton)

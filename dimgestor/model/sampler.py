@@ -81,8 +81,11 @@ class StateBuffers:
         return len(self._bufs)
 
     @staticmethod
-    def _free(entry) -> bool:
-        return all(_USE_COUNT(t.untyped_storage()._cdata) == n for t, n in zip(entry[2], entry[3]))
+    def _uses(t: torch.Tensor) -> int:
+        return _USE_COUNT(t.untyped_storage()._cdata)
+
+    def _free(self, entry) -> bool:
+        return all(self._uses(t) == n for t, n in zip(entry[2], entry[3]))
 
     def take(self, like: StepStates, rows: int) -> StepStates:
         """A state of `rows` rows shaped as `like`'s (contents undefined) that nothing else refers to."""
@@ -99,7 +102,7 @@ class StateBuffers:
                 cap = rows if rows <= 8 else -(-rows // 8) * 8  # a few rows to spare, for the next batch's size
                 buf = StepStates(*(torch.empty(a + (cap,) + b, dtype=t.dtype, device=t.device)
                                    for (a, b), t in zip(shapes, like)))
-                entry = (key, cap, buf, tuple(_USE_COUNT(t.untyped_storage()._cdata) for t in buf))
+                entry = (key, cap, buf, tuple(self._uses(t) for t in buf))
                 self.made += 1
                 spare = [e for e in self._bufs if self._free(e)]
                 drop = {id(e) for e in spare[:max(0, len(spare) - self.keep)]}  # the longest unused first
