@@ -47,6 +47,7 @@ class Browser:
         while not (port_file.exists() and len(port_file.read_text().split()) >= 2):
             if time.monotonic() > deadline or self.proc.poll() is not None:
                 self.proc.kill()
+                self.proc.wait()
                 shutil.rmtree(self.tmpdir, ignore_errors=True)
                 raise RuntimeError(f"chromium did not start:\n{self.log.read_text()[-3000:]}")
             time.sleep(0.1)
