@@ -1,18 +1,20 @@
-"""`dimgestor distill` (issue 50): a guided K-step teacher distilled into a 1- or 2-pass student on the synthetic
-fixture: the held-out distillation loss falls, the student's checkpoint samples in its passes without guidance, it
+"""`dimgestor distill` (issue 50): a guided K-step teacher distilled into a 1- or 2-pass student, or a K-pass one with
+its guidance folded in, on the synthetic fixture: the held-out distillation loss falls, the student's checkpoint samples in its passes without guidance, it
 streams exactly (any chunking equals the whole recording) and its batched streams equal each stream alone."""
 import json
 
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from pydantic import ValidationError
 
 from dimgestor.streaming.batch import push_many
 from dimgestor.streaming.checkpoint import load_checkpoint
 from dimgestor.streaming.stream import GestureStream, generate_offline
 from dimgestor.audio import save_wav
-from dimgestor.training.distill import GAIN_RANGE, DistillConfig, SpeechBank, calibration, distill
+from dimgestor.model.diffusion import Diffusion
+from dimgestor.training.distill import GAIN_RANGE, DistillConfig, SpeechBank, calibration, distill, teacher_steps
 from dimgestor.training.synthetic import make_synthetic_pair, synthetic_speech
 from dimgestor.training.train import TrainConfig, train
 from helpers.stream import noise_audio, stream_in_pieces
@@ -35,7 +37,7 @@ def teacher(data, tmp_path_factory):
                              overrides={"guidance": 1.5, "sample_steps": 4}))
 
 
-@pytest.fixture(scope="module", params=[1, 2])
+@pytest.fixture(scope="module", params=[1, 2, 4])  # (4: the teacher's own steps, its guidance folded in)
 def student(request, data, teacher, tmp_path_factory):
     out = tmp_path_factory.mktemp(f"student{request.param}")
     last = distill(DistillConfig(checkpoint=str(teacher), out=str(out / "run"), steps=request.param, data=str(data),
@@ -52,7 +54,9 @@ def test_the_held_out_distillation_loss_falls_and_the_student_samples_in_its_pas
     b, t = load_checkpoint(last), load_checkpoint(teacher)
     assert (b.config.sample_steps, b.config.guidance) == (steps, 1.0)
     assert (t.config.sample_steps, t.config.guidance) == (4, 1.5)
-    assert b.info["distilled_from"] == str(teacher) and b.info["teacher"] == {"sample_steps": 4, "guidance": 1.5}
+    assert b.info["distilled_from"] == str(teacher)
+    assert b.info["teacher"] == {"sample_steps": 4, "guidance": 1.5, "step": t.info["step"],  # (its own run's record)
+                                 "history": t.info["history"], "train_wall_s": t.info["train_wall_s"]}
     stream = b.stream()
     assert len(stream.pairs) == steps and stream.guidance == 1.0
     assert stream.state.denoiser.batch == 1  # one row: no unconditional branch
@@ -136,7 +140,45 @@ def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path)
     log = [json.loads(line) for line in (tmp_path / "on" / "log.jsonl").read_text().splitlines()]
     assert log[0]["step"] == 0 and log[0]["valid_loss"] == pytest.approx(before, rel=1e-5)
     with pytest.raises(ValueError, match="not of --steps"):
-        distill(DistillConfig(out=str(tmp_path / "other"), init=str(last), steps=3 - steps, **common), progress=False)
+        distill(DistillConfig(out=str(tmp_path / "other"), init=str(last), steps={1: 2, 2: 1, 4: 2}[steps], **common),
+                progress=False)
+
+
+def test_a_student_of_the_teachers_own_steps_learns_each_steps_guided_output(student, teacher, data):
+    """--steps K of a K-step teacher: each step of the student's chain, on the teacher's noisy motion of that step,
+    gives nearer the guided output of the teacher's two rows than the teacher's conditional row alone does (where
+    the student started)."""
+    steps, _, last = student
+    if steps != 4:
+        pytest.skip("a student of fewer steps learns the whole chain")
+    b, t = load_checkpoint(last), load_checkpoint(teacher)
+    diffusion = Diffusion(t.config)
+    pairs = diffusion.sampling_pairs("ddim", 4)
+    assert b.stream().pairs == t.stream().pairs == pairs
+    fe = t.model.frontend
+    feats = fe(torch.from_numpy(noise_audio(2.5, seed=9))[None], fe.init_state(1, "cpu"))[0]
+    with torch.no_grad():
+        cond_t, _ = t.model.condition(feats)
+        x = diffusion.noise_like(torch.zeros(2, cond_t.shape[1], t.config.motion_dim), torch.Generator().manual_seed(3))
+        xs, ts, target = teacher_steps(t.model, diffusion, pairs, cond_t.expand(2, -1, -1), x, 1.5)
+        assert ts.tolist() == [p[0] for p in pairs for _ in range(2)]
+        before = t.model(xs, ts, cond_t.expand(8, -1, -1))[0]
+        after = b.model(xs, ts, b.model.condition(feats)[0].expand(8, -1, -1))[0]
+    for k in range(4):
+        rows = slice(2 * k, 2 * k + 2)
+        assert F.mse_loss(after[rows], target[rows]) < 0.7 * F.mse_loss(before[rows], target[rows]), k
+
+
+def test_a_student_of_more_steps_than_its_teacher_or_of_its_steps_without_guidance_is_refused(teacher, data, tmp_path):
+    common = dict(checkpoint=str(teacher), data=str(data), max_steps=1, batch_size=2, valid_every=0,
+                  cache_dir=str(tmp_path / "cache"))
+    cases = [(dict(steps=5), "--steps 5: more than the teacher's own 4 steps"),
+             (dict(steps=4, guidance=1.0), "--steps 4: the teacher already samples in 4 passes of one row"),
+             (dict(steps=4, spread_weight=1.0), "--spread-weight: for a student of fewer steps")]
+    for k, (args, words) in enumerate(cases):
+        with pytest.raises(ValueError, match=words):
+            distill(DistillConfig(out=str(tmp_path / f"o{k}"), **args, **common), progress=False)
+        assert not (tmp_path / f"o{k}").exists()
 
 
 @pytest.fixture(scope="module")
@@ -222,7 +264,8 @@ def test_the_teachers_guidance_may_be_set_and_is_recorded(teacher, data, tmp_pat
                                      cache_dir=str(tmp_path / "cache")), progress=False)
         first[scale] = json.loads((run / "log.jsonl").read_text().splitlines()[0])["valid_loss"]
         b = load_checkpoint(last)
-        assert b.info["teacher"] == {"sample_steps": 4, "guidance": scale or 1.5} and b.config.guidance == 1.0
+        assert (b.info["teacher"]["sample_steps"], b.info["teacher"]["guidance"]) == (4, scale or 1.5)
+        assert b.config.guidance == 1.0
     assert abs(first[2.5] - first[None]) > 1e-3 * first[None], first
     with pytest.raises(ValidationError, match="greater than 0"):
         DistillConfig(out="x", guidance=0)

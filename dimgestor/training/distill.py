@@ -1,4 +1,5 @@
-"""`dimgestor distill`: a trained model -> a student that samples in 1 or 2 network passes (issue "cost").
+"""`dimgestor distill`: a trained model -> a student of one network row a pass, in 1 or 2 passes or in the
+teacher's own steps with its guidance folded in (issue "cost").
 
 The teacher is the checkpoint as it streams: its K-step DDIM chain with classifier-free guidance (two network rows
 a step). The student starts as a copy of it and learns to give, in `--steps` passes of one row (guidance folded in,
@@ -24,6 +25,14 @@ in the teacher's motion and in the student's, and the student's sampled motion i
 (its mean moved to the teacher's), in its weights (`DiMGestor.calibrate`), so it moves as much as its teacher
 wherever it streams (torch, ONNX Runtime, the browser). It is off by default: for the shipped default model it gave
 the student the teacher's liveliness back only in part, at a worse FGD (benchmarks/README.md, *A one-pass student*).
+
+With `--steps` equal to the teacher's own steps, the student folds the guidance in step by step instead (Meng et al.
+2023, "On distillation of guided diffusion models", its first stage): at every step of the teacher's chain, on the
+teacher's own noisy motion of that step, it learns in its one row the guided output of the teacher's two rows. Its
+chain is the teacher's and only the unconditional row goes, so a window costs about half, and each step's answer is
+one the student can give exactly rather than the mean of several (what makes shorter students move less, above).
+The loss is the squared difference of the outputs; `--vel-weight`, `--acc-weight` and `--spread-weight` are for
+students of fewer steps than their teacher's.
 """
 from __future__ import annotations
 
@@ -46,7 +55,8 @@ from .augment import AugmentConfig, augment
 from .dataset import GestureDataset
 from .train import WindowBank
 
-__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "student_motion", "calibration"]
+__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "teacher_steps", "student_motion",
+           "calibration"]
 
 GAIN_RANGE = (0.5, 2.0)  # a feature's calibration gain is kept inside this (one the student barely moves stays sane)
 
@@ -59,7 +69,8 @@ class DistillConfig(BaseModel):
     checkpoint: str | None = None  # the teacher (None: the embedded default model)
     init: str | None = None  # a student to go on from (an earlier run's checkpoint); None: the teacher's weights
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
-    steps: int = Field(2, ge=1, le=2)  # the student's sampler steps (network passes a window)
+    steps: int = Field(2, ge=1, le=64)  # the student's sampler steps (network passes a window): 1 or 2 learn the
+    # teacher's whole chain; the teacher's own steps fold its guidance in step by step (no more than the teacher's)
     guidance: float | None = Field(None, gt=0)  # the teacher's classifier-free guidance scale (None: its config's)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
     audio: tuple[str, ...] = ()  # WAV files or folders of speech without motion, labelled by the teacher too
@@ -98,6 +109,25 @@ def teacher_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Te
         eps, x0 = diffusion.split(out, x, t)
         x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
     return x
+
+
+def teacher_steps(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
+                  guidance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every step of the teacher's chain (as `teacher_motion`), for a student that folds its guidance in: (inputs
+    (K*B, T, D): each step's noisy motion, steps (K*B,): its t, outputs (K*B, T, D): the guided output of the
+    teacher's two rows there), in the chain's order, B rows a step."""
+    B = x.shape[0]
+    c = torch.cat([cond, torch.zeros_like(cond)])
+    xs, ts, outs = [], [], []
+    for t, t_prev in pairs:
+        out, _ = model(torch.cat([x, x]), t, c)
+        out = guide(out[:B], out[B:], guidance)
+        xs.append(x)
+        ts.append(torch.full((B,), t, dtype=torch.long, device=x.device))
+        outs.append(out)
+        eps, x0 = diffusion.split(out, x, t)
+        x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
+    return torch.cat(xs), torch.cat(ts), torch.cat(outs)
 
 
 def student_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -240,7 +270,15 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     guidance = check_guidance(tc.guidance if cfg.guidance is None else cfg.guidance)
     diffusion = Diffusion(tc)
     t_pairs = diffusion.sampling_pairs("ddim", tc.sample_steps)
+    if cfg.steps > len(t_pairs):
+        raise ValueError(f"--steps {cfg.steps}: more than the teacher's own {len(t_pairs)} steps")
     s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
+    fold = s_pairs == t_pairs  # the teacher's own chain: its guidance folded in step by step (module doc)
+    if fold and guidance == 1.0:
+        raise ValueError(f"--steps {cfg.steps}: the teacher already samples in {cfg.steps} passes of one row "
+                         f"(guidance 1); its student needs fewer steps")
+    if fold and cfg.spread_weight > 0:
+        raise ValueError("--spread-weight: for a student of fewer steps than its teacher's")
     student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0, "calibrated": cfg.calibrate})
     student = DiMGestor(student_config).to(device)
     start = teacher if cfg.init is None else load_checkpoint(cfg.init, device).model
@@ -269,7 +307,7 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     extra = f", {len(speech)} windows of --audio speech ({speech.seconds / 60:.1f} min)" if speech else ""
     rows = len(t_pairs) * (2 if guidance != 1 else 1)
     print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({rows} network rows a window); "
-          f"student: {cfg.steps} step(s), 1 row; {len(bank)} training windows x {cfg.aug_copies + 1} versions of "
+          f"student: {cfg.steps} step(s), 1 row{' (the guidance folded in, step by step)' if fold else ''}; {len(bank)} training windows x {cfg.aug_copies + 1} versions of "
           f"their audio{extra} ({time.time() - t0:.0f} s), {len(valid or [])} held out")
     g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
@@ -338,11 +376,18 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
             feats = torch.cat([feats[:half], feats[:half]])
         feats = feats.to(device)
         x = diffusion.noise_like(torch.zeros(len(feats), T, c.motion_dim), g).to(device)
-        with torch.no_grad():
-            target = teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x, guidance)
         student.train()
-        pred = student_motion(student, diffusion, s_pairs, student.condition(feats)[0][:, :T], x)
-        loss = _loss(pred, target, cfg)
+        if fold:
+            with torch.no_grad():
+                xs, ts, target = teacher_steps(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x,
+                                               guidance)
+            cond = student.condition(feats)[0][:, :T]
+            loss = F.mse_loss(student(xs, ts, cond.repeat(len(t_pairs), 1, 1))[0], target)
+        else:
+            with torch.no_grad():
+                target = teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x, guidance)
+            pred = student_motion(student, diffusion, s_pairs, student.condition(feats)[0][:, :T], x)
+            loss = _loss(pred, target, cfg)
         if cfg.spread_weight > 0:
             loss = loss + cfg.spread_weight * F.mse_loss(pred[:half] - pred[half:], target[:half] - target[half:])
         for group in opt.param_groups:
@@ -366,8 +411,10 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
         if "valid_loss" in record or step == cfg.max_steps:
             _log(out, record)
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
-            info = {**bundle.info, "step": step, "distilled_from": str(bundle.path), "history": [record],
-                    "distill": cfg.model_dump(), "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance}}
+            taught = {k: bundle.info[k] for k in ("step", "history", "train_wall_s") if k in bundle.info}
+            info = {**{k: v for k, v in bundle.info.items() if k != "train_wall_s"}, "step": step,
+                    "distilled_from": str(bundle.path), "history": [record], "distill": cfg.model_dump(),
+                    "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance, **taught}}
             if cfg.calibrate:
                 info["calibration"] = calibrated()
             last = save_checkpoint(out / f"ckpt_{step:07d}", ema, bundle.feature_spec, bundle.skeleton, bundle.mean,
@@ -381,20 +428,24 @@ def register(subparsers) -> None:
     from ..cli_help import examples
 
     p = subparsers.add_parser(
-        "distill", help="distil a trained model into a student that samples in 1 or 2 network passes",
+        "distill", help="distil a trained model into a student of one network row a pass (1 or 2 passes, or guidance "
+                                "folded into the teacher's steps)",
         description="Distil a checkpoint (its K-step sampler with guidance, two network rows a step) into a "
                     "student that gives the same motion in --steps passes of one row: several times cheaper a "
                     "window, streamed exactly as any model. Only the audio of the data is used (the teacher labels "
                     "it).",
         epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_2pass",
                         "dimgestor distill --out runs/default_1pass --steps 1 --data ../shared/data/zeggs_sample",
+                        "dimgestor distill --out runs/default_folded --steps 4 --data ../shared/data/zeggs_sample",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_2pass"))
     d = DistillConfig(out="")
     p.add_argument("--checkpoint", default=None, metavar="DIR",
                    help="the teacher: a checkpoint folder, a run folder (its latest), 'default' or 'live' "
                         "(default: the embedded default model)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder for the student's checkpoints and log.jsonl")
-    p.add_argument("--steps", type=int, choices=[1, 2], default=d.steps, help="the student's network passes a window")
+    p.add_argument("--steps", type=int, default=d.steps, metavar="K",
+                   help="the student's network passes a window: 1 or 2 learn the teacher's whole chain; the teacher's "
+                        "own step count folds its guidance in, step by step (about half the cost a window)")
     p.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="the teacher's classifier-free guidance scale (default: its config's)")
     p.add_argument("--init", default=None, metavar="DIR",
