@@ -86,16 +86,23 @@ web: $(VENV)/.onnx-installed $(WEB)/node_modules/.package-lock.json
 # on the ZEGGS sample clip (last 15 s held out) with the default "streaming" recipe (mirroring and 0.9x/1.1x
 # speed perturbation on, as for any small set; audio augmentation off: it did not raise the unseen-voice
 # coupling on this clip), one CPU thread (deterministic; ~12 min on a quiet machine: the shipped run took 697 s),
-# 1200 steps (the unseen-voice numbers against steps are in benchmarks/README.md), then copy its inference files
-# into the package with its sampling default: K = 4 DDIM steps, classifier-free guidance 1.25, no output filter.
+# 1200 steps (the unseen-voice numbers against steps are in benchmarks/README.md), exported with its sampling
+# default (K = 4 DDIM steps, classifier-free guidance 1.25, no output filter) as the teacher; then its guidance is
+# folded into one network row a step (`distill --steps 4`: half the cost a window, the same motion's measures) on the
+# clip's training audio and 54 minutes of espeak-ng speech (benchmarks/speech_corpus.py; needs espeak-ng), two
+# threads, ~17 min (the shipped run took 916 s), and the student's inference files go into the package.
 ZEGGS ?= ../shared/data/zeggs_sample
 default-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/default \
 		--max-steps 1200 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 400 --valid-every 400 --seed 0 \
 		--valid-seconds 15 --no-augment --set frontend=speech --set lookahead_ms=300 --set down_kernel=41 \
 		--cond-drop 0.15
-	$(BIN)/dimgestor export --checkpoint runs/default --out dimgestor/default_model --steps 4 --smooth 0 \
+	$(BIN)/dimgestor export --checkpoint runs/default --out runs/default_teacher --steps 4 --smooth 0 \
 		--guidance 1.25
+	$(BIN)/python benchmarks/speech_corpus.py --out runs/speech
+	$(BIN)/dimgestor distill --checkpoint runs/default_teacher --data $(ZEGGS) --out runs/default_folded --steps 4 \
+		--audio runs/speech --max-steps 1200 --valid-every 200 --ckpt-every 200 --threads 2
+	$(BIN)/dimgestor export --checkpoint runs/default_folded --out dimgestor/default_model --steps 4 --smooth 0
 
 # The embedded live model (`--checkpoint live`, MODEL_CARD.md "The live model"): the default model's recipe with
 # the realtime preset's own 150 ms of lookahead (downsampler kernel 31), so a frame needs audio up to 200 ms after

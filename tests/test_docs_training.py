@@ -82,7 +82,7 @@ def test_the_train_commands_use_only_flags_train_has(text):
         assert not unknown, f"{command!r}: dimgestor train has no {unknown}"
 
 
-FREE = {"train": "--data", "export": "--out"}  # where the guide may name another folder than the Makefile
+FREE = {"train": "--data", "export": "--out", "distill": "--data"}  # where the guide may name another folder
 
 
 def _options(command: str, sub: str) -> list[str]:
@@ -94,11 +94,13 @@ def _options(command: str, sub: str) -> list[str]:
 def test_the_shipped_recipe_is_the_makefiles_default_model(text):
     make = (DOC.parents[1] / "Makefile").read_text().replace("\\\n", " ")
     target = re.search(r"^default-model:.*?\n((?:\t.*\n)+)", make, re.M).group(1)
-    made = {sub: _options(line.replace("$(BIN)/", ""), sub) for line in target.splitlines()
-            for sub in ("train", "export") if f"dimgestor {sub} " in line}
+    subs = ("train", "export", "distill")
+    made = [(sub, _options(line.replace("$(BIN)/", ""), sub)) for line in target.splitlines()
+            for sub in subs if f"dimgestor {sub} " in line]
     block = next(b for b in re.findall(r"```\n(.*?)```", text, re.S) if "--out runs/default" in b)
-    shown = {sub: _options(line, sub) for line in block.replace("\\\n", " ").splitlines()
-             for sub in ("train", "export") if f"dimgestor {sub} " in line}
-    assert shown["train"] == made["train"]
+    shown = [(sub, _options(line, sub)) for line in block.replace("\\\n", " ").splitlines()
+             for sub in subs if f"dimgestor {sub} " in line]
+    assert [sub for sub, _ in made] == ["train", "export", "distill", "export"]
     # (export's --sample-steps is spelled --steps in the guide, as in the CLI's one name for it)
-    assert shown["export"] == sorted(w.replace("--sample-steps", "--steps") for w in made["export"])
+    assert shown == [(sub, sorted(w.replace("--sample-steps", "--steps") for w in words)) for sub, words in made]
+    assert "benchmarks/speech_corpus.py --out runs/speech" in block and "speech_corpus.py --out runs/speech" in target
