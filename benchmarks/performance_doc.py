@@ -303,9 +303,9 @@ def render(results: Path = RESULTS) -> str:
             "each benchmark works, how to re-run it and the history of its numbers are in "
             "[benchmarks/README.md](../benchmarks/README.md). "
             "After a benchmark is re-run, `python benchmarks/performance_doc.py` rewrites this page "
-            "(`--check` says whether it is current). The sections on one stream, streams per process and the face's "
-            "cost measured the default model before its guidance was folded in (two network rows a stream and step "
-            "instead of one): the model it serves now costs less than they say.", ""]
+            "(`--check` says whether it is current). Except for the fixed-count trials with a face, the figures of "
+            "the default model were measured before its guidance was folded in (two network rows a stream and step "
+            "instead of one): the model it serves now costs less a window than they say.", ""]
     body = one_stream(r) + streams(r) + model_cost(r) + face(r) + presets(r) + latency(r) + gpu(r)
     return "\n".join(head + body).rstrip("\n") + "\n"
 

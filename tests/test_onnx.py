@@ -436,8 +436,9 @@ def test_batched_graph_rows_equal_single_stream_calls(exported):
             row = np.take(together[s["output"]], range(b * k, (b + 1) * k), axis=s["batch_dim"])
             assert row.shape == alone[b][s["output"]].shape
             np.testing.assert_allclose(row, alone[b][s["output"]], rtol=0, atol=1e-5, equal_nan=True)
-    kept = np.take(together["denoiser_ssm_out"], [0, 1], axis=2)  # row 0 in its warm-up: its rows (2 branches)
-    assert np.array_equal(kept, np.take(feeds["denoiser_ssm"], [0, 1], axis=2))
+    rows = list(range(m["sampler"]["rows"]))  # row 0 in its warm-up keeps its rows (a guided model's 2 branches)
+    kept = np.take(together["denoiser_ssm_out"], rows, axis=2)
+    assert np.array_equal(kept, np.take(feeds["denoiser_ssm"], rows, axis=2))
 
 
 def test_plan_mixes_graph_sizes_at_the_least_cost(exported):

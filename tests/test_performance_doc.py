@@ -105,7 +105,10 @@ def test_the_served_face_count_is_the_most_kept_in_every_trial_and_in_some(perf,
                     x["ok"] = True  # (never the page's)
         return change
 
-    edit(results / name, only(32, 40))
-    assert "kept 32 streams with a face in real time in every trial, and 40 in some." in perf.render(results)
-    edit(results / name, only(36, 36))
-    assert "kept 36 streams with a face in real time in every trial." in perf.render(results)
+    counts = sorted({x["streams"] for x in json.loads((results / name).read_text())["trials"]})
+    assert len(counts) >= 3, counts
+    edit(results / name, only(counts[0], counts[1]))
+    assert (f"kept {counts[0]} streams with a face in real time in every trial, and {counts[1]} in some."
+            in perf.render(results))
+    edit(results / name, only(counts[1], counts[1]))
+    assert f"kept {counts[1]} streams with a face in real time in every trial." in perf.render(results)
