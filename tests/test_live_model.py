@@ -45,7 +45,10 @@ def test_the_live_model_answers_150_ms_sooner(live):
     assert live.config.frontend == default.config.frontend == "speech"
     assert (live.config.lookahead_ms, default.config.lookahead_ms) == (150, 300)
     assert live.model.lookahead_s == pytest.approx(0.2) and default.model.lookahead_s == pytest.approx(0.35)
-    assert (live.config.sample_steps, live.config.guidance, live.config.smooth_hz or 0) == (4, 1.25, 0)
+    # both with their teacher's guidance 1.25 folded in (`distill --steps 4`): one network row a step
+    for b in (live, default):
+        assert (b.config.sample_steps, b.config.guidance, b.config.smooth_hz or 0) == (4, 1.0, 0)
+        assert b.info["teacher"]["sample_steps"] == 4 and b.info["teacher"]["guidance"] == 1.25
 
 
 @pytest.mark.parametrize("clip", ["demo_en.wav", "demo_zh.wav"])
