@@ -1,6 +1,7 @@
-"""`dimgestor distill` (issue 50): a guided K-step teacher distilled into a 1- or 2-pass student, or a K-pass one with
-its guidance folded in, on the synthetic fixture: the held-out distillation loss falls, the student's checkpoint samples in its passes without guidance, it
-streams exactly (any chunking equals the whole recording) and its batched streams equal each stream alone."""
+"""`dimgestor distill` (issue 50): a guided K-step teacher distilled into a 1- or 2-pass student, or a K-pass one
+with its guidance folded in, on the synthetic fixture: the held-out distillation loss falls, the student's
+checkpoint samples in its passes without guidance, it streams exactly (any chunking equals the whole recording) and
+its batched streams equal each stream alone."""
 import json
 
 import numpy as np

@@ -307,8 +307,9 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     extra = f", {len(speech)} windows of --audio speech ({speech.seconds / 60:.1f} min)" if speech else ""
     rows = len(t_pairs) * (2 if guidance != 1 else 1)
     print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({rows} network rows a window); "
-          f"student: {cfg.steps} step(s), 1 row{' (the guidance folded in, step by step)' if fold else ''}; {len(bank)} training windows x {cfg.aug_copies + 1} versions of "
-          f"their audio{extra} ({time.time() - t0:.0f} s), {len(valid or [])} held out")
+          f"student: {cfg.steps} step(s), 1 row{' (the guidance folded in, step by step)' if fold else ''}; "
+          f"{len(bank)} training windows x {cfg.aug_copies + 1} versions of their audio{extra} "
+          f"({time.time() - t0:.0f} s), {len(valid or [])} held out")
     g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     c = tc
@@ -428,15 +429,15 @@ def register(subparsers) -> None:
     from ..cli_help import examples
 
     p = subparsers.add_parser(
-        "distill", help="distil a trained model into a student of one network row a pass (1 or 2 passes, or guidance "
-                                "folded into the teacher's steps)",
+        "distill", help="distil a trained model into a student of one network row a pass (1 or 2 passes, or "
+                        "guidance folded into the teacher's steps)",
         description="Distil a checkpoint (its K-step sampler with guidance, two network rows a step) into a "
                     "student that gives the same motion in --steps passes of one row: several times cheaper a "
                     "window, streamed exactly as any model. Only the audio of the data is used (the teacher labels "
                     "it).",
         epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_2pass",
                         "dimgestor distill --out runs/default_1pass --steps 1 --data ../shared/data/zeggs_sample",
-                        "dimgestor distill --out runs/default_folded --steps 4 --data ../shared/data/zeggs_sample",
+                        "dimgestor distill --checkpoint runs/mine --out runs/mine_folded --steps 4",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_2pass"))
     d = DistillConfig(out="")
     p.add_argument("--checkpoint", default=None, metavar="DIR",
