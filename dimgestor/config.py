@@ -84,6 +84,9 @@ class ModelConfig(BaseModel):
     # --- inference defaults (what generate/serve/eval use when not told) ---
     sample_steps: int = Field(8, ge=1)  # DDIM steps K
     ddim_spacing: Literal["trailing", "linspace"] = "trailing"  # where the K steps sit (diffusion.ddim_pairs)
+    # the sampler's own timesteps, highest first, where it has them: a progressively distilled student's are
+    # every r-th of its teacher's (`dimgestor distill`); they replace ddim_spacing when K is their count
+    ddim_timesteps: tuple[int, ...] | None = None
     # classifier-free guidance scale s: out_u + s (out_c - out_u), out_u with the condition zeroed. 1 = the
     # plain conditional sampler (no unconditional rows at all), 0 = the unconditional model; > 1 needs a model
     # trained with condition dropout (`dimgestor train --cond-drop`) and costs a second batch row per stream
@@ -151,6 +154,11 @@ class ModelConfig(BaseModel):
                 f"{self.feats_per_frame}: lower lookahead_ms or raise down_kernel to >= {la + self.feats_per_frame}")
         if self.sample_steps > self.n_steps:
             raise ValueError(f"sample_steps {self.sample_steps} exceeds the {self.n_steps} diffusion steps")
+        ts = self.ddim_timesteps
+        if ts is not None and (not ts or any(a <= b for a, b in zip(ts, ts[1:])) or ts[0] >= self.n_steps
+                               or ts[-1] < 0):
+            raise ValueError(f"ddim_timesteps must be strictly decreasing steps in 0..{self.n_steps - 1}, "
+                             f"got {list(ts)}")
         if not 0 < self.beta_start < self.beta_end < 1:
             raise ValueError(f"need 0 < beta_start < beta_end < 1, got {self.beta_start}, {self.beta_end}")
         if len(set(self.speakers)) != len(self.speakers) or any(not s for s in self.speakers):

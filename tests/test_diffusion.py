@@ -22,6 +22,31 @@ def test_ddim_pairs_are_exact():
         ddim_pairs(1001, 1000)
 
 
+def test_a_configs_own_timesteps_set_its_ddim_steps_at_their_count():
+    """ddim_timesteps (a progressively distilled student's): the pairs at their count, ddim_pairs at any other;
+    refused unless strictly decreasing inside the schedule."""
+    d = Diffusion(get_preset("tiny", n_steps=8, ddim_spacing="linspace", ddim_timesteps=(7, 2)))
+    assert d.sampling_pairs("ddim", 2) == [(7, 2), (2, -1)]
+    assert d.sampling_pairs("ddim", 4) == ddim_pairs(4, 8, "linspace") == [(7, 5), (5, 2), (2, 0), (0, -1)]
+    for bad in ((2, 7), (8, 2), (7, 7), (3, -1), ()):
+        with pytest.raises(ValueError, match="ddim_timesteps must be strictly decreasing steps in 0..7"):
+            get_preset("tiny", n_steps=8, ddim_timesteps=bad)
+
+
+def test_the_x0_that_reaches_a_point_is_the_one_whose_ddim_step_lands_there():
+    """x0_reaching: from x_t, one deterministic DDIM step with that x0 lands on the given x_prev (the target of a
+    progressively distilled step), and the last step's is x_prev itself."""
+    d = Diffusion(get_preset("tiny", n_steps=8, schedule="cosine"))
+    g = torch.Generator().manual_seed(0)
+    x_t, x_prev = torch.randn(2, 5, 3, generator=g, dtype=torch.float64), torch.randn(2, 5, 3, generator=g,
+                                                                                       dtype=torch.float64)
+    for t, t_prev in ((7, 2), (5, 0), (2, -1)):
+        x0 = d.x0_reaching(x_t, x_prev, t, t_prev)
+        eps = (x_t - math.sqrt(d.a(t)) * x0) / math.sqrt(1 - d.a(t))
+        assert torch.allclose(d.ddim_step(x_t, eps, t, t_prev, x0=x0)[0], x_prev, atol=1e-9)
+    assert torch.equal(d.x0_reaching(x_t, x_prev, 2, -1), x_prev)
+
+
 def test_schedules():
     lin = Diffusion(get_preset("tiny", schedule="linear"))
     assert lin.betas[0].item() == pytest.approx(1e-4) and lin.betas[-1].item() == pytest.approx(8e-2)

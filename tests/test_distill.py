@@ -1,7 +1,7 @@
 """`dimgestor distill` (issue 50): a guided K-step teacher distilled into a 1- or 2-pass student, or a K-pass one
-with its guidance folded in, on the synthetic fixture: the held-out distillation loss falls, the student's
-checkpoint samples in its passes without guidance, it streams exactly (any chunking equals the whole recording) and
-its batched streams equal each stream alone."""
+with its guidance folded in, or an unguided one distilled progressively into half its steps, on the synthetic
+fixture: the held-out distillation loss falls, the student's checkpoint samples in its passes without guidance, it
+streams exactly (any chunking equals the whole recording) and its batched streams equal each stream alone."""
 import json
 
 import numpy as np
@@ -15,7 +15,8 @@ from dimgestor.streaming.checkpoint import load_checkpoint
 from dimgestor.streaming.stream import GestureStream, generate_offline
 from dimgestor.audio import save_wav
 from dimgestor.model.diffusion import Diffusion
-from dimgestor.training.distill import GAIN_RANGE, DistillConfig, SpeechBank, calibration, distill, teacher_steps
+from dimgestor.training.distill import (GAIN_RANGE, DistillConfig, SpeechBank, calibration, distill, student_pairs,
+                                        teacher_spans, teacher_steps)
 from dimgestor.training.synthetic import make_synthetic_pair, synthetic_speech
 from dimgestor.training.train import TrainConfig, train
 from helpers.stream import noise_audio, stream_in_pieces
@@ -38,17 +39,21 @@ def teacher(data, tmp_path_factory):
                              overrides={"guidance": 1.5, "sample_steps": 4}))
 
 
-@pytest.fixture(scope="module", params=[1, 2, 4])  # (4: the teacher's own steps, its guidance folded in)
+# (steps, the teacher's guidance): 4 is the teacher's own steps, its guidance folded in; 2 of the teacher unguided
+# learns progressively, each step two of the teacher's
+@pytest.fixture(scope="module", params=[(1, None), (2, None), (4, None), (2, 1.0)],
+                ids=["1", "2", "4", "2-progressive"])
 def student(request, data, teacher, tmp_path_factory):
-    out = tmp_path_factory.mktemp(f"student{request.param}")
-    last = distill(DistillConfig(checkpoint=str(teacher), out=str(out / "run"), steps=request.param, data=str(data),
-                                 max_steps=80, batch_size=4, lr=2e-3, warmup=5, aug_copies=1, valid_every=40,
-                                 ckpt_every=80, cache_dir=str(out / "cache")), progress=False)
-    return request.param, out / "run", last
+    steps, guidance = request.param
+    out = tmp_path_factory.mktemp(f"student{steps}")
+    last = distill(DistillConfig(checkpoint=str(teacher), out=str(out / "run"), steps=steps, guidance=guidance,
+                                 data=str(data), max_steps=80, batch_size=4, lr=2e-3, warmup=5, aug_copies=1,
+                                 valid_every=40, ckpt_every=80, cache_dir=str(out / "cache")), progress=False)
+    return steps, out / "run", last, guidance
 
 
 def test_the_held_out_distillation_loss_falls_and_the_student_samples_in_its_passes(student, teacher):
-    steps, run, last = student
+    steps, run, last, guidance = student
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == [0, 40, 80]
     assert log[-1]["valid_loss"] < 0.7 * log[0]["valid_loss"], log
@@ -56,18 +61,25 @@ def test_the_held_out_distillation_loss_falls_and_the_student_samples_in_its_pas
     assert (b.config.sample_steps, b.config.guidance) == (steps, 1.0)
     assert (t.config.sample_steps, t.config.guidance) == (4, 1.5)
     assert b.info["distilled_from"] == str(teacher)
-    assert b.info["teacher"] == {"sample_steps": 4, "guidance": 1.5, "step": t.info["step"],  # (its own run's record)
+    assert b.info["teacher"] == {"sample_steps": 4, "guidance": guidance or 1.5, "step": t.info["step"],  # (its run's)
                                  "history": t.info["history"], "train_wall_s": t.info["train_wall_s"]}
+    method = {1: "chain", 2: "chain" if guidance is None else "progressive", 4: "fold"}[steps]
+    assert b.info["method"] == method
+    t_pairs = t.stream().pairs
+    assert b.stream().pairs == {"chain": Diffusion(b.config).sampling_pairs("ddim", steps), "fold": t_pairs,
+                                "progressive": [(t_pairs[0][0], t_pairs[1][1]), (t_pairs[2][0], -1)]}[method]
+    assert b.config.ddim_timesteps == (None if method == "chain" else tuple(t for t, _ in b.stream().pairs))
     stream = b.stream()
     assert len(stream.pairs) == steps and stream.guidance == 1.0
     assert stream.state.denoiser.batch == 1  # one row: no unconditional branch
-    assert {k: v for k, v in b.config.model_dump().items() if k not in ("sample_steps", "guidance")} == \
-        {k: v for k, v in t.config.model_dump().items() if k not in ("sample_steps", "guidance")}
+    own = ("sample_steps", "guidance", "ddim_timesteps")
+    assert {k: v for k, v in b.config.model_dump().items() if k not in own} == \
+        {k: v for k, v in t.config.model_dump().items() if k not in own}
     assert "calibration" not in b.info and not hasattr(b.model, "out_gain")  # (--calibrate: not by default)
 
 
 def test_the_student_streams_exactly_and_its_batch_equals_each_stream_alone(student):
-    _, _, last = student
+    _, _, last, _ = student
     model = load_checkpoint(last).model
     audio = noise_audio(2.0 + 77 / 16000, seed=4)
     offline = generate_offline(model, audio, seed=5, smoothing=None)
@@ -133,10 +145,10 @@ def test_a_calibrated_students_motion_is_scaled_wherever_it_is_sampled(teacher, 
 def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path):
     """--init: the student starts from an earlier run's checkpoint (its held-out loss where that run ended), and one
     of another number of passes is refused."""
-    steps, run, last = student
+    steps, run, last, guidance = student
     before = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()][-1]["valid_loss"]
-    common = dict(checkpoint=str(teacher), data=str(data), max_steps=2, batch_size=4, lr=2e-3, warmup=1,
-                  aug_copies=1, valid_every=2, ckpt_every=2, cache_dir=str(tmp_path / "cache"))
+    common = dict(checkpoint=str(teacher), guidance=guidance, data=str(data), max_steps=2, batch_size=4, lr=2e-3,
+                  warmup=1, aug_copies=1, valid_every=2, ckpt_every=2, cache_dir=str(tmp_path / "cache"))
     distill(DistillConfig(out=str(tmp_path / "on"), init=str(last), steps=steps, **common), progress=False)
     log = [json.loads(line) for line in (tmp_path / "on" / "log.jsonl").read_text().splitlines()]
     assert log[0]["step"] == 0 and log[0]["valid_loss"] == pytest.approx(before, rel=1e-5)
@@ -149,9 +161,9 @@ def test_a_student_of_the_teachers_own_steps_learns_each_steps_guided_output(stu
     """--steps K of a K-step teacher: each step of the student's chain, on the teacher's noisy motion of that step,
     gives nearer the guided output of the teacher's two rows than the teacher's conditional row alone does (where
     the student started)."""
-    steps, _, last = student
+    steps, _, last, _ = student
     if steps != 4:
-        pytest.skip("a student of fewer steps learns the whole chain")
+        pytest.skip("a student of fewer steps learns the whole chain, or its teacher's steps two at a time")
     b, t = load_checkpoint(last), load_checkpoint(teacher)
     diffusion = Diffusion(t.config)
     pairs = diffusion.sampling_pairs("ddim", 4)
@@ -175,11 +187,62 @@ def test_a_student_of_more_steps_than_its_teacher_or_of_its_steps_without_guidan
                   cache_dir=str(tmp_path / "cache"))
     cases = [(dict(steps=5), "--steps 5: more than the teacher's own 4 steps"),
              (dict(steps=4, guidance=1.0), "--steps 4: the teacher already samples in 4 passes of one row"),
-             (dict(steps=4, spread_weight=1.0), "--spread-weight: for a student of fewer steps")]
+             (dict(steps=4, spread_weight=1.0), "--spread-weight: for a student that learns its teacher's whole"),
+             (dict(steps=2, guidance=1.0, spread_weight=1.0), "not a progressive one")]
     for k, (args, words) in enumerate(cases):
         with pytest.raises(ValueError, match=words):
             distill(DistillConfig(out=str(tmp_path / f"o{k}"), **args, **common), progress=False)
         assert not (tmp_path / f"o{k}").exists()
+
+
+def test_a_progressive_students_step_lands_nearer_where_its_teachers_two_steps_land(student, teacher):
+    """An unguided teacher's --steps 2: each student step, from the teacher's noisy motion where a span of two of
+    the teacher's steps starts, lands (one DDIM step) nearer where those two land than the teacher's one step from
+    there does (where the student started)."""
+    steps, _, last, guidance = student
+    if guidance is None:
+        pytest.skip("a guided teacher's student folds its guidance in or learns the whole chain")
+    b, t = load_checkpoint(last), load_checkpoint(teacher)
+    diffusion = Diffusion(t.config)
+    pairs, mine = diffusion.sampling_pairs("ddim", 4), b.stream().pairs
+
+    def land(x, x0, t0, t1):  # one DDIM step (eta 0) with this x0
+        eps = (x - diffusion.a(t0) ** 0.5 * x0) / (1 - diffusion.a(t0)) ** 0.5
+        return diffusion.ddim_step(x, eps, t0, t1, x0=x0)[0]
+
+    fe = t.model.frontend
+    feats = fe(torch.from_numpy(noise_audio(2.5, seed=9))[None], fe.init_state(1, "cpu"))[0]
+    with torch.no_grad():
+        cond_t, _ = t.model.condition(feats)
+        x = diffusion.noise_like(torch.zeros(2, cond_t.shape[1], t.config.motion_dim), torch.Generator().manual_seed(3))
+        xs, ts, target = teacher_spans(t.model, diffusion, pairs, 2, cond_t.expand(2, -1, -1), x)
+        assert ts.tolist() == [t0 for t0, _ in mine for _ in range(2)]
+        for k, (t0, t1) in enumerate(mine):
+            rows = slice(2 * k, 2 * k + 2)
+            lands = land(xs[rows], target[rows], t0, t1)  # (where the teacher's two land)
+            got = {}
+            for name, m in (("before", t.model), ("after", b.model)):
+                x0 = diffusion.split(m(xs[rows], t0, m.condition(feats)[0].expand(2, -1, -1))[0], xs[rows], t0)[1]
+                got[name] = F.mse_loss(land(xs[rows], x0, t0, t1), lands)
+            assert got["after"] < 0.7 * got["before"], (k, got)
+
+
+def test_a_students_way_of_learning_and_its_steps_follow_its_teachers():
+    """fold: the teacher's own steps, guided; progressive: a one-row teacher's steps r at a time (every r-th of its
+    timesteps); chain: anything else, on ddim_pairs."""
+    from dimgestor.model.diffusion import ddim_pairs
+
+    four = ddim_pairs(4, 8, "linspace")
+    assert four == [(7, 5), (5, 2), (2, 0), (0, -1)]
+    assert student_pairs(four, 4, 1.25, 8, "linspace") == ("fold", four)
+    assert student_pairs(four, 2, 1.0, 8, "linspace") == ("progressive", [(7, 2), (2, -1)])
+    assert student_pairs(four, 1, 1.0, 8, "linspace") == ("progressive", [(7, -1)])
+    assert student_pairs(four, 2, 1.25, 8, "linspace") == ("chain", [(7, 0), (0, -1)])
+    assert student_pairs(four, 3, 1.0, 8, "linspace") == ("chain", ddim_pairs(3, 8, "linspace"))
+    with pytest.raises(ValueError, match="more than the teacher's own 4"):
+        student_pairs(four, 5, 1.25, 8, "linspace")
+    with pytest.raises(ValueError, match="already samples in 4 passes"):
+        student_pairs(four, 4, 1.0, 8, "linspace")
 
 
 @pytest.fixture(scope="module")

@@ -57,6 +57,7 @@ class Diffusion:
 
     def __init__(self, config: ModelConfig):
         self.N, self.prediction, self.spacing = config.n_steps, config.prediction, config.ddim_spacing
+        self.timesteps = config.ddim_timesteps
         self.noise_taps = config.noise_taps
         if config.schedule == "linear":
             betas = torch.linspace(config.beta_start, config.beta_end, self.N, dtype=torch.float64)
@@ -139,6 +140,13 @@ class Diffusion:
         return loss
 
     # ---- sampling ----
+    def x0_reaching(self, x_t: torch.Tensor, x_prev: torch.Tensor, t: int, t_prev: int) -> torch.Tensor:
+        """The x0 whose deterministic DDIM step (eta 0) takes x_t at t to x_prev at t_prev: what a progressively
+        distilled student's one step learns from its teacher's several (Salimans & Ho 2022, eq. 8)."""
+        a_t, a_p = self.a(t), self.a(t_prev)
+        r = math.sqrt(1 - a_p) / math.sqrt(1 - a_t)
+        return (x_prev - r * x_t) / (math.sqrt(a_p) - r * math.sqrt(a_t))
+
     def split(self, out: torch.Tensor, x_t: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Network output -> (eps, x0_pred), each computed the well-conditioned way for the prediction type."""
         a = self.a(t)
@@ -187,7 +195,12 @@ class Diffusion:
         return self.ddim_step(x_t, eps, t, t_prev, eta, noise, x0=x0)[0]
 
     def sampling_pairs(self, sampler: str, steps: int) -> list[tuple[int, int]]:
+        """The (t, t_prev) of each of `steps` sampler steps: the config's own DDIM timesteps when it has that
+        many, else `ddim_pairs` at its spacing."""
         if sampler == "ddim":
+            if self.timesteps is not None and len(self.timesteps) == steps:
+                ts = list(self.timesteps)
+                return list(zip(ts, ts[1:] + [-1]))
             return ddim_pairs(steps, self.N, self.spacing)
         if sampler == "ddpm":
             return ddim_pairs(self.N, self.N)  # every step: (N-1, N-2), ..., (0, -1)

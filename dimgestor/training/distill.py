@@ -33,6 +33,13 @@ chain is the teacher's and only the unconditional row goes, so a window costs ab
 one the student can give exactly rather than the mean of several (what makes shorter students move less, above).
 The loss is the squared difference of the outputs; `--vel-weight`, `--acc-weight` and `--spread-weight` are for
 students of fewer steps than their teacher's.
+
+A teacher of one row a step (its guidance folded in, or none) whose step count `--steps` divides is distilled
+progressively instead (Salimans & Ho 2022; Meng et al. 2023, its second stage): each of the student's steps spans r
+of the teacher's, starting where the span starts on the teacher's own chain, and learns the x0 whose one DDIM step
+lands exactly where the teacher's r steps land (`Diffusion.x0_reaching`). Again each answer is one the student can
+give exactly, not the mean of several. The student's steps are every r-th of its teacher's (the config's
+`ddim_timesteps`): a 4-step folded teacher on t = 7, 5, 2, 0 gives a 2-step student on 7, 2.
 """
 from __future__ import annotations
 
@@ -55,8 +62,8 @@ from .augment import AugmentConfig, augment
 from .dataset import GestureDataset
 from .train import WindowBank
 
-__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "teacher_steps", "student_motion",
-           "calibration"]
+__all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "teacher_steps", "teacher_spans",
+           "student_motion", "calibration", "student_pairs"]
 
 GAIN_RANGE = (0.5, 2.0)  # a feature's calibration gain is kept inside this (one the student barely moves stays sane)
 
@@ -69,8 +76,9 @@ class DistillConfig(BaseModel):
     checkpoint: str | None = None  # the teacher (None: the embedded default model)
     init: str | None = None  # a student to go on from (an earlier run's checkpoint); None: the teacher's weights
     out: str  # the run folder: ckpt_XXXXXXX/ checkpoints and log.jsonl
-    steps: int = Field(2, ge=1, le=64)  # the student's sampler steps (network passes a window): 1 or 2 learn the
-    # teacher's whole chain; the teacher's own steps fold its guidance in step by step (no more than the teacher's)
+    steps: int = Field(2, ge=1, le=64)  # the student's sampler steps (network passes a window), no more than the
+    # teacher's: its own count folds its guidance in step by step; a divisor of it, from a teacher of one row a step,
+    # learns progressively; otherwise the teacher's whole chain (`student_pairs`)
     guidance: float | None = Field(None, gt=0)  # the teacher's classifier-free guidance scale (None: its config's)
     data: str | None = None  # BVH+WAV folder whose audio the teacher labels (None: the teacher's own training data)
     audio: tuple[str, ...] = ()  # WAV files or folders of speech without motion, labelled by the teacher too
@@ -128,6 +136,25 @@ def teacher_steps(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Ten
         eps, x0 = diffusion.split(out, x, t)
         x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
     return torch.cat(xs), torch.cat(ts), torch.cat(outs)
+
+
+def teacher_spans(model: DiMGestor, diffusion: Diffusion, pairs, r: int, cond: torch.Tensor, x: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The teacher's chain (one row a step, no guidance: a folded or unguided teacher) in spans of `r` steps, for a
+    progressively distilled student whose step is one span: (inputs (K/r*B, T, D): the noisy motion where each
+    span starts, steps (K/r*B,): its t, targets (K/r*B, T, D): the x0 whose one DDIM step lands where the teacher's
+    r steps land), in the chain's order, B rows a span."""
+    B = x.shape[0]
+    xs, ts, targets = [], [], []
+    for i in range(0, len(pairs), r):
+        start, t0 = x, pairs[i][0]
+        for t, t_prev in pairs[i:i + r]:
+            eps, x0 = diffusion.split(model(x, t, cond)[0], x, t)
+            x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
+        xs.append(start)
+        ts.append(torch.full((B,), t0, dtype=torch.long, device=x.device))
+        targets.append(diffusion.x0_reaching(start, x, t0, pairs[i + r - 1][1]))
+    return torch.cat(xs), torch.cat(ts), torch.cat(targets)
 
 
 def student_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -203,6 +230,26 @@ def speech_files(paths) -> list[Path]:
     return files
 
 
+def student_pairs(t_pairs: list[tuple[int, int]], steps: int, guidance: float, N: int, spacing: str
+                  ) -> tuple[str, list[tuple[int, int]]]:
+    """How a `steps`-step student learns from a teacher sampling on `t_pairs` with `guidance`, and its own steps:
+    "fold" (the teacher's steps, its guidance folded in), "progressive" (an unguided or folded teacher, `steps`
+    dividing its count: each student step spans that many of the teacher's) or "chain" (the teacher's whole chain
+    on the student's own `ddim_pairs`)."""
+    K = len(t_pairs)
+    if steps > K:
+        raise ValueError(f"--steps {steps}: more than the teacher's own {K} steps")
+    if steps == K:
+        if guidance == 1.0:
+            raise ValueError(f"--steps {steps}: the teacher already samples in {steps} passes of one row "
+                             f"(guidance 1); its student needs fewer steps")
+        return "fold", list(t_pairs)
+    if guidance == 1.0 and K % steps == 0:
+        r = K // steps
+        return "progressive", [(t_pairs[i][0], t_pairs[i + r - 1][1]) for i in range(0, K, r)]
+    return "chain", ddim_pairs(steps, N, spacing)
+
+
 def _loss(pred: torch.Tensor, target: torch.Tensor, cfg: DistillConfig) -> torch.Tensor:
     loss = F.mse_loss(pred, target)
     for order, weight in ((1, cfg.vel_weight), (2, cfg.acc_weight)):
@@ -270,16 +317,13 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     guidance = check_guidance(tc.guidance if cfg.guidance is None else cfg.guidance)
     diffusion = Diffusion(tc)
     t_pairs = diffusion.sampling_pairs("ddim", tc.sample_steps)
-    if cfg.steps > len(t_pairs):
-        raise ValueError(f"--steps {cfg.steps}: more than the teacher's own {len(t_pairs)} steps")
-    s_pairs = ddim_pairs(cfg.steps, diffusion.N, tc.ddim_spacing)
-    fold = s_pairs == t_pairs  # the teacher's own chain: its guidance folded in step by step (module doc)
-    if fold and guidance == 1.0:
-        raise ValueError(f"--steps {cfg.steps}: the teacher already samples in {cfg.steps} passes of one row "
-                         f"(guidance 1); its student needs fewer steps")
-    if fold and cfg.spread_weight > 0:
-        raise ValueError("--spread-weight: for a student of fewer steps than its teacher's")
-    student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0, "calibrated": cfg.calibrate})
+    method, s_pairs = student_pairs(t_pairs, cfg.steps, guidance, diffusion.N, tc.ddim_spacing)
+    fold, span = method == "fold", len(t_pairs) // cfg.steps
+    if method != "chain" and cfg.spread_weight > 0:
+        raise ValueError(f"--spread-weight: for a student that learns its teacher's whole chain, not a {method} one")
+    timesteps = None if method == "chain" else tuple(t for t, _ in s_pairs)
+    student_config = tc.model_copy(update={"sample_steps": cfg.steps, "guidance": 1.0, "calibrated": cfg.calibrate,
+                                           "ddim_timesteps": timesteps})
     student = DiMGestor(student_config).to(device)
     start = teacher if cfg.init is None else load_checkpoint(cfg.init, device).model
     if cfg.init is not None and (start.config.sample_steps, start.config.guidance) != (cfg.steps, 1.0):
@@ -306,8 +350,10 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     extra = f", {len(speech)} windows of --audio speech ({speech.seconds / 60:.1f} min)" if speech else ""
     rows = len(t_pairs) * (2 if guidance != 1 else 1)
+    how = {"fold": " (the guidance folded in, step by step)", "chain": " (the teacher's whole chain)",
+           "progressive": f" (each step {span} of the teacher's, progressively)"}[method]
     print(f"teacher {bundle.path}: {tc.sample_steps} steps, guidance {guidance:g} ({rows} network rows a window); "
-          f"student: {cfg.steps} step(s), 1 row{' (the guidance folded in, step by step)' if fold else ''}; "
+          f"student: {cfg.steps} step(s), 1 row{how}; "
           f"{len(bank)} training windows x {cfg.aug_copies + 1} versions of their audio{extra} "
           f"({time.time() - t0:.0f} s), {len(valid or [])} held out")
     g = torch.Generator().manual_seed(cfg.seed * 1000 + 1)
@@ -384,6 +430,16 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
                                                guidance)
             cond = student.condition(feats)[0][:, :T]
             loss = F.mse_loss(student(xs, ts, cond.repeat(len(t_pairs), 1, 1))[0], target)
+        elif method == "progressive":
+            with torch.no_grad():
+                xs, _, target = teacher_spans(teacher, diffusion, t_pairs, span, teacher.condition(feats)[0][:, :T], x)
+            cond = student.condition(feats)[0][:, :T]
+            B = len(feats)
+            given = student(xs, torch.cat([torch.full((B,), t, dtype=torch.long) for t, _ in s_pairs]).to(device),
+                            cond.repeat(cfg.steps, 1, 1))[0]
+            pred = torch.cat([diffusion.split(given[k * B:(k + 1) * B], xs[k * B:(k + 1) * B], t)[1]
+                              for k, (t, _) in enumerate(s_pairs)])
+            loss = _loss(pred, target, cfg)
         else:
             with torch.no_grad():
                 target = teacher_motion(teacher, diffusion, t_pairs, teacher.condition(feats)[0][:, :T], x, guidance)
@@ -415,7 +471,7 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
             taught = {k: bundle.info[k] for k in ("step", "history", "train_wall_s") if k in bundle.info}
             info = {**{k: v for k, v in bundle.info.items() if k != "train_wall_s"}, "step": step,
                     "distilled_from": str(bundle.path), "history": [record], "distill": cfg.model_dump(),
-                    "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance, **taught}}
+                    "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance, **taught}, "method": method}
             if cfg.calibrate:
                 info["calibration"] = calibrated()
             last = save_checkpoint(out / f"ckpt_{step:07d}", ema, bundle.feature_spec, bundle.skeleton, bundle.mean,
@@ -438,6 +494,7 @@ def register(subparsers) -> None:
         epilog=examples("dimgestor distill --checkpoint runs/mine/ckpt_0004000 --out runs/mine_2pass",
                         "dimgestor distill --out runs/default_1pass --steps 1 --data ../shared/data/zeggs_sample",
                         "dimgestor distill --checkpoint runs/mine --out runs/mine_folded --steps 4",
+                        "dimgestor distill --checkpoint runs/mine_folded --out runs/mine_2step --steps 2",
                         "dimgestor generate --audio speech.wav --out motion.bvh --checkpoint runs/mine_2pass"))
     d = DistillConfig(out="")
     p.add_argument("--checkpoint", default=None, metavar="DIR",
@@ -445,8 +502,10 @@ def register(subparsers) -> None:
                         "(default: the embedded default model)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder for the student's checkpoints and log.jsonl")
     p.add_argument("--steps", type=int, default=d.steps, metavar="K",
-                   help="the student's network passes a window: 1 or 2 learn the teacher's whole chain; the teacher's "
-                        "own step count folds its guidance in, step by step (about half the cost a window)")
+                   help="the student's network passes a window. The teacher's own step count folds its guidance in, "
+                        "step by step (about half the cost a window); fewer steps from a teacher of one row a step "
+                        "(folded, or unguided), dividing its count: each student step learns that many of the "
+                        "teacher's (progressive); otherwise the student learns the teacher's whole chain")
     p.add_argument("--guidance", type=float, default=None, metavar="S",
                    help="the teacher's classifier-free guidance scale (default: its config's)")
     p.add_argument("--init", default=None, metavar="DIR",
