@@ -109,6 +109,7 @@ def build(options: ServeOptions) -> Pipeline:
     guidance = options.guidance if options.guidance is not None else bundle.config.guidance
     onnx = _onnx_model(options, bundle, steps, guidance) if options.backend == "onnxruntime" else None
     scheduler = _scheduler(options.no_batch, onnx, device)
+    one_blas_thread()
     metrics = _metrics(scheduler)
     admission = _admission(options, bundle, face, metrics, scheduler)
     # one more session: a WebSocket client's own audio (its keyword arguments: Session's own, e.g. face=None)
@@ -229,6 +230,18 @@ def _scheduler(no_batch: bool, onnx: OnnxModel | None = None, device: str = "cpu
     # one batched forward per sampler step for every session with a window due, all on the batcher's thread
     torch.set_num_threads(inference_threads())
     return StreamBatcher()
+
+
+def one_blas_thread() -> None:
+    """numpy's BLAS (OpenBLAS in numpy's and scipy's wheels) on the calling thread alone, for the whole process. A
+    served window's products outside torch (the face's listener, a batch's faces together) are small: a pool of
+    BLAS threads brings them little, and its threads spin after each product on the cores the inference thread and
+    the event loop need; where the machine is busy, a product waits for its pool's threads to get a core
+    (benchmarks/README.md, "numpy's BLAS threads"). torch's own threads (OpenMP) are set apart, by
+    `inference_threads`."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def onnx_batchers(onnx: OnnxModel, lanes: int) -> BatcherPool:

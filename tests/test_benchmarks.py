@@ -112,6 +112,26 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
         assert finite(x["ratio_p50"]) and finite(x["ratio_p50_unguided"]) and x["ratio_p50"] > 0
 
 
+def test_blas_threads_benchmark_writes_its_schema(tmp_path):
+    """benchmarks/blas_threads.py at its smallest: one stream with a face, both arms, alone and beside a busy core:
+    the arm of one thread runs numpy's BLAS on one (serve's setting), the other on its pool."""
+    from helpers.checkpoint import make_tiny_checkpoint
+
+    out = tmp_path / "blas.json"
+    run("blas_threads.py", "--streams", "1", "--repeats", "1", "--seconds", "2", "--neighbour",
+        "--checkpoint", str(make_tiny_checkpoint(tmp_path)), "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert r["code"] and r["device"].startswith("CPU") and r["window_ms"] == 100
+    assert [(t["neighbour"], t["arm"]) for t in r["trials"]] == [(False, "one thread"), (False, "pool"),
+                                                                 (True, "one thread"), (True, "pool")]
+    for t in r["trials"]:
+        assert t["streams"] == 1 and finite(t["lag_ms_p95"]) and finite(t["process_cpu_s"]) and t["torch_threads"] >= 1
+        assert (t["blas_threads"] == [1]) == (t["arm"] == "one thread" or (os.cpu_count() or 1) == 1), t
+    assert [(s["neighbour"], s["arm"], s["trials"]) for s in r["summary"]] == [
+        (False, "one thread", 1), (False, "pool", 1), (True, "one thread", 1), (True, "pool", 1)]
+
+
 def test_face_streams_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
     """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's,
     another checkpoint's with a face, and no face and the face on ONNX Runtime's two lanes: the run's shared export,

@@ -1,0 +1,165 @@
+"""numpy's BLAS threads in a served process with a face on every stream (issue 50): `dimgestor serve` keeps numpy's
+BLAS on one thread (`streamer.server.one_blas_thread`); the other arm leaves it its own pool (a thread a core, what
+numpy's OpenBLAS takes when nothing is set).
+
+Each trial is `streams.serving_trial` in a child process of its own: the embedded default model (or
+`--checkpoint`), K from the model, 100 ms windows, batched, staggered clients, the face on every session, the batcher
+on the torch threads `serve` gives it here (`inference_threads`), `--seconds` of paced audio. The arms take turns at
+each stream count. `--neighbour` runs each trial also beside a busy loop on one core (what a game, a voice agent's
+speech recogniser or a second worker does to a served process on the same machine). Per trial: the lags (p95, ms),
+whether it kept real time, and the process's CPU seconds.
+
+    .venv/bin/python benchmarks/blas_threads.py --streams 32 40 48 --repeats 2 --neighbour
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+
+ARMS = ("one thread", "pool")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--streams", type=int, nargs="+", default=[32, 40, 48], help="stream counts, each with a face")
+    p.add_argument("--repeats", type=int, default=2, help="trials per arm, count and neighbour")
+    p.add_argument("--seconds", type=float, default=12.0, help="audio per trial")
+    p.add_argument("--window-ms", type=int, default=100)
+    p.add_argument("--checkpoint", default=None, help="the model (default: the embedded default model)")
+    p.add_argument("--neighbour", action="store_true", help="each trial also beside a busy loop on one core")
+    p.add_argument("--out", type=Path, default=RESULTS / "blas_threads.json")
+    p.add_argument("--note", default="measured on a shared machine: other processes were running")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: one trial, as JSON
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    return args
+
+
+def child(job: dict) -> dict:
+    """One trial in this process: the arm's BLAS threads, then `serving_trial`."""
+    import torch
+    from threadpoolctl import threadpool_info
+
+    from dimgestor.face import FaceOptions
+    from dimgestor.streaming.checkpoint import load_checkpoint
+    from streamer.server import inference_threads, one_blas_thread
+    from streams import serving_trial
+
+    bundle = load_checkpoint(job["checkpoint"], "cpu")
+    if job["arm"] == "one thread":
+        one_blas_thread()
+    threads = inference_threads()
+    torch.set_num_threads(threads)
+    blas = sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+    r = serving_trial(bundle, job["streams"], bundle.config.sample_steps, job["window_ms"], job["seconds"], True,
+                      threads, face=FaceOptions())
+    return {**job, "blas_threads": blas, "torch_threads": threads, **{k: r[k] for k in (
+        "lag_ms_p50", "lag_ms_p95", "end_lag_ms_max", "mean_batch", "wall_s", "process_cpu_s", "ok")}}
+
+
+def busy_loop() -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def trial(args, arm: str, n: int, neighbour: bool) -> dict:
+    job = {"arm": arm, "streams": n, "neighbour": neighbour, "seconds": args.seconds, "window_ms": args.window_ms,
+           "checkpoint": args.checkpoint}
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    env["MPLBACKEND"] = "Agg"
+    loop = busy_loop() if neighbour else None
+    try:
+        time.sleep(0.3 if neighbour else 0.0)
+        proc = subprocess.run([sys.executable, __file__, "--child", json.dumps(job)], env=env, capture_output=True,
+                              text=True)
+    finally:
+        if loop is not None:
+            loop.kill()
+            loop.wait()
+    if proc.returncode != 0:
+        raise RuntimeError(f"trial {job} failed:\n{proc.stderr[-3000:]}")
+    row = json.loads(proc.stdout.strip().splitlines()[-1])
+    row["load_avg"] = load_average()
+    print(f"{arm:10s} {n:3d} streams{' beside a busy core' if neighbour else ''}: p95 {row['lag_ms_p95']:.0f} ms, "
+          f"{'real time' if row['ok'] else 'behind'}, process CPU {row['process_cpu_s']:.1f} s "
+          f"(BLAS threads {row['blas_threads']})", flush=True)
+    return row
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    out = []
+    for neighbour in sorted({r["neighbour"] for r in rows}):
+        for n in sorted({r["streams"] for r in rows}):
+            for arm in ARMS:
+                rs = [r for r in rows if (r["neighbour"], r["streams"], r["arm"]) == (neighbour, n, arm)]
+                if rs:
+                    out.append({"neighbour": neighbour, "streams": n, "arm": arm, "trials": len(rs),
+                                "real_time": sum(r["ok"] for r in rs),
+                                "lag_ms_p95": [round(r["lag_ms_p95"]) for r in rs],
+                                "process_cpu_s": [round(r["process_cpu_s"], 1) for r in rs]})
+    return out
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = sorted({s["neighbour"] for s in result["summary"]})
+    fig, axes = plt.subplots(1, 2 * len(groups), figsize=(6 * len(groups) * 2, 4.2), squeeze=False)
+    for g, neighbour in enumerate(groups):
+        rows = [r for r in result["trials"] if r["neighbour"] == neighbour]
+        where = "beside a busy core" if neighbour else "alone"
+        for arm, colour in zip(ARMS, ("tab:blue", "tab:orange")):
+            mine = [r for r in rows if r["arm"] == arm]
+            axes[0][2 * g].scatter([r["streams"] for r in mine], [min(r["lag_ms_p95"], 2000) for r in mine],
+                                   color=colour, label=f"BLAS: {arm}")
+            axes[0][2 * g + 1].scatter([r["streams"] for r in mine], [r["process_cpu_s"] for r in mine],
+                                       color=colour, label=f"BLAS: {arm}")
+        bar = result["window_ms"] + 150
+        axes[0][2 * g].axhline(bar, color="grey", ls="--", lw=1, label=f"real-time bar ({bar} ms)")
+        axes[0][2 * g].set(xlabel="streams with a face", ylabel="p95 lag, ms (2000 = off the chart)",
+                           title=f"lag, {where}")
+        axes[0][2 * g + 1].set(xlabel="streams with a face", ylabel=f"process CPU s per {result['seconds']:g} s trial",
+                               title=f"process CPU, {where}")
+        for ax in axes[0][2 * g: 2 * g + 2]:
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+    fig.suptitle(f"numpy's BLAS threads in a served process with a face on every stream ({result['code']}, "
+                 f"{result['device']})", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.child:
+        print(json.dumps(child(json.loads(args.child))))
+        return 0
+    rows = []
+    for neighbour in ([False, True] if args.neighbour else [False]):
+        for n in args.streams:
+            for k in range(args.repeats):
+                for arm in (ARMS if k % 2 == 0 else ARMS[::-1]):  # (taking turns)
+                    rows.append(trial(args, arm, n, neighbour))
+    result = {"benchmark": "blas_threads", "created": utc_now(), "code": code_version(),
+              "device": describe_device("cpu"), "command": "python benchmarks/blas_threads.py " + " ".join(args.argv),
+              "note": args.note, "checkpoint": args.checkpoint or "the embedded default model",
+              "seconds": args.seconds, "window_ms": args.window_ms, "trials": rows, "summary": summary(rows)}
+    write_json(args.out, result)
+    plot(result, args.out.with_suffix(".png"))
+    for s in result["summary"]:
+        print(s)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
