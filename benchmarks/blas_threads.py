@@ -6,7 +6,9 @@ Each trial is `streams.serving_trial` in a child process of its own: the embedde
 `--checkpoint`), K from the model, 100 ms windows, batched, staggered clients, the face on every session, the batcher
 on the torch threads `serve` gives it here (`inference_threads`), `--seconds` of paced audio. The arms take turns at
 each stream count. `--neighbour` runs each trial also beside a busy loop on one core (what a game, a voice agent's
-speech recogniser or a second worker does to a served process on the same machine). Per trial: the lags (p95, ms),
+speech recogniser or a second worker does to a served process on the same machine). With `--before ROOT` (a checkout
+of older code, e.g. `git worktree add --detach /tmp/before 0578d34`), a third arm runs that code and its embedded
+model as its `serve` ran them (numpy's BLAS pool), taking turns with the other two. Per trial: the lags (p95, ms),
 whether it kept real time, and the process's CPU seconds.
 
     .venv/bin/python benchmarks/blas_threads.py --streams 32 40 48 --repeats 2 --neighbour
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
 
-ARMS = ("one thread", "pool")
+ARMS = ("one thread", "pool", "before")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -34,6 +36,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--window-ms", type=int, default=100)
     p.add_argument("--checkpoint", default=None, help="the model (default: the embedded default model)")
     p.add_argument("--neighbour", action="store_true", help="each trial also beside a busy loop on one core")
+    p.add_argument("--before", type=Path, default=None, metavar="ROOT",
+                   help="a third arm: the code (and embedded model) of this checkout, numpy's BLAS pool as it had")
     p.add_argument("--out", type=Path, default=RESULTS / "blas_threads.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: one trial, as JSON
@@ -47,21 +51,33 @@ def child(job: dict) -> dict:
     import torch
     from threadpoolctl import threadpool_info
 
+    import dimgestor
     from dimgestor.face import FaceOptions
     from dimgestor.streaming.checkpoint import load_checkpoint
-    from streamer.server import inference_threads, one_blas_thread
+    from streamer.server import inference_threads
     from streams import serving_trial
 
     bundle = load_checkpoint(job["checkpoint"], "cpu")
     if job["arm"] == "one thread":
+        from streamer.server import one_blas_thread
+
         one_blas_thread()
     threads = inference_threads()
     torch.set_num_threads(threads)
     blas = sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
     r = serving_trial(bundle, job["streams"], bundle.config.sample_steps, job["window_ms"], job["seconds"], True,
                       threads, face=FaceOptions())
-    return {**job, "blas_threads": blas, "torch_threads": threads, **{k: r[k] for k in (
+    return {**job, "blas_threads": blas, "torch_threads": threads, "dimgestor": dimgestor.__file__,
+            "model_steps": bundle.config.sample_steps, "guidance": bundle.config.guidance, **{k: r[k] for k in (
         "lag_ms_p50", "lag_ms_p95", "end_lag_ms_max", "mean_batch", "wall_s", "process_cpu_s", "ok")}}
+
+
+def commit_of(root: Path) -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
 
 
 def busy_loop() -> subprocess.Popen:
@@ -73,6 +89,8 @@ def trial(args, arm: str, n: int, neighbour: bool) -> dict:
            "checkpoint": args.checkpoint}
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
     env["MPLBACKEND"] = "Agg"
+    if arm == "before":
+        env["PYTHONPATH"] = os.pathsep.join([str(args.before), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     loop = busy_loop() if neighbour else None
     try:
         time.sleep(0.3 if neighbour else 0.0)
@@ -113,23 +131,27 @@ def plot(result: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     groups = sorted({s["neighbour"] for s in result["summary"]})
-    fig, axes = plt.subplots(1, 2 * len(groups), figsize=(6 * len(groups) * 2, 4.2), squeeze=False)
+    fig, axes = plt.subplots(len(groups), 2, figsize=(12, 4.2 * len(groups)), squeeze=False)
     for g, neighbour in enumerate(groups):
         rows = [r for r in result["trials"] if r["neighbour"] == neighbour]
         where = "beside a busy core" if neighbour else "alone"
-        for arm, colour in zip(ARMS, ("tab:blue", "tab:orange")):
+        for arm, colour in zip(ARMS, ("tab:blue", "tab:orange", "tab:grey")):
             mine = [r for r in rows if r["arm"] == arm]
-            axes[0][2 * g].scatter([r["streams"] for r in mine], [min(r["lag_ms_p95"], 2000) for r in mine],
-                                   color=colour, label=f"BLAS: {arm}")
-            axes[0][2 * g + 1].scatter([r["streams"] for r in mine], [r["process_cpu_s"] for r in mine],
-                                       color=colour, label=f"BLAS: {arm}")
+            if not mine:
+                continue
+            label = (f"{result['before']['commit']} as it served (BLAS pool)" if arm == "before"
+                     else f"BLAS: {arm}")
+            axes[g][0].scatter([r["streams"] for r in mine], [min(r["lag_ms_p95"], 2000) for r in mine],
+                                   color=colour, label=label)
+            axes[g][1].scatter([r["streams"] for r in mine], [r["process_cpu_s"] for r in mine],
+                                       color=colour, label=label)
         bar = result["window_ms"] + 150
-        axes[0][2 * g].axhline(bar, color="grey", ls="--", lw=1, label=f"real-time bar ({bar} ms)")
-        axes[0][2 * g].set(xlabel="streams with a face", ylabel="p95 lag, ms (2000 = off the chart)",
+        axes[g][0].axhline(bar, color="grey", ls="--", lw=1, label=f"real-time bar ({bar} ms)")
+        axes[g][0].set(xlabel="streams with a face", ylabel="p95 lag, ms (2000 = off the chart)",
                            title=f"lag, {where}")
-        axes[0][2 * g + 1].set(xlabel="streams with a face", ylabel=f"process CPU s per {result['seconds']:g} s trial",
+        axes[g][1].set(xlabel="streams with a face", ylabel=f"process CPU s per {result['seconds']:g} s trial",
                                title=f"process CPU, {where}")
-        for ax in axes[0][2 * g: 2 * g + 2]:
+        for ax in axes[g]:
             ax.legend(fontsize=8)
             ax.grid(alpha=0.3)
     fig.suptitle(f"numpy's BLAS threads in a served process with a face on every stream ({result['code']}, "
@@ -144,16 +166,17 @@ def main(argv=None) -> int:
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return 0
-    rows = []
+    rows, arms = [], ARMS if args.before is not None else ARMS[:2]
     for neighbour in ([False, True] if args.neighbour else [False]):
         for n in args.streams:
             for k in range(args.repeats):
-                for arm in (ARMS if k % 2 == 0 else ARMS[::-1]):  # (taking turns)
+                for arm in (arms if k % 2 == 0 else arms[::-1]):  # (taking turns)
                     rows.append(trial(args, arm, n, neighbour))
     result = {"benchmark": "blas_threads", "created": utc_now(), "code": code_version(),
               "device": describe_device("cpu"), "command": "python benchmarks/blas_threads.py " + " ".join(args.argv),
               "note": args.note, "checkpoint": args.checkpoint or "the embedded default model",
-              "seconds": args.seconds, "window_ms": args.window_ms, "trials": rows, "summary": summary(rows)}
+              "seconds": args.seconds, "window_ms": args.window_ms, "trials": rows, "summary": summary(rows),
+              "before": None if args.before is None else {"root": str(args.before), "commit": commit_of(args.before)}}
     write_json(args.out, result)
     plot(result, args.out.with_suffix(".png"))
     for s in result["summary"]:

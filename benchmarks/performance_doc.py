@@ -34,6 +34,7 @@ SOURCES = {
     "face": "face.json",  # a Session window with and without the face; generate with and without its CSV
     "face_streams": "face_streams.json",  # streams per process with a face on each, against none
     "face_trials": "serving_folded.json",  # serving trials at fixed counts, a face on each (its "after" code)
+    "blas": "blas_threads.json",  # the same trials, numpy's BLAS on one thread (serve) against its own pool
 }
 CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")  # one machine; the face's
 # cost is a ratio of two arms of one run, whose machine its section names
@@ -272,7 +273,7 @@ def face_batched(r: dict[str, dict]) -> list[str]:
                  f"{f['steps']}, {f['window_ms']} ms windows, the batcher on {f['threads']} torch "
                  f"thread{'s' if f['threads'] > 1 else ''} as `serve` gives it here, measured on "
                  f"{measured_on(f['device'], r)}).")
-    lines += ["", source("face_streams"), "", *face_trials(r)]
+    lines += ["", source("face_streams"), "", *face_trials(r), *blas(r)]
     return lines
 
 
@@ -292,6 +293,32 @@ def face_trials(r: dict[str, dict]) -> list[str]:
     if max(some) > max(every):
         line += f", and {max(some)} in some"
     return [line + ".", "", source("face_trials"), ""]
+
+
+def blas(r: dict[str, dict]) -> list[str]:
+    """`serve`'s numpy BLAS on one thread against numpy's own pool, in fixed-count trials with a face: the most
+    streams each kept in every trial, alone and beside a busy core, and the process's CPU a trial."""
+    t = r["blas"]
+
+    def kept(arm: str, neighbour: bool) -> str:
+        runs = [x for x in t["trials"] if x["arm"] == arm and x["neighbour"] == neighbour]
+        counts = sorted({x["streams"] for x in runs})
+        every = [n for n in counts if all(x["ok"] for x in runs if x["streams"] == n)]
+        return str(max(every)) if every else f"fewer than {counts[0]}"
+
+    def cpu(arm: str) -> str:
+        xs = sorted(x["process_cpu_s"] for x in t["trials"] if x["arm"] == arm and not x["neighbour"])
+        return f"{xs[0]:.0f}" if round(xs[0]) == round(xs[-1]) else f"{xs[0]:.0f}-{xs[-1]:.0f}"
+
+    line = ("`dimgestor serve` runs numpy's BLAS (the faces' products) on one thread, not on the pool numpy starts "
+            "by itself (a thread a core, spinning between products). In trials as above "
+            f"({t['seconds']:g} s, a face on every session, measured on {measured_on(t['device'], r)}), one process "
+            f"kept {kept('one thread', False)} streams with a face in every trial against {kept('pool', False)} with "
+            f"the pool, and used {cpu('one thread')} s of CPU a trial against {cpu('pool')} s")
+    if any(x["neighbour"] for x in t["trials"]):
+        line += (f"; beside a busy loop on one core (another program on the machine) it kept "
+                 f"{kept('one thread', True)} against {kept('pool', True)}")
+    return [line + ".", "", source("blas"), ""]
 
 
 def render(results: Path = RESULTS) -> str:

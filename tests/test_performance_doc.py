@@ -112,3 +112,23 @@ def test_the_served_face_count_is_the_most_kept_in_every_trial_and_in_some(perf,
             in perf.render(results))
     edit(results / name, only(counts[1], counts[1]))
     assert f"kept {counts[1]} streams with a face in real time in every trial." in perf.render(results)
+
+
+def test_the_blas_sentence_gives_each_arms_count_kept_in_every_trial(perf, results):
+    """serve's BLAS on one thread against numpy's pool: per arm, the largest count whose every trial kept real time
+    (alone, and beside a busy core), or fewer than the smallest tried; the process's CPU per trial."""
+    name = perf.SOURCES["blas"]
+    d = json.loads((results / name).read_text())
+    counts = sorted({x["streams"] for x in d["trials"]})
+    assert len(counts) >= 2 and {x["arm"] for x in d["trials"]} >= {"one thread", "pool"}, counts
+
+    def change(x):
+        for t in x["trials"]:
+            t["ok"] = t["arm"] == "one thread" and t["streams"] <= counts[1 if not t["neighbour"] else 0]
+            t["process_cpu_s"] = 13.0 if t["arm"] == "one thread" else 23.0
+    edit(results / name, change)
+    page = perf.render(results)
+    assert (f"kept {counts[1]} streams with a face in every trial against fewer than {counts[0]} with the pool, and "
+            f"used 13 s of CPU a trial against 23 s") in page
+    if any(t["neighbour"] for t in d["trials"]):
+        assert f"it kept {counts[0]} against fewer than {counts[0]}." in page
