@@ -42,7 +42,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--sections", nargs="+", choices=("profile", "streams", "trials"), default=["profile", "streams"])
     p.add_argument("--models", nargs="+", default=["realtime", "default"],
                    help="presets (random weights) or \"default\" (the embedded default model)")
-    p.add_argument("--steps", type=int, nargs="+", default=[8, 4], help="DDIM steps K")
+    p.add_argument("--steps", type=int, nargs="+", default=[8, 4],
+                   help="DDIM steps K (0: each model's own, which may differ between the two code roots' models)")
     p.add_argument("--batch", type=int, default=32, help="streams pushed together in the profile")
     p.add_argument("--groups", type=int, default=0,
                    help="profile: push a random 1..G of the B streams each round, as staggered clients make the "
@@ -118,7 +119,7 @@ def profile(job: dict) -> dict:
     G = job.get("groups", 0)
     windows = warm + rounds if not G else (warm + rounds) * (G + 1)  # with groups: twice what a stream takes on average
     audios = [test_audio(windows * window / 16000, 16000, seed=j) for j in range(B)]
-    streams = [GestureStream(model, steps=job["steps"], seed=j, smoothing=None) for j in range(B)]
+    streams = [GestureStream(model, steps=job["steps"] or None, seed=j, smoothing=None) for j in range(B)]
     totals = dict.fromkeys(PARTS, 0.0)
     fe, ex = type(model.frontend), type(model.extractor)
     fe.forward, ex.forward = _timer(totals, "frontend", fe.forward), _timer(totals, "extractor", ex.forward)
@@ -145,7 +146,8 @@ def profile(job: dict) -> dict:
     ms["rest"] = ms["total"] - sum(ms[p] for p in PARTS if p != "rest")
     return {"ms_per_window" if G else "ms_per_round": ms, "dimgestor": dimgestor.__file__,
             "page_faults_per_window" if G else "page_faults_per_round": None if f0 is None else faults / per,
-            "frontend": model.config.frontend, "guidance": streams[0].guidance}
+            "frontend": model.config.frontend, "guidance": streams[0].guidance,
+            "model_steps": len(streams[0].pairs)}
 
 
 def _face(job: dict):
@@ -161,19 +163,22 @@ def streams_search(job: dict) -> dict:
     import dimgestor
     from streams import max_streams, random_bundle
 
-    r = max_streams(random_bundle(job["model"]), job["steps"], job["window_ms"], job["seconds"], True, 1, job["cap"],
+    bundle = random_bundle(job["model"])
+    r = max_streams(bundle, job["steps"] or bundle.config.sample_steps, job["window_ms"], job["seconds"], True, 1,
+                    job["cap"],
                     face=_face(job),
                     log=lambda line: print(line, file=sys.stderr, flush=True))
-    return {**r, "dimgestor": dimgestor.__file__}
+    return {**r, "dimgestor": dimgestor.__file__, "model_steps": bundle.config.sample_steps}
 
 
 def serving(job: dict) -> dict:
     import dimgestor
     from streams import random_bundle, serving_trial
 
-    r = serving_trial(random_bundle(job["model"]), job["streams"], job["steps"], job["window_ms"], job["seconds"], True, 1,
-                      face=_face(job))
-    return {**r, "dimgestor": dimgestor.__file__}
+    bundle = random_bundle(job["model"])
+    r = serving_trial(bundle, job["streams"], job["steps"] or bundle.config.sample_steps, job["window_ms"],
+                      job["seconds"], True, 1, face=_face(job))
+    return {**r, "dimgestor": dimgestor.__file__, "model_steps": bundle.config.sample_steps}
 
 
 def plot(result: dict, path: Path) -> None:
