@@ -151,6 +151,21 @@ def test_per_k_report_has_every_metric_and_real_motion_scores_as_real(data, tmp_
         stats["net_yaw_deg"] + 90 * (n - 1) / n, abs=1e-6)
 
 
+def test_every_seeds_motion_counts_in_a_ks_numbers(data, tmp_path):
+    """--seeds N: jerk, contrast and the rest pool every seed's clips (equal lengths: the mean of each seed's
+    own), and FGD is the mean of each seed's FGD, not the first seed's alone."""
+    _, valid, train = data
+    bundle = _bundle(train)
+    ae = ev.fgd_autoencoder(train, tmp_path / "ae", steps=30, log=lambda *_: None)
+    clips = ev.valid_clips(valid)
+    one = [ev.k_report(bundle, clips, [2], seeds=1, seed=s, ae=ae, log=lambda *_: None)["per_k"]["2"]
+           for s in (0, 1)]
+    both = ev.k_report(bundle, clips, [2], seeds=2, seed=0, ae=ae, log=lambda *_: None)["per_k"]["2"]
+    for m in ("hand_jerk", "jerk_ratio", "auj_ratio", "fgd_feature", "net_yaw_deg"):
+        assert both[m] == pytest.approx((one[0][m] + one[1][m]) / 2, rel=1e-6), m
+    assert abs(one[0]["fgd_feature"] - one[1]["fgd_feature"]) > 1e-6  # (the seeds differ)
+
+
 def test_speech_mask_and_contrast():
     sr, fps = 16000, 20
     t = np.arange(10 * sr) / sr

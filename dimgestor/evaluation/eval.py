@@ -186,7 +186,7 @@ def clip_stats(raw: np.ndarray, audio: np.ndarray, skeleton, spec, sr: int = SAM
 
 
 def pool_stats(stats: list[dict]) -> dict:
-    """One line of numbers from the per-clip stats (pooled over clips, weighted by length or onsets)."""
+    """One line of numbers from the per-clip stats (pooled over clips and seeds, weighted by length or onsets)."""
     w = np.array([s["seconds"] for s in stats])
     onsets = sum(s["n_onsets"] for s in stats)
     speed, mask = np.concatenate([s["hand_speed"] for s in stats]), np.concatenate([s["mask"] for s in stats])
@@ -324,7 +324,7 @@ def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list
                 gens.append(raw)
                 clip_seed_stats[i].append(st)
             per_seed.append(gens)
-        stats = [s[0] for s in clip_seed_stats]  # the first seed's, as before the speech-drivenness measures
+        stats = [s for per_clip in clip_seed_stats for s in per_clip]  # every seed's clips, pooled
         voices = [voice_row(s) for s in clip_seed_stats]
         out["per_file"][str(K)] = dict(zip(names, voices))
         row = {**pool_stats(stats), **pool_drive(voices)}
@@ -340,8 +340,8 @@ def k_report(bundle, clips: list[tuple[np.ndarray, np.ndarray | None]], ks: list
             row["jerk_ratio"] = row["hand_jerk"] / max(r["hand_jerk"], 1e-12)
             row["auj_ratio"] = row["auj"] / max(r["auj"], 1e-12)
             if ae is not None:
-                chunks = np.concatenate([metrics.motion_chunks(g, ae.chunk, 8) for g in per_seed[0]])
-                row["fgd_feature"] = metrics.feature_fgd(ae, real_chunks, chunks)
+                row["fgd_feature"] = float(np.mean([metrics.feature_fgd(ae, real_chunks, np.concatenate(
+                    [metrics.motion_chunks(g, ae.chunk, 8) for g in gens])) for gens in per_seed]))
         out["per_k"][str(K)] = {m: row.get(m, float("nan")) for m in KMETRICS}
         log(f"K={K}: " + ", ".join(f"{m} {row.get(m, float('nan')):.3g}" for m in KMETRICS)
             + f" ({time.time() - started:.0f} s)")
@@ -515,7 +515,9 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
-NOTES = {"fgd_reference": "the valid split's real motion (so ground_truth has FGD 0)",
+NOTES = {"seeds": "per K, every seed's clips are pooled (jerk, AUJ, contrast, BeatAlign, turns, the per-voice "
+                  "measures); FGD is the mean of each seed's",
+         "fgd_reference": "the valid split's real motion (so ground_truth has FGD 0)",
          "fgd_raw": "Fréchet distance of per-frame motion features",
          "fgd_feature": "Fréchet distance of 34-frame chunk embeddings (GENEA-style conv autoencoder)",
          "beat_align": "mean over audio onsets of exp(-d^2/(2*0.3^2)), d to the nearest upper-body speed minimum",
