@@ -485,8 +485,8 @@ def register(subparsers) -> None:
     from ..cli_help import examples
 
     p = subparsers.add_parser(
-        "distill", help="distil a trained model into a student of one network row a pass (1 or 2 passes, or "
-                        "guidance folded into the teacher's steps)",
+        "distill", help="distil a trained model into a student of one network row a pass (1 or 2 passes, "
+                        "guidance folded into the teacher's steps, or a one-row teacher's steps halved)",
         description="Distil a checkpoint (its K-step sampler with guidance, two network rows a step) into a "
                     "student that gives the same motion in --steps passes of one row: several times cheaper a "
                     "window, streamed exactly as any model. Only the audio of the data is used (the teacher labels "
