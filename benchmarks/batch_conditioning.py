@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import RESULTS, describe_device, load_average, test_audio, utc_now, write_json
+from common import RESULTS, commit_of, describe_device, load_average, test_audio, utc_now, write_json
 
 HERE = Path(__file__).resolve().parents[1]
 PARTS = ("frontend", "extractor", "denoise", "end_step", "rest")
@@ -62,15 +62,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     return args
-
-
-def commit_of(root: Path) -> str:
-    """The short commit of a code root, '+dirty' when its dimgestor/ or streamer/ has uncommitted changes."""
-    git = lambda *a: subprocess.run(["git", *a], cwd=root, capture_output=True, text=True, check=True).stdout.strip()  # noqa: E731
-    try:
-        return git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--", "dimgestor", "streamer") else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown (not a git checkout)"
 
 
 def in_child(root: Path, job: dict) -> dict:

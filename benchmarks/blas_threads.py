@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, code_version, describe_device, load_average, utc_now, write_json
+from common import RESULTS, code_version, commit_of, describe_device, load_average, utc_now, write_json
 
 ARMS = ("one thread", "pool", "before")
 
@@ -70,14 +70,6 @@ def child(job: dict) -> dict:
     return {**job, "blas_threads": blas, "torch_threads": threads, "dimgestor": dimgestor.__file__,
             "model_steps": bundle.config.sample_steps, "guidance": bundle.config.guidance, **{k: r[k] for k in (
         "lag_ms_p50", "lag_ms_p95", "end_lag_ms_max", "mean_batch", "wall_s", "process_cpu_s", "ok")}}
-
-
-def commit_of(root: Path) -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown (not a git checkout)"
 
 
 def busy_loop() -> subprocess.Popen:

@@ -139,3 +139,14 @@ def save_against_before(fig, ax, lines: list[str], before_code: str | None, path
 
     plt.close(fig)
     print(f"wrote {path}")
+
+
+def commit_of(root: Path) -> str:
+    """The short commit of a code root, '+dirty' when its dimgestor/ or streamer/ has uncommitted changes."""
+    import subprocess
+
+    git = lambda *a: subprocess.run(["git", *a], cwd=root, capture_output=True, text=True, check=True).stdout.strip()  # noqa: E731
+    try:
+        return git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain", "--", "dimgestor", "streamer") else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
