@@ -20,8 +20,8 @@ torch    `Session.infer` of `--window-ms` windows of speech, one thread, with th
            encoding        the frames as a WebSocket client gets them (`protocol.encode_frames`, JSON and binary),
                            outside the window (the connection's thread)
          and once more with guidance 1 (the model unguided: one denoiser row a stream instead of two), so the
-         difference is what guidance costs. (The embedded default model has its teacher's guidance folded in and
-         runs one row: its guided arm runs it at its teacher's scale, for what a second row costs.)
+         difference is what guidance costs. (The embedded default model has its guided teacher's scale folded in and
+         runs one row: its guided arm runs it at that scale, 1.25, for what a second row costs.)
 onnxruntime  with `--onnx DIR` (an export of the same model, `dimgestor export-onnx --out DIR`): the window as
          `serve --backend onnxruntime` runs it (one thread), then again with ONNX Runtime's profiler on, each node's
          time summed by the part of the model it belongs to (the module scope the exporter records with it; the
@@ -297,7 +297,14 @@ def main(argv=None) -> int:
     result = {"benchmark": "window_profile", "code_version": code_version(), "device": describe_device("cpu"),
               "utc": utc_now(), "argv": args.argv, "note": args.note, "load_average_before": load_average(),
               "steps": args.steps, "window_ms": args.window_ms, "windows": args.windows, "torch": {}}
-    guided = None if bundle.config.guidance != 1 else bundle.info.get("teacher", {}).get("guidance", 1.25)
+    guided = None  # (the model's own guidance) where it guides; a student at the first guided scale in its lineage
+    if bundle.config.guidance == 1:
+        teacher, guided = bundle.info.get("teacher", {}), 1.25  # (the shipped recipe's, where none is recorded)
+        while teacher:
+            if teacher.get("guidance", 1) > 1:
+                guided = teacher["guidance"]
+                break
+            teacher = teacher.get("teacher", {})
     for arm, guidance in (("guided", guided), ("unguided", 1.0)):
         result["torch"][arm] = r = torch_arm(bundle, audio, guidance, args)
         top = sorted(r["parts"].items(), key=lambda kv: -kv[1]["cpu_ms"])[:5]

@@ -157,6 +157,21 @@ def test_a_run_goes_on_from_an_earlier_student(student, teacher, data, tmp_path)
                 progress=False)
 
 
+def test_a_student_of_a_student_keeps_its_lineage(teacher, data, tmp_path):
+    """A 2-step student of a folded student (the shipped recipe's chain) records its teacher's own teacher, so the
+    first guided model's scale and training stay in its info."""
+    common = dict(data=str(data), max_steps=2, batch_size=4, lr=2e-3, warmup=1, aug_copies=1, valid_every=2,
+                  ckpt_every=2, cache_dir=str(tmp_path / "cache"))
+    folded = distill(DistillConfig(checkpoint=str(teacher), out=str(tmp_path / "fold"), steps=4, **common),
+                     progress=False)
+    halved = distill(DistillConfig(checkpoint=str(folded), out=str(tmp_path / "half"), steps=2, **common),
+                     progress=False)
+    f, h = load_checkpoint(folded), load_checkpoint(halved)
+    assert (f.info["method"], h.info["method"]) == ("fold", "progressive")
+    assert h.info["teacher"]["teacher"] == f.info["teacher"] and f.info["teacher"]["guidance"] == 1.5
+    assert (h.info["teacher"]["sample_steps"], h.info["teacher"]["guidance"]) == (4, 1.0)
+
+
 def test_a_student_of_the_teachers_own_steps_learns_each_steps_guided_output(student, teacher, data):
     """--steps K of a K-step teacher: each step of the student's chain, on the teacher's noisy motion of that step,
     gives nearer the guided output of the teacher's two rows than the teacher's conditional row alone does (where

@@ -468,7 +468,7 @@ def distill(cfg: DistillConfig, progress: bool = True) -> Path:
         if "valid_loss" in record or step == cfg.max_steps:
             _log(out, record)
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
-            taught = {k: bundle.info[k] for k in ("step", "history", "train_wall_s") if k in bundle.info}
+            taught = {k: bundle.info[k] for k in ("step", "history", "train_wall_s", "teacher") if k in bundle.info}
             info = {**{k: v for k, v in bundle.info.items() if k != "train_wall_s"}, "step": step,
                     "distilled_from": str(bundle.path), "history": [record], "distill": cfg.model_dump(),
                     "teacher": {"sample_steps": tc.sample_steps, "guidance": guidance, **taught}, "method": method}
