@@ -90,7 +90,9 @@ web: $(VENV)/.onnx-installed $(WEB)/node_modules/.package-lock.json
 # default (K = 4 DDIM steps, classifier-free guidance 1.25, no output filter) as the teacher; then its guidance is
 # folded into one network row a step (`distill --steps 4`: half the cost a window, the same motion's measures) on the
 # clip's training audio and 54 minutes of espeak-ng speech (benchmarks/speech_corpus.py; needs espeak-ng), two
-# threads, ~17 min (the shipped run took 916 s), and the student's inference files go into the package.
+# threads, ~17 min (the shipped run took 916 s); then that 4-step student's steps are halved (`distill --steps 2`,
+# each step learns two of its teacher's, with the wrists' speed and acceleration weighted 8x; ~13 min, the shipped
+# run took 572 s after 161 s of labelling), and the 2-step student's inference files go into the package.
 ZEGGS ?= ../shared/data/zeggs_sample
 default-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/default \
@@ -102,12 +104,15 @@ default-model: $(VENV)/.serve-installed
 	$(BIN)/python benchmarks/speech_corpus.py --out runs/speech
 	$(BIN)/dimgestor distill --checkpoint runs/default_teacher --data $(ZEGGS) --out runs/default_folded --steps 4 \
 		--audio runs/speech --max-steps 1200 --valid-every 200 --ckpt-every 200 --threads 2
-	$(BIN)/dimgestor export --checkpoint runs/default_folded --out dimgestor/default_model --steps 4 --smooth 0
+	$(BIN)/dimgestor distill --checkpoint runs/default_folded --data $(ZEGGS) --out runs/default_2step --steps 2 \
+		--audio runs/speech --max-steps 1200 --valid-every 200 --ckpt-every 200 --threads 2 --vel-weight 8 \
+		--acc-weight 8
+	$(BIN)/dimgestor export --checkpoint runs/default_2step --out dimgestor/default_model --steps 2 --smooth 0
 
 # The embedded live model (`--checkpoint live`, MODEL_CARD.md "The live model"): the default model's recipe with
 # the realtime preset's own 150 ms of lookahead (downsampler kernel 31), so a frame needs audio up to 200 ms after
 # its start instead of 350: what a live microphone wants. Same data, steps, dropout, sampling defaults and
-# distillation (~19 min; the shipped run took 1,037 s).
+# distillations (~19 min and ~16 min; the shipped runs took 1,037 s and 978 s).
 live-model: $(VENV)/.serve-installed
 	OMP_NUM_THREADS=1 $(BIN)/dimgestor train --data $(ZEGGS) --preset realtime --recipe streaming --out runs/live \
 		--max-steps 1200 --window-s 5 --batch-size 8 --threads 1 --ckpt-every 400 --valid-every 400 --seed 0 \
@@ -116,4 +121,7 @@ live-model: $(VENV)/.serve-installed
 	$(BIN)/python benchmarks/speech_corpus.py --out runs/speech
 	$(BIN)/dimgestor distill --checkpoint runs/live_teacher --data $(ZEGGS) --out runs/live_folded --steps 4 \
 		--audio runs/speech --max-steps 1200 --valid-every 200 --ckpt-every 200 --threads 2
-	$(BIN)/dimgestor export --checkpoint runs/live_folded --out dimgestor/live_model --steps 4 --smooth 0
+	$(BIN)/dimgestor distill --checkpoint runs/live_folded --data $(ZEGGS) --out runs/live_2step --steps 2 \
+		--audio runs/speech --max-steps 1200 --valid-every 200 --ckpt-every 200 --threads 2 --vel-weight 8 \
+		--acc-weight 8
+	$(BIN)/dimgestor export --checkpoint runs/live_2step --out dimgestor/live_model --steps 2 --smooth 0

@@ -34,7 +34,7 @@ SOURCES = {
     "face": "face.json",  # a Session window with and without the face; generate with and without its CSV
     "face_streams": "face_streams.json",  # streams per process with a face on each, against none
     "face_trials": "serving_folded.json",  # serving trials at fixed counts, a face on each (its "after" code)
-    "blas": "blas_threads.json",  # the same trials, numpy's BLAS on one thread (serve) against its own pool
+    "blas": "serving_issue50.json",  # those trials: serve's one BLAS thread, numpy's pool, serve before issue 50
 }
 CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")  # one machine; the face's
 # cost is a ratio of two arms of one run, whose machine its section names
@@ -153,11 +153,13 @@ def model_cost(r: dict[str, dict]) -> list[str]:
              ms(x["preset"]["ms_p50"]), f"{x['ratio_p50']:.2f}"]
             for x in sorted(c["rows"], key=lambda x: (x["steps"], x["batch"]))]
     return ["## The default model's cost", "",
-            "The embedded default model runs one network row per stream and step: the classifier-free guidance of "
-            "the model it was distilled from is folded into it (MODEL_CARD.md). That guided model ran a second, "
+            "The embedded default model runs one network row per stream and step, in 2 steps: the classifier-free "
+            "guidance of the model it was distilled from is folded into it, and its steps halved (MODEL_CARD.md). "
+            "That guided model ran a second, "
             "unconditional row per stream (guidance 1.25); both have a speech front end that keeps running "
             "statistics. One batched call for B streams of the guided model, with its two rows and with one (what a "
-            f"default model's window costs now), {c['window_ms']} ms windows, one thread, median ms:", "",
+            f"4-step student of it costs; the default's 2 steps cost less), {c['window_ms']} ms windows, one thread, "
+            "median ms:", "",
             *table(["K", "streams B", "two rows (guidance 1.25)", "one row", "`realtime` preset",
                     "two rows / preset"], rows), "", source("cost"), ""]
 
@@ -310,15 +312,23 @@ def blas(r: dict[str, dict]) -> list[str]:
         xs = sorted(x["process_cpu_s"] for x in t["trials"] if x["arm"] == arm and not x["neighbour"])
         return f"{xs[0]:.0f}" if round(xs[0]) == round(xs[-1]) else f"{xs[0]:.0f}-{xs[-1]:.0f}"
 
+    steps = sorted({x["model_steps"] for x in t["trials"] if x["arm"] != "before" and "model_steps" in x})
+    k = f"the default model at K = {steps[0]}, " if len(steps) == 1 else ""
     line = ("`dimgestor serve` runs numpy's BLAS (the faces' products) on one thread, not on the pool numpy starts "
-            "by itself (a thread a core, spinning between products). In trials as above "
-            f"({t['seconds']:g} s, a face on every session, measured on {measured_on(t['device'], r)}), one process "
+            f"by itself (a thread a core, spinning between products). In trials as above ({k}"
+            f"{t['seconds']:g} s, a face on every session, measured on {measured_on(t['device'], r)}), one process "
             f"kept {kept('one thread', False)} streams with a face in every trial against {kept('pool', False)} with "
             f"the pool, and used {cpu('one thread')} s of CPU a trial against {cpu('pool')} s")
     if any(x["neighbour"] for x in t["trials"]):
         line += (f"; beside a busy loop on one core (another program on the machine) it kept "
                  f"{kept('one thread', True)} against {kept('pool', True)}")
-    return [line + ".", "", source("blas"), ""]
+    line += "."
+    if any(x["arm"] == "before" for x in t["trials"]):
+        before = [x for x in t["trials"] if x["arm"] == "before"]
+        line += (f" In the same run, `serve` as it was before these changes (the default model then: guided, K = "
+                 f"{before[0].get('model_steps', 4)}, two network rows a stream and step; numpy's pool) kept "
+                 f"{kept('before', False)}.")
+    return [line, "", source("blas"), ""]
 
 
 def render(results: Path = RESULTS) -> str:
@@ -330,9 +340,9 @@ def render(results: Path = RESULTS) -> str:
             "each benchmark works, how to re-run it and the history of its numbers are in "
             "[benchmarks/README.md](../benchmarks/README.md). "
             "After a benchmark is re-run, `python benchmarks/performance_doc.py` rewrites this page "
-            "(`--check` says whether it is current). Except for the fixed-count trials with a face, the figures of "
-            "the default model were measured before its guidance was folded in (two network rows a stream and step "
-            "instead of one): the model it serves now costs less a window than they say.", ""]
+            "(`--check` says whether it is current). Most figures of the default model were measured on the models "
+            "it was distilled from (K = 4 or 8, two network rows a stream and step, or one): the model it serves now, "
+            "K = 2 of one row, costs less a window than they say. The sections that measured it say K = 2.", ""]
     body = one_stream(r) + streams(r) + model_cost(r) + face(r) + presets(r) + latency(r) + gpu(r)
     return "\n".join(head + body).rstrip("\n") + "\n"
 

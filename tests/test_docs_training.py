@@ -100,7 +100,7 @@ def test_the_shipped_recipe_is_the_makefiles_default_model(text):
     block = next(b for b in re.findall(r"```\n(.*?)```", text, re.S) if "--out runs/default" in b)
     shown = [(sub, _options(line, sub)) for line in block.replace("\\\n", " ").splitlines()
              for sub in subs if f"dimgestor {sub} " in line]
-    assert [sub for sub, _ in made] == ["train", "export", "distill", "export"]
+    assert [sub for sub, _ in made] == ["train", "export", "distill", "distill", "export"]
     # (export's --sample-steps is spelled --steps in the guide, as in the CLI's one name for it)
     assert shown == [(sub, sorted(w.replace("--sample-steps", "--steps") for w in words)) for sub, words in made]
     assert "benchmarks/speech_corpus.py --out runs/speech" in block and "speech_corpus.py --out runs/speech" in target

@@ -45,10 +45,12 @@ def test_the_live_model_answers_150_ms_sooner(live):
     assert live.config.frontend == default.config.frontend == "speech"
     assert (live.config.lookahead_ms, default.config.lookahead_ms) == (150, 300)
     assert live.model.lookahead_s == pytest.approx(0.2) and default.model.lookahead_s == pytest.approx(0.35)
-    # both with their teacher's guidance 1.25 folded in (`distill --steps 4`): one network row a step
+    # both 2-step students (`distill --steps 2`) of 4-step students with their teacher's guidance 1.25 folded in
+    # (`distill --steps 4`): one network row a step, two steps
     for b in (live, default):
-        assert (b.config.sample_steps, b.config.guidance, b.config.smooth_hz or 0) == (4, 1.0, 0)
-        assert b.info["teacher"]["sample_steps"] == 4 and b.info["teacher"]["guidance"] == 1.25
+        assert (b.config.sample_steps, b.config.guidance, b.config.smooth_hz or 0) == (2, 1.0, 0)
+        assert b.config.ddim_timesteps == (7, 2) and b.info["method"] == "progressive"
+        assert (b.info["teacher"]["sample_steps"], b.info["teacher"]["guidance"]) == (4, 1.0)
 
 
 @pytest.mark.parametrize("clip", ["demo_en.wav", "demo_zh.wav"])
