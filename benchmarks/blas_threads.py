@@ -34,7 +34,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=2, help="trials per arm, count and neighbour")
     p.add_argument("--seconds", type=float, default=12.0, help="audio per trial")
     p.add_argument("--window-ms", type=int, default=100)
-    p.add_argument("--checkpoint", default=None, help="the model (default: the embedded default model)")
+    p.add_argument("--checkpoint", default=None,
+                   help="the model of the two current arms (default: the embedded default model; --before's arm "
+                        "runs its own)")
     p.add_argument("--neighbour", action="store_true", help="each trial also beside a busy loop on one core")
     p.add_argument("--before", type=Path, default=None, metavar="ROOT",
                    help="a third arm: the code (and embedded model) of this checkout, numpy's BLAS pool as it had")
@@ -78,7 +80,7 @@ def busy_loop() -> subprocess.Popen:
 
 def trial(args, arm: str, n: int, neighbour: bool) -> dict:
     job = {"arm": arm, "streams": n, "neighbour": neighbour, "seconds": args.seconds, "window_ms": args.window_ms,
-           "checkpoint": args.checkpoint}
+           "checkpoint": None if arm == "before" else args.checkpoint}  # (before: its own embedded model)
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
     env["MPLBACKEND"] = "Agg"
     if arm == "before":
