@@ -321,11 +321,16 @@ def test_batch_conditioning_benchmark_writes_its_schema(tmp_path):
     assert all(x["max_realtime_streams"] >= 0 and x["trials"] for x in r["streams"])
     assert sorted(x["code"] for x in r["trials"]) == ["after", "before"]
     assert all(x["streams"] == 2 and x["windows"] > 0 and finite(x["lag_ms_p95"]) for x in r["trials"])
-    # streams pushed in random groups (as staggered clients make them): times per window
-    run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "1", "--batch", "3", "--groups",
+    # streams pushed in random groups (as staggered clients make them): times per window; --steps 0: each code
+    # root's model at its own K (the tiny model's sample_steps)
+    run("batch_conditioning.py", "--before", str(REPO), "--models", "tiny", "--steps", "0", "--batch", "3", "--groups",
         "2", "--rounds", "2", "--repeats", "1", "--sections", "profile", "--out", str(out))
     r = json.loads(out.read_text())
     assert r["groups"] == 2 and "streams" not in r and len(r["profile"]) == 2
+    from dimgestor.config import get_preset
+
+    tiny_k = get_preset("tiny").sample_steps
+    assert all(x["steps"] == 0 and x["model_steps"] == tiny_k for x in r["profile"])
     assert all(finite(x["ms_per_window"]["total"]) and x["ms_per_window"]["frontend"] > 0 for x in r["profile"])
     assert all("page_faults_per_window" in x for x in r["profile"])
 
