@@ -63,7 +63,7 @@ from .dataset import GestureDataset
 from .train import WindowBank
 
 __all__ = ["DistillConfig", "SpeechBank", "distill", "register", "teacher_motion", "teacher_steps", "teacher_spans",
-           "student_motion", "calibration", "student_pairs"]
+           "teacher_chain", "student_motion", "calibration", "student_pairs"]
 
 GAIN_RANGE = (0.5, 2.0)  # a feature's calibration gain is kept inside this (one the student barely moves stays sane)
 
@@ -104,10 +104,11 @@ class DistillConfig(BaseModel):
     cache_dir: str | None = None  # the dataset's feature cache (None: $DIMGESTOR_CACHE or ~/.cache/dimgestor)
 
 
-def teacher_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
-                   guidance: float) -> torch.Tensor:
-    """The teacher's chain on whole windows: cond (B, T, H), x_T (B, T, D) -> x0 (B, T, D), DDIM with eta 0 and
-    classifier-free guidance `guidance` (the unconditional row's condition zeroed, as its streams run it)."""
+def teacher_chain(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
+                  guidance: float):
+    """The teacher's chain on whole windows, step by step: cond (B, T, H), x_T (B, T, D); DDIM with eta 0 and
+    classifier-free guidance `guidance` (the unconditional row's condition zeroed, as its streams run it). Yields
+    each step's (t, the noisy motion x_t, the (guided) output there, x_t_prev), in the chain's order."""
     B = x.shape[0]
     c = torch.cat([cond, torch.zeros_like(cond)]) if guidance != 1.0 else cond
     for t, t_prev in pairs:
@@ -115,27 +116,31 @@ def teacher_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Te
         if guidance != 1.0:
             out = guide(out[:B], out[B:], guidance)
         eps, x0 = diffusion.split(out, x, t)
-        x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
+        x_prev = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
+        yield t, x, out, x_prev
+        x = x_prev
+
+
+def teacher_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
+                   guidance: float) -> torch.Tensor:
+    """The teacher's whole chain: x_T (B, T, D) -> x0 (B, T, D)."""
+    for *_, x in teacher_chain(model, diffusion, pairs, cond, x, guidance):
+        pass
     return x
+
+
+def _steps_of(B: int, t: int, device) -> torch.Tensor:
+    return torch.full((B,), t, dtype=torch.long, device=device)
 
 
 def teacher_steps(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor,
                   guidance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every step of the teacher's chain (as `teacher_motion`), for a student that folds its guidance in: (inputs
-    (K*B, T, D): each step's noisy motion, steps (K*B,): its t, outputs (K*B, T, D): the guided output of the
-    teacher's two rows there), in the chain's order, B rows a step."""
-    B = x.shape[0]
-    c = torch.cat([cond, torch.zeros_like(cond)])
-    xs, ts, outs = [], [], []
-    for t, t_prev in pairs:
-        out, _ = model(torch.cat([x, x]), t, c)
-        out = guide(out[:B], out[B:], guidance)
-        xs.append(x)
-        ts.append(torch.full((B,), t, dtype=torch.long, device=x.device))
-        outs.append(out)
-        eps, x0 = diffusion.split(out, x, t)
-        x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
-    return torch.cat(xs), torch.cat(ts), torch.cat(outs)
+    """Every step of the teacher's guided chain, for a student that folds its guidance in: (inputs (K*B, T, D):
+    each step's noisy motion, steps (K*B,): its t, outputs (K*B, T, D): the guided output of the teacher's two
+    rows there), in the chain's order, B rows a step."""
+    steps = list(teacher_chain(model, diffusion, pairs, cond, x, guidance))
+    return (torch.cat([x_t for _, x_t, _, _ in steps]), torch.cat([_steps_of(len(x), t, x.device) for t, *_ in steps]),
+            torch.cat([out for _, _, out, _ in steps]))
 
 
 def teacher_spans(model: DiMGestor, diffusion: Diffusion, pairs, r: int, cond: torch.Tensor, x: torch.Tensor
@@ -144,17 +149,11 @@ def teacher_spans(model: DiMGestor, diffusion: Diffusion, pairs, r: int, cond: t
     progressively distilled student whose step is one span: (inputs (K/r*B, T, D): the noisy motion where each
     span starts, steps (K/r*B,): its t, targets (K/r*B, T, D): the x0 whose one DDIM step lands where the teacher's
     r steps land), in the chain's order, B rows a span."""
-    B = x.shape[0]
-    xs, ts, targets = [], [], []
-    for i in range(0, len(pairs), r):
-        start, t0 = x, pairs[i][0]
-        for t, t_prev in pairs[i:i + r]:
-            eps, x0 = diffusion.split(model(x, t, cond)[0], x, t)
-            x = diffusion.ddim_step(x, eps, t, t_prev, 0.0, None, x0=x0)[0]
-        xs.append(start)
-        ts.append(torch.full((B,), t0, dtype=torch.long, device=x.device))
-        targets.append(diffusion.x0_reaching(start, x, t0, pairs[i + r - 1][1]))
-    return torch.cat(xs), torch.cat(ts), torch.cat(targets)
+    steps = list(teacher_chain(model, diffusion, pairs, cond, x, 1.0))
+    spans = [(steps[i][0], steps[i][1], steps[i + r - 1][3], pairs[i + r - 1][1]) for i in range(0, len(steps), r)]
+    return (torch.cat([start for _, start, _, _ in spans]),
+            torch.cat([_steps_of(len(x), t0, x.device) for t0, *_ in spans]),
+            torch.cat([diffusion.x0_reaching(start, end, t0, t_end) for t0, start, end, t_end in spans]))
 
 
 def student_motion(model: DiMGestor, diffusion: Diffusion, pairs, cond: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
