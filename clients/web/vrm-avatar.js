@@ -7,6 +7,10 @@
 // onto the skeleton's rest direction s by the swing A (v -> s), then turned by D:  W = D A R.  At rest the VRM
 // takes the skeleton's rest pose; bones it lacks or the skeleton lacks stay at their rest relative to the
 // parent. Both rest poses face the same way after F, the yaw from the skeleton's facing to the VRM's.
+// Where the skeleton has joints between a bone's joint and its chain child's (the spine's Spine1, a second neck
+// joint), their turns bend the skeleton's chain but not the VRM's one bone: D is then followed by the swing that
+// takes D s onto the skeleton's direction now, so the bone points where the skeleton's chain does (a no-op where
+// the child's joint is the joint's own child).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { VRMLoaderPlugin, VRMUtils } from '@pixiv/three-vrm';
@@ -88,16 +92,20 @@ export class VrmAvatar {
       const j = srcJoint[b];
       const R = n.getWorldQuaternion(new THREE.Quaternion());
       let A = new THREE.Quaternion();
+      let chord = null;  // (the skeleton's rest direction to the chain child's joint, and that joint)
       const child = (NEXT[b] || []).find((c) => node(c) && srcJoint[c] !== undefined);
       if (child && j !== undefined) {
         const v = wp(child).sub(wp(b)).normalize();
         const s = srcPos(srcJoint[child]).sub(srcPos(j)).applyQuaternion(this.F).normalize();
-        if (v.lengthSq() > 0.5 && s.lengthSq() > 0.5) A.setFromUnitVectors(v, s);
+        if (v.lengthSq() > 0.5 && s.lengthSq() > 0.5) {
+          A.setFromUnitVectors(v, s);
+          if (joints[srcJoint[child]].parent !== joints[j]) chord = { s, joint: srcJoint[child] };
+        }
       } else {
         const p = byNode.get(n.parent);
         if (p) A = p.A.clone();  // a leaf bone keeps its parent's alignment (a fingertip stays in line)
       }
-      const entry = { name: b, node: n, joint: j, R, A, S: j !== undefined ? joints[j].getWorldQuaternion(new THREE.Quaternion()) : null,
+      const entry = { name: b, node: n, joint: j, R, A, chord, S: j !== undefined ? joints[j].getWorldQuaternion(new THREE.Quaternion()) : null,
                       parentRest: n.parent.getWorldQuaternion(new THREE.Quaternion()), W: R.clone() };
       entry.Sinv = entry.S ? entry.S.clone().invert() : null;
       this.bones.push(entry);
@@ -119,6 +127,7 @@ export class VrmAvatar {
   /** Pose the VRM like the streamed skeleton's joints are now (call after applying a frame). */
   drive(joints, dt) {
     const D = new THREE.Quaternion(), G = new THREE.Quaternion(), parentW = new THREE.Quaternion();
+    const swing = new THREE.Quaternion(), from = new THREE.Vector3(), to = new THREE.Vector3(), at = new THREE.Vector3();
     for (const e of this.bones) {
       const p = this.byNode.get(e.node.parent);
       parentW.copy(p ? p.W : e.parentRest);
@@ -128,6 +137,11 @@ export class VrmAvatar {
         joints[e.joint].getWorldQuaternion(G);
         D.copy(G).multiply(e.Sinv);                                 // rotation from rest, skeleton world
         D.premultiply(this.F).multiply(this.Finv);                  // ... in the VRM's world
+        if (e.chord) {  // joints between: point along the skeleton's chain as it is now
+          joints[e.chord.joint].getWorldPosition(to).sub(joints[e.joint].getWorldPosition(at)).applyQuaternion(this.F);
+          from.copy(e.chord.s).applyQuaternion(D);
+          if (to.lengthSq() > 1e-12) D.premultiply(swing.setFromUnitVectors(from, to.normalize()));
+        }
         e.W.copy(D).multiply(e.A).multiply(e.R);
       }
       e.node.quaternion.copy(parentW).invert().multiply(e.W);
