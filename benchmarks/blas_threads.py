@@ -78,9 +78,14 @@ def busy_loop() -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
 
 
+def job_of(args, arm: str, n: int, neighbour: bool) -> dict:
+    """One trial's settings: the before arm runs its own code's embedded model, whatever --checkpoint says."""
+    return {"arm": arm, "streams": n, "neighbour": neighbour, "seconds": args.seconds, "window_ms": args.window_ms,
+            "checkpoint": None if arm == "before" else args.checkpoint}
+
+
 def trial(args, arm: str, n: int, neighbour: bool) -> dict:
-    job = {"arm": arm, "streams": n, "neighbour": neighbour, "seconds": args.seconds, "window_ms": args.window_ms,
-           "checkpoint": None if arm == "before" else args.checkpoint}  # (before: its own embedded model)
+    job = job_of(args, arm, n, neighbour)
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
     env["MPLBACKEND"] = "Agg"
     if arm == "before":

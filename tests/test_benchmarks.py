@@ -132,6 +132,19 @@ def test_blas_threads_benchmark_writes_its_schema(tmp_path):
         (False, "one thread", 1), (False, "pool", 1), (True, "one thread", 1), (True, "pool", 1)]
 
 
+def test_blas_threads_before_arm_runs_its_own_model(tmp_path):
+    """--before's arm loads its own code's embedded model; --checkpoint is the model of the two current arms (older
+    code may not read a newer checkpoint)."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        import blas_threads
+    finally:
+        sys.path.remove(str(BENCH))
+    args = blas_threads.parse_args(["--checkpoint", "runs/mine", "--before", str(tmp_path)])
+    assert [blas_threads.job_of(args, arm, 8, False)["checkpoint"] for arm in blas_threads.ARMS] == \
+        ["runs/mine", "runs/mine", None]
+
+
 def test_face_streams_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
     """benchmarks/face_streams.py at its smallest: one stream a trial, each arm (no face, the face, pocketsphinx's,
     another checkpoint's with a face, and no face and the face on ONNX Runtime's two lanes: the run's shared export,
