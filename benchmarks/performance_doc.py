@@ -324,10 +324,11 @@ def blas(r: dict[str, dict]) -> list[str]:
                  f"{kept('one thread', True)} against {kept('pool', True)}")
     line += "."
     if any(x["arm"] == "before" for x in t["trials"]):
-        before = [x for x in t["trials"] if x["arm"] == "before"]
-        line += (f" In the same run, `serve` as it was before these changes (the default model then: guided, K = "
-                 f"{before[0].get('model_steps', 4)}, two network rows a stream and step; numpy's pool) kept "
-                 f"{kept('before', False)}.")
+        b = next(x for x in t["trials"] if x["arm"] == "before")
+        rows = (f"guided, K = {b['model_steps']}, two network rows a stream and step" if b["guidance"] != 1
+                else f"K = {b['model_steps']}, one network row a stream and step")
+        line += (f" In the same run, `serve` as it was before these changes (the default model then: {rows}; numpy's "
+                 f"pool) kept {kept('before', False)}.")
     return [line, "", source("blas"), ""]
 
 

@@ -132,3 +132,5 @@ def test_the_blas_sentence_gives_each_arms_count_kept_in_every_trial(perf, resul
             f"used 13 s of CPU a trial against 23 s") in page
     if any(t["neighbour"] for t in d["trials"]):
         assert f"it kept {counts[0]} against fewer than {counts[0]}." in page
+    if any(t["arm"] == "before" for t in d["trials"]):  # (serve before issue 50, its own model: fewer here too)
+        assert f"kept fewer than {counts[0]}.\n" in page and "the default model then: guided, K = 4, two" in page
