@@ -229,3 +229,23 @@ def test_a_step_written_into_a_buffer_equals_the_step_as_a_value(batch):
     assert h2 is buf
     torch.testing.assert_close(y2, y)
     torch.testing.assert_close(buf, h1)
+
+
+@pytest.mark.parametrize("L", [1, 2, 4])
+def test_a_batchs_window_at_once_equals_its_frames_step_by_step_and_a_held_row_keeps_its_state(L):
+    """`ssd_window` (the runner's form for a batch of streams) gives the recurrence's y and state, written into
+    the state's own buffer; a row whose dt is 0 (a held row) gets its state back bit for bit."""
+    gen = torch.Generator().manual_seed(L)
+    b, h, p, n = 3, 4, 5, 6
+    x, h0 = torch.randn(b, L, h, p, generator=gen), torch.randn(b, h, p, n, generator=gen)
+    dt = torch.rand(b, L, h, generator=gen) * 0.5 + 0.01
+    dt[1] = 0.0  # the held row
+    A = -torch.rand(h, generator=gen) - 0.1
+    B, C = torch.randn(b, L, n, generator=gen), torch.randn(b, L, n, generator=gen)
+    y_ref, h_ref = ssd_steps(x, dt, A, B[:, :, None], C[:, :, None], h0)
+    buf = h0.clone()
+    y, new = mamba2.ssd_window(buf, dt * A, x * dt[..., None], B, C, out=buf)
+    assert new is buf
+    torch.testing.assert_close(y, y_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(buf, h_ref, rtol=1e-5, atol=1e-5)
+    assert torch.equal(buf[1], h0[1]) and not torch.equal(buf[0], h0[0])

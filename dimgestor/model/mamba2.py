@@ -13,7 +13,8 @@ state-space-duality scan, kept as the reference of the chunk algebra):
   - `ssd_steps`: the recurrence itself (`ssd_step`, also what `ssd_naive` and the runner's written-out
     block in `dimgestor.model.sampler` call), for windows of up to `STEP_MAX` frames (a streaming window at
     20 fps is 1-10 frames, where the number of ops per call, not their arithmetic, is the cost);
-  - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk;
+  - `ssd_one_chunk`: one chunk of the SSD algebra as a few batched matmuls, for windows up to a chunk
+    (`ssd_window`: the same algebra for a batch of streams' windows in the runner, its state written in place);
   - `ssd_scan`: the lean long-sequence scan, a loop over chunks carrying the state, so its working memory
     is one chunk's (O(h Q^2 + h p n)) whatever the length; only the output grows with L.
 On CUDA, the fused `mamba_ssm` kernel is used when importable.
@@ -158,6 +159,30 @@ def ssd_step(h, dA, Xdt, B, C, out=None):
         return torch.mm(new, C), new
     new = torch.addcmul(h * dA, Xdt, B, out=out)
     return torch.linalg.vecdot(new, C), new
+
+
+def ssd_window(h, dtA, Xdt, B, C, out=None):
+    """A batch's window of a few frames at once, one group: the recurrence of `ssd_step` in the closed form of
+    one SSD chunk, so each state is read twice and written once a window, not read and written every frame
+    (a batch's states outgrow the caches, and those passes were most of the recurrence's cost).
+
+    h (b, h, p, n); dtA (b, L, h): each frame's log decay dt A; Xdt (b, L, h, p); B, C (b, L, n)
+    -> y (b, L, h, p), the new state (written into `out` where given, which may be h itself). A row whose dt is
+    0 keeps its state exactly (its decay exp(0) = 1, its input 0).
+    """
+    b, L, nh, p = Xdt.shape
+    n = h.shape[-1]
+    la = dtA.transpose(1, 2).cumsum(-1)  # (b, h, L): log decay from the state before the window to frame t
+    X = Xdt.transpose(1, 2)  # (b, h, L, p)
+    carried = torch.bmm(h.reshape(b, nh * p, n), C.transpose(1, 2)).view(b, nh, p, L).transpose(2, 3)
+    seg = la[..., :, None] - la[..., None, :]  # (b, h, L, L): log decay from frame s to frame t
+    causal = torch.ones(L, L, dtype=torch.bool, device=h.device).tril()
+    scores = torch.exp(seg.masked_fill(~causal, -torch.inf)) * (C @ B.transpose(1, 2))[:, None]
+    y = torch.addcmul(scores @ X, carried, la.exp()[..., None])  # (b, h, L, p)
+    Xw = (X * torch.exp(la[..., -1:] - la)[..., None]).transpose(2, 3).reshape(b, nh * p, L)  # decayed to the end
+    new = torch.mul(h, la[..., -1].exp()[..., None, None], out=out)
+    new.view(b, nh * p, n).baddbmm_(Xw, B)
+    return y.transpose(1, 2), new
 
 
 def ssd_steps(x, dt, A, B, C, initial_state):

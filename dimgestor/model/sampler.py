@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from .diffusion import Diffusion, guide, motion_noise_rows
-from .mamba2 import STEP_MAX, Mamba2State, ssd_step
+from .mamba2 import STEP_MAX, Mamba2State, ssd_step, ssd_window
 from .network import DenoiserState, DiMGestor
 
 __all__ = ["StepStates", "StateBuffers", "Window", "DenoiseRunner", "runner_for", "denoise"]
@@ -330,24 +330,17 @@ class _FastBlock:
         dt = F.softplus(dt + self.dt_bias).view(B, L, h_)
         if hold is not None:  # dt = 0: dA = exp(0) = 1 and Xdt = 0, so the recurrence returns the state as it was
             dt = torch.where(_rows(hold, dt), 0.0, dt)
-        dA = torch.exp(dt * self.A)  # (B, L, h)
+        dtA = dt * self.A  # (B, L, h)
         Xdt = x.view(B, L, h_, p) * dt[..., None]  # (B, L, h, p)
         if B == 1:  # 2-D matmuls on the state's rows (a head's p channels each), written into the buffer
             flat, flat_out = ssm.view(h_ * p, n), ssm_out.view(h_ * p, n)
-            dA = dA[0, :, :, None].expand(L, h_, p).reshape(L, h_ * p, 1)
+            dA = torch.exp(dtA)[0, :, :, None].expand(L, h_, p).reshape(L, h_ * p, 1)
             Xdt, Bm, Cm = Xdt.view(L, h_ * p, 1), Bm.view(L, 1, n), Cm.view(L, n, 1)
             ys = [ssd_step(flat if t == 0 else flat_out, dA[t], Xdt[t], Bm[t], Cm[t], out=flat_out)[0]
                   for t in range(L)]  # (h p, 1) each
             y = torch.cat(ys, 1).t() if L > 1 else ys[0].view(1, h_ * p)
-        else:  # broadcast multiply-adds over the batch, a head's decay over its channels
-            # time on an axis whose split already broadcasts against the state (B, h, p, n): no slice is squeezed
-            # or unsqueezed (each a node of the exported graph: 6 a block fewer than selecting frame t)
-            dA = dA.transpose(1, 2)[:, :, None].split(1, -1)  # (B, h, 1, 1) each
-            Xdt = Xdt.permute(0, 2, 3, 1).split(1, -1)  # (B, h, p, 1) each
-            Bm, Cm = Bm[:, None].split(1, 2), Cm[:, None].split(1, 2)  # (B, 1, 1, n) each
-            ys = [ssd_step(ssm if t == 0 else ssm_out, dA[t], Xdt[t], Bm[t], Cm[t], out=ssm_out)[0]
-                  for t in range(L)]  # (B, h, p) each
-            y = torch.stack(ys, 1)
+        else:  # the window's frames at once: each row's state read twice and written once
+            y, _ = ssd_window(ssm, dtA, Xdt, Bm, Cm, out=ssm_out)
         y = torch.addcmul(y.reshape(B * L, self.di), x.reshape(B * L, self.di), self.D)  # + D x
         g = F.rms_norm(y * F.silu(z), (self.di,), self.norm_w, self.eps)
         h = torch.addcmul(h, gate1, F.linear(g, self.w_out))
