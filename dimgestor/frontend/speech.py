@@ -193,14 +193,21 @@ class SpeechFrontEnd(nn.Module):
         return tuple(torch.from_numpy(a).to(dev) for a in carried), *(torch.from_numpy(a).to(dev) for a in per_frame)
 
     def frame_measures(self, frames: torch.Tensor):
-        """Windowed frames (B, n, win) -> (band dB (B, n, M), frame dBFS (B, n), periodicity (B, n), log2 f0 (B, n))."""
+        """Windowed frames (B, n, win) -> (band dB (B, n, M), frame dBFS (B, n), periodicity (B, n), log2 f0 (B, n)).
+        One zero-padded transform gives both the bands' spectrum and the autocorrelation where win <= n_fft and
+        n_fft divides its size (as `_spectra_as_matmuls` says)."""
         x = frames * self.window
         if torch.compiler.is_exporting():
             power, ac0, ac = self._spectra_as_matmuls(x)
         else:
-            spec = torch.fft.rfft(x, n=self.n_fft)
-            power = spec.real.square() + spec.imag.square()  # (B, n, n_fft//2+1)
-            ac = torch.fft.irfft(torch.fft.rfft(x, n=self.ac_fft).abs().square(), n=self.ac_fft)  # (B, n, ac_fft)
+            spec = torch.fft.rfft(x, n=self.ac_fft)
+            power_ac = spec.real.square() + spec.imag.square()  # (B, n, ac_fft//2+1)
+            if self.ac_fft % self.n_fft == 0 and self.win <= self.n_fft:  # (one transform serves both: below)
+                power = power_ac[..., ::self.ac_fft // self.n_fft]  # (B, n, n_fft//2+1)
+            else:
+                spec = torch.fft.rfft(x, n=self.n_fft)
+                power = spec.real.square() + spec.imag.square()
+            ac = torch.fft.irfft(power_ac, n=self.ac_fft)  # (B, n, ac_fft)
             ac0, ac = ac[..., :1], ac[..., self.lag_lo:self.lag_hi + 1]
         bands = 10.0 * torch.log10((power @ self.fb).clamp_min(1e-12))  # (B, n, M)
         energy = 10.0 * torch.log10(x.square().mean(-1) / self.w_power + 1e-12)  # dBFS: a full-scale sine is -3

@@ -45,8 +45,7 @@ def condition_group(model: DiMGestor, frontends: Sequence, extractors: Sequence[
         x = torch.from_numpy(np.stack(samples)).to(dev)  # (B, N)
         feats, fe = model.frontend(x, _stack(frontends))
         cond, ex = model.condition(feats, _stack(extractors), _speakers(model, speakers, dev))
-    return [Conditioned(cond[r:r + 1], _row(fe, r, f), _row(ex, r, e))
-            for r, (f, e) in enumerate(zip(frontends, extractors))]
+    return [Conditioned(c, f, e) for c, f, e in zip(cond.split(1), _rows(fe, frontends), _rows(ex, extractors))]
 
 
 def _speakers(model: DiMGestor, speakers: Sequence[int | None], device) -> torch.Tensor | None:
@@ -89,12 +88,14 @@ def _stack(parts: Sequence):
     raise TypeError(f"cannot stack a state part of type {type(first).__name__}")
 
 
-def _row(state, r: int, before):
-    """Row r of a stacked state after the call; `before`: that stream's own state before it (for the counts)."""
+def _rows(state, befores: Sequence) -> list:
+    """Each row of a stacked state after the call, as its own state; befores: each stream's own state before it
+    (for the counts). A tensor's rows come from one split, not a slice a row."""
     if torch.is_tensor(state):
-        return state[r:r + 1]
+        return list(state.split(1))
     if isinstance(state, Mamba2State):
-        return Mamba2State(_row(state.conv, r, None), _row(state.ssm, r, None))
+        return [Mamba2State(c, s) for c, s in zip(state.conv.split(1), state.ssm.split(1))]
     if isinstance(state, tuple):
-        return type(state)(*(_row(part, r, b) for part, b in zip(state, before)))
-    return before + state  # the stream's count + what the batch added
+        parts = [_rows(part, [b[f] for b in befores]) for f, part in enumerate(state)]
+        return [type(state)(*row) for row in zip(*parts)]
+    return [before + state for before in befores]  # the stream's count + what the batch added
