@@ -190,6 +190,10 @@ def _output_flags(g) -> dict[str, argparse.Action]:
                    "default), 'pocketsphinx' (its English phone recognizer, where it is installed) or "
                    "'net+pocketsphinx' (both, their mouths averaged: closer to real voices, at both costs; "
                    "docs/face.md)"),
+        _flag(g, "--face-process", action="store_true",
+              help="make the sessions' faces in a second process beside the inference thread, on a core of their "
+                   "own: with many faces on a machine of two or more cores, more avatars keep real time "
+                   "(docs/performance.md); it starts with the server (about 2 s)"),
         _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma|.npz",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "

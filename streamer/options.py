@@ -100,6 +100,7 @@ class ServeOptions(BaseModel):
     smile: float = Field(0.0, ge=0, le=1)
     # what hears the mouth: the face's network, pocketsphinx, or both (their mouths averaged)
     face_listener: Literal["net", "pocketsphinx", "net+pocketsphinx"] = "net"
+    face_process: bool = False  # the faces made in a child process beside the inference thread
     # the rest
     record: str | None = None  # a BVH path (.glb, .vrma or .npz: that file too, from the BVH beside it)
     humanoid_map: str | None = None  # None: streamer/maps/zeggs.json

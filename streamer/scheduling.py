@@ -406,6 +406,7 @@ class StreamBatcher(_Threads):
 
         self.stats.add(len(pushes))
         started = self.clock()
+        _faces_begin(pushes)
         try:
             results = push_many([j.source.stream for j in pushes], [j.samples for j in pushes],
                                 return_exceptions=True)
@@ -419,6 +420,15 @@ class StreamBatcher(_Threads):
         took = self.clock() - started
         if all(j.rank > 0 for j in pushes):  # (a real-time window's cycle is not what sizes backlog cycles)
             self.cost.add(took, sum(len(j.samples) for j in pushes) / SAMPLE_RATE)
+
+
+def _faces_begin(pushes: list[_PushJob]) -> None:
+    """Sources that make their faces in another process start them now, beside the bodies (their `faces_begin`;
+    `streamer.face_process`); a failure there is each of their faces' own, raised with its frames."""
+    kinds = {type(j.source) for j in pushes}
+    begin = getattr(next(iter(kinds)), "faces_begin", None) if len(kinds) == 1 else None
+    if begin is not None:
+        begin([j.source for j in pushes])
 
 
 def _frames(pushes: list[_PushJob], results: list) -> list:

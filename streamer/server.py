@@ -34,6 +34,7 @@ from streamer.sources import AudioChunk, MicSource, WavSource, open_source
 if TYPE_CHECKING:
     from dimgestor.export.onnx_stream import OnnxModel
     from dimgestor.streaming.checkpoint import Bundle
+    from streamer.face_process import FaceProcess
     from streamer.ws import WsServer
 
 __all__ = ["Pipeline", "ServeError", "ServeOptions", "build", "read_state_secret", "read_token", "run", "serve"]
@@ -62,6 +63,7 @@ class Pipeline:
     ws: WsServer | None = None  # the WebSocket server (also among the sinks): clients bring their own audio too
     metrics: ServerMetrics = field(default_factory=ServerMetrics)  # served by `ws` (/metrics, /readyz)
     face: ServeFace | None = None  # the face every session makes and every sink sends (None: bones only)
+    face_process: FaceProcess | None = None  # where the sessions' faces are made (--face-process; None: inline)
     t0: float = field(default_factory=time.monotonic)
 
     @property
@@ -77,6 +79,8 @@ async def serve(options: ServeOptions) -> int:
         return await run(pipeline)
     finally:
         pipeline.scheduler.shutdown(wait=False, cancel_futures=True)
+        if pipeline.face_process is not None:
+            pipeline.face_process.close()
 
 
 # ---- build ---------------------------------------------------------------------------------------
@@ -112,10 +116,12 @@ def build(options: ServeOptions) -> Pipeline:
     one_blas_thread()
     metrics = _metrics(scheduler)
     admission = _admission(options, bundle, face, metrics, scheduler)
+    face_process = _face_process(options, face)
     # one more session: a WebSocket client's own audio (its keyword arguments: Session's own, e.g. face=None)
     make_session = functools.partial(_session, bundle, options, scheduler, steps, guidance, onnx=onnx,
                                      state_key=state_key, face=face.options if face is not None else None,
-                                     face_cost=admission.face_cost if admission is not None else None)
+                                     face_cost=admission.face_cost if admission is not None else None,
+                                     face_process=face_process)
     session = make_session("source", on_window=metrics.window_done) if source is not None else None
     if options.state_store is not None:  # what a resumed state's values may reach, learnt now (~1 s), not on a resume
         from dimgestor.streaming import state_bounds
@@ -135,7 +141,7 @@ def build(options: ServeOptions) -> Pipeline:
         metrics.sinks["record"] = lambda: (recording.recorder.frames if recording.recorder else 0, None)
     sinks = [s for s in (ws, vmc, recording) if s is not None]
     return Pipeline(options, bundle, steps, guidance, source, session, make_session, scheduler, sinks, ws, t0=t0,
-                    metrics=metrics, face=face)
+                    metrics=metrics, face=face, face_process=face_process)
 
 
 def _face(options: ServeOptions) -> ServeFace | None:
@@ -152,6 +158,22 @@ def _face(options: ServeOptions) -> ServeFace | None:
         return None
     return ServeFace(options.face, FaceOptions(seed=options.seed, smile=options.smile,
                                                listener=options.face_listener))
+
+
+def _face_process(options: ServeOptions, face: ServeFace | None) -> FaceProcess | None:
+    """--face-process: the child process the sessions' faces are made in, started now and waited for (its imports
+    take a few seconds: not in a first client's window). None without the flag, or without a face."""
+    if not options.face_process or face is None:
+        return None
+    from streamer.face_process import FaceProcess, FaceProcessEnded
+
+    process = FaceProcess()
+    try:
+        process.ready()
+    except FaceProcessEnded as e:
+        process.close()
+        raise ServeError(f"--face-process: {e}") from None
+    return process
 
 
 def _source(options: ServeOptions):

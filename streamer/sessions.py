@@ -38,6 +38,7 @@ __all__ = ["Session", "Stats", "AudioClock", "WindowTiming", "check_meta"]
 if TYPE_CHECKING:
     from dimgestor.face import FaceOptions
     from streamer.capacity import FaceCost
+    from streamer.face_process import FaceProcess
 
 
 @dataclass(frozen=True)
@@ -188,7 +189,8 @@ class Session:
                  window_ms: int = 200, scheduler: Scheduler | Executor | None = None, name: str = "session", *,
                  executor: Executor | None = None, face: "FaceOptions | None" = None, clock: AudioClock | None = None,
                  on_window: Callable[[float], None] | None = None, on_boundary: Callable[[], None] | None = None,
-                 state_key: bytes | None = None, face_cost: "FaceCost | None" = None):
+                 state_key: bytes | None = None, face_cost: "FaceCost | None" = None,
+                 face_process: "FaceProcess | None" = None):
         if executor is not None:
             if scheduler is not None:
                 raise TypeError("Session: give scheduler= only (executor= is its deprecated name)")
@@ -210,6 +212,8 @@ class Session:
         self._face_start = (0, 0)  # (sample, frame) where the face begins: a restored session's position
         self._face_audio: deque[np.ndarray] = deque()  # a call's audio, from its submission to its frames
         self._face_paid = 0.0  # this session's share of a batch's face (`frames_many`), seconds
+        self.face_process = face_process  # where its face is made (None: here, in the batch's thread)
+        self._face_token = None  # its face's exchange with the face process, begun with the batch (`faces_begin`)
         self._finishing = False
         self._inflight = None  # the call being inferred (a scheduler's future): the face outlives it
         self.state_key = state_key  # (`dimgestor.streaming.savestate`; never shown)
@@ -261,12 +265,32 @@ class Session:
                 for i in range(n)]
 
     @classmethod
+    def faces_begin(cls, sessions: list["Session"]) -> None:
+        """Before a batch's bodies are stepped: the faces made in a face process (`streamer.face_process`) are sent
+        their windows' audio, so that the child makes them while this thread steps the bodies (`frames_many` takes
+        their rows). Sessions whose face is made here are left as they are."""
+        groups: dict[int, list[Session]] = {}
+        for s in sessions:
+            if s.face_options is not None and s.face_process is not None and s._face_audio and s._face_token is None:
+                groups.setdefault(id(s.face_process), []).append(s)
+        for group in groups.values():
+            try:
+                token = group[0].face_process.begin([s._face_stream() for s in group],
+                                                    [np.concatenate(s._face_audio) for s in group])
+            except BaseException as e:  # noqa: BLE001 - each of these faces' failure, raised in its frames
+                token = e
+            for s in group:
+                s._face_audio.clear()
+                s._face_token = token
+
+    @classmethod
     def frames_many(cls, sessions: list["Session"], outputs: list[np.ndarray]) -> list[list[Frame] | BaseException]:
         """`frames_of` of several sessions' outputs from one batch (a scheduler's): their faces made together
-        (`FaceStream.push_many`: one product per layer of the listener for all of them), then each session's
-        frames; a session's failure is its own entry (a failure of the faces' shared step, each face session's)."""
-        faces = [s for s in sessions if s.face_options is not None and s._face_audio]
-        failed: BaseException | None = None
+        (`FaceStream.push_many`: one product per layer of the listener for all of them; or taken from the face
+        process, `faces_begin`), then each session's frames; a session's failure is its own entry (a failure of
+        the faces' shared step, each face session's)."""
+        failed: dict[int, BaseException] = {}
+        faces = [s for s in sessions if s.face_options is not None and s.face_process is None and s._face_audio]
         if faces:
             from dimgestor.face import FaceStream
 
@@ -275,14 +299,17 @@ class Session:
                 FaceStream.push_many([s._face_stream() for s in faces],
                                      [np.concatenate(s._face_audio) for s in faces])
             except BaseException as e:  # noqa: BLE001 - each face session's own failure
-                failed = e
+                failed.update({id(s): e for s in faces})
             for s in faces:
                 s._face_audio.clear()
                 s._face_paid += (time.perf_counter() - t) / len(faces)
+        remote = [s for s in sessions if s.face_options is not None and s.face_process is not None]
+        cls.faces_begin(remote)  # (any not begun with the batch: now)
+        failed.update(_faces_taken([s for s in remote if s._face_token is not None]))
         out: list[list[Frame] | BaseException] = []
         for s, r in zip(sessions, outputs):
-            if failed is not None and s in faces:
-                out.append(failed)
+            if id(s) in failed:
+                out.append(failed[id(s)])
                 continue
             try:
                 out.append(s.frames_of(r))
@@ -314,6 +341,8 @@ class Session:
     def _face_rows(self, n: int) -> np.ndarray:
         """The face of the stream's newest n frames, from the audio given since the last call (the call's own)."""
         self._face_stream()
+        if self._face_token is not None and (failed := _faces_taken([self])):
+            raise failed[id(self)]
         while self._face_audio:
             self._face.push(self._face_audio.popleft())
         if self._finishing and self._face.frames_ready < n:
@@ -321,13 +350,18 @@ class Session:
         return self._face.take(n)
 
     def _face_stream(self):
-        """The session's `FaceStream`, made on first use (at a restored session's position)."""
+        """The session's `FaceStream` (in its face process: a `RemoteFace`), made on first use (at a restored
+        session's position)."""
         if self._face is None:
-            from dimgestor.face import FaceStream
-
             lookahead = np.floor(min(self.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
             sample, frame = self._face_start
-            self._face = FaceStream(self.fps, lookahead, self.face_options, start_sample=sample, start_frame=frame)
+            if self.face_process is not None:
+                self._face = self.face_process.face(self.fps, lookahead, self.face_options, sample, frame)
+            else:
+                from dimgestor.face import FaceStream
+
+                self._face = FaceStream(self.fps, lookahead, self.face_options, start_sample=sample,
+                                        start_frame=frame)
         return self._face
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
@@ -438,6 +472,33 @@ class Session:
 async def _emit(emit: Callable[[list[Frame]], object], frames: list[Frame]) -> None:
     if inspect.isawaitable(r := emit(frames)):
         await r
+
+
+def _faces_taken(sessions: list[Session]) -> dict[int, BaseException]:
+    """The answers of the sessions' begun face exchanges (`Session.faces_begin`), each face's rows queued on it
+    and its share of the child's time paid -> {id(session): the exception that failed its face}."""
+    failed: dict[int, BaseException] = {}
+    groups: dict[int, list[Session]] = {}
+    for s in sessions:
+        groups.setdefault(id(s._face_token), []).append(s)
+    for group in groups.values():
+        token = group[0]._face_token
+        for s in group:
+            s._face_token = None
+        try:
+            if isinstance(token, BaseException):
+                raise token
+            answer, cpu_s = group[0].face_process.wait(token)
+        except BaseException as e:  # noqa: BLE001 - each of these faces' failure
+            failed.update({id(s): e for s in group})
+            continue
+        for s in group:
+            s._face_paid += cpu_s / len(group)
+            try:
+                s._face.receive(answer)
+            except BaseException as e:  # noqa: BLE001
+                failed[id(s)] = e
+    return failed
 
 
 def reach(skeleton) -> float:

@@ -1,0 +1,134 @@
+"""Faces made in a child process beside the batcher (`serve --face-process`, `streamer.face_process`)."""
+
+import os
+import signal
+import threading
+
+import numpy as np
+import pytest
+from helpers.clients import SPEECH_WAV
+
+from dimgestor.audio import SAMPLE_RATE, load_wav
+from dimgestor.face import FACE_LABELS, FaceOptions
+from dimgestor.face.visemes import V
+
+SPEECH = load_wav(SPEECH_WAV)[: 3 * SAMPLE_RATE]
+
+
+@pytest.fixture(scope="module")
+def face_process():
+    from streamer.face_process import FaceProcess
+
+    process = FaceProcess()
+    process.ready()
+    yield process
+    process.close()
+
+
+def _batched(bundle, face_process, options, smile_at=None, kill_at=None, bodies_only=()):
+    """Sessions taken as one batch per window by a `StreamBatcher` (what `serve` runs) -> each one's face rows (or
+    its exception) and its frame count. smile_at: the window at which session 0's smile is set to 0.8; kill_at:
+    the window before which the face process is killed; bodies_only: sessions without a face."""
+    from streamer.scheduling import StreamBatcher
+    from streamer.sessions import Session
+
+    batcher = StreamBatcher()
+    sessions = [Session.from_bundle(bundle, seed=k, face=None if k in bodies_only else o, scheduler=batcher,
+                                    face_process=face_process) for k, o in enumerate(options)]
+    rows, counts, errors = [[] for _ in options], [0] * len(options), [None] * len(options)
+    try:
+        for w, at in enumerate(range(0, len(SPEECH), 1600)):
+            if w == smile_at:
+                sessions[0].set_smile(0.8)
+            if w == kill_at:
+                os.kill(face_process.pid, signal.SIGKILL)
+                face_process._process.join(10)
+            gate = threading.Event()
+            batcher.submit_ranked(0.0, gate.wait)  # holds the batcher: the windows queue behind it, one batch
+            futures = {}
+            for k, s in enumerate(sessions):
+                if errors[k] is None:
+                    s._hear(SPEECH[at:at + 1600])
+                    futures[k] = batcher.submit_push(s, SPEECH[at:at + 1600])
+            gate.set()
+            for k, f in futures.items():
+                if (e := f.exception(timeout=60)) is not None:
+                    errors[k] = e
+                else:
+                    counts[k] += len(f.result())
+                    rows[k] += [fr.channels["face"] for fr in f.result() if "face" in fr.channels]
+        for k, s in enumerate(sessions):
+            if errors[k] is None:
+                last = s.infer_finish()
+                counts[k] += len(last)
+                rows[k] += [fr.channels["face"] for fr in last if "face" in fr.channels]
+    finally:
+        batcher.shutdown()
+        for s in sessions:
+            s._close_face()
+    return [np.array(r) if e is None else e for r, e in zip(rows, errors)], counts
+
+
+def test_faces_made_in_the_face_process_are_the_faces_made_in_the_batch(bundle, face_process):
+    """The same sessions, windows and batches with their faces in the child and in the batcher's thread: the same
+    face bit for bit, a smile set midway included, up to the frames after the audio ends."""
+    options = [FaceOptions(seed=0), FaceOptions(seed=1, smile=0.3), FaceOptions(seed=2)]
+    there, n_there = _batched(bundle, face_process, options, smile_at=12)
+    here, n_here = _batched(bundle, None, options, smile_at=12)
+    assert n_there == n_here and all(n > 50 for n in n_here)
+    for a, b in zip(there, here):
+        assert a.shape == b.shape == (len(a), b.shape[1]) and a[:, 0].std() > 0
+        np.testing.assert_array_equal(a, b)
+    assert there[0][:20, V["smile"]].max() == 0 and there[0][30:, V["smile"]].min() > 0.3  # (set midway)
+
+
+def test_a_face_that_fails_in_the_child_fails_its_own_session_and_a_killed_child_fails_only_the_faces(bundle):
+    """A face the child cannot make (an unknown listener) fails its session's window, the others' faces go on;
+    once the child is killed, each face session's next window fails with one line naming the face process, and a
+    session without a face keeps making frames."""
+    from streamer.face_process import FaceProcess, FaceProcessEnded
+
+    process = FaceProcess()
+    process.ready()
+    try:
+        got, counts = _batched(bundle, process, [FaceOptions(), FaceOptions(listener="nothing"), FaceOptions()])
+        assert isinstance(got[1], ValueError) and "face listener 'nothing'" in str(got[1])
+        assert got[0].shape[0] == counts[0] > 50 and got[2].shape[0] == counts[2]
+        got, counts = _batched(bundle, process, [FaceOptions(), FaceOptions(), FaceOptions()], kill_at=5,
+                               bodies_only=(2,))
+        for k in (0, 1):
+            assert isinstance(got[k], FaceProcessEnded), got[k]
+            assert "face process" in str(got[k]) and "\n" not in str(got[k])
+        assert counts[2] > 50 and len(got[2]) == 0  # (the session without a face: every frame, no face)
+    finally:
+        process.close()
+
+
+def parse(*flags: str):
+    from dimgestor_app.cli import build_parser
+    from streamer.options import ServeOptions
+
+    args = build_parser().parse_args(["serve", *flags])
+    return ServeOptions.parse(**{k: v for k, v in vars(args).items() if k in ServeOptions.model_fields})
+
+
+def test_serve_face_process_flag_starts_the_child_and_its_sessions_use_it(tiny_checkpoint):
+    """`serve --face-process` (parsed as the CLI does) builds a pipeline whose sessions make their faces in the
+    child; without a face there is no child."""
+    from streamer.face_process import RemoteFace
+    from streamer.server import build
+
+    common = ("--source", "ws", "--checkpoint", str(tiny_checkpoint), "--ws", "127.0.0.1:0", "--status-every", "0")
+    pipeline = build(parse(*common, "--face-process"))
+    try:
+        assert pipeline.face_process is not None and pipeline.face_process.pid
+        session = pipeline.make_session()
+        assert isinstance(session._face_stream(), RemoteFace)
+        frames = [f for at in range(0, 8000, 1600) for f in session.infer(SPEECH[at:at + 1600])]
+        assert len(frames) > 5 and all(f.channels["face"].shape == (len(FACE_LABELS),) for f in frames)
+    finally:
+        pipeline.scheduler.shutdown()
+        pipeline.face_process.close()
+    none = build(parse(*common, "--face-process", "--face", "none"))
+    none.scheduler.shutdown()
+    assert none.face_process is None
