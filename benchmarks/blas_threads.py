@@ -9,9 +9,12 @@ each stream count. `--neighbour` runs each trial also beside a busy loop on one 
 speech recogniser or a second worker does to a served process on the same machine). With `--before ROOT` (a checkout
 of older code, e.g. `git worktree add --detach /tmp/before 0578d34`), a third arm runs that code and its embedded
 model as its `serve` ran them (numpy's BLAS pool), taking turns with the other two. Per trial: the lags (p95, ms),
-whether it kept real time, and the process's CPU seconds.
+whether it kept real time, and the process's CPU seconds. `--arms` picks the current arms: "face process" is
+serve's one BLAS thread with the faces made in a child process beside the batcher (`serve --face-process`); its
+CPU seconds are the served process's and the child's together.
 
     .venv/bin/python benchmarks/blas_threads.py --streams 32 40 48 --repeats 2 --neighbour
+    .venv/bin/python benchmarks/blas_threads.py --streams 48 56 64 --arms "one thread" "face process"
 """
 from __future__ import annotations
 
@@ -25,7 +28,7 @@ from pathlib import Path
 
 from common import RESULTS, code_version, commit_of, describe_device, load_average, utc_now, write_json
 
-ARMS = ("one thread", "pool", "before")
+ARMS = ("one thread", "face process", "pool", "before")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -37,9 +40,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--checkpoint", default=None,
                    help="the model of the two current arms (default: the embedded default model; --before's arm "
                         "runs its own)")
+    p.add_argument("--arms", nargs="+", choices=ARMS[:3], default=["one thread", "pool"],
+                   help="the current code's arms (default: one thread, pool); --before adds its own")
     p.add_argument("--neighbour", action="store_true", help="each trial also beside a busy loop on one core")
     p.add_argument("--before", type=Path, default=None, metavar="ROOT",
                    help="a third arm: the code (and embedded model) of this checkout, numpy's BLAS pool as it had")
+    p.add_argument("--before-streams", type=int, nargs="+", default=None,
+                   help="the stream counts of --before's arm (default: --streams)")
     p.add_argument("--out", type=Path, default=RESULTS / "blas_threads.json")
     p.add_argument("--note", default="measured on a shared machine: other processes were running")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)  # internal: one trial, as JSON
@@ -60,22 +67,57 @@ def child(job: dict) -> dict:
     from streams import serving_trial
 
     bundle = load_checkpoint(job["checkpoint"], "cpu")
-    if job["arm"] == "one thread":
+    if job["arm"] in ("one thread", "face process"):
         from streamer.server import one_blas_thread
 
         one_blas_thread()
+    process, kw = None, {}
+    if job["arm"] == "face process":
+        from streamer.face_process import FaceProcess
+
+        started = time.perf_counter()
+        process = FaceProcess()
+        process.ready()
+        kw = {"face_process": process, "start_s": time.perf_counter() - started}
     threads = inference_threads()
     torch.set_num_threads(threads)
     blas = sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
-    r = serving_trial(bundle, job["streams"], bundle.config.sample_steps, job["window_ms"], job["seconds"], True,
-                      threads, face=FaceOptions())
+    child_cpu = _children_cpu_s()
+    try:
+        r = serving_trial(bundle, job["streams"], bundle.config.sample_steps, job["window_ms"], job["seconds"], True,
+                          threads, face=FaceOptions(), face_process=process)
+    finally:
+        if process is not None:
+            process.close()
+    r["process_cpu_s"] += _children_cpu_s() - child_cpu  # (the face process's, once it has ended)
     return {**job, "blas_threads": blas, "torch_threads": threads, "dimgestor": dimgestor.__file__,
-            "model_steps": bundle.config.sample_steps, "guidance": bundle.config.guidance, **{k: r[k] for k in (
+            "model_steps": bundle.config.sample_steps, "guidance": bundle.config.guidance,
+            **({"face_process_start_s": kw["start_s"]} if process is not None else {}), **{k: r[k] for k in (
         "lag_ms_p50", "lag_ms_p95", "end_lag_ms_max", "mean_batch", "wall_s", "process_cpu_s", "ok")}}
+
+
+def _children_cpu_s() -> float:
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
 
 
 def busy_loop() -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def plan(args) -> list[tuple[bool, int, str]]:
+    """The trials in order, (neighbour, streams, arm): by count, the arms taking turns at each repeat, each arm at
+    its own counts (--before-streams for --before's)."""
+    arms = [a for a in ARMS if a in args.arms or (a == "before" and args.before is not None)]
+    counts = {arm: args.before_streams if arm == "before" and args.before_streams else args.streams for arm in arms}
+    out = []
+    for neighbour in ([False, True] if args.neighbour else [False]):
+        for n in sorted({n for c in counts.values() for n in c}):
+            for k in range(args.repeats):
+                out += [(neighbour, n, arm) for arm in (arms if k % 2 == 0 else arms[::-1]) if n in counts[arm]]
+    return out
 
 
 def job_of(args, arm: str, n: int, neighbour: bool) -> dict:
@@ -134,12 +176,12 @@ def plot(result: dict, path: Path) -> None:
     for g, neighbour in enumerate(groups):
         rows = [r for r in result["trials"] if r["neighbour"] == neighbour]
         where = "beside a busy core" if neighbour else "alone"
-        for arm, colour in zip(ARMS, ("tab:blue", "tab:orange", "tab:grey")):
+        for arm, colour in zip(ARMS, ("tab:blue", "tab:green", "tab:orange", "tab:grey")):
             mine = [r for r in rows if r["arm"] == arm]
             if not mine:
                 continue
             label = (f"{result['before']['commit']} as it served (BLAS pool)" if arm == "before"
-                     else f"BLAS: {arm}")
+                     else "BLAS: one thread, faces in a child process" if arm == "face process" else f"BLAS: {arm}")
             axes[g][0].scatter([r["streams"] for r in mine], [min(r["lag_ms_p95"], 2000) for r in mine],
                                    color=colour, label=label)
             axes[g][1].scatter([r["streams"] for r in mine], [r["process_cpu_s"] for r in mine],
@@ -165,12 +207,7 @@ def main(argv=None) -> int:
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
         return 0
-    rows, arms = [], ARMS if args.before is not None else ARMS[:2]
-    for neighbour in ([False, True] if args.neighbour else [False]):
-        for n in args.streams:
-            for k in range(args.repeats):
-                for arm in (arms if k % 2 == 0 else arms[::-1]):  # (taking turns)
-                    rows.append(trial(args, arm, n, neighbour))
+    rows = [trial(args, arm, n, neighbour) for neighbour, n, arm in plan(args)]
     result = {"benchmark": "blas_threads", "created": utc_now(), "code": code_version(),
               "device": describe_device("cpu"), "command": "python benchmarks/blas_threads.py " + " ".join(args.argv),
               "note": args.note, "checkpoint": args.checkpoint or "the embedded default model",

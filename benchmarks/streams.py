@@ -127,14 +127,15 @@ def make_scheduler(batched: bool, threads: int, batch_runner=None):
 
 def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, batched: bool, threads: int,
                   aligned: bool = False, slack_ms: float = 150.0, end_ms: float = 500.0, grace_s: float = 10.0,
-                  onnx=None, batch_runner=None, face=None) -> dict:
+                  onnx=None, batch_runner=None, face=None, face_process=None) -> dict:
     """n paced sessions on one scheduler for `seconds` of audio each -> lags, batch sizes, frames, verdict.
 
     aligned: every session's audio clock starts at the same instant (all windows due together: the best
     case for batching) instead of staggered over one window. onnx: a `dimgestor.export.onnx_stream.OnnxModel`: the
     sessions run on it, as `dimgestor serve --backend onnxruntime` builds them (batched: on `batch_runner`, the
     export's batched graphs; unbatched: each window alone, as with --no-batch). face: a
-    `dimgestor.face.FaceOptions`: every session makes a face too, as a client that asks for one."""
+    `dimgestor.face.FaceOptions`: every session makes a face too, as a client that asks for one. face_process: a
+    `streamer.face_process.FaceProcess` the faces are made in (`serve --face-process`)."""
     from streamer.sessions import Session
 
     if onnx is not None and batched and batch_runner is None:
@@ -145,17 +146,19 @@ def serving_trial(bundle, n: int, steps: int, window_ms: int, seconds: float, ba
     frames = [0] * n
     window_s = window_ms / 1000
 
+    faces = {"face": face} if face_process is None else {"face": face, "face_process": face_process}  # (older code)
+
     async def one(j: int, t0: float) -> None:
         if onnx is None:
             session = Session.from_bundle(bundle, steps=steps, seed=j, window_ms=window_ms, scheduler=scheduler,
-                                          name=f"bench{j}", face=face)
+                                          name=f"bench{j}", **faces)
         else:
             from dimgestor.features import PoseDecoder
 
             session = Session(onnx.stream(seed=j, lookahead_s=bundle.model.lookahead_s),
                               PoseDecoder(bundle.skeleton, bundle.feature_spec), bundle.denormalize,
                               bundle.feature_spec.fps, window_ms=window_ms, scheduler=scheduler, name=f"bench{j}",
-                              face=face)
+                              **faces)
 
         def emit(fs) -> None:
             frames[j] += len(fs)

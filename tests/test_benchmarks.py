@@ -113,28 +113,30 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
 
 
 def test_blas_threads_benchmark_writes_its_schema(tmp_path):
-    """benchmarks/blas_threads.py at its smallest: one stream with a face, both arms, alone and beside a busy core:
-    the arm of one thread runs numpy's BLAS on one (serve's setting), the other on its pool."""
+    """benchmarks/blas_threads.py at its smallest: one stream with a face, the three arms, alone and beside a busy
+    core: the arms of one thread run numpy's BLAS on one (serve's setting), the face process's faces in a child
+    (whose CPU is counted in), the other on its pool."""
     from helpers.checkpoint import make_tiny_checkpoint
 
     out = tmp_path / "blas.json"
     run("blas_threads.py", "--streams", "1", "--repeats", "1", "--seconds", "2", "--neighbour",
-        "--checkpoint", str(make_tiny_checkpoint(tmp_path)), "--out", str(out))
+        "--arms", "one thread", "face process", "pool", "--checkpoint", str(make_tiny_checkpoint(tmp_path)),
+        "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["code"] and r["device"].startswith("CPU") and r["window_ms"] == 100
-    assert [(t["neighbour"], t["arm"]) for t in r["trials"]] == [(False, "one thread"), (False, "pool"),
-                                                                 (True, "one thread"), (True, "pool")]
+    arms = ["one thread", "face process", "pool"]
+    assert [(t["neighbour"], t["arm"]) for t in r["trials"]] == [(n, a) for n in (False, True) for a in arms]
     for t in r["trials"]:
         assert t["streams"] == 1 and finite(t["lag_ms_p95"]) and finite(t["process_cpu_s"]) and t["torch_threads"] >= 1
-        assert (t["blas_threads"] == [1]) == (t["arm"] == "one thread" or (os.cpu_count() or 1) == 1), t
-    assert [(s["neighbour"], s["arm"], s["trials"]) for s in r["summary"]] == [
-        (False, "one thread", 1), (False, "pool", 1), (True, "one thread", 1), (True, "pool", 1)]
+        assert (t["blas_threads"] == [1]) == (t["arm"] != "pool" or (os.cpu_count() or 1) == 1), t
+    assert [(s["neighbour"], s["arm"], s["trials"]) for s in r["summary"]] == [(n, a, 1) for n in (False, True)
+                                                                                for a in arms]
 
 
 def test_blas_threads_before_arm_runs_its_own_model(tmp_path):
-    """--before's arm loads its own code's embedded model; --checkpoint is the model of the two current arms (older
-    code may not read a newer checkpoint)."""
+    """--before's arm loads its own code's embedded model; --checkpoint is the model of the current arms (older
+    code may not read a newer checkpoint); each arm runs at its own counts, taking turns where they meet."""
     sys.path.insert(0, str(BENCH))
     try:
         import blas_threads
@@ -142,7 +144,14 @@ def test_blas_threads_before_arm_runs_its_own_model(tmp_path):
         sys.path.remove(str(BENCH))
     args = blas_threads.parse_args(["--checkpoint", "runs/mine", "--before", str(tmp_path)])
     assert [blas_threads.job_of(args, arm, 8, False)["checkpoint"] for arm in blas_threads.ARMS] == \
-        ["runs/mine", "runs/mine", None]
+        ["runs/mine", "runs/mine", "runs/mine", None]
+    args = blas_threads.parse_args(["--streams", "48", "56", "--before-streams", "20", "48", "--arms", "one thread",
+                                    "face process", "--before", str(tmp_path)])
+    assert blas_threads.plan(args) == [(False, 20, "before"), (False, 20, "before"),
+                                       (False, 48, "one thread"), (False, 48, "face process"), (False, 48, "before"),
+                                       (False, 48, "before"), (False, 48, "face process"), (False, 48, "one thread"),
+                                       (False, 56, "one thread"), (False, 56, "face process"),
+                                       (False, 56, "face process"), (False, 56, "one thread")]
 
 
 def test_face_streams_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
