@@ -35,6 +35,7 @@ SOURCES = {
     "face_streams": "face_streams.json",  # streams per process with a face on each, against none
     "face_trials": "serving_folded.json",  # serving trials at fixed counts, a face on each (its "after" code)
     "blas": "serving_issue50.json",  # those trials: serve's one BLAS thread, numpy's pool, serve before issue 50
+    "face_process": "serving_face_process.json",  # those trials: the faces on the inference thread or in a child
 }
 CPU_SOURCES = ("windows", "streams", "preset", "cost", "vmc", "vmc_jitter", "talk")  # one machine; the face's
 # cost is a ratio of two arms of one run, whose machine its section names
@@ -275,7 +276,7 @@ def face_batched(r: dict[str, dict]) -> list[str]:
                  f"{f['steps']}, {f['window_ms']} ms windows, the batcher on {f['threads']} torch "
                  f"thread{'s' if f['threads'] > 1 else ''} as `serve` gives it here, measured on "
                  f"{measured_on(f['device'], r)}).")
-    lines += ["", source("face_streams"), "", *face_trials(r), *blas(r)]
+    lines += ["", source("face_streams"), "", *face_trials(r), *blas(r), *face_process(r)]
     return lines
 
 
@@ -330,6 +331,32 @@ def blas(r: dict[str, dict]) -> list[str]:
         line += (f" In the same run, `serve` as it was before these changes (the default model then: {rows}; numpy's "
                  f"pool) kept {kept('before', False)}.")
     return [line, "", source("blas"), ""]
+
+
+def face_process(r: dict[str, dict]) -> list[str]:
+    """`serve --face-process` against the faces on the inference thread (and serve before these changes), in
+    fixed-count trials with a face on every session: the most streams each kept in every trial of that count and
+    of every smaller one."""
+    t = r["face_process"]
+
+    def kept(arm: str) -> str:  # (the most kept in every trial of that count and of every count below it)
+        runs = [x for x in t["trials"] if x["arm"] == arm and not x["neighbour"]]
+        counts = sorted({x["streams"] for x in runs})
+        held = [n for k, n in enumerate(counts) if all(x["ok"] for x in runs if x["streams"] in counts[:k + 1])]
+        return str(max(held)) if held else f"fewer than {counts[0]}"
+
+    now = [x for x in t["trials"] if x["arm"] != "before"]
+    per = len(now) // len({(x["arm"], x["streams"]) for x in now})
+    line = ("`dimgestor serve --face-process` makes the sessions' faces in a second process, on a core of their own, "
+            "while the inference thread steps the bodies (the face was about a third of that thread's work, and "
+            "the GIL keeps a second thread from sharing it). In trials as above (the default model at K = "
+            f"{now[0]['model_steps']}, {t['seconds']:g} s, {per} a count, a face on every session, measured on "
+            f"{measured_on(t['device'], r)}), one process kept {kept('face process')} streams with a face in every "
+            f"trial, against {kept('one thread')} with the faces on the inference thread")
+    if any(x["arm"] == "before" for x in t["trials"]):
+        line += f"; in the same run, `serve` as it was before these changes kept {kept('before')}"
+    start = max(x["face_process_start_s"] for x in now if "face_process_start_s" in x)
+    return [line + f". The child adds up to {start:.1f} s to the server's start.", "", source("face_process"), ""]
 
 
 def render(results: Path = RESULTS) -> str:
