@@ -9,7 +9,8 @@ stepped (`begin`), and takes the faces' new rows after (`wait`), so body and fac
 Each face lives in the child under a number (`RemoteFace`); what a session asks of it (its first audio, a smile,
 the end of its audio, closing it) travels with the next exchange. The child answers every exchange in order; a
 face that fails there fails its own session's window, and a child that ended fails every face's next window
-with one line saying so (the sessions without a face go on).
+with one line saying so (the sessions without a face go on, and faces begun after it are made in the batch's
+thread: `Session`).
 """
 
 from __future__ import annotations
@@ -144,6 +145,11 @@ class FaceProcess:
             self.close(timeout=1.0)
             raise FaceProcessEnded(f"the face process did not start within {timeout:g} s")
         self.wait(token)
+
+    @property
+    def ended(self) -> bool:
+        """Whether the child is known to be gone (its pipe broke)."""
+        return self._ended is not None
 
     @property
     def pid(self) -> int | None:

@@ -271,6 +271,7 @@ class Session:
         their rows). Sessions whose face is made here are left as they are."""
         groups: dict[int, list[Session]] = {}
         for s in sessions:
+            s._face_where()
             if s.face_options is not None and s.face_process is not None and s._face_audio and s._face_token is None:
                 groups.setdefault(id(s.face_process), []).append(s)
         for group in groups.values():
@@ -290,6 +291,8 @@ class Session:
         process, `faces_begin`), then each session's frames; a session's failure is its own entry (a failure of
         the faces' shared step, each face session's)."""
         failed: dict[int, BaseException] = {}
+        for s in sessions:
+            s._face_where()
         faces = [s for s in sessions if s.face_options is not None and s.face_process is None and s._face_audio]
         if faces:
             from dimgestor.face import FaceStream
@@ -355,6 +358,7 @@ class Session:
         if self._face is None:
             lookahead = np.floor(min(self.lookahead_s, 0.3) * 100 + 1e-6) / 100  # on the listener's 10 ms grid
             sample, frame = self._face_start
+            self._face_where()
             if self.face_process is not None:
                 self._face = self.face_process.face(self.fps, lookahead, self.face_options, sample, frame)
             else:
@@ -363,6 +367,11 @@ class Session:
                 self._face = FaceStream(self.fps, lookahead, self.face_options, start_sample=sample,
                                         start_frame=frame)
         return self._face
+
+    def _face_where(self) -> None:
+        """A face not made yet, whose face process has ended, is made in this process instead."""
+        if self._face is None and self.face_process is not None and self.face_process.ended:
+            self.face_process = None
 
     def snapshot(self, frames: int, state=None, **meta) -> bytes:
         """The session as bytes (`dimgestor.streaming.savestate`): the stream's state (default: its own now), the pose

@@ -84,8 +84,8 @@ def test_faces_made_in_the_face_process_are_the_faces_made_in_the_batch(bundle, 
 
 def test_a_face_that_fails_in_the_child_fails_its_own_session_and_a_killed_child_fails_only_the_faces(bundle):
     """A face the child cannot make (an unknown listener) fails its session's window, the others' faces go on;
-    once the child is killed, each face session's next window fails with one line naming the face process, and a
-    session without a face keeps making frames."""
+    once the child is killed, each face session's next window fails with one line naming the face process, a
+    session without a face keeps making frames, and sessions started after make their faces in the batch's thread."""
     from streamer.face_process import FaceProcess, FaceProcessEnded
 
     process = FaceProcess()
@@ -100,6 +100,10 @@ def test_a_face_that_fails_in_the_child_fails_its_own_session_and_a_killed_child
             assert isinstance(got[k], FaceProcessEnded), got[k]
             assert "face process" in str(got[k]) and "\n" not in str(got[k])
         assert counts[2] > 50 and len(got[2]) == 0  # (the session without a face: every frame, no face)
+        got, counts = _batched(bundle, process, [FaceOptions(), FaceOptions()])  # (sessions after: faces made here)
+        here, _ = _batched(bundle, None, [FaceOptions(), FaceOptions()])
+        for a, b in zip(got, here):
+            np.testing.assert_array_equal(a, b)
     finally:
         process.close()
 
