@@ -27,7 +27,10 @@ import numpy as np
 
 from dimgestor.face import FACE_LABELS
 
-__all__ = ["FaceProcess", "RemoteFace", "FaceProcessEnded"]
+__all__ = ["FaceProcess", "RemoteFace", "FaceProcessEnded", "ANSWER_TIMEOUT_S"]
+
+
+ANSWER_TIMEOUT_S = 30.0  # an exchange is a batch's faces (milliseconds); a child this late is stuck
 
 
 class FaceProcessEnded(RuntimeError):
@@ -194,12 +197,17 @@ class FaceProcess:
                     self._answers[got[0]] = got
                 self._cond.notify_all()
             _, out, cpu_s = self._answers.pop(token)
-            for old in [k for k in self._answers if k < token]:  # (answers nobody waits for: a failed batch's)
-                del self._answers[old]
         return out, cpu_s
 
     def _recv(self):
         try:
+            if not self._conn.poll(ANSWER_TIMEOUT_S):  # (a child that hangs would hold every batch: it is ended)
+                self._process.kill()
+                self._process.join(timeout=5.0)
+                self._ended = FaceProcessEnded(
+                    f"the face process (pid {self._process.pid}) did not answer in {ANSWER_TIMEOUT_S:g} s and was "
+                    "ended: this session's face cannot go on")
+                return None
             return self._conn.recv()
         except (EOFError, OSError):
             self._process.join(timeout=1.0)

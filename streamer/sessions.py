@@ -488,8 +488,9 @@ def _faces_taken(sessions: list[Session]) -> dict[int, BaseException]:
     and its share of the child's time paid -> {id(session): the exception that failed its face}."""
     failed: dict[int, BaseException] = {}
     groups: dict[int, list[Session]] = {}
-    for s in sessions:
-        groups.setdefault(id(s._face_token), []).append(s)
+    for s in sessions:  # (a token: an exchange's number, or the exception that kept it from being sent)
+        token = s._face_token
+        groups.setdefault(token if isinstance(token, int) else id(token), []).append(s)
     for group in groups.values():
         token = group[0]._face_token
         for s in group:

@@ -136,3 +136,27 @@ def test_serve_face_process_flag_starts_the_child_and_its_sessions_use_it(tiny_c
     none = build(parse(*common, "--face-process", "--face", "none"))
     none.scheduler.shutdown()
     assert none.face_process is None
+
+
+def test_answers_reach_their_own_waiters_in_any_order_and_a_stopped_child_is_ended(monkeypatch):
+    """Two exchanges waited for in the other order each get their own answer (the rows of their own face); a child
+    that stops answering is ended after `ANSWER_TIMEOUT_S`, its faces failing with one line that says so."""
+    import streamer.face_process as fp
+
+    process = fp.FaceProcess()
+    process.ready()
+    try:
+        a, b = process.face(20, 0.3, FaceOptions()), process.face(20, 0.3, FaceOptions(seed=5))
+        first = process.begin([a], [SPEECH[:16000]])
+        second = process.begin([b], [SPEECH[:8000]])
+        got_b, _ = process.wait(second)
+        got_a, _ = process.wait(first)
+        assert set(got_a) == {a.id} and set(got_b) == {b.id}
+        assert len(got_a[a.id]) > len(got_b[b.id]) > 0  # (1 s of audio against 0.5 s)
+        monkeypatch.setattr(fp, "ANSWER_TIMEOUT_S", 1.0)
+        os.kill(process.pid, signal.SIGSTOP)
+        with pytest.raises(fp.FaceProcessEnded, match="did not answer in 1 s and was ended"):
+            a.push(SPEECH[16000:17600])
+        assert process.ended
+    finally:
+        process.close()
