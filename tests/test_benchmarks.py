@@ -113,25 +113,24 @@ def test_model_cost_benchmark_writes_its_schema(tmp_path):
 
 
 def test_blas_threads_benchmark_writes_its_schema(tmp_path):
-    """benchmarks/blas_threads.py at its smallest: one stream with a face, the three arms, alone and beside a busy
-    core: the arms of one thread run numpy's BLAS on one (serve's setting), the face process's faces in a child
-    (whose CPU is counted in), the other on its pool."""
+    """benchmarks/blas_threads.py at its smallest: one stream with a face, the three arms: the arms of one thread
+    run numpy's BLAS on one (serve's setting), the face process's faces in a child (whose CPU is counted in), the
+    other on its pool. (Beside a busy core: `plan`'s order, below.)"""
     from helpers.checkpoint import make_tiny_checkpoint
 
     out = tmp_path / "blas.json"
-    run("blas_threads.py", "--streams", "1", "--repeats", "1", "--seconds", "2", "--neighbour",
-        "--arms", "one thread", "face process", "pool", "--checkpoint", str(make_tiny_checkpoint(tmp_path)),
-        "--out", str(out))
+    run("blas_threads.py", "--streams", "1", "--repeats", "1", "--seconds", "2", "--arms", "one thread",
+        "face process", "pool", "--checkpoint", str(make_tiny_checkpoint(tmp_path)), "--out", str(out))
     r = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert r["code"] and r["device"].startswith("CPU") and r["window_ms"] == 100
     arms = ["one thread", "face process", "pool"]
-    assert [(t["neighbour"], t["arm"]) for t in r["trials"]] == [(n, a) for n in (False, True) for a in arms]
+    assert [(t["neighbour"], t["arm"]) for t in r["trials"]] == [(False, a) for a in arms]
     for t in r["trials"]:
         assert t["streams"] == 1 and finite(t["lag_ms_p95"]) and finite(t["process_cpu_s"]) and t["torch_threads"] >= 1
         assert (t["blas_threads"] == [1]) == (t["arm"] != "pool" or (os.cpu_count() or 1) == 1), t
-    assert [(s["neighbour"], s["arm"], s["trials"]) for s in r["summary"]] == [(n, a, 1) for n in (False, True)
-                                                                                for a in arms]
+    assert [(s["neighbour"], s["arm"], s["trials"]) for s in r["summary"]] == [(False, a, 1) for a in arms]
+    assert r["trials"][1]["face_process_start_s"] > 0 and "face_process_start_s" not in r["trials"][0]
 
 
 def test_blas_threads_before_arm_runs_its_own_model(tmp_path):
@@ -152,6 +151,9 @@ def test_blas_threads_before_arm_runs_its_own_model(tmp_path):
                                        (False, 48, "before"), (False, 48, "face process"), (False, 48, "one thread"),
                                        (False, 56, "one thread"), (False, 56, "face process"),
                                        (False, 56, "face process"), (False, 56, "one thread")]
+    args = blas_threads.parse_args(["--streams", "8", "--repeats", "1", "--neighbour"])
+    assert blas_threads.plan(args) == [(False, 8, "one thread"), (False, 8, "pool"), (True, 8, "one thread"),
+                                       (True, 8, "pool")]
 
 
 def test_face_streams_benchmark_writes_its_schema(tmp_path, tmp_path_factory):
