@@ -1,4 +1,4 @@
-"""WAV loading and saving, anti-aliased rational resampling (one-shot and streaming), alignment.
+"""WAV loading and saving, anti-aliased rational resampling (one-shot and streaming), alignment, the mel filters.
 
 The resampler is a polyphase FIR, the same filter and output alignment as
 scipy.signal.resample_poly (Kaiser-windowed sinc, beta 5, 10 zero crossings per side at the
@@ -190,6 +190,26 @@ def save_wav(path: str | Path, x: np.ndarray, rate: int) -> None:
         w.setsampwidth(2)
         w.setframerate(int(rate))
         w.writeframes(pcm.tobytes())
+
+
+# ---- the mel filters ------------------------------------------------------------------------------
+
+
+def mel_weights(n_mels: int, n_fft: int, sample_rate: int, f_min: float = 0.0, f_max: float | None = None
+                ) -> np.ndarray:
+    """(n_fft//2+1, n_mels) float32 triangular HTK-mel filters, area-normalised (Slaney): the front ends' (as a
+    tensor: `dimgestor.frontend.mel`) and the face's, in numpy so that the face's own process needs no torch."""
+    f_max = sample_rate / 2 if f_max is None else f_max
+    hz_to_mel = lambda f: 2595.0 * math.log10(1.0 + f / 700.0)  # noqa: E731
+    mels = np.linspace(hz_to_mel(f_min), hz_to_mel(f_max), n_mels + 2, dtype=np.float64)
+    hz = 700.0 * (10.0 ** (mels / 2595.0) - 1.0)  # (n_mels + 2,) band edges
+    freqs = np.linspace(0, sample_rate / 2, n_fft // 2 + 1, dtype=np.float64)
+    lower, centre, upper = hz[:-2], hz[1:-1], hz[2:]
+    up = (freqs[:, None] - lower) / (centre - lower)
+    down = (upper - freqs[:, None]) / (upper - centre)
+    fb = np.maximum(np.minimum(up, down), 0.0)
+    fb = fb * (2.0 / (upper - lower))  # equal area per band, so wide high bands do not dominate
+    return fb.astype(np.float32)
 
 
 # ---- resampling ----------------------------------------------------------------------------------

@@ -50,10 +50,7 @@ class _Ops:
 
 def _child(conn) -> None:
     """The child's loop: an exchange's ops in order -> {face id: its new rows (n, F) or the exception}, and the
-    seconds of this process's CPU the exchange took."""
-    import torch
-
-    torch.set_num_threads(1)
+    seconds of this process's CPU the exchange took. (The face needs numpy only: no torch is imported here.)"""
     try:
         from threadpoolctl import threadpool_limits
 

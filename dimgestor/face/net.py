@@ -44,9 +44,9 @@ OUTPUTS = len(CLASSES) + 1          # the visemes' logits, then the jaw's openin
 
 @lru_cache(maxsize=1)
 def mel_filters() -> np.ndarray:
-    from dimgestor.frontend.mel import mel_filterbank
+    from dimgestor.audio import mel_weights
 
-    return mel_filterbank(N_MELS, NFFT, RATE, 50.0, 7600.0).numpy().astype(np.float64)
+    return mel_weights(N_MELS, NFFT, RATE, 50.0, 7600.0).astype(np.float64)
 
 
 @lru_cache(maxsize=1)
