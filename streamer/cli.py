@@ -193,7 +193,7 @@ def _output_flags(g) -> dict[str, argparse.Action]:
         _flag(g, "--face-process", action="store_true",
               help="make the sessions' faces in a second process beside the inference thread, on a core of their "
                    "own: with many faces on a machine of two or more cores, more avatars keep real time "
-                   "(docs/performance.md); it starts with the server (about 2 s)"),
+                   "(docs/performance.md)"),
         _flag(g, "--record", metavar="OUT.bvh|.glb|.vrma|.npz",
               help="write the generated motion of the server's source to this BVH file as it is generated "
                    "(a valid BVH at all times: a crash loses at most the last ~0.5 s), and its face beside it, "

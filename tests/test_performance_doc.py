@@ -138,8 +138,7 @@ def test_the_blas_sentence_gives_each_arms_count_kept_in_every_trial(perf, resul
 
 def test_the_face_process_sentence_gives_each_arms_count_kept_in_every_trial_and_the_childs_start(perf, results):
     """serve --face-process against the faces on the inference thread (and serve before these changes): per arm,
-    the largest count whose every trial kept real time, or fewer than the smallest it tried; the child's slowest
-    start."""
+    the largest count kept in every trial of it and of every smaller count, or fewer than the smallest it tried."""
     name = perf.SOURCES["face_process"]
     d = json.loads((results / name).read_text())
     now = sorted({x["streams"] for x in d["trials"] if x["arm"] != "before"})
@@ -147,14 +146,12 @@ def test_the_face_process_sentence_gives_each_arms_count_kept_in_every_trial_and
 
     def change(x):
         for t in x["trials"]:
-            t["ok"] = t["arm"] == "face process" and t["streams"] <= now[1]
-            if t["arm"] == "face process":
-                t["face_process_start_s"] = 1.34
+            t["ok"] = t["arm"] == "face process" and (t["streams"] <= now[1] or t["streams"] == now[-1])
     edit(results / name, change)
     page = perf.render(results)
     assert (f"one process kept {now[1]} streams with a face in every trial, against fewer than {now[0]} with the "
             "faces on the inference thread") in page
-    assert "The child adds up to 1.3 s to the server's start." in page
+    assert len(now) == 2 or f"kept {now[-1]} streams" not in page  # (a count passed above one that failed: not it)
     if any(t["arm"] == "before" for t in d["trials"]):
         before = min(t["streams"] for t in d["trials"] if t["arm"] == "before")
         assert f"`serve` as it was before these changes kept fewer than {before}." in page
