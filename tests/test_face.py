@@ -150,8 +150,7 @@ def test_sessions_batched_by_the_server_make_the_faces_they_make_alone_and_fail_
     """Through `StreamBatcher` (what `serve` runs): windows of three face sessions taken as one batch (their
     faces made together: `Session.frames_many`) carry the face each makes alone; a session whose frames fail
     fails alone, the others' faces go on."""
-    import threading
-
+    from helpers.batches import one_batch
     from streamer.scheduling import StreamBatcher
     from streamer.sessions import Session
 
@@ -171,19 +170,8 @@ def test_sessions_batched_by_the_server_make_the_faces_they_make_alone_and_fail_
         frames, errors = [[] for _ in seeds], [None] * len(seeds)
         try:
             for at in range(0, len(audio), 1600):
-                gate = threading.Event()
-                batcher.submit_ranked(0.0, gate.wait)  # holds the batcher: the three windows queue behind it
-                futures = {}
-                for k, s in enumerate(sessions):
-                    if errors[k] is None:
-                        s._hear(audio[at:at + 1600])
-                        futures[k] = batcher.submit_push(s, audio[at:at + 1600])
-                gate.set()
-                for k, f in futures.items():
-                    if (e := f.exception(timeout=60)) is not None:
-                        errors[k] = e
-                    else:
-                        frames[k] += f.result()
+                for k, made in one_batch(batcher, sessions, audio[at:at + 1600], errors).items():
+                    frames[k] += made
             assert batcher.stats.peak == sum(e is None for e in errors) or broken is not None
             for k, s in enumerate(sessions):
                 if errors[k] is None:

@@ -2,10 +2,10 @@
 
 import os
 import signal
-import threading
 
 import numpy as np
 import pytest
+from helpers.batches import one_batch
 from helpers.clients import SPEECH_WAV
 
 from dimgestor.audio import SAMPLE_RATE, load_wav
@@ -43,20 +43,9 @@ def _batched(bundle, face_process, options, smile_at=None, kill_at=None, bodies_
             if w == kill_at:
                 os.kill(face_process.pid, signal.SIGKILL)
                 face_process._process.join(10)
-            gate = threading.Event()
-            batcher.submit_ranked(0.0, gate.wait)  # holds the batcher: the windows queue behind it, one batch
-            futures = {}
-            for k, s in enumerate(sessions):
-                if errors[k] is None:
-                    s._hear(SPEECH[at:at + 1600])
-                    futures[k] = batcher.submit_push(s, SPEECH[at:at + 1600])
-            gate.set()
-            for k, f in futures.items():
-                if (e := f.exception(timeout=60)) is not None:
-                    errors[k] = e
-                else:
-                    counts[k] += len(f.result())
-                    rows[k] += [fr.channels["face"] for fr in f.result() if "face" in fr.channels]
+            for k, frames in one_batch(batcher, sessions, SPEECH[at:at + 1600], errors).items():
+                counts[k] += len(frames)
+                rows[k] += [fr.channels["face"] for fr in frames if "face" in fr.channels]
         for k, s in enumerate(sessions):
             if errors[k] is None:
                 last = s.infer_finish()
