@@ -547,3 +547,15 @@ def test_two_rigs_speaker_guidance_at_weight_one_is_generate_and_above_it_moves_
     assert np.abs(two_rigs.speaker_guided(bundle, audio, 2, "bob", 1.0) - want).max() < 1e-4 * np.abs(want).max()
     pushed = two_rigs.speaker_guided(bundle, audio, 2, "bob", 2.0)
     assert np.abs(pushed - plain).mean() > 1.2 * np.abs(want - plain).mean()
+
+
+def test_face_process_start_benchmark_writes_its_schema(tmp_path):
+    """benchmarks/face_process_start.py at its smallest: one fresh program starting one child, two faces: the
+    start, the child's memory idle and busy, an exchange's time, and no torch in a program that only makes faces."""
+    out = tmp_path / "fps.json"
+    run("face_process_start.py", "--repeats", "1", "--faces", "2", "--seconds", "0.5", "--out", str(out))
+    r = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 10_000 and r["code"] and r["faces"] == 2
+    (one,) = r["runs"]
+    assert 0 < one["start_s"] == r["start_s_max"] and 0 < one["idle_rss_mb"] <= one["busy_rss_mb"]
+    assert finite(one["exchange_ms_median"]) and one["torch_in_parent"] is False

@@ -149,3 +149,16 @@ def test_answers_reach_their_own_waiters_in_any_order_and_a_stopped_child_is_end
         assert process.ended
     finally:
         process.close()
+
+
+def test_a_program_that_only_makes_faces_imports_no_torch():
+    """The face (its listener's mel filters included: `dimgestor.audio.mel_weights`) is numpy only, so the face
+    process's child stays small and starts at once."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\nfrom dimgestor.face import FaceStream\nf = FaceStream(20, 0.3)\n"
+            "f.push(np.random.default_rng(0).standard_normal(16000).astype(np.float32) * 0.1)\n"
+            "print(f.frames_ready, 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert int(out[0]) > 0 and out[1] == "False"
